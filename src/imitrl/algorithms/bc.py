@@ -1,0 +1,130 @@
+"""Behaviour cloning: fit a policy to the expert's labels by gradient steps on a loss module.
+
+``fit_bc(learner, data, config)`` runs ``config.num_steps`` Adam steps of
+``learner.opt_pi`` on a :class:`~imitrl.objectives.BehaviorCloningLoss`:
+
+* full batch (``batch_size=None``): every step sees every row, as the section's
+  ``clone`` does; deterministic given the data;
+* minibatch: rows are drawn without replacement, epoch after epoch, from a
+  permutation seeded by ``config.seed`` (the buffer's TorchRL sampler is not used on
+  this hot path: one ``randperm`` per epoch and tensor slicing cost a fraction of a
+  ``ReplayBuffer.sample`` call; ``benchmarks/bc_throughput.py`` measures both).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+from tensordict import TensorDictBase
+from tqdm.auto import tqdm
+
+from imitrl import keys
+from imitrl.data.buffer import DemonstrationBuffer
+from imitrl.objectives.bc import LOSS_TYPES, BehaviorCloningLoss
+from imitrl.policies.actor_critic import ActorCritic
+
+__all__ = ["BCConfig", "FitResult", "fit_bc"]
+
+
+@dataclass(frozen=True)
+class BCConfig:
+    """Behaviour-cloning fit."""
+
+    num_steps: int = 200
+    """gradient steps of the policy optimizer"""
+    batch_size: int | None = None
+    """rows per step; None = the full batch every step"""
+    loss_type: str = "nll"
+    """one of imitrl.objectives.LOSS_TYPES (nll = cross-entropy for discrete actions)"""
+    label_key: str = keys.EXPERT_ACTION
+    """key of the target action"""
+    seed: int = 0
+    """seed of the minibatch order"""
+
+    def __post_init__(self) -> None:
+        if self.num_steps < 0:
+            raise ValueError(f"num_steps must be >= 0, got {self.num_steps}")
+        if self.batch_size is not None and self.batch_size < 1:
+            raise ValueError(f"batch_size must be positive or None, got {self.batch_size}")
+        if self.loss_type not in LOSS_TYPES:
+            raise ValueError(f"loss_type must be one of {LOSS_TYPES}, got {self.loss_type!r}")
+
+
+@dataclass
+class FitResult:
+    """What a fit measured."""
+
+    losses: torch.Tensor = field(repr=False)
+    """``[num_steps]`` loss at each step, before that step's update"""
+    final_loss: float
+    """the last entry of ``losses`` (nan when num_steps == 0)"""
+    num_rows: int
+    """rows the fit was trained on"""
+
+
+def _rows(data: DemonstrationBuffer | TensorDictBase, label_key: str) -> TensorDictBase:
+    td = data.data if isinstance(data, DemonstrationBuffer) else data
+    if not isinstance(td, TensorDictBase):
+        raise ValueError(
+            f"fit_bc needs a DemonstrationBuffer or a TensorDict, got {type(data).__name__}"
+        )
+    if td.batch_dims != 1 or td.shape[0] == 0:
+        raise ValueError(
+            f"fit_bc needs a non-empty batch of rows, got batch_size {tuple(td.batch_size)}"
+        )
+    for key in (keys.OBSERVATION, label_key):
+        if key not in td.keys(include_nested=True):
+            raise ValueError(f"rows lack {key!r}: need observations and labels")
+    obs = td.get(keys.OBSERVATION)
+    if obs.dtype.is_floating_point and torch.isnan(obs).any():
+        raise ValueError("NaN in the observations of the training rows")
+    return td.select(keys.OBSERVATION, label_key)
+
+
+def fit_bc(
+    learner: ActorCritic,
+    data: DemonstrationBuffer | TensorDictBase,
+    config: BCConfig = BCConfig(),
+    *,
+    progress: bool = False,
+) -> FitResult:
+    """Fit ``learner``'s policy to the labels in ``data`` (see the module docstring).
+
+    Args:
+        learner: the actor-critic; its ``opt_pi`` takes the steps.
+        data: a demonstration buffer or a TensorDict of rows with ``OBSERVATION`` and
+            ``config.label_key``.
+        config: steps, batch size, loss, seed.
+        progress: show a progress bar.
+    """
+    rows = _rows(data, config.label_key)
+    loss_module = BehaviorCloningLoss(learner.policy, loss_type=config.loss_type)
+    loss_module.set_keys(label=config.label_key)
+    n = rows.shape[0]
+    losses = torch.empty(config.num_steps)
+    minibatch = config.batch_size is not None and config.batch_size < n
+    if minibatch:
+        generator = torch.Generator().manual_seed(config.seed)
+        obs_all, label_all = rows.get(keys.OBSERVATION), rows.get(config.label_key)
+        perm, cursor = torch.randperm(n, generator=generator), 0
+    opt = learner.opt_pi
+    steps = tqdm(range(config.num_steps), desc="bc fit", disable=not progress, leave=False)
+    for step in steps:
+        if minibatch:
+            if cursor + config.batch_size > n:  # next epoch (the tail is dropped)
+                perm, cursor = torch.randperm(n, generator=generator), 0
+            idx = perm[cursor : cursor + config.batch_size]
+            cursor += config.batch_size
+            batch = rows.empty(batch_size=[idx.numel()])
+            batch.set(keys.OBSERVATION, obs_all[idx])
+            batch.set(config.label_key, label_all[idx])
+        else:
+            batch = rows
+        loss = loss_module(batch)["loss_bc"]
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        losses[step] = loss.detach()
+    final = float(losses[-1]) if config.num_steps else float("nan")
+    return FitResult(losses=losses, final_loss=final, num_rows=n)

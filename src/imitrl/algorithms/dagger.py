@@ -1,0 +1,221 @@
+"""DAgger: roll the learner (mixed with the expert), label every visited state, aggregate, refit.
+
+Round ``k = 0, 1, ...``: fit a learner on everything in the buffer (from scratch, as
+the section does, or warm-started), hand it to ``on_fit`` (evaluation), then collect
+``episodes_per_round`` episodes with the behaviour policy
+``TensorDictSequential(expert, learner, BetaMixer(beta_{k+1}))`` and extend the
+buffer with them as round ``k + 1``. Round 0 of the buffer is the offline
+demonstrations (``beta_0 = 1``). Every visited state is labelled by the expert, so
+the number of expert queries is the number of rows in the buffer.
+
+Beta schedules are tiny callables ``round -> beta`` (Ross et al. 2011 use
+``beta_1 = 1`` and ``beta_i = p^{i-1}``; the section's miniature uses ``beta = 0``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import torch
+from tensordict import TensorDict
+from tensordict.nn import TensorDictModuleBase
+from torchrl.envs import EnvBase
+from torchrl.envs.utils import ExplorationType
+from tqdm.auto import tqdm
+
+from imitrl import keys
+from imitrl.algorithms.bc import BCConfig, FitResult, fit_bc
+from imitrl.data.buffer import DemonstrationBuffer
+from imitrl.data.rollout import rollout_episodes
+from imitrl.policies.actor_critic import ActorCritic
+from imitrl.policies.mixture import BetaMixer, behaviour_policy
+
+__all__ = [
+    "Constant",
+    "DAggerConfig",
+    "DAggerResult",
+    "EnvSource",
+    "EpisodeSource",
+    "Exponential",
+    "Linear",
+    "RoundRecord",
+    "dagger",
+]
+
+BetaSchedule = Callable[[int], float]
+
+
+@dataclass(frozen=True)
+class Constant:
+    """``beta_i = beta`` for every relabel round."""
+
+    beta: float = 0.0
+
+    def __call__(self, round_index: int) -> float:
+        return self.beta
+
+
+@dataclass(frozen=True)
+class Linear:
+    """``beta_i = max(0, 1 - i / rounds)``: from all-expert to all-learner over ``rounds``."""
+
+    rounds: int
+
+    def __call__(self, round_index: int) -> float:
+        return max(0.0, 1.0 - round_index / self.rounds)
+
+
+@dataclass(frozen=True)
+class Exponential:
+    """``beta_i = p ** (i - 1)`` for ``i >= 1`` (Ross et al. 2011): round 1 is all expert."""
+
+    p: float = 0.5
+
+    def __call__(self, round_index: int) -> float:
+        return self.p ** max(0, round_index - 1)
+
+
+class EpisodeSource(Protocol):
+    """Where relabel rounds come from: plays a behaviour policy, returns buffer rows."""
+
+    def collect(
+        self,
+        behaviour: TensorDictModuleBase,
+        num_episodes: int,
+        *,
+        round_index: int,
+        first_episode: int,
+    ) -> TensorDict: ...
+
+
+@dataclass
+class EnvSource:
+    """Episodes from a TorchRL env (batched or not) via :func:`rollout_episodes`.
+
+    Attributes:
+        env: the env.
+        exploration: how the learner acts in rollouts (``DETERMINISTIC`` = greedy).
+        max_steps: safety bound on steps per lane in one collection.
+    """
+
+    env: EnvBase
+    exploration: ExplorationType = ExplorationType.DETERMINISTIC
+    max_steps: int = 100_000
+
+    def collect(
+        self,
+        behaviour: TensorDictModuleBase,
+        num_episodes: int,
+        *,
+        round_index: int,
+        first_episode: int,
+    ) -> TensorDict:
+        return rollout_episodes(
+            self.env,
+            behaviour,
+            num_episodes,
+            exploration=self.exploration,
+            max_steps=self.max_steps,
+            round_index=round_index,
+            first_episode=first_episode,
+        )
+
+
+@dataclass(frozen=True)
+class DAggerConfig:
+    """DAgger loop."""
+
+    rounds: int = 4
+    """fits; a relabel round is collected after each fit but the last"""
+    episodes_per_round: int = 3
+    """episodes rolled out and relabelled per round"""
+    beta: BetaSchedule = field(default_factory=lambda: Constant(0.0))
+    """probability of executing the expert's action in relabel round i"""
+    warm_start: bool = False
+    """keep training one learner (True) or refit a fresh one each round (False, the section)"""
+    fit: BCConfig = field(default_factory=BCConfig)
+    """the behaviour-cloning fit of each round"""
+    seed: int = 0
+    """seed of the mixture's coin flips"""
+
+    def __post_init__(self) -> None:
+        if self.rounds < 1:
+            raise ValueError(f"rounds must be >= 1, got {self.rounds}")
+        if self.episodes_per_round < 1:
+            raise ValueError(f"episodes_per_round must be >= 1, got {self.episodes_per_round}")
+
+
+@dataclass
+class RoundRecord:
+    """One DAgger round."""
+
+    round: int
+    rows_trained: int
+    """rows the round's learner was fitted on"""
+    expert_queries: int
+    """expert labels used so far (= rows trained on)"""
+    fit: FitResult
+    beta_next: float | None = None
+    """beta of the relabel round collected after this fit"""
+    rows_collected: int = 0
+    expert_executed_fraction: float | None = None
+
+
+@dataclass
+class DAggerResult:
+    learner: ActorCritic
+    rounds: list[RoundRecord]
+    buffer: DemonstrationBuffer
+
+
+def dagger(
+    source: EpisodeSource,
+    expert: TensorDictModuleBase,
+    make_learner: Callable[[], ActorCritic],
+    buffer: DemonstrationBuffer,
+    config: DAggerConfig = DAggerConfig(),
+    *,
+    on_fit: Callable[[int, ActorCritic], None] | None = None,
+    progress: bool = False,
+) -> DAggerResult:
+    """Run DAgger on top of the demonstrations already in ``buffer`` (extended in place).
+
+    Args:
+        source: plays the behaviour policy (an :class:`EnvSource` or a faithful stream).
+        expert: writes ``EXPERT_ACTION`` for any observation.
+        make_learner: builds a fresh learner (called once with ``warm_start``).
+        buffer: demonstrations (round 0), extended with every relabel round.
+        config: rounds, episodes per round, beta schedule, fit.
+        on_fit: called as ``on_fit(round, learner)`` after each fit, before collection.
+        progress: progress bar over rounds.
+    """
+    if len(buffer) == 0:
+        raise ValueError("DAgger starts from demonstrations: the buffer is empty")
+    mixer = BetaMixer(0.0, generator=torch.Generator().manual_seed(config.seed))
+    learner: ActorCritic | None = None
+    records: list[RoundRecord] = []
+    for k in tqdm(range(config.rounds), desc="dagger", disable=not progress, leave=False):
+        if learner is None or not config.warm_start:
+            learner = make_learner()
+        fit = fit_bc(learner, buffer, config.fit)
+        record = RoundRecord(round=k, rows_trained=len(buffer), expert_queries=len(buffer), fit=fit)
+        records.append(record)
+        if on_fit is not None:
+            on_fit(k, learner)
+        if k + 1 < config.rounds:
+            mixer.beta = config.beta(k + 1)
+            behaviour = behaviour_policy(expert, learner.policy, mixer)
+            rows = source.collect(
+                behaviour,
+                config.episodes_per_round,
+                round_index=k + 1,
+                first_episode=buffer.next_episode,
+            )
+            buffer.extend(rows)
+            record.beta_next = mixer.beta
+            record.rows_collected = rows.shape[0]
+            record.expert_executed_fraction = float(rows.get(keys.EXPERT_EXECUTED).float().mean())
+    assert learner is not None
+    return DAggerResult(learner=learner, rounds=records, buffer=buffer)

@@ -1,0 +1,6 @@
+"""Environments: the batched tabular simulator and helpers to build TorchRL envs."""
+
+from imitrl.envs.gym_stream import GymnasiumStream, GymnasiumStreamSource, play_episodes
+from imitrl.envs.tabular_env import TabularEnv
+
+__all__ = ["GymnasiumStream", "GymnasiumStreamSource", "TabularEnv", "play_episodes"]

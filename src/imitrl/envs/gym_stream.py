@@ -1,0 +1,313 @@
+"""Gymnasium-faithful episodes without per-step Python: play a uniform stream in bulk.
+
+A gymnasium toy-text env seeded with ``reset(seed=k)`` consumes its numpy
+``Generator`` one uniform per reset and one per step, and reset without a seed
+continues the same stream. An experiment that alternates demonstrations,
+evaluations and relabel rollouts on one env is therefore a deterministic function of
+that single stream.
+
+:class:`GymnasiumStream` draws the stream in bulk (``Generator.random(n)`` yields
+the same numbers as ``n`` calls of ``random()``). :func:`play_episodes` then plays a
+deterministic tabular policy for ``n`` consecutive episodes: it simulates an episode
+starting at *every* stream offset of a window at once, as one batch of lanes through
+the same :class:`~imitrl.tabular.OutcomeSampler` that drives :class:`TabularEnv`,
+and walks the chain ``offset -> offset + 1 + length`` to pick the episodes gymnasium
+would have played. The result equals a step-by-step gymnasium loop (tested), at
+batched-tensor speed.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from gymnasium.utils import seeding
+
+from imitrl.tabular.finite_horizon import expected_episode_length
+from imitrl.tabular.mdp import TabularMDP
+from imitrl.tabular.policy import policy_probs
+from imitrl.tabular.sampling import OutcomeSampler
+
+__all__ = ["Episodes", "GymnasiumStream", "GymnasiumStreamSource", "play_episodes"]
+
+
+class GymnasiumStream:
+    """The uniform stream of one gymnasium toy-text env after ``env.reset(seed=seed)``.
+
+    Constructing it stands for that seeded reset, which consumes the first uniform:
+    ``position`` (the uniforms consumed so far) starts at 1, and the next episode's
+    ``env.reset()`` draws the second. This is the section's protocol: seed once per
+    block, then reset without a seed before every episode.
+    """
+
+    def __init__(self, seed: int) -> None:
+        if not isinstance(seed, (int, np.integer)) or seed < 0:
+            raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
+        self.seed = int(seed)
+        self._generator = seeding.np_random(self.seed)[0]
+        self._drawn = torch.empty(0, dtype=torch.float64)  # uniforms drawn so far
+        self.position = 1  # the seeded reset's uniform
+
+    def window(self, length: int) -> torch.Tensor:
+        """The next ``length`` unconsumed uniforms (drawing more as needed)."""
+        need = self.position + length - self._drawn.numel()
+        if need > 0:
+            # Draw in large blocks: bulk draws equal one-at-a-time draws for PCG64.
+            block = max(need, self._drawn.numel(), 4096)
+            fresh = torch.from_numpy(self._generator.random(block))
+            self._drawn = torch.cat([self._drawn, fresh])
+        return self._drawn[self.position : self.position + length]
+
+    def advance(self, count: int) -> None:
+        self.position += int(count)
+
+
+@dataclass(frozen=True)
+class Episodes:
+    """Consecutive episodes of one policy on a stream.
+
+    Attributes:
+        returns: ``[n]`` float64 undiscounted returns.
+        lengths: ``[n]`` int64 numbers of steps.
+        success: ``[n]`` bool, the episode ended in a goal state.
+        truncated: ``[n]`` bool, the episode hit the time limit (gymnasium's flag: set
+            after ``max_steps`` steps even if the last step also terminated).
+        offsets: ``[n]`` stream positions of the episodes' resets.
+        transitions: with ``record=True``, ``[sum(lengths)]`` tensors, episodes back
+            to back: ``observation``, ``action``, ``next_observation``, ``reward``,
+            ``terminated``, ``step`` (time index), ``episode`` (0-based index).
+    """
+
+    returns: torch.Tensor
+    lengths: torch.Tensor
+    success: torch.Tensor
+    truncated: torch.Tensor
+    offsets: torch.Tensor
+    transitions: dict[str, torch.Tensor] | None = None
+
+    @property
+    def observations(self) -> torch.Tensor:
+        if self.transitions is None:
+            raise ValueError("play_episodes(..., record=True) keeps the visited states")
+        return self.transitions["observation"]
+
+    @property
+    def actions(self) -> torch.Tensor:
+        if self.transitions is None:
+            raise ValueError("play_episodes(..., record=True) keeps the actions")
+        return self.transitions["action"]
+
+    @property
+    def num_episodes(self) -> int:
+        return int(self.lengths.numel())
+
+
+def _deterministic_table(mdp: TabularMDP, policy: torch.Tensor) -> torch.Tensor:
+    table = torch.as_tensor(policy)
+    probs = policy_probs(table, mdp.num_states, mdp.num_actions)  # validates
+    if table.ndim == 2:
+        if not ((probs == 0) | (probs == 1)).all():
+            raise ValueError(
+                "play_episodes needs a deterministic policy ([S] actions or one-hot rows); "
+                "a stochastic policy would need its own random stream"
+            )
+        table = probs.argmax(dim=1)
+    return table.long()
+
+
+def _simulate_offsets(
+    sampler: OutcomeSampler,
+    table: torch.Tensor,
+    uniforms: torch.Tensor,
+    num_offsets: int,
+    max_steps: int,
+    goal: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Play one episode from each of the first ``num_offsets`` stream offsets.
+
+    Offset ``j`` resets with ``uniforms[j]`` and steps with ``uniforms[j + 1 + t]``.
+    Lanes are compacted as they finish, so the cost is the total number of steps.
+
+    Returns:
+        lengths ``[M]`` int64, returns ``[M]`` float64, success ``[M]`` bool.
+    """
+    offsets = torch.arange(num_offsets)
+    state = sampler.initial(uniforms[:num_offsets])
+    lengths = torch.full((num_offsets,), max_steps, dtype=torch.int64)
+    returns = torch.zeros(num_offsets, dtype=torch.float64)
+    success = torch.zeros(num_offsets, dtype=torch.bool)
+    lane = offsets  # which offset each active lane belongs to
+    ret = torch.zeros(num_offsets, dtype=torch.float64)
+    for t in range(max_steps):
+        u = uniforms.take(lane + 1 + t)
+        state, reward, terminated = sampler.step(state, table.take(state), u)
+        ret += reward
+        if t + 1 == max_steps:
+            done = torch.ones_like(terminated)
+        else:
+            done = terminated
+        if done.any():
+            fin = lane[done]
+            lengths[fin] = t + 1
+            returns[fin] = ret[done]
+            success[fin] = goal.take(state[done])
+            keep = ~done
+            lane, state, ret = lane[keep], state[keep], ret[keep]
+            if lane.numel() == 0:
+                break
+    return lengths, returns, success
+
+
+def _record(
+    sampler: OutcomeSampler,
+    table: torch.Tensor,
+    uniforms: torch.Tensor,
+    starts: torch.Tensor,
+    lengths: torch.Tensor,
+) -> dict[str, torch.Tensor]:
+    """Replay the chosen episodes, keeping every transition (episodes back to back)."""
+    n, T = starts.numel(), int(lengths.max()) if lengths.numel() else 0
+    obs = torch.zeros(n, T, dtype=torch.int64)
+    nxt = torch.zeros(n, T, dtype=torch.int64)
+    rew = torch.zeros(n, T, dtype=torch.float32)
+    term = torch.zeros(n, T, dtype=torch.bool)
+    state = sampler.initial(uniforms.take(starts))
+    for t in range(T):
+        obs[:, t] = state
+        state, rew[:, t], term[:, t] = sampler.step(
+            state, table.take(state), uniforms.take(starts + 1 + t)
+        )
+        nxt[:, t] = state
+    mask = torch.arange(T)[None, :] < lengths[:, None]
+    step = torch.arange(T).expand(n, T)
+    return {
+        "observation": obs[mask],
+        "action": table.take(obs[mask]),
+        "next_observation": nxt[mask],
+        "reward": rew[mask],
+        "terminated": term[mask],
+        "step": step[mask],
+        "episode": torch.arange(n)[:, None].expand(n, T)[mask],
+    }
+
+
+def play_episodes(
+    mdp: TabularMDP,
+    policy: torch.Tensor,
+    stream: GymnasiumStream,
+    num_episodes: int,
+    *,
+    max_steps: int | None = None,
+    record: bool = False,
+) -> Episodes:
+    """Play ``num_episodes`` consecutive episodes of a deterministic tabular policy.
+
+    Equivalent to ``for _ in range(n): s = env.reset()[0]; step until done`` on the
+    gymnasium env whose stream is ``stream``; the stream is advanced past them.
+
+    Args:
+        mdp: the MDP (its outcome lists are sampled, in list order).
+        policy: ``[S]`` int actions (or one-hot ``[S, A]`` rows).
+        stream: the env's uniform stream, shared by consecutive calls.
+        num_episodes: how many episodes.
+        max_steps: time limit; defaults to ``mdp.max_steps`` (required: an episode
+            must end).
+        record: also return the visited states and actions taken.
+    """
+    if int(num_episodes) != num_episodes or num_episodes < 0:
+        raise ValueError(f"num_episodes must be a non-negative integer, got {num_episodes!r}")
+    T = mdp.max_steps if max_steps is None else max_steps
+    if T is None:
+        raise ValueError(
+            f"{mdp.name!r} has no time limit: pass max_steps so that every episode ends"
+        )
+    table = _deterministic_table(mdp, policy)
+    sampler = OutcomeSampler(mdp)
+    n = int(num_episodes)
+    # Window size from the exact expected episode length, with slack; grown if short.
+    mean_len = expected_episode_length(mdp, table, T)
+    window = max(64, math.ceil(n * (1.0 + mean_len) * 1.05 + 8 * math.sqrt(n + 1) * (1 + mean_len)))
+    while True:
+        uniforms = stream.window(window + T + 1)
+        lengths, returns, success = _simulate_offsets(sampler, table, uniforms, window, T, mdp.goal)
+        # Walk the chain of consecutive episodes (cheap: one Python step per episode).
+        lens = lengths.tolist()
+        starts, pos = [], 0
+        while len(starts) < n and pos < window:
+            starts.append(pos)
+            pos += 1 + lens[pos]
+        if len(starts) == n:
+            break
+        window *= 2
+    idx = torch.tensor(starts, dtype=torch.int64)
+    ep_len = lengths[idx]
+    transitions = _record(sampler, table, uniforms, idx, ep_len) if record else None
+    base = stream.position
+    stream.advance(pos)
+    return Episodes(
+        returns=returns[idx],
+        lengths=ep_len,
+        success=success[idx],
+        truncated=ep_len == T,
+        offsets=idx + base,
+        transitions=transitions,
+    )
+
+
+class GymnasiumStreamSource:
+    """A DAgger episode source that plays gymnasium's own stream (see :func:`play_episodes`).
+
+    The behaviour policy is read as a table on every state in deterministic mode, so
+    the learner acts greedily and the mixture's beta must be 0 or 1 (a coin per step
+    would need a random stream of its own, which gymnasium's env does not have).
+
+    Args:
+        mdp: the tabular MDP of the env.
+        stream: the env's uniform stream (shared with evaluations on the same env).
+    """
+
+    def __init__(self, mdp: TabularMDP, stream: GymnasiumStream) -> None:
+        self.mdp, self.stream = mdp, stream
+
+    def collect(self, behaviour, num_episodes: int, *, round_index: int, first_episode: int):
+        from tensordict import TensorDict
+        from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+        from imitrl import keys
+
+        S = self.mdp.num_states
+        td = TensorDict({keys.OBSERVATION: torch.arange(S)}, batch_size=[S])
+        with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+            out = behaviour(td)
+        executed = out.get(keys.EXPERT_EXECUTED)
+        if executed.any() and not executed.all():
+            raise ValueError(
+                "the gymnasium stream source needs beta in {0, 1}: a per-step coin flip "
+                "has no place in gymnasium's random stream"
+            )
+        action_table, expert_table = out.get(keys.ACTION).long(), out.get(keys.EXPERT_ACTION).long()
+        eps = play_episodes(self.mdp, action_table, self.stream, num_episodes, record=True)
+        tr = eps.transitions
+        n = tr["observation"].numel()
+        T = self.mdp.max_steps
+        truncated = (tr["step"] + 1) == T
+        return TensorDict(
+            {
+                keys.OBSERVATION: tr["observation"],
+                keys.ACTION: tr["action"],
+                keys.EXPERT_ACTION: expert_table[tr["observation"]],
+                keys.EXPERT_EXECUTED: torch.full((n,), bool(executed.all()), dtype=torch.bool),
+                keys.EPISODE: first_episode + tr["episode"],
+                keys.ROUND: torch.full((n,), int(round_index), dtype=torch.int64),
+                keys.STEP: tr["step"],
+                keys.NEXT: {
+                    keys.REWARD: tr["reward"][:, None],
+                    keys.DONE: (tr["terminated"] | truncated)[:, None],
+                    keys.TERMINATED: tr["terminated"][:, None],
+                    keys.TRUNCATED: truncated[:, None],
+                },
+            },
+            batch_size=[n],
+        )

@@ -1,0 +1,205 @@
+"""`TabularEnv`: a TorchRL `EnvBase` simulating a :class:`TabularMDP` for N lanes at once.
+
+Each lane is an independent episode. Observations and actions are int64 scalars per
+lane (like ``GymEnv(..., categorical_action_encoding=True)``); rewards are float32
+``[*batch, 1]``; ``terminated`` comes from the MDP's outcome, ``truncated`` from the
+time limit exactly as gymnasium's ``TimeLimit`` sets it (after ``max_steps`` steps,
+whether or not the last step also terminated), ``done = terminated | truncated``.
+
+Randomness comes from one of two sources, chosen by ``rng``:
+
+* ``"torch"`` (default): one explicit ``torch.Generator`` for the whole batch; every
+  step draws one float64 uniform per lane, and so does every reset unless the start
+  state is fixed. Fast and reproducible, but a different stream than gymnasium's.
+* ``"gymnasium"``: lane ``i`` owns a numpy ``Generator`` seeded as gymnasium's
+  ``reset(seed=seed + i)`` seeds it, and draws one uniform per reset and per step of
+  that lane, used by inverse CDF over the env's own outcome list. At batch size 1
+  this reproduces ``gym.make(env_id)`` step for step under the same seed. It costs a
+  Python call per lane per step: use it for fidelity, not speed.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+import torch
+from gymnasium.utils import seeding
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data import Categorical, Composite, Unbounded
+from torchrl.envs import EnvBase
+
+from imitrl import keys
+from imitrl.tabular.mdp import TabularMDP
+from imitrl.tabular.sampling import OutcomeSampler
+
+__all__ = ["TabularEnv"]
+
+_RNG_KINDS = ("torch", "gymnasium")
+
+
+class TabularEnv(EnvBase):
+    """Batched simulator of a tabular MDP.
+
+    Args:
+        mdp: the MDP to simulate (its outcome lists, not the aggregated kernel).
+        batch_size: ``()`` for one episode or ``(N,)`` for N independent lanes.
+        max_steps: time limit per episode; ``"mdp"`` (default) uses ``mdp.max_steps``
+            (100 for FrozenLake 4x4, as gymnasium's registry sets it), None disables it.
+        rng: ``"torch"`` or ``"gymnasium"`` (see the module docstring).
+        seed: seed of the random source; ``None`` leaves it unseeded until
+            :meth:`set_seed` (``"torch"`` then starts from seed 0).
+
+    Keys: observation ``"observation"`` (int64), action ``"action"`` (int64),
+    ``("next", "reward")`` float32, ``("next", "done"|"terminated"|"truncated")`` bool.
+    """
+
+    def __init__(
+        self,
+        mdp: TabularMDP,
+        *,
+        batch_size: Sequence[int] | torch.Size = (),
+        max_steps: int | str | None = "mdp",
+        rng: str = "torch",
+        seed: int | None = None,
+    ) -> None:
+        batch_size = torch.Size(batch_size)
+        if len(batch_size) > 1:
+            raise ValueError(f"TabularEnv batch_size must be () or (N,), got {tuple(batch_size)}")
+        if rng not in _RNG_KINDS:
+            raise ValueError(f"rng must be one of {_RNG_KINDS}, got {rng!r}")
+        if max_steps == "mdp":
+            max_steps = mdp.max_steps
+        if max_steps is not None and (
+            isinstance(max_steps, str) or int(max_steps) != max_steps or max_steps < 1
+        ):
+            raise ValueError(
+                f"max_steps must be a positive integer, None or 'mdp', got {max_steps!r}"
+            )
+        super().__init__(device="cpu", batch_size=batch_size)
+        self.mdp = mdp
+        self.max_steps = None if max_steps is None else int(max_steps)
+        self.rng_kind = rng
+        self._sampler = OutcomeSampler(mdp)
+        support = torch.nonzero(mdp.initial > 0).view(-1)
+        self._point_start = int(support[0]) if support.numel() == 1 else None
+        self._n = int(batch_size.numel())
+        S, A = mdp.num_states, mdp.num_actions
+        self.observation_spec = Composite(
+            {keys.OBSERVATION: Categorical(S, shape=batch_size, dtype=torch.int64)},
+            shape=batch_size,
+        )
+        self.action_spec = Categorical(A, shape=batch_size, dtype=torch.int64)
+        self.reward_spec = Unbounded(shape=(*batch_size, 1), dtype=torch.float32)
+        self.done_spec = Composite(
+            {
+                key: Categorical(2, shape=(*batch_size, 1), dtype=torch.bool)
+                for key in (keys.DONE, keys.TERMINATED, keys.TRUNCATED)
+            },
+            shape=batch_size,
+        )
+        self._state = torch.zeros(self._n, dtype=torch.int64)
+        self._elapsed = torch.zeros(self._n, dtype=torch.int64)
+        self._generator: torch.Generator | None = None
+        self._np_generators: list[np.random.Generator] | None = None
+        self._set_seed(seed)
+
+    # ----------------------------------------------------------------- random
+    def _set_seed(self, seed: int | None) -> None:
+        if self.rng_kind == "torch":
+            self._generator = torch.Generator().manual_seed(0 if seed is None else int(seed))
+        else:
+            base = None if seed is None else int(seed)
+            self._np_generators = [
+                seeding.np_random(None if base is None else base + i)[0] for i in range(self._n)
+            ]
+
+    def _uniforms(self, lanes: torch.Tensor | None) -> torch.Tensor:
+        """float64 uniforms for ``lanes`` (bool mask ``[n]``, None = all lanes)."""
+        if self.rng_kind == "torch":
+            u = torch.rand(self._n, generator=self._generator, dtype=torch.float64)
+            return u if lanes is None else u[lanes]
+        assert self._np_generators is not None
+        idx = range(self._n) if lanes is None else torch.nonzero(lanes).view(-1).tolist()
+        return torch.tensor([self._np_generators[i].random() for i in idx], dtype=torch.float64)
+
+    # ------------------------------------------------------------------- core
+    def _reset(self, tensordict: TensorDictBase | None, **kwargs) -> TensorDictBase:
+        lanes = None
+        if tensordict is not None and "_reset" in tensordict.keys():
+            lanes = tensordict.get("_reset").reshape(self._n)
+        if self.rng_kind == "gymnasium":
+            # Only the lanes being reset draw from their streams, as gymnasium would.
+            if lanes is None:
+                state = self._sampler.initial(self._uniforms(None))
+            else:
+                state = self._state.clone()
+                state[lanes] = self._sampler.initial(self._uniforms(lanes))
+        elif self._point_start is not None:
+            # A single start state needs no draw (the torch stream is ours to define).
+            state = (
+                torch.full((self._n,), self._point_start, dtype=torch.int64)
+                if lanes is None
+                else self._state.masked_fill(lanes, self._point_start)
+            )
+        else:
+            state = self._sampler.initial(self._uniforms(None))
+            if lanes is not None:
+                state = torch.where(lanes, state, self._state)
+        self._state = state
+        self._elapsed = (
+            torch.zeros(self._n, dtype=torch.int64)
+            if lanes is None
+            else self._elapsed.masked_fill(lanes, 0)
+        )
+        false = torch.zeros((*self.batch_size, 1), dtype=torch.bool)
+        return TensorDict(
+            {
+                keys.OBSERVATION: self._state.reshape(self.batch_size),
+                keys.DONE: false,
+                keys.TERMINATED: false.clone(),
+                keys.TRUNCATED: false.clone(),
+            },
+            batch_size=self.batch_size,
+        )
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        action = tensordict.get(keys.ACTION)
+        action = self._check_action(action)
+        next_state, reward, terminated = self._sampler.step(
+            self._state, action, self._uniforms(None)
+        )
+        self._state = next_state
+        self._elapsed = self._elapsed + 1
+        if self.max_steps is None:
+            truncated = torch.zeros_like(terminated)
+        else:
+            truncated = self._elapsed >= self.max_steps
+        shape1 = (*self.batch_size, 1)
+        return TensorDict(
+            {
+                keys.OBSERVATION: next_state.reshape(self.batch_size),
+                keys.REWARD: reward.reshape(shape1),
+                keys.DONE: (terminated | truncated).reshape(shape1),
+                keys.TERMINATED: terminated.reshape(shape1),
+                keys.TRUNCATED: truncated.reshape(shape1),
+            },
+            batch_size=self.batch_size,
+        )
+
+    def _check_action(self, action: torch.Tensor) -> torch.Tensor:
+        if action.dtype.is_floating_point or action.dtype == torch.bool or action.is_complex():
+            raise ValueError(
+                f"TabularEnv expects integer actions in [0, {self.mdp.num_actions}), got dtype {action.dtype}"
+            )
+        if action.numel() != self._n:
+            raise ValueError(
+                f"TabularEnv expects one action per lane, shape {tuple(self.batch_size)}, "
+                f"got shape {tuple(action.shape)}"
+            )
+        action = action.reshape(self._n).long()
+        lo, hi = action.aminmax()
+        if lo < 0 or hi >= self.mdp.num_actions:
+            bad = int(lo) if lo < 0 else int(hi)
+            raise ValueError(f"TabularEnv action {bad} is outside [0, {self.mdp.num_actions})")
+        return action

@@ -1,0 +1,155 @@
+"""Monte Carlo evaluation with confidence intervals; exact values for tabular MDPs.
+
+Every evaluation states its exploration type (``DETERMINISTIC``: the greedy action;
+``RANDOM``: sampled). On a :class:`~imitrl.envs.TabularEnv` the exact finite-horizon
+success probability and return of the same policy are reported next to the
+estimates, so a Monte Carlo number can always be checked.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from tensordict.nn import TensorDictModuleBase
+from torchrl.envs import EnvBase
+from torchrl.envs.utils import ExplorationType
+
+from imitrl import keys
+from imitrl.data.rollout import SuccessFn, episode_returns
+from imitrl.envs.tabular_env import TabularEnv
+from imitrl.evaluation.tabular import exact_values
+
+__all__ = ["Evaluation", "evaluate", "mean_ci", "wilson_interval"]
+
+
+def _z(confidence: float) -> float:
+    if not 0.0 < confidence < 1.0:
+        raise ValueError(f"confidence must be in (0, 1), got {confidence}")
+    return float(torch.special.ndtri(torch.tensor(0.5 + confidence / 2, dtype=torch.float64)))
+
+
+def wilson_interval(successes: int, n: int, confidence: float = 0.95) -> tuple[float, float]:
+    """Wilson score interval of a binomial proportion."""
+    if n <= 0:
+        raise ValueError("need at least one trial")
+    z = _z(confidence)
+    p = successes / n
+    denom = 1 + z * z / n
+    centre = (p + z * z / (2 * n)) / denom
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / denom
+    return max(0.0, centre - half), min(1.0, centre + half)
+
+
+def mean_ci(x: torch.Tensor, confidence: float = 0.95) -> tuple[float, float, float]:
+    """Mean and normal-approximation interval ``mean +- z * sd / sqrt(n)``."""
+    x = x.double().reshape(-1)
+    if x.numel() == 0:
+        raise ValueError("need at least one value")
+    mean = float(x.mean())
+    if x.numel() == 1:
+        return mean, mean, mean
+    half = _z(confidence) * float(x.std(unbiased=True)) / math.sqrt(x.numel())
+    return mean, mean - half, mean + half
+
+
+@dataclass(frozen=True)
+class Evaluation:
+    """A Monte Carlo evaluation (and, on tabular MDPs, the exact values beside it)."""
+
+    num_episodes: int
+    exploration: str
+    mean_return: float
+    return_ci: tuple[float, float]
+    mean_length: float
+    success_rate: float | None = None
+    success_ci: tuple[float, float] | None = None
+    exact_success: float | None = None
+    exact_return: float | None = None
+    confidence: float = 0.95
+
+    def summary(self) -> str:
+        parts = [f"{self.num_episodes} episodes ({self.exploration})"]
+        if self.success_rate is not None:
+            lo, hi = self.success_ci
+            s = f"success {self.success_rate:.1%} [{lo:.1%}, {hi:.1%}]"
+            if self.exact_success is not None:
+                s += f" (exact {self.exact_success:.2%})"
+            parts.append(s)
+        lo, hi = self.return_ci
+        r = f"return {self.mean_return:.3f} [{lo:.3f}, {hi:.3f}]"
+        if self.exact_return is not None:
+            r += f" (exact {self.exact_return:.4f})"
+        parts.append(r)
+        return ", ".join(parts)
+
+
+def _tabular_success(env: TabularEnv) -> SuccessFn:
+    goal = env.mdp.goal
+
+    def success(out) -> torch.Tensor:
+        nxt = out.get(keys.NEXT)
+        return goal[nxt.get(keys.OBSERVATION).reshape(-1)] & nxt.get(keys.TERMINATED).reshape(-1)
+
+    return success
+
+
+def evaluate(
+    env: EnvBase,
+    policy: TensorDictModuleBase,
+    num_episodes: int,
+    *,
+    exploration: ExplorationType,
+    max_steps: int | None = None,
+    success_fn: SuccessFn | None = None,
+    confidence: float = 0.95,
+) -> Evaluation:
+    """Evaluate ``policy`` over ``num_episodes`` whole episodes.
+
+    Args:
+        env: any TorchRL env (batched envs play ``num_episodes / lanes`` episodes per lane).
+        policy: writes ``ACTION``.
+        exploration: ``DETERMINISTIC`` (greedy) or ``RANDOM`` (sampled).
+        max_steps: safety bound on steps per lane; defaults to 100 x the env's time
+            limit for a TabularEnv, required otherwise.
+        success_fn: end-of-episode success criterion; defaults to "entered a goal
+            state" on a TabularEnv, none elsewhere.
+        confidence: level of the intervals.
+    """
+    if num_episodes < 1:
+        raise ValueError(f"num_episodes must be positive, got {num_episodes}")
+    tabular = isinstance(env, TabularEnv)
+    if max_steps is None:
+        if tabular and env.max_steps is not None:
+            lanes = env.batch_size.numel() if len(env.batch_size) else 1
+            max_steps = env.max_steps * (math.ceil(num_episodes / lanes) + 1)
+        else:
+            raise ValueError("max_steps is required for envs other than a time-limited TabularEnv")
+    if success_fn is None and tabular:
+        success_fn = _tabular_success(env)
+    summary = episode_returns(
+        env,
+        policy,
+        num_episodes,
+        exploration=exploration,
+        max_steps=max_steps,
+        success_fn=success_fn,
+    )
+    mean, lo, hi = mean_ci(summary.returns, confidence)
+    result = {
+        "num_episodes": int(num_episodes),
+        "exploration": str(exploration).split(".")[-1].lower(),
+        "mean_return": mean,
+        "return_ci": (lo, hi),
+        "mean_length": float(summary.lengths.double().mean()),
+        "confidence": confidence,
+    }
+    if summary.success is not None:
+        k = int(summary.success.sum())
+        result["success_rate"] = k / num_episodes
+        result["success_ci"] = wilson_interval(k, num_episodes, confidence)
+    if tabular and env.max_steps is not None:
+        exact = exact_values(env.mdp, policy, exploration, env.max_steps)
+        result["exact_success"], result["exact_return"] = exact["success"], exact["return"]
+    return Evaluation(**result)

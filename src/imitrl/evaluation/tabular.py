@@ -1,0 +1,52 @@
+"""Read a policy module as a tabular policy, and price it exactly."""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDict
+from tensordict.nn import TensorDictModuleBase
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from imitrl import keys
+from imitrl.tabular.finite_horizon import expected_return, success_probability
+from imitrl.tabular.mdp import TabularMDP
+
+__all__ = ["exact_values", "tabulate"]
+
+
+def tabulate(
+    policy: TensorDictModuleBase, num_states: int, exploration: ExplorationType
+) -> torch.Tensor:
+    """The policy on every state ``0 .. S-1``.
+
+    Returns:
+        ``[S]`` int64 actions for ``DETERMINISTIC``/``MODE``; ``[S, A]`` float64
+        probabilities for ``RANDOM`` (the module must have ``get_dist``).
+    """
+    td = TensorDict({keys.OBSERVATION: torch.arange(num_states)}, batch_size=[num_states])
+    with torch.no_grad():
+        if exploration in (ExplorationType.DETERMINISTIC, ExplorationType.MODE):
+            with set_exploration_type(exploration):
+                return policy(td).get(keys.ACTION).long()
+        if exploration is ExplorationType.RANDOM:
+            get_dist = getattr(policy, "get_dist", None)
+            if get_dist is None:
+                raise ValueError(
+                    "a sampled (RANDOM) policy can only be tabulated through get_dist()"
+                )
+            return get_dist(td).probs.double()
+    raise ValueError(f"unsupported exploration type {exploration}")
+
+
+def exact_values(
+    mdp: TabularMDP,
+    policy: TensorDictModuleBase,
+    exploration: ExplorationType,
+    horizon: int | None = None,
+) -> dict[str, float]:
+    """Exact success probability and expected return of a policy module in ``horizon`` steps."""
+    table = tabulate(policy, mdp.num_states, exploration)
+    return {
+        "success": success_probability(mdp, table, horizon),
+        "return": expected_return(mdp, table, horizon),
+    }

@@ -1,0 +1,72 @@
+"""The tensordict key vocabulary of imitrl: one place that names every key.
+
+Keys are the API. Modules declare which of these they read and write; an expert's
+label never lives under a key a learner writes, so running a learner on a batch of
+demonstrations can never overwrite the labels it is trained on.
+
+Per-transition keys (root of a rollout / demonstration row):
+
+========================  ==========================================================
+``OBSERVATION``           what the policy sees at step t (env's observation key)
+``ACTION``                the action executed in the env at step t
+``EXPERT_ACTION``         the expert's label for the state at step t (never written
+                          by a learner)
+``LEARNER_ACTION``        the learner's own proposal at step t (kept by the DAgger
+                          mixture before it decides which action is executed)
+``EXPERT_EXECUTED``       bool: the executed action was the expert's
+``EPISODE``               int64 episode id, unique within a buffer
+``ROUND``                 int64 DAgger round that collected the row (0 = offline demos)
+``STEP``                  int64 time index of the row inside its episode
+``WEIGHT``                float per-row weight of the log-likelihood (advantage);
+                          treated as data, never differentiated
+``LOGITS``                categorical policy head output
+``LOC`` / ``SCALE``       Gaussian policy head outputs
+``STATE_VALUE``           value head output
+========================  ==========================================================
+
+Keys under ``"next"`` follow TorchRL: ``("next", "reward")``, ``("next", "done")``,
+``("next", "terminated")``, ``("next", "truncated")``, ``("next", OBSERVATION)``.
+"""
+
+from __future__ import annotations
+
+OBSERVATION = "observation"
+ACTION = "action"
+EXPERT_ACTION = "expert_action"
+LEARNER_ACTION = "learner_action"
+EXPERT_EXECUTED = "expert_executed"
+EPISODE = "episode"
+ROUND = "round"
+STEP = "step"
+WEIGHT = "weight"
+LOGITS = "logits"
+LOC = "loc"
+SCALE = "scale"
+STATE_VALUE = "state_value"
+
+NEXT = "next"
+REWARD = "reward"
+DONE = "done"
+TERMINATED = "terminated"
+TRUNCATED = "truncated"
+
+__all__ = [
+    "ACTION",
+    "DONE",
+    "EPISODE",
+    "EXPERT_ACTION",
+    "EXPERT_EXECUTED",
+    "LEARNER_ACTION",
+    "LOC",
+    "LOGITS",
+    "NEXT",
+    "OBSERVATION",
+    "REWARD",
+    "ROUND",
+    "SCALE",
+    "STATE_VALUE",
+    "STEP",
+    "TERMINATED",
+    "TRUNCATED",
+    "WEIGHT",
+]

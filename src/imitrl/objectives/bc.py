@@ -1,0 +1,142 @@
+"""Behaviour cloning as a TorchRL ``LossModule``, with optional per-row weights.
+
+``loss_type`` is chosen by argument, never guessed from a dtype:
+
+=========== =================================== ====================================
+loss_type   per-row loss ``l_i``                heads
+=========== =================================== ====================================
+nll         ``-log pi(a*_i | s_i)``             categorical (= cross-entropy),
+                                                tanh_normal
+mse         ``mean_j (mu(s_i)_j - a*_ij)^2``    deterministic
+l1          ``mean_j |mu(s_i)_j - a*_ij|``      deterministic
+smooth_l1   Huber(1) averaged over dims         deterministic
+=========== =================================== ====================================
+
+The objective is ``loss_bc = mean_i w_i l_i`` with ``w_i = 1`` unless a weight key
+is set; weights are read as data (detached): with ``loss_type="nll"`` and weights
+equal to advantages this is the advantage-weighted log-likelihood of
+:func:`imitrl.objectives.policy_step`.
+
+Why not ``torchrl.objectives.BCLoss``: in torchrl 0.14.1 it routes integer labels of
+a ``Categorical`` actor to a cross-entropy on the *sampled action* as if it were
+logits, and one ``action`` key names both the label and the prediction, so an
+expert label and a learner's action cannot live under different keys.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import TensorDictModule
+from tensordict.utils import NestedKey
+from torchrl.objectives import LossModule
+
+from imitrl import keys
+
+__all__ = ["LOSS_TYPES", "BehaviorCloningLoss"]
+
+LOSS_TYPES = ("nll", "mse", "l1", "smooth_l1")
+_REGRESSION = {
+    "mse": F.mse_loss,
+    "l1": F.l1_loss,
+    "smooth_l1": F.smooth_l1_loss,
+}
+
+
+class BehaviorCloningLoss(LossModule):
+    """``mean_i w_i * l(pi(.|s_i), a*_i)`` for a policy module.
+
+    Args:
+        actor: the policy: a ``ProbabilisticActor`` (for ``nll``) or a module writing
+            its action (for the regression losses).
+        loss_type: one of :data:`LOSS_TYPES`.
+        weighted: read per-row weights from the ``weight`` key (detached).
+
+    Keys (``set_keys`` to remap): ``observation`` is read by the actor; ``label``
+    (default ``"expert_action"``) is the target; ``prediction`` (default
+    ``"action"``) is where a deterministic actor writes; ``weight`` (default
+    ``"weight"``).
+
+    Returns ``loss_bc`` (to minimise) and detached metrics: ``nll`` or the regression
+    error, and ``accuracy`` (greedy action equals the label) for categorical actors.
+    """
+
+    @dataclass
+    class _AcceptedKeys:
+        label: NestedKey = keys.EXPERT_ACTION
+        prediction: NestedKey = keys.ACTION
+        weight: NestedKey = keys.WEIGHT
+
+    default_keys = _AcceptedKeys
+    tensor_keys: _AcceptedKeys
+    out_keys = ["loss_bc"]
+
+    def __init__(
+        self, actor: TensorDictModule, *, loss_type: str = "nll", weighted: bool = False
+    ) -> None:
+        if loss_type not in LOSS_TYPES:
+            raise ValueError(f"loss_type must be one of {LOSS_TYPES}, got {loss_type!r}")
+        super().__init__()
+        self.actor = actor
+        self.loss_type = loss_type
+        self.weighted = weighted
+        self._in_keys = None
+
+    def _forward_value_estimator_keys(self, **kwargs) -> None:
+        pass
+
+    @property
+    def in_keys(self):
+        extra = [self.tensor_keys.label] + ([self.tensor_keys.weight] if self.weighted else [])
+        return [*self.actor.in_keys, *extra]
+
+    @in_keys.setter
+    def in_keys(self, values):
+        self._in_keys = values
+
+    def per_row(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, TensorDictBase]:
+        """Per-row losses ``[N]`` and the actor's output tensordict (a shallow copy)."""
+        td = tensordict.select(*self.actor.in_keys, strict=True).copy()
+        label = tensordict.get(self.tensor_keys.label)
+        if self.loss_type == "nll":
+            dist = self.actor.get_dist(td)
+            if isinstance(dist, torch.distributions.Categorical):
+                if label.dtype.is_floating_point:
+                    raise ValueError(
+                        f"categorical labels under {self.tensor_keys.label!r} must be integers, got {label.dtype}"
+                    )
+                # Same value as F.cross_entropy(logits, label); reuse the normalised logits.
+                logp = dist.logits.gather(-1, label.long().unsqueeze(-1)).squeeze(-1)
+                td.set(keys.LOGITS, dist.logits)
+            else:
+                logp = dist.log_prob(label)
+            return -logp, td
+        out = self.actor(td)
+        pred = out.get(self.tensor_keys.prediction)
+        if pred.shape != label.shape:
+            raise ValueError(
+                f"prediction {tuple(pred.shape)} and label {tuple(label.shape)} shapes differ "
+                f"(label key {self.tensor_keys.label!r})"
+            )
+        err = _REGRESSION[self.loss_type](pred, label.to(pred.dtype), reduction="none")
+        return err.reshape(err.shape[0], -1).mean(-1), out
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        losses, out = self.per_row(tensordict)
+        if self.weighted:
+            w = tensordict.get(self.tensor_keys.weight).detach().to(losses.dtype)
+            if w.shape != losses.shape:
+                raise ValueError(
+                    f"weights {tuple(w.shape)} must have one entry per row {tuple(losses.shape)}"
+                )
+            loss = (w * losses).mean()
+        else:
+            loss = losses.mean()
+        metrics = {"loss_bc": loss, self.loss_type: losses.detach().mean()}
+        if keys.LOGITS in out.keys():
+            label = tensordict.get(self.tensor_keys.label)
+            metrics["accuracy"] = (out.get(keys.LOGITS).argmax(-1) == label).float().mean().detach()
+        return TensorDict(metrics, batch_size=[])

@@ -1,0 +1,85 @@
+"""Dynamic programming on a :class:`TabularMDP`: exact, float64, pure functions."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+
+from imitrl.tabular.mdp import TabularMDP
+from imitrl.tabular.policy import kernel_under, reward_under
+
+__all__ = ["backup", "greedy", "policy_evaluation", "value_iteration"]
+
+
+def backup(mdp: TabularMDP, V: torch.Tensor) -> torch.Tensor:
+    """Bellman backup ``Q[s, a] = r[s, a] + gamma * sum_s' P[s, a, s'] V[s']``.
+
+    Args:
+        V: ``[S]`` state values.
+
+    Returns:
+        ``[S, A]`` action values.
+    """
+    V = torch.as_tensor(V, dtype=torch.float64)
+    if V.shape != (mdp.num_states,):
+        raise ValueError(f"V must have shape [{mdp.num_states}], got {tuple(V.shape)}")
+    return mdp.r + mdp.gamma * (mdp.P @ V)
+
+
+def value_iteration(mdp: TabularMDP, num_iters: int = 1000) -> torch.Tensor:
+    """Iterate ``V_{k+1}[s] = max_a Q_k[s, a]`` from ``V_0 = 0``.
+
+    Returns:
+        ``[num_iters + 1, S]`` history of iterates, ``V_0`` first; ``[-1]`` is the
+        final estimate (the contraction error after k steps is at most
+        ``gamma^k * max|r| / (1 - gamma)``).
+    """
+    if int(num_iters) != num_iters or num_iters < 0:
+        raise ValueError(f"num_iters must be a non-negative integer, got {num_iters!r}")
+    history = torch.zeros(int(num_iters) + 1, mdp.num_states, dtype=torch.float64)
+    for k in range(int(num_iters)):
+        history[k + 1] = backup(mdp, history[k]).max(dim=1).values
+    return history
+
+
+def greedy(Q: torch.Tensor) -> torch.Tensor:
+    """``[S]`` int64 greedy actions ``argmax_a Q[s, a]``; exact ties go to the lowest action."""
+    Q = torch.as_tensor(Q)
+    if Q.ndim != 2:
+        raise ValueError(f"Q must have shape [S, A], got {tuple(Q.shape)}")
+    # torch.argmax returns the first maximal index, i.e. the lowest action on ties.
+    return Q.argmax(dim=1)
+
+
+def policy_evaluation(mdp: TabularMDP, pi: Any) -> torch.Tensor:
+    """Exact discounted value ``V_pi = (I - gamma P_pi)^{-1} r_pi`` of a tabular policy.
+
+    Args:
+        pi: ``[S]`` actions or ``[S, A]`` probabilities.
+
+    Returns:
+        ``[S]`` float64 values. With ``gamma == 1`` terminal states are pinned at 0 and
+        the system is solved on the others; it must then terminate with probability 1.
+
+    Raises:
+        ValueError: ``gamma == 1`` and the policy can avoid termination forever.
+    """
+    P_pi, r_pi = kernel_under(mdp, pi), reward_under(mdp, pi)
+    S = mdp.num_states
+    if mdp.gamma < 1.0:
+        return torch.linalg.solve(torch.eye(S, dtype=torch.float64) - mdp.gamma * P_pi, r_pi)
+    live = ~mdp.terminal
+    A_live = torch.eye(int(live.sum()), dtype=torch.float64) - P_pi[live][:, live]
+    V = torch.zeros(S, dtype=torch.float64)
+    try:
+        sol = torch.linalg.solve(A_live, r_pi[live])
+    except RuntimeError as err:  # singular: a closed class of non-terminal states
+        raise ValueError(
+            "undiscounted policy evaluation needs a policy that terminates with probability 1; "
+            "this one can stay among non-terminal states forever (use gamma < 1 or a time limit)"
+        ) from err
+    if not torch.isfinite(sol).all():
+        raise ValueError("undiscounted policy evaluation diverged: the policy does not terminate")
+    V[live] = sol
+    return V
