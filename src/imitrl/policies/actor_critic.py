@@ -37,10 +37,11 @@ from torch import nn
 from torchrl.data import Bounded
 from torchrl.data import Categorical as CategoricalSpec
 from torchrl.envs.utils import ExplorationType, set_exploration_type
-from torchrl.modules import ProbabilisticActor, TanhNormal, ValueOperator
+from torchrl.modules import ProbabilisticActor, TanhNormal
 
 from imitrl import keys
 from imitrl.policies.distributions import GreedyCategorical
+from imitrl.policies.modules import Module, Value
 
 __all__ = ["HEADS", "ActorCritic"]
 
@@ -136,13 +137,13 @@ class ActorCritic(nn.Module):
         nn.init.zeros_(logits_table.weight)
         nn.init.zeros_(value_table.weight)
         policy = ProbabilisticActor(
-            TensorDictModule(logits_table, in_keys=[keys.OBSERVATION], out_keys=[keys.LOGITS]),
+            Module(logits_table, in_keys=[keys.OBSERVATION], out_keys=[keys.LOGITS]),
             in_keys=[keys.LOGITS],
             out_keys=[keys.ACTION],
             distribution_class=GreedyCategorical,
             spec=CategoricalSpec(num_actions, dtype=torch.int64),
         )
-        value = ValueOperator(value_table, in_keys=[keys.OBSERVATION])
+        value = Value(value_table, in_keys=[keys.OBSERVATION])
         return cls(policy, value, head="categorical", lr=lr, num_states=num_states)
 
     @classmethod
@@ -190,7 +191,7 @@ class ActorCritic(nn.Module):
             if head == "categorical":
                 net = _mlp([*sizes, int(action)], activation)
                 policy = ProbabilisticActor(
-                    TensorDictModule(net, in_keys=[keys.OBSERVATION], out_keys=[keys.LOGITS]),
+                    Module(net, in_keys=[keys.OBSERVATION], out_keys=[keys.LOGITS]),
                     in_keys=[keys.LOGITS],
                     out_keys=[keys.ACTION],
                     distribution_class=GreedyCategorical,
@@ -202,9 +203,7 @@ class ActorCritic(nn.Module):
                 if head == "tanh_normal":
                     net = nn.Sequential(_mlp([*sizes, 2 * dim], activation), NormalParamExtractor())
                     policy = ProbabilisticActor(
-                        TensorDictModule(
-                            net, in_keys=[keys.OBSERVATION], out_keys=[keys.LOC, keys.SCALE]
-                        ),
+                        Module(net, in_keys=[keys.OBSERVATION], out_keys=[keys.LOC, keys.SCALE]),
                         in_keys=[keys.LOC, keys.SCALE],
                         out_keys=[keys.ACTION],
                         distribution_class=TanhNormal,
@@ -213,10 +212,10 @@ class ActorCritic(nn.Module):
                     )
                 else:
                     net = nn.Sequential(_mlp([*sizes, dim], activation), _Squash(low, high))
-                    policy = TensorDictModule(
+                    policy = Module(
                         net, in_keys=[keys.OBSERVATION], out_keys=[keys.ACTION]
                     )
-            value = ValueOperator(_mlp([*sizes, 1], activation), in_keys=[keys.OBSERVATION])
+            value = Value(_mlp([*sizes, 1], activation), in_keys=[keys.OBSERVATION])
         return cls(policy, value, head=head, lr=lr, observation_shape=(int(observation_dim),))
 
     def reset_optimizers(self, lr: float | None = None) -> None:

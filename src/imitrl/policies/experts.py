@@ -16,11 +16,12 @@ from collections.abc import Callable
 
 import torch
 from tensordict import TensorDictBase
-from tensordict.nn import TensorDictModule, TensorDictModuleBase, TensorDictSequential
+from tensordict.nn import TensorDictModuleBase, TensorDictSequential
 from torch import nn
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from imitrl import keys
+from imitrl.policies.modules import Module
 
 __all__ = ["Expert", "TableLookup"]
 
@@ -95,7 +96,7 @@ class _ExecuteExpert(TensorDictModuleBase):
         return tensordict
 
 
-class Expert(TensorDictModule):
+class Expert(Module):
     """A queryable expert: ``OBSERVATION -> EXPERT_ACTION``.
 
     Args:
