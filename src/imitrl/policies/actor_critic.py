@@ -212,9 +212,7 @@ class ActorCritic(nn.Module):
                     )
                 else:
                     net = nn.Sequential(_mlp([*sizes, dim], activation), _Squash(low, high))
-                    policy = Module(
-                        net, in_keys=[keys.OBSERVATION], out_keys=[keys.ACTION]
-                    )
+                    policy = Module(net, in_keys=[keys.OBSERVATION], out_keys=[keys.ACTION])
             value = Value(_mlp([*sizes, 1], activation), in_keys=[keys.OBSERVATION])
         return cls(policy, value, head=head, lr=lr, observation_shape=(int(observation_dim),))
 

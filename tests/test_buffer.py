@@ -1,0 +1,182 @@
+"""DemonstrationBuffer: grows without loss, reloads identically, rejects bad rows."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from tensordict import TensorDict
+from torchrl.data import Bounded, Categorical
+
+from imitrl import keys
+from imitrl.algorithms import BCConfig, DAggerConfig, EnvSource, dagger, fit_bc
+from imitrl.data import DemonstrationBuffer
+from imitrl.envs import TabularEnv
+from imitrl.policies import ActorCritic, Expert
+
+
+def rows(n, first_episode=0, round_index=0, seed=0, obs_dtype=torch.int64):
+    g = torch.Generator().manual_seed(seed)
+    a = torch.randint(0, 4, (n,), generator=g)
+    obs = torch.randint(0, 16, (n,), generator=g).to(obs_dtype)
+    return TensorDict(
+        {
+            keys.OBSERVATION: obs,
+            keys.EXPERT_ACTION: a,
+            keys.ACTION: a.clone(),
+            keys.EXPERT_EXECUTED: torch.ones(n, dtype=torch.bool),
+            keys.EPISODE: first_episode + torch.arange(n) // 5,
+            keys.ROUND: torch.full((n,), round_index),
+            keys.STEP: torch.arange(n) % 5,
+            (keys.NEXT, keys.REWARD): torch.zeros(n, 1),
+        },
+        [n],
+    )
+
+
+def test_k_rounds_hold_exactly_their_union_and_reload_identically(tmp_path):
+    buf = DemonstrationBuffer(capacity=8)
+    parts = []
+    for k, n in enumerate([7, 1, 9, 16, 33, 2]):  # crosses several capacity doublings
+        part = rows(n, first_episode=buf.next_episode, round_index=k, seed=k)
+        parts.append(part)
+        buf.extend(part)
+    union = torch.cat(parts)
+    assert len(buf) == union.shape[0] == 68
+    assert (buf.data == union).all()
+    assert list(buf.rounds()) == list(range(6))
+    buf.save(tmp_path / "demo", metadata={"round": 5, "note": "x"})
+    again, meta = DemonstrationBuffer.load(tmp_path / "demo")
+    assert meta == {"round": 5, "note": "x"}
+    assert (again.data == union).all() and again.schema == buf.schema
+    assert again.next_episode == buf.next_episode
+    again.extend(rows(3, first_episode=again.next_episode, round_index=6))  # still growable
+    assert len(again) == 71 and (again.data[:68] == union).all()
+
+
+def test_fit_and_dagger_extend_the_same_buffer_without_loss(lake, expert_table):
+    env = TabularEnv(lake, batch_size=(3,), seed=0)
+    expert = Expert.from_table(expert_table)
+    buf = DemonstrationBuffer(num_states=16, capacity=4, action_spec=Categorical(4))
+    from torchrl.envs.utils import ExplorationType
+
+    from imitrl.data import rollout_episodes
+
+    demos = rollout_episodes(
+        env, expert.as_actor(), 3, exploration=ExplorationType.DETERMINISTIC, max_steps=10_000
+    )
+    buf.extend(demos)
+    snapshot = buf.data.clone()
+    res = dagger(
+        EnvSource(env),
+        expert,
+        lambda: ActorCritic.tabular(16, 4),
+        buf,
+        DAggerConfig(rounds=3, fit=BCConfig(num_steps=50)),
+    )
+    assert (buf.data[: snapshot.shape[0]] == snapshot).all()
+    assert len(buf) == snapshot.shape[0] + sum(r.rows_collected for r in res.rounds)
+    assert [r.rows_trained for r in res.rounds] == [
+        snapshot.shape[0] + sum(x.rows_collected for x in res.rounds[:k]) for k in range(3)
+    ]
+
+
+def test_sampling_is_seeded():
+    def draw(seed):
+        b = DemonstrationBuffer(generator=torch.Generator().manual_seed(seed), batch_size=10)
+        b.extend(rows(50))
+        return torch.cat([b.sample()[keys.OBSERVATION] for _ in range(5)])
+
+    assert torch.equal(draw(1), draw(1)) and not torch.equal(draw(1), draw(2))
+
+
+def test_empty_buffer_errors(lake):
+    buf = DemonstrationBuffer()
+    with pytest.raises(ValueError, match="empty"):
+        buf.data
+    with pytest.raises(ValueError, match="empty"):
+        buf.sample(4)
+    with pytest.raises(ValueError, match="empty"):
+        fit_bc(ActorCritic.tabular(16, 4), buf)
+    with pytest.raises(ValueError, match="empty"):
+        dagger(
+            EnvSource(TabularEnv(lake)),
+            Expert.from_table(torch.zeros(16, dtype=torch.long)),
+            lambda: ActorCritic.tabular(16, 4),
+            buf,
+        )
+    with pytest.raises(ValueError, match="zero rows"):
+        buf.extend(rows(0))
+
+
+def test_schema_changes_are_rejected_and_nothing_is_written():
+    buf = DemonstrationBuffer()
+    buf.extend(rows(10))
+    extra = rows(4, first_episode=buf.next_episode)
+    extra.set("task", torch.zeros(4, dtype=torch.long))
+    with pytest.raises(ValueError, match="unexpected key 'task'"):
+        buf.extend(extra)
+    missing = rows(4, first_episode=buf.next_episode).exclude((keys.NEXT, keys.REWARD))
+    with pytest.raises(ValueError, match="missing key 'next.reward'"):
+        buf.extend(missing)
+    with pytest.raises(ValueError, match="'observation' is float32"):
+        buf.extend(rows(4, first_episode=buf.next_episode, obs_dtype=torch.float32))
+    no_label = rows(4, first_episode=buf.next_episode).exclude(keys.EXPERT_ACTION)
+    with pytest.raises(ValueError, match="missing required keys"):
+        buf.extend(no_label)
+    assert len(buf) == 10
+
+
+def test_bad_values_are_rejected():
+    buf = DemonstrationBuffer(action_spec=Categorical(4), num_states=16)
+    bad = rows(5)
+    bad.set(keys.EXPERT_ACTION, torch.tensor([0, 1, 4, 0, 0]))
+    with pytest.raises(ValueError, match=r"'expert_action' holds action 4, outside \[0, 4\)"):
+        buf.extend(bad)
+    with pytest.raises(ValueError, match=r"integer states in \[0, 16\)"):
+        buf.extend(rows(5).set(keys.OBSERVATION, torch.tensor([0, 1, 16, 0, 0])))
+    nan = rows(5)
+    nan.set((keys.NEXT, keys.REWARD), torch.tensor([[0.0], [float("nan")], [0.0], [0.0], [0.0]]))
+    with pytest.raises(ValueError, match="NaN or inf"):
+        buf.extend(nan)
+    buf.extend(rows(5))
+    with pytest.raises(ValueError, match="episode id 0 is already used"):
+        buf.extend(rows(5))
+
+
+def test_continuous_actions_checked_against_bounds_and_shape():
+    spec = Bounded(-1.0, 1.0, shape=(2,))
+    buf = DemonstrationBuffer(action_spec=spec)
+
+    def cont(a):
+        n = a.shape[0]
+        return TensorDict(
+            {
+                keys.OBSERVATION: torch.zeros(n, 3),
+                keys.EXPERT_ACTION: a,
+                keys.ACTION: a.clone(),
+                keys.EXPERT_EXECUTED: torch.ones(n, dtype=torch.bool),
+                keys.EPISODE: torch.zeros(n, dtype=torch.long),
+                keys.ROUND: torch.zeros(n, dtype=torch.long),
+                keys.STEP: torch.arange(n),
+            },
+            [n],
+        )
+
+    with pytest.raises(ValueError, match="outside the bounds"):
+        buf.extend(cont(torch.tensor([[0.0, 1.5]])))
+    with pytest.raises(ValueError, match="expected"):
+        buf.extend(cont(torch.zeros(2, 3)))
+    nan_obs = cont(torch.zeros(2, 2))
+    nan_obs.set(keys.OBSERVATION, torch.tensor([[0.0, float("nan"), 0.0], [0.0, 0.0, 0.0]]))
+    with pytest.raises(ValueError, match="NaN or inf under 'observation'"):
+        buf.extend(nan_obs)
+    buf.extend(cont(torch.zeros(2, 2)))
+    assert len(buf) == 2
+
+
+def test_load_errors(tmp_path):
+    with pytest.raises(ValueError, match="not a saved DemonstrationBuffer"):
+        DemonstrationBuffer.load(tmp_path)
+    (tmp_path / "buffer.json").write_text("{not json")
+    with pytest.raises(ValueError, match="not valid JSON"):
+        DemonstrationBuffer.load(tmp_path)

@@ -1,0 +1,83 @@
+"""Evaluation: unbiased whole-episode Monte Carlo, intervals, exact values beside estimates."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from torchrl.envs import GymEnv
+from torchrl.envs.utils import ExplorationType
+
+from imitrl.envs import TabularEnv
+from imitrl.evaluation import evaluate, mean_ci, tabulate, wilson_interval
+from imitrl.experts import cartpole_expert
+from imitrl.policies import ActorCritic, Expert
+from imitrl.tabular import expected_episode_length, success_probability
+
+
+def test_wilson_interval_known_values():
+    lo, hi = wilson_interval(50, 100, 0.95)
+    assert lo == pytest.approx(0.4038, abs=1e-4) and hi == pytest.approx(0.5962, abs=1e-4)
+    assert wilson_interval(0, 10)[0] == 0.0 and wilson_interval(10, 10)[1] == pytest.approx(
+        1.0, abs=1e-12
+    )
+    m, lo, hi = mean_ci(torch.tensor([1.0, 2.0, 3.0, 4.0]), 0.95)
+    assert m == 2.5 and hi - m == pytest.approx(1.959964 * math.sqrt(5 / 3) / 2, abs=1e-5)
+
+
+@pytest.mark.parametrize("lanes", [1000, 4096])
+def test_batched_estimate_agrees_with_exact_value(lake, expert_table, lanes):
+    """Whole episodes per lane: no bias toward short episodes, estimate within its 99.9% interval."""
+    env = TabularEnv(lake, batch_size=(lanes,), seed=lanes)
+    ev = evaluate(
+        env,
+        Expert.from_table(expert_table).as_actor(),
+        20_000,
+        exploration=ExplorationType.DETERMINISTIC,
+        confidence=0.999,
+    )
+    exact = success_probability(lake, expert_table)
+    assert ev.exact_success == pytest.approx(exact, abs=1e-15)
+    assert ev.success_ci[0] < exact < ev.success_ci[1]
+    assert ev.mean_return == ev.success_rate  # FrozenLake pays 1 exactly on success
+    # mean episode length agrees with the exact expectation (4 standard errors)
+    assert abs(ev.mean_length - expected_episode_length(lake, expert_table)) < 4 * 30 / math.sqrt(
+        20_000
+    )
+
+
+def test_sampled_policy_has_exact_value_from_its_probabilities(lake):
+    learner = ActorCritic.tabular(16, 4)  # uniform random policy
+    env = TabularEnv(lake, batch_size=(5000,), seed=3)
+    ev = evaluate(env, learner.policy, 20_000, exploration=ExplorationType.RANDOM, confidence=0.999)
+    probs = tabulate(learner.policy, 16, ExplorationType.RANDOM)
+    assert torch.allclose(probs, torch.full((16, 4), 0.25, dtype=torch.float64))
+    assert ev.exact_success == pytest.approx(success_probability(lake, probs))
+    assert ev.success_ci[0] < ev.exact_success < ev.success_ci[1]
+    assert ev.exploration == "random"
+    greedy = evaluate(env, learner.policy, 100, exploration=ExplorationType.DETERMINISTIC)
+    assert greedy.exact_success == 0.0 and greedy.success_rate == 0.0  # always LEFT never arrives
+
+
+def test_evaluate_on_a_gym_env():
+    env = GymEnv("CartPole-v1", categorical_action_encoding=True)
+    env.set_seed(0)
+    ev = evaluate(
+        env,
+        cartpole_expert().as_actor(),
+        3,
+        exploration=ExplorationType.DETERMINISTIC,
+        max_steps=2000,
+    )
+    assert ev.mean_return == 500.0 and ev.success_rate is None and ev.exact_success is None
+    with pytest.raises(ValueError, match="max_steps is required"):
+        evaluate(env, cartpole_expert().as_actor(), 1, exploration=ExplorationType.DETERMINISTIC)
+    with pytest.raises(ValueError, match="num_episodes must be positive"):
+        evaluate(
+            env,
+            cartpole_expert().as_actor(),
+            0,
+            exploration=ExplorationType.DETERMINISTIC,
+            max_steps=10,
+        )

@@ -1,0 +1,119 @@
+"""BehaviorCloningLoss and policy_step: exact values and the BC special case."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+from tensordict import TensorDict
+from torchrl.data import Bounded
+
+from imitrl import keys
+from imitrl.algorithms import BCConfig, fit_bc
+from imitrl.objectives import BehaviorCloningLoss, policy_step
+from imitrl.policies import ActorCritic
+
+
+def _rows(n=64, S=8, A=3, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    return TensorDict(
+        {
+            keys.OBSERVATION: torch.randint(0, S, (n,), generator=g),
+            keys.EXPERT_ACTION: torch.randint(0, A, (n,), generator=g),
+        },
+        [n],
+    )
+
+
+def _randomise(ac, seed=0):
+    with torch.no_grad():
+        for p in ac.policy.parameters():
+            p.copy_(torch.randn(p.shape, generator=torch.Generator().manual_seed(seed)))
+
+
+def test_nll_equals_cross_entropy():
+    ac = ActorCritic.tabular(8, 3)
+    _randomise(ac)
+    rows = _rows()
+    out = BehaviorCloningLoss(ac.policy, loss_type="nll")(rows)
+    logits = ac.policy.module[0].module.weight[rows[keys.OBSERVATION]]
+    assert torch.allclose(
+        out["loss_bc"], F.cross_entropy(logits, rows[keys.EXPERT_ACTION]), atol=1e-6
+    )
+    assert out["accuracy"] == (logits.argmax(-1) == rows[keys.EXPERT_ACTION]).float().mean()
+
+
+@pytest.mark.parametrize("loss_type", ["mse", "l1", "smooth_l1"])
+def test_regression_losses_equal_torch_functional(loss_type):
+    spec = Bounded(-1.0, 1.0, shape=(2,))
+    ac = ActorCritic.mlp(3, spec, head="deterministic", hidden=(8,))
+    g = torch.Generator().manual_seed(0)
+    obs, label = torch.randn(32, 3, generator=g), torch.rand(32, 2, generator=g) * 2 - 1
+    out = BehaviorCloningLoss(ac.policy, loss_type=loss_type)(
+        TensorDict({keys.OBSERVATION: obs, keys.EXPERT_ACTION: label}, [32])
+    )
+    pred = ac.act_greedy(obs)
+    ref = {"mse": F.mse_loss, "l1": F.l1_loss, "smooth_l1": F.smooth_l1_loss}[loss_type](
+        pred, label
+    )
+    assert torch.allclose(out["loss_bc"], ref, atol=1e-6)
+
+
+def test_tanh_normal_nll_is_minus_log_prob():
+    spec = Bounded(-2.0, 2.0, shape=(1,))
+    ac = ActorCritic.mlp(3, spec, head="tanh_normal", hidden=(8,))
+    obs = torch.randn(16, 3, generator=torch.Generator().manual_seed(1))
+    label = torch.rand(16, 1, generator=torch.Generator().manual_seed(2)) * 3.8 - 1.9
+    out = BehaviorCloningLoss(ac.policy, loss_type="nll")(
+        TensorDict({keys.OBSERVATION: obs, keys.EXPERT_ACTION: label}, [16])
+    )
+    assert torch.allclose(out["loss_bc"], -ac.log_prob(obs, label).mean(), atol=1e-5)
+
+
+def test_label_key_is_separate_from_the_learner_action():
+    ac = ActorCritic.tabular(8, 3)
+    rows = _rows()
+    rows.set(keys.ACTION, torch.zeros(64, dtype=torch.long))
+    before = rows.clone()
+    BehaviorCloningLoss(ac.policy)(rows)
+    assert (rows == before).all()  # the loss writes into a copy, never into the batch
+
+
+def test_bad_loss_arguments():
+    ac = ActorCritic.tabular(8, 3)
+    with pytest.raises(ValueError, match="loss_type must be one of"):
+        BehaviorCloningLoss(ac.policy, loss_type="hinge")
+    rows = _rows()
+    rows.set(keys.EXPERT_ACTION, rows[keys.EXPERT_ACTION].float())
+    with pytest.raises(ValueError, match="must be integers"):
+        BehaviorCloningLoss(ac.policy)(rows)
+
+
+def test_policy_step_with_unit_weights_equals_one_bc_step():
+    rows = _rows(n=40)
+    a, b = ActorCritic.tabular(8, 3), ActorCritic.tabular(8, 3)
+    _randomise(a, 3)
+    _randomise(b, 3)
+    loss_a = policy_step(a, rows, np.ones(40), action_key=keys.EXPERT_ACTION)
+    fit = fit_bc(b, rows, BCConfig(num_steps=1))
+    assert loss_a == pytest.approx(fit.final_loss, abs=1e-7)
+    assert torch.equal(a.policy.module[0].module.weight, b.policy.module[0].module.weight)
+
+
+def test_policy_step_accepts_obs_act_objects_and_treats_weights_as_data():
+    class Batch:
+        obs = np.array([0, 1, 2, 1])
+        act = np.array([1, 1, 0, 2])
+
+    ac = ActorCritic.tabular(3, 3)
+    adv = torch.tensor([1.0, -2.0, 0.5, 3.0], requires_grad=True)
+    policy_step(ac, Batch(), adv)
+    assert adv.grad is None  # no gradient reached the weights
+    # the step moves log pi(a|s) along the sign of the advantage
+    lp = ac.log_prob(Batch.obs, Batch.act)
+    assert lp[0] > np.log(1 / 3) and lp[2] > np.log(1 / 3)
+    with pytest.raises(ValueError, match="one weight per row"):
+        policy_step(ac, Batch(), np.ones(3))
+    with pytest.raises(ValueError, match="NaN"):
+        policy_step(ac, Batch(), np.array([1.0, np.nan, 1.0, 1.0]))
