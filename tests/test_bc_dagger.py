@@ -53,7 +53,8 @@ def test_clone_is_perfect_on_its_pairs_and_uniform_elsewhere(lake, expert_table)
         assert (probs[seen].max(-1).values > 0.9).all()
 
 
-def _run(lake, expert_table, seed, beta=Constant(0.0), rounds=4, episodes=3, demo_episodes=3):
+def _run(lake, expert_table, seed, beta=None, rounds=4, episodes=3, demo_episodes=3):
+    beta = Constant(0.0) if beta is None else beta
     env, buf = demonstrations(lake, expert_table, seed, episodes=demo_episodes)
     tables = {}
     res = dagger(

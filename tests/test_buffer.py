@@ -92,7 +92,7 @@ def test_sampling_is_seeded():
 def test_empty_buffer_errors(lake):
     buf = DemonstrationBuffer()
     with pytest.raises(ValueError, match="empty"):
-        buf.data
+        _ = buf.data
     with pytest.raises(ValueError, match="empty"):
         buf.sample(4)
     with pytest.raises(ValueError, match="empty"):
@@ -116,7 +116,7 @@ def test_schema_changes_are_rejected_and_nothing_is_written():
     with pytest.raises(ValueError, match="unexpected key 'task'"):
         buf.extend(extra)
     missing = rows(4, first_episode=buf.next_episode).exclude((keys.NEXT, keys.REWARD))
-    with pytest.raises(ValueError, match="missing key 'next.reward'"):
+    with pytest.raises(ValueError, match=r"missing key 'next\.reward'"):
         buf.extend(missing)
     with pytest.raises(ValueError, match="'observation' is float32"):
         buf.extend(rows(4, first_episode=buf.next_episode, obs_dtype=torch.float32))
