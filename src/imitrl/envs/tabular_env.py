@@ -49,6 +49,9 @@ class TabularEnv(EnvBase):
         rng: ``"torch"`` or ``"gymnasium"`` (see the module docstring).
         seed: seed of the random source; ``None`` leaves it unseeded until
             :meth:`set_seed` (``"torch"`` then starts from seed 0).
+        initial_state: optional ``batch_size``-shaped int64 start state of every lane,
+            replacing draws from ``mdp.initial`` (e.g. lanes pinned to the copies of a
+            :meth:`TabularMDP.replicate` product, or starts from every state).
 
     Keys: observation ``"observation"`` (int64), action ``"action"`` (int64),
     ``("next", "reward")`` float32, ``("next", "done"|"terminated"|"truncated")`` bool.
@@ -62,6 +65,7 @@ class TabularEnv(EnvBase):
         max_steps: int | str | None = "mdp",
         rng: str = "torch",
         seed: int | None = None,
+        initial_state: torch.Tensor | None = None,
     ) -> None:
         batch_size = torch.Size(batch_size)
         if len(batch_size) > 1:
@@ -83,6 +87,25 @@ class TabularEnv(EnvBase):
         self._sampler = OutcomeSampler(mdp)
         support = torch.nonzero(mdp.initial > 0).view(-1)
         self._point_start = int(support[0]) if support.numel() == 1 else None
+        self._lane_start: torch.Tensor | None = None
+        if initial_state is not None:
+            if rng == "gymnasium":
+                raise ValueError(
+                    "initial_state cannot be combined with rng='gymnasium' (gymnasium draws every start)"
+                )
+            start = torch.as_tensor(initial_state)
+            if (
+                start.shape != batch_size
+                or start.dtype.is_floating_point
+                or start.dtype == torch.bool
+            ):
+                raise ValueError(
+                    f"initial_state must be an integer tensor of shape {tuple(batch_size)}, "
+                    f"got {start.dtype} {tuple(start.shape)}"
+                )
+            if start.numel() and (int(start.min()) < 0 or int(start.max()) >= mdp.num_states):
+                raise ValueError(f"initial_state entries must lie in [0, {mdp.num_states})")
+            self._lane_start = start.reshape(-1).long().clone()
         self._n = int(batch_size.numel())
         S, A = mdp.num_states, mdp.num_actions
         self.observation_spec = Composite(
@@ -135,6 +158,12 @@ class TabularEnv(EnvBase):
             else:
                 state = self._state.clone()
                 state[lanes] = self._sampler.initial(self._uniforms(lanes))
+        elif self._lane_start is not None:
+            state = (
+                self._lane_start.clone()
+                if lanes is None
+                else torch.where(lanes, self._lane_start, self._state)
+            )
         elif self._point_start is not None:
             # A single start state needs no draw (the torch stream is ours to define).
             state = (

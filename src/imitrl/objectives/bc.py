@@ -84,6 +84,12 @@ class BehaviorCloningLoss(LossModule):
         self.loss_type = loss_type
         self.weighted = weighted
         self._in_keys = None
+        # a plain attribute, not registered: these modules already belong to the actor
+        object.__setattr__(
+            self,
+            "_logits_modules",
+            _categorical_param_modules(actor) if loss_type == "nll" else None,
+        )
 
     def _forward_value_estimator_keys(self, **kwargs) -> None:
         pass
@@ -101,6 +107,21 @@ class BehaviorCloningLoss(LossModule):
         """Per-row losses ``[N]`` and the actor's output tensordict (a shallow copy)."""
         td = tensordict.select(*self.actor.in_keys, strict=True).copy()
         label = tensordict.get(self.tensor_keys.label)
+        if self._logits_modules is not None:
+            # Categorical fast path: run the actor's parameter modules and take
+            # log_softmax(logits)[label] directly (equal to dist.log_prob(label)) instead
+            # of building a distribution object every step.
+            if label.dtype.is_floating_point:
+                raise ValueError(
+                    f"categorical labels under {self.tensor_keys.label!r} must be integers, got {label.dtype}"
+                )
+            for module in self._logits_modules:
+                td = module(td)
+            logits = td.get(keys.LOGITS)
+            logp = (
+                torch.log_softmax(logits, dim=-1).gather(-1, label.long().unsqueeze(-1)).squeeze(-1)
+            )
+            return -logp, td
         if self.loss_type == "nll":
             dist = self.actor.get_dist(td)
             if isinstance(dist, torch.distributions.Categorical):
@@ -140,3 +161,22 @@ class BehaviorCloningLoss(LossModule):
             label = tensordict.get(self.tensor_keys.label)
             metrics["accuracy"] = (out.get(keys.LOGITS).argmax(-1) == label).float().mean().detach()
         return TensorDict(metrics, batch_size=[])
+
+
+def _categorical_param_modules(actor: TensorDictModule) -> list[TensorDictModule] | None:
+    """The modules computing ``LOGITS`` of a categorical ``ProbabilisticActor``, else None."""
+    from tensordict.nn import ProbabilisticTensorDictModule, ProbabilisticTensorDictSequential
+
+    if not isinstance(actor, ProbabilisticTensorDictSequential):
+        return None
+    *params, last = list(actor.module)
+    if not isinstance(last, ProbabilisticTensorDictModule) or not params:
+        return None
+    dist_class = getattr(last, "distribution_class", None)
+    if not (
+        isinstance(dist_class, type) and issubclass(dist_class, torch.distributions.Categorical)
+    ):
+        return None
+    if list(last.in_keys) != [keys.LOGITS] or keys.LOGITS not in params[-1].out_keys:
+        return None
+    return params

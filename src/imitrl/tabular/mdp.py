@@ -119,6 +119,43 @@ class TabularMDP:
             name=self.name,
         )
 
+    def replicate(self, copies: int) -> TabularMDP:
+        """``copies`` independent copies of this MDP as one MDP on ``copies * S`` states.
+
+        State ``k * S + s`` is state ``s`` of copy ``k``; the kernel is block diagonal,
+        the initial distribution puts ``1 / copies`` of the mass on each copy. K
+        independent tabular experiments (datasets, seeds) run as one batched experiment
+        on the product MDP: pin each env lane to a copy with
+        ``TabularEnv(..., initial_state=...)`` and give the learner ``copies * S`` rows.
+        """
+        K, S = int(copies), self.num_states
+        if K < 1:
+            raise ValueError(f"copies must be a positive integer, got {copies!r}")
+        P = torch.zeros(K * S, self.num_actions, K * S, dtype=torch.float64)
+        for k in range(K):
+            P[k * S : (k + 1) * S, :, k * S : (k + 1) * S] = self.P
+        out = self.outcomes
+        shift = (torch.arange(K) * S).repeat_interleave(S)[:, None, None]  # [K*S, 1, 1]
+        return TabularMDP(
+            P=P,
+            r=self.r.repeat(K, 1),
+            gamma=self.gamma,
+            initial=self.initial.repeat(K) / K,
+            terminal=self.terminal.repeat(K),
+            goal=self.goal.repeat(K),
+            outcomes=Outcomes(
+                next_state=out.next_state.repeat(K, 1, 1) + shift,
+                prob=out.prob.repeat(K, 1, 1),
+                cdf=out.cdf.repeat(K, 1, 1),
+                reward=out.reward.repeat(K, 1, 1),
+                terminated=out.terminated.repeat(K, 1, 1),
+                size=out.size.repeat(K, 1),
+            ),
+            max_steps=self.max_steps,
+            desc=None,
+            name=f"{self.name} x{K}",
+        )
+
     # ----------------------------------------------------------- constructors
     @classmethod
     def from_gym(
