@@ -23,6 +23,15 @@ def _gym_episodes(env, table, n):
     return rows, visited
 
 
+@pytest.fixture(params=["scalar", "batched"])
+def path(request, monkeypatch):
+    """Run each test through both implementations of play_episodes."""
+    from imitrl.envs import gym_stream
+
+    monkeypatch.setattr(gym_stream, "_SCALAR_LIMIT", 10**12 if request.param == "scalar" else 0)
+    return request.param
+
+
 @pytest.mark.parametrize(
     ("env_id", "kwargs"),
     [
@@ -32,7 +41,7 @@ def _gym_episodes(env, table, n):
         ("CliffWalking-v1", {"max_episode_steps": 80}),
     ],
 )
-def test_stream_equals_gymnasium_loop(env_id, kwargs):
+def test_stream_equals_gymnasium_loop(env_id, kwargs, path):
     genv = gym.make(env_id, **kwargs)
     mdp = TabularMDP.from_gym(genv, 0.95)
     expert = greedy(mdp.backup(value_iteration(mdp, 500)[-1]))
@@ -42,7 +51,7 @@ def test_stream_equals_gymnasium_loop(env_id, kwargs):
         genv.reset(seed=seed)
         stream = GymnasiumStream(seed)
         # two consecutive blocks share one stream, as the section's experiments do
-        for n in (40, 25):
+        for n in (40, 25, 130):
             ref, visited = _gym_episodes(genv, table.tolist(), n)
             got = play_episodes(mdp, table, stream, n, record=True)
             assert got.returns.tolist() == [float(r) for r, _, _ in ref]
@@ -52,13 +61,13 @@ def test_stream_equals_gymnasium_loop(env_id, kwargs):
             assert torch.equal(got.actions, table[got.observations])
 
 
-def test_success_flag_marks_goal_entries(lake, expert_table):
+def test_success_flag_marks_goal_entries(lake, expert_table, path):
     eps = play_episodes(lake, expert_table, GymnasiumStream(1), 300)
     assert torch.equal(eps.success, eps.returns > 0)
     assert not (eps.success & eps.truncated).any()
 
 
-def test_stream_position_advances_by_resets_plus_steps(lake, expert_table):
+def test_stream_position_advances_by_resets_plus_steps(lake, expert_table, path):
     stream = GymnasiumStream(0)
     assert stream.position == 1  # the seeded reset consumed one uniform
     eps = play_episodes(lake, expert_table, stream, 10)

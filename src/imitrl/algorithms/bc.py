@@ -41,6 +41,10 @@ class BCConfig:
     """key of the target action"""
     seed: int = 0
     """seed of the minibatch order"""
+    deduplicate: bool | None = None
+    """full batch over integer observations and labels: train on the distinct
+    (observation, label) pairs weighted by their counts, the same objective at a cost
+    that does not grow with the rows; None = whenever it applies"""
 
     def __post_init__(self) -> None:
         if self.num_steps < 0:
@@ -82,6 +86,31 @@ def _rows(data: DemonstrationBuffer | TensorDictBase, label_key: str) -> TensorD
     return td.select(keys.OBSERVATION, label_key)
 
 
+def _distinct_pairs(rows: TensorDictBase, label_key: str) -> TensorDictBase | None:
+    """Distinct (observation, label) rows with weights ``count * U / N`` (None if not applicable).
+
+    ``mean_j(w_j l_j)`` over the U distinct pairs then equals ``mean_i l_i`` over the N
+    rows: the full-batch objective is unchanged, only summed in another order.
+    """
+    obs, label = rows.get(keys.OBSERVATION), rows.get(label_key)
+    if (
+        obs.ndim != 1
+        or label.ndim != 1
+        or obs.dtype.is_floating_point
+        or label.dtype.is_floating_point
+    ):
+        return None
+    pairs, counts = torch.unique(
+        torch.stack([obs.long(), label.long()], dim=1), dim=0, return_counts=True
+    )
+    U, N = pairs.shape[0], obs.shape[0]
+    out = rows.empty(batch_size=[U])
+    out.set(keys.OBSERVATION, pairs[:, 0].to(obs.dtype))
+    out.set(label_key, pairs[:, 1].to(label.dtype))
+    out.set(keys.WEIGHT, counts.to(torch.float32) * (U / N))
+    return out
+
+
 def fit_bc(
     learner: ActorCritic,
     data: DemonstrationBuffer | TensorDictBase,
@@ -99,11 +128,22 @@ def fit_bc(
         progress: show a progress bar.
     """
     rows = _rows(data, config.label_key)
-    loss_module = BehaviorCloningLoss(learner.policy, loss_type=config.loss_type)
-    loss_module.set_keys(label=config.label_key)
     n = rows.shape[0]
     losses = torch.empty(config.num_steps)
     minibatch = config.batch_size is not None and config.batch_size < n
+    distinct = None
+    if not minibatch and config.deduplicate is not False and config.loss_type == "nll":
+        distinct = _distinct_pairs(rows, config.label_key)
+        if distinct is None and config.deduplicate:
+            raise ValueError(
+                "deduplicate=True needs integer observations [N] and integer labels [N]"
+            )
+    loss_module = BehaviorCloningLoss(
+        learner.policy, loss_type=config.loss_type, weighted=distinct is not None
+    )
+    loss_module.set_keys(label=config.label_key)
+    if distinct is not None:
+        rows = distinct
     if minibatch:
         generator = torch.Generator().manual_seed(config.seed)
         obs_all, label_all = rows.get(keys.OBSERVATION), rows.get(config.label_key)

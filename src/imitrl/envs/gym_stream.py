@@ -226,32 +226,142 @@ def play_episodes(
     table = _deterministic_table(mdp, policy)
     sampler = OutcomeSampler(mdp)
     n = int(num_episodes)
-    # Window size from the exact expected episode length, with slack; grown if short.
     mean_len = expected_episode_length(mdp, table, T)
-    window = max(64, math.ceil(n * (1.0 + mean_len) * 1.05 + 8 * math.sqrt(n + 1) * (1 + mean_len)))
-    while True:
-        uniforms = stream.window(window + T + 1)
-        lengths, returns, success = _simulate_offsets(sampler, table, uniforms, window, T, mdp.goal)
-        # Walk the chain of consecutive episodes (cheap: one Python step per episode).
-        lens = lengths.tolist()
-        starts, pos = [], 0
-        while len(starts) < n and pos < window:
-            starts.append(pos)
-            pos += 1 + lens[pos]
-        if len(starts) == n:
-            break
-        window *= 2
-    idx = torch.tensor(starts, dtype=torch.int64)
-    ep_len = lengths[idx]
-    transitions = _record(sampler, table, uniforms, idx, ep_len) if record else None
     base = stream.position
+    if n * (1.0 + mean_len) <= _SCALAR_LIMIT:
+        return _play_scalar(sampler, table, stream, n, T, mdp.goal, record)
+    starts: list[int] = []
+    lengths: list[torch.Tensor] = []
+    returns: list[torch.Tensor] = []
+    success: list[torch.Tensor] = []
+    pos = 0  # offset of the next episode's reset, relative to the stream's position
+    while len(starts) < n:
+        # Simulate one episode from every offset of a window sized by the exact expected
+        # length; if the walk runs past it, the next window starts where the walk stopped.
+        window = math.ceil((n - len(starts)) * (1.0 + mean_len) * 1.05) + 64
+        uniforms = stream.window(pos + window + T + 1)[pos:]
+        lens, rets, succ = _simulate_offsets(sampler, table, uniforms, window, T, mdp.goal)
+        lens_list, local, chosen = lens.tolist(), 0, []
+        while len(starts) + len(chosen) < n and local < window:
+            chosen.append(local)
+            local += 1 + lens_list[local]
+        idx = torch.tensor(chosen, dtype=torch.int64)
+        starts += [pos + c for c in chosen]
+        lengths.append(lens[idx])
+        returns.append(rets[idx])
+        success.append(succ[idx])
+        pos += local
+    idx = torch.tensor(starts, dtype=torch.int64)
+    ep_len = torch.cat(lengths)
+    transitions = (
+        _record(sampler, table, stream.window(pos + T + 1), idx, ep_len) if record else None
+    )
     stream.advance(pos)
     return Episodes(
-        returns=returns[idx],
+        returns=torch.cat(returns),
         lengths=ep_len,
-        success=success[idx],
+        success=torch.cat(success),
         truncated=ep_len == T,
         offsets=idx + base,
+        transitions=transitions,
+    )
+
+
+_SCALAR_LIMIT = 2500
+"""Below this many expected uniforms a plain scalar walk beats simulating every offset."""
+
+
+def _play_scalar(
+    sampler: OutcomeSampler,
+    table: torch.Tensor,
+    stream: GymnasiumStream,
+    n: int,
+    T: int,
+    goal: torch.Tensor,
+    record: bool,
+) -> Episodes:
+    """The same episodes, stepped one at a time in Python (for a handful of episodes).
+
+    Uses the same float64 comparisons as :class:`OutcomeSampler` (count of CDF
+    entries <= u, all-below mapping to outcome 0), so both paths agree exactly.
+    """
+    lists = sampler.as_lists()
+    cdf, nxt, rew, term, init = (
+        lists["cdf"],
+        lists["next_state"],
+        lists["reward"],
+        lists["terminated"],
+        lists["initial_cdf"],
+    )
+    A, K, S = sampler.num_actions, sampler.num_outcomes, sampler.num_states
+    act, is_goal = table.tolist(), goal.tolist()
+    buf: list[float] = stream.window(max(64, 64 * n)).tolist()
+    i = 0
+    out = {
+        k: []
+        for k in (
+            "observation",
+            "action",
+            "next_observation",
+            "reward",
+            "terminated",
+            "step",
+            "episode",
+        )
+    }
+    starts, lengths, returns, success = [], [], [], []
+    for e in range(n):
+        starts.append(i)
+        if i + T + 1 >= len(buf):
+            buf = stream.window(2 * len(buf) + T + 1).tolist()
+        u = buf[i]
+        s = sum(1 for c in init if c <= u)
+        s = 0 if s >= S else s
+        i += 1
+        ret, t = 0.0, 0
+        while True:
+            a = act[s]
+            u = buf[i]
+            i += 1
+            sa = s * A + a
+            k = 0
+            row = cdf[sa]
+            while k < K and row[k] <= u:
+                k += 1
+            flat = sa * K + (0 if k == K else k)
+            s2, r, done = nxt[flat], rew[flat], term[flat]
+            if record:
+                for key, v in (
+                    ("observation", s),
+                    ("action", a),
+                    ("next_observation", s2),
+                    ("reward", r),
+                    ("terminated", done),
+                    ("step", t),
+                    ("episode", e),
+                ):
+                    out[key].append(v)
+            ret += r
+            t += 1
+            s = s2
+            if done or t >= T:
+                break
+        lengths.append(t)
+        returns.append(ret)
+        success.append(bool(done and is_goal[s]))
+    stream.advance(i)
+    ep_len = torch.tensor(lengths, dtype=torch.int64)
+    transitions = None
+    if record:
+        dtypes = {"reward": torch.float32, "terminated": torch.bool}
+        transitions = {k: torch.tensor(v, dtype=dtypes.get(k, torch.int64)) for k, v in out.items()}
+    base = stream.position - i
+    return Episodes(
+        returns=torch.tensor(returns, dtype=torch.float64),
+        lengths=ep_len,
+        success=torch.tensor(success, dtype=torch.bool),
+        truncated=ep_len == T,
+        offsets=torch.tensor(starts, dtype=torch.int64) + base,
         transitions=transitions,
     )
 

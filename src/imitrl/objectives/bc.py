@@ -54,14 +54,16 @@ class BehaviorCloningLoss(LossModule):
             its action (for the regression losses).
         loss_type: one of :data:`LOSS_TYPES`.
         weighted: read per-row weights from the ``weight`` key (detached).
+        report_accuracy: also return ``accuracy`` (greedy action equals the label) for
+            categorical actors (an argmax over the batch every call).
 
     Keys (``set_keys`` to remap): ``observation`` is read by the actor; ``label``
     (default ``"expert_action"``) is the target; ``prediction`` (default
     ``"action"``) is where a deterministic actor writes; ``weight`` (default
     ``"weight"``).
 
-    Returns ``loss_bc`` (to minimise) and detached metrics: ``nll`` or the regression
-    error, and ``accuracy`` (greedy action equals the label) for categorical actors.
+    Returns ``loss_bc`` (to minimise) and a detached metric: ``nll`` or the regression
+    error (unweighted mean), plus ``accuracy`` if asked for.
     """
 
     @dataclass
@@ -75,7 +77,12 @@ class BehaviorCloningLoss(LossModule):
     out_keys = ["loss_bc"]
 
     def __init__(
-        self, actor: TensorDictModule, *, loss_type: str = "nll", weighted: bool = False
+        self,
+        actor: TensorDictModule,
+        *,
+        loss_type: str = "nll",
+        weighted: bool = False,
+        report_accuracy: bool = False,
     ) -> None:
         if loss_type not in LOSS_TYPES:
             raise ValueError(f"loss_type must be one of {LOSS_TYPES}, got {loss_type!r}")
@@ -83,6 +90,7 @@ class BehaviorCloningLoss(LossModule):
         self.actor = actor
         self.loss_type = loss_type
         self.weighted = weighted
+        self.report_accuracy = report_accuracy
         self._in_keys = None
         # a plain attribute, not registered: these modules already belong to the actor
         object.__setattr__(
@@ -157,7 +165,7 @@ class BehaviorCloningLoss(LossModule):
         else:
             loss = losses.mean()
         metrics = {"loss_bc": loss, self.loss_type: losses.detach().mean()}
-        if keys.LOGITS in out.keys():
+        if self.report_accuracy and keys.LOGITS in out.keys():
             label = tensordict.get(self.tensor_keys.label)
             metrics["accuracy"] = (out.get(keys.LOGITS).argmax(-1) == label).float().mean().detach()
         return TensorDict(metrics, batch_size=[])

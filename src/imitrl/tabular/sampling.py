@@ -40,6 +40,19 @@ class OutcomeSampler:
         self.terminated = out.terminated.reshape(-1).contiguous()  # [S*A*K] bool
         self.initial_cdf = mdp.initial_cdf  # [S] float64
         self.terminal = mdp.terminal  # [S] bool
+        self._lists: dict[str, list] | None = None
+
+    def as_lists(self) -> dict[str, list]:
+        """The tables as Python lists (``cdf`` per flat pair ``s * A + a``), for scalar loops."""
+        if self._lists is None:
+            self._lists = {
+                "cdf": [tuple(row) for row in self.cdf_columns.T.tolist()],
+                "next_state": self.next_state.tolist(),
+                "reward": self.reward.double().tolist(),
+                "terminated": self.terminated.tolist(),
+                "initial_cdf": self.initial_cdf.tolist(),
+            }
+        return self._lists
 
     def initial(self, u: torch.Tensor) -> torch.Tensor:
         """``[N]`` int64 initial states from ``[N]`` float64 uniforms."""

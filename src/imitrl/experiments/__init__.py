@@ -1,0 +1,1 @@
+"""Reproducible studies built on the library (each a function of its config)."""
