@@ -189,6 +189,10 @@ class TabularMDP:
                 raise ValueError(
                     f"unknown or unbuildable gymnasium env id {env_id!r}: {err}"
                 ) from err
+            except TypeError as err:
+                raise ValueError(
+                    f"gymnasium env {env_id!r} rejected the arguments {dict(make_kwargs or {})}: {err}"
+                ) from err
         elif make_kwargs:
             raise ValueError("make_kwargs only applies when env is given as an id string")
         spec_steps = env.spec.max_episode_steps if env.spec is not None else None

@@ -1,0 +1,198 @@
+"""`imitrl frozenlake`: the section's numbers to the digit, exact values beside them, figures."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from imitrl.cli import main
+
+
+@pytest.fixture(scope="module")
+def study(tmp_path_factory):
+    out = tmp_path_factory.mktemp("frozenlake")
+    assert main(["frozenlake", "--out", str(out), "--no-progress"]) == 0
+    return out, json.loads((out / "results.json").read_text())
+
+
+def test_demonstrations_and_fit(study):
+    _, r = study
+    assert r["protocol"] == "faithful"
+    assert r["expert"]["policy"] == [0, 3, 0, 3, 0, 0, 0, 0, 3, 1, 0, 0, 0, 2, 1, 0]
+    assert f"{r['expert']['V_start']:.6f}" == "0.180472"
+    assert (r["demos"]["pairs"], r["demos"]["states_covered"], r["demos"]["reachable_states"]) == (
+        96,
+        7,
+        11,
+    )
+    assert r["demos"]["uncovered"] == [1, 2, 3, 13]
+    assert f"{r['bc']['cross_entropy']:.3f}" == "0.004"
+    assert (
+        str(np.round(np.array(r["bc"]["probs"]["9"], dtype=np.float32), 3))
+        == "[0.001 0.996 0.001 0.001]"
+    )
+    assert (
+        str(np.round(np.array(r["bc"]["probs"]["3"], dtype=np.float32), 3))
+        == "[0.25 0.25 0.25 0.25]"
+    )
+    assert r["bc"]["mistakes"] == 0
+
+
+def test_success_rates_with_exact_values(study):
+    _, r = study
+    ev = r["evaluation"]
+    assert f"{ev['expert']['rate']:.1%}" == "73.4%" and f"{ev['clone']['rate']:.1%}" == "17.5%"
+    assert ev["expert"]["episodes"] == 1000
+    assert f"{ev['expert']['exact']:.6f}" == "0.729766"
+    # every estimate's exact value lies in its interval, and the clone's exact value is priced too
+    for name in ("expert", "clone"):
+        assert ev[name]["ci"][0] <= ev[name]["exact"] <= ev[name]["ci"][1]
+    assert 0.17 < ev["clone"]["exact"] < 0.21
+
+
+def test_sweep(study):
+    _, r = study
+    got = [
+        (f"{r['sweep'][n]['median']:.0%}", f"{r['sweep'][n]['worst']:.0%}")
+        for n in ("1", "3", "10")
+    ]
+    assert got == [("44%", "0%"), ("73%", "70%"), ("73%", "70%")]
+    assert all(len(r["sweep"][n]["exact"]) == 10 for n in ("1", "3", "10"))
+
+
+def test_chain(study):
+    _, r = study
+    a, b = r["chain"]["panels"]
+    assert (a["eps"], a["T"], b["eps"], b["T"]) == (0.05, 10, 0.01, 64)
+    assert f"{a['cloned'][-1]:.2f}" == "2.40" and f"{a['recovering'][-1]:.2f}" == "0.51"
+    assert a["cloned_exact"][-1] == pytest.approx(
+        10 - sum(0.95**t for t in range(1, 11)), abs=1e-12
+    )
+    assert b["ratio_exact"] == pytest.approx(
+        (64 - sum(0.99**t for t in range(1, 65))) / 0.64, abs=1e-9
+    )
+
+
+def test_divergence(study):
+    _, r = study
+    tv = r["divergence"]["tv"]
+    assert [f"{tv[t]:.3f}" for t in ("3", "5", "10", "20")] == ["0.000", "0.004", "0.063", "0.227"]
+    hole = r["divergence"]["hole_mass"]["12"]
+    assert (f"{hole['expert']:.3f}", f"{hole['clone']:.3f}") == ("0.000", "0.221")
+    assert r["divergence"]["worst_hole"] == 12
+
+
+def test_dagger(study):
+    _, r = study
+    rounds = r["dagger"]["rounds"]
+    assert [x["pairs"] for x in rounds] == [96, 188, 273, 426]
+    assert [f"{x['rate']:.1%}" for x in rounds] == ["18.0%", "72.0%", "72.2%", "71.9%"]
+    assert all(0 <= x["exact"] <= 1 for x in rounds)
+
+
+def test_exercises_and_prose_checks(study):
+    _, r = study
+    ex = r["exercises"]
+    assert set(ex["demo_counts"]) >= {"5", "20", "100", "500"}
+    assert len(ex["state_errors"]["error"]) == 11
+    assert len(ex["budget"]["dagger"]) == 10 and len(ex["corruption"]["bc_corrupted"]) == 10
+    claims = {c["claim"]: c for c in r["prose_checks"]}
+    thirty = next(c for k, c in claims.items() if "thirtyfold" in k)
+    assert not thirty["agrees"] and thirty["exact"] == pytest.approx(26.6, abs=0.05)
+
+
+def test_report_and_figures(study):
+    out, _ = study
+    text = (out / "report.txt").read_text()
+    for line in (
+        "96 state-action pairs from 3 expert episodes, covering 7 of 11 reachable states",
+        "success rate: expert 73.4%, clone 17.5%",
+        "round 3: trained on 426 pairs, success rate 71.9%",
+        "vs exact 72.98%",
+    ):
+        assert line in text
+    for name in (
+        "chain",
+        "occupancy",
+        "sweep",
+        "dagger",
+        "ex_demo_counts",
+        "ex_state_errors",
+        "ex_budget",
+        "ex_corruption",
+    ):
+        png = out / f"{name}.png"
+        head = png.read_bytes()[:24]
+        assert head[:8] == b"\x89PNG\r\n\x1a\n"
+        width, height = int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+        assert width >= 400 and height >= 300 and png.stat().st_size > 10_000
+
+
+def _small(out, *extra):
+    return [
+        "frozenlake",
+        "--out",
+        str(out),
+        "--no-progress",
+        "--no-exercises",
+        "--eval-episodes",
+        "200",
+        "--sweep-datasets",
+        "3",
+        "--sweep-eval-episodes",
+        "50",
+        "--chain-samples",
+        "2000",
+        *extra,
+    ]
+
+
+def test_same_seed_same_digits(tmp_path):
+    runs = []
+    for i in range(2):
+        assert main(_small(tmp_path / str(i))) == 0
+        r = json.loads((tmp_path / str(i) / "results.json").read_text())
+        r.pop("timing")
+        r["config"].pop("out")
+        runs.append(r)
+    assert runs[0] == runs[1]
+
+
+@pytest.mark.parametrize(
+    "extra",
+    [
+        ("--map-name", "8x8", "--probe-states", "9,63"),
+        ("--desc", "SFFH,FHFF,FFFF,HFFG", "--protocol", "batched", "--eval-scale", "5"),
+    ],
+)
+def test_other_maps_and_protocols(tmp_path, extra):
+    assert main(_small(tmp_path, *extra)) == 0
+    r = json.loads((tmp_path / "results.json").read_text())
+    assert 0 < r["expert"]["exact_success"] <= 1
+    assert (
+        r["evaluation"]["expert"]["ci"][0]
+        <= r["evaluation"]["expert"]["exact"]
+        <= r["evaluation"]["expert"]["ci"][1]
+    )
+
+
+def test_bad_flags_fail_clearly(tmp_path, capsys):
+    assert main(["frozenlake", "--out", str(tmp_path), "--env-id", "NoSuchLake-v0"]) == 2
+    assert "unknown or unbuildable gymnasium env id 'NoSuchLake-v0'" in capsys.readouterr().err
+    assert main(["frozenlake", "--out", str(tmp_path), "--env-id", "CartPole-v1"]) == 2
+    assert "'CartPole-v1' rejected the arguments {'is_slippery': True}" in capsys.readouterr().err
+    assert main(["frozenlake", "--out", str(tmp_path), "--protocol", "gpu"]) == 2
+
+
+def test_console_entry_points(tmp_path):
+    script = Path(sys.executable).parent / "imitrl"  # the installed console script
+    for exe in ([str(script)], [sys.executable, "-m", "imitrl"]):
+        out = subprocess.run(
+            [*exe, "frozenlake", "--help"], capture_output=True, text=True, check=True
+        )
+        assert "--protocol" in out.stdout and "--ex-corruption" in out.stdout
