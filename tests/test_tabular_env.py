@@ -10,7 +10,7 @@ from torchrl.collectors import Collector
 from torchrl.envs.utils import check_env_specs
 
 from imitrl.envs import TabularEnv
-from imitrl.tabular import TabularMDP
+from imitrl.tabular import TabularMDP, expected_episode_length, success_probability
 
 from ._stats import chi_square_pvalue
 
@@ -168,3 +168,44 @@ def test_bad_constructor_arguments(lake):
         TabularEnv(lake, batch_size=(2, 3))
     with pytest.raises(ValueError, match="max_steps"):
         TabularEnv(lake, max_steps=0)
+
+
+def test_play_tables_matches_exact_values_and_is_seeded(lake, expert_table):
+    clone = torch.tensor([0, 0, 0, 0, 0, 0, 0, 0, 3, 1, 0, 0, 0, 0, 1, 0])
+    tables = torch.stack([expert_table, clone])
+    env = TabularEnv(lake, batch_size=(1,), seed=5)
+    out = env.play_tables(tables, 40_000)
+    for k, table in enumerate(tables):
+        p = success_probability(lake, table)
+        rate = out["success"][k].double().mean()
+        assert abs(rate - p) < 4 * (p * (1 - p) / 40_000) ** 0.5
+        assert abs(out["lengths"][k].double().mean() - expected_episode_length(lake, table)) < 0.5
+    assert torch.equal(out["returns"], out["success"].double())  # FrozenLake pays 1 on success
+    again = TabularEnv(lake, batch_size=(1,), seed=5).play_tables(tables, 40_000)
+    assert all(torch.equal(out[key], again[key]) for key in out)
+    with pytest.raises(ValueError, match=r"shape \[K, 16\]"):
+        env.play_tables(torch.zeros(2, 15, dtype=torch.long), 3)
+    with pytest.raises(ValueError, match=r"lie in \[0, 4\)"):
+        env.play_tables(torch.full((16,), 4), 3)
+    with pytest.raises(ValueError, match="gymnasium's stream"):
+        TabularEnv(lake, rng="gymnasium", seed=0).play_tables(expert_table, 3)
+
+
+def test_replicated_mdp_with_pinned_lanes(lake, expert_table):
+    K = 3
+    product = lake.replicate(K)
+    assert product.num_states == 48 and float(product.initial.sum()) == pytest.approx(1.0)
+    assert success_probability(product, expert_table.repeat(K)) == pytest.approx(
+        success_probability(lake, expert_table), abs=1e-12
+    )
+    starts = torch.arange(K).repeat_interleave(4) * 16
+    env = TabularEnv(product, batch_size=(12,), seed=0, initial_state=starts)
+    td = env.rollout(60, policy=None, break_when_any_done=False)
+    copy = td["observation"] // 16
+    assert torch.equal(
+        copy, (torch.arange(12) // 4)[:, None].expand_as(copy)
+    )  # lanes never leave their copy
+    with pytest.raises(ValueError, match="initial_state must be an integer tensor of shape"):
+        TabularEnv(product, batch_size=(12,), initial_state=torch.zeros(5, dtype=torch.long))
+    with pytest.raises(ValueError, match="cannot be combined"):
+        TabularEnv(product, batch_size=(12,), rng="gymnasium", initial_state=starts)

@@ -271,37 +271,52 @@ class TabularEnv(EnvBase):
         K, E = tables.shape[0], int(episodes_per_table)
         if E < 1:
             raise ValueError(f"episodes_per_table must be positive, got {episodes_per_table}")
+        # Compose each table with the outcome lists once: on the product index
+        # p = k * S + s (policy k in state s) a step is K_out takes and a compare-sum.
+        sm = self._sampler
+        Ko = sm.num_outcomes
+        copy = torch.arange(K).repeat_interleave(S)  # [K*S] policy of each product index
+        pair = torch.arange(S).repeat(K) * A + tables.reshape(-1).long()  # [K*S] flat (s, a)
+        cdf = sm.cdf_columns[:, pair].contiguous()  # [Ko, K*S]
+        cols = pair[:, None] * Ko + torch.arange(Ko)  # [K*S, Ko] flat outcome ids
+        nxt = (sm.next_state[cols] + (copy * S)[:, None]).reshape(-1)  # product next states
+        rew = sm.reward[cols].reshape(-1).double()
+        term = sm.terminated[cols].reshape(-1)
+        win = term & self.mdp.goal[sm.next_state[cols]].reshape(-1)  # terminated in a goal
         N = K * E
-        flat = tables.reshape(-1).long()
-        offset = (torch.arange(K) * S).repeat_interleave(E)  # [N] row of each episode's table
         if self._point_start is not None:
-            state = torch.full((N,), self._point_start, dtype=torch.int64)
+            start = torch.full((N,), self._point_start, dtype=torch.int64)
         else:
-            state = self._sampler.initial(
-                torch.rand(N, generator=self._generator, dtype=torch.float64)
-            )
+            start = sm.initial(torch.rand(N, generator=self._generator, dtype=torch.float64))
+        p = start + torch.arange(K).repeat_interleave(E) * S
         lane = torch.arange(N)
         ret = torch.zeros(N, dtype=torch.float64)
         returns = torch.zeros(N, dtype=torch.float64)
         lengths = torch.full((N,), self.max_steps, dtype=torch.int64)
         success = torch.zeros(N, dtype=torch.bool)
         truncated = torch.zeros(N, dtype=torch.bool)
-        goal = self.mdp.goal
+        overflow = sm._may_overflow
         for t in range(self.max_steps):
             u = torch.rand(lane.numel(), generator=self._generator, dtype=torch.float64)
-            action = flat.take(offset.take(lane) + state)
-            state, reward, terminated = self._sampler.step(state, action, u)
-            ret += reward
+            k = (cdf[0].take(p) <= u).long()
+            for c in range(1, Ko):
+                k += cdf[c].take(p) <= u
+            if overflow:
+                k.masked_fill_(k >= Ko, 0)
+            flat = p * Ko + k
+            p = nxt.take(flat)
+            ret += rew.take(flat)
+            ended = term.take(flat)
             last = t + 1 == self.max_steps
-            done = torch.ones_like(terminated) if last else terminated
-            if bool(done.any()):
+            if last or bool(ended.any()):
+                done = torch.ones_like(ended) if last else ended
                 fin = lane[done]
                 lengths[fin] = t + 1
                 returns[fin] = ret[done]
-                success[fin] = terminated[done] & goal.take(state[done])
+                success[fin] = win.take(flat[done])
                 truncated[fin] = last
                 keep = ~done
-                lane, state, ret = lane[keep], state[keep], ret[keep]
+                lane, p, ret = lane[keep], p[keep], ret[keep]
                 if lane.numel() == 0:
                     break
         shape = (K, E)

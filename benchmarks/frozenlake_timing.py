@@ -1,0 +1,100 @@
+"""`imitrl frozenlake` against the plain gymnasium + numpy script, side by side.
+
+Each command runs as a fresh process (imports included) on the same machine, one
+after another, best of ``--repeats``:
+
+* plain:    python benchmarks/frozenlake_plain.py   (the section's code, same experiments)
+* faithful: imitrl frozenlake                       (the section's digits)
+* batched:  imitrl frozenlake --protocol batched    (100x the evaluation episodes)
+
+    python benchmarks/frozenlake_timing.py              # full run, refreshes README
+    python benchmarks/frozenlake_timing.py --quick --out /tmp/x
+"""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import _report
+
+HERE = Path(__file__).resolve().parent
+
+
+def wall(cmd: list[str]) -> float:
+    t0 = time.perf_counter()
+    subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    return time.perf_counter() - t0
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument(
+        "--quick", action="store_true", help="without the exercises, one repeat (smoke test)"
+    )
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument(
+        "--out", type=Path, default=None, help="write results here (README untouched)"
+    )
+    args = parser.parse_args()
+    repeats = 1 if args.quick else args.repeats
+    extra = ["--no-exercises"] if args.quick else []
+    py = sys.executable
+    with tempfile.TemporaryDirectory() as tmp:
+        commands = {
+            "plain gymnasium + numpy script": [
+                py,
+                str(HERE / "frozenlake_plain.py"),
+                "--out",
+                f"{tmp}/plain",
+                *extra,
+            ],
+            "imitrl frozenlake (faithful)": [
+                py,
+                "-m",
+                "imitrl",
+                "frozenlake",
+                "--out",
+                f"{tmp}/faithful",
+                "--no-progress",
+                *extra,
+            ],
+            "imitrl frozenlake --protocol batched": [
+                py,
+                "-m",
+                "imitrl",
+                "frozenlake",
+                "--protocol",
+                "batched",
+                "--out",
+                f"{tmp}/batched",
+                "--no-progress",
+                *extra,
+            ],
+        }
+        times = {name: [] for name in commands}
+        for _ in range(repeats):  # interleaved, so load changes hit every command alike
+            for name, cmd in commands.items():
+                times[name].append(wall(cmd))
+    best = {name: min(t) for name, t in times.items()}
+    plain = best["plain gymnasium + numpy script"]
+    rows = []
+    for name, t in best.items():
+        rows.append([name, f"{t:.1f} s", f"{plain / t:.2f}x"])
+        print(f"{name:<40} {t:6.1f} s   {plain / t:.2f}x the plain script's speed")
+    scope = "without exercises" if args.quick else "full study, exercises included"
+    md = (
+        f"Wall time of each command as a fresh process, {scope}, best of {repeats}; "
+        "the batched protocol evaluates 100x more episodes.\n\n"
+        + _report.table(["command", "wall time", "speed vs plain"], rows)
+    )
+    payload = {"repeats": repeats, "quick": args.quick, "times": times, "best": best}
+    print("results:", _report.write("frozenlake_timing", payload, md, out_dir=args.out))
+
+
+if __name__ == "__main__":
+    main()
