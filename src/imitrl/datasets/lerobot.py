@@ -24,7 +24,8 @@ v2.1 (one parquet file per episode)::
 Column mapping on load (:data:`DEFAULT_KEY_MAP`, extend or override with ``key_map``):
 ``observation.state -> OBSERVATION``, ``action -> EXPERT_ACTION`` (and ``ACTION``: a
 recording is the expert acting), ``next.reward/done/terminated/truncated -> ("next",
-...)``, ``task_index -> "task_index"`` (indexes ``LoadedDemonstrations.tasks``);
+...)``, ``task_index -> "task_index"`` (indexes ``LoadedDemonstrations.tasks``; loaded
+when there is more than one task);
 ``episode_index`` gives ``EPISODE`` and ``frame_index`` gives ``STEP``. Rows get round 0
 and ``EXPERT_EXECUTED`` True unless the dataset carries imitrl's own columns
 (``imitrl.round``, ``imitrl.expert_executed``, ``imitrl.executed_action``,
@@ -88,9 +89,9 @@ DEFAULT_KEY_MAP: dict[str, NestedKey] = {
     "next.done": (keys.NEXT, keys.DONE),
     "next.terminated": (keys.NEXT, keys.TERMINATED),
     "next.truncated": (keys.NEXT, keys.TRUNCATED),
-    "task_index": "task_index",
 }
-"""dataset feature -> buffer key, applied unless ``key_map`` overrides an entry"""
+"""dataset feature -> buffer key, applied unless ``key_map`` overrides an entry (``task_index``
+is loaded as ``"task_index"`` when the dataset has more than one task)"""
 
 IMITRL_COLUMNS: dict[str, NestedKey] = {
     "imitrl.executed_action": keys.ACTION,
@@ -220,8 +221,11 @@ def _episodes_v3(root: Path, info: dict) -> list[dict]:
     optional = ["dataset_from_index", "dataset_to_index", "tasks"]
     episodes: list[dict] = []
     for f in files:
-        names = pq.read_schema(f).names if f.is_file() else []
-        table = read_parquet(f, need + [c for c in optional if c in names])
+        table = read_parquet(f)
+        missing = [c for c in need if c not in table.column_names]
+        if missing:
+            raise ValueError(f"{f}: episode metadata lacks column(s) {missing}")
+        table = table.select(need + [c for c in optional if c in table.column_names])
         episodes.extend(table.to_pylist())
     episodes.sort(key=lambda e: e["episode_index"])
     template = info["data_path"]
@@ -354,11 +358,20 @@ def load_lerobot(
     info, major = _info(root)
     features: dict[str, dict] = info["features"]
     plan, exact_shapes = _plan(root, info, key_map)
+    tasks = _tasks(root, major)
+    quiet = {"index", "timestamp"}
+    if "task_index" in features and "task_index" not in plan and "task_index" not in (key_map or {}):
+        if len(tasks) > 1 and not exact_shapes:
+            plan["task_index"] = "task_index"
+        else:
+            quiet.add("task_index")
     skipped: dict[str, str] = {}
     for name, ft in features.items():
         if name in plan or name in ("episode_index", "frame_index"):
             continue
-        if ft["dtype"] == "video":
+        if name == "task_index" and name in quiet:
+            skipped[name] = f"a single task ({tasks[0]!r})" if len(tasks) == 1 else "not recorded by imitrl"
+        elif ft["dtype"] == "video":
             skipped[name] = "video feature (mp4 under videos/): video decoding is not supported"
         elif ft["dtype"] == "image" and images == "skip":
             skipped[name] = "image feature not loaded (images='skip'; pass images='load')"
@@ -387,7 +400,6 @@ def load_lerobot(
     ids = [int(e["episode_index"]) for e in episodes]
     if len(set(ids)) != len(ids):
         raise ValueError(f"{root / 'meta'}: episode indices repeat: {ids}")
-    tasks = _tasks(root, major)
 
     columns = [*plan, "episode_index", "frame_index"]
     if major == 3:
@@ -468,7 +480,7 @@ def load_lerobot(
     if env is not None:
         names = {v: k for k, v in loaded.items()}
         rows = conform_to_env(rows, env, where=str(root / "meta" / "info.json"), notes=notes, names=names)
-    warn_skipped(root, skipped, quiet=frozenset({"index", "timestamp"}))
+    warn_skipped(root, skipped, quiet=frozenset(quiet))
     return LoadedDemonstrations(
         rows=rows,
         source=root,
