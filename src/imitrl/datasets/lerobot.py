@@ -625,7 +625,7 @@ def save_lerobot(
     step = rows.get(keys.STEP)
     change = torch.ones(len(episode), dtype=torch.bool)
     change[1:] = episode[1:] != episode[:-1]
-    starts = torch.flatnonzero(change).tolist()
+    starts = torch.nonzero(change).flatten().tolist()
     ends = [*starts[1:], len(episode)]
     ids = episode[starts].tolist()
     if len(set(ids)) != len(ids):
