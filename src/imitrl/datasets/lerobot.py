@@ -381,6 +381,7 @@ def load_lerobot(
             skipped[name] = "bookkeeping (derivable from episode order and frame_index / fps)"
         elif key_map is not None and name in key_map:
             skipped[name] = "left out by key_map"
+            quiet.add(name)  # the caller's choice: listed, not warned about
         else:
             skipped[name] = "no buffer key for it (add it to key_map)"
     for name, key in plan.items():
