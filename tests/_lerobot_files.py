@@ -83,7 +83,9 @@ def _table(ep: dict, e: int, start: int, obs_dim: int, hf_list_type: str, vector
     if vector_layout == "fixed":
         obs = pa.FixedSizeListArray.from_arrays(flat, obs_dim)
     else:  # variable-length lists, as lerobot's v2.1 -> v3.0 converter writes them
-        obs = pa.ListArray.from_arrays(pa.array(np.arange(0, n * obs_dim + 1, obs_dim, dtype=np.int32)), flat)
+        obs = pa.ListArray.from_arrays(
+            pa.array(np.arange(0, n * obs_dim + 1, obs_dim, dtype=np.int32)), flat
+        )
     cols = {
         "observation.state": obs,
         "action": pa.array(ep["action"]),
@@ -102,7 +104,10 @@ def _table(ep: dict, e: int, start: int, obs_dim: int, hf_list_type: str, vector
     }
     if "observation.images.cam" in ep:
         cols["observation.images.cam"] = pa.array(
-            [{"bytes": _png(img), "path": f"frame_{i:06d}.png"} for i, img in enumerate(ep["observation.images.cam"])],
+            [
+                {"bytes": _png(img), "path": f"frame_{i:06d}.png"}
+                for i, img in enumerate(ep["observation.images.cam"])
+            ],
             pa.struct([("bytes", pa.binary()), ("path", pa.string())]),
         )
         hf["observation.images.cam"] = {"_type": "Image"}
@@ -230,7 +235,10 @@ def write_v30(
         path.parent.mkdir(parents=True, exist_ok=True)
         pq.write_table(pa.Table.from_pylist(part), path)
     tasks = pa.table(
-        {"task_index": pa.array(range(len(TASKS)), pa.int64()), "__index_level_0__": pa.array(TASKS, pa.large_string())}
+        {
+            "task_index": pa.array(range(len(TASKS)), pa.int64()),
+            "__index_level_0__": pa.array(TASKS, pa.large_string()),
+        }
     )
     pandas_meta = {"index_columns": ["__index_level_0__"], "columns": []}
     pq.write_table(

@@ -14,12 +14,15 @@ from imitrl.datasets.lerobot import (
     resolve_lerobot_root,
     save_lerobot,
 )
+from imitrl.datasets.minari import load_minari, resolve_minari_root
 
 __all__ = [
     "DEFAULT_KEY_MAP",
     "IMITRL_COLUMNS",
     "LoadedDemonstrations",
     "load_lerobot",
+    "load_minari",
     "resolve_lerobot_root",
+    "resolve_minari_root",
     "save_lerobot",
 ]

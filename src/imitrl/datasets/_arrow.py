@@ -166,7 +166,9 @@ def decode_images(
             raise ValueError(
                 f"{where}: frame {i} is {list(pixels.shape)} (H, W, C), declared {list(shape)}"
             )
-    return torch.from_numpy(np.stack(frames)) if frames else torch.empty(0, *shape, dtype=torch.uint8)
+    return (
+        torch.from_numpy(np.stack(frames)) if frames else torch.empty(0, *shape, dtype=torch.uint8)
+    )
 
 
 def tensor_to_array(value: torch.Tensor) -> tuple[pa.Array, tuple[int, ...]]:

@@ -187,7 +187,9 @@ def conform_to_env(
             continue
         value = rows.get(key)
         if not isinstance(value, torch.Tensor):
-            raise ValueError(f"{where}: {key_name(key)!r} is a nested group, the env expects a tensor")
+            raise ValueError(
+                f"{where}: {key_name(key)!r} is a nested group, the env expects a tensor"
+            )
         shape, dtype = per_frame(spec)
         what = f"{key_name(key)!r} (from feature {names.get(key_name(key), '?')!r})"
         rows.set(key, _fit(value, shape, dtype, what, where, notes))

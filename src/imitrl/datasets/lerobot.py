@@ -216,7 +216,9 @@ def _episodes_v3(root: Path, info: dict) -> list[dict]:
     ep_dir = root / "meta" / "episodes"
     files = sorted(ep_dir.glob("*/*.parquet"))
     if not files:
-        raise ValueError(f"{ep_dir}: no episode metadata files (meta/episodes/chunk-*/file-*.parquet)")
+        raise ValueError(
+            f"{ep_dir}: no episode metadata files (meta/episodes/chunk-*/file-*.parquet)"
+        )
     need = ["episode_index", "length", "data/chunk_index", "data/file_index"]
     optional = ["dataset_from_index", "dataset_to_index", "tasks"]
     episodes: list[dict] = []
@@ -237,7 +239,9 @@ def _episodes_v3(root: Path, info: dict) -> list[dict]:
 
 
 def _episodes_v2(root: Path, info: dict) -> list[dict]:
-    episodes = sorted(_read_jsonl(root / "meta" / "episodes.jsonl"), key=lambda e: e["episode_index"])
+    episodes = sorted(
+        _read_jsonl(root / "meta" / "episodes.jsonl"), key=lambda e: e["episode_index"]
+    )
     chunks = int(info.get("chunks_size", DEFAULT_CHUNK_SIZE))
     template = info["data_path"]
     for ep in episodes:
@@ -360,7 +364,11 @@ def load_lerobot(
     plan, exact_shapes = _plan(root, info, key_map)
     tasks = _tasks(root, major)
     quiet = {"index", "timestamp"}
-    if "task_index" in features and "task_index" not in plan and "task_index" not in (key_map or {}):
+    if (
+        "task_index" in features
+        and "task_index" not in plan
+        and "task_index" not in (key_map or {})
+    ):
         if len(tasks) > 1 and not exact_shapes:
             plan["task_index"] = "task_index"
         else:
@@ -370,7 +378,9 @@ def load_lerobot(
         if name in plan or name in ("episode_index", "frame_index"):
             continue
         if name == "task_index" and name in quiet:
-            skipped[name] = f"a single task ({tasks[0]!r})" if len(tasks) == 1 else "not recorded by imitrl"
+            skipped[name] = (
+                f"a single task ({tasks[0]!r})" if len(tasks) == 1 else "not recorded by imitrl"
+            )
         elif ft["dtype"] == "video":
             skipped[name] = "video feature (mp4 under videos/): video decoding is not supported"
         elif ft["dtype"] == "image" and images == "skip":
@@ -426,7 +436,9 @@ def load_lerobot(
                 f"metadata says {length}"
             )
         if len(rows) and rows[-1] - rows[0] + 1 != len(rows):
-            raise ValueError(f"{path}: the frames of episode {ep['episode_index']} are not contiguous")
+            raise ValueError(
+                f"{path}: the frames of episode {ep['episode_index']} are not contiguous"
+            )
         part = table.slice(int(rows[0]), length) if length else table.slice(0, 0)
         if major == 3 and "dataset_from_index" in ep:
             index = part.column("index").to_numpy()
@@ -439,12 +451,16 @@ def load_lerobot(
                 )
         frame_index = torch.from_numpy(part.column("frame_index").to_numpy().astype(np.int64))
         if length and not bool((frame_index[1:] > frame_index[:-1]).all()):
-            raise ValueError(f"{path}: frame_index of episode {ep['episode_index']} is not increasing")
+            raise ValueError(
+                f"{path}: frame_index of episode {ep['episode_index']} is not increasing"
+            )
         for name in plan:
             ft = features[name]
             where = f"{path}: feature {name!r}"
             if ft["dtype"] == "image":
-                value = decode_images(part.column(name), shape=tuple(ft["shape"]), root=root, where=where)
+                value = decode_images(
+                    part.column(name), shape=tuple(ft["shape"]), root=root, where=where
+                )
             else:
                 value = column_to_tensor(
                     part.column(name), shape=tuple(ft["shape"]), dtype=ft["dtype"], where=where
@@ -480,7 +496,9 @@ def load_lerobot(
     notes: list[str] = []
     if env is not None:
         names = {v: k for k, v in loaded.items()}
-        rows = conform_to_env(rows, env, where=str(root / "meta" / "info.json"), notes=notes, names=names)
+        rows = conform_to_env(
+            rows, env, where=str(root / "meta" / "info.json"), notes=notes, names=names
+        )
     warn_skipped(root, skipped, quiet=frozenset(quiet))
     return LoadedDemonstrations(
         rows=rows,
@@ -630,7 +648,9 @@ def save_lerobot(
     ends = [*starts[1:], len(episode)]
     ids = episode[starts].tolist()
     if len(set(ids)) != len(ids):
-        raise ValueError("each episode must be one contiguous block of rows (an id reappears later)")
+        raise ValueError(
+            "each episode must be one contiguous block of rows (an id reappears later)"
+        )
     for s, e in zip(starts, ends):
         if not torch.equal(step[s:e], torch.arange(e - s)):
             raise ValueError(
@@ -670,9 +690,16 @@ def save_lerobot(
         arr, shape = tensor_to_array(value)
         dtype = NUMPY_NAMES[value.dtype]
         columns[name] = arr
-        arrays[name] = value.numpy().reshape(n_frames, *shape) if shape != (1,) else value.numpy().reshape(n_frames)
+        arrays[name] = (
+            value.numpy().reshape(n_frames, *shape)
+            if shape != (1,)
+            else value.numpy().reshape(n_frames)
+        )
         feature_info[name] = {"dtype": dtype, "shape": list(shape), "names": None}
-        sidecar[name] = {"key": list(key) if isinstance(key, tuple) else key, "shape": list(value.shape[1:])}
+        sidecar[name] = {
+            "key": list(key) if isinstance(key, tuple) else key,
+            "shape": list(value.shape[1:]),
+        }
     frame_index = step.numpy().astype(np.int64)
     book = {
         "timestamp": (frame_index / fps).astype(np.float32),
@@ -686,15 +713,30 @@ def save_lerobot(
         arrays[name] = values
         feature_info[name] = {"dtype": str(values.dtype), "shape": [1], "names": None}
     if "task_index" in rows.keys():
-        sidecar["task_index"] = {"key": "task_index", "shape": list(rows.get("task_index").shape[1:])}
+        sidecar["task_index"] = {
+            "key": "task_index",
+            "shape": list(rows.get("task_index").shape[1:]),
+        }
     hf = {name: hf_feature(ft["dtype"], tuple(ft["shape"])) for name, ft in feature_info.items()}
     table = pa.table(columns).replace_schema_metadata(hf_schema_metadata(hf))
 
-    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=path.parent if path.parent.exists() else None))
+    tmp = Path(
+        tempfile.mkdtemp(prefix=f".{path.name}.", dir=path.parent if path.parent.exists() else None)
+    )
     try:
         _write_v3(
-            tmp, table, arrays, feature_info, sidecar, starts, lengths, task_index, task_list,
-            fps=int(fps), robot_type=robot_type, episodes_per_file=episodes_per_file or len(ids),
+            tmp,
+            table,
+            arrays,
+            feature_info,
+            sidecar,
+            starts,
+            lengths,
+            task_index,
+            task_list,
+            fps=int(fps),
+            robot_type=robot_type,
+            episodes_per_file=episodes_per_file or len(ids),
             chunks_size=chunks_size,
         )
         if path.exists():
@@ -735,7 +777,9 @@ def _write_v3(
         if writer is None:
             data_path = root / DATA_PATH.format(chunk_index=chunk, file_index=file)
             data_path.parent.mkdir(parents=True, exist_ok=True)
-            writer = pq.ParquetWriter(data_path, table.schema, compression="snappy", use_dictionary=True)
+            writer = pq.ParquetWriter(
+                data_path, table.schema, compression="snappy", use_dictionary=True
+            )
         writer.write_table(table.slice(s, n))  # one row group per episode, as lerobot writes
         ep_tasks = sorted({task_list[t] for t in task_index[s : s + n].tolist()})
         row: dict[str, Any] = {
@@ -768,7 +812,9 @@ def _write_v3(
     ).replace_schema_metadata({b"pandas": _pandas_index_metadata(len(task_list))})
     pq.write_table(tasks_table, root / "meta" / "tasks.parquet")
 
-    stats = {name: {k: v.tolist() for k, v in _stats(values).items()} for name, values in arrays.items()}
+    stats = {
+        name: {k: v.tolist() for k, v in _stats(values).items()} for name, values in arrays.items()
+    }
     (root / "meta" / "stats.json").write_text(json.dumps(stats, indent=4))
     info = {
         "codebase_version": CODEBASE_VERSION,

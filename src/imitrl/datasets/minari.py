@@ -115,9 +115,7 @@ def _is_image(space: dict) -> bool:
     )
 
 
-def _decode(
-    node, space: dict, path: str, jpeg: bool, skipped: dict[str, str], where: str
-) -> Any:
+def _decode(node, space: dict, path: str, jpeg: bool, skipped: dict[str, str], where: str) -> Any:
     """HDF5 node + Minari space -> np.ndarray or nested dict (None for what cannot be a tensor)."""
     import h5py
 
@@ -228,7 +226,9 @@ def load_minari(
     with h5:
         meta = _metadata(data_dir, h5)
         where = str(h5_path)
-        obs_space = _space(meta["observation_space"], f"{data_dir / METADATA_FILE}: observation_space")
+        obs_space = _space(
+            meta["observation_space"], f"{data_dir / METADATA_FILE}: observation_space"
+        )
         act_space = _space(meta["action_space"], f"{data_dir / METADATA_FILE}: action_space")
         jpeg = bool(meta.get("jpeg_encoding", False))
         names = [n for n in h5.keys() if n.startswith("episode_")]
@@ -253,7 +253,9 @@ def load_minari(
                     raise ValueError(f"{here} has no {field!r}")
             rewards = np.asarray(group["rewards"][()])
             n = len(rewards)
-            obs = _decode(group["observations"], obs_space, f"{name}/observations", jpeg, skipped, where)
+            obs = _decode(
+                group["observations"], obs_space, f"{name}/observations", jpeg, skipped, where
+            )
             act = _decode(group["actions"], act_space, f"{name}/actions", jpeg, skipped, where)
             if obs is None or act is None:
                 raise ValueError(f"{here}: observations and actions must be numeric")
