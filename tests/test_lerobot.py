@@ -247,6 +247,7 @@ def test_written_layout_is_lerobots(tmp_path):
     obs = buf.data[keys.OBSERVATION].double()
     assert np.allclose(stats["observation.state"]["mean"], obs.mean(0).numpy())
     assert stats["observation.state"]["count"] == [20]
+    assert len(stats["aux"]["mean"]) == 3  # lerobot 0.4 reduces 2-d features to the last axis
 
 
 def test_tasks_round_trip(tmp_path):
@@ -334,3 +335,24 @@ def test_repo_id_resolves_from_local_caches_only(tmp_path, monkeypatch):
     assert _quiet_load("org/demo").num_episodes == 2
     local = write_v21(tmp_path / "hf/lerobot/org/demo", episodes_data([1]))
     assert resolve_lerobot_root("org/demo") == local  # LeRobot's own root comes first
+
+
+def test_v30_episodes_are_slices_of_the_concatenated_files(tmp_path):
+    """As LeRobot reads it: [dataset_from_index, dataset_to_index) of the sorted data files;
+    the episode table's file pointers may be stale (lerobot 0.4.4's aggregate leaves them so)."""
+    episodes = episodes_data(LENGTHS, seed=2)
+    root = write_v30(tmp_path / "ds", episodes, files=[(0, 0), (0, 0), (0, 1), (0, 1), (0, 1)])
+    path = root / "meta/episodes/chunk-000/file-000.parquet"
+    table = pq.read_table(path)
+    stale = pa.array([7] * len(LENGTHS), pa.int64())
+    table = table.set_column(table.column_names.index("data/file_index"), "data/file_index", stale)
+    pq.write_table(table, path)
+    _check_against(_quiet_load(root), episodes)
+    shifted = table.set_column(
+        table.column_names.index("dataset_from_index"),
+        "dataset_from_index",
+        pa.array([0, 4, 8, 15, 16], pa.int64()),
+    )
+    pq.write_table(shifted, path)
+    with pytest.raises(ValueError, match=r"episode 1 spans frames \[4, 8\) with length 3"):
+        load_lerobot(root)

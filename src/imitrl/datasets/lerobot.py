@@ -412,70 +412,95 @@ def load_lerobot(
     if len(set(ids)) != len(ids):
         raise ValueError(f"{root / 'meta'}: episode indices repeat: {ids}")
 
+    # Frames are read file by file; v3.0 files are concatenated in sorted order, as LeRobot
+    # does, and each episode is the slice [dataset_from_index, dataset_to_index) of that
+    # concatenation (the episode table's file pointers are not needed, and LeRobot's own
+    # aggregate tool leaves them stale); v2.x has one file per episode.
     columns = [*plan, "episode_index", "frame_index"]
     if major == 3:
-        columns.append("index")
-    cache: dict[str, pa.Table] = {}
+        files = sorted((root / "data").glob("*/*.parquet"))
+        if not files:
+            raise ValueError(f"{root / 'data'}: no data files (data/chunk-*/file-*.parquet)")
+    else:
+        files = [root / ep["file"] for ep in episodes]
     pieces: dict[str, list[torch.Tensor]] = {name: [] for name in plan}
-    episode_ids: list[torch.Tensor] = []
-    steps: list[torch.Tensor] = []
-    frames = 0
-    for ep in episodes:
-        rel = ep["file"]
-        path = root / rel
-        if rel not in cache:
-            cache.clear()  # files are visited in order; keep one in memory
-            cache[rel] = read_parquet(path, columns)
-        table = cache[rel]
-        ep_col = table.column("episode_index").to_numpy()
-        rows = np.flatnonzero(ep_col == ep["episode_index"])
-        length = int(ep["length"])
-        if len(rows) != length:
-            raise ValueError(
-                f"{path}: episode {ep['episode_index']} has {len(rows)} frames, the episode "
-                f"metadata says {length}"
-            )
-        if len(rows) and rows[-1] - rows[0] + 1 != len(rows):
-            raise ValueError(
-                f"{path}: the frames of episode {ep['episode_index']} are not contiguous"
-            )
-        part = table.slice(int(rows[0]), length) if length else table.slice(0, 0)
-        if major == 3 and "dataset_from_index" in ep:
-            index = part.column("index").to_numpy()
-            expect = np.arange(ep["dataset_from_index"], ep["dataset_to_index"])
-            if not np.array_equal(index, expect):
-                raise ValueError(
-                    f"{path}: episode {ep['episode_index']} frames have index "
-                    f"{index[:1].tolist()}..{index[-1:].tolist()}, the episode metadata says "
-                    f"[{ep['dataset_from_index']}, {ep['dataset_to_index']})"
-                )
-        frame_index = torch.from_numpy(part.column("frame_index").to_numpy().astype(np.int64))
-        if length and not bool((frame_index[1:] > frame_index[:-1]).all()):
-            raise ValueError(
-                f"{path}: frame_index of episode {ep['episode_index']} is not increasing"
-            )
+    ep_parts, fi_parts, bounds = [], [], []
+    total = 0
+    for path in files:
+        table = read_parquet(path, columns)
         for name in plan:
             ft = features[name]
             where = f"{path}: feature {name!r}"
             if ft["dtype"] == "image":
                 value = decode_images(
-                    part.column(name), shape=tuple(ft["shape"]), root=root, where=where
+                    table.column(name), shape=tuple(ft["shape"]), root=root, where=where
                 )
             else:
                 value = column_to_tensor(
-                    part.column(name), shape=tuple(ft["shape"]), dtype=ft["dtype"], where=where
+                    table.column(name), shape=tuple(ft["shape"]), dtype=ft["dtype"], where=where
                 )
             pieces[name].append(value)
-        episode_ids.append(torch.full((length,), int(ep["episode_index"]), dtype=torch.int64))
-        steps.append(frame_index)
-        frames += length
+        for col, parts in (("episode_index", ep_parts), ("frame_index", fi_parts)):
+            parts.append(
+                column_to_tensor(
+                    table.column(col), shape=(1,), dtype="int64", where=f"{path}: {col!r}"
+                )
+            )
+        bounds.append((total, total + table.num_rows, path))
+        total += table.num_rows
+    all_ep, all_fi = torch.cat(ep_parts), torch.cat(fi_parts)
+
+    def file_at(i: int) -> Path:
+        return next((p for s, e, p in bounds if s <= i < e), bounds[-1][2])
+
+    order = []
+    for i, ep in enumerate(episodes):
+        e, length = int(ep["episode_index"]), int(ep["length"])
+        if major == 3 and "dataset_from_index" in ep:
+            begin, stop = int(ep["dataset_from_index"]), int(ep["dataset_to_index"])
+            if stop - begin != length or begin < 0 or stop > total:
+                raise ValueError(
+                    f"{root / 'meta' / 'episodes'}: episode {e} spans frames [{begin}, {stop}) "
+                    f"with length {length}, the data files hold {total} frames"
+                )
+            path = file_at(begin)
+        elif major == 3:
+            hits = torch.nonzero(all_ep == e).flatten()
+            begin, stop = (int(hits[0]), int(hits[-1]) + 1) if len(hits) else (0, 0)
+            path = file_at(begin)
+            if len(hits) != stop - begin:
+                raise ValueError(f"{path}: the frames of episode {e} are not contiguous")
+        else:
+            begin, stop, path = bounds[i]
+        if stop - begin != length:
+            raise ValueError(
+                f"{path}: episode {e} has {stop - begin} frames, the episode metadata says {length}"
+            )
+        found = all_ep[begin:stop].unique().tolist()
+        if found != [e] and length:
+            raise ValueError(
+                f"{path}: frames [{begin}, {stop}) should hold episode {e}, they hold episode(s) {found}"
+            )
+        fi = all_fi[begin:stop]
+        if length and not bool((fi[1:] > fi[:-1]).all()):
+            raise ValueError(f"{path}: frame_index of episode {e} is not increasing")
+        order.append(torch.arange(begin, stop))
+    index = torch.cat(order)
+    frames = len(index)
     if frames == 0:
         raise ValueError(f"{root}: the dataset holds no frames")
+    if total != frames or len(index.unique()) != frames:
+        raise ValueError(
+            f"{root / 'data'}: the data files hold {total} frames, the episode table covers "
+            f"{len(index.unique())} of them"
+        )
     total_frames = info.get("total_frames")
     if total_frames is not None and total_frames != frames:
         raise ValueError(
             f"{root / 'meta' / 'info.json'} declares {total_frames} frames, the data files hold {frames}"
         )
+    pieces = {name: [torch.cat(parts)[index]] for name, parts in pieces.items()}
+    episode_ids, steps = [all_ep[index]], [all_fi[index]]
 
     out: dict[NestedKey, torch.Tensor] = {}
     loaded: dict[str, str] = {}
@@ -529,10 +554,13 @@ def _feature_name(key: NestedKey) -> str:
 
 
 def _stats(values: np.ndarray) -> dict[str, Any]:
-    """LeRobot's per-feature statistics (compute_stats.get_feature_stats) over axis 0."""
-    x = values.reshape(values.shape[0], -1) if values.ndim > 1 else values[:, None]
+    """LeRobot's per-feature statistics (lerobot 0.4 ``compute_stats.get_feature_stats``):
+    scalars and vectors over frames; arrays of 2+ dims over every axis but the last, as
+    its ``RunningQuantileStats`` reduces them (resuming or merging datasets needs the
+    same shapes)."""
+    x = values[:, None] if values.ndim == 1 else values.reshape(-1, values.shape[-1])
     xf = x.astype(np.float64)
-    shape = values.shape[1:] if values.ndim > 1 else (1,)
+    shape = (x.shape[-1],)
     out: dict[str, Any] = {
         "min": x.min(axis=0).reshape(shape),
         "max": x.max(axis=0).reshape(shape),
