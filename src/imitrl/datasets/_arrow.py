@@ -34,7 +34,7 @@ __all__ = [
 def read_parquet(path: Path, columns: list[str] | None = None) -> pa.Table:
     """Read a parquet file, naming the file (and missing columns) in every error."""
     if not path.is_file():
-        raise ValueError(f"{path}: data file not found")
+        raise ValueError(f"{path}: file not found")
     try:
         schema = pq.read_schema(path)
     except (pa.ArrowException, OSError) as err:

@@ -383,6 +383,8 @@ def load_lerobot(
             )
         elif ft["dtype"] == "video":
             skipped[name] = "video feature (mp4 under videos/): video decoding is not supported"
+        elif ft["dtype"] == "string":
+            skipped[name] = "string feature: text cannot go into a tensor"
         elif ft["dtype"] == "image" and images == "skip":
             skipped[name] = "image feature not loaded (images='skip'; pass images='load')"
         elif ft["dtype"] == "image":
