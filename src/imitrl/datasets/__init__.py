@@ -1,0 +1,28 @@
+"""Demonstrations from files: LeRobot datasets (v2.1, v3.0) and Minari datasets, offline.
+
+Readers return :class:`LoadedDemonstrations` whose ``rows`` extend a
+:class:`~imitrl.data.DemonstrationBuffer`; :func:`save_lerobot` writes a buffer
+(every DAgger round included) as a LeRobot v3.0 dataset. Needs the ``datasets``
+extra (pyarrow; h5py for Minari); never uses the network.
+"""
+
+from imitrl.datasets._common import LoadedDemonstrations
+from imitrl.datasets.lerobot import (
+    DEFAULT_KEY_MAP,
+    IMITRL_COLUMNS,
+    load_lerobot,
+    resolve_lerobot_root,
+    save_lerobot,
+)
+from imitrl.datasets.minari import load_minari, resolve_minari_root
+
+__all__ = [
+    "DEFAULT_KEY_MAP",
+    "IMITRL_COLUMNS",
+    "LoadedDemonstrations",
+    "load_lerobot",
+    "load_minari",
+    "resolve_lerobot_root",
+    "resolve_minari_root",
+    "save_lerobot",
+]

@@ -1,0 +1,208 @@
+"""Arrow columns <-> torch tensors, the way LeRobot lays features out in parquet.
+
+LeRobot (through Hugging Face ``datasets``) stores a feature of shape ``(1,)`` as a
+plain scalar column, a vector ``(k,)`` as a (fixed-size) list column and an array
+``(a, b, ...)`` as nested lists (``datasets.Array2D`` .. ``Array5D``); images are
+``struct<bytes: binary, path: string>`` holding PNG bytes. Conversions here check
+every list length against the declared shape and refuse nulls, so a malformed column
+fails with the file and feature named instead of loading wrong values.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.compute as pc
+import pyarrow.parquet as pq
+import torch
+
+from imitrl.datasets._common import TORCH_DTYPES, WIDEN
+
+__all__ = [
+    "column_to_tensor",
+    "decode_images",
+    "hf_feature",
+    "read_parquet",
+    "tensor_to_array",
+]
+
+
+def read_parquet(path: Path, columns: list[str] | None = None) -> pa.Table:
+    """Read a parquet file, naming the file (and missing columns) in every error."""
+    if not path.is_file():
+        raise ValueError(f"{path}: file not found")
+    try:
+        schema = pq.read_schema(path)
+    except (pa.ArrowException, OSError) as err:
+        raise ValueError(f"{path}: not a readable parquet file ({err})") from err
+    if columns is not None:
+        missing = [c for c in columns if c not in schema.names]
+        if missing:
+            raise ValueError(
+                f"{path}: declared feature(s) {missing} absent from the file "
+                f"(columns present: {schema.names})"
+            )
+    try:
+        return pq.read_table(path, columns=columns)
+    except (pa.ArrowException, OSError) as err:
+        raise ValueError(f"{path}: cannot read the parquet data ({err})") from err
+
+
+def _storage(arr: pa.Array) -> pa.Array:
+    # datasets registers ArrayND extension types; their storage is nested lists
+    return arr.storage if isinstance(arr.type, pa.ExtensionType) else arr
+
+
+def column_to_tensor(
+    col: pa.ChunkedArray | pa.Array, *, shape: tuple[int, ...], dtype: str, where: str
+) -> torch.Tensor:
+    """``[N]`` column of per-frame values of declared ``shape`` -> tensor ``[N, *shape]``.
+
+    A declared shape ``(1,)`` stored as a scalar column (LeRobot's layout) gives
+    ``[N]``; stored as a one-element list it gives ``[N, 1]``.
+
+    Raises:
+        ValueError: nulls, list lengths that contradict ``shape``, a non-numeric column.
+    """
+    arr = _storage(col.combine_chunks() if isinstance(col, pa.ChunkedArray) else col)
+    n = len(arr)
+    dims: list[int] = []
+    for expected in shape:
+        if not (
+            pa.types.is_list(arr.type)
+            or pa.types.is_large_list(arr.type)
+            or pa.types.is_fixed_size_list(arr.type)
+        ):
+            if tuple(shape) == (1,) and not dims:
+                break  # per-frame scalar, LeRobot's layout for shape (1,)
+            raise ValueError(
+                f"{where}: holds {arr.type} values, the declared shape {list(shape)} needs "
+                f"{len(shape)} nested list level(s)"
+            )
+        if arr.null_count:
+            raise ValueError(f"{where}: contains null entries")
+        lengths = pc.list_value_length(arr).to_numpy(zero_copy_only=False)
+        if lengths.size and not (lengths == expected).all():
+            bad = int(lengths[lengths != expected][0])
+            raise ValueError(
+                f"{where}: a frame has {bad} entries along dimension {len(dims)}, the declared "
+                f"shape is {list(shape)}"
+            )
+        dims.append(expected)
+        arr = _storage(arr.flatten())
+    if (
+        pa.types.is_list(arr.type)
+        or pa.types.is_large_list(arr.type)
+        or pa.types.is_fixed_size_list(arr.type)
+    ):
+        raise ValueError(
+            f"{where}: has more nested list levels than the declared shape {list(shape)}"
+        )
+    if arr.null_count:
+        raise ValueError(f"{where}: contains null entries")
+    if not (
+        pa.types.is_integer(arr.type)
+        or pa.types.is_floating(arr.type)
+        or pa.types.is_boolean(arr.type)
+    ):
+        raise ValueError(f"{where}: holds {arr.type} values, expected numbers or booleans")
+    target = WIDEN.get(dtype, dtype)
+    if target not in TORCH_DTYPES:
+        raise ValueError(f"{where}: unsupported dtype {dtype!r}")
+    values = np.asarray(arr.to_numpy(zero_copy_only=False))
+    if values.dtype != np.dtype(target):
+        # LeRobot casts columns to the declared dtype on load; do the same, but never
+        # silently between kinds (a float column declared int64 is corrupt)
+        kind_ok = (values.dtype.kind == "f") == (np.dtype(target).kind == "f") or (
+            values.dtype.kind in "iub" and np.dtype(target).kind in "iub"
+        )
+        if not kind_ok:
+            raise ValueError(f"{where}: stores {values.dtype} values but declares dtype {dtype!r}")
+        values = values.astype(target)
+    return torch.from_numpy(values.reshape(n, *dims).copy())
+
+
+def decode_images(
+    col: pa.ChunkedArray, *, shape: tuple[int, ...], root: Path, where: str
+) -> torch.Tensor:
+    """``struct<bytes, path>`` PNG/JPEG column -> uint8 ``[N, *shape]`` in the declared layout.
+
+    The declared shape is ``(C, H, W)`` or ``(H, W, C)`` (LeRobot accepts both; the
+    feature's ``names`` say which); pixels come back as uint8 in that layout.
+    """
+    from PIL import Image  # pillow ships with matplotlib
+
+    arr = col.combine_chunks() if isinstance(col, pa.ChunkedArray) else col
+    if not pa.types.is_struct(arr.type):
+        raise ValueError(f"{where}: an image feature must be struct<bytes, path>, got {arr.type}")
+    blobs = arr.field("bytes").to_pylist() if arr.type.get_field_index("bytes") >= 0 else None
+    paths = arr.field("path").to_pylist() if arr.type.get_field_index("path") >= 0 else None
+    if len(shape) != 3:
+        raise ValueError(f"{where}: image features need a 3-d shape, declared {list(shape)}")
+    frames = []
+    for i in range(len(arr)):
+        blob = blobs[i] if blobs is not None else None
+        try:
+            if blob is not None:
+                img = Image.open(io.BytesIO(blob))
+            elif paths is not None and paths[i]:
+                img = Image.open(root / paths[i])
+            else:
+                raise ValueError("no bytes and no path")
+            pixels = np.asarray(img.convert("RGB") if img.mode not in ("L", "RGB") else img)
+        except Exception as err:  # PIL raises assorted errors for broken images
+            raise ValueError(f"{where}: frame {i} is not a decodable image ({err})") from err
+        if pixels.ndim == 2:
+            pixels = pixels[:, :, None]
+        if pixels.shape == tuple(shape):  # (H, W, C)
+            frames.append(pixels)
+        elif pixels.transpose(2, 0, 1).shape == tuple(shape):  # (C, H, W)
+            frames.append(pixels.transpose(2, 0, 1))
+        else:
+            raise ValueError(
+                f"{where}: frame {i} is {list(pixels.shape)} (H, W, C), declared {list(shape)}"
+            )
+    return (
+        torch.from_numpy(np.stack(frames)) if frames else torch.empty(0, *shape, dtype=torch.uint8)
+    )
+
+
+def tensor_to_array(value: torch.Tensor) -> tuple[pa.Array, tuple[int, ...]]:
+    """``[N, *s]`` tensor -> (arrow column, LeRobot feature shape).
+
+    ``[N]`` and ``[N, 1]`` become a scalar column declared ``(1,)`` (LeRobot's layout),
+    ``[N, k]`` a ``fixed_size_list[k]`` (``datasets.Sequence(length=k)``), ``[N, a, b, ...]``
+    nested lists (``datasets.Array2D`` .. ``Array5D``).
+    """
+    values = value.detach().cpu().contiguous().numpy()
+    trailing = tuple(values.shape[1:])
+    if trailing in ((), (1,)):
+        return pa.array(values.reshape(-1)), (1,)
+    if len(trailing) == 1:
+        flat = pa.array(values.reshape(-1))
+        return pa.FixedSizeListArray.from_arrays(flat, trailing[0]), trailing
+    if len(trailing) > 5:
+        raise ValueError(f"LeRobot features have at most 5 dimensions, got {list(trailing)}")
+    arr = pa.array(values.reshape(-1))
+    for size in reversed(trailing):
+        offsets = pa.array(np.arange(0, len(arr) + 1, size, dtype=np.int32))
+        arr = pa.ListArray.from_arrays(offsets, arr)
+    return arr, trailing
+
+
+def hf_feature(dtype: str, shape: tuple[int, ...]) -> dict:
+    """The Hugging Face ``datasets`` feature JSON LeRobot derives from (dtype, shape)."""
+    if shape == (1,):
+        return {"dtype": dtype, "_type": "Value"}
+    if len(shape) == 1:
+        return {"feature": {"dtype": dtype, "_type": "Value"}, "length": shape[0], "_type": "List"}
+    return {"shape": list(shape), "dtype": dtype, "_type": f"Array{len(shape)}D"}
+
+
+def hf_schema_metadata(features: dict[str, dict]) -> dict[bytes, bytes]:
+    """Schema metadata ``datasets`` writes next to the columns (``{"info": {"features": ...}}``)."""
+    return {b"huggingface": json.dumps({"info": {"features": features}}).encode()}

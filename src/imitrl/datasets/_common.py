@@ -1,0 +1,215 @@
+"""What every dataset reader returns, and how loaded rows are fitted to an env's specs.
+
+A reader builds a whole TensorDict of rows in memory and validates it before it is
+returned, so a malformed dataset raises before anything reaches a buffer (nothing is
+ever half-loaded). Rows carry the :class:`~imitrl.data.DemonstrationBuffer`'s required
+keys: recorded demonstrations are round 0, executed by the expert (``ACTION`` =
+``EXPERT_ACTION``, ``EXPERT_EXECUTED`` True) unless the dataset carries imitrl's own
+columns for them.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+from tensordict import TensorDict
+from torchrl.envs import EnvBase
+
+from imitrl import keys
+
+__all__ = ["LoadedDemonstrations", "NestedKey", "conform_to_env", "key_name"]
+
+NestedKey = str | tuple[str, ...]
+
+# numpy dtype name (as LeRobot's info.json spells it) <-> torch dtype
+TORCH_DTYPES: dict[str, torch.dtype] = {
+    "float64": torch.float64,
+    "float32": torch.float32,
+    "float16": torch.float16,
+    "int64": torch.int64,
+    "int32": torch.int32,
+    "int16": torch.int16,
+    "int8": torch.int8,
+    "uint8": torch.uint8,
+    "bool": torch.bool,
+}
+NUMPY_NAMES: dict[torch.dtype, str] = {v: k for k, v in TORCH_DTYPES.items()}
+# numpy has unsigned types torch lacks: widen them to the next signed type
+WIDEN = {"uint16": "int32", "uint32": "int64"}
+
+
+def key_name(key: NestedKey) -> str:
+    """``("next", "reward") -> "next.reward"`` (how keys are named in messages and files)."""
+    return key if isinstance(key, str) else ".".join(key)
+
+
+def as_key(key: NestedKey | list) -> NestedKey:
+    """A key read back from JSON (lists) as a tensordict key."""
+    if isinstance(key, str):
+        return key
+    key = tuple(key)
+    return key[0] if len(key) == 1 else key
+
+
+@dataclass
+class LoadedDemonstrations:
+    """Demonstrations read from a dataset on disk.
+
+    Extend a buffer with them: ``buffer.extend(loaded.rows)``.
+    """
+
+    rows: TensorDict
+    """``[N]`` rows: ``OBSERVATION, EXPERT_ACTION, ACTION, EXPERT_EXECUTED, EPISODE, ROUND,
+    STEP`` and whatever else the dataset carried (``("next", "reward")``, ...), episodes
+    back to back in the dataset's episode order"""
+    source: Path
+    """the directory read"""
+    format: str
+    """e.g. ``"lerobot v3.0"``, ``"lerobot v2.1"``, ``"minari hdf5"``"""
+    num_episodes: int
+    """episodes loaded"""
+    tasks: list[str] = field(default_factory=list)
+    """task strings; a ``"task_index"`` row entry indexes this list"""
+    fps: float | None = None
+    """recording rate (LeRobot), None where the format has none"""
+    loaded: dict[str, str] = field(default_factory=dict)
+    """dataset feature -> buffer key it was loaded into"""
+    skipped: dict[str, str] = field(default_factory=dict)
+    """dataset feature -> why it was not loaded (never dropped silently: a warning lists them)"""
+    notes: list[str] = field(default_factory=list)
+    """conversions applied (dtype casts, reshapes to the env's specs, derived keys)"""
+    metadata: dict[str, Any] = field(default_factory=dict, repr=False)
+    """the dataset's own metadata (``info.json`` / Minari ``metadata.json``)"""
+
+
+def warn_skipped(source: Path, skipped: dict[str, str], quiet: frozenset[str]) -> None:
+    """One warning naming every feature that was not loaded (except derivable bookkeeping)."""
+    loud = {k: v for k, v in skipped.items() if k not in quiet}
+    if loud:
+        lines = "; ".join(f"{k!r}: {v}" for k, v in loud.items())
+        warnings.warn(f"{source}: features not loaded: {lines}", UserWarning, stacklevel=3)
+
+
+def required_rows(
+    columns: dict[NestedKey, torch.Tensor],
+    *,
+    episode: torch.Tensor,
+    step: torch.Tensor,
+) -> TensorDict:
+    """Complete the buffer's required keys: a label-only dataset was executed by the expert."""
+    n = episode.shape[0]
+    if keys.EXPERT_ACTION not in columns and keys.ACTION in columns:
+        columns[keys.EXPERT_ACTION] = columns[keys.ACTION]
+    if keys.ACTION not in columns and keys.EXPERT_ACTION in columns:
+        columns[keys.ACTION] = columns[keys.EXPERT_ACTION].clone()
+    columns.setdefault(keys.EXPERT_EXECUTED, torch.ones(n, dtype=torch.bool))
+    columns.setdefault(keys.ROUND, torch.zeros(n, dtype=torch.int64))
+    columns[keys.EPISODE] = episode.to(torch.int64)
+    columns[keys.STEP] = step.to(torch.int64)
+    td = TensorDict({}, batch_size=[n])
+    for key, value in columns.items():
+        if value.shape[0] != n:
+            raise ValueError(f"{key_name(key)!r} has {value.shape[0]} rows, expected {n}")
+        td.set(key, value)
+    return td
+
+
+def _fit(
+    value: torch.Tensor,
+    shape: torch.Size,
+    dtype: torch.dtype,
+    what: str,
+    where: str,
+    notes: list[str],
+) -> torch.Tensor:
+    """Reshape ``[N, *s]`` to ``[N, *shape]`` when only size-1 dims differ; cast within a kind."""
+    have = tuple(value.shape[1:])
+    want = tuple(shape)
+    if have != want:
+        if [d for d in have if d != 1] == [d for d in want if d != 1]:
+            value = value.reshape(value.shape[0], *want)
+            notes.append(f"{what}: reshaped {list(have)} -> {list(want)} to match the env")
+        else:
+            raise ValueError(
+                f"{where}: {what} has shape {list(have)} per frame, the env expects {list(want)}"
+            )
+    if value.dtype != dtype:
+        same_kind = (value.dtype.is_floating_point and dtype.is_floating_point) or (
+            not value.dtype.is_floating_point
+            and not dtype.is_floating_point
+            and (value.dtype == torch.bool) == (dtype == torch.bool)
+        )
+        if not same_kind:
+            raise ValueError(
+                f"{where}: {what} has dtype {value.dtype}, the env expects {dtype} "
+                "(refusing to convert between floating, integer and boolean data)"
+            )
+        notes.append(f"{what}: cast {value.dtype} -> {dtype} to match the env")
+        value = value.to(dtype)
+    return value
+
+
+def conform_to_env(
+    rows: TensorDict, env: EnvBase, *, where: str, notes: list[str], names: dict[str, str]
+) -> TensorDict:
+    """Check (and where harmless, fit) loaded rows against ``env``'s specs.
+
+    Observation and action shapes must match the env's per-frame shapes (size-1 dims
+    may be added or removed: LeRobot stores a per-frame scalar as shape ``[1]``);
+    dtypes are cast within a kind (float64 -> float32, int32 -> int64), never across
+    kinds. Reward and done flags take the env's shapes and dtypes; a dataset that
+    records only ``done`` gets ``terminated = done`` and ``truncated = False`` when the
+    env has those keys (noted in ``notes``), so that rows from the env and from the
+    dataset can share one buffer.
+
+    Args:
+        names: buffer key name -> dataset feature, for error messages.
+    """
+    batch = len(env.batch_size)
+
+    def per_frame(spec) -> tuple[torch.Size, torch.dtype]:
+        return spec.shape[batch:], spec.dtype
+
+    obs_spec = env.observation_spec.get(keys.OBSERVATION, None)
+    if obs_spec is None:
+        raise ValueError(
+            f"the env has no {keys.OBSERVATION!r} observation to check the dataset against"
+        )
+    checks: list[tuple[NestedKey, Any]] = [(keys.OBSERVATION, obs_spec)]
+    action_spec = env.full_action_spec[keys.ACTION]
+    checks += [(keys.EXPERT_ACTION, action_spec), (keys.ACTION, action_spec)]
+    for key, spec in checks:
+        if key not in rows.keys(include_nested=True):
+            continue
+        value = rows.get(key)
+        if not isinstance(value, torch.Tensor):
+            raise ValueError(
+                f"{where}: {key_name(key)!r} is a nested group, the env expects a tensor"
+            )
+        shape, dtype = per_frame(spec)
+        what = f"{key_name(key)!r} (from feature {names.get(key_name(key), '?')!r})"
+        rows.set(key, _fit(value, shape, dtype, what, where, notes))
+    reward_spec = env.full_reward_spec[keys.REWARD]
+    done_specs = env.full_done_spec
+    nxt_keys = [keys.REWARD, *[k for k in done_specs.keys() if isinstance(k, str)]]
+    if (keys.NEXT, keys.DONE) in rows.keys(include_nested=True):
+        done = rows.get((keys.NEXT, keys.DONE))
+        if keys.TERMINATED in nxt_keys and (keys.NEXT, keys.TERMINATED) not in rows.keys(True):
+            rows.set((keys.NEXT, keys.TERMINATED), done.clone())
+            notes.append("next.terminated: not in the dataset, taken as next.done")
+        if keys.TRUNCATED in nxt_keys and (keys.NEXT, keys.TRUNCATED) not in rows.keys(True):
+            rows.set((keys.NEXT, keys.TRUNCATED), torch.zeros_like(done))
+            notes.append("next.truncated: not in the dataset, taken as False")
+    for k in nxt_keys:
+        key = (keys.NEXT, k)
+        if key not in rows.keys(include_nested=True):
+            continue
+        spec = reward_spec if k == keys.REWARD else done_specs[k]
+        shape, dtype = per_frame(spec)
+        what = f"{key_name(key)!r} (from feature {names.get(key_name(key), '?')!r})"
+        rows.set(key, _fit(rows.get(key), shape, dtype, what, where, notes))
+    return rows

@@ -1,0 +1,343 @@
+"""Minari datasets read straight from their HDF5 file, offline, without the ``minari`` package.
+
+Layout (``minari/dataset/_storages/hdf5_storage.py``, Minari 0.5)::
+
+    <dataset>/data/metadata.json    dataset_id, total_episodes, total_steps, data_format,
+                                    observation_space / action_space (Minari's JSON), env_spec,
+                                    jpeg_encoding, minari_version, ...
+    <dataset>/data/main_data.hdf5   one group per episode, "episode_<id>", attrs id, seed,
+                                    total_steps; datasets observations [T+1, ...] (a group per
+                                    Dict key, "_index_<i>" per Tuple entry), actions [T, ...],
+                                    rewards [T], terminations [T], truncations [T], infos/...
+
+(Older Minari kept the metadata in the HDF5 file's root attributes; that is read too.)
+Row ``t`` of an episode is ``(observations[t], actions[t])`` with ``("next", reward)``
+``= rewards[t]``, ``terminated = terminations[t]``, ``truncated = truncations[t]``,
+``done = terminated | truncated``; ``observations[T]`` (the final observation) goes to
+``("next", OBSERVATION)`` only with ``next_observation=True``. Why not TorchRL's
+``MinariExperienceReplay``: in torchrl 0.14.1 it returns all-zero data for a local
+dataset (see TORCHRL_NOTES.md).
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from tensordict import TensorDict
+from torchrl.envs import EnvBase
+
+from imitrl import keys
+from imitrl.datasets._common import (
+    LoadedDemonstrations,
+    NestedKey,
+    conform_to_env,
+    required_rows,
+    warn_skipped,
+)
+
+__all__ = ["load_minari", "resolve_minari_root"]
+
+MAIN_FILE = "main_data.hdf5"
+METADATA_FILE = "metadata.json"
+
+
+def resolve_minari_root(path_or_id: str | Path) -> Path:
+    """The ``data`` directory of a Minari dataset: a path (the dataset or its ``data``
+    folder), or a dataset id under ``$MINARI_DATASETS_PATH`` (default ``~/.minari/datasets``).
+
+    Raises:
+        ValueError: nothing holding ``main_data.hdf5`` found (the message lists where it looked).
+    """
+    path = Path(path_or_id)
+    candidates = [path, path / "data"]
+    if not path.is_absolute() and not path.exists():
+        base = Path(os.environ.get("MINARI_DATASETS_PATH", Path.home() / ".minari" / "datasets"))
+        candidates += [base / path / "data"]
+    for c in candidates:
+        if (c / MAIN_FILE).is_file() or (c / METADATA_FILE).is_file():
+            return c
+    raise ValueError(
+        f"no Minari dataset at {path_or_id!r} (looked for {MAIN_FILE} in "
+        f"{[str(c) for c in candidates]}); this loader never downloads"
+    )
+
+
+def _metadata(data_dir: Path, h5file) -> dict[str, Any]:
+    meta_path = data_dir / METADATA_FILE
+    if meta_path.is_file():
+        try:
+            meta = json.loads(meta_path.read_text())
+        except json.JSONDecodeError as err:
+            raise ValueError(f"{meta_path} is not valid JSON: {err}") from err
+    else:  # Minari < 0.5 kept the metadata as root attributes of the HDF5 file
+        meta = {k: (v.item() if hasattr(v, "item") else v) for k, v in h5file.attrs.items()}
+        meta = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in meta.items()}
+        if not meta:
+            raise ValueError(f"{meta_path} not found and {data_dir / MAIN_FILE} has no metadata")
+    fmt = meta.get("data_format", "hdf5")
+    if fmt != "hdf5":
+        raise ValueError(f"{meta_path}: data_format {fmt!r} is not supported (only 'hdf5')")
+    for field in ("observation_space", "action_space"):
+        if field not in meta:
+            raise ValueError(
+                f"{meta_path}: no {field!r}; datasets that only record an env_spec are not "
+                "supported (the env would have to be built to learn its spaces)"
+            )
+    return meta
+
+
+def _space(text: str | dict, where: str) -> dict:
+    try:
+        space = json.loads(text) if isinstance(text, str) else text
+    except json.JSONDecodeError as err:
+        raise ValueError(f"{where}: the serialized space is not valid JSON: {err}") from err
+    if not isinstance(space, dict) or "type" not in space:
+        raise ValueError(f"{where}: not a Minari space description: {space!r}")
+    return space
+
+
+def _is_image(space: dict) -> bool:
+    # minari.dataset.minari_storage.is_image_space
+    return (
+        space["type"] == "Box"
+        and space.get("dtype") == "uint8"
+        and len(space["shape"]) in (2, 3)
+        and space["shape"][0] >= 32
+        and space["shape"][1] >= 32
+        and np.all(np.asarray(space["low"]) == 0)
+        and np.all(np.asarray(space["high"]) == 255)
+    )
+
+
+def _decode(node, space: dict, path: str, jpeg: bool, skipped: dict[str, str], where: str) -> Any:
+    """HDF5 node + Minari space -> np.ndarray or nested dict (None for what cannot be a tensor)."""
+    import h5py
+
+    kind = space["type"]
+    if kind in ("Dict", "Tuple"):
+        if not isinstance(node, h5py.Group):
+            raise ValueError(f"{where}: {path} should be a group for a {kind} space")
+        subs = space["subspaces"]
+        items = subs.items() if kind == "Dict" else ((f"_index_{i}", s) for i, s in enumerate(subs))
+        out = {}
+        for name, sub in items:
+            if name not in node:
+                raise ValueError(f"{where}: {path}/{name} is missing")
+            value = _decode(node[name], sub, f"{path}/{name}", jpeg, skipped, where)
+            if value is not None:
+                out[name] = value
+        return out
+    if not isinstance(node, h5py.Dataset):
+        raise ValueError(f"{where}: {path} should be a dataset for a {kind} space")
+    if kind == "Text":
+        skipped[path] = "Text space: strings cannot go into a tensor"
+        return None
+    if jpeg and _is_image(space):
+        from PIL import Image
+
+        frames = [np.asarray(Image.open(io.BytesIO(bytes(b)))) for b in node[()]]
+        return np.stack(frames).astype(np.uint8).reshape(len(frames), *space["shape"])
+    values = node[()]
+    if kind == "Box":
+        want = tuple(space["shape"])
+        if tuple(values.shape[1:]) != want:
+            raise ValueError(
+                f"{where}: {path} has shape {list(values.shape[1:])} per step, the space "
+                f"declares {list(want)}"
+            )
+        return values.astype(space.get("dtype", values.dtype), copy=False)
+    if kind == "Discrete":
+        if values.ndim != 1:
+            raise ValueError(f"{where}: {path} should be one integer per step, got {values.shape}")
+        return values.astype(np.int64, copy=False)
+    if kind in ("MultiDiscrete", "MultiBinary"):
+        return values
+    raise ValueError(f"{where}: {path}: space type {kind!r} is not supported")
+
+
+def _tensors(value: Any, steps: slice) -> Any:
+    if isinstance(value, dict):
+        return {k: _tensors(v, steps) for k, v in value.items()}
+    return torch.from_numpy(np.ascontiguousarray(value[steps]))
+
+
+def _length(value: Any) -> int:
+    if isinstance(value, dict):
+        lens = {_length(v) for v in value.values()}
+        if len(lens) != 1:
+            raise ValueError(f"entries of unequal length {sorted(lens)}")
+        return lens.pop()
+    return len(value)
+
+
+def _cat(parts: list[Any], n: int) -> Any:
+    if isinstance(parts[0], dict):
+        return TensorDict({k: _cat([p[k] for p in parts], n) for k in parts[0]}, batch_size=[n])
+    return torch.cat(parts)
+
+
+def load_minari(
+    path_or_id: str | Path,
+    *,
+    env: EnvBase | None = None,
+    first_episode: int = 0,
+    next_observation: bool = False,
+) -> LoadedDemonstrations:
+    """Read a local Minari dataset (``main_data.hdf5`` + metadata) into demonstration rows.
+
+    Args:
+        path_or_id: the dataset directory, its ``data`` folder, or a dataset id under
+            ``$MINARI_DATASETS_PATH`` (see :func:`resolve_minari_root`).
+        env: if given, observation/action shapes must match its specs (else ValueError);
+            dtypes are cast within a kind (float64 rewards -> the env's float32), reward
+            and done flags take its shapes.
+        first_episode: added to Minari's episode ids (use ``buffer.next_episode``).
+        next_observation: also keep ``observations[t + 1]`` as ``("next", OBSERVATION)``.
+
+    Returns:
+        :class:`LoadedDemonstrations`: ``OBSERVATION`` (a tensor, or a nested TensorDict for
+        Dict/Tuple spaces; Tuple entries are named ``_index_<i>`` as in the file),
+        ``EXPERT_ACTION`` = ``ACTION``, ``("next", reward|done|terminated|truncated)`` as
+        ``[N, 1]`` (TorchRL's layout), round 0, ``EXPERT_EXECUTED`` True. Per-step
+        ``infos`` are not loaded (listed in ``skipped`` with a warning).
+
+    Raises:
+        ValueError: no ``main_data.hdf5``; unreadable file; metadata missing a space;
+            an episode whose arrays have inconsistent lengths or shapes; episode counts or
+            step totals that contradict the metadata; shapes that contradict ``env``.
+    """
+    import h5py
+
+    data_dir = resolve_minari_root(path_or_id)
+    h5_path = data_dir / MAIN_FILE
+    if not h5_path.is_file():
+        raise ValueError(f"{h5_path} not found")
+    skipped: dict[str, str] = {}
+    try:
+        h5 = h5py.File(h5_path, "r")
+    except OSError as err:
+        raise ValueError(f"{h5_path}: not a readable HDF5 file ({err})") from err
+    with h5:
+        meta = _metadata(data_dir, h5)
+        where = str(h5_path)
+        obs_space = _space(
+            meta["observation_space"], f"{data_dir / METADATA_FILE}: observation_space"
+        )
+        act_space = _space(meta["action_space"], f"{data_dir / METADATA_FILE}: action_space")
+        jpeg = bool(meta.get("jpeg_encoding", False))
+        names = [n for n in h5.keys() if n.startswith("episode_")]
+        try:
+            order = sorted(names, key=lambda n: int(n.removeprefix("episode_")))
+        except ValueError as err:
+            raise ValueError(f"{where}: unexpected group names {names}") from err
+        if not order:
+            raise ValueError(f"{where}: no episode groups")
+        total = meta.get("total_episodes")
+        if total is not None and int(total) != len(order):
+            raise ValueError(
+                f"{where}: metadata declares {total} episodes, the file holds {len(order)}"
+            )
+        obs_parts, nxt_parts, act_parts = [], [], []
+        rew, term, trunc, ep_ids, steps = [], [], [], [], []
+        for name in order:
+            group = h5[name]
+            here = f"{where}: {name}"
+            for field in ("observations", "actions", "rewards", "terminations", "truncations"):
+                if field not in group:
+                    raise ValueError(f"{here} has no {field!r}")
+            rewards = np.asarray(group["rewards"][()])
+            n = len(rewards)
+            obs = _decode(
+                group["observations"], obs_space, f"{name}/observations", jpeg, skipped, where
+            )
+            act = _decode(group["actions"], act_space, f"{name}/actions", jpeg, skipped, where)
+            if obs is None or act is None:
+                raise ValueError(f"{here}: observations and actions must be numeric")
+            try:
+                n_obs, n_act = _length(obs), _length(act)
+            except ValueError as err:
+                raise ValueError(f"{here}: observations have {err}") from err
+            terminations = np.asarray(group["terminations"][()], dtype=bool)
+            truncations = np.asarray(group["truncations"][()], dtype=bool)
+            if n_obs != n + 1 or n_act != n or len(terminations) != n or len(truncations) != n:
+                raise ValueError(
+                    f"{here}: {n_obs} observations, {n_act} actions, {n} rewards, "
+                    f"{len(terminations)} terminations, {len(truncations)} truncations; expected "
+                    "T + 1 observations and T of everything else"
+                )
+            declared = group.attrs.get("total_steps")
+            if declared is not None and int(declared) != n:
+                raise ValueError(f"{here}: attrs total_steps={int(declared)} but {n} rewards")
+            if "infos" in group:
+                for leaf in _leaves(group["infos"]):
+                    skipped[f"infos/{leaf}"] = "per-step infos are not loaded"
+            obs_parts.append(_tensors(obs, slice(0, n)))
+            if next_observation:
+                nxt_parts.append(_tensors(obs, slice(1, n + 1)))
+            act_parts.append(_tensors(act, slice(0, n)))
+            rew.append(torch.from_numpy(rewards.reshape(n, 1)))
+            term.append(torch.from_numpy(terminations.reshape(n, 1)))
+            trunc.append(torch.from_numpy(truncations.reshape(n, 1)))
+            episode_id = int(group.attrs.get("id", int(name.removeprefix("episode_"))))
+            ep_ids.append(torch.full((n,), episode_id + int(first_episode), dtype=torch.int64))
+            steps.append(torch.arange(n, dtype=torch.int64))
+        frames = sum(len(s) for s in steps)
+        if meta.get("total_steps") is not None and int(meta["total_steps"]) != frames:
+            raise ValueError(
+                f"{where}: metadata declares {meta['total_steps']} steps, the episodes hold {frames}"
+            )
+    if frames == 0:
+        raise ValueError(f"{where}: the dataset holds no steps")
+    terminated, truncated = torch.cat(term), torch.cat(trunc)
+    columns: dict[NestedKey, Any] = {
+        keys.OBSERVATION: _cat(obs_parts, frames),
+        keys.EXPERT_ACTION: _cat(act_parts, frames),
+        (keys.NEXT, keys.REWARD): torch.cat(rew),
+        (keys.NEXT, keys.DONE): terminated | truncated,
+        (keys.NEXT, keys.TERMINATED): terminated,
+        (keys.NEXT, keys.TRUNCATED): truncated,
+    }
+    if next_observation:
+        columns[(keys.NEXT, keys.OBSERVATION)] = _cat(nxt_parts, frames)
+    rows = required_rows(columns, episode=torch.cat(ep_ids), step=torch.cat(steps))
+    notes: list[str] = []
+    loaded = {
+        "observations": keys.OBSERVATION,
+        "actions": f"{keys.EXPERT_ACTION} (and {keys.ACTION})",
+        "rewards": "next.reward",
+        "terminations": "next.terminated",
+        "truncations": "next.truncated",
+    }
+    if env is not None:
+        names = {keys.OBSERVATION: "observations", keys.ACTION: "actions"}
+        names[keys.EXPERT_ACTION] = "actions"
+        rows = conform_to_env(rows, env, where=where, notes=notes, names=names)
+    # one entry per leaf, not per episode
+    skipped = {k.split("/", 1)[1] if k.startswith("episode_") else k: v for k, v in skipped.items()}
+    warn_skipped(data_dir, skipped, quiet=frozenset())
+    return LoadedDemonstrations(
+        rows=rows,
+        source=data_dir,
+        format=f"minari hdf5 (minari {meta.get('minari_version', '?')})",
+        num_episodes=len(order),
+        loaded=loaded,
+        skipped=skipped,
+        notes=notes,
+        metadata=meta,
+    )
+
+
+def _leaves(group, prefix: str = "") -> list[str]:
+    import h5py
+
+    out = []
+    for name, node in group.items():
+        path = f"{prefix}{name}"
+        out += _leaves(node, path + "/") if isinstance(node, h5py.Group) else [path]
+    return out
