@@ -160,3 +160,25 @@ def test_minibatch_fit_is_seeded():
         return fit_bc(ac, rows, BCConfig(num_steps=30, batch_size=32, seed=seed)).losses
 
     assert torch.equal(run(0), run(0)) and not torch.equal(run(0), run(1))
+
+
+def test_warm_start_keeps_one_learner_and_scratch_refits(lake, expert_table):
+    def learners(warm):
+        _, buf = demonstrations(lake, expert_table, 3)
+        env = TabularEnv(lake, batch_size=(3,), seed=3)
+        seen = []
+        dagger(
+            EnvSource(env),
+            Expert.from_table(expert_table),
+            lambda: ActorCritic.tabular(16, 4),
+            buf,
+            DAggerConfig(rounds=3, warm_start=warm, fit=BCConfig(num_steps=20)),
+            on_fit=lambda k, learner: seen.append(
+                (learner, int(learner.opt_pi.state_dict()["state"][0]["step"]))
+            ),
+        )
+        return seen
+
+    warm, scratch = learners(True), learners(False)
+    assert len({id(m) for m, _ in warm}) == 1 and [s for _, s in warm] == [20, 40, 60]
+    assert len({id(m) for m, _ in scratch}) == 3 and [s for _, s in scratch] == [20, 20, 20]

@@ -44,9 +44,15 @@ def test_k_rounds_hold_exactly_their_union_and_reload_identically(tmp_path):
     assert len(buf) == union.shape[0] == 68
     assert (buf.data == union).all()
     assert list(buf.rounds()) == list(range(6))
-    buf.save(tmp_path / "demo", metadata={"round": 5, "note": "x"})
-    again, meta = DemonstrationBuffer.load(tmp_path / "demo")
-    assert meta == {"round": 5, "note": "x"}
+    learner = ActorCritic.tabular(16, 4)
+    fit_bc(learner, buf, BCConfig(num_steps=5))
+    buf.save(tmp_path / "demo", learner=learner, state={"round": 5, "beta": 0.25})
+    twin = ActorCritic.tabular(16, 4)
+    again, state = DemonstrationBuffer.load(tmp_path / "demo", learner=twin)
+    assert state == {"round": 5, "beta": 0.25}
+    for a, b in zip(learner.state_dict().values(), twin.state_dict().values()):
+        assert torch.equal(a, b)
+    assert twin.opt_pi.state_dict()["state"][0]["step"] == 5  # the optimizer resumes too
     assert (again.data == union).all() and again.schema == buf.schema
     assert again.next_episode == buf.next_episode
     again.extend(rows(3, first_episode=again.next_episode, round_index=6))  # still growable
@@ -177,6 +183,14 @@ def test_continuous_actions_checked_against_bounds_and_shape():
 def test_load_errors(tmp_path):
     with pytest.raises(ValueError, match="not a saved DemonstrationBuffer"):
         DemonstrationBuffer.load(tmp_path)
-    (tmp_path / "buffer.json").write_text("{not json")
-    with pytest.raises(ValueError, match="not valid JSON"):
-        DemonstrationBuffer.load(tmp_path)
+    buf = DemonstrationBuffer()
+    buf.extend(rows(6))
+    buf.save(tmp_path / "ok")
+    with pytest.raises(ValueError, match="cannot load"):  # no learner was saved
+        DemonstrationBuffer.load(tmp_path / "ok", learner=ActorCritic.tabular(16, 4))
+    meta = next((tmp_path / "ok" / "components").glob("*buffer_meta")) / "value.json"
+    meta.write_text("{not json")
+    with pytest.raises(ValueError, match="cannot read the checkpoint's metadata"):
+        DemonstrationBuffer.load(tmp_path / "ok")
+    with pytest.raises(ValueError, match="empty"):
+        DemonstrationBuffer().save(tmp_path / "empty")

@@ -27,13 +27,13 @@ schema, dtypes, episode ids and finiteness on every ``extend``.
 
 from __future__ import annotations
 
-import json
 from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
 import torch
 from tensordict import TensorDictBase
+from torchrl.checkpoint import Checkpoint
 from torchrl.data import Bounded, Categorical, ReplayBuffer, TensorSpec
 from torchrl.data.replay_buffers import LazyTensorStorage, SamplerWithoutReplacement
 
@@ -239,67 +239,103 @@ class DemonstrationBuffer:
         return len(self)
 
     # -------------------------------------------------------------- save/load
-    def save(self, path: str | Path, *, metadata: dict[str, Any] | None = None) -> None:
-        """Write the rows (``ReplayBuffer.dumps``) and a JSON sidecar to directory ``path``."""
-        path = Path(path)
+    def save(
+        self,
+        path: str | Path,
+        *,
+        learner: torch.nn.Module | None = None,
+        state: dict[str, Any] | None = None,
+    ) -> Path:
+        """Save the rows, optionally a learner (weights and optimizers) and a JSON round state.
+
+        One ``torchrl.checkpoint.Checkpoint`` directory: the replay buffer (its own
+        dumps format), the buffer's schema and capacity, ``learner``'s state dict and,
+        when it has them, its ``opt_pi`` / ``opt_v`` optimizers, and ``state``
+        (e.g. ``{"round": 3, "beta": 0.5}``).
+        """
         if len(self) == 0:
             raise ValueError("refusing to save an empty demonstration buffer")
-        path.mkdir(parents=True, exist_ok=True)
-        self.rb.dumps(path / "replay_buffer")
-        meta = {
-            "format": "imitrl.DemonstrationBuffer/1",
-            "rows": len(self),
-            "capacity": self.storage.max_size,
-            "schema": self.schema,
-            "next_episode": self.next_episode,
-            "num_states": self.num_states,
-            "metadata": metadata or {},
+        components: dict[str, Any] = {
+            "buffer": self.rb,
+            "buffer_meta": {
+                "format": _FORMAT,
+                "rows": len(self),
+                "capacity": self.storage.max_size,
+                "schema": {k: [v[0], list(v[1])] for k, v in (self.schema or {}).items()},
+                "next_episode": self.next_episode,
+                "num_states": self.num_states,
+            },
+            "state": dict(state or {}),
         }
-        (path / "buffer.json").write_text(json.dumps(meta, indent=2))
+        if learner is not None:
+            components.update(_learner_components(learner))
+        return Checkpoint(**components).save(Path(path))
 
     @classmethod
     def load(
         cls,
         path: str | Path,
         *,
+        learner: torch.nn.Module | None = None,
         action_spec: TensorSpec | None = None,
         generator: torch.Generator | None = None,
         batch_size: int | None = None,
     ) -> tuple[DemonstrationBuffer, dict[str, Any]]:
-        """Read a buffer written by :meth:`save`; returns ``(buffer, metadata)``."""
+        """Read a checkpoint written by :meth:`save`; returns ``(buffer, state)``.
+
+        Pass ``learner`` (built as before saving) to restore its weights and optimizers.
+        """
         path = Path(path)
-        meta_path = path / "buffer.json"
-        if not meta_path.is_file():
-            raise ValueError(f"{meta_path} not found: not a saved DemonstrationBuffer")
+        if not Checkpoint.is_checkpoint(path):
+            raise ValueError(
+                f"{path} is not a saved DemonstrationBuffer (no torchrl checkpoint manifest)"
+            )
         try:
-            meta = json.loads(meta_path.read_text())
-        except json.JSONDecodeError as err:
-            raise ValueError(f"{meta_path} is not valid JSON: {err}") from err
-        if meta.get("format") != "imitrl.DemonstrationBuffer/1":
-            raise ValueError(f"{meta_path}: unknown format {meta.get('format')!r}")
-        rows = int(meta["rows"])
+            values = (
+                Checkpoint(buffer_meta={}, state={})
+                .load(path, components=["buffer_meta", "state"])
+                .values
+            )
+        except Exception as err:  # torchrl raises CheckpointError and assorted IO errors
+            raise ValueError(f"{path}: cannot read the checkpoint's metadata ({err})") from err
+        meta, state = values["buffer_meta"], values["state"]
+        if meta.get("format") != _FORMAT:
+            raise ValueError(f"{path}: unknown buffer format {meta.get('format')!r}")
         buf = cls(
             action_spec=action_spec,
             num_states=meta.get("num_states"),
-            capacity=int(meta.get("capacity", rows)),
+            capacity=int(meta["capacity"]),
             batch_size=batch_size,
             generator=generator,
         )
+        components: dict[str, Any] = {"buffer": buf.rb}
+        if learner is not None:
+            components.update(_learner_components(learner))
         try:
-            buf.rb.loads(path / "replay_buffer")
-        except Exception as err:  # torchrl raises assorted errors for damaged dumps
+            Checkpoint(**components).load(path, components=list(components))
+        except Exception as err:
+            raise ValueError(f"{path}: cannot load {sorted(components)} ({err})") from err
+        if len(buf) != int(meta["rows"]):
             raise ValueError(
-                f"{path / 'replay_buffer'}: cannot load the stored rows ({err})"
-            ) from err
-        if len(buf) != rows:
-            raise ValueError(
-                f"{path}: expected {rows} rows from buffer.json, storage holds {len(buf)}"
+                f"{path}: expected {meta['rows']} rows, the stored buffer holds {len(buf)}"
             )
         buf.schema = {k: (v[0], tuple(v[1])) for k, v in meta["schema"].items()}
         if _schema(buf.data) != buf.schema:
             raise ValueError(f"{path}: stored rows do not match the recorded schema")
         buf.next_episode = int(meta["next_episode"])
-        return buf, meta.get("metadata", {})
+        return buf, state
+
+
+_FORMAT = "imitrl.DemonstrationBuffer/2"
+
+
+def _learner_components(learner: torch.nn.Module) -> dict[str, Any]:
+    out: dict[str, Any] = {"learner": learner}
+    for name in ("opt_pi", "opt_v"):
+        opt = getattr(learner, name, None)
+        if opt is not None:
+            out[name] = opt
+    return out
 
 
 def _schema_diff(old: dict, new: dict) -> str:
