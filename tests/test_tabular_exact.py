@@ -39,10 +39,12 @@ def test_frozenlake_expert_success_within_time_limit_and_without(lake, expert_ta
 
 def test_value_iteration_history_shape_and_start(lake):
     H = value_iteration(lake, 7)
-    assert H.shape == (8, 16) and H.dtype == torch.float64
-    assert torch.equal(H[0], torch.zeros(16))
+    assert H.shape == (7, 16) and H.dtype == torch.float64
+    assert torch.equal(H[0], lake.r.max(dim=1).values)  # V_1 = max_a r(s, a) from V_0 = 0
     # monotone from V_0 = 0 with non-negative rewards
     assert (H[1:] >= H[:-1] - 1e-15).all()
+    with pytest.raises(ValueError, match="positive integer"):
+        value_iteration(lake, 0)
 
 
 def test_policy_evaluation_matches_value_iteration_fixed_point(lake, expert_table):
@@ -164,3 +166,28 @@ def test_other_toy_text_envs_build_valid_models():
     pi = torch.tensor([1, 1, 0, 2, 1, 1, 0, 2, 0])
     assert success_probability(deterministic, pi, 4) == 1.0
     assert success_probability(deterministic, pi, 3) == 0.0
+
+
+def test_greedy_expert_matches_the_numpy_reference_on_random_maps():
+    """Mathematical ties break as in the textbook's numpy ``r + gamma * P @ V`` on every map."""
+    import gymnasium as gym
+    from gymnasium.envs.toy_text.frozen_lake import generate_random_map
+
+    for size, seed in [(4, 1), (4, 5), (4, 17), (5, 2), (6, 10), (8, 1), (8, 2), (8, 27)]:
+        env = gym.make(
+            "FrozenLake-v1", desc=generate_random_map(size=size, seed=seed), is_slippery=True
+        )
+        S = env.observation_space.n
+        P, r = np.zeros((S, 4, S)), np.zeros((S, 4))
+        for s, actions in env.unwrapped.P.items():
+            for a, outcomes in actions.items():
+                for p, s_next, reward, _ in outcomes:
+                    P[s, a, s_next] += p
+                    r[s, a] += p * reward
+        V = np.zeros(S)
+        for _ in range(1000):
+            V = (r + 0.95 * P @ V).max(axis=1)
+        reference = (r + 0.95 * P @ V).argmax(axis=1)
+        mdp = TabularMDP.from_gym(env, 0.95)
+        ours = greedy(mdp.backup(value_iteration(mdp, 1000)[-1]))
+        assert ours.tolist() == reference.tolist(), (size, seed)

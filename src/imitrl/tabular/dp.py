@@ -4,12 +4,21 @@ from __future__ import annotations
 
 from typing import Any
 
+import numpy as np
 import torch
 
 from imitrl.tabular.mdp import TabularMDP
 from imitrl.tabular.policy import kernel_under, reward_under
 
 __all__ = ["backup", "greedy", "policy_evaluation", "value_iteration"]
+
+
+def _backup_np(r: np.ndarray, gamma_P: np.ndarray, V: np.ndarray) -> np.ndarray:
+    # numpy, and (gamma P) @ V in that order: the float64 rounding of the textbook
+    # reference ``r + gamma * P @ V``. Q values that tie mathematically (mirror-image
+    # moves on a symmetric map) then tie, or fail to, exactly as they do there, so the
+    # greedy policy (ties to the lowest action) is the same policy on every map.
+    return r + gamma_P @ V
 
 
 def backup(mdp: TabularMDP, V: torch.Tensor) -> torch.Tensor:
@@ -19,28 +28,31 @@ def backup(mdp: TabularMDP, V: torch.Tensor) -> torch.Tensor:
         V: ``[S]`` state values.
 
     Returns:
-        ``[S, A]`` action values.
+        ``[S, A]`` float64 action values.
     """
     V = torch.as_tensor(V, dtype=torch.float64)
     if V.shape != (mdp.num_states,):
         raise ValueError(f"V must have shape [{mdp.num_states}], got {tuple(V.shape)}")
-    return mdp.r + mdp.gamma * (mdp.P @ V)
+    return torch.from_numpy(_backup_np(mdp.r.numpy(), mdp.gamma * mdp.P.numpy(), V.numpy()))
 
 
 def value_iteration(mdp: TabularMDP, num_iters: int = 1000) -> torch.Tensor:
-    """Iterate ``V_{k+1}[s] = max_a Q_k[s, a]`` from ``V_0 = 0``.
+    """Sweep ``V_{k+1}[s] = max_a Q_k[s, a]`` from ``V_0 = 0``.
 
     Returns:
-        ``[num_iters + 1, S]`` history of iterates, ``V_0`` first; ``[-1]`` is the
-        final estimate (the contraction error after k steps is at most
+        ``[num_iters, S]`` history of the iterates ``V_1 .. V_n``; ``[-1]`` is the
+        final estimate (after k sweeps the error is at most
         ``gamma^k * max|r| / (1 - gamma)``).
     """
-    if int(num_iters) != num_iters or num_iters < 0:
-        raise ValueError(f"num_iters must be a non-negative integer, got {num_iters!r}")
-    history = torch.zeros(int(num_iters) + 1, mdp.num_states, dtype=torch.float64)
+    if int(num_iters) != num_iters or num_iters < 1:
+        raise ValueError(f"num_iters must be a positive integer, got {num_iters!r}")
+    r, gamma_P = mdp.r.numpy(), mdp.gamma * mdp.P.numpy()
+    history = np.empty((int(num_iters), mdp.num_states))
+    V = np.zeros(mdp.num_states)
     for k in range(int(num_iters)):
-        history[k + 1] = backup(mdp, history[k]).max(dim=1).values
-    return history
+        V = _backup_np(r, gamma_P, V).max(axis=1)
+        history[k] = V
+    return torch.from_numpy(history)
 
 
 def greedy(Q: torch.Tensor) -> torch.Tensor:
