@@ -161,7 +161,7 @@ def fit_bc(
             batch.set(config.label_key, label_all[idx])
         else:
             batch = rows
-        loss = loss_module(batch)["loss_bc"]
+        loss = loss_module.objective(batch)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()

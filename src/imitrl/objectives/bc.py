@@ -113,7 +113,7 @@ class BehaviorCloningLoss(LossModule):
 
     def per_row(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, TensorDictBase]:
         """Per-row losses ``[N]`` and the actor's output tensordict (a shallow copy)."""
-        td = tensordict.select(*self.actor.in_keys, strict=True).copy()
+        td = tensordict.select(*self.actor.in_keys, strict=True)  # a new dict: writes stay local
         label = tensordict.get(self.tensor_keys.label)
         if self._logits_modules is not None:
             # Categorical fast path: run the actor's parameter modules and take
@@ -123,9 +123,7 @@ class BehaviorCloningLoss(LossModule):
                 raise ValueError(
                     f"categorical labels under {self.tensor_keys.label!r} must be integers, got {label.dtype}"
                 )
-            for module in self._logits_modules:
-                td = module(td)
-            logits = td.get(keys.LOGITS)
+            logits = self._logits(td)
             logp = (
                 torch.log_softmax(logits, dim=-1).gather(-1, label.long().unsqueeze(-1)).squeeze(-1)
             )
@@ -153,22 +151,53 @@ class BehaviorCloningLoss(LossModule):
         err = _REGRESSION[self.loss_type](pred, label.to(pred.dtype), reduction="none")
         return err.reshape(err.shape[0], -1).mean(-1), out
 
+    def _logits(self, td: TensorDictBase) -> torch.Tensor:
+        """Run the logits modules; single-key modules are called on their tensor directly."""
+        for module in self._logits_modules:
+            if (
+                type(module) in _PLAIN_MODULES
+                and len(module.in_keys) == 1
+                and len(module.out_keys) == 1
+            ):
+                # what TensorDictModule.forward does for one in and one out key, without
+                # its per-call dispatch (most of a small policy's step)
+                td.set(module.out_keys[0], module.module(td.get(module.in_keys[0])))
+            else:
+                td = module(td)
+        return td.get(keys.LOGITS)
+
+    def reduce(self, losses: torch.Tensor, tensordict: TensorDictBase) -> torch.Tensor:
+        """``mean_i w_i l_i`` (weights read as data) or ``mean_i l_i``."""
+        if not self.weighted:
+            return losses.mean()
+        w = tensordict.get(self.tensor_keys.weight).detach().to(losses.dtype)
+        if w.shape != losses.shape:
+            raise ValueError(
+                f"weights {tuple(w.shape)} must have one entry per row {tuple(losses.shape)}"
+            )
+        return (w * losses).mean()
+
+    def objective(self, tensordict: TensorDictBase) -> torch.Tensor:
+        """The scalar ``loss_bc`` alone (what a training loop differentiates)."""
+        return self.reduce(self.per_row(tensordict)[0], tensordict)
+
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         losses, out = self.per_row(tensordict)
-        if self.weighted:
-            w = tensordict.get(self.tensor_keys.weight).detach().to(losses.dtype)
-            if w.shape != losses.shape:
-                raise ValueError(
-                    f"weights {tuple(w.shape)} must have one entry per row {tuple(losses.shape)}"
-                )
-            loss = (w * losses).mean()
-        else:
-            loss = losses.mean()
+        loss = self.reduce(losses, tensordict)
         metrics = {"loss_bc": loss, self.loss_type: losses.detach().mean()}
         if self.report_accuracy and keys.LOGITS in out.keys():
             label = tensordict.get(self.tensor_keys.label)
             metrics["accuracy"] = (out.get(keys.LOGITS).argmax(-1) == label).float().mean().detach()
         return TensorDict(metrics, batch_size=[])
+
+
+def _plain_modules() -> tuple[type, ...]:
+    from imitrl.policies.modules import Module
+
+    return (TensorDictModule, Module)
+
+
+_PLAIN_MODULES = _plain_modules()
 
 
 def _categorical_param_modules(actor: TensorDictModule) -> list[TensorDictModule] | None:
