@@ -73,7 +73,8 @@ class BetaMixer(TensorDictModuleBase):
             coin = torch.zeros(batch, dtype=torch.bool)
         else:
             coin = torch.rand(batch, generator=self.generator, dtype=torch.float64) < beta
-        mask = coin.reshape(*batch, *([1] * (expert.ndim - len(batch))))
+        # a tuple, not *args: an unbatched env (batch_size []) would call reshape()
+        mask = coin.reshape((*batch, *([1] * (expert.ndim - len(batch)))))
         tensordict.set(keys.LEARNER_ACTION, learner)
         tensordict.set(keys.ACTION, torch.where(mask, expert, learner))
         tensordict.set(keys.EXPERT_EXECUTED, coin)
