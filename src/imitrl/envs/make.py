@@ -68,12 +68,15 @@ def _check_spaces(env: gymnasium.Env, env_id: str) -> tuple[bool, bool]:
     return isinstance(act, gymnasium.spaces.Discrete), obs.dtype == np.float64
 
 
-def _single(env_id: str, frame_skip: int, max_episode_steps: int | None) -> EnvBase:
-    """One TorchRL env (module-level so ``ParallelEnv`` workers can unpickle it)."""
+def _single(env_id: str, frame_skip: int, max_episode_steps: int | None, seed: int) -> EnvBase:
+    """One seeded TorchRL env (module-level so ``ParallelEnv`` workers can unpickle it)."""
     gym_env = _gym(env_id, max_episode_steps)
     discrete, double = _check_spaces(gym_env, env_id)
     env = GymWrapper(gym_env, categorical_action_encoding=discrete, frame_skip=frame_skip)
-    return TransformedEnv(env, DoubleToFloat()) if double else env
+    if double:
+        env = TransformedEnv(env, DoubleToFloat())
+    env.set_seed(seed)
+    return env
 
 
 def make_env(
@@ -90,7 +93,9 @@ def make_env(
     Args:
         env_id: a gymnasium id (``"Pendulum-v1"``, ``"InvertedPendulum-v5"``, or your
             own after ``gymnasium.register``).
-        seed: seeds the env (copy ``i`` of a vectorised env gets ``seed + i``).
+        seed: seeds the env; copy ``i`` of a vectorised or parallel env gets ``seed + i``,
+            so ``parallel`` does not change the episodes. (A later ``env.set_seed(s)``
+            re-seeds in TorchRL's way: ``s + i`` in-process, hashed seeds for workers.)
         num_envs: copies stepped together; the env's batch size is ``[num_envs]``
             (``[]`` for 1 unless ``parallel``).
         parallel: run the copies in worker processes (``ParallelEnv``) instead of in
@@ -117,28 +122,34 @@ def make_env(
         raise ValueError(f"frame_skip must be a positive integer, got {frame_skip!r}")
     if max_episode_steps is not None and max_episode_steps < 1:
         raise ValueError(f"max_episode_steps must be positive or None, got {max_episode_steps}")
-    num_envs, frame_skip = int(num_envs), int(frame_skip)
+    num_envs, frame_skip, seed = int(num_envs), int(frame_skip), int(seed)
     if parallel:
-        env = ParallelEnv(num_envs, partial(_single, env_id, frame_skip, max_episode_steps))
-    elif num_envs == 1:
-        env = _single(env_id, frame_skip, max_episode_steps)
-    else:
-        if frame_skip != 1:
-            # GymLikeEnv's repeat loop stops when any lane ends, so lanes would
-            # repeat their actions a different number of times.
-            raise ValueError(
-                "frame_skip > 1 needs num_envs=1 or parallel=True (the in-process "
-                "vectorised env would stop every lane's repeat when one lane ends)"
-            )
-        probe = _gym(env_id, max_episode_steps)
-        discrete, double = _check_spaces(probe, env_id)
-        probe.close()
-        vec = gymnasium.vector.SyncVectorEnv(
-            [partial(_gym, env_id, max_episode_steps) for _ in range(num_envs)],
-            autoreset_mode=gymnasium.vector.AutoresetMode.DISABLED,
+        # Worker i seeds its own copy with seed + i, as SyncVectorEnv does, so the
+        # switch changes where the copies run, not the episodes they play.
+        # (ParallelEnv.set_seed would derive the workers' seeds by hashing instead.)
+        makers = [
+            partial(_single, env_id, frame_skip, max_episode_steps, seed + i)
+            for i in range(num_envs)
+        ]
+        return ParallelEnv(num_envs, makers)
+    if num_envs == 1:
+        return _single(env_id, frame_skip, max_episode_steps, seed)
+    if frame_skip != 1:
+        # GymLikeEnv's repeat loop stops when any lane ends, so lanes would
+        # repeat their actions a different number of times.
+        raise ValueError(
+            "frame_skip > 1 needs num_envs=1 or parallel=True (the in-process "
+            "vectorised env would stop every lane's repeat when one lane ends)"
         )
-        env = GymWrapper(vec, categorical_action_encoding=discrete)
-        if double:
-            env = TransformedEnv(env, DoubleToFloat())
-    env.set_seed(int(seed))
+    probe = _gym(env_id, max_episode_steps)
+    discrete, double = _check_spaces(probe, env_id)
+    probe.close()
+    vec = gymnasium.vector.SyncVectorEnv(
+        [partial(_gym, env_id, max_episode_steps) for _ in range(num_envs)],
+        autoreset_mode=gymnasium.vector.AutoresetMode.DISABLED,
+    )
+    env = GymWrapper(vec, categorical_action_encoding=discrete)
+    if double:
+        env = TransformedEnv(env, DoubleToFloat())
+    env.set_seed(seed)  # SyncVectorEnv seeds copy i with seed + i
     return env

@@ -36,12 +36,18 @@ __all__ = [
 
 @dataclass(frozen=True)
 class Linearization:
-    """One env step of a MuJoCo env, linearised: ``x' ~ A x + B u`` about ``(x0, u0)``."""
+    """One env step of a MuJoCo env, linearised about ``(x0, u0 = 0)`` (see ``drift``)."""
 
     A: torch.Tensor
     """``[n, n]`` float64, ``n = nq + nv``"""
     B: torch.Tensor
     """``[n, m]`` float64, ``m = nu``"""
+    x0: torch.Tensor
+    """``[n]`` the state linearised about, ``(init_qpos, init_qvel)`` (``u0 = 0``)"""
+    drift: torch.Tensor
+    """``[n]`` ``f(x0, u0) - x0``: non-zero where ``x0`` is not an exact equilibrium
+    (InvertedPendulum-v5's pole is modelled 1 mm off vertical), so
+    ``f(x, u) ~ x0 + drift + A (x - x0) + B (u - u0)``"""
     dt: float
     """seconds per linearised step (env ``dt`` x ``action_repeat``)"""
     action_low: torch.Tensor
@@ -52,6 +58,8 @@ class Linearization:
 
 def linearize_mujoco(env_id: str, *, action_repeat: int = 1, eps: float = 1e-6) -> Linearization:
     """Central finite differences of ``action_repeat`` env steps at ``(init_qpos, init_qvel)``, ``u = 0``.
+
+    The experts measure their state from ``x0`` (zero for both balancing envs).
 
     Raises:
         ValueError: ``gymnasium[mujoco]`` is missing, or ``env_id`` is not a MuJoCo env.
@@ -88,12 +96,15 @@ def linearize_mujoco(env_id: str, *, action_repeat: int = 1, eps: float = 1e-6) 
         d = np.zeros(nu)
         d[j] = eps
         B[:, j] = (step(x0, u0 + d) - step(x0, u0 - d)) / (2 * eps)
+    drift = step(x0, u0) - x0
     low, high = env.action_space.low, env.action_space.high
     dt = float(env.dt) * int(action_repeat)
     env.close()
     return Linearization(
         A=torch.from_numpy(A),
         B=torch.from_numpy(B),
+        x0=torch.from_numpy(x0),
+        drift=torch.from_numpy(drift),
         dt=dt,
         action_low=torch.as_tensor(low, dtype=torch.float64),
         action_high=torch.as_tensor(high, dtype=torch.float64),
@@ -144,7 +155,7 @@ def _lqr_expert(
     R = torch.eye(m, dtype=torch.float64) if R is None else torch.as_tensor(R)
     K = dlqr(lin.A, lin.B, Q, R)
     return Expert(
-        LinearFeedback(K, lin.action_low, lin.action_high, state=state),
+        LinearFeedback(K, lin.action_low, lin.action_high, state=state, setpoint=lin.x0),
         observation_key=observation_key,
     )
 
