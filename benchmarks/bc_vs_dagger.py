@@ -39,6 +39,7 @@ from pathlib import Path
 import gymnasium
 import torch
 from tensordict.nn import TensorDictModuleBase
+from torchrl.data import Categorical
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, RandomPolicy
 
@@ -168,7 +169,7 @@ def horizon(env_id: str, cfg: Config) -> int:
 def make_learner(env: EnvBase, task: Task, cfg: Config, seed: int) -> ActorCritic:
     """Fresh MLP for ``env``'s spaces: categorical for integer actions, else bounded continuous."""
     spec = env.action_spec_unbatched
-    action = int(spec.space.n) if spec.dtype == torch.int64 else spec
+    action = int(spec.space.n) if isinstance(spec, Categorical) else spec
     obs_dim = env.observation_spec[keys.OBSERVATION].shape[-1]
     return ActorCritic.mlp(obs_dim, action, head=task.head, hidden=cfg.hidden, lr=cfg.lr, seed=seed)
 

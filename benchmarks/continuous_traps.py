@@ -9,11 +9,12 @@
    held for k steps, against the same expert re-identified for the k-step model.
 4. ``bang_bang``: DAgger on Pendulum-v1 with a bang-bang swing-up expert; the
    fraction of evaluation episodes still spinning (at least one full turn in the
-   last half of the episode) per round, with beta = 0 and with a beta schedule
-   that mixes the expert's actions into the rollouts; the energy-shaping expert
-   beside them.
+   last half of the episode) per round, with beta = 0, with beta schedules that
+   mix the expert's actions into the rollouts, and with more episodes per round;
+   the energy-shaping expert beside them.
 5. ``startup``: what ``parallel=True`` (``ParallelEnv``) costs to start and what it
-   gains per step against in-process lanes, so users know when it pays.
+   gains per step against in-process lanes, so users know when it pays: for two
+   cheap simulators and for ``CostlyPendulum-v0`` (5 ms of CPU work per step).
 
     python benchmarks/continuous_traps.py            # refreshes benchmarks/README.md
     python benchmarks/continuous_traps.py --quick --out /tmp/smoke
@@ -29,7 +30,9 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+import gymnasium
 import torch
+from gymnasium.envs.classic_control.pendulum import PendulumEnv
 from torchrl.envs import GymEnv
 from torchrl.envs.utils import ExplorationType
 
@@ -42,6 +45,7 @@ from imitrl.algorithms import (
     DAggerConfig,
     EnvSource,
     Exponential,
+    Linear,
     dagger,
 )
 from imitrl.data import DemonstrationBuffer, rollout_episodes
@@ -56,6 +60,23 @@ from imitrl.policies import ActorCritic, BetaMixer, behaviour_policy
 
 NAME = "continuous_traps"
 DET = ExplorationType.DETERMINISTIC
+COSTLY_STEP_S = 5e-3
+
+
+class CostlyPendulum(PendulumEnv):
+    """Pendulum-v1 plus ``COSTLY_STEP_S`` of CPU work per step (an expensive simulator)."""
+
+    def step(self, u):
+        end = time.perf_counter() + COSTLY_STEP_S
+        while time.perf_counter() < end:
+            pass
+        return super().step(u)
+
+
+# make_env("continuous_traps:CostlyPendulum-v0", parallel=True): each worker imports this
+# module, which registers the env there too.
+if "CostlyPendulum-v0" not in gymnasium.registry:
+    gymnasium.register("CostlyPendulum-v0", entry_point=CostlyPendulum, max_episode_steps=200)
 
 
 @dataclass(frozen=True)
@@ -210,15 +231,22 @@ def _spinning(rows, episodes: int) -> float:
     return spins / episodes
 
 
-def bang_bang_trap(cfg: Config) -> dict:
-    configs = {
-        "bang-bang, beta = 0": ("bang_bang", Constant(0.0)),
-        "bang-bang, beta_i = 0.5^(i-1)": ("bang_bang", Exponential(0.5)),
-        "energy-shaping, beta = 0": ("energy", Constant(0.0)),
-    }
+BANG_BANG_CONFIGS = {
+    "bang-bang, beta = 0": ("bang_bang", Constant(0.0), 1),
+    "bang-bang, beta_i = 0.5^(i-1)": ("bang_bang", Exponential(0.5), 1),
+    "bang-bang, beta_i = 1 - i/5": ("bang_bang", Linear(5), 1),
+    "bang-bang, beta = 0.5": ("bang_bang", Constant(0.5), 1),
+    "bang-bang, beta = 0, 5x episodes per round": ("bang_bang", Constant(0.0), 5),
+    "energy-shaping, beta = 0": ("energy", Constant(0.0), 1),
+}
+"""trap 4: swing-up law, beta schedule, multiple of Config.episodes_per_round"""
+
+
+def bang_bang_trap(cfg: Config, configs: dict = BANG_BANG_CONFIGS) -> dict:
     steps = cfg.max_episode_steps
     out = {}
-    for name, (swing_up, beta) in configs.items():
+    for name, (swing_up, beta, factor) in configs.items():
+        per_round = cfg.episodes_per_round * factor
         expert = pendulum_expert(swing_up=swing_up)
         seeds = []
         for seed in range(cfg.seeds):
@@ -230,7 +258,7 @@ def bang_bang_trap(cfg: Config) -> dict:
             source = make_env(
                 "Pendulum-v1",
                 seed=1000 + seed,
-                num_envs=cfg.episodes_per_round,
+                num_envs=per_round,
                 max_episode_steps=steps,
             )
             eval_env = make_env(
@@ -261,7 +289,7 @@ def bang_bang_trap(cfg: Config) -> dict:
                 buffer,
                 DAggerConfig(
                     rounds=cfg.relabel_rounds + 1,
-                    episodes_per_round=cfg.episodes_per_round,
+                    episodes_per_round=per_round,
                     beta=beta,
                     fit=BCConfig(
                         num_steps=cfg.fit_steps, batch_size=256, loss_type="mse", seed=seed
@@ -279,7 +307,7 @@ def bang_bang_trap(cfg: Config) -> dict:
 # ------------------------------------------------------------------------- trap 5
 def startup_cost(cfg: Config) -> dict:
     out = {}
-    for env_id in ("Pendulum-v1", "InvertedDoublePendulum-v5"):
+    for env_id in ("Pendulum-v1", "InvertedDoublePendulum-v5", f"{NAME}:CostlyPendulum-v0"):
         for lanes in cfg.startup_lanes:
             for parallel in (False, True):
                 t0 = time.perf_counter()
@@ -354,7 +382,8 @@ def markdown(results: dict, cfg: Config) -> str:
     ]
     lines += [
         f"**4. DAgger on Pendulum-v1 with a bang-bang expert** ({cfg.seeds} seeds, one "
-        f"demonstration, {cfg.episodes_per_round} episodes per round, {cfg.eval_episodes} "
+        f"demonstration, {cfg.episodes_per_round} episodes per round unless stated, "
+        f"{cfg.fit_steps} fit steps, {cfg.eval_episodes} "
         "evaluation episodes; spinning = at least one full turn in the second half of an "
         "episode; mean [95% t-interval over seeds]):",
         "",
@@ -363,13 +392,14 @@ def markdown(results: dict, cfg: Config) -> str:
     rounds = cfg.relabel_rounds + 1
     for name, seeds in results["bang_bang"].items():
         spin = [f"{t_interval([s['spinning'][k] for s in seeds])[0]:.2f}" for k in range(rounds)]
-        worst = [max(s["spinning"][1:]) if rounds > 1 else 0.0 for s in seeds]
+        spinning_rounds = sum(x >= 0.2 for s in seeds for x in s["spinning"][1:])
         final = t_interval([s["return"][-1] for s in seeds])
         rows.append(
             [
                 name,
                 *spin,
-                f"{sum(w >= 0.2 for w in worst)}/{len(seeds)}",
+                f"{spinning_rounds}/{len(seeds) * (rounds - 1)}",
+                f"{sum(s['spinning'][-1] >= 0.2 for s in seeds)}/{len(seeds)}",
                 f"{final[0]:.0f} [{final[1]:.0f}, {final[2]:.0f}]",
             ]
         )
@@ -378,7 +408,8 @@ def markdown(results: dict, cfg: Config) -> str:
             [
                 "expert, beta",
                 *[f"spinning r{k}" for k in range(rounds)],
-                "seeds spinning >= 20% in some round >= 1",
+                "(seed, round >= 1) spinning >= 20%",
+                f"seeds spinning >= 20% at r{rounds - 1}",
                 f"return r{rounds - 1}",
             ],
             rows,
@@ -390,11 +421,32 @@ def markdown(results: dict, cfg: Config) -> str:
         "zero actions):",
         "",
     ]
-    rows = [
-        [k, f"{v['start_s']:.2f}", f"{v['close_s']:.2f}", f"{v['frames_per_s']:.0f}"]
-        for k, v in results["startup"].items()
+    rows = []
+    for k, v in results["startup"].items():
+        pays = "-"
+        if k.endswith(" parallel"):
+            base = results["startup"][k.replace(" parallel", " in-process")]
+            saved = 1 / base["frames_per_s"] - 1 / v["frames_per_s"]  # seconds per frame
+            extra = v["start_s"] - base["start_s"]
+            pays = f"{extra / saved:.0f}" if saved > 0 else "never (slower per frame)"
+        rows.append(
+            [
+                k.replace(f"{NAME}:", ""),
+                f"{v['start_s']:.2f}",
+                f"{v['close_s']:.2f}",
+                f"{v['frames_per_s']:.0f}",
+                pays,
+            ]
+        )
+    lines += [
+        _report.table(
+            ["env x lanes", "start s", "close s", "frames/s", "pays after (frames)"], rows
+        ),
+        "",
+        f"CostlyPendulum-v0 is Pendulum-v1 with {COSTLY_STEP_S * 1e3:.0f} ms of CPU work per "
+        "step, a stand-in for an expensive simulator. With cheap simulators the "
+        "inter-process round trip costs more than the step: keep `parallel=False`.",
     ]
-    lines += [_report.table(["env x lanes", "start s", "close s", "frames/s"], rows)]
     return "\n".join(lines)
 
 

@@ -4,6 +4,7 @@ continuous-control example, and smoke runs of the benchmarks."""
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import re
 import sys
@@ -12,6 +13,7 @@ from pathlib import Path
 import pytest
 import torch
 from tensordict import TensorDict
+from torchrl.data import Categorical
 from torchrl.envs import GymEnv, ParallelEnv
 from torchrl.envs.utils import ExplorationType
 
@@ -34,17 +36,21 @@ from ._stats import welch_t
 
 ROOT = Path(__file__).resolve().parents[1]
 DET, RANDOM = ExplorationType.DETERMINISTIC, ExplorationType.RANDOM
+needs_mujoco = pytest.mark.skipif(
+    importlib.util.find_spec("mujoco") is None, reason="needs the mujoco extra"
+)
 
 
 def learner_for(env, *, head: str | None = None, seed: int = 0, hidden=(64, 64)) -> ActorCritic:
     """An MLP for ``env``'s spaces; the same function serves every env."""
     spec = env.action_spec_unbatched
-    action = int(spec.space.n) if spec.dtype == torch.int64 else spec
+    action = int(spec.space.n) if isinstance(spec, Categorical) else spec
     obs_dim = env.observation_spec[keys.OBSERVATION].shape[-1]
     return ActorCritic.mlp(obs_dim, action, head=head, hidden=hidden, seed=seed)
 
 
 # ------------------------------------------------------------------------ make_env
+@needs_mujoco
 def test_make_env_casts_float64_observations():
     raw = GymEnv("InvertedDoublePendulum-v5")  # the trap: MuJoCo observations are float64
     assert raw.observation_spec[keys.OBSERVATION].dtype == torch.float64
@@ -128,8 +134,20 @@ LOOPS = [
     ("Acrobot-v1", acrobot_expert, None, "nll"),
     ("Pendulum-v1", pendulum_expert, "deterministic", "mse"),
     ("Pendulum-v1", pendulum_expert, "tanh_normal", "nll"),
-    ("InvertedPendulum-v5", inverted_pendulum_expert, "deterministic", "l1"),
-    ("InvertedDoublePendulum-v5", inverted_double_pendulum_expert, "deterministic", "mse"),
+    pytest.param(
+        "InvertedPendulum-v5",
+        inverted_pendulum_expert,
+        "deterministic",
+        "l1",
+        marks=needs_mujoco,
+    ),
+    pytest.param(
+        "InvertedDoublePendulum-v5",
+        inverted_double_pendulum_expert,
+        "deterministic",
+        "mse",
+        marks=needs_mujoco,
+    ),
 ]
 
 
@@ -209,6 +227,7 @@ def test_dagger_beats_bc_discrete_actions():
     assert r["dagger"].mean() > 2 * r["bc"].mean()
 
 
+@needs_mujoco
 def test_dagger_beats_bc_continuous_actions():
     # InvertedPendulum-v5 (200-step episodes) from one demonstration, deterministic head, MSE
     fit = BCConfig(num_steps=500, batch_size=256, loss_type="mse")
@@ -256,6 +275,7 @@ def benchmarks_path(monkeypatch):
         sys.modules.pop(name, None)
 
 
+@needs_mujoco
 def test_bc_vs_dagger_benchmark_smoke(benchmarks_path, tmp_path):
     import bc_vs_dagger
 
@@ -268,6 +288,7 @@ def test_bc_vs_dagger_benchmark_smoke(benchmarks_path, tmp_path):
         assert len(record["dagger_scores"]) == 2 and record["bc_matched_rows"] == record["rows"][-1]
 
 
+@needs_mujoco
 def test_continuous_traps_benchmark_smoke(benchmarks_path, tmp_path):
     import continuous_traps
 

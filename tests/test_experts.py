@@ -6,6 +6,7 @@ here each expert plays a few seeded episodes and must clear the bar it is docume
 
 from __future__ import annotations
 
+import importlib.util
 import math
 
 import gymnasium
@@ -32,6 +33,9 @@ from imitrl.experts import (
 )
 
 DET = ExplorationType.DETERMINISTIC
+needs_mujoco = pytest.mark.skipif(
+    importlib.util.find_spec("mujoco") is None, reason="needs the mujoco extra"
+)
 
 
 # ----------------------------------------------------------------------- exact math
@@ -94,6 +98,7 @@ def test_pendulum_linearization_matches_the_env_step():
     assert np.abs(env.state - predicted).max() < 1e-6
 
 
+@needs_mujoco
 @pytest.mark.parametrize("env_id", ["InvertedPendulum-v5", "InvertedDoublePendulum-v5"])
 def test_mujoco_linearization_predicts_a_small_step(env_id):
     lin = linearize_mujoco(env_id)
@@ -112,6 +117,7 @@ def test_mujoco_linearization_predicts_a_small_step(env_id):
     assert float(torch.linalg.eigvals(lin.A).abs().max()) > 1.0  # upright is unstable
 
 
+@needs_mujoco
 def test_linearize_mujoco_rejects_non_mujoco_envs_and_bad_repeats():
     with pytest.raises(ValueError, match="not a MuJoCo env"):
         linearize_mujoco("CartPole-v1")
@@ -130,7 +136,9 @@ EXPERTS = {
 }
 
 
-@pytest.mark.parametrize("env_id", list(EXPERTS))
+@pytest.mark.parametrize(
+    "env_id", [e if "-v5" not in e else pytest.param(e, marks=needs_mujoco) for e in EXPERTS]
+)
 def test_expert_writes_only_its_label(env_id):
     build, dim, dtype, shape = EXPERTS[env_id]
     expert = build()
@@ -143,6 +151,7 @@ def test_expert_writes_only_its_label(env_id):
         expert(TensorDict({keys.OBSERVATION: torch.zeros(5, dim + 1)}, [5]))
 
 
+@needs_mujoco
 def test_continuous_experts_respect_the_bounds():
     obs = torch.randn(1000, 3, generator=torch.Generator().manual_seed(0)) * 10
     for swing_up in ("energy", "bang_bang"):
@@ -168,8 +177,8 @@ def test_continuous_experts_respect_the_bounds():
         ("MountainCar-v0", 20, -130.0, None),
         ("Acrobot-v1", 20, -110.0, None),
         ("Pendulum-v1", 20, -200.0, None),
-        ("InvertedPendulum-v5", 10, 1000.0, None),
-        ("InvertedDoublePendulum-v5", 5, 9.3 * 300, 300),
+        pytest.param("InvertedPendulum-v5", 10, 1000.0, None, marks=needs_mujoco),
+        pytest.param("InvertedDoublePendulum-v5", 5, 9.3 * 300, 300, marks=needs_mujoco),
     ],
 )
 def test_expert_returns(env_id, episodes, lowest_mean, max_steps):
@@ -179,6 +188,7 @@ def test_expert_returns(env_id, episodes, lowest_mean, max_steps):
     assert ev.mean_return >= lowest_mean
 
 
+@needs_mujoco
 def test_frame_skip_breaks_an_expert_tuned_for_one_step():
     # Each action held for 2 steps: the one-step LQR falls, the gain re-identified
     # for the 2-step model (action_repeat=2) keeps balancing.

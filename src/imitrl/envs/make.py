@@ -21,6 +21,7 @@ policies and experts use), whatever the id:
 from __future__ import annotations
 
 import difflib
+import importlib
 from functools import partial
 
 import gymnasium
@@ -33,6 +34,12 @@ __all__ = ["make_env"]
 def _spec(env_id: str) -> gymnasium.envs.registration.EnvSpec:
     if not isinstance(env_id, str):
         raise ValueError(f"env_id must be a gymnasium id string, got {type(env_id).__name__}")
+    if ":" in env_id:  # "module:Env-v0": importing the module registers the env (gymnasium.make)
+        module, env_id = env_id.split(":", 1)
+        try:
+            importlib.import_module(module)
+        except ImportError as err:
+            raise ValueError(f"cannot import {module!r}, which should register {env_id!r}") from err
     try:
         return gymnasium.spec(env_id)
     except gymnasium.error.Error as err:
@@ -92,7 +99,10 @@ def make_env(
 
     Args:
         env_id: a gymnasium id (``"Pendulum-v1"``, ``"InvertedPendulum-v5"``, or your
-            own after ``gymnasium.register``).
+            own after ``gymnasium.register``). With ``parallel=True`` the workers are
+            fresh processes: register your env in an importable module and pass
+            ``"module:YourEnv-v0"`` so that each worker imports it (as
+            ``gymnasium.make`` does).
         seed: seeds the env; copy ``i`` of a vectorised or parallel env gets ``seed + i``,
             so ``parallel`` does not change the episodes. (A later ``env.set_seed(s)``
             re-seeds in TorchRL's way: ``s + i`` in-process, hashed seeds for workers.)
