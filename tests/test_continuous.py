@@ -18,7 +18,15 @@ from torchrl.envs import GymEnv, ParallelEnv
 from torchrl.envs.utils import ExplorationType
 
 from imitrl import keys
-from imitrl.algorithms import BCConfig, DAggerConfig, EnvSource, Exponential, dagger, fit_bc
+from imitrl.algorithms import (
+    BCConfig,
+    Constant,
+    DAggerConfig,
+    EnvSource,
+    Exponential,
+    dagger,
+    fit_bc,
+)
 from imitrl.data import DemonstrationBuffer, episode_returns, rollout_episodes
 from imitrl.envs import make_env
 from imitrl.evaluation import evaluate
@@ -178,6 +186,31 @@ def test_bc_and_dagger_loop_on_a_tiny_budget(env_id, build, head, loss):
     assert label.dtype == action.dtype and label.shape == action.shape
     ev = evaluate(env, result.learner.policy, 2, exploration=DET, max_steps=100)
     assert torch.isfinite(torch.tensor(ev.mean_return)) and ev.mean_length <= 12
+
+
+def test_dagger_mixes_on_an_unbatched_env():
+    # batch_size [] (num_envs=1): the mixer flips one coin per step
+    env = make_env("CartPole-v1", seed=0, max_episode_steps=50)
+    assert env.batch_size == ()
+    buffer = DemonstrationBuffer(action_spec=env.action_spec)
+    buffer.extend(
+        rollout_episodes(env, cartpole_expert().as_actor(), 1, exploration=DET, max_steps=100)
+    )
+    dagger(
+        EnvSource(env, max_steps=1000),
+        cartpole_expert(),
+        lambda: learner_for(env),
+        buffer,
+        DAggerConfig(
+            rounds=2,
+            episodes_per_round=3,
+            beta=Constant(0.5),
+            fit=BCConfig(num_steps=2, loss_type="nll"),
+        ),
+    )
+    executed = buffer.data.get(keys.EXPERT_EXECUTED)[buffer.data.get(keys.ROUND) == 1]
+    assert executed.dtype == torch.bool and executed.ndim == 1
+    assert 0 < int(executed.sum()) < executed.numel()
 
 
 # --------------------------------------------- DAgger beats BC, one test per action type
