@@ -421,7 +421,7 @@ def markdown(results: dict, cfg: Config) -> str:
         "zero actions):",
         "",
     ]
-    rows = []
+    rows, paying = [], []
     for k, v in results["startup"].items():
         pays = "-"
         if k.endswith(" parallel"):
@@ -429,6 +429,8 @@ def markdown(results: dict, cfg: Config) -> str:
             saved = 1 / base["frames_per_s"] - 1 / v["frames_per_s"]  # seconds per frame
             extra = v["start_s"] - base["start_s"]
             pays = f"{extra / saved:.0f}" if saved > 0 else "never (slower per frame)"
+            if saved > 0:
+                paying.append(k.replace(f"{NAME}:", "").replace(" parallel", ""))
         rows.append(
             [
                 k.replace(f"{NAME}:", ""),
@@ -444,8 +446,15 @@ def markdown(results: dict, cfg: Config) -> str:
         ),
         "",
         f"CostlyPendulum-v0 is Pendulum-v1 with {COSTLY_STEP_S * 1e3:.0f} ms of CPU work per "
-        "step, a stand-in for an expensive simulator. With cheap simulators the "
-        "inter-process round trip costs more than the step: keep `parallel=False`.",
+        "step, a stand-in for an expensive simulator. "
+        + (
+            f"Here `parallel=True` paid off only for: {', '.join(paying)}."
+            if paying
+            else "Here `parallel=True` never paid off: the inter-process round trip cost "
+            "more than it saved (on a 2-core machine the workers also compete with the "
+            "main process); keep `parallel=False` unless a step costs far more and idle "
+            "cores are available."
+        ),
     ]
     return "\n".join(lines)
 
