@@ -1,6 +1,7 @@
 """Environments: the batched tabular simulator and helpers to build TorchRL envs."""
 
 from imitrl.envs.gym_stream import GymnasiumStream, GymnasiumStreamSource, play_episodes
+from imitrl.envs.make import make_env
 from imitrl.envs.tabular_env import TabularEnv
 
-__all__ = ["GymnasiumStream", "GymnasiumStreamSource", "TabularEnv", "play_episodes"]
+__all__ = ["GymnasiumStream", "GymnasiumStreamSource", "TabularEnv", "make_env", "play_episodes"]

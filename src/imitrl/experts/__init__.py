@@ -1,5 +1,40 @@
-"""Built-in queryable experts (TensorDict modules writing ``expert_action``)."""
+"""Built-in queryable experts (TensorDict modules writing ``expert_action``).
 
-from imitrl.experts.classic_control import CARTPOLE_GAINS, cartpole_expert
+Classic control needs only gymnasium; building a MuJoCo expert
+(``imitrl.experts.mujoco``) needs the ``mujoco`` extra.
+"""
 
-__all__ = ["CARTPOLE_GAINS", "cartpole_expert"]
+from imitrl.experts.classic_control import (
+    CARTPOLE_GAINS,
+    PENDULUM,
+    PendulumSwingUp,
+    acrobot_expert,
+    cartpole_expert,
+    mountaincar_expert,
+    pendulum_expert,
+    pendulum_linearization,
+)
+from imitrl.experts.lqr import LinearFeedback, dlqr
+from imitrl.experts.mujoco import (
+    Linearization,
+    inverted_double_pendulum_expert,
+    inverted_pendulum_expert,
+    linearize_mujoco,
+)
+
+__all__ = [
+    "CARTPOLE_GAINS",
+    "PENDULUM",
+    "LinearFeedback",
+    "Linearization",
+    "PendulumSwingUp",
+    "acrobot_expert",
+    "cartpole_expert",
+    "dlqr",
+    "inverted_double_pendulum_expert",
+    "inverted_pendulum_expert",
+    "linearize_mujoco",
+    "mountaincar_expert",
+    "pendulum_expert",
+    "pendulum_linearization",
+]

@@ -176,6 +176,11 @@ class ActorCritic(nn.Module):
             if head != "categorical":
                 raise ValueError(f"a discrete action space needs head='categorical', got {head!r}")
         elif isinstance(action, Bounded):
+            if len(action.shape) != 1:
+                raise ValueError(
+                    f"a continuous action spec must have shape [action_dim], got {tuple(action.shape)} "
+                    "(for a batched env pass env.action_spec_unbatched)"
+                )
             head = head or "tanh_normal"
             if head not in ("tanh_normal", "deterministic"):
                 raise ValueError(

@@ -1,0 +1,144 @@
+"""`make_env`: a TorchRL env for a gymnasium id, single, vectorised or parallel by one switch.
+
+Every env it builds reads ``"observation"`` and writes ``"action"`` (the keys the
+policies and experts use), whatever the id:
+
+* discrete action spaces use integer actions (``categorical_action_encoding=True``),
+  not TorchRL's default one-hot;
+* float64 observations (every MuJoCo env) are cast to float32 by ``DoubleToFloat``;
+* ``num_envs > 1`` steps the copies in this process through
+  ``gymnasium.vector.SyncVectorEnv(..., autoreset_mode=DISABLED)`` wrapped by
+  ``GymWrapper``. Not ``GymEnv(id, num_envs=N)``: in torchrl 0.14.1 that builds an
+  ``AsyncVectorEnv`` (N processes) and records zeros as the final observation of a
+  sub-env that ends before the others (measured in
+  ``benchmarks/continuous_traps.py``). With ``DISABLED`` TorchRL resets only the
+  finished lanes and the true final observation is kept;
+* ``parallel=True`` runs each copy in its own process (``torchrl.envs.ParallelEnv``).
+  Starting the processes costs seconds (measured in ``benchmarks/continuous_traps.py``):
+  it pays only when one env step costs far more than the inter-process round trip.
+"""
+
+from __future__ import annotations
+
+import difflib
+from functools import partial
+
+import gymnasium
+import numpy as np
+from torchrl.envs import DoubleToFloat, EnvBase, GymWrapper, ParallelEnv, TransformedEnv
+
+__all__ = ["make_env"]
+
+
+def _spec(env_id: str) -> gymnasium.envs.registration.EnvSpec:
+    if not isinstance(env_id, str):
+        raise ValueError(f"env_id must be a gymnasium id string, got {type(env_id).__name__}")
+    try:
+        return gymnasium.spec(env_id)
+    except gymnasium.error.Error as err:
+        close = difflib.get_close_matches(env_id, list(gymnasium.registry), n=3)
+        hint = f" (did you mean {', '.join(close)}?)" if close else ""
+        raise ValueError(
+            f"unknown gymnasium env id {env_id!r}{hint}; register your own env with "
+            "gymnasium.register(id=..., entry_point=...) first"
+        ) from err
+
+
+def _gym(env_id: str, max_episode_steps: int | None) -> gymnasium.Env:
+    try:
+        return gymnasium.make(env_id, max_episode_steps=max_episode_steps)
+    except gymnasium.error.DependencyNotInstalled as err:
+        raise ValueError(
+            f"{env_id} needs an optional dependency ({err}); for MuJoCo envs install "
+            "the 'mujoco' extra (gymnasium[mujoco])"
+        ) from err
+
+
+def _check_spaces(env: gymnasium.Env, env_id: str) -> tuple[bool, bool]:
+    """(discrete action, float64 observation); ValueError for spaces the library cannot use."""
+    obs, act = env.observation_space, env.action_space
+    if not isinstance(obs, (gymnasium.spaces.Box, gymnasium.spaces.Discrete)):
+        raise ValueError(
+            f"{env_id}: observations must be a Box or Discrete space, got {type(obs).__name__}"
+        )
+    if not isinstance(act, (gymnasium.spaces.Box, gymnasium.spaces.Discrete)):
+        raise ValueError(
+            f"{env_id}: actions must be a Box or Discrete space, got {type(act).__name__}"
+        )
+    return isinstance(act, gymnasium.spaces.Discrete), obs.dtype == np.float64
+
+
+def _single(env_id: str, frame_skip: int, max_episode_steps: int | None) -> EnvBase:
+    """One TorchRL env (module-level so ``ParallelEnv`` workers can unpickle it)."""
+    gym_env = _gym(env_id, max_episode_steps)
+    discrete, double = _check_spaces(gym_env, env_id)
+    env = GymWrapper(gym_env, categorical_action_encoding=discrete, frame_skip=frame_skip)
+    return TransformedEnv(env, DoubleToFloat()) if double else env
+
+
+def make_env(
+    env_id: str,
+    *,
+    seed: int,
+    num_envs: int = 1,
+    parallel: bool = False,
+    frame_skip: int = 1,
+    max_episode_steps: int | None = None,
+) -> EnvBase:
+    """A seeded TorchRL env for a registered gymnasium id.
+
+    Args:
+        env_id: a gymnasium id (``"Pendulum-v1"``, ``"InvertedPendulum-v5"``, or your
+            own after ``gymnasium.register``).
+        seed: seeds the env (copy ``i`` of a vectorised env gets ``seed + i``).
+        num_envs: copies stepped together; the env's batch size is ``[num_envs]``
+            (``[]`` for 1 unless ``parallel``).
+        parallel: run the copies in worker processes (``ParallelEnv``) instead of in
+            this process (``SyncVectorEnv``).
+        frame_skip: repeat each action this many steps, summing rewards (TorchRL's
+            action repeat). An expert tuned for the env's time step usually fails
+            under a repeat: build it for the repeated step (e.g. ``action_repeat=``
+            of the MuJoCo experts). Not available for in-process vectorised envs.
+        max_episode_steps: override the id's time limit (None keeps it).
+
+    Returns:
+        a TorchRL env: ``"observation"`` float32 ``[*batch, d]`` (int64 ``[*batch]``
+        for a Discrete space), ``"action"`` int64 ``[*batch]`` (discrete) or float32
+        ``[*batch, m]`` bounded by the spec (continuous).
+
+    Raises:
+        ValueError: unknown id, missing optional dependency, unsupported spaces, bad
+            counts.
+    """
+    _spec(env_id)
+    if int(num_envs) != num_envs or num_envs < 1:
+        raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
+    if int(frame_skip) != frame_skip or frame_skip < 1:
+        raise ValueError(f"frame_skip must be a positive integer, got {frame_skip!r}")
+    if max_episode_steps is not None and max_episode_steps < 1:
+        raise ValueError(f"max_episode_steps must be positive or None, got {max_episode_steps}")
+    num_envs, frame_skip = int(num_envs), int(frame_skip)
+    if parallel:
+        env = ParallelEnv(num_envs, partial(_single, env_id, frame_skip, max_episode_steps))
+    elif num_envs == 1:
+        env = _single(env_id, frame_skip, max_episode_steps)
+    else:
+        if frame_skip != 1:
+            # GymLikeEnv's repeat loop stops when any lane ends, so lanes would
+            # repeat their actions a different number of times.
+            raise ValueError(
+                "frame_skip > 1 needs num_envs=1 or parallel=True (the in-process "
+                "vectorised env would stop every lane's repeat when one lane ends)"
+            )
+        probe = _gym(env_id, max_episode_steps)
+        discrete, double = _check_spaces(probe, env_id)
+        probe.close()
+        vec = gymnasium.vector.SyncVectorEnv(
+            [partial(_gym, env_id, max_episode_steps) for _ in range(num_envs)],
+            autoreset_mode=gymnasium.vector.AutoresetMode.DISABLED,
+        )
+        env = GymWrapper(vec, categorical_action_encoding=discrete)
+        if double:
+            env = TransformedEnv(env, DoubleToFloat())
+    env.set_seed(int(seed))
+    return env
