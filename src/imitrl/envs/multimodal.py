@@ -5,21 +5,25 @@ straight line between the start and the goal, so it must pass either above or be
 Both ways are equally good (the task is symmetric in ``y``). The expert carries a
 latent *intent* (+1 above, -1 below) drawn per episode: near the centre line it follows
 its intent, elsewhere it keeps to the side it is already on. Demonstrations near the
-centre line therefore hold two labels for one observation, ``+1`` and ``-1``:
+centre line therefore hold two labels for one observation, ``+0.5`` and ``-0.5``:
 
 * a loss that regresses the mean (MSE, a Gaussian's mode) predicts about ``0`` there,
   an action no demonstrator ever took, and the clone drives into the obstacle;
 * a generative policy (diffusion) can keep both modes.
 
 :func:`mode_fractions` measures which: the fraction of a policy's actions at the
-decision states (the start distribution) within ``tol`` of each of the expert's two
+decision states (:func:`decision_states`) within ``tol`` of each of the expert's two
 actions, and the fraction near neither.
 
 Geometry (defaults, one length unit): start at ``x = 0``, ``y ~ U(-band, band)`` with
-``band = 0.1``; each step ``x += dx = 0.05`` and ``y += dx * a`` with ``a in [-1, 1]``
-(at most 45 degrees); a disc of radius ``0.3`` at ``(1, 0)``; the episode ends on
-entering the disc (reward 0) or on reaching ``x >= 2`` after 40 steps (reward 1 if
-``|y| <= 0.1``, else 0). Success is reward 1; the expert succeeds from every start.
+``band = 0.05``; each step ``x += dx = 0.05`` and ``y += dx * a`` with ``a in [-1, 1]``;
+a disc of radius ``0.3`` at ``(0.8, 0)``; the episode ends on entering the disc
+(reward 0) or at the goal line ``x = 2`` after 40 steps (reward 1 if ``|y| <= 0.1``,
+else 0). Success is reward 1. From its start the expert steers with ``a = +-0.5`` to
+the lane ``|y| = 0.35``, which clears the disc by 0.013 from the worst start; after
+the disc it returns to the centre line. It succeeds from every start, and a policy
+that hesitates at the start for three steps hits the disc. The expert's modes, ``+-0.5``, sit inside the action bounds, so a noisy
+policy clipped to the bounds is not mistaken for one that picked a mode.
 
 Keys: ``"observation"`` float32 ``[*batch, 2]`` = ``(x, y)``; ``"intent"`` int64
 ``[*batch]`` (+1/-1, read only by the expert, never by a learner); ``"action"``
@@ -65,9 +69,11 @@ class ObstacleGeometry:
     """forward distance per step; also the largest lateral move (action 1)"""
     band: float = 0.05
     """start ``y ~ U(-band, band)``; inside ``|y| <= band`` the expert follows its intent"""
-    decision_x: float = 0.5
-    """the expert flies straight until here, then steers to its side at full speed"""
-    obstacle_x: float = 1.0
+    decision_x: float = 0.0
+    """the expert flies straight until here, then steers to its side (0: from the start)"""
+    expert_speed: float = 0.5
+    """the expert's largest ``|action|`` (the env allows 1): its two modes sit inside the bounds"""
+    obstacle_x: float = 0.8
     """centre of the disc on the ``x`` axis"""
     radius: float = 0.3
     """radius of the disc"""
@@ -79,11 +85,17 @@ class ObstacleGeometry:
     """success needs ``|y| <= goal_halfwidth`` at the goal line"""
 
     def __post_init__(self) -> None:
-        for name in ("dx", "band", "radius", "margin", "goal_x", "goal_halfwidth"):
+        for name in ("dx", "band", "radius", "margin", "goal_x", "goal_halfwidth", "expert_speed"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
         if not 0 < self.obstacle_x - self.radius < self.obstacle_x + self.radius < self.goal_x:
             raise ValueError("the disc must lie strictly between the start (x=0) and the goal")
+        if not 0 <= self.decision_x < self.obstacle_x - self.radius:
+            raise ValueError(
+                f"decision_x must lie between the start and the disc, got {self.decision_x}"
+            )
+        if self.expert_speed > 1:
+            raise ValueError(f"expert_speed must be at most 1, got {self.expert_speed}")
         if self.band >= self.radius:
             raise ValueError(f"band ({self.band}) must be smaller than the radius ({self.radius})")
 
@@ -220,7 +232,7 @@ class _TwoWayExpert(nn.Module):
         # when it is within reach.
         lane = torch.where(x < g.obstacle_x + g.radius, side * (g.radius + g.margin), 0.0)
         target = torch.where(x < g.decision_x - 1e-6, y, lane)
-        return ((target - y) / g.dx).clamp(-1.0, 1.0).unsqueeze(-1)
+        return ((target - y) / g.dx).clamp(-g.expert_speed, g.expert_speed).unsqueeze(-1)
 
 
 def two_way_expert(geometry: ObstacleGeometry = ObstacleGeometry()) -> Module:
@@ -239,12 +251,16 @@ def two_way_expert(geometry: ObstacleGeometry = ObstacleGeometry()) -> Module:
 def decision_states(
     num: int, *, geometry: ObstacleGeometry = ObstacleGeometry(), seed: int = 0
 ) -> torch.Tensor:
-    """``[num, 2]`` start observations ``(0, y0)``, ``y0 ~ U(-band, band)``: where the expert is bimodal."""
+    """``[num, 2]`` observations ``(decision_x, y0)``, ``y0 ~ U(-band, band)``: where the expert is bimodal.
+
+    The expert flies straight from its start ``(0, y0)`` and reaches these states at its
+    decision step; with intent +1 it then steers up at full speed, with -1 down.
+    """
     if num < 1:
         raise ValueError(f"num must be positive, got {num}")
     g = torch.Generator().manual_seed(int(seed))
     y0 = (2 * torch.rand(num, generator=g, dtype=torch.float64) - 1) * geometry.band
-    return torch.stack([torch.zeros(num), y0.float()], dim=-1)
+    return torch.stack([torch.full((num,), geometry.decision_x), y0.float()], dim=-1)
 
 
 def expert_modes(
@@ -268,8 +284,9 @@ def mode_fractions(
     """Where a policy's actions at ``obs [N, 2]`` fall, ``actions [N, 1]``.
 
     Returns the fractions ``above`` (within ``tol`` of the expert's pass-above action),
-    ``below`` (within ``tol`` of its pass-below action) and ``between`` (near neither),
-    which sum to 1 when the two modes are more than ``2 tol`` apart.
+    ``below`` (within ``tol`` of its pass-below action) and ``neither`` (they sum to
+    1), and ``middle``, the part of ``neither`` within ``tol`` of the two modes' mean
+    (the action a mean-regressing loss predicts).
     """
     if obs.ndim != 2 or obs.shape[-1] != 2 or actions.shape != (obs.shape[0], 1):
         raise ValueError(
@@ -279,12 +296,13 @@ def mode_fractions(
     a = actions[:, 0].float()
     below = (a - modes[:, 0]).abs() <= tol
     above = (a - modes[:, 1]).abs() <= tol
-    if bool((below & above).any()):
+    if bool(((modes[:, 1] - modes[:, 0]).abs() <= 2 * tol).any()):
         raise ValueError(f"tol={tol} is too wide: the two modes overlap at some states")
     return {
         "above": float(above.float().mean()),
         "below": float(below.float().mean()),
-        "between": float((~(above | below)).float().mean()),
+        "neither": float((~(above | below)).float().mean()),
+        "middle": float(((a - modes.mean(-1)).abs() <= tol).float().mean()),
     }
 
 
