@@ -33,6 +33,7 @@ wherever (``--jobs``) it runs.
 from __future__ import annotations
 
 import argparse
+import importlib
 import json
 import math
 import os
@@ -510,6 +511,13 @@ def _digits(task: str) -> int:
     return 3 if task in ("frozenlake", "two_way") else 1
 
 
+def _losses(groups: list[dict], task: str | None = None) -> list[str]:
+    """Loss names in the groups (of ``task``), registry order first."""
+    present = [g["loss"] for g in groups if task is None or g["task"] == task]
+    known = [n for n in registry.names() if n in present]
+    return known + [n for n in dict.fromkeys(present) if n not in known]
+
+
 def verdict(group: dict) -> str:
     """A sentence from the measured mode fractions (never assumed)."""
     below, middle, above = (group[f"modes_{k}"] for k in ("below", "middle", "above"))
@@ -526,11 +534,13 @@ def markdown(
     summary: dict, config: dict, protocols: dict[str, dict], wall: float, figure: str | None
 ) -> str:
     groups = summary["groups"]
+    jobs = config["jobs"]
+    command = config.get("command", "python benchmarks/loss_functions.py")
     lines = [
-        f"Full run: `python benchmarks/loss_functions.py{' --jobs ' + str(config['jobs']) if config['jobs'] > 1 else ''}`, "
-        f"{config['seeds']} seeds, **wall time {wall / 60:.1f} min** on {os.cpu_count()} CPU cores "
-        f"({config['jobs']} process{'es' if config['jobs'] > 1 else ''}, 1 torch thread each; "
-        "the machine was shared, so times are indicative).",
+        f"{'Smoke' if config['quick'] else 'Full'} run: `{command}`, {config['seeds']} seeds, "
+        f"**wall time {wall / 60:.1f} min** on {config.get('cpu_count', '?')} CPU cores "
+        f"({jobs} process{'es' if jobs > 1 else ''}, 1 torch thread each; the machine was "
+        "shared with other work, so times are indicative).",
         "",
         "Score: FrozenLake = exact success probability (from the MDP); CartPole, Pendulum, "
         "InvertedPendulum = mean return over held-out episodes; two-way = success rate. "
@@ -555,7 +565,7 @@ def markdown(
                 "",
             ]
         )
-        for loss in registry.names():
+        for loss in _losses(groups, task):
             bc = [g for g in groups if (g["task"], g["loss"], g["algorithm"]) == (task, loss, "bc")]
             dg = [
                 g
@@ -599,7 +609,7 @@ def markdown(
             "verdict",
         ]
         table_rows = []
-        for loss in registry.names():
+        for loss in _losses(two_way):
             for algorithm in ("bc", "dagger"):
                 g = [x for x in two_way if (x["loss"], x["algorithm"]) == (loss, algorithm)]
                 if not g:
@@ -658,9 +668,7 @@ def figure(summary: dict, path: Path) -> None:
     tasks = [t for t in TASKS if any(g["task"] == t for g in groups)]
     fig, axes = plt.subplots(1, len(tasks) + 1, figsize=(4.2 * (len(tasks) + 1), 4.0))
     for ax, task in zip(axes, tasks):
-        losses = [
-            n for n in registry.names() if any(g["task"] == task and g["loss"] == n for g in groups)
-        ]
+        losses = _losses(groups, task)
         for j, (algorithm, colour) in enumerate((("bc", "tab:blue"), ("dagger", "tab:orange"))):
             for i, loss in enumerate(losses):
                 g = next(
@@ -748,6 +756,23 @@ def run(
     return {"rows": rows, "references": ref_rows, "protocols": protocols}
 
 
+def report(raw: dict[str, Any], out: Path | None) -> str:
+    """Summary, figure, results JSON and (unless ``out``) the README block, from raw rows."""
+    summary = summarize(raw["rows"], raw["references"])
+    out_dir = _report.RESULTS if out is None else out
+    out_dir.mkdir(parents=True, exist_ok=True)
+    fig_path = out_dir / f"{NAME}.png"
+    figure(summary, fig_path)
+    md = markdown(
+        summary, raw["config"], raw["protocols"], raw["wall_seconds"], f"results/{fig_path.name}"
+    )
+    payload = {**raw, "summary": summary}
+    path = _report.write(NAME, json.loads(json.dumps(payload, default=str)), md, out_dir=out)
+    print(md)
+    print(f"\nwrote {path} and {fig_path}")
+    return md
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="tiny budget, one seed (smoke test)")
@@ -756,11 +781,31 @@ def main(argv: list[str] | None = None) -> None:
     )
     parser.add_argument("--tasks", nargs="+", default=list(TASKS), choices=TASKS)
     parser.add_argument("--losses", nargs="+", default=None, help="registry names (default: all)")
+    parser.add_argument(
+        "--import",
+        dest="modules",
+        nargs="+",
+        default=[],
+        metavar="MODULE",
+        help="import these modules first (their @register entries join the run)",
+    )
     parser.add_argument("--jobs", type=int, default=1, help="worker processes (same results)")
     parser.add_argument(
         "--out", type=Path, default=None, help="write results here (README untouched)"
     )
+    parser.add_argument(
+        "--render",
+        type=Path,
+        default=None,
+        metavar="JSON",
+        help="re-render the table and figure from a results file instead of running",
+    )
     args = parser.parse_args(argv)
+    for module in args.modules:
+        importlib.import_module(module)
+    if args.render is not None:
+        report(json.loads(args.render.read_text()), args.out)
+        return
     for loss in args.losses or []:
         registry.get(loss)
     torch.set_num_threads(1)
@@ -769,32 +814,21 @@ def main(argv: list[str] | None = None) -> None:
     raw = run(
         tasks=args.tasks, losses=args.losses, seeds=seeds, quick_mode=args.quick, jobs=args.jobs
     )
-    wall = time.perf_counter() - t0
-    summary = summarize(raw["rows"], raw["references"])
-    config = {
+    raw["wall_seconds"] = time.perf_counter() - t0
+    raw["config"] = {
         "seeds": seeds,
         "tasks": args.tasks,
         "losses": args.losses,
         "quick": args.quick,
         "jobs": args.jobs,
+        "cpu_count": os.cpu_count(),
+        "command": " ".join(["python benchmarks/loss_functions.py", *(argv or sys.argv[1:])]),
     }
-    out_dir = _report.RESULTS if args.out is None else args.out
-    out_dir.mkdir(parents=True, exist_ok=True)
-    fig_path = out_dir / f"{NAME}.png"
-    figure(summary, fig_path)
-    md = markdown(summary, config, raw["protocols"], wall, f"results/{fig_path.name}")
-    payload = {
-        "config": config,
-        "wall_seconds": wall,
-        "losses": {
-            e.name: {"actions": e.actions, "summary": e.summary} for e in registry.entries()
-        },
-        **raw,
-        "summary": summary,
+    raw["losses"] = {
+        e.name: {"actions": e.actions, "summary": e.summary} for e in registry.entries()
     }
-    path = _report.write(NAME, json.loads(json.dumps(payload, default=str)), md, out_dir=args.out)
-    print(md)
-    print(f"\nwrote {path} and {fig_path} in {wall:.0f} s")
+    report(raw, args.out)
+    print(f"wall time {raw['wall_seconds']:.0f} s")
 
 
 if __name__ == "__main__":
