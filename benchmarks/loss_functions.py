@@ -56,13 +56,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _report
 from imitrl import keys
 from imitrl.algorithms import BCConfig, DAggerConfig, EnvSource, dagger, fit_bc
-from imitrl.data import DemonstrationBuffer, rollout_episodes
+from imitrl.data import DemonstrationBuffer, episode_returns, rollout_episodes
 from imitrl.envs import TabularEnv, make_env
 from imitrl.envs import multimodal as mm
 from imitrl.evaluation import exact_values
 from imitrl.objectives import registry
 from imitrl.objectives.registry import Learner, LearnerConfig, TaskSpec
-from imitrl.policies import BetaMixer, Expert
+from imitrl.policies import BetaMixer, Expert, behaviour_policy
 from imitrl.policies.experts import as_actor
 from imitrl.tabular import TabularMDP, greedy, success_probability, value_iteration
 
@@ -107,9 +107,9 @@ def quick(protocol: Protocol) -> Protocol:
 class _Uniform(TensorDictModuleBase):
     """A uniformly random policy writing ``ACTION`` (seeded generator)."""
 
-    def __init__(self, action: int | Bounded, batch: torch.Size, seed: int) -> None:
+    def __init__(self, action: int | Bounded, seed: int) -> None:
         super().__init__()
-        self.action, self.batch = action, batch
+        self.action = action
         self.in_keys, self.out_keys = [keys.OBSERVATION], [keys.ACTION]
         self.generator = torch.Generator().manual_seed(seed)
 
@@ -151,7 +151,7 @@ class Task:
 
     def random_score(self, seed: int) -> dict:
         spec = self.spec()
-        return self.score(_Uniform(spec.action, torch.Size([]), seed), RND, seed)
+        return self.score(_Uniform(spec.action, seed), RND, seed)
 
     def extras(self, learner: Learner, seed: int) -> dict:
         return {}
@@ -228,8 +228,6 @@ class Gym(Task):
         return 20_000
 
     def score(self, policy, exploration, seed) -> dict:
-        from imitrl.data import episode_returns
-
         n = self.protocol.eval_episodes
         env = self.env(seed=10_000 + 100 * seed, lanes=n)  # held-out starts
         summary = episode_returns(
@@ -279,7 +277,7 @@ class TwoWay(Task):
         }
 
     def random_score(self, seed: int) -> dict:
-        return self.score(_Uniform(self.spec().action, torch.Size([]), seed), RND, seed)
+        return self.score(_Uniform(self.spec().action, seed), RND, seed)
 
     def extras(self, learner: Learner, seed: int) -> dict:
         obs = mm.decision_states(self.decision_states, geometry=self.geometry, seed=seed)
@@ -297,8 +295,6 @@ class TwoWay(Task):
 
 
 def _behaviour(expert: TensorDictModuleBase, policy: TensorDictModuleBase):
-    from imitrl.policies import behaviour_policy
-
     return behaviour_policy(expert, policy, BetaMixer(0.0))
 
 
@@ -426,7 +422,7 @@ def loss_cell(task_name: str, loss: str, seed: int, quick_mode: bool) -> list[di
         on_fit=on_fit,
         fit=fit,
     )
-    env.close() if hasattr(env, "close") else None
+    env.close()
     rows = []
     for algorithm, k in (("bc", 0), ("dagger", proto.rounds - 1)):
         record = out.rounds[k]

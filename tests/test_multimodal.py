@@ -106,6 +106,7 @@ def test_mode_fractions_exact():
 
 
 def test_env_contract_and_reproducibility():
+    check_env_specs(TwoWayObstacleEnv(seed=0))  # unbatched
     env = TwoWayObstacleEnv(batch_size=(4,), seed=0)
     check_env_specs(env)
     a = _expert_rows(20, seed=7)
