@@ -662,7 +662,13 @@ def figure(summary: dict, path: Path) -> None:
 
     groups = summary["groups"]
     tasks = [t for t in TASKS if any(g["task"] == t for g in groups)]
-    fig, axes = plt.subplots(1, len(tasks) + 1, figsize=(4.2 * (len(tasks) + 1), 4.0))
+    cols = 3
+    rows = math.ceil((len(tasks) + 1) / cols)
+    fig, grid = plt.subplots(rows, cols, figsize=(5.2 * cols, 3.6 * rows), squeeze=False)
+    axes = list(grid.reshape(-1))
+    for ax in axes[len(tasks) + 1 :]:
+        ax.set_visible(False)
+    axes = [*axes[: len(tasks)], axes[len(tasks)]]
     for ax, task in zip(axes, tasks):
         losses = _losses(groups, task)
         for j, (algorithm, colour) in enumerate((("bc", "tab:blue"), ("dagger", "tab:orange"))):
@@ -695,18 +701,20 @@ def figure(summary: dict, path: Path) -> None:
     if two_way:
         names = [g["loss"] for g in two_way]
         left = [0.0] * len(names)
-        for part, colour in (
-            ("below", "tab:green"),
-            ("neither", "tab:red"),
-            ("above", "tab:purple"),
-        ):
-            values = [g[f"modes_{part}"][0] for g in two_way]
+        parts = {
+            "near -0.5 (below)": [g["modes_below"][0] for g in two_way],
+            "near 0 (the mean)": [g["modes_middle"][0] for g in two_way],
+            "elsewhere": [g["modes_neither"][0] - g["modes_middle"][0] for g in two_way],
+            "near +0.5 (above)": [g["modes_above"][0] for g in two_way],
+        }
+        colours = ("tab:green", "tab:red", "tab:gray", "tab:purple")
+        for (part, values), colour in zip(parts.items(), colours):
             ax.barh(names, values, left=left, color=colour, label=part)
             left = [a + b for a, b in zip(left, values)]
         ax.set_xlim(0, 1)
         ax.set_title("two_way, BC: actions at the decision")
         ax.set_xlabel("fraction of actions (mean over seeds)")
-        ax.legend(loc="lower right", fontsize=8)
+        ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.2), ncol=2, fontsize=8)
         ax.invert_yaxis()
     fig.tight_layout()
     fig.savefig(path, dpi=110)
