@@ -37,6 +37,7 @@ import importlib
 import json
 import math
 import os
+import re
 import sys
 import time
 from collections.abc import Callable
@@ -494,13 +495,20 @@ def summarize(rows: list[dict], references: list[dict]) -> dict[str, Any]:
 
 
 # ------------------------------------------------------------------------ report
-def _fmt(ci: tuple[float, float, float], digits: int = 2) -> str:
+def _fmt(ci: tuple[float, float, float], digits: int = 2, *, unit: bool = False) -> str:
+    """``mean [lo, hi]``; ``unit``: a probability, its interval clipped to [0, 1]."""
     mean, lo, hi = ci
     if math.isnan(mean):
         return "-"
     if math.isnan(lo):
         return f"{mean:.{digits}f}"
+    if unit:
+        lo, hi = max(lo, 0.0), min(hi, 1.0)
     return f"{mean:.{digits}f} [{lo:.{digits}f}, {hi:.{digits}f}]"
+
+
+UNIT_SCORES = ("frozenlake", "two_way")
+"""tasks whose score is a probability"""
 
 
 def _digits(task: str) -> int:
@@ -531,7 +539,10 @@ def markdown(
 ) -> str:
     groups = summary["groups"]
     jobs = config["jobs"]
-    command = config.get("command", "python benchmarks/loss_functions.py")
+    # where the files went does not change a number
+    command = re.sub(
+        r" --out \S+", "", config.get("command", "python benchmarks/loss_functions.py")
+    )
     lines = [
         f"{'Smoke' if config['quick'] else 'Full'} run: `{command}`, {config['seeds']} seeds, "
         f"**wall time {wall / 60:.1f} min** on {config.get('cpu_count', '?')} CPU cores "
@@ -540,7 +551,8 @@ def markdown(
         "",
         "Score: FrozenLake = exact success probability (from the MDP); CartPole, Pendulum, "
         "InvertedPendulum = mean return over held-out episodes; two-way = success rate. "
-        "Normalised = (score - random) / (expert - random). Mean [95% t-interval] over seeds. "
+        "Normalised = (score - random) / (expert - random). Mean [95% t-interval] over seeds "
+        "(clipped to [0, 1] for probabilities). "
         "BC = DAgger's round 0; DAgger = its last round.",
         "",
     ]
@@ -574,9 +586,9 @@ def markdown(
                 [
                     task,
                     loss,
-                    _fmt(bc[0]["score"], d),
+                    _fmt(bc[0]["score"], d, unit=task in UNIT_SCORES),
                     _fmt(bc[0]["normalized"]),
-                    _fmt(dg[0]["score"], d),
+                    _fmt(dg[0]["score"], d, unit=task in UNIT_SCORES),
                     _fmt(dg[0]["normalized"]),
                 ]
             )
@@ -615,12 +627,12 @@ def markdown(
                     [
                         loss,
                         algorithm,
-                        _fmt(g["modes_below"]),
-                        _fmt(g["modes_neither"]),
-                        _fmt(g["modes_middle"]),
-                        _fmt(g["modes_above"]),
-                        _fmt(g["score"]),
-                        _fmt(g["passed_above"]),
+                        _fmt(g["modes_below"], unit=True),
+                        _fmt(g["modes_neither"], unit=True),
+                        _fmt(g["modes_middle"], unit=True),
+                        _fmt(g["modes_above"], unit=True),
+                        _fmt(g["score"], unit=True),
+                        _fmt(g["passed_above"], unit=True),
                         verdict(g),
                     ]
                 )
@@ -763,6 +775,7 @@ def run(
 def report(raw: dict[str, Any], out: Path | None) -> str:
     """Summary, figure, results JSON and (unless ``out``) the README block, from raw rows."""
     summary = summarize(raw["rows"], raw["references"])
+    raw["config"].setdefault("cpu_count", raw.get("machine", {}).get("cpu_count", "?"))
     out_dir = _report.RESULTS if out is None else out
     out_dir.mkdir(parents=True, exist_ok=True)
     fig_path = out_dir / f"{NAME}.png"
