@@ -7,9 +7,13 @@ latent *intent* (+1 above, -1 below) drawn per episode: near the centre line it 
 its intent, elsewhere it keeps to the side it is already on. Demonstrations near the
 centre line therefore hold two labels for one observation, ``+0.5`` and ``-0.5``:
 
-* a loss that regresses the mean (MSE, a Gaussian's mode) predicts about ``0`` there,
-  an action no demonstrator ever took, and the clone drives into the obstacle;
-* a generative policy (diffusion) can keep both modes.
+* a loss that regresses the mean (MSE) predicts about ``0`` there, an action no
+  demonstrator took, and a clone that follows it goes straight at the obstacle until
+  it drifts off the centre line (too late, from starts near it);
+* a generative policy (diffusion) can keep both modes, but one that samples each
+  step afresh may switch between them before it has left the centre line.
+
+``benchmarks/loss_functions.py`` measures both effects for every registered loss.
 
 :func:`mode_fractions` measures which: the fraction of a policy's actions at the
 decision states (:func:`decision_states`) within ``tol`` of each of the expert's two
