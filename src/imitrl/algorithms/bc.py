@@ -9,6 +9,10 @@
   permutation seeded by ``config.seed`` (the buffer's TorchRL sampler is not used on
   this hot path: one ``randperm`` per epoch and tensor slicing cost a fraction of a
   ``ReplayBuffer.sample`` call; ``benchmarks/bc_throughput.py`` measures both).
+
+``loss_module=`` replaces the ``BehaviorCloningLoss`` built from ``config.loss_type``
+with any loss over the learner's policy (e.g. an entry of
+:mod:`imitrl.objectives.registry`); the sum of its ``loss_*`` outputs is minimised.
 """
 
 from __future__ import annotations
@@ -17,6 +21,7 @@ from dataclasses import dataclass, field
 
 import torch
 from tensordict import TensorDictBase
+from torchrl.objectives import LossModule
 from tqdm.auto import tqdm
 
 from imitrl import keys
@@ -116,15 +121,21 @@ def fit_bc(
     data: DemonstrationBuffer | TensorDictBase,
     config: BCConfig = BCConfig(),
     *,
+    loss_module: LossModule | None = None,
     progress: bool = False,
 ) -> FitResult:
     """Fit ``learner``'s policy to the labels in ``data`` (see the module docstring).
 
     Args:
-        learner: the actor-critic; its ``opt_pi`` takes the steps.
+        learner: the actor-critic (or any object with ``policy`` and ``opt_pi``); its
+            ``opt_pi`` takes the steps.
         data: a demonstration buffer or a TensorDict of rows with ``OBSERVATION`` and
             ``config.label_key``.
         config: steps, batch size, loss, seed.
+        loss_module: a loss over ``learner.policy`` reading ``OBSERVATION`` and
+            ``config.label_key``, used instead of ``BehaviorCloningLoss(config.loss_type)``
+            (``config.loss_type`` and ``deduplicate`` are then unused); the sum of its
+            ``loss_*`` outputs is minimised.
         progress: show a progress bar.
     """
     rows = _rows(data, config.label_key)
@@ -132,18 +143,29 @@ def fit_bc(
     losses = torch.empty(config.num_steps)
     minibatch = config.batch_size is not None and config.batch_size < n
     distinct = None
-    if not minibatch and config.deduplicate is not False and config.loss_type == "nll":
+    if loss_module is not None:
+        if config.label_key not in loss_module.in_keys:
+            raise ValueError(
+                f"loss_module reads {list(loss_module.in_keys)}, not the label key "
+                f"{config.label_key!r}: remap it with set_keys"
+            )
+    elif not minibatch and config.deduplicate is not False and config.loss_type == "nll":
         distinct = _distinct_pairs(rows, config.label_key)
         if distinct is None and config.deduplicate:
             raise ValueError(
                 "deduplicate=True needs integer observations [N] and integer labels [N]"
             )
-    loss_module = BehaviorCloningLoss(
-        learner.policy, loss_type=config.loss_type, weighted=distinct is not None
-    )
-    loss_module.set_keys(label=config.label_key)
+    if loss_module is None:
+        loss_module = BehaviorCloningLoss(
+            learner.policy, loss_type=config.loss_type, weighted=distinct is not None
+        )
+        loss_module.set_keys(label=config.label_key)
     if distinct is not None:
         rows = distinct
+    objective = getattr(loss_module, "objective", None) or (
+        # any TorchRL loss: minimise the sum of its loss_* outputs
+        lambda batch: sum(v for k, v in loss_module(batch).items() if k.startswith("loss_"))
+    )
     if minibatch:
         generator = torch.Generator().manual_seed(config.seed)
         obs_all, label_all = rows.get(keys.OBSERVATION), rows.get(config.label_key)
@@ -161,7 +183,7 @@ def fit_bc(
             batch.set(config.label_key, label_all[idx])
         else:
             batch = rows
-        loss = loss_module.objective(batch)
+        loss = objective(batch)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()

@@ -178,6 +178,7 @@ def dagger(
     config: DAggerConfig = DAggerConfig(),
     *,
     on_fit: Callable[[int, ActorCritic], None] | None = None,
+    fit: Callable[[ActorCritic, DemonstrationBuffer], FitResult] | None = None,
     progress: bool = False,
 ) -> DAggerResult:
     """Run DAgger on top of the demonstrations already in ``buffer`` (extended in place).
@@ -189,6 +190,9 @@ def dagger(
         buffer: demonstrations (round 0), extended with every relabel round.
         config: rounds, episodes per round, beta schedule, fit.
         on_fit: called as ``on_fit(round, learner)`` after each fit, before collection.
+        fit: fits a round's learner on the buffer, ``fit(learner, buffer) -> FitResult``;
+            None = ``fit_bc(learner, buffer, config.fit)``. With a registry learner:
+            ``lambda learner, buffer: fit_bc(learner, buffer, config.fit, loss_module=learner.loss)``.
         progress: progress bar over rounds.
     """
     if len(buffer) == 0:
@@ -199,8 +203,10 @@ def dagger(
     for k in tqdm(range(config.rounds), desc="dagger", disable=not progress, leave=False):
         if learner is None or not config.warm_start:
             learner = make_learner()
-        fit = fit_bc(learner, buffer, config.fit)
-        record = RoundRecord(round=k, rows_trained=len(buffer), expert_queries=len(buffer), fit=fit)
+        result = fit_bc(learner, buffer, config.fit) if fit is None else fit(learner, buffer)
+        record = RoundRecord(
+            round=k, rows_trained=len(buffer), expert_queries=len(buffer), fit=result
+        )
         records.append(record)
         if on_fit is not None:
             on_fit(k, learner)

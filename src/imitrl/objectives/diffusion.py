@@ -1,0 +1,194 @@
+"""Diffusion behaviour cloning: TorchRL's ``DiffusionActor`` and ``DiffusionBCLoss`` in the action bounds.
+
+The policy samples an action by running a DDPM reverse chain conditioned on the
+observation (Chi et al. 2023, "Diffusion Policy"); the loss is TorchRL's
+epsilon-prediction objective ``E_{t, eps} ||eps - eps_theta(sqrt(abar_t) a + sqrt(1 - abar_t) eps, s, t)||^2``.
+A generative policy can represent several modes of the expert's action at one state,
+where a regression loss predicts their mean.
+
+What this module adds around the two TorchRL classes, and why:
+
+* actions are diffused in ``[-1, 1]`` and mapped to the spec's bounds afterwards
+  (the DDPM prior is a unit Gaussian; Pendulum's torque lives in ``[-2, 2]``);
+* a score network that sees ``t / num_steps`` instead of the raw step index
+  (``DiffusionActor`` concatenates the integer step, up to ``num_steps - 1``, to the
+  network input);
+* a noise schedule that reaches noise: torchrl 0.14.1's defaults (100 steps, betas
+  from 1e-4 to 0.02) leave ``abar_T = 0.36``, so sampling would start from a unit
+  Gaussian that the chain was never trained to denoise. Here ``beta_end`` defaults to
+  0.2 over 50 steps (``abar_T = 0.005``);
+* explicit generators: both classes draw from the global RNG; the policy's samples
+  and the loss's noise draw from their own seeded generators instead (same seed,
+  same digits, whatever else ran in between).
+
+Exploration: ``RANDOM`` samples (a fresh Gaussian latent per call); ``DETERMINISTIC``
+starts TorchRL's chain from a zero latent without injected noise, which is repeatable
+but not a sample and may pick one mode everywhere.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from tensordict.utils import NestedKey
+from torch import nn
+from torchrl.data import Bounded
+from torchrl.modules import DiffusionActor
+from torchrl.objectives import DiffusionBCLoss, LossModule
+
+from imitrl import keys
+from imitrl.policies.actor_critic import _rng_from
+
+__all__ = ["DiffusionBehaviorCloningLoss", "DiffusionPolicy", "ScoreNetwork"]
+
+_NORMALIZED = "diffusion_action"
+"""key of the action in ``[-1, 1]``, before it is mapped to the bounds"""
+
+
+class ScoreNetwork(nn.Module):
+    """``eps_theta([noisy_action, observation, t]) -> eps``: an MLP with the step scaled to ``[0, 1)``.
+
+    Input ``[..., action_dim + observation_dim + 1]`` (the layout ``DiffusionActor`` and
+    ``DiffusionBCLoss`` build), output ``[..., action_dim]``.
+    """
+
+    def __init__(
+        self, action_dim: int, observation_dim: int, hidden: Sequence[int], num_steps: int
+    ) -> None:
+        super().__init__()
+        sizes = [action_dim + observation_dim + 1, *hidden]
+        layers: list[nn.Module] = []
+        for a, b in zip(sizes[:-1], sizes[1:]):
+            layers += [nn.Linear(a, b), nn.SiLU()]
+        layers.append(nn.Linear(sizes[-1], action_dim))
+        self.net = nn.Sequential(*layers)
+        self.num_steps = int(num_steps)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.net(torch.cat([x[..., :-1], x[..., -1:] / self.num_steps], dim=-1))
+
+
+class DiffusionPolicy(TensorDictModuleBase):
+    """``OBSERVATION -> ACTION`` by a DDPM reverse chain, inside the bounds of ``action_spec``.
+
+    Args:
+        observation_dim: length of the observation vector ``[..., d]``.
+        action_spec: ``Bounded`` spec of shape ``[m]``; actions are written float32 ``[..., m]``.
+        hidden: hidden layer sizes of the score network.
+        num_steps: denoising steps (each action costs ``num_steps`` network calls).
+        beta_start, beta_end: the linear noise schedule.
+        seed: initialisation and sampling seed.
+
+    Writes ``"diffusion_action"`` (the sample in ``[-1, 1]``) and ``ACTION``.
+    """
+
+    def __init__(
+        self,
+        observation_dim: int,
+        action_spec: Bounded,
+        *,
+        hidden: Sequence[int] = (128, 128),
+        num_steps: int = 50,
+        beta_start: float = 1e-4,
+        beta_end: float = 0.2,
+        seed: int = 0,
+    ) -> None:
+        super().__init__()
+        if not isinstance(action_spec, Bounded) or len(action_spec.shape) != 1:
+            raise ValueError(
+                f"a diffusion policy needs a Bounded action spec of shape [action_dim], got {action_spec!r}"
+            )
+        if num_steps < 1:
+            raise ValueError(f"num_steps must be positive, got {num_steps}")
+        dim = int(action_spec.shape[0])
+        self.in_keys = [keys.OBSERVATION]
+        self.out_keys = [_NORMALIZED, keys.ACTION]
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(seed)
+            score = ScoreNetwork(dim, int(observation_dim), hidden, num_steps)
+        self.actor = DiffusionActor(
+            action_dim=dim,
+            score_network=score,
+            num_steps=num_steps,
+            beta_start=beta_start,
+            beta_end=beta_end,
+            in_keys=[keys.OBSERVATION],
+            out_keys=[_NORMALIZED],
+        )
+        self.register_buffer("low", action_spec.space.low.float().clone())
+        self.register_buffer("high", action_spec.space.high.float().clone())
+        self.generator = torch.Generator().manual_seed(int(seed) + 1)
+
+    def normalize(self, action: torch.Tensor) -> torch.Tensor:
+        """Bounds -> ``[-1, 1]``."""
+        return 2 * (action.float() - self.low) / (self.high - self.low) - 1
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        with _rng_from(self.generator):
+            tensordict = self.actor(tensordict)
+        x = tensordict.get(_NORMALIZED).clamp(-1.0, 1.0)
+        tensordict.set(keys.ACTION, self.low + (self.high - self.low) * (x + 1) / 2)
+        return tensordict
+
+
+class DiffusionBehaviorCloningLoss(LossModule):
+    """TorchRL's ``DiffusionBCLoss`` on the expert's label, mapped to ``[-1, 1]``.
+
+    Args:
+        policy: the :class:`DiffusionPolicy` being trained.
+        seed: seed of the loss's draws (diffusion steps ``t`` and noise ``eps``).
+
+    Keys (``set_keys``): ``observation`` (``"observation"``), ``label``
+    (``"expert_action"``, float ``[N, m]`` inside the bounds). Returns
+    ``loss_diffusion_bc`` (epsilon-prediction MSE).
+    """
+
+    @dataclass
+    class _AcceptedKeys:
+        observation: NestedKey = keys.OBSERVATION
+        label: NestedKey = keys.EXPERT_ACTION
+
+    default_keys = _AcceptedKeys
+    tensor_keys: _AcceptedKeys
+    out_keys = ["loss_diffusion_bc"]
+
+    def __init__(self, policy: DiffusionPolicy, *, seed: int = 0) -> None:
+        if not isinstance(policy, DiffusionPolicy):
+            raise ValueError(f"expected a DiffusionPolicy, got {type(policy).__name__}")
+        super().__init__()
+        self.policy = policy
+        self.inner = DiffusionBCLoss(policy.actor)
+        self.inner.set_keys(action=_NORMALIZED, observation=keys.OBSERVATION)
+        self.generator = torch.Generator().manual_seed(int(seed))
+        self._in_keys = None
+
+    def _forward_value_estimator_keys(self, **kwargs) -> None:
+        pass
+
+    @property
+    def in_keys(self):
+        return [self.tensor_keys.observation, self.tensor_keys.label]
+
+    @in_keys.setter
+    def in_keys(self, values):
+        self._in_keys = values
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        label = tensordict.get(self.tensor_keys.label)
+        obs = tensordict.get(self.tensor_keys.observation)
+        if not label.dtype.is_floating_point or label.shape[-1:] != self.policy.low.shape:
+            raise ValueError(
+                f"diffusion labels under {self.tensor_keys.label!r} must be float [N, {self.policy.low.shape[0]}], "
+                f"got {label.dtype} {tuple(label.shape)}"
+            )
+        td = TensorDict(
+            {keys.OBSERVATION: obs, _NORMALIZED: self.policy.normalize(label)},
+            batch_size=tensordict.batch_size,
+        )
+        with _rng_from(self.generator):
+            out = self.inner(td)
+        return TensorDict({"loss_diffusion_bc": out["loss_diffusion_bc"]}, batch_size=[])

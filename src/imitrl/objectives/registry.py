@@ -1,0 +1,323 @@
+"""The loss registry: one entry per imitation objective, name -> (policy head, loss module).
+
+An entry says, for a task's observation and action spaces, how to build the policy
+that is trained and the TorchRL ``LossModule`` that trains it. Everything that
+compares objectives (``benchmarks/loss_functions.py``, your own study) builds
+learners through :func:`build` and trains them with
+``fit_bc(learner, rows, config, loss_module=learner.loss)``, so adding an objective
+is one registered function::
+
+    @register("mse_wd", actions="continuous", summary="MSE with an L2 penalty 1e-3")
+    def _(task: TaskSpec, config: LearnerConfig) -> Learner:
+        ac = mlp(task, config, head="deterministic")
+        return Learner(ac.policy, RegularizedBCLoss(ac.policy, loss_type="mse", l2_coef=1e-3), ac.opt_pi)
+
+Built-in entries:
+
+====================== ========== ===================== =====================================
+name                   actions    policy                loss
+====================== ========== ===================== =====================================
+cross_entropy          discrete   categorical           ``-log pi(a*|s)`` (BehaviorCloningLoss nll)
+cross_entropy_entropy  discrete   categorical           cross-entropy - 0.01 H(pi(.|s))
+advantage_weighted     discrete   categorical           ``-A(s, a*) log pi(a*|s)`` (needs ``task.advantage``)
+gaussian_nll           continuous tanh-normal           ``-log pi(a*|s)``
+mse                    continuous deterministic (tanh)  ``(mu(s) - a*)^2``
+l1                     continuous deterministic (tanh)  ``|mu(s) - a*|``
+smooth_l1              continuous deterministic (tanh)  Huber(1)
+mse_l2                 continuous deterministic (tanh)  MSE + 1e-4 ||W||^2
+diffusion              continuous DDPM (DiffusionActor) epsilon-prediction (DiffusionBCLoss), sampled
+====================== ========== ===================== =====================================
+
+Integer observations (tabular tasks) get a table of logits (``ActorCritic.tabular``),
+vector observations an MLP (``ActorCritic.mlp``). Each entry states how its policy
+acts when evaluated (``Learner.exploration``): the greedy action or the mode for the
+heads above, a sample for diffusion.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field, fields
+
+import torch
+from tensordict.nn import TensorDictModuleBase
+from torchrl.data import Bounded
+from torchrl.envs.utils import ExplorationType
+from torchrl.objectives import LossModule
+
+from imitrl.objectives.advantage_weighted import Advantage, AdvantageWeightedLoss
+from imitrl.objectives.bc import BehaviorCloningLoss
+from imitrl.objectives.diffusion import DiffusionBehaviorCloningLoss, DiffusionPolicy
+from imitrl.objectives.regularized import RegularizedBCLoss
+from imitrl.policies.actor_critic import ActorCritic
+
+__all__ = [
+    "ACTION_KINDS",
+    "Learner",
+    "LearnerConfig",
+    "LossEntry",
+    "TaskSpec",
+    "build",
+    "entries",
+    "get",
+    "mlp",
+    "names",
+    "register",
+    "unregister",
+]
+
+ACTION_KINDS = ("discrete", "continuous")
+
+
+@dataclass(frozen=True)
+class TaskSpec:
+    """What a loss entry may know about a task."""
+
+    action: int | Bounded
+    """number of discrete actions, or the ``Bounded`` spec ``[m]`` of a continuous action"""
+    observation_dim: int | None = None
+    """length of vector observations ``[..., d]`` (None for integer states)"""
+    num_states: int | None = None
+    """number of integer states ``0 .. S-1`` (None for vector observations)"""
+    advantage: Advantage | None = field(default=None, compare=False)
+    """optional ``A(observation, action) -> [N]`` for advantage-weighted losses"""
+
+    def __post_init__(self) -> None:
+        if (self.observation_dim is None) == (self.num_states is None):
+            raise ValueError(
+                "give exactly one of observation_dim (vectors) or num_states (integers)"
+            )
+        if isinstance(self.action, bool) or not isinstance(self.action, (int, Bounded)):
+            raise ValueError(
+                f"action must be a number of actions or a Bounded spec, got {self.action!r}"
+            )
+        if isinstance(self.action, Bounded) and len(self.action.shape) != 1:
+            raise ValueError(
+                f"a continuous action spec must have shape [m], got {tuple(self.action.shape)}"
+            )
+
+    @property
+    def actions(self) -> str:
+        """``"discrete"`` or ``"continuous"``."""
+        return "discrete" if isinstance(self.action, int) else "continuous"
+
+
+@dataclass(frozen=True)
+class LearnerConfig:
+    """Shared by every entry, so that objectives are compared at equal capacity."""
+
+    hidden: tuple[int, ...] = (64, 64)
+    """hidden layers of MLP policies (and of the diffusion score network)"""
+    lr: float = 1e-3
+    """Adam learning rate of the policy"""
+    seed: int = 0
+    """initialisation seed (and the seed of any sampling the learner does)"""
+
+
+@dataclass(eq=False)
+class Learner:
+    """A policy, the loss that trains it and its optimizer (what ``fit_bc`` and ``dagger`` use)."""
+
+    policy: TensorDictModuleBase
+    """``OBSERVATION -> ACTION``"""
+    loss: LossModule
+    """rows with ``OBSERVATION`` and ``EXPERT_ACTION`` -> ``loss_*`` entries (summed)"""
+    opt_pi: torch.optim.Optimizer
+    """the optimizer over the policy's parameters"""
+    exploration: ExplorationType = ExplorationType.DETERMINISTIC
+    """how the policy acts when it is evaluated or rolled out"""
+
+
+@dataclass(frozen=True)
+class LossEntry:
+    """One registered objective."""
+
+    name: str
+    """registry key"""
+    actions: str
+    """``"discrete"`` or ``"continuous"``: the action spaces it applies to"""
+    build: Callable[[TaskSpec, LearnerConfig], Learner]
+    """``(task, config) -> Learner``"""
+    summary: str
+    """one line for tables and ``--help``"""
+    requires: tuple[str, ...] = ()
+    """``TaskSpec`` fields that must be set (e.g. ``("advantage",)``)"""
+
+    def applies_to(self, task: TaskSpec) -> bool:
+        """Whether this objective can train a policy for ``task``."""
+        return task.actions == self.actions and all(
+            getattr(task, name) is not None for name in self.requires
+        )
+
+
+_REGISTRY: dict[str, LossEntry] = {}
+_TASK_FIELDS = {f.name for f in fields(TaskSpec)}
+
+
+def register(
+    name: str, *, actions: str, summary: str, requires: Sequence[str] = ()
+) -> Callable[[Callable[[TaskSpec, LearnerConfig], Learner]], Callable]:
+    """Decorator: register ``build(task, config) -> Learner`` under ``name``.
+
+    Raises:
+        ValueError: the name is taken, ``actions`` is not one of :data:`ACTION_KINDS`,
+            or ``requires`` names a field ``TaskSpec`` does not have.
+    """
+    if actions not in ACTION_KINDS:
+        raise ValueError(f"actions must be one of {ACTION_KINDS}, got {actions!r}")
+    unknown = set(requires) - _TASK_FIELDS
+    if unknown:
+        raise ValueError(f"requires names unknown TaskSpec fields {sorted(unknown)}")
+    if not name or not isinstance(name, str):
+        raise ValueError(f"a loss needs a non-empty string name, got {name!r}")
+
+    def decorator(fn: Callable[[TaskSpec, LearnerConfig], Learner]) -> Callable:
+        if name in _REGISTRY:
+            raise ValueError(f"a loss named {name!r} is already registered")
+        _REGISTRY[name] = LossEntry(name, actions, fn, summary, tuple(requires))
+        return fn
+
+    return decorator
+
+
+def unregister(name: str) -> None:
+    """Remove an entry (for tests and interactive sessions)."""
+    get(name)
+    del _REGISTRY[name]
+
+
+def get(name: str) -> LossEntry:
+    """The entry registered under ``name`` (ValueError listing the names otherwise)."""
+    if name not in _REGISTRY:
+        raise ValueError(f"unknown loss {name!r}; registered: {', '.join(_REGISTRY)}")
+    return _REGISTRY[name]
+
+
+def entries() -> list[LossEntry]:
+    """Every entry, in registration order."""
+    return list(_REGISTRY.values())
+
+
+def names(task: TaskSpec | None = None) -> list[str]:
+    """Names of the entries that apply to ``task`` (all if None), in registration order."""
+    return [e.name for e in _REGISTRY.values() if task is None or e.applies_to(task)]
+
+
+def build(name: str, task: TaskSpec, config: LearnerConfig = LearnerConfig()) -> Learner:
+    """Build entry ``name``'s learner for ``task`` (ValueError if it does not apply)."""
+    entry = get(name)
+    if not entry.applies_to(task):
+        missing = [r for r in entry.requires if getattr(task, r) is None]
+        why = f"it needs {', '.join(missing)}" if missing else f"it is for {entry.actions} actions"
+        raise ValueError(f"loss {name!r} does not apply to this task: {why}")
+    learner = entry.build(task, config)
+    if not isinstance(learner, Learner):
+        raise ValueError(f"loss {name!r} built a {type(learner).__name__}, expected a Learner")
+    return learner
+
+
+# ----------------------------------------------------------------- policy heads
+def mlp(task: TaskSpec, config: LearnerConfig, *, head: str | None = None) -> ActorCritic:
+    """The task's standard policy: a logits table for integer states, else an MLP with ``head``."""
+    if task.num_states is not None:
+        if task.actions != "discrete" or head not in (None, "categorical"):
+            raise ValueError("integer-state tasks support a categorical policy only")
+        return ActorCritic.tabular(task.num_states, task.action, lr=config.lr)
+    return ActorCritic.mlp(
+        task.observation_dim,
+        task.action,
+        head=head,
+        hidden=config.hidden,
+        lr=config.lr,
+        seed=config.seed,
+    )
+
+
+def _learner(ac: ActorCritic, loss: LossModule) -> Learner:
+    return Learner(policy=ac.policy, loss=loss, opt_pi=ac.opt_pi)
+
+
+# ------------------------------------------------------------- built-in entries
+ENTROPY_COEF = 0.01
+"""weight of the entropy bonus of ``cross_entropy_entropy``"""
+L2_COEF = 1e-4
+"""weight of the L2 penalty of ``mse_l2``"""
+DIFFUSION_STEPS = 50
+"""denoising steps of ``diffusion`` (each action costs this many network calls)"""
+
+
+@register("cross_entropy", actions="discrete", summary="cross-entropy (categorical NLL)")
+def _cross_entropy(task: TaskSpec, config: LearnerConfig) -> Learner:
+    ac = mlp(task, config)
+    return _learner(ac, BehaviorCloningLoss(ac.policy, loss_type="nll"))
+
+
+@register(
+    "cross_entropy_entropy",
+    actions="discrete",
+    summary=f"cross-entropy - {ENTROPY_COEF} x policy entropy",
+)
+def _cross_entropy_entropy(task: TaskSpec, config: LearnerConfig) -> Learner:
+    ac = mlp(task, config)
+    return _learner(ac, RegularizedBCLoss(ac.policy, loss_type="nll", entropy_coef=ENTROPY_COEF))
+
+
+@register(
+    "advantage_weighted",
+    actions="discrete",
+    summary="advantage-weighted cross-entropy (policy_step's objective)",
+    requires=("advantage",),
+)
+def _advantage_weighted(task: TaskSpec, config: LearnerConfig) -> Learner:
+    ac = mlp(task, config)
+    return _learner(ac, AdvantageWeightedLoss(ac.policy, task.advantage))
+
+
+@register("gaussian_nll", actions="continuous", summary="tanh-normal NLL, acts with tanh(mean)")
+def _gaussian_nll(task: TaskSpec, config: LearnerConfig) -> Learner:
+    ac = mlp(task, config, head="tanh_normal")
+    return _learner(ac, BehaviorCloningLoss(ac.policy, loss_type="nll"))
+
+
+def _regression(loss_type: str) -> Callable[[TaskSpec, LearnerConfig], Learner]:
+    def build_regression(task: TaskSpec, config: LearnerConfig) -> Learner:
+        ac = mlp(task, config, head="deterministic")
+        return _learner(ac, BehaviorCloningLoss(ac.policy, loss_type=loss_type))
+
+    return build_regression
+
+
+register("mse", actions="continuous", summary="mean squared error")(_regression("mse"))
+register("l1", actions="continuous", summary="mean absolute error")(_regression("l1"))
+register("smooth_l1", actions="continuous", summary="Huber loss (delta 1)")(
+    _regression("smooth_l1")
+)
+
+
+@register("mse_l2", actions="continuous", summary=f"MSE + {L2_COEF} x squared L2 norm of weights")
+def _mse_l2(task: TaskSpec, config: LearnerConfig) -> Learner:
+    ac = mlp(task, config, head="deterministic")
+    return _learner(ac, RegularizedBCLoss(ac.policy, loss_type="mse", l2_coef=L2_COEF))
+
+
+@register(
+    "diffusion",
+    actions="continuous",
+    summary=f"diffusion policy (DDPM, {DIFFUSION_STEPS} steps), samples its actions",
+)
+def _diffusion(task: TaskSpec, config: LearnerConfig) -> Learner:
+    if task.observation_dim is None:
+        raise ValueError("a diffusion policy needs vector observations")
+    policy = DiffusionPolicy(
+        task.observation_dim,
+        task.action,
+        hidden=config.hidden,
+        num_steps=DIFFUSION_STEPS,
+        seed=config.seed,
+    )
+    return Learner(
+        policy=policy,
+        loss=DiffusionBehaviorCloningLoss(policy, seed=config.seed),
+        opt_pi=torch.optim.Adam(policy.parameters(), lr=config.lr),
+        exploration=ExplorationType.RANDOM,
+    )

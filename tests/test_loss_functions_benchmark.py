@@ -1,0 +1,104 @@
+"""benchmarks/loss_functions.py: smoke run, reproducible cells, statistics, CONTRIBUTING's example."""
+
+from __future__ import annotations
+
+import json
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from imitrl.objectives import registry
+from imitrl.objectives.registry import TaskSpec
+from imitrl.tabular import success_probability
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+import loss_functions as bench  # noqa: E402
+
+TIMING = {"fit_seconds", "eval_seconds", "cell_seconds"}
+
+
+def test_quick_run_covers_every_loss_on_every_task(tmp_path, lake, expert_table):
+    proc = subprocess.run(
+        [
+            sys.executable,
+            str(ROOT / "benchmarks" / "loss_functions.py"),
+            "--quick",
+            "--out",
+            str(tmp_path),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    data = json.loads((tmp_path / "loss_functions.json").read_text())
+    assert data["machine"]["torch"].startswith("2.13")
+    assert (tmp_path / "loss_functions.png").stat().st_size > 10_000
+    cells = {(r["task"], r["loss"], r["algorithm"]) for r in data["rows"]}
+    factories = bench._tasks(quick_mode=True)
+    for task in bench.TASKS:
+        spec = factories[task]().spec()
+        for loss in registry.names(spec):
+            assert (task, loss, "bc") in cells and (task, loss, "dagger") in cells
+    assert {(r["task"], r["policy"]) for r in data["references"]} == {
+        (t, p) for t in bench.TASKS for p in ("expert", "random")
+    }
+    two_way = [r for r in data["rows"] if r["task"] == "two_way"]
+    assert all(
+        abs(r["modes_above"] + r["modes_below"] + r["modes_neither"] - 1) < 1e-6 for r in two_way
+    )
+    # the report prints the two-way mode table with a measured verdict per loss
+    assert "does the learner keep both of the expert's modes?" in proc.stdout
+    assert re.search(r"\| diffusion \| bc \|.*\| (keeps|averages|collapses|mixed)", proc.stdout)
+    # FrozenLake's references are exact: value iteration's policy and the uniform policy
+    refs = {r["policy"]: r["score"] for r in data["references"] if r["task"] == "frozenlake"}
+    assert refs["expert"] == success_probability(lake, expert_table, 100)
+    assert refs["random"] == success_probability(lake, torch.full((16, 4), 0.25).double(), 100)
+
+
+@pytest.mark.parametrize(("task", "loss"), [("two_way", "diffusion"), ("pendulum", "gaussian_nll")])
+def test_cells_are_reproducible_from_their_seed(task, loss):
+    a = bench.loss_cell(task, loss, 3, True)
+    b = bench.loss_cell(task, loss, 3, True)
+    strip = [{k: v for k, v in r.items() if k not in TIMING} for r in a]
+    assert strip == [{k: v for k, v in r.items() if k not in TIMING} for r in b]
+    c = bench.loss_cell(task, loss, 4, True)
+    assert strip != [{k: v for k, v in r.items() if k not in TIMING} for r in c]
+
+
+def test_t_interval_exact():
+    mean, lo, hi = bench.t_interval([1.0, 2.0, 3.0, 4.0, 5.0])
+    half = 2.776 * (2.5**0.5) / 5**0.5  # t_{0.975, 4} * s / sqrt(n)
+    assert mean == 3.0 and lo == pytest.approx(3 - half) and hi == pytest.approx(3 + half)
+    assert bench.t_interval([2.0])[0] == 2.0
+
+
+def test_contributing_example_registers_a_loss_that_the_benchmark_runs():
+    text = (ROOT / "CONTRIBUTING.md").read_text()
+    block = re.search(
+        r"<!-- BEGIN add-a-loss example -->\s*```python\n(.*?)```\s*<!-- END add-a-loss example -->",
+        text,
+        re.S,
+    )
+    assert block is not None, "CONTRIBUTING.md lost its 'Adding a loss' example"
+    try:
+        exec(compile(block.group(1), "CONTRIBUTING.md", "exec"), {})
+        entry = registry.get("l1_l2")
+        assert entry.applies_to(
+            TaskSpec(action=bench.TwoWay(None).spec().action, observation_dim=2)
+        )
+        raw = bench.run(tasks=["two_way"], losses=["l1_l2"], seeds=1, quick_mode=True)
+        assert [(r["loss"], r["algorithm"]) for r in raw["rows"]] == [
+            ("l1_l2", "bc"),
+            ("l1_l2", "dagger"),
+        ]
+        assert 0.0 <= raw["rows"][0]["score"] <= 1.0
+    finally:
+        if "l1_l2" in registry.names():
+            registry.unregister("l1_l2")

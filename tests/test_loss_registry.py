@@ -1,0 +1,264 @@
+"""The loss registry and its loss modules: contracts, exact values, one learning check."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+import torch.nn.functional as F
+from tensordict import TensorDict
+from torchrl.data import Bounded
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from imitrl import keys
+from imitrl.algorithms import BCConfig, DAggerConfig, EnvSource, dagger, fit_bc
+from imitrl.data import DemonstrationBuffer, rollout_episodes
+from imitrl.envs import TabularEnv
+from imitrl.objectives import (
+    AdvantageWeightedLoss,
+    BehaviorCloningLoss,
+    DiffusionBehaviorCloningLoss,
+    DiffusionPolicy,
+    RegularizedBCLoss,
+    policy_step,
+    registry,
+)
+from imitrl.objectives.registry import Learner, LearnerConfig, TaskSpec
+from imitrl.policies import ActorCritic, Expert
+
+SPEC = Bounded(-2.0, 2.0, shape=(1,))
+TASKS = {
+    "discrete_vector": TaskSpec(action=3, observation_dim=4),
+    "discrete_table": TaskSpec(action=4, num_states=6, advantage=lambda s, a: (s + a).float() / 10),
+    "continuous": TaskSpec(action=SPEC, observation_dim=3),
+}
+
+
+def _rows(task: TaskSpec, n: int = 64, seed: int = 0) -> TensorDict:
+    g = torch.Generator().manual_seed(seed)
+    if task.num_states is not None:
+        obs = torch.randint(task.num_states, (n,), generator=g)
+    else:
+        obs = torch.randn(n, task.observation_dim, generator=g)
+    if task.actions == "discrete":
+        label = torch.randint(task.action, (n,), generator=g)
+    else:
+        label = torch.rand(n, 1, generator=g) * 4 - 2
+    return TensorDict({keys.OBSERVATION: obs, keys.EXPERT_ACTION: label}, [n])
+
+
+def _cases():
+    for entry in registry.entries():
+        for tname, task in TASKS.items():
+            if entry.applies_to(task):
+                yield pytest.param(entry.name, tname, id=f"{entry.name}-{tname}")
+
+
+CONFIG = LearnerConfig(hidden=(16, 16), lr=1e-2, seed=0)
+
+
+@pytest.mark.parametrize(("name", "tname"), list(_cases()))
+def test_every_entry_builds_acts_and_trains(name, tname):
+    task = TASKS[tname]
+    learner = registry.build(name, task, CONFIG)
+    assert isinstance(learner, Learner)
+    rows = _rows(task)
+    # acts: one action per row, of the action space's dtype, inside the bounds
+    with torch.no_grad(), set_exploration_type(learner.exploration):
+        action = learner.policy(rows.select(keys.OBSERVATION).clone()).get(keys.ACTION)
+    assert action.shape == rows[keys.EXPERT_ACTION].shape
+    if task.actions == "discrete":
+        assert not action.dtype.is_floating_point
+        assert ((action >= 0) & (action < task.action)).all()
+    else:
+        assert action.dtype == torch.float32
+        assert ((action >= -2) & (action <= 2)).all()
+    # the loss reads the label key, returns scalar loss_* entries with gradients
+    assert keys.EXPERT_ACTION in learner.loss.in_keys
+    out = learner.loss(rows)
+    total = sum(v for k, v in out.items() if k.startswith("loss_"))
+    assert total.ndim == 0 and total.requires_grad
+    # trains through fit_bc: the loss goes down on a fixed batch
+    result = fit_bc(learner, rows, BCConfig(num_steps=60, seed=0), loss_module=learner.loss)
+    assert result.losses[-10:].mean() < result.losses[:10].mean()
+
+
+def test_entries_that_do_not_apply_are_refused_with_the_reason():
+    with pytest.raises(ValueError, match="continuous"):
+        registry.build("mse", TASKS["discrete_vector"])
+    with pytest.raises(ValueError, match="advantage"):
+        registry.build("advantage_weighted", TASKS["discrete_vector"])
+    with pytest.raises(ValueError, match="unknown loss 'nope'"):
+        registry.build("nope", TASKS["continuous"])
+    assert "advantage_weighted" not in registry.names(TASKS["discrete_vector"])
+    assert "advantage_weighted" in registry.names(TASKS["discrete_table"])
+    assert set(registry.names(TASKS["continuous"])) >= {
+        "gaussian_nll",
+        "mse",
+        "l1",
+        "smooth_l1",
+        "diffusion",
+    }
+
+
+def test_register_rejects_duplicates_and_unknown_requirements():
+    with pytest.raises(ValueError, match="already registered"):
+        registry.register("mse", actions="continuous", summary="again")(lambda t, c: None)
+    with pytest.raises(ValueError, match="actions"):
+        registry.register("x", actions="both", summary="")
+    with pytest.raises(ValueError, match="unknown TaskSpec fields"):
+        registry.register("x", actions="discrete", summary="", requires=("q_table",))
+
+    @registry.register("test_bad_return", actions="discrete", summary="returns the wrong type")
+    def _(task, config):
+        return ActorCritic.tabular(2, 2)
+
+    try:
+        with pytest.raises(ValueError, match="expected a Learner"):
+            registry.build("test_bad_return", TaskSpec(action=2, num_states=2))
+    finally:
+        registry.unregister("test_bad_return")
+    assert "test_bad_return" not in registry.names()
+    with pytest.raises(ValueError, match="exactly one"):
+        TaskSpec(action=2, num_states=3, observation_dim=2)
+
+
+# ------------------------------------------------------------------ exact values
+def test_advantage_weighted_loss_is_policy_steps_objective():
+    ac = ActorCritic.tabular(6, 4)
+    with torch.no_grad():
+        ac.policy.module[0].module.weight.copy_(
+            torch.randn(6, 4, generator=torch.Generator().manual_seed(1))
+        )
+    rows = _rows(TASKS["discrete_table"], n=32)
+    adv = TASKS["discrete_table"].advantage
+    loss = AdvantageWeightedLoss(ac.policy, adv)(rows)
+    weights = adv(rows[keys.OBSERVATION], rows[keys.EXPERT_ACTION])
+    before = policy_step(ac, rows, weights, action_key=keys.EXPERT_ACTION)  # loss before its step
+    assert loss["loss_bc"].item() == pytest.approx(before, abs=1e-6)
+    logits = torch.randn(6, 4, generator=torch.Generator().manual_seed(1))
+    ref = (
+        weights
+        * F.cross_entropy(
+            logits[rows[keys.OBSERVATION]], rows[keys.EXPERT_ACTION], reduction="none"
+        )
+    ).mean()
+    assert loss["loss_bc"].item() == pytest.approx(ref.item(), abs=1e-6)
+    with pytest.raises(ValueError, match="one weight per row"):
+        AdvantageWeightedLoss(ac.policy, lambda s, a: torch.ones(3))(rows)
+
+
+def test_regularized_loss_terms_are_exact():
+    ac = ActorCritic.mlp(4, 3, hidden=(8,), seed=0)
+    rows = _rows(TASKS["discrete_vector"])
+    plain = BehaviorCloningLoss(ac.policy, loss_type="nll")(rows)["loss_bc"]
+    none = RegularizedBCLoss(ac.policy, loss_type="nll")(rows)
+    assert set(k for k in none.keys() if k.startswith("loss_")) == {"loss_bc"}
+    assert torch.allclose(none["loss_bc"], plain)
+    out = RegularizedBCLoss(ac.policy, loss_type="nll", entropy_coef=0.1, l2_coef=0.01)(rows)
+    logits = ac.policy.module[0](rows.select(keys.OBSERVATION).clone())[keys.LOGITS]
+    entropy = torch.distributions.Categorical(logits=logits).entropy().mean()
+    l2 = sum(p.pow(2).sum() for n, p in ac.policy.named_parameters() if n.endswith("weight"))
+    assert torch.allclose(out["loss_entropy"], -0.1 * entropy, atol=1e-6)
+    assert torch.allclose(out["loss_l2"], 0.01 * l2, atol=1e-6)
+    with pytest.raises(ValueError, match="probabilistic"):
+        det = ActorCritic.mlp(3, SPEC, head="deterministic", hidden=(8,))
+        RegularizedBCLoss(det.policy, loss_type="mse", entropy_coef=0.1)
+
+
+def test_diffusion_policy_maps_bounds_and_is_reproducible():
+    policy = DiffusionPolicy(3, SPEC, hidden=(16,), num_steps=5, seed=0)
+    assert torch.equal(
+        policy.normalize(torch.tensor([[-2.0], [0.0], [2.0]])), torch.tensor([[-1.0], [0.0], [1.0]])
+    )
+    obs = TensorDict({keys.OBSERVATION: torch.randn(50, 3)}, [50])
+
+    def sample(p):
+        with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
+            return p(obs.clone())[keys.ACTION]
+
+    twin = DiffusionPolicy(3, SPEC, hidden=(16,), num_steps=5, seed=0)
+    torch.manual_seed(123)  # the global RNG does not matter
+    a = sample(policy)
+    torch.manual_seed(456)
+    assert torch.equal(a, sample(twin))
+    assert a.shape == (50, 1) and ((a >= -2) & (a <= 2)).all()
+    assert not torch.equal(a, sample(policy))  # the policy's own stream moved on
+    rows = _rows(TASKS["continuous"])
+    l1 = DiffusionBehaviorCloningLoss(policy, seed=3)(rows)["loss_diffusion_bc"]
+    l2 = DiffusionBehaviorCloningLoss(twin, seed=3)(rows)["loss_diffusion_bc"]
+    assert torch.equal(l1, l2)
+    with pytest.raises(ValueError, match="float"):
+        DiffusionBehaviorCloningLoss(policy)(
+            rows.set(keys.EXPERT_ACTION, torch.zeros(64, 1, dtype=torch.int64))
+        )
+
+
+# ----------------------------------------------------------- fit_bc / dagger hooks
+def test_fit_bc_with_the_default_loss_module_is_unchanged():
+    rows = _rows(TASKS["discrete_vector"], n=128)
+    cfg = BCConfig(num_steps=30, batch_size=32, seed=4)
+    a, b = ActorCritic.mlp(4, 3, seed=0), ActorCritic.mlp(4, 3, seed=0)
+    ra = fit_bc(a, rows, cfg)
+    rb = fit_bc(b, rows, cfg, loss_module=BehaviorCloningLoss(b.policy, loss_type="nll"))
+    assert torch.equal(ra.losses, rb.losses)
+    loss = BehaviorCloningLoss(b.policy, loss_type="nll")
+    loss.set_keys(label="other")
+    with pytest.raises(ValueError, match="set_keys"):
+        fit_bc(b, rows, cfg, loss_module=loss)
+
+
+def test_dagger_trains_registry_learners_through_the_fit_hook(lake, expert_table):
+    env = TabularEnv(lake, batch_size=(3,), seed=0)
+    buffer = DemonstrationBuffer(num_states=16)
+    expert = Expert.from_table(expert_table)
+    buffer.extend(
+        rollout_episodes(
+            env, expert.as_actor(), 1, exploration=ExplorationType.DETERMINISTIC, max_steps=10_000
+        )
+    )
+    task = TaskSpec(action=4, num_states=16)
+    fitted = []
+    cfg = BCConfig(num_steps=50)
+
+    def fit(learner, buf):
+        fitted.append(len(buf))
+        return fit_bc(learner, buf, cfg, loss_module=learner.loss)
+
+    result = dagger(
+        EnvSource(env),
+        expert,
+        lambda: registry.build("cross_entropy_entropy", task, LearnerConfig(lr=0.1)),
+        buffer,
+        DAggerConfig(rounds=3, episodes_per_round=3),
+        fit=fit,
+    )
+    assert fitted == [r.rows_trained for r in result.rounds]
+    assert fitted[0] < fitted[1] < fitted[2]
+    assert isinstance(result.learner, Learner)
+
+
+# ------------------------------------------------------------------------ learning
+def test_diffusion_keeps_both_modes_where_mse_averages_them():
+    # one observation dimension, labels +-0.5 with equal probability everywhere
+    g = torch.Generator().manual_seed(0)
+    n = 1024
+    obs = torch.rand(n, 1, generator=g)
+    label = torch.where(torch.rand(n, 1, generator=g) < 0.5, 0.5, -0.5)
+    rows = TensorDict({keys.OBSERVATION: obs, keys.EXPERT_ACTION: label}, [n])
+    task = TaskSpec(action=Bounded(-1.0, 1.0, shape=(1,)), observation_dim=1)
+    cfg = LearnerConfig(hidden=(32, 32), lr=1e-2, seed=0)
+    fit = BCConfig(num_steps=1200, batch_size=256, seed=0)
+    test_obs = TensorDict({keys.OBSERVATION: torch.rand(2000, 1, generator=g)}, [2000])
+    fractions = {}
+    for name in ("mse", "diffusion"):
+        learner = registry.build(name, task, cfg)
+        fit_bc(learner, rows, fit, loss_module=learner.loss)
+        with torch.no_grad(), set_exploration_type(learner.exploration):
+            a = learner.policy(test_obs.clone())[keys.ACTION]
+        fractions[name] = (
+            ((a - 0.5).abs() < 0.25).float().mean(),
+            ((a + 0.5).abs() < 0.25).float().mean(),
+        )
+    # MSE: nothing near either mode; diffusion: each mode 30-70% of 2000 samples
+    assert max(fractions["mse"]) == 0
+    assert all(0.3 < f < 0.7 for f in fractions["diffusion"]), fractions
