@@ -72,7 +72,9 @@ class FitResult:
     """rows the fit was trained on"""
 
 
-def _rows(data: DemonstrationBuffer | TensorDictBase, label_key: str) -> TensorDictBase:
+def _rows(
+    data: DemonstrationBuffer | TensorDictBase, label_key: str, extra: tuple = ()
+) -> TensorDictBase:
     td = data.data if isinstance(data, DemonstrationBuffer) else data
     if not isinstance(td, TensorDictBase):
         raise ValueError(
@@ -82,13 +84,15 @@ def _rows(data: DemonstrationBuffer | TensorDictBase, label_key: str) -> TensorD
         raise ValueError(
             f"fit_bc needs a non-empty batch of rows, got batch_size {tuple(td.batch_size)}"
         )
-    for key in (keys.OBSERVATION, label_key):
+    for key in (keys.OBSERVATION, label_key, *extra):
         if key not in td.keys(include_nested=True):
-            raise ValueError(f"rows lack {key!r}: need observations and labels")
+            raise ValueError(
+                f"rows lack {key!r}: need observations, labels and what the loss reads"
+            )
     obs = td.get(keys.OBSERVATION)
     if obs.dtype.is_floating_point and torch.isnan(obs).any():
         raise ValueError("NaN in the observations of the training rows")
-    return td.select(keys.OBSERVATION, label_key)
+    return td.select(keys.OBSERVATION, label_key, *extra)
 
 
 def _distinct_pairs(rows: TensorDictBase, label_key: str) -> TensorDictBase | None:
@@ -105,13 +109,15 @@ def _distinct_pairs(rows: TensorDictBase, label_key: str) -> TensorDictBase | No
         or label.dtype.is_floating_point
     ):
         return None
-    pairs, counts = torch.unique(
-        torch.stack([obs.long(), label.long()], dim=1), dim=0, return_counts=True
-    )
-    U, N = pairs.shape[0], obs.shape[0]
+    o, a = obs.long(), label.long()
+    if int(a.min()) < 0 or int(o.min()) < 0:
+        return None
+    base = int(a.max()) + 1  # one integer per pair: a 1-D unique is far cheaper than dim=0
+    codes, counts = torch.unique(o * base + a, return_counts=True)
+    U, N = codes.shape[0], obs.shape[0]
     out = rows.empty(batch_size=[U])
-    out.set(keys.OBSERVATION, pairs[:, 0].to(obs.dtype))
-    out.set(label_key, pairs[:, 1].to(label.dtype))
+    out.set(keys.OBSERVATION, (codes // base).to(obs.dtype))
+    out.set(label_key, (codes % base).to(label.dtype))
     out.set(keys.WEIGHT, counts.to(torch.float32) * (U / N))
     return out
 
@@ -138,18 +144,27 @@ def fit_bc(
             ``loss_*`` outputs is minimised.
         progress: show a progress bar.
     """
-    rows = _rows(data, config.label_key)
+    extra = ()
+    if loss_module is not None and config.label_key not in loss_module.in_keys:
+        raise ValueError(
+            f"loss_module reads {list(loss_module.in_keys)}, not the label key "
+            f"{config.label_key!r}: remap it with set_keys"
+        )
+    if loss_module is not None:  # anything else the given loss reads (weights, ...)
+        extra = tuple(
+            k for k in loss_module.in_keys if k not in (keys.OBSERVATION, config.label_key)
+        )
+    rows = _rows(data, config.label_key, extra)
     n = rows.shape[0]
     losses = torch.empty(config.num_steps)
     minibatch = config.batch_size is not None and config.batch_size < n
     distinct = None
-    if loss_module is not None:
-        if config.label_key not in loss_module.in_keys:
-            raise ValueError(
-                f"loss_module reads {list(loss_module.in_keys)}, not the label key "
-                f"{config.label_key!r}: remap it with set_keys"
-            )
-    elif not minibatch and config.deduplicate is not False and config.loss_type == "nll":
+    if (
+        loss_module is None
+        and not minibatch
+        and config.deduplicate is not False
+        and config.loss_type == "nll"
+    ):
         distinct = _distinct_pairs(rows, config.label_key)
         if distinct is None and config.deduplicate:
             raise ValueError(
@@ -168,7 +183,7 @@ def fit_bc(
     )
     if minibatch:
         generator = torch.Generator().manual_seed(config.seed)
-        obs_all, label_all = rows.get(keys.OBSERVATION), rows.get(config.label_key)
+        columns = {key: rows.get(key) for key in rows.keys(include_nested=True, leaves_only=True)}
         perm, cursor = torch.randperm(n, generator=generator), 0
     opt = learner.opt_pi
     steps = tqdm(range(config.num_steps), desc="bc fit", disable=not progress, leave=False)
@@ -179,8 +194,8 @@ def fit_bc(
             idx = perm[cursor : cursor + config.batch_size]
             cursor += config.batch_size
             batch = rows.empty(batch_size=[idx.numel()])
-            batch.set(keys.OBSERVATION, obs_all[idx])
-            batch.set(config.label_key, label_all[idx])
+            for key, column in columns.items():
+                batch.set(key, column[idx])
         else:
             batch = rows
         loss = objective(batch)

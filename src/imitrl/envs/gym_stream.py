@@ -28,7 +28,7 @@ from gymnasium.utils import seeding
 from imitrl.tabular.finite_horizon import expected_episode_length
 from imitrl.tabular.mdp import TabularMDP
 from imitrl.tabular.policy import policy_probs
-from imitrl.tabular.sampling import OutcomeSampler
+from imitrl.tabular.sampling import OutcomeSampler, play_compacted
 
 __all__ = ["Episodes", "GymnasiumStream", "GymnasiumStreamSource", "play_episodes"]
 
@@ -133,30 +133,13 @@ def _simulate_offsets(
     Returns:
         lengths ``[M]`` int64, returns ``[M]`` float64, success ``[M]`` bool.
     """
-    offsets = torch.arange(num_offsets)
-    state = sampler.initial(uniforms[:num_offsets])
-    lengths = torch.full((num_offsets,), max_steps, dtype=torch.int64)
-    returns = torch.zeros(num_offsets, dtype=torch.float64)
-    success = torch.zeros(num_offsets, dtype=torch.bool)
-    lane = offsets  # which offset each active lane belongs to
-    ret = torch.zeros(num_offsets, dtype=torch.float64)
-    for t in range(max_steps):
-        u = uniforms.take(lane + 1 + t)
-        state, reward, terminated = sampler.step(state, table.take(state), u)
-        ret += reward
-        if t + 1 == max_steps:
-            done = torch.ones_like(terminated)
-        else:
-            done = terminated
-        if done.any():
-            fin = lane[done]
-            lengths[fin] = t + 1
-            returns[fin] = ret[done]
-            success[fin] = goal.take(state[done])
-            keep = ~done
-            lane, state, ret = lane[keep], state[keep], ret[keep]
-            if lane.numel() == 0:
-                break
+    start = sampler.initial(uniforms[:num_offsets])
+    composed = sampler.compose(table[None], goal)
+
+    def draw(lane: torch.Tensor, t: int) -> torch.Tensor:
+        return uniforms.index_select(0, lane + (1 + t))  # lane j = offset j
+
+    lengths, returns, success, _ = play_compacted(composed, start, draw, max_steps)
     return lengths, returns, success
 
 

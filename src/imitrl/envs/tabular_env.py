@@ -31,7 +31,7 @@ from torchrl.envs import EnvBase
 
 from imitrl import keys
 from imitrl.tabular.mdp import TabularMDP
-from imitrl.tabular.sampling import OutcomeSampler
+from imitrl.tabular.sampling import OutcomeSampler, play_compacted
 
 __all__ = ["TabularEnv"]
 
@@ -271,54 +271,20 @@ class TabularEnv(EnvBase):
         K, E = tables.shape[0], int(episodes_per_table)
         if E < 1:
             raise ValueError(f"episodes_per_table must be positive, got {episodes_per_table}")
-        # Compose each table with the outcome lists once: on the product index
-        # p = k * S + s (policy k in state s) a step is K_out takes and a compare-sum.
-        sm = self._sampler
-        Ko = sm.num_outcomes
-        copy = torch.arange(K).repeat_interleave(S)  # [K*S] policy of each product index
-        pair = torch.arange(S).repeat(K) * A + tables.reshape(-1).long()  # [K*S] flat (s, a)
-        cdf = sm.cdf_columns[:, pair].contiguous()  # [Ko, K*S]
-        cols = pair[:, None] * Ko + torch.arange(Ko)  # [K*S, Ko] flat outcome ids
-        nxt = (sm.next_state[cols] + (copy * S)[:, None]).reshape(-1)  # product next states
-        rew = sm.reward[cols].reshape(-1).double()
-        term = sm.terminated[cols].reshape(-1)
-        win = term & self.mdp.goal[sm.next_state[cols]].reshape(-1)  # terminated in a goal
+        composed = self._sampler.compose(tables, self.mdp.goal)
         N = K * E
         if self._point_start is not None:
             start = torch.full((N,), self._point_start, dtype=torch.int64)
         else:
-            start = sm.initial(torch.rand(N, generator=self._generator, dtype=torch.float64))
-        p = start + torch.arange(K).repeat_interleave(E) * S
-        lane = torch.arange(N)
-        ret = torch.zeros(N, dtype=torch.float64)
-        returns = torch.zeros(N, dtype=torch.float64)
-        lengths = torch.full((N,), self.max_steps, dtype=torch.int64)
-        success = torch.zeros(N, dtype=torch.bool)
-        truncated = torch.zeros(N, dtype=torch.bool)
-        overflow = sm._may_overflow
-        for t in range(self.max_steps):
-            u = torch.rand(lane.numel(), generator=self._generator, dtype=torch.float64)
-            k = (cdf[0].take(p) <= u).long()
-            for c in range(1, Ko):
-                k += cdf[c].take(p) <= u
-            if overflow:
-                k.masked_fill_(k >= Ko, 0)
-            flat = p * Ko + k
-            p = nxt.take(flat)
-            ret += rew.take(flat)
-            ended = term.take(flat)
-            last = t + 1 == self.max_steps
-            if last or bool(ended.any()):
-                done = torch.ones_like(ended) if last else ended
-                fin = lane[done]
-                lengths[fin] = t + 1
-                returns[fin] = ret[done]
-                success[fin] = win.take(flat[done])
-                truncated[fin] = last
-                keep = ~done
-                lane, p, ret = lane[keep], p[keep], ret[keep]
-                if lane.numel() == 0:
-                    break
+            start = self._sampler.initial(
+                torch.rand(N, generator=self._generator, dtype=torch.float64)
+            )
+        start = start + torch.arange(K).repeat_interleave(E) * S
+
+        def draw(lane: torch.Tensor, t: int) -> torch.Tensor:
+            return torch.rand(lane.numel(), generator=self._generator, dtype=torch.float64)
+
+        lengths, returns, success, truncated = play_compacted(composed, start, draw, self.max_steps)
         shape = (K, E)
         return {
             "returns": returns.reshape(shape),

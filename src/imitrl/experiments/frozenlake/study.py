@@ -11,7 +11,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 import torch
@@ -29,6 +29,7 @@ from imitrl.experiments.frozenlake.backends import BatchedBackend, FaithfulBacke
 from imitrl.experiments.frozenlake.chain import chain_exact, chain_monte_carlo
 from imitrl.experiments.frozenlake.config import StudyConfig
 from imitrl.experiments.frozenlake.report import Report
+from imitrl.objectives.bc import BehaviorCloningLoss
 from imitrl.policies.actor_critic import ActorCritic
 from imitrl.policies.experts import Expert
 from imitrl.tabular.dp import greedy, value_iteration
@@ -54,6 +55,7 @@ class _Context:
     demos: TensorDict | None = None
     clone: ActorCritic | None = None
     clone_table: torch.Tensor | None = None
+    _exact: dict = field(default_factory=dict)
 
     @property
     def S(self) -> int:
@@ -64,7 +66,10 @@ class _Context:
         return self.mdp.num_actions
 
     def exact(self, table: torch.Tensor) -> float:
-        return success_probability(self.mdp, table)
+        key = tuple(table.tolist())  # replicates often share a table: price each once
+        if key not in self._exact:
+            self._exact[key] = success_probability(self.mdp, table)
+        return self._exact[key]
 
     def buffer(
         self, rows: TensorDict | None = None, num_states: int | None = None
@@ -87,26 +92,30 @@ def _fit_tables(
 ) -> tuple[torch.Tensor, list[float]]:
     """Fit one zero-initialised tabular clone per row set; ``[K, S]`` greedy tables.
 
-    With more than one row set on the batched protocol, the K clones are one
-    ``K * S``-row table fitted on the union (observations shifted by ``k * S``): rows
-    of different copies touch disjoint parameters, and Adam's per-coordinate
-    normalisation makes each copy's update equal to its own fit's up to Adam's epsilon.
+    K > 1 row sets are fitted as one ``K * S``-row table on the product states
+    (``k * S + s``), over the distinct (state, label) pairs weighted so that the
+    objective is ``sum_k mean_k``: copies touch disjoint rows of the table, so each
+    copy's gradient, and hence its Adam step, is the one its own fit would take.
     """
     S, K = ctx.S, len(rows)
-    if ctx.backend.vectorised and K > 1:
-        union = torch.cat([r.select(keys.OBSERVATION, keys.EXPERT_ACTION) for r in rows])
-        shift = torch.cat([torch.full((r.shape[0],), k * S) for k, r in enumerate(rows)])
-        union.set(keys.OBSERVATION, union.get(keys.OBSERVATION) + shift)
-        learner = ctx.learner(K)
-        fit = fit_bc(learner, union, BCConfig(num_steps=steps))
-        return learner.greedy_table().reshape(K, S), [fit.final_loss] * K
-    tables, losses = [], []
-    for r in rows:
+    if K == 1:
         learner = ctx.learner()
-        fit = fit_bc(learner, r, BCConfig(num_steps=steps))
-        tables.append(learner.greedy_table())
-        losses.append(fit.final_loss)
-    return torch.stack(tables), losses
+        fit = fit_bc(learner, rows[0], BCConfig(num_steps=steps))
+        return learner.greedy_table()[None], [fit.final_loss]
+    obs = torch.cat([r.get(keys.OBSERVATION) + k * S for k, r in enumerate(rows)])
+    label = torch.cat([r.get(keys.EXPERT_ACTION) for r in rows])
+    codes, counts = torch.unique(obs * ctx.A + label, return_counts=True)
+    state, action = codes // ctx.A, codes % ctx.A
+    per_copy = torch.tensor([r.shape[0] for r in rows], dtype=torch.float32)
+    weight = counts.float() * codes.numel() / per_copy[state // S]
+    union = TensorDict(
+        {keys.OBSERVATION: state, keys.EXPERT_ACTION: action, keys.WEIGHT: weight},
+        batch_size=[codes.numel()],
+    )
+    learner = ctx.learner(K)
+    loss = BehaviorCloningLoss(learner.policy, loss_type="nll", weighted=True)
+    fit = fit_bc(learner, union, BCConfig(num_steps=steps), loss_module=loss)
+    return learner.greedy_table().reshape(K, S), [fit.final_loss] * K
 
 
 def _replicated_clones(
@@ -122,6 +131,10 @@ def _replicated_clones(
         tables, _ = _fit_tables(ctx, rows, fit_steps)
         rates = block.evaluate(tables, eval_episodes) if eval_episodes else None
         return tables, rates, rows
+    if not eval_episodes:
+        # nothing but the demonstrations touches the stream: draw them in order, fit jointly
+        rows = [block.demonstrations(n_demos)[0] for _ in ctx.bar(range(K), desc)]
+        return _fit_tables(ctx, rows, fit_steps)[0], None, rows
     tables, rates, rows = [], [], []
     for _ in ctx.bar(range(K), desc):
         r = block.demonstrations(n_demos)[0]
@@ -718,28 +731,27 @@ def _ex_corruption(ctx: _Context) -> None:
     block = ctx.backend.block(cfg.ex_seed + 3)
     gen = torch.Generator().manual_seed(cfg.ex_seed + 3)
     K = cfg.ex_datasets
+    noise = (cfg.ex_corruption, gen)
     results = {"bc": [[], []], "dagger": [[], []]}
     if ctx.backend.vectorised:
         demos = block.demonstrations(cfg.demo_episodes, K)
         bad = [corrupt_labels(d, cfg.ex_corruption, ctx.A, gen) for d in demos]
-        results["bc"][0] = _fit_tables(ctx, demos, cfg.ex_fit_steps)[0]
-        results["bc"][1] = _fit_tables(ctx, bad, cfg.ex_fit_steps)[0]
         results["dagger"][0] = _replicated_dagger(ctx, block, demos, cfg.ex_fit_steps)[0]
-        results["dagger"][1] = _replicated_dagger(
-            ctx, block, bad, cfg.ex_fit_steps, (cfg.ex_corruption, gen)
-        )[0]
+        results["dagger"][1] = _replicated_dagger(ctx, block, bad, cfg.ex_fit_steps, noise)[0]
     else:
-        for _ in ctx.bar(range(K), "corruption"):
-            d = block.demonstrations(cfg.demo_episodes)[0]
-            b = corrupt_labels(d, cfg.ex_corruption, ctx.A, gen)
-            results["bc"][0].append(_fit_tables(ctx, [d], cfg.ex_fit_steps)[0][0])
-            results["bc"][1].append(_fit_tables(ctx, [b], cfg.ex_fit_steps)[0][0])
-            results["dagger"][0].append(_replicated_dagger(ctx, block, [d], cfg.ex_fit_steps)[0][0])
-            results["dagger"][1].append(
-                _replicated_dagger(ctx, block, [b], cfg.ex_fit_steps, (cfg.ex_corruption, gen))[0][
-                    0
-                ]
+        demos, bad = [], []
+        for _ in ctx.bar(range(K), "corruption"):  # stream order: demos, clean DAgger, noisy DAgger
+            demos.append(block.demonstrations(cfg.demo_episodes)[0])
+            bad.append(corrupt_labels(demos[-1], cfg.ex_corruption, ctx.A, gen))
+            results["dagger"][0].append(
+                _replicated_dagger(ctx, block, demos[-1:], cfg.ex_fit_steps)[0][0]
             )
+            results["dagger"][1].append(
+                _replicated_dagger(ctx, block, bad[-1:], cfg.ex_fit_steps, noise)[0][0]
+            )
+    # the BC fits use no random stream: fitted jointly after the data is drawn
+    results["bc"][0] = _fit_tables(ctx, demos, cfg.ex_fit_steps)[0]
+    results["bc"][1] = _fit_tables(ctx, bad, cfg.ex_fit_steps)[0]
     clean = np.array([[ctx.exact(t) for t in results[m][0]] for m in ("bc", "dagger")])
     bad = np.array([[ctx.exact(t) for t in results[m][1]] for m in ("bc", "dagger")])
     for i, m in enumerate(("BC", "DAgger")):
