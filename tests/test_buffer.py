@@ -194,3 +194,29 @@ def test_load_errors(tmp_path):
         DemonstrationBuffer.load(tmp_path / "ok")
     with pytest.raises(ValueError, match="empty"):
         DemonstrationBuffer().save(tmp_path / "empty")
+
+
+def test_discrete_action_shape_other_specs_and_episode_blocks():
+    from torchrl.data import OneHot
+
+    buf = DemonstrationBuffer(action_spec=Categorical(4))
+    wide = rows(4)
+    wide.set(keys.EXPERT_ACTION, wide[keys.EXPERT_ACTION][:, None])
+    wide.set(keys.ACTION, wide[keys.ACTION][:, None])
+    with pytest.raises(ValueError, match=r"rows have shape \(1,\)"):
+        buf.extend(wide)
+    split = rows(6)
+    split.set(keys.EPISODE, torch.tensor([0, 0, 1, 1, 0, 0]))
+    with pytest.raises(ValueError, match="contiguous"):
+        buf.extend(split)
+    onehot = DemonstrationBuffer(action_spec=OneHot(4))
+    good = rows(3)
+    a = torch.nn.functional.one_hot(torch.tensor([0, 1, 2]), 4).bool()
+    good.set(keys.EXPERT_ACTION, a)
+    good.set(keys.ACTION, a.clone())
+    bad = good.clone()
+    bad[keys.EXPERT_ACTION][2] = torch.tensor([True, True, False, False])
+    with pytest.raises(ValueError, match="outside OneHot"):
+        onehot.extend(bad)
+    onehot.extend(good)
+    assert len(onehot) == 3

@@ -81,3 +81,23 @@ def test_evaluate_on_a_gym_env():
             exploration=ExplorationType.DETERMINISTIC,
             max_steps=10,
         )
+
+
+def test_exact_values_follow_pinned_lane_starts(lake, expert_table):
+    starts = torch.tensor([14, 14, 0, 0, 0, 0, 0, 0])  # two lanes start next to the goal
+    env = TabularEnv(lake, batch_size=(8,), seed=1, initial_state=starts)
+    ev = evaluate(
+        env,
+        Expert.from_table(expert_table).as_actor(),
+        8000,
+        exploration=ExplorationType.DETERMINISTIC,
+        confidence=0.999,
+    )
+    d0 = torch.zeros(16, dtype=torch.float64)
+    d0[14], d0[0] = 0.25, 0.75
+    assert ev.exact_success == pytest.approx(
+        success_probability(lake, expert_table, initial=d0), abs=1e-12
+    )
+    assert ev.success_ci[0] < ev.exact_success < ev.success_ci[1]
+    with pytest.raises(ValueError, match="pins its lanes"):
+        env.play_tables(expert_table, 10)

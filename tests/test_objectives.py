@@ -142,3 +142,59 @@ def test_policy_step_accepts_obs_act_objects_and_treats_weights_as_data():
         policy_step(ac, Batch(), np.ones(3))
     with pytest.raises(ValueError, match="NaN"):
         policy_step(ac, Batch(), np.array([1.0, np.nan, 1.0, 1.0]))
+
+
+@pytest.mark.parametrize(
+    ("label", "match"),
+    [
+        (torch.tensor([0, 1, 5, 2]), r"label 5 under 'expert_action' is outside \[0, 3\)"),
+        (torch.tensor([0, -1, 1, 2]), r"label -1 under 'expert_action' is outside"),
+        (torch.tensor([[0], [1], [2], [1]]), "one integer per row"),
+        (torch.tensor([0.0, 1.0, 2.0, 1.0]), "must be integers"),
+    ],
+)
+def test_fit_rejects_bad_categorical_labels(label, match):
+    rows = TensorDict(
+        {keys.OBSERVATION: torch.tensor([0, 1, 2, 3]), keys.EXPERT_ACTION: label}, [4]
+    )
+    for cfg in (BCConfig(num_steps=1), BCConfig(num_steps=1, batch_size=2)):
+        with pytest.raises(ValueError, match=match):
+            fit_bc(ActorCritic.tabular(8, 3), rows, cfg)
+
+
+def test_fit_rejects_non_finite_continuous_labels():
+    spec = Bounded(-1.0, 1.0, shape=(2,))
+    rows = TensorDict(
+        {
+            keys.OBSERVATION: torch.zeros(3, 4),
+            keys.EXPERT_ACTION: torch.tensor([[0.0, 0.1], [float("nan"), 0.0], [0.2, 0.2]]),
+        },
+        [3],
+    )
+    with pytest.raises(ValueError, match="NaN or inf"):
+        fit_bc(
+            ActorCritic.mlp(4, spec, head="deterministic"),
+            rows,
+            BCConfig(num_steps=1, loss_type="mse"),
+        )
+
+
+def test_log_prob_rejects_out_of_range_actions():
+    ac = ActorCritic.tabular(4, 3)
+    with pytest.raises(ValueError, match=r"lie in \[0, 3\)"):
+        ac.log_prob(np.array([0, 1]), np.array([0, 7]))
+
+
+def test_tanh_normal_nll_of_labels_on_the_bounds_is_finite_and_pulls_towards_them():
+    spec = Bounded(-2.0, 2.0, shape=(1,))
+    ac = ActorCritic.mlp(3, spec, head="tanh_normal", hidden=(8,), lr=1e-2)
+    rows = TensorDict(
+        {keys.OBSERVATION: torch.zeros(64, 3), keys.EXPERT_ACTION: torch.full((64, 1), 2.0)}, [64]
+    )
+    fit = fit_bc(ac, rows, BCConfig(num_steps=200, loss_type="nll"))
+    assert torch.isfinite(fit.losses).all() and fit.losses[0] < 1.0  # not TorchRL's clamped -log(0)
+    assert (
+        float(ac.act_greedy(np.zeros((1, 3), np.float32))[0, 0]) > 1.99
+    )  # mode driven to the bound
+    with pytest.raises(ValueError, match="bound_margin"):
+        BehaviorCloningLoss(ac.policy, bound_margin=0.7)

@@ -191,3 +191,15 @@ def test_greedy_expert_matches_the_numpy_reference_on_random_maps():
         mdp = TabularMDP.from_gym(env, 0.95)
         ours = greedy(mdp.backup(value_iteration(mdp, 1000)[-1]))
         assert ours.tolist() == reference.tolist(), (size, seed)
+
+
+def test_goal_is_the_best_terminal_entry_even_when_all_are_negative():
+    # state 0 -> terminal 1 (reward -1) or terminal 2 (reward -5), half and half
+    P = np.zeros((3, 1, 3))
+    P[0, 0, 1:] = 0.5
+    P[1, 0, 1] = P[2, 0, 2] = 1.0
+    R = np.zeros((3, 1, 3))
+    R[0, 0, 1], R[0, 0, 2] = -1.0, -5.0
+    mdp = TabularMDP.from_arrays(P, R, 0.9, terminal=[False, True, True])
+    assert mdp.goal.tolist() == [False, True, False]
+    assert success_probability(mdp, torch.zeros(3, dtype=torch.long), 1) == 0.5

@@ -158,25 +158,21 @@ def fit_bc(
     n = rows.shape[0]
     losses = torch.empty(config.num_steps)
     minibatch = config.batch_size is not None and config.batch_size < n
-    distinct = None
-    if (
-        loss_module is None
-        and not minibatch
-        and config.deduplicate is not False
-        and config.loss_type == "nll"
-    ):
+    default = loss_module is None
+    if default:
+        loss_module = BehaviorCloningLoss(learner.policy, loss_type=config.loss_type)
+        loss_module.set_keys(label=config.label_key)
+    if hasattr(loss_module, "check_labels"):
+        loss_module.check_labels(rows)  # once, over every row the fit can draw
+    if default and not minibatch and config.deduplicate is not False and config.loss_type == "nll":
         distinct = _distinct_pairs(rows, config.label_key)
         if distinct is None and config.deduplicate:
             raise ValueError(
                 "deduplicate=True needs integer observations [N] and integer labels [N]"
             )
-    if loss_module is None:
-        loss_module = BehaviorCloningLoss(
-            learner.policy, loss_type=config.loss_type, weighted=distinct is not None
-        )
-        loss_module.set_keys(label=config.label_key)
-    if distinct is not None:
-        rows = distinct
+        if distinct is not None:
+            rows = distinct
+            loss_module.weighted = True
     objective = getattr(loss_module, "objective", None) or (
         # any TorchRL loss: minimise the sum of its loss_* outputs
         lambda batch: sum(v for k, v in loss_module(batch).items() if k.startswith("loss_"))

@@ -203,6 +203,11 @@ class DemonstrationBuffer:
             if value.dtype.is_floating_point and not torch.isfinite(value).all():
                 raise ValueError(f"rows contain NaN or inf under {key!r}")
         episodes = rows.get(keys.EPISODE)
+        starts = int((episodes[1:] != episodes[:-1]).sum()) + 1
+        if starts != int(episodes.unique().numel()):
+            raise ValueError(
+                f"each episode's rows must be contiguous: {keys.EPISODE!r} ids reappear after another episode"
+            )
         if int(episodes.min()) < self.next_episode:
             raise ValueError(
                 f"episode id {int(episodes.min())} is already used in this buffer; "
@@ -359,6 +364,14 @@ def _check_action(action: torch.Tensor, spec: TensorSpec, key: str) -> None:
                 f"{key!r} must hold integer actions for a discrete action space, got {action.dtype}"
             )
         n = spec.space.n
+        # rows carry the unbatched action shape: the spec's own, or its shape without
+        # the leading env-batch dimension of a batched env's spec
+        allowed = {tuple(spec.shape), tuple(spec.shape[1:])}
+        if tuple(action.shape[1:]) not in allowed:
+            raise ValueError(
+                f"{key!r} rows have shape {tuple(action.shape[1:])}, expected one of {sorted(allowed)} "
+                "for this discrete action spec"
+            )
         if int(action.min()) < 0 or int(action.max()) >= n:
             bad = int(action.min()) if int(action.min()) < 0 else int(action.max())
             raise ValueError(f"{key!r} holds action {bad}, outside [0, {n})")
@@ -373,5 +386,9 @@ def _check_action(action: torch.Tensor, spec: TensorSpec, key: str) -> None:
                 f"{key!r} holds actions outside the bounds [{low.tolist()}, {high.tolist()}]"
             )
     else:
-        if not spec.is_in(action[0]):
+        if action.dtype != spec.dtype:
+            raise ValueError(
+                f"{key!r} has dtype {action.dtype}, the action spec expects {spec.dtype}"
+            )
+        if not spec.is_in(action):  # TorchRL specs check a leading batch of rows at once
             raise ValueError(f"{key!r} holds actions outside {spec}")

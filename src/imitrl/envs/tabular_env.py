@@ -233,6 +233,25 @@ class TabularEnv(EnvBase):
             raise ValueError(f"TabularEnv action {bad} is outside [0, {self.mdp.num_actions})")
         return action
 
+    @property
+    def lane_starts(self) -> torch.Tensor | None:
+        """The pinned start state of every lane (``initial_state``), or None."""
+        return None if self._lane_start is None else self._lane_start.clone()
+
+    def start_distribution(self, num_episodes: int) -> torch.Tensor:
+        """``[S]`` start distribution of ``num_episodes`` whole episodes played round-robin over the lanes.
+
+        ``mdp.initial`` unless lanes are pinned, in which case lane ``i`` plays
+        ``ceil((n - i) / lanes)`` of the episodes from its own start state.
+        """
+        if self._lane_start is None:
+            return self.mdp.initial
+        lanes = self._n
+        quota = ((num_episodes - torch.arange(lanes) + lanes - 1) // lanes).clamp_min(0)
+        counts = torch.zeros(self.mdp.num_states, dtype=torch.float64)
+        counts.index_add_(0, self._lane_start, quota.double())
+        return counts / counts.sum()
+
     # --------------------------------------------------------------- fast path
     def play_tables(self, tables: torch.Tensor, episodes_per_table: int) -> dict[str, torch.Tensor]:
         """Play whole episodes of deterministic tabular policies, lanes compacted as they end.
@@ -257,6 +276,11 @@ class TabularEnv(EnvBase):
         if self.max_steps is None:
             raise ValueError(
                 "play_tables needs a time limit (max_steps) so that every episode ends"
+            )
+        if self._lane_start is not None:
+            raise ValueError(
+                "play_tables starts every episode from mdp.initial; this env pins its lanes with "
+                "initial_state (evaluate through step(), or replicate the MDP)"
             )
         tables = torch.as_tensor(tables)
         if tables.ndim == 1:

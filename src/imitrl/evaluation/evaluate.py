@@ -150,6 +150,12 @@ def evaluate(
         result["success_rate"] = k / num_episodes
         result["success_ci"] = wilson_interval(k, num_episodes, confidence)
     if tabular and env.max_steps is not None:
-        exact = exact_values(env.mdp, policy, exploration, env.max_steps)
+        exact = exact_values(
+            env.mdp,
+            policy,
+            exploration,
+            env.max_steps,
+            initial=env.start_distribution(num_episodes),
+        )
         result["exact_success"], result["exact_return"] = exact["success"], exact["return"]
     return Evaluation(**result)

@@ -43,10 +43,15 @@ def exact_values(
     policy: TensorDictModuleBase,
     exploration: ExplorationType,
     horizon: int | None = None,
+    *,
+    initial: torch.Tensor | None = None,
 ) -> dict[str, float]:
-    """Exact success probability and expected return of a policy module in ``horizon`` steps."""
+    """Exact success probability and expected return of a policy module in ``horizon`` steps.
+
+    ``initial`` overrides the MDP's start distribution (e.g. pinned env lanes).
+    """
     table = tabulate(policy, mdp.num_states, exploration)
     return {
-        "success": success_probability(mdp, table, horizon),
-        "return": expected_return(mdp, table, horizon),
+        "success": success_probability(mdp, table, horizon, initial=initial),
+        "return": expected_return(mdp, table, horizon, initial=initial),
     }

@@ -56,6 +56,10 @@ class BehaviorCloningLoss(LossModule):
         weighted: read per-row weights from the ``weight`` key (detached).
         report_accuracy: also return ``accuracy`` (greedy action equals the label) for
             categorical actors (an argmax over the batch every call).
+        bound_margin: NLL of a bounded (tanh-normal) policy: labels are clamped to
+            ``bound_margin`` of the half-range inside the action bounds, where the
+            density is finite (a label exactly at a bound has log-density -inf, clamped
+            by TorchRL to a constant with no useful gradient).
 
     Keys (``set_keys`` to remap): ``observation`` is read by the actor; ``label``
     (default ``"expert_action"``) is the target; ``prediction`` (default
@@ -83,7 +87,10 @@ class BehaviorCloningLoss(LossModule):
         loss_type: str = "nll",
         weighted: bool = False,
         report_accuracy: bool = False,
+        bound_margin: float = 1e-3,
     ) -> None:
+        if not 0.0 <= bound_margin < 0.5:
+            raise ValueError(f"bound_margin must be in [0, 0.5), got {bound_margin}")
         if loss_type not in LOSS_TYPES:
             raise ValueError(f"loss_type must be one of {LOSS_TYPES}, got {loss_type!r}")
         super().__init__()
@@ -91,6 +98,7 @@ class BehaviorCloningLoss(LossModule):
         self.loss_type = loss_type
         self.weighted = weighted
         self.report_accuracy = report_accuracy
+        self.bound_margin = float(bound_margin)
         self._in_keys = None
         # a plain attribute, not registered: these modules already belong to the actor
         object.__setattr__(
@@ -111,6 +119,49 @@ class BehaviorCloningLoss(LossModule):
     def in_keys(self, values):
         self._in_keys = values
 
+    @property
+    def num_actions(self) -> int | None:
+        """Number of discrete actions, read from the actor's spec (None if unknown)."""
+        spec = getattr(self.actor, "spec", None)
+        try:
+            action_spec = spec[keys.ACTION] if spec is not None else None
+        except KeyError:
+            return None
+        space = getattr(action_spec, "space", None)
+        n = getattr(space, "n", None)
+        return None if n is None else int(n)
+
+    def check_labels(self, tensordict: TensorDictBase) -> None:
+        """Raise ``ValueError`` unless the labels fit the loss (called once per fit).
+
+        Finite values; for a categorical actor integer labels with one entry per row,
+        in ``[0, num_actions)``; for the regression losses the prediction's shape.
+        """
+        key = self.tensor_keys.label
+        if key not in tensordict.keys(include_nested=True):
+            raise ValueError(f"rows lack the label key {key!r}")
+        label = tensordict.get(key)
+        if label.dtype.is_floating_point and not torch.isfinite(label).all():
+            raise ValueError(f"labels under {key!r} contain NaN or inf")
+        if self._logits_modules is None and not (
+            self.loss_type == "nll" and not label.dtype.is_floating_point
+        ):
+            return
+        if label.dtype.is_floating_point or label.dtype == torch.bool:
+            raise ValueError(
+                f"categorical labels under {key!r} must be integers, got {label.dtype}"
+            )
+        if label.ndim != tensordict.batch_dims:
+            raise ValueError(
+                f"categorical labels under {key!r} need one integer per row, shape "
+                f"{tuple(tensordict.batch_size)}, got {tuple(label.shape)}"
+            )
+        n = self.num_actions
+        lo, hi = int(label.min()), int(label.max())
+        if lo < 0 or (n is not None and hi >= n):
+            bad = lo if lo < 0 else hi
+            raise ValueError(f"label {bad} under {key!r} is outside [0, {n})")
+
     def per_row(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, TensorDictBase]:
         """Per-row losses ``[N]`` and the actor's output tensordict (a shallow copy)."""
         td = tensordict.select(*self.actor.in_keys, strict=True)  # a new dict: writes stay local
@@ -124,6 +175,11 @@ class BehaviorCloningLoss(LossModule):
                     f"categorical labels under {self.tensor_keys.label!r} must be integers, got {label.dtype}"
                 )
             logits = self._logits(td)
+            if label.shape != logits.shape[:-1]:
+                raise ValueError(
+                    f"categorical labels under {self.tensor_keys.label!r} need shape "
+                    f"{tuple(logits.shape[:-1])}, got {tuple(label.shape)}"
+                )
             logp = (
                 torch.log_softmax(logits, dim=-1).gather(-1, label.long().unsqueeze(-1)).squeeze(-1)
             )
@@ -139,6 +195,12 @@ class BehaviorCloningLoss(LossModule):
                 logp = dist.logits.gather(-1, label.long().unsqueeze(-1)).squeeze(-1)
                 td.set(keys.LOGITS, dist.logits)
             else:
+                low, high = getattr(dist, "low", None), getattr(dist, "high", None)
+                if low is not None and high is not None and self.bound_margin > 0:
+                    # A bounded (tanh) density is singular at its bounds, where experts
+                    # often act (saturated torques): move labels a hair inside.
+                    pad = self.bound_margin * (high - low) / 2
+                    label = torch.maximum(torch.minimum(label, high - pad), low + pad)
                 logp = dist.log_prob(label)
             return -logp, td
         out = self.actor(td)

@@ -311,6 +311,11 @@ class ActorCritic(nn.Module):
             if a.dtype.is_floating_point:
                 raise ValueError(f"categorical actions must be integers, got dtype {a.dtype}")
             a = a.long()
+            n = int(self.policy.spec[keys.ACTION].space.n)
+            if a.numel() and (int(a.min()) < 0 or int(a.max()) >= n):
+                raise ValueError(f"categorical actions must lie in [0, {n})")
+        elif not torch.isfinite(a).all():
+            raise ValueError("actions contain NaN or inf")
         grad = kind == "tensor"
         with torch.set_grad_enabled(grad and torch.is_grad_enabled()):
             lp = self.get_dist(self._td(t)).log_prob(a)

@@ -56,20 +56,23 @@ def state_distributions(
     return d
 
 
-def success_probability(mdp: TabularMDP, pi: Any, horizon: int | None = None) -> float:
+def success_probability(
+    mdp: TabularMDP, pi: Any, horizon: int | float | None = None, *, initial: Any | None = None
+) -> float:
     """Probability of entering a goal state within ``horizon`` steps.
 
-    ``horizon=None`` uses the MDP's time limit; pass ``horizon=float("inf")`` (or
-    use an MDP without ``max_steps`` and ``horizon=None`` raises) for the
-    probability with no time limit, solved exactly as an absorption probability.
+    Args:
+        horizon: number of steps; None uses the MDP's time limit; ``math.inf`` gives
+            the probability with no time limit (an exact absorption probability).
+        initial: ``[S]`` start distribution; defaults to ``mdp.initial``.
     """
     if horizon == float("inf"):
-        return _absorption_probability(mdp, pi)
-    d = state_distributions(mdp, pi, horizon)
+        return _absorption_probability(mdp, pi, initial)
+    d = state_distributions(mdp, pi, horizon, initial=initial)
     return float(d[-1][mdp.goal].sum())
 
 
-def _absorption_probability(mdp: TabularMDP, pi: Any) -> float:
+def _absorption_probability(mdp: TabularMDP, pi: Any, initial: Any | None = None) -> float:
     """``Pr(reach a goal state ever)`` by a linear solve on the states that can reach one."""
     P_pi = kernel_under(mdp, pi)
     S = mdp.num_states
@@ -89,22 +92,30 @@ def _absorption_probability(mdp: TabularMDP, pi: Any) -> float:
         A = torch.eye(int(unknown.sum()), dtype=torch.float64) - P_pi[unknown][:, unknown]
         b = P_pi[unknown][:, mdp.goal].sum(dim=1)
         x[unknown] = torch.linalg.solve(A, b)
-    return float(mdp.initial @ x)
+    start = mdp.initial if initial is None else torch.as_tensor(initial, dtype=torch.float64)
+    return float(start @ x)
 
 
 def expected_return(
-    mdp: TabularMDP, pi: Any, horizon: int | None = None, *, gamma: float = 1.0
+    mdp: TabularMDP,
+    pi: Any,
+    horizon: int | None = None,
+    *,
+    gamma: float = 1.0,
+    initial: Any | None = None,
 ) -> float:
     """Expected (by default undiscounted) return ``sum_{t<T} gamma^t d_t . r_pi`` in ``T`` steps."""
-    d = state_distributions(mdp, pi, horizon)
+    d = state_distributions(mdp, pi, horizon, initial=initial)
     r_pi = reward_under(mdp, pi)
     discounts = gamma ** torch.arange(d.shape[0] - 1, dtype=torch.float64)
     return float((discounts[:, None] * d[:-1] * r_pi[None, :]).sum())
 
 
-def expected_episode_length(mdp: TabularMDP, pi: Any, horizon: int | None = None) -> float:
+def expected_episode_length(
+    mdp: TabularMDP, pi: Any, horizon: int | None = None, *, initial: Any | None = None
+) -> float:
     """Expected number of steps of an episode cut at ``horizon``: ``sum_{t<T} Pr(not terminal at t)``."""
-    d = state_distributions(mdp, pi, horizon)
+    d = state_distributions(mdp, pi, horizon, initial=initial)
     return float((1.0 - d[:-1][:, mdp.terminal].sum(dim=1)).sum())
 
 

@@ -322,6 +322,8 @@ class TabularMDP:
     ) -> TabularMDP:
         if initial.shape != (S,):
             raise ValueError(f"initial distribution must have shape [{S}], got {initial.shape}")
+        if not np.isfinite(initial).all():
+            raise ValueError("initial distribution must be finite")
         _check_probabilities(initial, "initial distribution", axis=-1)
         if max_steps is not None and (int(max_steps) != max_steps or max_steps < 1):
             raise ValueError(f"max_steps must be a positive integer or None, got {max_steps!r}")
@@ -341,9 +343,19 @@ class TabularMDP:
                 next_state[s, a, len(outs) :] = next_state[s, a, 0]
         if terminal is None:
             terminal = _terminal_states(next_state, prob, terminated, size, initial, name)
+        # Success = entering a terminal state with the best entering reward among
+        # terminal states (FrozenLake's G over its holes; CliffWalking's and Taxi's
+        # only kind of terminal state). Entries are read from non-terminal sources,
+        # before the terminal rows become zero-reward self-loops below.
+        entering_reward = np.full(S, -np.inf)
+        live = (prob > 0) & ~terminal[:, None, None]
+        np.maximum.at(entering_reward, next_state[live], reward[live])
+        term_idx = np.flatnonzero(terminal)
+        goal = np.zeros(S, dtype=bool)
+        if term_idx.size:
+            goal = terminal & (entering_reward == entering_reward[term_idx].max())
         # A terminal state is absorbing in the sampling model too (an episode never
         # steps from one; gymnasium's own lists there are arbitrary, e.g. CliffWalking's).
-        term_idx = np.flatnonzero(terminal)
         next_state[term_idx] = term_idx[:, None, None]
         prob[term_idx] = 0.0
         prob[term_idx, :, 0] = 1.0
@@ -357,15 +369,6 @@ class TabularMDP:
         P[term_idx] = 0.0
         P[term_idx, :, term_idx] = 1.0  # pairs (t, :, t): absorbing self-loops
         r[term_idx] = 0.0
-        # Success = entering a terminal state with the best entering reward among
-        # terminal states (FrozenLake's G over its holes; CliffWalking's and Taxi's
-        # only kind of terminal state).
-        entering_reward = np.full(S, -np.inf)
-        live = prob > 0
-        np.maximum.at(entering_reward, next_state[live], reward[live])
-        goal = np.zeros(S, dtype=bool)
-        if term_idx.size:
-            goal = terminal & (entering_reward == entering_reward[term_idx].max())
         cdf = np.cumsum(prob, axis=-1)
         return cls(
             P=torch.from_numpy(P),
