@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import math
 import sys
 import time
 from collections.abc import Callable
@@ -48,7 +47,7 @@ from imitrl import keys
 from imitrl.algorithms import BCConfig, Constant, DAggerConfig, EnvSource, dagger, fit_bc
 from imitrl.data import DemonstrationBuffer, rollout_episodes
 from imitrl.envs import make_env
-from imitrl.evaluation import evaluate
+from imitrl.evaluation import evaluate, t_interval
 from imitrl.experts import (
     acrobot_expert,
     cartpole_expert,
@@ -144,22 +143,6 @@ QUICK = Config(
     max_episode_steps=30,
     fit_steps=5,
 )
-
-# two-sided 95% Student-t quantiles by degrees of freedom (larger df: next lower entry)
-_T975 = {1: 12.706, 2: 4.303, 3: 3.182, 4: 2.776, 5: 2.571, 6: 2.447, 8: 2.306, 10: 2.228}
-_T975 |= {15: 2.131, 20: 2.086, 30: 2.042, 60: 2.000, 120: 1.980}
-
-
-def t_interval(values: list[float]) -> tuple[float, float, float]:
-    """Mean and 95% Student-t interval (conservative df rounding); one value gives a point."""
-    x = torch.tensor(values, dtype=torch.float64)
-    mean = float(x.mean())
-    if x.numel() < 2:
-        return mean, mean, mean
-    df = x.numel() - 1
-    t = _T975[max(d for d in _T975 if d <= df)]
-    half = t * float(x.std(unbiased=True)) / math.sqrt(x.numel())
-    return mean, mean - half, mean + half
 
 
 def horizon(env_id: str, cfg: Config) -> int:

@@ -60,7 +60,7 @@ from imitrl.algorithms import BCConfig, DAggerConfig, EnvSource, dagger, fit_bc
 from imitrl.data import DemonstrationBuffer, episode_returns, rollout_episodes
 from imitrl.envs import TabularEnv, make_env
 from imitrl.envs import multimodal as mm
-from imitrl.evaluation import exact_values
+from imitrl.evaluation import exact_values, t_interval
 from imitrl.objectives import registry
 from imitrl.objectives.registry import Learner, LearnerConfig, TaskSpec
 from imitrl.policies import BetaMixer, Expert, behaviour_policy
@@ -446,25 +446,6 @@ def loss_cell(task_name: str, loss: str, seed: int, quick_mode: bool) -> list[di
 
 
 # ------------------------------------------------------------------- statistics
-_T975 = [12.706, 4.303, 3.182, 2.776, 2.571, 2.447, 2.365, 2.306, 2.262, 2.228]
-_T975 += [2.201, 2.179, 2.160, 2.145, 2.131, 2.120, 2.110, 2.101, 2.093, 2.086]
-_T975 += [2.080, 2.074, 2.069, 2.064, 2.060, 2.056, 2.052, 2.048, 2.045, 2.042]
-
-
-def t_interval(values: list[float]) -> tuple[float, float, float]:
-    """Mean and 95% Student-t interval (``t_{0.975, n-1} s / sqrt(n)``) over seeds."""
-    x = torch.tensor([v for v in values if v is not None], dtype=torch.float64)
-    if x.numel() == 0:
-        return math.nan, math.nan, math.nan
-    mean = float(x.mean())
-    if x.numel() == 1:
-        return mean, math.nan, math.nan
-    df = x.numel() - 1
-    t = _T975[df - 1] if df <= len(_T975) else 1.96 + 2.4 / df
-    half = t * float(x.std(unbiased=True)) / math.sqrt(x.numel())
-    return mean, mean - half, mean + half
-
-
 def summarize(rows: list[dict], references: list[dict]) -> dict[str, Any]:
     """Per (task, loss, algorithm): mean and interval of the score and the normalised score."""
     ref = {}

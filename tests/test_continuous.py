@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import importlib.util
 import json
-import re
 import sys
 from pathlib import Path
 
@@ -40,6 +39,7 @@ from imitrl.experts import (
 )
 from imitrl.policies import ActorCritic
 
+from ._readme import block as readme_block
 from ._stats import welch_t
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -280,18 +280,9 @@ def test_dagger_beats_bc_continuous_actions():
 
 
 # ------------------------------------------------------------------ README example
-def _readme_block(name: str) -> str:
-    text = (ROOT / "README.md").read_text()
-    block = re.search(rf"<!-- BEGIN {name} -->(.*?)<!-- END {name} -->", text, flags=re.S)
-    assert block is not None, f"README.md lacks the {name} block"
-    code = re.search(r"```python\n(.*?)```", block.group(1), flags=re.S)
-    assert code is not None, f"the {name} block has no python code"
-    return code.group(1)
-
-
 def test_readme_continuous_example_runs():
     namespace: dict = {"__name__": "readme_example"}
-    exec(compile(_readme_block("continuous-example"), "README.md", "exec"), namespace)
+    exec(compile(readme_block("continuous-example"), "README.md", "exec"), namespace)
     expert, learner = namespace["expert_eval"], namespace["learner_eval"]
     # the example's DAgger learner is within 10% of its expert's (negative) return
     assert learner.mean_return >= 1.1 * expert.mean_return

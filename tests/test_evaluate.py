@@ -101,3 +101,22 @@ def test_exact_values_follow_pinned_lane_starts(lake, expert_table):
     assert ev.success_ci[0] < ev.exact_success < ev.success_ci[1]
     with pytest.raises(ValueError, match="pins its lanes"):
         env.play_tables(expert_table, 10)
+
+
+def test_student_t_quantiles_and_intervals():
+    from imitrl.evaluation import student_t_quantile, t_interval
+
+    # reference values of the t distribution's 0.975 quantile
+    for df, q in [(1, 12.706204736), (4, 2.776445105), (29, 2.045229642), (200, 1.971896224)]:
+        assert student_t_quantile(0.975, df) == pytest.approx(q, abs=1e-6)
+    mean, lo, hi = t_interval([1.0, 2.0, 3.0, 4.0, 5.0])
+    half = 2.776445105 * math.sqrt(2.5) / math.sqrt(5)
+    assert (
+        mean == 3.0
+        and lo == pytest.approx(3 - half, abs=1e-6)
+        and hi == pytest.approx(3 + half, abs=1e-6)
+    )
+    assert t_interval([2.0])[0] == 2.0 and math.isnan(t_interval([2.0])[1])
+    assert math.isnan(t_interval([None])[0])
+    with pytest.raises(ValueError, match="df >= 1"):
+        student_t_quantile(0.975, 0)

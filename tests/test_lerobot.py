@@ -356,3 +356,15 @@ def test_v30_episodes_are_slices_of_the_concatenated_files(tmp_path):
     pq.write_table(shifted, path)
     with pytest.raises(ValueError, match=r"episode 1 spans frames \[4, 8\) with length 3"):
         load_lerobot(root)
+
+
+def test_values_that_do_not_fit_the_declared_dtype_are_refused():
+    import pyarrow as pa
+
+    from imitrl.datasets._arrow import column_to_tensor
+
+    col = pa.array([1, 300, 2], type=pa.int64())
+    with pytest.raises(ValueError, match="value 300 does not fit the declared dtype 'int8'"):
+        column_to_tensor(col, shape=(), dtype="int8", where="data/file.parquet: 'x'")
+    ok = column_to_tensor(pa.array([0.1, 0.2]), shape=(), dtype="float32", where="w")
+    assert ok.dtype == torch.float32

@@ -72,13 +72,6 @@ def test_cells_are_reproducible_from_their_seed(task, loss):
     assert strip != [{k: v for k, v in r.items() if k not in TIMING} for r in c]
 
 
-def test_t_interval_exact():
-    mean, lo, hi = bench.t_interval([1.0, 2.0, 3.0, 4.0, 5.0])
-    half = 2.776 * (2.5**0.5) / 5**0.5  # t_{0.975, 4} * s / sqrt(n)
-    assert mean == 3.0 and lo == pytest.approx(3 - half) and hi == pytest.approx(3 + half)
-    assert bench.t_interval([2.0])[0] == 2.0
-
-
 def test_contributing_example_registers_a_loss_that_the_benchmark_runs():
     text = (ROOT / "CONTRIBUTING.md").read_text()
     block = re.search(

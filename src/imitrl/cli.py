@@ -53,9 +53,19 @@ def _parser_for(tp) -> typing.Callable[[str], object]:
         item = args[0]
         if typing.get_origin(item) is tuple:  # pairs "a:b"
             a, b = typing.get_args(item)
-            return lambda s: tuple(
-                (a(x.split(":")[0]), b(x.split(":")[1])) for x in s.split(",") if x
-            )
+
+            def pairs(text: str) -> tuple:
+                out = []
+                for part in filter(None, text.split(",")):
+                    left, sep, right = part.partition(":")
+                    if not sep:
+                        raise argparse.ArgumentTypeError(
+                            f"expected comma-separated a:b pairs, got {part!r}"
+                        )
+                    out.append((a(left), b(right)))
+                return tuple(out)
+
+            return pairs
         return lambda s: tuple(item(x) for x in s.split(",") if x)
     if tp is Path:
         return Path
@@ -89,6 +99,7 @@ def _add_config_flags(parser: argparse.ArgumentParser, cls: type) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The ``imitrl`` argument parser (one subcommand per study)."""
     parser = argparse.ArgumentParser(
         prog="imitrl", description="imitrl: imitation learning on TorchRL"
     )
@@ -104,6 +115,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """Run the ``imitrl`` command; returns the exit status (2 on bad input)."""
     args = build_parser().parse_args(argv)
     if args.command == "frozenlake":
         torch.set_num_threads(1)  # the simulators are bandwidth-bound; threads only contend

@@ -112,6 +112,7 @@ class EnvSource:
         round_index: int,
         first_episode: int,
     ) -> TensorDict:
+        """``num_episodes`` whole episodes of ``behaviour`` as buffer rows (see ``rollout_episodes``)."""
         return rollout_episodes(
             self.env,
             behaviour,
@@ -165,9 +166,14 @@ class RoundRecord:
 
 @dataclass
 class DAggerResult:
+    """What :func:`dagger` returns."""
+
     learner: ActorCritic
+    """the last round's learner"""
     rounds: list[RoundRecord]
+    """one record per fit"""
     buffer: DemonstrationBuffer
+    """the buffer, extended with every relabel round"""
 
 
 def dagger(

@@ -237,6 +237,7 @@ class DemonstrationBuffer:
         return self.rb.sample(batch_size)
 
     def rounds(self) -> Iterable[int]:
+        """The DAgger rounds present in the buffer, sorted (0 = demonstrations)."""
         return sorted(set(self.data[keys.ROUND].tolist()))
 
     def expert_queries(self) -> int:

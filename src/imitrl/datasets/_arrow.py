@@ -122,7 +122,18 @@ def column_to_tensor(
         )
         if not kind_ok:
             raise ValueError(f"{where}: stores {values.dtype} values but declares dtype {dtype!r}")
-        values = values.astype(target)
+        with np.errstate(over="ignore", invalid="ignore"):
+            cast = values.astype(target)
+        if np.dtype(target).kind in "iub":
+            # integers and booleans must survive the cast (int64 -> int8 would wrap)
+            lost = cast.astype(values.dtype) != values
+        else:
+            # floats may round (LeRobot casts float64 to float32 too) but not overflow
+            lost = np.isfinite(values) & ~np.isfinite(cast)
+        if lost.any():
+            bad = values.ravel()[np.flatnonzero(lost.ravel())[0]].item()
+            raise ValueError(f"{where}: value {bad!r} does not fit the declared dtype {dtype!r}")
+        values = cast
     return torch.from_numpy(values.reshape(n, *dims).copy())
 
 

@@ -24,7 +24,11 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 from gymnasium.utils import seeding
+from tensordict import TensorDict
+from tensordict.nn import TensorDictModuleBase
+from torchrl.envs.utils import ExplorationType, set_exploration_type
 
+from imitrl import keys
 from imitrl.tabular.finite_horizon import expected_episode_length
 from imitrl.tabular.mdp import TabularMDP
 from imitrl.tabular.policy import policy_probs
@@ -364,12 +368,19 @@ class GymnasiumStreamSource:
     def __init__(self, mdp: TabularMDP, stream: GymnasiumStream) -> None:
         self.mdp, self.stream = mdp, stream
 
-    def collect(self, behaviour, num_episodes: int, *, round_index: int, first_episode: int):
-        from tensordict import TensorDict
-        from torchrl.envs.utils import ExplorationType, set_exploration_type
+    def collect(
+        self,
+        behaviour: TensorDictModuleBase,
+        num_episodes: int,
+        *,
+        round_index: int,
+        first_episode: int,
+    ) -> TensorDict:
+        """Play ``num_episodes`` episodes of ``behaviour`` on the stream; buffer rows.
 
-        from imitrl import keys
-
+        Rows as :func:`imitrl.data.rollout_episodes` returns them (every transition,
+        episodes back to back, ids from ``first_episode``, ``ROUND = round_index``).
+        """
         S = self.mdp.num_states
         td = TensorDict({keys.OBSERVATION: torch.arange(S)}, batch_size=[S])
         with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):

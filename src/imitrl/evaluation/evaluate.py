@@ -70,6 +70,7 @@ class Evaluation:
     confidence: float = 0.95
 
     def summary(self) -> str:
+        """One line: episodes, exploration, success and return with intervals and exact values."""
         parts = [f"{self.num_episodes} episodes ({self.exploration})"]
         if self.success_rate is not None:
             lo, hi = self.success_ci

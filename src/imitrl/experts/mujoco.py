@@ -18,8 +18,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import gymnasium
 import numpy as np
 import torch
+from gymnasium.error import DependencyNotInstalled
 from torch import nn
 
 from imitrl import keys
@@ -64,16 +66,19 @@ def linearize_mujoco(env_id: str, *, action_repeat: int = 1, eps: float = 1e-6) 
     Raises:
         ValueError: ``gymnasium[mujoco]`` is missing, or ``env_id`` is not a MuJoCo env.
     """
+    if int(action_repeat) != action_repeat or action_repeat < 1:
+        raise ValueError(f"action_repeat must be a positive integer, got {action_repeat!r}")
     try:
-        import gymnasium
         from gymnasium.envs.mujoco.mujoco_env import MujocoEnv
-    except ImportError as err:  # pragma: no cover - depends on the install
+
+        env = gymnasium.make(env_id).unwrapped
+    except (ImportError, DependencyNotInstalled) as err:  # pragma: no cover - install-dependent
+        # gymnasium raises DependencyNotInstalled (not an ImportError) without mujoco
         raise ValueError(
             f"{env_id} needs MuJoCo: pip install 'imitrl[mujoco]' (gymnasium[mujoco])"
         ) from err
-    if int(action_repeat) != action_repeat or action_repeat < 1:
-        raise ValueError(f"action_repeat must be a positive integer, got {action_repeat!r}")
-    env = gymnasium.make(env_id).unwrapped
+    except gymnasium.error.Error as err:
+        raise ValueError(f"unknown or unbuildable gymnasium env id {env_id!r}: {err}") from err
     if not isinstance(env, MujocoEnv):
         raise ValueError(f"{env_id} is not a MuJoCo env ({type(env).__name__})")
     env.reset(seed=0)

@@ -41,7 +41,7 @@ from torchrl.modules import DiffusionActor
 from torchrl.objectives import DiffusionBCLoss, LossModule
 
 from imitrl import keys
-from imitrl.policies.actor_critic import _rng_from
+from imitrl.rng import rng_from
 
 __all__ = ["DiffusionBehaviorCloningLoss", "DiffusionPolicy", "ScoreNetwork"]
 
@@ -128,7 +128,7 @@ class DiffusionPolicy(TensorDictModuleBase):
         return 2 * (action.float() - self.low) / (self.high - self.low) - 1
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        with _rng_from(self.generator):
+        with rng_from(self.generator):
             tensordict = self.actor(tensordict)
         x = tensordict.get(_NORMALIZED).clamp(-1.0, 1.0)
         tensordict.set(keys.ACTION, self.low + (self.high - self.low) * (x + 1) / 2)
@@ -189,6 +189,6 @@ class DiffusionBehaviorCloningLoss(LossModule):
             {keys.OBSERVATION: obs, _NORMALIZED: self.policy.normalize(label)},
             batch_size=tensordict.batch_size,
         )
-        with _rng_from(self.generator):
+        with rng_from(self.generator):
             out = self.inner(td)
         return TensorDict({"loss_diffusion_bc": out["loss_diffusion_bc"]}, batch_size=[])

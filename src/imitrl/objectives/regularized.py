@@ -23,6 +23,7 @@ from torchrl.objectives import LossModule
 
 from imitrl import keys
 from imitrl.objectives.bc import BehaviorCloningLoss
+from imitrl.rng import rng_from
 
 __all__ = ["RegularizedBCLoss"]
 
@@ -35,6 +36,8 @@ class RegularizedBCLoss(LossModule):
         loss_type: the data term, one of ``imitrl.objectives.LOSS_TYPES``.
         entropy_coef: weight of the entropy bonus (>= 0; needs a probabilistic actor).
         l2_coef: weight of the squared L2 norm of the actor's weight matrices (>= 0).
+        seed: seed of the generator behind the one-sample entropy estimate of
+            continuous policies (categorical entropies are exact and draw nothing).
 
     Keys: as :class:`BehaviorCloningLoss` (remap with ``set_keys`` on this module).
     Returns ``loss_bc``, ``loss_entropy`` (if ``entropy_coef > 0``), ``loss_l2`` (if
@@ -50,6 +53,7 @@ class RegularizedBCLoss(LossModule):
         loss_type: str = "nll",
         entropy_coef: float = 0.0,
         l2_coef: float = 0.0,
+        seed: int = 0,
     ) -> None:
         if entropy_coef < 0 or l2_coef < 0:
             raise ValueError(
@@ -62,6 +66,7 @@ class RegularizedBCLoss(LossModule):
         self.actor = actor
         self.entropy_coef = float(entropy_coef)
         self.l2_coef = float(l2_coef)
+        self.generator = torch.Generator().manual_seed(int(seed))
 
     def _forward_value_estimator_keys(self, **kwargs) -> None:
         pass
@@ -83,10 +88,11 @@ class RegularizedBCLoss(LossModule):
             logp = torch.log_softmax(out.get(keys.LOGITS), dim=-1)
             return -(logp.exp() * logp).sum(-1)
         dist = self.actor.get_dist(out)
-        if hasattr(dist, "rsample_and_log_prob"):
-            _, logp = dist.rsample_and_log_prob()
-        else:
-            logp = dist.log_prob(dist.rsample())
+        with rng_from(self.generator):
+            if hasattr(dist, "rsample_and_log_prob"):
+                _, logp = dist.rsample_and_log_prob()
+            else:
+                logp = dist.log_prob(dist.rsample())
         return -logp
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:

@@ -24,9 +24,8 @@ give numpy or Python values out, computed without gradients.
 
 from __future__ import annotations
 
-import contextlib
 import itertools
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -42,22 +41,11 @@ from torchrl.modules import ProbabilisticActor, TanhNormal
 from imitrl import keys
 from imitrl.policies.distributions import GreedyCategorical
 from imitrl.policies.modules import Module, Value
+from imitrl.rng import rng_from
 
 __all__ = ["HEADS", "ActorCritic"]
 
 HEADS = ("categorical", "tanh_normal", "deterministic")
-
-
-@contextlib.contextmanager
-def _rng_from(generator: torch.Generator | None) -> Iterator[None]:
-    """Run the block's global-RNG draws from ``generator`` (and advance it)."""
-    if generator is None:
-        yield
-        return
-    with torch.random.fork_rng(devices=[]):
-        torch.set_rng_state(generator.get_state())
-        yield
-        generator.set_state(torch.get_rng_state())
 
 
 class _Squash(nn.Module):
@@ -121,7 +109,7 @@ class ActorCritic(nn.Module):
 
     # ------------------------------------------------------------ constructors
     @classmethod
-    def tabular(cls, num_states: int, num_actions: int, lr: float = 0.1) -> ActorCritic:
+    def tabular(cls, num_states: int, num_actions: int, *, lr: float = 0.1) -> ActorCritic:
         """One preference ``theta[s, a]`` per pair: zero-initialised embedding tables.
 
         At initialisation the policy is exactly uniform and every value is 0.
@@ -292,7 +280,7 @@ class ActorCritic(nn.Module):
             if self.head == "deterministic":
                 return self._out(self.policy(self._td(t)).get(keys.ACTION), kind)
             dist = self.policy.get_dist(self._td(t))
-            with _rng_from(generator):
+            with rng_from(generator):
                 a = dist.sample()
         return self._out(a, kind)
 

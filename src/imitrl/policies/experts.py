@@ -75,6 +75,10 @@ class _Deterministic(TensorDictModuleBase):
         self.in_keys = [observation_key]
         self.out_keys = [keys.EXPERT_ACTION]
 
+    def as_actor(self) -> TensorDictSequential:
+        """This expert driving an env (see :meth:`Expert.as_actor`)."""
+        return as_actor(self)
+
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         scratch = tensordict.select(*self.policy.in_keys, strict=True).copy()
         with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):

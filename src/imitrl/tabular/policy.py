@@ -11,11 +11,9 @@ from typing import Any
 import numpy as np
 import torch
 
-from imitrl.tabular.mdp import TabularMDP
+from imitrl.tabular.mdp import _ROW_TOL, TabularMDP
 
 __all__ = ["kernel_under", "policy_probs", "reward_under"]
-
-_ROW_TOL = 1e-9
 
 
 def policy_probs(pi: Any, num_states: int, num_actions: int) -> torch.Tensor:

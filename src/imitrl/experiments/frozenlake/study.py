@@ -136,14 +136,13 @@ def _replicated_clones(
         rows = [block.demonstrations(n_demos)[0] for _ in ctx.bar(range(K), desc)]
         return _fit_tables(ctx, rows, fit_steps)[0], None, rows
     tables, rates, rows = [], [], []
-    for _ in ctx.bar(range(K), desc):
+    for _ in ctx.bar(range(K), desc):  # each evaluation reads the stream the next demos use
         r = block.demonstrations(n_demos)[0]
         t = _fit_tables(ctx, [r], fit_steps)[0][0]
-        if eval_episodes:
-            rates.append(block.evaluate(t[None], eval_episodes)[0])
+        rates.append(block.evaluate(t[None], eval_episodes)[0])
         tables.append(t)
         rows.append(r)
-    return torch.stack(tables), (torch.stack(rates) if eval_episodes else None), rows
+    return torch.stack(tables), torch.stack(rates), rows
 
 
 def corrupt_labels(
