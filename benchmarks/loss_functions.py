@@ -527,8 +527,8 @@ def markdown(
     lines = [
         f"{'Smoke' if config['quick'] else 'Full'} run: `{command}`, {config['seeds']} seeds, "
         f"**wall time {wall / 60:.1f} min** on {config.get('cpu_count', '?')} CPU cores "
-        f"({jobs} process{'es' if jobs > 1 else ''}, 1 torch thread each; the machine was "
-        "shared with other work, so times are indicative).",
+        f"({jobs} process{'es' if jobs > 1 else ''}, 1 torch thread each; wall times move with "
+        "the machine's load, the scores do not).",
         "",
         "Score: FrozenLake = exact success probability (from the MDP); CartPole, Pendulum, "
         "InvertedPendulum = mean return over held-out episodes; two-way = success rate. "
