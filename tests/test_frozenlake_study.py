@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from imitrl.cli import main
+from imitrl.tabular import TabularMDP, greedy, success_probability, value_iteration
 
 
 @pytest.fixture(scope="module")
@@ -188,11 +189,46 @@ def test_other_maps_and_protocols(tmp_path, extra):
     )
 
 
+@pytest.mark.parametrize(
+    "extra, probe",
+    [
+        (("--no-slippery",), None),  # the expert never fails: ratios of failures are undefined
+        (("--env-id", "CliffWalking-v1", "--max-steps", "60"), (0, 36)),
+        (("--env-id", "Taxi-v4", "--dagger-rounds", "2"), (0, 1)),  # no grid: state-index plot
+    ],
+)
+def test_other_toy_text_envs(tmp_path, extra, probe):
+    flags = [*extra] + ([] if probe is None else ["--probe-states", ",".join(map(str, probe))])
+    assert main(_small(tmp_path, *flags)) == 0
+    r = json.loads((tmp_path / "results.json").read_text())
+    mdp = TabularMDP.from_gym(
+        r["config"]["env_id"],
+        0.95,
+        make_kwargs={} if r["config"]["slippery"] is None else {"is_slippery": False},
+        max_steps=r["config"]["max_steps"],
+    )
+    V = value_iteration(mdp, 1000)[-1]
+    expert = greedy(mdp.backup(V))
+    assert r["expert"]["exact_success"] == pytest.approx(
+        float(success_probability(mdp, expert, mdp.max_steps)), abs=1e-12
+    )
+    assert (tmp_path / "occupancy.png").stat().st_size > 0
+    report = (tmp_path / "report.txt").read_text()
+    stochastic = "stochastic" if bool((mdp.P.amax(-1) < 1).any()) else "deterministic"
+    assert f"{mdp.name}, {stochastic} transitions, time limit {mdp.max_steps}" in report
+    if r["evaluation"]["expert"]["exact"] == 1.0:
+        assert "undefined, the expert never fails" in report
+
+
 def test_bad_flags_fail_clearly(tmp_path, capsys):
     assert main(["frozenlake", "--out", str(tmp_path), "--env-id", "NoSuchLake-v0"]) == 2
     assert "unknown or unbuildable gymnasium env id 'NoSuchLake-v0'" in capsys.readouterr().err
     assert main(["frozenlake", "--out", str(tmp_path), "--env-id", "CartPole-v1"]) == 2
-    assert "'CartPole-v1' rejected the arguments {'is_slippery': True}" in capsys.readouterr().err
+    assert "env 'CartPole-v1' has no tabular model" in capsys.readouterr().err
+    assert main(["frozenlake", "--out", str(tmp_path), "--env-id", "Taxi-v4", "--slippery"]) == 2
+    assert "'Taxi-v4' rejected the arguments {'is_slippery': True}" in capsys.readouterr().err
+    assert main(["frozenlake", "--out", str(tmp_path), "--env-id", "CliffWalking-v1"]) == 2
+    assert "'CliffWalking-v1' is registered without a time limit" in capsys.readouterr().err
     assert main(["frozenlake", "--out", str(tmp_path), "--protocol", "gpu"]) == 2
 
 

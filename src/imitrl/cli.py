@@ -79,7 +79,7 @@ def _add_config_flags(parser: argparse.ArgumentParser, cls: type) -> None:
         flag = "--" + f.name.replace("_", "-")
         default = f.default
         help_text = f"{docs.get(f.name, '')} (default: {default})"
-        if hints[f.name] is bool:
+        if hints[f.name] in (bool, bool | None):
             parser.add_argument(
                 flag,
                 dest=f.name,

@@ -221,6 +221,8 @@ class TabularMDP:
             )
         outcome_lists = _read_gym_model(model, S, A, name)
         desc = getattr(unwrapped, "desc", None)
+        if desc is not None and np.asarray(desc).size != S:
+            desc = None  # a picture of the world (Taxi's), not one cell per state
         return cls._build(
             outcome_lists,
             S=S,

@@ -27,8 +27,11 @@ class StudyConfig:
     """gymnasium map name ("4x4", "8x8"); None = the env default"""
     desc: tuple[str, ...] | None = None
     """custom map rows, e.g. SFFF,FHFH,FFFH,HFFG (overrides map_name)"""
-    slippery: bool = True
-    """slippery ice (FrozenLake's is_slippery)"""
+    slippery: bool | None = None
+    """is_slippery passed to gym.make; None = the env's own default (FrozenLake: slippery)"""
+    max_steps: int | None = None
+    """episode time limit; None = the env's registered limit (100 for FrozenLake 4x4);
+    needed for envs registered without one, such as CliffWalking-v1"""
     gamma: float = 0.95
     """discount of the expert's value iteration"""
     vi_iters: int = 1000
@@ -101,12 +104,14 @@ class StudyConfig:
         ):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.max_steps is not None and self.max_steps < 1:
+            raise ValueError(f"max_steps must be >= 1 or None, got {self.max_steps}")
         if not 0.0 <= self.ex_corruption <= 1.0:
             raise ValueError(f"ex_corruption must be in [0, 1], got {self.ex_corruption}")
 
     @property
     def make_kwargs(self) -> dict:
-        kwargs: dict = {"is_slippery": self.slippery}
+        kwargs: dict = {} if self.slippery is None else {"is_slippery": self.slippery}
         if self.desc is not None:
             kwargs["desc"] = list(self.desc)
         elif self.map_name is not None:

@@ -66,7 +66,7 @@ def _grid(ax, desc: np.ndarray, values: np.ndarray, policy: np.ndarray, title: s
                 c - 0.38, r - 0.3, letter, fontsize=8, color="crimson" if letter == "H" else "black"
             )
             ax.text(c + 0.38, r + 0.38, f"{values[s]:.2f}", fontsize=6, ha="right", va="bottom")
-            if letter in ("F", "S"):
+            if letter in ("F", "S") and int(policy[s]) in _ARROWS:
                 dx, dy = _ARROWS[int(policy[s])]
                 ax.arrow(
                     c - 0.25 * dx,
@@ -83,13 +83,28 @@ def _grid(ax, desc: np.ndarray, values: np.ndarray, policy: np.ndarray, title: s
 
 
 def plot_occupancy(
-    desc: np.ndarray,
+    desc: np.ndarray | None,
     occupancies: Sequence[np.ndarray],
     policies: Sequence[np.ndarray],
     titles: Sequence[str],
     path: Path,
 ) -> Path:
-    """Occupancy maps side by side, with each policy's greedy arrows on the frozen cells."""
+    """Occupancy maps side by side, with each policy's greedy arrows on the frozen cells.
+
+    Without a grid (``desc`` None: Taxi, raw arrays) the occupancies are drawn against
+    the state index instead, one curve per policy.
+    """
+    if desc is None:
+        fig = Figure(figsize=(7.0, 4.0))
+        ax = fig.add_subplot(1, 1, 1)
+        states = np.arange(len(occupancies[0]))
+        for i, (occ, title) in enumerate(zip(occupancies, titles)):
+            ax.step(states, occ, where="mid", color=f"C{i}", label=title)
+        ax.set_xlabel("state")
+        ax.set_ylabel("average state occupancy")
+        ax.set_title("state occupancy (no grid map for this env)")
+        ax.legend(fontsize=8)
+        return _save(fig, path)
     fig = Figure(figsize=(4.2 * len(occupancies) + 0.8, 4.0))
     vmax = float(max(o.max() for o in occupancies))
     im = None
