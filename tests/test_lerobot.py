@@ -258,6 +258,108 @@ def test_tasks_round_trip(tmp_path):
     assert back.tasks == TASKS
 
 
+def _dict_observation_rows() -> TensorDict:
+    """The DAgger-like rows with a Dict observation (as Minari's Dict spaces load)."""
+    rows = _dagger_like_buffer().data
+    obs = rows[keys.OBSERVATION]
+    out = rows.exclude(keys.OBSERVATION)
+    out[keys.OBSERVATION, "pos"] = obs[:, :2]
+    out[keys.OBSERVATION, "goal", "xy"] = obs[:, 2:].double()
+    return out
+
+
+def test_dict_observations_round_trip_and_load_without_imitrl_json(tmp_path):
+    rows = _dict_observation_rows()
+    root = save_lerobot(rows, tmp_path / "ds", fps=50)
+    _assert_identical(rows, _quiet_load(root).rows)
+    # LeRobot datasets from elsewhere: every observation.<sub> feature nests under "observation"
+    (root / "meta/imitrl.json").unlink()
+    with pytest.warns(UserWarning, match="'aux'"):
+        loaded = load_lerobot(root)
+    assert loaded.loaded["observation.goal.xy"] == "observation.goal.xy"
+    assert torch.equal(loaded.rows[keys.OBSERVATION, "pos"], rows[keys.OBSERVATION, "pos"])
+    assert torch.equal(
+        loaded.rows[keys.OBSERVATION, "goal", "xy"], rows[keys.OBSERVATION, "goal", "xy"]
+    )
+    with pytest.raises(ValueError, match="both a tensor and a group"):
+        load_lerobot(
+            root,
+            key_map={"observation.pos": ("observation", "p"), "aux": ("observation", "p", "q")},
+        )
+
+
+def _validate_stats_as_lerobot(stats: dict, feature: str) -> None:
+    """lerobot 0.4's ``compute_stats._validate_stat_value``, run by ``aggregate_stats`` when a
+    dataset is merged or resumed."""
+    for stat, value in stats.items():
+        value = np.asarray(value)
+        assert value.ndim >= 1
+        assert stat != "count" or value.shape == (1,)
+        assert "image" not in feature or stat == "count" or value.shape == (3, 1, 1), (stat, value)
+
+
+def test_images_round_trip_as_lerobot_image_features(tmp_path):
+    episodes = episodes_data([3, 2], image=(6, 5))
+    source = write_v30(tmp_path / "src", episodes, files=[(0, 0), (0, 0)], image=(6, 5))
+    loaded = _quiet_load(source, images="load")
+    root = save_lerobot(loaded.rows, tmp_path / "ds", fps=50, tasks=loaded.tasks)
+    _assert_identical(loaded.rows, _quiet_load(root, images="load").rows)
+    info = json.loads((root / "meta/info.json").read_text())
+    assert info["features"]["observation.images.cam"] == {
+        "dtype": "image",
+        "shape": [6, 5, 3],
+        "names": ["height", "width", "channels"],
+    }
+    schema = pq.read_schema(root / "data/chunk-000/file-000.parquet")
+    assert schema.field("observation.images.cam").type == pa.struct(
+        [("bytes", pa.binary()), ("path", pa.string())]
+    )
+    hf = json.loads(schema.metadata[b"huggingface"])["info"]["features"]
+    assert hf["observation.images.cam"] == {"_type": "Image"}
+    # statistics per channel in [0, 1], (3, 1, 1), over every frame of these short episodes
+    pixels = [ep["observation.images.cam"].astype(np.float64) / 255 for ep in episodes]
+    eps = pq.read_table(root / "meta/episodes/chunk-000/file-000.parquet").to_pylist()
+    for row, ep_pixels in zip(eps, pixels):
+        per_feature: dict[str, dict] = {}
+        for column, value in row.items():
+            if column.startswith("stats/"):
+                _, feature, stat = column.split("/")
+                per_feature.setdefault(feature, {})[stat] = value
+        for feature, stats in per_feature.items():
+            _validate_stats_as_lerobot(stats, feature)
+        image = per_feature["observation.images.cam"]
+        assert np.allclose(image["mean"], ep_pixels.mean(axis=(0, 1, 2)).reshape(3, 1, 1))
+        assert image["count"] == [len(ep_pixels)]
+    totals = json.loads((root / "meta/stats.json").read_text())
+    for feature, stats in totals.items():
+        _validate_stats_as_lerobot(stats, feature)
+    everything = np.concatenate(pixels)
+    std = np.asarray(totals["observation.images.cam"]["std"])
+    assert np.allclose(std, everything.std(axis=(0, 1, 2)).reshape(3, 1, 1))
+    with pytest.warns(UserWarning, match=r"observation\.images\.cam.*images='load'"):
+        skipped = load_lerobot(root)
+    assert "observation.images.cam" not in skipped.rows.keys()
+
+
+def test_channel_first_images_and_source_names(tmp_path):
+    rows = _dagger_like_buffer().data
+    g = torch.Generator().manual_seed(1)
+    rows["observation.image"] = torch.randint(0, 256, (len(rows), 3, 4, 7), generator=g).to(
+        torch.uint8
+    )
+    names = {"observation.state": {"motors": ["a", "b", "c", "d"]}, "action": ["push"]}
+    root = save_lerobot(rows, tmp_path / "ds", fps=50, names={**names, "not.written": ["x"]})
+    features = json.loads((root / "meta/info.json").read_text())["features"]
+    assert features["observation.image"]["shape"] == [3, 4, 7]
+    assert features["observation.image"]["names"] == ["channels", "height", "width"]
+    assert {k: features[k]["names"] for k in names} == names
+    _assert_identical(rows, _quiet_load(root, images="load").rows)
+    with pytest.raises(ValueError, match=r"names\['aux'\] must be"):
+        save_lerobot(rows, tmp_path / "a", fps=50, names={"aux": "xyz"})
+    with pytest.raises(ValueError, match=r"names\['observation\.state'\] has 2 entries"):
+        save_lerobot(rows, tmp_path / "b", fps=50, names={"observation.state": ["a", "b"]})
+
+
 def test_writer_refuses_what_lerobot_cannot_hold(tmp_path):
     buf = _dagger_like_buffer()
     with pytest.raises(ValueError, match="exists"):
@@ -311,12 +413,46 @@ def test_length_and_shape_contradictions(tmp_path):
         load_lerobot(root)
 
 
-def test_unsupported_version(tmp_path):
+@pytest.mark.parametrize("version", ["v1.6", "v3.1", "v2.2"])
+def test_unsupported_version(tmp_path, version):
     root = write_v21(tmp_path / "ds", episodes_data([2]))
     info = json.loads((root / "meta/info.json").read_text())
-    info["codebase_version"] = "v1.6"
+    info["codebase_version"] = version
     (root / "meta/info.json").write_text(json.dumps(info))
-    with pytest.raises(ValueError, match=r"v1\.6"):
+    with pytest.raises(ValueError, match=rf"info\.json: codebase_version '{version}' is not"):
+        load_lerobot(root)
+
+
+def test_malformed_metadata_is_named(tmp_path):
+    root = write_v21(tmp_path / "tasks", episodes_data([2]))
+    (root / "meta/tasks.jsonl").write_text(json.dumps({"task_index": 0, "name": "t"}) + "\n")
+    with pytest.raises(ValueError, match=r"tasks\.jsonl: entry .* 'task'"):
+        load_lerobot(root)
+    root = write_v21(tmp_path / "episodes", episodes_data([2, 3]))
+    (root / "meta/episodes.jsonl").write_text(json.dumps({"tasks": [], "length": 2}) + "\n")
+    with pytest.raises(ValueError, match=r"episodes\.jsonl: entry .* 'episode_index'"):
+        load_lerobot(root)
+    root = write_v30(tmp_path / "shape", episodes_data([2]), files=[(0, 0)])
+    info = json.loads((root / "meta/info.json").read_text())
+    info["features"]["action"]["shape"] = None
+    (root / "meta/info.json").write_text(json.dumps(info))
+    with pytest.raises(ValueError, match=r"info\.json: feature 'action' needs a shape"):
+        load_lerobot(root)
+    root = write_v30(tmp_path / "null", episodes_data([2, 3]), files=[(0, 0), (0, 0)])
+    path = root / "meta/episodes/chunk-000/file-000.parquet"
+    table = pq.read_table(path)
+    i = table.column_names.index("dataset_from_index")
+    pq.write_table(table.set_column(i, "dataset_from_index", pa.array([0, None])), path)
+    with pytest.raises(ValueError, match=r"file-000\.parquet: .*'dataset_from_index'.* null"):
+        load_lerobot(root)
+
+
+def test_missing_v30_data_file_is_named(tmp_path):
+    root = write_v30(tmp_path / "ds", episodes_data([2, 3, 4]), files=[(0, 0), (0, 1), (1, 0)])
+    (root / "data/chunk-000/file-001.parquet").unlink()
+    with pytest.raises(
+        ValueError, match=r"chunk-000/file-001\.parquet: file not found .*episode\(s\) \[1\]"
+    ):
         load_lerobot(root)
 
 
@@ -368,3 +504,16 @@ def test_values_that_do_not_fit_the_declared_dtype_are_refused():
         column_to_tensor(col, shape=(), dtype="int8", where="data/file.parquet: 'x'")
     ok = column_to_tensor(pa.array([0.1, 0.2]), shape=(), dtype="float32", where="w")
     assert ok.dtype == torch.float32
+
+
+def test_image_stats_sample_frames_as_lerobot_does():
+    from imitrl.datasets.lerobot import _sample_frames
+
+    # lerobot's estimate_num_samples: 1000 frames -> 177 evenly spaced; 320 px wide -> every 2nd
+    frames = np.broadcast_to(
+        np.arange(1000, dtype=np.int32)[:, None, None, None], (1000, 3, 4, 320)
+    )
+    sampled = _sample_frames(frames)
+    assert sampled.shape == (177, 3, 2, 160)
+    assert sampled[[0, 1, -1], 0, 0, 0].tolist() == [0, 6, 999]  # round(linspace(0, 999, 177))
+    assert _sample_frames(frames[:40]).shape == (40, 3, 2, 160)  # short episodes: every frame

@@ -233,3 +233,79 @@ def test_malformed(tmp_path):
         load_minari(root)
     with pytest.raises(ValueError, match="no Minari dataset"):
         load_minari(tmp_path / "nowhere")
+
+
+DISCRETE = {"type": "Discrete", "dtype": "int64", "start": 0}
+
+
+def _taxi_like(tmp_path, rewards):
+    """A Taxi-shaped dataset: Discrete(500) states and Discrete(6) actions, int64 rewards as
+    Minari stores the Python ints gymnasium's Taxi returns."""
+    rng = np.random.default_rng(0)
+    n = len(rewards)
+    ep = {
+        "observations": rng.integers(0, 500, n + 1),
+        "actions": rng.integers(0, 6, n),
+        "rewards": np.asarray(rewards, dtype=np.int64),
+        "terminations": np.arange(n) == n - 1,
+        "truncations": np.zeros(n, dtype=bool),
+    }
+    space = {**DISCRETE, "n": 500}
+    return _write(tmp_path, [ep], obs_space=space, act_space={**DISCRETE, "n": 6})
+
+
+def test_integer_rewards_fit_a_float_env_and_share_its_buffer(tmp_path):
+    from torchrl.envs.utils import ExplorationType
+
+    from imitrl.data import rollout_episodes
+    from imitrl.policies import Expert
+
+    env = GymEnv("Taxi-v4", categorical_action_encoding=True)
+    root = _taxi_like(tmp_path / "ds", [-1, -1, -10, 20])
+    loaded = load_minari(root, env=env)
+    reward = loaded.rows[keys.NEXT, keys.REWARD]
+    assert reward.dtype == torch.float32
+    assert reward.squeeze(-1).tolist() == [-1.0, -1.0, -10.0, 20.0]
+    assert any("'rewards'" in n and "int64 -> torch.float32" in n for n in loaded.notes)
+    buffer = DemonstrationBuffer(num_states=500)
+    buffer.extend(loaded.rows)
+    expert = Expert.from_table(torch.zeros(500, dtype=torch.int64))
+    greedy = ExplorationType.DETERMINISTIC
+    rows = rollout_episodes(
+        env, expert.as_actor(), 1, exploration=greedy, max_steps=500, first_episode=1
+    )
+    buffer.extend(rows)  # the env's float32 rewards join the dataset's rows
+    assert len(buffer) == 4 + len(rows)
+
+
+def test_integer_rewards_that_a_float_cannot_hold_are_refused(tmp_path):
+    env = GymEnv("Taxi-v4", categorical_action_encoding=True)
+    root = _taxi_like(tmp_path / "ds", [-1, 2**24 + 1])  # float32 rounds it to 2**24
+    with pytest.raises(
+        ValueError, match=r"'next\.reward' \(from feature 'rewards'\) holds 16777217"
+    ):
+        load_minari(root, env=env)
+
+
+def test_infos_stored_whole_and_spaces_without_a_shape(tmp_path):
+    root = _write(tmp_path / "a", [_episode(3, 0)])
+    with h5py.File(root / "data/main_data.hdf5", "a") as f:
+        del f["episode_0/infos"]
+        f["episode_0"].create_dataset("infos", data=['{"a": 1}'] * 4, dtype=h5py.string_dtype())
+    with pytest.warns(UserWarning, match="infos"):
+        loaded = load_minari(root)
+    assert len(loaded.rows) == 3 and loaded.skipped == {"infos": "per-step infos are not loaded"}
+    no_shape = {"type": "Box", "dtype": "float32"}
+    with pytest.raises(ValueError, match=r"metadata\.json: observation_space: a Box space needs"):
+        load_minari(_write(tmp_path / "b", [_episode(3, 0)], obs_space=no_shape))
+    nested = {"type": "Dict", "subspaces": {"pos": no_shape}}
+    with pytest.raises(ValueError, match=r"observation_space\['pos'\]: a Box space needs"):
+        load_minari(_write(tmp_path / "c", [_episode(3, 0)], obs_space=nested))
+
+
+def test_arrow_datasets_are_named_as_such(tmp_path):
+    root = _write(tmp_path / "ds", [_episode(3, 0)], data_format="arrow")
+    (root / "data/main_data.hdf5").unlink()  # Minari's arrow storage has episode_<i>/ folders
+    (root / "data/episode_0").mkdir()
+    with pytest.raises(ValueError, match=r"metadata\.json: data_format 'arrow' is not supported"):
+        load_minari(root)

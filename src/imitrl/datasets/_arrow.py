@@ -25,6 +25,7 @@ from imitrl.datasets._common import TORCH_DTYPES, WIDEN
 __all__ = [
     "column_to_tensor",
     "decode_images",
+    "encode_images",
     "hf_feature",
     "read_parquet",
     "tensor_to_array",
@@ -182,6 +183,23 @@ def decode_images(
     )
 
 
+def encode_images(pixels: np.ndarray, frame_index: np.ndarray) -> pa.Array:
+    """uint8 ``[N, H, W, C]`` -> ``struct<bytes, path>`` of PNG files, as LeRobot embeds them.
+
+    LeRobot writes each frame to ``frame-{frame_index:06d}.png`` and embeds the bytes with
+    the file's base name as ``path`` (``datasets.Image.embed_storage``). PNG is lossless,
+    so :func:`decode_images` gives back the same pixels.
+    """
+    from PIL import Image  # pillow ships with matplotlib
+
+    blobs = []
+    for img, i in zip(pixels, frame_index.tolist()):
+        buf = io.BytesIO()
+        Image.fromarray(img).save(buf, format="PNG")
+        blobs.append({"bytes": buf.getvalue(), "path": f"frame-{i:06d}.png"})
+    return pa.array(blobs, pa.struct([("bytes", pa.binary()), ("path", pa.string())]))
+
+
 def tensor_to_array(value: torch.Tensor) -> tuple[pa.Array, tuple[int, ...]]:
     """``[N, *s]`` tensor -> (arrow column, LeRobot feature shape).
 
@@ -207,6 +225,8 @@ def tensor_to_array(value: torch.Tensor) -> tuple[pa.Array, tuple[int, ...]]:
 
 def hf_feature(dtype: str, shape: tuple[int, ...]) -> dict:
     """The Hugging Face ``datasets`` feature JSON LeRobot derives from (dtype, shape)."""
+    if dtype == "image":
+        return {"_type": "Image"}
     if shape == (1,):
         return {"dtype": dtype, "_type": "Value"}
     if len(shape) == 1:

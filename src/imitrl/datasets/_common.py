@@ -118,6 +118,50 @@ def required_rows(
     return td
 
 
+def _survives(value: torch.Tensor, cast: torch.Tensor) -> torch.Tensor:
+    """Mask of the entries of ``value`` that ``cast`` (``value`` in another dtype) holds exactly;
+    for float -> float only overflow counts (rounding float64 to float32 is accepted)."""
+    if value.dtype.is_floating_point:
+        return ~torch.isfinite(value) | torch.isfinite(cast)
+    if value.dtype == torch.bool:
+        return torch.ones_like(value)
+    if cast.dtype.is_floating_point:
+        # a float outside the integer range has no defined cast back: compare only inside it
+        info = torch.iinfo(value.dtype)
+        wide = cast.double()
+        inside = torch.isfinite(wide) & (wide >= info.min) & (wide < info.max + 1.0)
+        back = torch.where(inside, cast, torch.zeros_like(cast)).to(value.dtype)
+        return inside & (back == value)
+    return cast.to(value.dtype) == value
+
+
+def _cast(
+    value: torch.Tensor, dtype: torch.dtype, what: str, where: str, notes: list[str]
+) -> torch.Tensor:
+    """Cast to the env's dtype when no value changes: within a kind (float64 -> float32 may
+    round but not overflow; int64 -> int32 must not wrap) or integer/bool -> floating when
+    every value is exactly representable (Taxi's int64 rewards -> float32). Floating ->
+    integer/bool and integer <-> bool are refused."""
+    src_float, dst_float = value.dtype.is_floating_point, dtype.is_floating_point
+    src_bool, dst_bool = value.dtype == torch.bool, dtype == torch.bool
+    if (src_float and not dst_float) or (not src_float and not dst_float and src_bool != dst_bool):
+        raise ValueError(
+            f"{where}: {what} has dtype {value.dtype}, the env expects {dtype} (refusing to "
+            "convert floating data to integers or booleans, or between integers and booleans)"
+        )
+    cast = value.to(dtype)
+    kept = _survives(value, cast)
+    if not bool(kept.all()):
+        bad = value.flatten()[torch.nonzero(~kept.flatten())[0, 0]].item()
+        raise ValueError(
+            f"{where}: {what} holds {bad!r}, which the env's dtype {dtype} cannot hold "
+            f"exactly (the dataset stores {value.dtype}; refusing a cast that changes values)"
+        )
+    exact = "" if src_float == dst_float else " (every value exactly representable)"
+    notes.append(f"{what}: cast {value.dtype} -> {dtype} to match the env{exact}")
+    return cast
+
+
 def _fit(
     value: torch.Tensor,
     shape: torch.Size,
@@ -126,7 +170,8 @@ def _fit(
     where: str,
     notes: list[str],
 ) -> torch.Tensor:
-    """Reshape ``[N, *s]`` to ``[N, *shape]`` when only size-1 dims differ; cast within a kind."""
+    """Reshape ``[N, *s]`` to ``[N, *shape]`` when only size-1 dims differ; cast where no
+    value changes (:func:`_cast`)."""
     have = tuple(value.shape[1:])
     want = tuple(shape)
     if have != want:
@@ -138,18 +183,7 @@ def _fit(
                 f"{where}: {what} has shape {list(have)} per frame, the env expects {list(want)}"
             )
     if value.dtype != dtype:
-        same_kind = (value.dtype.is_floating_point and dtype.is_floating_point) or (
-            not value.dtype.is_floating_point
-            and not dtype.is_floating_point
-            and (value.dtype == torch.bool) == (dtype == torch.bool)
-        )
-        if not same_kind:
-            raise ValueError(
-                f"{where}: {what} has dtype {value.dtype}, the env expects {dtype} "
-                "(refusing to convert between floating, integer and boolean data)"
-            )
-        notes.append(f"{what}: cast {value.dtype} -> {dtype} to match the env")
-        value = value.to(dtype)
+        value = _cast(value, dtype, what, where, notes)
     return value
 
 
@@ -160,11 +194,14 @@ def conform_to_env(
 
     Observation and action shapes must match the env's per-frame shapes (size-1 dims
     may be added or removed: LeRobot stores a per-frame scalar as shape ``[1]``);
-    dtypes are cast within a kind (float64 -> float32, int32 -> int64), never across
-    kinds. Reward and done flags take the env's shapes and dtypes; a dataset that
-    records only ``done`` gets ``terminated = done`` and ``truncated = False`` when the
-    env has those keys (noted in ``notes``), so that rows from the env and from the
-    dataset can share one buffer.
+    dtypes are cast within a kind (float64 -> float32, int32 -> int64; ints must not
+    wrap, floats not overflow) and from integer or bool to floating when every value
+    is exactly representable (int64 rewards -> float32); floating -> integer and
+    integer <-> bool are refused, as is any cast that would change a value. Reward and
+    done flags take the env's shapes and dtypes; a dataset that records only ``done``
+    gets ``terminated = done`` and ``truncated = False`` when the env has those keys
+    (noted in ``notes``), so that rows from the env and from the dataset can share one
+    buffer.
 
     Args:
         names: buffer key name -> dataset feature, for error messages.

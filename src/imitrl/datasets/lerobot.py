@@ -25,8 +25,9 @@ Column mapping on load (:data:`DEFAULT_KEY_MAP`, extend or override with ``key_m
 ``observation.state -> OBSERVATION``, ``action -> EXPERT_ACTION`` (and ``ACTION``: a
 recording is the expert acting), ``next.reward/done/terminated/truncated -> ("next",
 ...)``, ``task_index -> "task_index"`` (indexes ``LoadedDemonstrations.tasks``; loaded
-when there is more than one task);
-``episode_index`` gives ``EPISODE`` and ``frame_index`` gives ``STEP``. Rows get round 0
+when there is more than one task); with no ``observation.state`` (nothing mapped to
+``OBSERVATION``), every ``observation.<sub>`` feature -> ``("observation", *sub.split("."))``
+(a Dict observation); ``episode_index`` gives ``EPISODE`` and ``frame_index`` gives ``STEP``. Rows get round 0
 and ``EXPERT_EXECUTED`` True unless the dataset carries imitrl's own columns
 (``imitrl.round``, ``imitrl.expert_executed``, ``imitrl.executed_action``,
 ``imitrl.episode``), which :func:`save_lerobot` writes so that every DAgger round
@@ -58,6 +59,7 @@ from imitrl.data.buffer import DemonstrationBuffer
 from imitrl.datasets._arrow import (
     column_to_tensor,
     decode_images,
+    encode_images,
     hf_feature,
     hf_schema_metadata,
     read_parquet,
@@ -104,6 +106,8 @@ IMITRL_COLUMNS: dict[str, NestedKey] = {
 # LeRobot's bookkeeping columns (DEFAULT_FEATURES in lerobot/datasets/utils.py)
 BOOKKEEPING = ("timestamp", "frame_index", "episode_index", "index", "task_index")
 CODEBASE_VERSION = "v3.0"
+READ_VERSIONS = {"v2.0": 2, "v2.1": 2, "v3.0": 3}
+"""codebase_version -> layout major version, for every version :func:`load_lerobot` reads"""
 DEFAULT_CHUNK_SIZE = 1000
 DEFAULT_DATA_FILE_SIZE_IN_MB = 100
 DEFAULT_VIDEO_FILE_SIZE_IN_MB = 200
@@ -111,6 +115,7 @@ DATA_PATH = "data/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet"
 EPISODES_PATH = "meta/episodes/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet"
 LEGACY_DATA_PATH = "data/chunk-{episode_chunk:03d}/episode_{episode_index:06d}.parquet"
 QUANTILES = (0.01, 0.10, 0.50, 0.90, 0.99)
+IMAGE_NAMES = {"hwc": ["height", "width", "channels"], "chw": ["channels", "height", "width"]}
 SIDECAR = "meta/imitrl.json"
 SIDECAR_FORMAT = "imitrl.lerobot/1"
 
@@ -199,16 +204,25 @@ def _info(root: Path) -> tuple[dict, int]:
     for field in ("codebase_version", "fps", "features", "data_path"):
         if field not in info:
             raise ValueError(f"{path}: missing {field!r}")
-    match = re.fullmatch(r"v(\d+)\.(\d+)", str(info["codebase_version"]))
-    if match is None or int(match.group(1)) not in (2, 3):
+    major = READ_VERSIONS.get(str(info["codebase_version"]))
+    if major is None:
         raise ValueError(
             f"{path}: codebase_version {info['codebase_version']!r} is not supported "
-            "(v2.0, v2.1 and v3.0 are)"
+            f"(only {', '.join(READ_VERSIONS)} are)"
         )
+    if not isinstance(info["features"], dict):
+        raise ValueError(f"{path}: 'features' must map feature names to descriptions")
     for name, ft in info["features"].items():
-        if not isinstance(ft, dict) or "dtype" not in ft or "shape" not in ft:
+        if not isinstance(ft, dict) or not isinstance(ft.get("dtype"), str):
             raise ValueError(f"{path}: feature {name!r} needs a dtype and a shape, got {ft!r}")
-    return info, int(match.group(1))
+        shape = ft.get("shape")
+        if not isinstance(shape, list | tuple) or not all(
+            isinstance(d, int) and d >= 0 for d in shape
+        ):
+            raise ValueError(
+                f"{path}: feature {name!r} needs a shape (a list of sizes), got {shape!r}"
+            )
+    return info, major
 
 
 # -------------------------------------------------------------- episodes
@@ -228,6 +242,9 @@ def _episodes_v3(root: Path, info: dict) -> list[dict]:
         if missing:
             raise ValueError(f"{f}: episode metadata lacks column(s) {missing}")
         table = table.select(need + [c for c in optional if c in table.column_names])
+        nulls = [c for c in table.column_names if c != "tasks" and table.column(c).null_count]
+        if nulls:
+            raise ValueError(f"{f}: episode metadata column(s) {nulls} hold null entries")
         episodes.extend(table.to_pylist())
     episodes.sort(key=lambda e: e["episode_index"])
     template = info["data_path"]
@@ -239,14 +256,16 @@ def _episodes_v3(root: Path, info: dict) -> list[dict]:
 
 
 def _episodes_v2(root: Path, info: dict) -> list[dict]:
-    episodes = sorted(
-        _read_jsonl(root / "meta" / "episodes.jsonl"), key=lambda e: e["episode_index"]
-    )
+    path = root / "meta" / "episodes.jsonl"
+    episodes = _read_jsonl(path)
+    for ep in episodes:
+        for field in ("episode_index", "length"):
+            if not isinstance(ep, dict) or not isinstance(ep.get(field), int):
+                raise ValueError(f"{path}: entry {ep!r} has no integer {field!r}")
+    episodes.sort(key=lambda e: e["episode_index"])
     chunks = int(info.get("chunks_size", DEFAULT_CHUNK_SIZE))
     template = info["data_path"]
     for ep in episodes:
-        if "length" not in ep:
-            raise ValueError(f"{root / 'meta' / 'episodes.jsonl'}: episode {ep} has no length")
         ep["file"] = template.format(
             episode_chunk=ep["episode_index"] // chunks, episode_index=ep["episode_index"]
         )
@@ -255,8 +274,16 @@ def _episodes_v2(root: Path, info: dict) -> list[dict]:
 
 def _tasks(root: Path, major: int) -> list[str]:
     if major == 2:
-        rows = _read_jsonl(root / "meta" / "tasks.jsonl")
-        pairs = [(int(r["task_index"]), str(r["task"])) for r in rows]
+        path = root / "meta" / "tasks.jsonl"
+        rows = _read_jsonl(path)
+        for r in rows:
+            if not (
+                isinstance(r, dict)
+                and isinstance(r.get("task_index"), int)
+                and isinstance(r.get("task"), str)
+            ):
+                raise ValueError(f"{path}: entry {r!r} needs an integer 'task_index' and a 'task'")
+        pairs = [(r["task_index"], r["task"]) for r in rows]
     else:
         path = root / "meta" / "tasks.parquet"
         table = read_parquet(path)
@@ -278,11 +305,31 @@ def _tasks(root: Path, major: int) -> list[str]:
     return tasks
 
 
+def _rows_in(path: Path) -> int:
+    """Frames in a parquet file, from its footer (0 if unreadable: reported when it is read)."""
+    try:
+        return pq.read_metadata(path).num_rows
+    except (pa.ArrowException, OSError):
+        return 0
+
+
 # ------------------------------------------------------------------- load
+def _under_observation(key: NestedKey) -> bool:
+    return key == keys.OBSERVATION or (isinstance(key, tuple) and key[0] == keys.OBSERVATION)
+
+
 def _plan(
-    root: Path, info: dict, key_map: Mapping[str, NestedKey | None] | None
+    root: Path,
+    info: dict,
+    key_map: Mapping[str, NestedKey | None] | None,
+    images: Literal["skip", "load"],
 ) -> tuple[dict[str, NestedKey], dict[str, tuple[int, ...]]]:
-    """feature -> buffer key, and the exact per-frame shapes recorded by :func:`save_lerobot`."""
+    """feature -> buffer key, and the exact per-frame shapes recorded by :func:`save_lerobot`.
+
+    Without ``meta/imitrl.json`` and with no feature mapped to ``OBSERVATION`` (no
+    ``observation.state``, say), every ``observation.<sub>`` feature maps to the nested key
+    ``("observation", *sub.split("."))``: a Dict observation.
+    """
     features = info["features"]
     mapping: dict[str, NestedKey | None] = {}
     shapes: dict[str, tuple[int, ...]] = {}
@@ -294,8 +341,9 @@ def _plan(
         for name, entry in meta["columns"].items():
             if name not in features:
                 raise ValueError(f"{sidecar}: column {name!r} is not a feature of meta/info.json")
-            mapping[name] = as_key(entry["key"])
             shapes[name] = tuple(entry["shape"])
+            if features[name]["dtype"] != "image" or images == "load":
+                mapping[name] = as_key(entry["key"])
     else:
         mapping.update({k: v for k, v in DEFAULT_KEY_MAP.items() if k in features})
         mapping.update({k: v for k, v in IMITRL_COLUMNS.items() if k in features})
@@ -306,12 +354,31 @@ def _plan(
                 f"dataset does not declare (features: {sorted(features)})"
             )
         mapping[name] = key
+    if not sidecar.is_file() and not any(
+        v is not None and _under_observation(v) for v in mapping.values()
+    ):
+        prefix = keys.OBSERVATION + "."
+        for name, ft in features.items():
+            loadable = ft["dtype"] not in ("video", "string", "image") or (
+                ft["dtype"] == "image" and images == "load"
+            )
+            if name.startswith(prefix) and name not in mapping and loadable:
+                mapping[name] = (keys.OBSERVATION, *name.removeprefix(prefix).split("."))
     plan = {k: v for k, v in mapping.items() if v is not None}
     targets = [key_name(v) for v in plan.values()]
     dup = sorted({t for t in targets if targets.count(t) > 1})
     if dup:
         raise ValueError(f"several features map to the same buffer key(s) {dup}: fix key_map")
-    if keys.OBSERVATION not in [key_name(v) for v in plan.values()]:
+    paths = {(v,) if isinstance(v, str) else tuple(v): k for k, v in plan.items()}
+    for path, name in paths.items():
+        for i in range(1, len(path)):
+            if path[:i] in paths:
+                raise ValueError(
+                    f"{root / 'meta' / 'info.json'}: feature {paths[path[:i]]!r} maps to "
+                    f"{key_name(path[:i])!r} and feature {name!r} inside it to "
+                    f"{key_name(path)!r}; a key cannot be both a tensor and a group (fix key_map)"
+                )
+    if not any(_under_observation(v) for v in plan.values()):
         numeric = [k for k, f in features.items() if f["dtype"] not in ("image", "video", "string")]
         raise ValueError(
             f"{root / 'meta' / 'info.json'}: no feature maps to {keys.OBSERVATION!r}; pass "
@@ -338,11 +405,12 @@ def load_lerobot(
         key_map: dataset feature -> buffer key (a str or a nested tuple), merged over
             :data:`DEFAULT_KEY_MAP`; map a feature to None to leave it out on purpose.
         images: ``"load"`` decodes image features into uint8 tensors in the declared
-            layout; ``"skip"`` leaves them out with a warning. Video features are
-            always skipped with a warning.
+            layout; ``"skip"`` leaves them out with a warning (those :func:`save_lerobot`
+            wrote too). Video features are always skipped with a warning.
         env: if given, observation and action shapes must match its specs (else
-            ValueError), dtypes are cast within a kind, reward/done take its shapes,
-            and a missing ``terminated``/``truncated`` is derived from ``done``.
+            ValueError), dtypes are cast where no value changes (within a kind, or
+            integer -> floating when exact), reward/done take its shapes, and a missing
+            ``terminated``/``truncated`` is derived from ``done``.
         first_episode: added to the episode ids (use ``buffer.next_episode``).
         revision, cache_dir: for resolving a ``repo_id`` (see :func:`resolve_lerobot_root`).
 
@@ -361,7 +429,7 @@ def load_lerobot(
     root = _root(path_or_repo, revision, cache_dir)
     info, major = _info(root)
     features: dict[str, dict] = info["features"]
-    plan, exact_shapes = _plan(root, info, key_map)
+    plan, exact_shapes = _plan(root, info, key_map, images)
     tasks = _tasks(root, major)
     quiet = {"index", "timestamp"}
     if (
@@ -417,10 +485,21 @@ def load_lerobot(
     # Frames are read file by file; v3.0 files are concatenated in sorted order, as LeRobot
     # does, and each episode is the slice [dataset_from_index, dataset_to_index) of that
     # concatenation (the episode table's file pointers are not needed, and LeRobot's own
-    # aggregate tool leaves them stale); v2.x has one file per episode.
+    # aggregate tool leaves them stale: they only name a missing file when frames are
+    # missing too); v2.x has one file per episode.
     columns = [*plan, "episode_index", "frame_index"]
     if major == 3:
         files = sorted((root / "data").glob("*/*.parquet"))
+        expected = sum(int(ep["length"]) for ep in episodes)
+        held = sum(_rows_in(f) for f in files)
+        if held < expected:
+            absent = [ep["file"] for ep in episodes if not (root / ep["file"]).is_file()]
+            if absent:
+                eps = [int(ep["episode_index"]) for ep in episodes if ep["file"] == absent[0]]
+                raise ValueError(
+                    f"{root / absent[0]}: file not found (the episode table places episode(s) "
+                    f"{eps} there; the data files hold {held} of {expected} frames)"
+                )
         if not files:
             raise ValueError(f"{root / 'data'}: no data files (data/chunk-*/file-*.parquet)")
     else:
@@ -575,6 +654,74 @@ def _stats(values: np.ndarray) -> dict[str, Any]:
     return out
 
 
+def _image_layout(name: str, value: torch.Tensor) -> Literal["hwc", "chw"] | None:
+    """How a column is written as a LeRobot image feature, or None to write it as an array.
+
+    LeRobot treats every feature whose name contains ``"image"`` as a 3-channel image
+    (``compute_stats._validate_stat_value`` wants ``(3, 1, 1)`` stats for it when datasets
+    are merged or resumed), so a uint8 ``[N, H, W, 3]`` (or ``[N, 3, H, W]``) column so
+    named is written as one; :func:`load_lerobot` with ``images="load"`` gives back the same
+    tensor."""
+    if "image" not in name or value.dtype != torch.uint8 or value.ndim != 4:
+        return None
+    if value.shape[-1] == 3:
+        return "hwc"
+    if value.shape[1] == 3:
+        return "chw"
+    return None
+
+
+def _sample_frames(chw: np.ndarray) -> np.ndarray:
+    """The frames LeRobot's image statistics read (lerobot 0.4 ``compute_stats.sample_images``):
+    ``estimate_num_samples`` of them evenly spaced, each downsampled as
+    ``auto_downsample_height_width`` does."""
+    n = len(chw)
+    k = n if n < 100 else max(100, min(int(n**0.75), 10_000))
+    frames = chw[np.round(np.linspace(0, n - 1, k)).astype(int)]
+    height, width = frames.shape[2:]
+    if max(width, height) >= 300:
+        factor = int(width / 150) if width > height else int(height / 150)
+        frames = frames[:, :, ::factor, ::factor]
+    return frames
+
+
+def _image_stats(frames: np.ndarray) -> dict[str, Any]:
+    """LeRobot's image statistics (``compute_episode_stats``): per channel over the pixels of
+    the sampled ``[k, C, H, W]`` frames, scaled to [0, 1], shaped ``(C, 1, 1)``; ``count``
+    is the number of frames sampled."""
+    channels = frames.shape[1]
+    x = frames.transpose(0, 2, 3, 1).reshape(-1, channels).astype(np.float64) / 255.0
+    shape = (channels, 1, 1)
+    out: dict[str, Any] = {
+        "min": x.min(axis=0).reshape(shape),
+        "max": x.max(axis=0).reshape(shape),
+        "mean": x.mean(axis=0).reshape(shape),
+        "std": x.std(axis=0).reshape(shape),
+        "count": np.array([len(frames)]),
+    }
+    for q in QUANTILES:
+        out[f"q{round(q * 100):02d}"] = np.quantile(x, q, axis=0).reshape(shape)
+    return out
+
+
+def _feature_names(name: str, value: Any, shape: tuple[int, ...]) -> Any:
+    """LeRobot's ``names`` of a feature: None, a list of strings (one per entry of a vector),
+    or a mapping to lists of strings (v2.0's ``{"motors": [...]}``)."""
+    lists = list(value.values()) if isinstance(value, dict) else [value]
+    if value is not None and not all(
+        isinstance(v, list) and all(isinstance(x, str) for x in v) for v in lists
+    ):
+        raise ValueError(
+            f"names[{name!r}] must be None, a list of strings or a mapping to lists of "
+            f"strings (LeRobot's feature names), got {value!r}"
+        )
+    if isinstance(value, list) and len(shape) == 1 and len(value) != shape[0]:
+        raise ValueError(
+            f"names[{name!r}] has {len(value)} entries, the feature has shape {list(shape)}"
+        )
+    return value
+
+
 def _pandas_index_metadata(n_rows: int) -> bytes:
     """The pandas metadata ``DataFrame.to_parquet`` writes, so ``pd.read_parquet`` restores
     the task strings as the index (LeRobot looks tasks up with ``tasks.loc[task]``)."""
@@ -621,6 +768,7 @@ def save_lerobot(
     robot_type: str | None = None,
     episodes_per_file: int | None = None,
     chunks_size: int = DEFAULT_CHUNK_SIZE,
+    names: Mapping[str, Any] | None = None,
     overwrite: bool = False,
 ) -> Path:
     """Write demonstrations as a LeRobot v3.0 dataset that LeRobot's own reader opens.
@@ -631,9 +779,14 @@ def save_lerobot(
     ``EXPERT_EXECUTED -> imitrl.expert_executed``, ``ROUND -> imitrl.round``,
     ``EPISODE -> imitrl.episode`` (LeRobot's ``episode_index`` must run 0..E-1),
     ``STEP -> frame_index``, ``"task_index" -> task_index``; any other key
-    ``("a", "b") -> a.b``. ``meta/imitrl.json`` records each column's key and exact
-    per-frame shape (LeRobot stores ``[]`` and ``[1]`` alike), so :func:`load_lerobot`
-    gives back identical rows (values, dtypes, shapes, episode boundaries, rounds).
+    ``("a", "b") -> a.b``. A uint8 ``[N, H, W, 3]`` (or ``[N, 3, H, W]``) key whose feature
+    name contains ``"image"`` (``observation.images.top``, as ``load_lerobot(...,
+    images="load")`` names them) becomes a LeRobot ``image`` feature: PNG frames, names
+    ``["height", "width", "channels"]`` (or channels first), per-channel statistics in
+    [0, 1] shaped ``(3, 1, 1)`` as LeRobot computes them. ``meta/imitrl.json`` records each
+    column's key and exact per-frame shape (LeRobot stores ``[]`` and ``[1]`` alike), so
+    :func:`load_lerobot` (with ``images="load"`` for image features) gives back identical
+    rows (values, dtypes, shapes, episode boundaries, rounds).
 
     Args:
         data: a buffer or ``[N]`` rows; each episode one contiguous block whose ``STEP``
@@ -645,6 +798,11 @@ def save_lerobot(
         episodes_per_file: episodes per data file (None: all in one file); files roll
             over into ``chunk-001`` ... after ``chunks_size`` files.
         chunks_size: files per chunk directory (LeRobot's ``chunks_size``).
+        names: feature -> LeRobot ``names`` for ``info.json`` (None, a list with one string
+            per entry of a vector, or a mapping to such lists); to keep a source dataset's,
+            pass ``{f: ft["names"] for f, ft in loaded.metadata["features"].items()}``.
+            Entries for features not written (bookkeeping, videos, skipped features) are
+            ignored; image features always get their layout's names. Default: None for all.
         overwrite: replace an existing directory.
 
     Returns:
@@ -704,10 +862,13 @@ def save_lerobot(
         task_index = torch.zeros(n_frames, dtype=torch.int64)
 
     # features
+    names = dict(names or {})
+    frame_index = step.numpy().astype(np.int64)
     columns: dict[str, pa.Array] = {}
     feature_info: dict[str, dict] = {}
     sidecar: dict[str, dict] = {}
     arrays: dict[str, np.ndarray] = {}
+    images: dict[str, np.ndarray] = {}
     for key in rows.keys(include_nested=True, leaves_only=True):
         if key_name(key) in (keys.STEP, "task_index"):
             continue
@@ -717,20 +878,34 @@ def save_lerobot(
         name = _feature_name(key)
         if name in BOOKKEEPING:
             raise ValueError(f"{key_name(key)!r} would overwrite LeRobot's {name!r} column")
+        sidecar[name] = {
+            "key": list(key) if isinstance(key, tuple) else key,
+            "shape": list(value.shape[1:]),
+        }
+        layout = _image_layout(name, value)
+        if layout is not None:  # LeRobot's image feature: PNG frames, per-channel stats
+            pixels = value.numpy() if layout == "hwc" else value.numpy().transpose(0, 2, 3, 1)
+            columns[name] = encode_images(pixels, frame_index)
+            images[name] = pixels.transpose(0, 3, 1, 2)  # (C, H, W), as LeRobot's stats read them
+            shape = tuple(value.shape[1:])
+            feature_info[name] = {
+                "dtype": "image",
+                "shape": list(shape),
+                "names": IMAGE_NAMES[layout],
+            }
+            continue
         arr, shape = tensor_to_array(value)
-        dtype = NUMPY_NAMES[value.dtype]
         columns[name] = arr
         arrays[name] = (
             value.numpy().reshape(n_frames, *shape)
             if shape != (1,)
             else value.numpy().reshape(n_frames)
         )
-        feature_info[name] = {"dtype": dtype, "shape": list(shape), "names": None}
-        sidecar[name] = {
-            "key": list(key) if isinstance(key, tuple) else key,
-            "shape": list(value.shape[1:]),
+        feature_info[name] = {
+            "dtype": NUMPY_NAMES[value.dtype],
+            "shape": list(shape),
+            "names": _feature_names(name, names.get(name), shape),
         }
-    frame_index = step.numpy().astype(np.int64)
     book = {
         "timestamp": (frame_index / fps).astype(np.float32),
         "frame_index": frame_index,
@@ -758,6 +933,7 @@ def save_lerobot(
             tmp,
             table,
             arrays,
+            images,
             feature_info,
             sidecar,
             starts,
@@ -783,6 +959,7 @@ def _write_v3(
     root: Path,
     table: pa.Table,
     arrays: dict[str, np.ndarray],
+    images: dict[str, np.ndarray],
     feature_info: dict[str, dict],
     sidecar: dict[str, dict],
     starts: list[int],
@@ -821,8 +998,12 @@ def _write_v3(
             "dataset_from_index": s,
             "dataset_to_index": s + n,
         }
-        for name, values in arrays.items():
-            for stat, v in _stats(values[s : s + n]).items():
+        ep_stats = {name: _stats(values[s : s + n]) for name, values in arrays.items()}
+        ep_stats.update(
+            {name: _image_stats(_sample_frames(chw[s : s + n])) for name, chw in images.items()}
+        )
+        for name in feature_info:  # in feature order, as LeRobot writes the columns
+            for stat, v in ep_stats.get(name, {}).items():
                 row[f"stats/{name}/{stat}"] = v.tolist()
         row["meta/episodes/chunk_index"] = 0
         row["meta/episodes/file_index"] = 0
@@ -842,8 +1023,14 @@ def _write_v3(
     ).replace_schema_metadata({b"pandas": _pandas_index_metadata(len(task_list))})
     pq.write_table(tasks_table, root / "meta" / "tasks.parquet")
 
+    all_stats = {name: _stats(values) for name, values in arrays.items()}
+    for name, chw in images.items():
+        samples = [_sample_frames(chw[s : s + n]) for s, n in zip(starts, lengths)]
+        all_stats[name] = _image_stats(np.concatenate(samples))
     stats = {
-        name: {k: v.tolist() for k, v in _stats(values).items()} for name, values in arrays.items()
+        name: {k: v.tolist() for k, v in all_stats[name].items()}
+        for name in feature_info
+        if name in all_stats
     }
     (root / "meta" / "stats.json").write_text(json.dumps(stats, indent=4))
     info = {

@@ -69,6 +69,8 @@ def resolve_minari_root(path_or_id: str | Path) -> Path:
 
 
 def _metadata(data_dir: Path, h5file) -> dict[str, Any]:
+    """``metadata.json`` (read before the HDF5 file: it names the storage format), else the
+    HDF5 root attributes of Minari < 0.5 (``h5file`` is None when the file is not open yet)."""
     meta_path = data_dir / METADATA_FILE
     if meta_path.is_file():
         try:
@@ -97,9 +99,29 @@ def _space(text: str | dict, where: str) -> dict:
         space = json.loads(text) if isinstance(text, str) else text
     except json.JSONDecodeError as err:
         raise ValueError(f"{where}: the serialized space is not valid JSON: {err}") from err
+    _check_space(space, where)
+    return space
+
+
+def _check_space(space: Any, where: str) -> None:
+    """What :func:`_decode` reads of a space is there (a Box's shape, a Dict's subspaces)."""
     if not isinstance(space, dict) or "type" not in space:
         raise ValueError(f"{where}: not a Minari space description: {space!r}")
-    return space
+    kind = space["type"]
+    if kind == "Box":
+        shape = space.get("shape")
+        if not isinstance(shape, list) or not all(isinstance(d, int) and d >= 0 for d in shape):
+            raise ValueError(f"{where}: a Box space needs a 'shape' list of sizes, got {space!r}")
+    elif kind == "Dict":
+        if not isinstance(space.get("subspaces"), dict):
+            raise ValueError(f"{where}: a Dict space needs a 'subspaces' mapping, got {space!r}")
+        for name, sub in space["subspaces"].items():
+            _check_space(sub, f"{where}[{name!r}]")
+    elif kind == "Tuple":
+        if not isinstance(space.get("subspaces"), list):
+            raise ValueError(f"{where}: a Tuple space needs a 'subspaces' list, got {space!r}")
+        for i, sub in enumerate(space["subspaces"]):
+            _check_space(sub, f"{where}[{i}]")
 
 
 def _is_image(space: dict) -> bool:
@@ -110,8 +132,8 @@ def _is_image(space: dict) -> bool:
         and len(space["shape"]) in (2, 3)
         and space["shape"][0] >= 32
         and space["shape"][1] >= 32
-        and np.all(np.asarray(space["low"]) == 0)
-        and np.all(np.asarray(space["high"]) == 255)
+        and np.all(np.asarray(space.get("low")) == 0)
+        and np.all(np.asarray(space.get("high")) == 255)
     )
 
 
@@ -195,8 +217,10 @@ def load_minari(
         path_or_id: the dataset directory, its ``data`` folder, or a dataset id under
             ``$MINARI_DATASETS_PATH`` (see :func:`resolve_minari_root`).
         env: if given, observation/action shapes must match its specs (else ValueError);
-            dtypes are cast within a kind (float64 rewards -> the env's float32), reward
-            and done flags take its shapes.
+            dtypes are cast within a kind (float64 rewards -> the env's float32) or from
+            integer to floating when every value is exact (Taxi's int64 rewards -> float32),
+            reward and done flags take its shapes. Pass it whenever the rows are to share a
+            buffer with the env's own rollouts.
         first_episode: added to Minari's episode ids (use ``buffer.next_episode``).
         next_observation: also keep ``observations[t + 1]`` as ``("next", OBSERVATION)``.
 
@@ -215,6 +239,7 @@ def load_minari(
     import h5py
 
     data_dir = resolve_minari_root(path_or_id)
+    meta = _metadata(data_dir, None) if (data_dir / METADATA_FILE).is_file() else None
     h5_path = data_dir / MAIN_FILE
     if not h5_path.is_file():
         raise ValueError(f"{h5_path} not found")
@@ -224,7 +249,8 @@ def load_minari(
     except OSError as err:
         raise ValueError(f"{h5_path}: not a readable HDF5 file ({err})") from err
     with h5:
-        meta = _metadata(data_dir, h5)
+        if meta is None:
+            meta = _metadata(data_dir, h5)
         where = str(h5_path)
         obs_space = _space(
             meta["observation_space"], f"{data_dir / METADATA_FILE}: observation_space"
@@ -275,8 +301,8 @@ def load_minari(
             if declared is not None and int(declared) != n:
                 raise ValueError(f"{here}: attrs total_steps={int(declared)} but {n} rewards")
             if "infos" in group:
-                for leaf in _leaves(group["infos"]):
-                    skipped[f"infos/{leaf}"] = "per-step infos are not loaded"
+                for leaf in _leaves(group["infos"], "infos"):
+                    skipped[leaf] = "per-step infos are not loaded"
             obs_parts.append(_tensors(obs, slice(0, n)))
             if next_observation:
                 nxt_parts.append(_tensors(obs, slice(1, n + 1)))
@@ -315,8 +341,15 @@ def load_minari(
         "truncations": "next.truncated",
     }
     if env is not None:
-        names = {keys.OBSERVATION: "observations", keys.ACTION: "actions"}
-        names[keys.EXPERT_ACTION] = "actions"
+        names = {
+            keys.OBSERVATION: "observations",
+            keys.ACTION: "actions",
+            keys.EXPERT_ACTION: "actions",
+            "next.reward": "rewards",
+            "next.done": "terminations | truncations",
+            "next.terminated": "terminations",
+            "next.truncated": "truncations",
+        }
         rows = conform_to_env(rows, env, where=where, notes=notes, names=names)
     # one entry per leaf, not per episode
     skipped = {k.split("/", 1)[1] if k.startswith("episode_") else k: v for k, v in skipped.items()}
@@ -333,11 +366,10 @@ def load_minari(
     )
 
 
-def _leaves(group, prefix: str = "") -> list[str]:
+def _leaves(node, path: str) -> list[str]:
+    """Paths of the datasets under ``node`` (itself, when it is one: infos stored whole)."""
     import h5py
 
-    out = []
-    for name, node in group.items():
-        path = f"{prefix}{name}"
-        out += _leaves(node, path + "/") if isinstance(node, h5py.Group) else [path]
-    return out
+    if not isinstance(node, h5py.Group):
+        return [path]
+    return [leaf for name, sub in node.items() for leaf in _leaves(sub, f"{path}/{name}")]
