@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import pytest
 import torch
+from tensordict import TensorDict
+from torchrl.data import Bounded
 from torchrl.envs.utils import ExplorationType
 
 from imitrl import keys
@@ -103,6 +106,69 @@ def test_beta_schedules():
     assert [Constant(0.2)(i) for i in range(3)] == [0.2, 0.2, 0.2]
     assert [Linear(4)(i) for i in range(6)] == [1.0, 0.75, 0.5, 0.25, 0.0, 0.0]
     assert [Exponential(0.5)(i) for i in range(1, 5)] == [1.0, 0.5, 0.25, 0.125]
+    # checked when built, not after round 0 has been fitted
+    for bad, match in [
+        (lambda: Constant(1.5), r"Constant beta must be in \[0, 1\]"),
+        (lambda: Linear(0), "Linear rounds must be a positive integer"),
+        (lambda: Exponential(2.0), r"Exponential p must be in \[0, 1\]"),
+    ]:
+        with pytest.raises(ValueError, match=match):
+            bad()
+
+
+def test_fit_rejects_a_loss_the_head_cannot_take_and_foreign_observations():
+    spec = Bounded(-torch.ones(2), torch.ones(2), shape=(2,))
+    g = torch.Generator().manual_seed(0)
+    cont = TensorDict(
+        {
+            keys.OBSERVATION: torch.randn(16, 3, generator=g),
+            keys.EXPERT_ACTION: torch.rand(16, 2, generator=g) - 0.5,
+        },
+        [16],
+    )
+    with pytest.raises(ValueError, match="loss_type 'nll' does not fit a 'deterministic' head"):
+        fit_bc(ActorCritic.mlp(3, spec, head="deterministic"), cont, BCConfig(num_steps=1))
+    with pytest.raises(ValueError, match="loss_type 'mse' does not fit a 'tanh_normal' head"):
+        fit_bc(ActorCritic.mlp(3, spec), cont, BCConfig(num_steps=1, loss_type="mse"))
+    with pytest.raises(ValueError, match=r"trailing shape \(5,\), got shape \(16, 3\)"):
+        fit_bc(
+            ActorCritic.mlp(5, spec, head="deterministic"),
+            cont,
+            BCConfig(num_steps=1, loss_type="mse"),
+        )
+    states = TensorDict(
+        {keys.OBSERVATION: torch.tensor([0, 5, 20]), keys.EXPERT_ACTION: torch.tensor([0, 1, 1])},
+        [3],
+    )
+    for batch_size in (None, 2):
+        with pytest.raises(ValueError, match=r"state observation outside \[0, 16\)"):
+            fit_bc(ActorCritic.tabular(16, 2), states, BCConfig(num_steps=1, batch_size=batch_size))
+
+
+def test_sampled_dagger_rounds_are_seeded_by_the_source_generator(lake, expert_table):
+    """A learner that samples its actions in the rollouts (RANDOM) gives the same rounds for one seed."""
+
+    def run(seed):
+        _, buf = demonstrations(lake, expert_table, 0, episodes=1)
+        source = EnvSource(
+            TabularEnv(lake, batch_size=(4,), seed=1),
+            exploration=ExplorationType.RANDOM,
+            max_steps=10_000,
+            generator=torch.Generator().manual_seed(seed),
+        )
+        torch.manual_seed(seed + 100)  # the global RNG must not matter
+        res = dagger(
+            source,
+            Expert.from_table(expert_table),
+            lambda: ActorCritic.tabular(16, 4),
+            buf,
+            DAggerConfig(rounds=3, episodes_per_round=4, fit=BCConfig(num_steps=10)),
+        )
+        return res.buffer.data.clone()
+
+    a, b, c = run(0), run(0), run(1)
+    assert a.shape == b.shape and (a == b).all()
+    assert a.shape != c.shape or not (a == c).all()
 
 
 def test_dagger_beats_bc_from_the_same_demonstrations(lake, expert_table):

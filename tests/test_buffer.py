@@ -220,3 +220,47 @@ def test_discrete_action_shape_other_specs_and_episode_blocks():
         onehot.extend(bad)
     onehot.extend(good)
     assert len(onehot) == 3
+
+
+def test_action_dtype_must_be_the_specs_and_batched_bounds_are_per_lane():
+    """Labels in another dtype than the spec's are refused at extend, not rounds later in DAgger."""
+    discrete = DemonstrationBuffer(action_spec=Categorical(4))
+    wrong = rows(10)
+    wrong.set(keys.EXPERT_ACTION, wrong.get(keys.EXPERT_ACTION).to(torch.int32))
+    wrong.set(keys.ACTION, wrong.get(keys.ACTION).to(torch.int32))
+    with pytest.raises(
+        ValueError, match=r"dtype torch\.int32, the action spec expects torch\.int64"
+    ):
+        discrete.extend(wrong)
+    assert len(discrete) == 0
+
+    def cont(a, episode=0):
+        n = a.shape[0]
+        return TensorDict(
+            {
+                keys.OBSERVATION: torch.zeros(n, 3),
+                keys.EXPERT_ACTION: a,
+                keys.ACTION: a.clone(),
+                keys.EXPERT_EXECUTED: torch.ones(n, dtype=torch.bool),
+                keys.EPISODE: torch.full((n,), episode, dtype=torch.long),
+                keys.ROUND: torch.zeros(n, dtype=torch.long),
+                keys.STEP: torch.arange(n),
+            },
+            [n],
+        )
+
+    box = Bounded(-1.0, 1.0, shape=(2,))
+    with pytest.raises(
+        ValueError, match=r"dtype torch\.int64, the action spec expects torch\.float32"
+    ):
+        DemonstrationBuffer(action_spec=box).extend(cont(torch.zeros(5, 2, dtype=torch.long)))
+    # a batched env's spec ([8, 2]) checks each row against one lane's bounds, any row count
+    lanes = Bounded(-torch.ones(8, 2), torch.ones(8, 2), shape=(8, 2))
+    buf = DemonstrationBuffer(action_spec=lanes)
+    buf.extend(cont(torch.full((50, 2), 0.5)))
+    assert len(buf) == 50
+    with pytest.raises(ValueError, match="outside the bounds"):
+        buf.extend(cont(torch.full((3, 2), 1.5), episode=1))
+    uneven = Bounded(-torch.rand(8, 2) - 1, torch.ones(8, 2), shape=(8, 2))
+    with pytest.raises(ValueError, match="action_spec_unbatched"):
+        DemonstrationBuffer(action_spec=uneven).extend(cont(torch.zeros(4, 2)))

@@ -115,6 +115,56 @@ def test_make_env_rejects_bad_input():
         ActorCritic.mlp(3, make_env("Pendulum-v1", seed=0, num_envs=2).action_spec)
 
 
+class _F64Actions:
+    """A point mass with float32 observations and a float64 action box."""
+
+    def __new__(cls):
+        import gymnasium as gym
+        import numpy as np
+
+        class PointMass(gym.Env):
+            observation_space = gym.spaces.Box(-np.inf, np.inf, (2,), np.float32)
+            action_space = gym.spaces.Box(-1.0, 1.0, (1,), np.float64)
+
+            def reset(self, *, seed=None, options=None):
+                super().reset(seed=seed)
+                self.s = self.np_random.uniform(-1, 1, size=2)
+                return self.s.astype(np.float32), {}
+
+            def step(self, u):
+                x, v = self.s
+                v = v + 0.1 * float(np.clip(u[0], -1, 1))
+                self.s = np.array([x + 0.1 * v, v])
+                return self.s.astype(np.float32), -x * x, False, False, {}
+
+        return PointMass()
+
+
+def test_make_env_casts_float64_actions_and_rejects_non_vector_boxes():
+    import gymnasium as gym
+    import numpy as np
+
+    gym.register("imitrl-test/F64Actions-v0", entry_point=_F64Actions, max_episode_steps=20)
+    for n in (1, 3):
+        env = make_env("imitrl-test/F64Actions-v0", seed=0, num_envs=n)
+        assert (
+            env.action_spec.dtype == torch.float32
+            and env.observation_spec[keys.OBSERVATION].dtype == torch.float32
+        )
+        td = env.rollout(5)  # float32 actions step the float64 env
+        assert td.get(keys.ACTION).dtype == torch.float32
+
+    class Grid(gym.Env):
+        observation_space = gym.spaces.Box(0.0, 1.0, (3, 4), np.float32)
+        action_space = gym.spaces.Discrete(2)
+
+    gym.register("imitrl-test/Grid-v0", entry_point=Grid, max_episode_steps=5)
+    with pytest.raises(
+        ValueError, match=r"Box observations must be vectors \[d\], got shape \(3, 4\)"
+    ):
+        make_env("imitrl-test/Grid-v0", seed=0)
+
+
 def test_make_env_is_seeded():
     a = make_env("Pendulum-v1", seed=3, num_envs=2).reset().get(keys.OBSERVATION)
     b = make_env("Pendulum-v1", seed=3, num_envs=2).reset().get(keys.OBSERVATION)

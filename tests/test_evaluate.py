@@ -6,9 +6,12 @@ import math
 
 import pytest
 import torch
+from tensordict import TensorDict
 from torchrl.envs import GymEnv
 from torchrl.envs.utils import ExplorationType
 
+from imitrl import keys
+from imitrl.algorithms import BCConfig, fit_bc
 from imitrl.envs import TabularEnv
 from imitrl.evaluation import evaluate, mean_ci, tabulate, wilson_interval
 from imitrl.experts import cartpole_expert
@@ -23,7 +26,10 @@ def test_wilson_interval_known_values():
         1.0, abs=1e-12
     )
     m, lo, hi = mean_ci(torch.tensor([1.0, 2.0, 3.0, 4.0]), 0.95)
-    assert m == 2.5 and hi - m == pytest.approx(1.959964 * math.sqrt(5 / 3) / 2, abs=1e-5)
+    # Student t with 3 degrees of freedom: t_{0.975, 3} = 3.182446 (tables)
+    assert m == 2.5 and hi - m == pytest.approx(3.182446 * math.sqrt(5 / 3) / 2, abs=1e-5)
+    m, lo, hi = mean_ci(torch.tensor([3.0]))
+    assert m == 3.0 and math.isnan(lo) and math.isnan(hi)  # one episode: no interval
 
 
 @pytest.mark.parametrize("lanes", [1000, 4096])
@@ -120,3 +126,67 @@ def test_student_t_quantiles_and_intervals():
     assert math.isnan(t_interval([None])[0])
     with pytest.raises(ValueError, match="df >= 1"):
         student_t_quantile(0.975, 0)
+
+
+def test_sampled_evaluation_of_trained_and_deterministic_policies(lake, expert_table):
+    """float32 probabilities (rows off 1 by ~1e-7) and policies without get_dist are priced exactly."""
+    learner = ActorCritic.tabular(16, 4)
+    g = torch.Generator().manual_seed(0)
+    states = torch.randint(0, 16, (200,), generator=g)
+    fit_bc(
+        learner,
+        TensorDict({keys.OBSERVATION: states, keys.EXPERT_ACTION: expert_table[states]}, [200]),
+        BCConfig(num_steps=30),
+    )
+    probs = tabulate(learner.policy, 16, ExplorationType.RANDOM)
+    assert probs.dtype == torch.float64
+    assert torch.allclose(probs.sum(-1), torch.ones(16, dtype=torch.float64), atol=1e-12)
+    assert not torch.allclose(probs, torch.full_like(probs, 0.25))  # trained: not exact in float32
+    env = TabularEnv(lake, batch_size=(2000,), seed=5)
+    ev = evaluate(env, learner.policy, 20_000, exploration=ExplorationType.RANDOM, confidence=0.999)
+    assert ev.success_ci[0] < ev.exact_success < ev.success_ci[1]
+    # a table-lookup expert has no distribution: sampled = greedy, priced as its table
+    ev = evaluate(
+        env, Expert.from_table(expert_table).as_actor(), 2000, exploration=ExplorationType.RANDOM
+    )
+    assert ev.exact_success == pytest.approx(float(success_probability(lake, expert_table)))
+
+
+def test_sampled_rollouts_follow_an_explicit_generator(lake):
+    """RANDOM mode draws from the generator given (same seed, same digits) and leaves the global RNG alone."""
+    learner = ActorCritic.tabular(16, 4)  # uniform: every step samples
+    runs = []
+    for _ in range(2):
+        torch.manual_seed(123)
+        before = torch.get_rng_state()
+        env = TabularEnv(lake, batch_size=(64,), seed=1)
+        ev = evaluate(
+            env,
+            learner.policy,
+            256,
+            exploration=ExplorationType.RANDOM,
+            generator=torch.Generator().manual_seed(7),
+        )
+        assert torch.equal(torch.get_rng_state(), before)
+        torch.manual_seed(int(torch.randint(0, 1000, ())) + len(runs))  # disturb the global RNG
+        runs.append((ev.success_rate, ev.mean_return, ev.mean_length))
+    assert runs[0] == runs[1]
+    other = evaluate(
+        TabularEnv(lake, batch_size=(64,), seed=1),
+        learner.policy,
+        256,
+        exploration=ExplorationType.RANDOM,
+        generator=torch.Generator().manual_seed(8),
+    )
+    assert (other.success_rate, other.mean_return, other.mean_length) != runs[0]
+
+
+def test_one_episode_has_no_interval_and_policies_must_match_the_action_spec(lake):
+    env = TabularEnv(lake, seed=0)
+    ev = evaluate(
+        env, ActorCritic.tabular(16, 4).policy, 1, exploration=ExplorationType.DETERMINISTIC
+    )
+    assert math.isnan(ev.return_ci[0]) and math.isnan(ev.return_ci[1])
+    wide = Expert.from_callable(lambda obs: torch.zeros(*obs.shape, 2, dtype=torch.int64))
+    with pytest.raises(ValueError, match=r"the env expects shape \(\) and dtype torch.int64"):
+        evaluate(env, wide.as_actor(), 2, exploration=ExplorationType.DETERMINISTIC)

@@ -229,6 +229,11 @@ def test_bad_flags_fail_clearly(tmp_path, capsys):
     assert "'Taxi-v4' rejected the arguments {'is_slippery': True}" in capsys.readouterr().err
     assert main(["frozenlake", "--out", str(tmp_path), "--env-id", "CliffWalking-v1"]) == 2
     assert "'CliffWalking-v1' is registered without a time limit" in capsys.readouterr().err
+    assert main(["frozenlake", "--out", str(tmp_path), "--desc", "SFF,FHF,FFG"]) == 2
+    assert "--probe-states [9] outside the 9 states" in capsys.readouterr().err
+    taxi = ["--env-id", "Taxi-v4", "--protocol", "batched", "--probe-states", "0"]
+    assert main(["frozenlake", "--out", str(tmp_path), *taxi]) == 2
+    assert "pins each lane to one start state, and 'Taxi-v4' has 300" in capsys.readouterr().err
     assert main(["frozenlake", "--out", str(tmp_path), "--protocol", "gpu"]) == 2
 
 

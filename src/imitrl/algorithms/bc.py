@@ -27,7 +27,7 @@ from tqdm.auto import tqdm
 from imitrl import keys
 from imitrl.data.buffer import DemonstrationBuffer
 from imitrl.objectives.bc import LOSS_TYPES, BehaviorCloningLoss
-from imitrl.policies.actor_critic import ActorCritic
+from imitrl.policies.actor_critic import HEAD_LOSSES, ActorCritic
 
 __all__ = ["BCConfig", "FitResult", "fit_bc"]
 
@@ -155,6 +155,13 @@ def fit_bc(
             k for k in loss_module.in_keys if k not in (keys.OBSERVATION, config.label_key)
         )
     rows = _rows(data, config.label_key, extra)
+    if isinstance(learner, ActorCritic):
+        if loss_module is None and config.loss_type not in HEAD_LOSSES[learner.head]:
+            raise ValueError(
+                f"loss_type {config.loss_type!r} does not fit a {learner.head!r} head; "
+                f"it is fitted with {HEAD_LOSSES[learner.head]}"
+            )
+        learner.check_observations(rows.get(keys.OBSERVATION))
     n = rows.shape[0]
     losses = torch.empty(config.num_steps)
     minibatch = config.batch_size is not None and config.batch_size < n

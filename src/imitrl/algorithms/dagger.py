@@ -53,6 +53,10 @@ class Constant:
 
     beta: float = 0.0
 
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.beta <= 1.0:
+            raise ValueError(f"Constant beta must be in [0, 1], got {self.beta}")
+
     def __call__(self, round_index: int) -> float:
         return self.beta
 
@@ -63,6 +67,10 @@ class Linear:
 
     rounds: int
 
+    def __post_init__(self) -> None:
+        if int(self.rounds) != self.rounds or self.rounds < 1:
+            raise ValueError(f"Linear rounds must be a positive integer, got {self.rounds!r}")
+
     def __call__(self, round_index: int) -> float:
         return max(0.0, 1.0 - round_index / self.rounds)
 
@@ -72,6 +80,10 @@ class Exponential:
     """``beta_i = p ** (i - 1)`` for ``i >= 1`` (Ross et al. 2011): round 1 is all expert."""
 
     p: float = 0.5
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.p <= 1.0:
+            raise ValueError(f"Exponential p must be in [0, 1], got {self.p}")
 
     def __call__(self, round_index: int) -> float:
         return self.p ** max(0, round_index - 1)
@@ -98,11 +110,14 @@ class EnvSource:
         env: the env.
         exploration: how the learner acts in rollouts (``DETERMINISTIC`` = greedy).
         max_steps: safety bound on steps per lane in one collection.
+        generator: source of the learner's sampling when ``exploration`` is
+            ``RANDOM`` (seed it for reproducible rounds); None: torch's global RNG.
     """
 
     env: EnvBase
     exploration: ExplorationType = ExplorationType.DETERMINISTIC
     max_steps: int = 100_000
+    generator: torch.Generator | None = None
 
     def collect(
         self,
@@ -121,6 +136,7 @@ class EnvSource:
             max_steps=self.max_steps,
             round_index=round_index,
             first_episode=first_episode,
+            generator=self.generator,
         )
 
 

@@ -359,11 +359,11 @@ def _schema_diff(old: dict, new: dict) -> str:
 
 
 def _check_action(action: torch.Tensor, spec: TensorSpec, key: str) -> None:
+    # the labels must carry the spec's own dtype: a learner acts in it, and an expert
+    # label of another dtype would only fail later, when the two are mixed in DAgger
+    if action.dtype != spec.dtype:
+        raise ValueError(f"{key!r} has dtype {action.dtype}, the action spec expects {spec.dtype}")
     if isinstance(spec, Categorical):
-        if action.dtype.is_floating_point or action.dtype == torch.bool:
-            raise ValueError(
-                f"{key!r} must hold integer actions for a discrete action space, got {action.dtype}"
-            )
         n = spec.space.n
         # rows carry the unbatched action shape: the spec's own, or its shape without
         # the leading env-batch dimension of a batched env's spec
@@ -377,19 +377,20 @@ def _check_action(action: torch.Tensor, spec: TensorSpec, key: str) -> None:
             bad = int(action.min()) if int(action.min()) < 0 else int(action.max())
             raise ValueError(f"{key!r} holds action {bad}, outside [0, {n})")
     elif isinstance(spec, Bounded):
-        low, high = spec.space.low, spec.space.high
-        if action.ndim < 2 or action.shape[-1] != spec.shape[-1]:
+        d = spec.shape[-1]
+        if action.ndim < 2 or action.shape[-1] != d:
+            raise ValueError(f"{key!r} has shape {tuple(action.shape[1:])}, expected (..., {d})")
+        # a batched env's spec repeats the bounds per lane: rows hold one lane's action
+        low, high = spec.space.low.reshape(-1, d), spec.space.high.reshape(-1, d)
+        if not bool((low == low[0]).all() and (high == high[0]).all()):
             raise ValueError(
-                f"{key!r} has shape {tuple(action.shape[1:])}, expected (..., {spec.shape[-1]})"
+                "the action spec's lanes have different bounds: pass one lane's spec "
+                "(env.action_spec_unbatched) to the buffer"
             )
+        low, high = low[0], high[0]
         if (action < low).any() or (action > high).any():
             raise ValueError(
                 f"{key!r} holds actions outside the bounds [{low.tolist()}, {high.tolist()}]"
             )
-    else:
-        if action.dtype != spec.dtype:
-            raise ValueError(
-                f"{key!r} has dtype {action.dtype}, the action spec expects {spec.dtype}"
-            )
-        if not spec.is_in(action):  # TorchRL specs check a leading batch of rows at once
-            raise ValueError(f"{key!r} holds actions outside {spec}")
+    elif not spec.is_in(action):  # TorchRL specs check a leading batch of rows at once
+        raise ValueError(f"{key!r} holds actions outside {spec}")

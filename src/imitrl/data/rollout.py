@@ -23,6 +23,7 @@ from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from imitrl import keys
+from imitrl.rng import rng_from
 
 __all__ = ["EpisodeSummary", "episode_returns", "rollout_episodes"]
 
@@ -43,6 +44,23 @@ def _lanes(env: EnvBase) -> int:
             f"envs with more than one batch dimension are not supported, got {tuple(env.batch_size)}"
         )
     return int(env.batch_size.numel()) if len(env.batch_size) else 1
+
+
+def _check_action(env: EnvBase, td: TensorDictBase) -> None:
+    """The policy's first action must have the env's action shape and dtype.
+
+    Envs do not check: a gymnasium env may silently read the first entry of a longer
+    action, or fail deep inside its own step.
+    """
+    spec = env.full_action_spec[env.action_key]
+    if env.action_key not in td.keys(include_nested=True):
+        raise ValueError(f"the policy did not write the env's action key {env.action_key!r}")
+    action = td.get(env.action_key)
+    if tuple(action.shape) != tuple(spec.shape) or action.dtype != spec.dtype:
+        raise ValueError(
+            f"the policy's action has shape {tuple(action.shape)} and dtype {action.dtype}; "
+            f"the env expects shape {tuple(spec.shape)} and dtype {spec.dtype}"
+        )
 
 
 def _quota(num_episodes: int, lanes: int) -> torch.Tensor:
@@ -71,6 +89,7 @@ def rollout_episodes(
     max_steps: int,
     round_index: int = 0,
     first_episode: int = 0,
+    generator: torch.Generator | None = None,
 ) -> TensorDict:
     """Play ``num_episodes`` whole episodes and return their transitions as rows.
 
@@ -85,6 +104,9 @@ def rollout_episodes(
             end by the env's own time limit).
         round_index: written to ``ROUND``.
         first_episode: id of the first episode (``buffer.next_episode``).
+        generator: source of the policy's sampling in ``RANDOM`` mode (torch
+            distributions draw from the global RNG; this runs them on ``generator``
+            instead and advances it). None: torch's global RNG.
 
     Returns:
         rows ``[R]`` with ``OBSERVATION, ACTION, EXPERT_ACTION, EXPERT_EXECUTED,
@@ -99,7 +121,7 @@ def rollout_episodes(
     quota = _quota(int(num_episodes), lanes)
     steps: list[TensorDictBase] = []
     finished = torch.zeros(lanes, dtype=torch.int64)
-    with torch.no_grad(), set_exploration_type(exploration):
+    with torch.no_grad(), set_exploration_type(exploration), rng_from(generator):
         td = env.reset()
         while bool((finished < quota).any()):
             if len(steps) >= max_steps:
@@ -107,6 +129,8 @@ def rollout_episodes(
                     f"episodes did not finish within max_steps={max_steps} steps per lane"
                 )
             td = policy(td)
+            if not steps:
+                _check_action(env, td)
             out, td = env.step_and_maybe_reset(td)
             for k in (keys.EXPERT_ACTION, keys.EXPERT_EXECUTED):
                 if k not in out.keys():
@@ -158,6 +182,7 @@ def episode_returns(
     exploration: ExplorationType,
     max_steps: int,
     success_fn: SuccessFn | None = None,
+    generator: torch.Generator | None = None,
 ) -> EpisodeSummary:
     """Play ``num_episodes`` whole episodes, keeping only returns, lengths and success.
 
@@ -177,7 +202,7 @@ def episode_returns(
     length = torch.zeros(lanes, dtype=torch.int64)
     finished = torch.zeros(lanes, dtype=torch.int64)
     lane_ids = torch.arange(lanes)
-    with torch.no_grad(), set_exploration_type(exploration):
+    with torch.no_grad(), set_exploration_type(exploration), rng_from(generator):
         td = env.reset()
         t = 0
         while bool((finished < quota).any()):
@@ -186,6 +211,8 @@ def episode_returns(
                     f"episodes did not finish within max_steps={max_steps} steps per lane"
                 )
             td = policy(td)
+            if t == 0:
+                _check_action(env, td)
             out, td = env.step_and_maybe_reset(td)
             nxt = out.get(keys.NEXT)
             running += nxt.get(keys.REWARD).reshape(lanes).double()

@@ -5,7 +5,8 @@ policies and experts use), whatever the id:
 
 * discrete action spaces use integer actions (``categorical_action_encoding=True``),
   not TorchRL's default one-hot;
-* float64 observations (every MuJoCo env) are cast to float32 by ``DoubleToFloat``;
+* float64 observations (every MuJoCo env) and float64 action boxes are cast to
+  float32 by ``DoubleToFloat``;
 * ``num_envs > 1`` steps the copies in this process through
   ``gymnasium.vector.SyncVectorEnv(..., autoreset_mode=DISABLED)`` wrapped by
   ``GymWrapper``. Not ``GymEnv(id, num_envs=N)``: in torchrl 0.14.1 that builds an
@@ -62,7 +63,7 @@ def _gym(env_id: str, max_episode_steps: int | None) -> gymnasium.Env:
 
 
 def _check_spaces(env: gymnasium.Env, env_id: str) -> tuple[bool, bool]:
-    """(discrete action, float64 observation); ValueError for spaces the library cannot use."""
+    """(discrete action, float64 observation or action); ValueError for spaces the library cannot use."""
     obs, act = env.observation_space, env.action_space
     if not isinstance(obs, (gymnasium.spaces.Box, gymnasium.spaces.Discrete)):
         raise ValueError(
@@ -72,7 +73,13 @@ def _check_spaces(env: gymnasium.Env, env_id: str) -> tuple[bool, bool]:
         raise ValueError(
             f"{env_id}: actions must be a Box or Discrete space, got {type(act).__name__}"
         )
-    return isinstance(act, gymnasium.spaces.Discrete), obs.dtype == np.float64
+    if isinstance(obs, gymnasium.spaces.Box) and len(obs.shape) != 1:
+        raise ValueError(
+            f"{env_id}: Box observations must be vectors [d], got shape {obs.shape} "
+            "(flatten them, e.g. with gymnasium.wrappers.FlattenObservation)"
+        )
+    discrete = isinstance(act, gymnasium.spaces.Discrete)
+    return discrete, obs.dtype == np.float64 or (not discrete and act.dtype == np.float64)
 
 
 def _single(env_id: str, frame_skip: int, max_episode_steps: int | None, seed: int) -> EnvBase:

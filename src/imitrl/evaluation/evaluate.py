@@ -19,6 +19,7 @@ from torchrl.envs.utils import ExplorationType
 from imitrl import keys
 from imitrl.data.rollout import SuccessFn, episode_returns
 from imitrl.envs.tabular_env import TabularEnv
+from imitrl.evaluation.statistics import t_interval
 from imitrl.evaluation.tabular import exact_values
 
 __all__ = ["Evaluation", "evaluate", "mean_ci", "wilson_interval"]
@@ -43,15 +44,17 @@ def wilson_interval(successes: int, n: int, confidence: float = 0.95) -> tuple[f
 
 
 def mean_ci(x: torch.Tensor, confidence: float = 0.95) -> tuple[float, float, float]:
-    """Mean and normal-approximation interval ``mean +- z * sd / sqrt(n)``."""
+    """Mean and Student-t interval ``mean +- t_{(1+c)/2, n-1} * sd / sqrt(n)``.
+
+    The t quantile keeps the coverage at small episode counts (a normal z covers 71%
+    at n = 2, 94% at n = 16). One value gives NaN bounds: no interval exists.
+    """
     x = x.double().reshape(-1)
     if x.numel() == 0:
         raise ValueError("need at least one value")
-    mean = float(x.mean())
-    if x.numel() == 1:
-        return mean, mean, mean
-    half = _z(confidence) * float(x.std(unbiased=True)) / math.sqrt(x.numel())
-    return mean, mean - half, mean + half
+    _z(confidence)  # validates the level
+    mean, lo, hi = t_interval(x.tolist(), confidence)
+    return mean, lo, hi
 
 
 @dataclass(frozen=True)
@@ -105,6 +108,7 @@ def evaluate(
     max_steps: int | None = None,
     success_fn: SuccessFn | None = None,
     confidence: float = 0.95,
+    generator: torch.Generator | None = None,
 ) -> Evaluation:
     """Evaluate ``policy`` over ``num_episodes`` whole episodes.
 
@@ -117,6 +121,8 @@ def evaluate(
         success_fn: end-of-episode success criterion; defaults to "entered a goal
             state" on a TabularEnv, none elsewhere.
         confidence: level of the intervals.
+        generator: source of the policy's sampling in ``RANDOM`` mode (seed it for
+            reproducible sampled evaluations); None: torch's global RNG.
     """
     if num_episodes < 1:
         raise ValueError(f"num_episodes must be positive, got {num_episodes}")
@@ -136,6 +142,7 @@ def evaluate(
         exploration=exploration,
         max_steps=max_steps,
         success_fn=success_fn,
+        generator=generator,
     )
     mean, lo, hi = mean_ci(summary.returns, confidence)
     result = {

@@ -21,7 +21,10 @@ def tabulate(
 
     Returns:
         ``[S]`` int64 actions for ``DETERMINISTIC``/``MODE``; ``[S, A]`` float64
-        probabilities for ``RANDOM`` (the module must have ``get_dist``).
+        probabilities for ``RANDOM``: the module's ``get_dist`` logits, normalised in
+        float64 (float32 probabilities miss 1 by ~1e-7). A module without ``get_dist``
+        (an expert, a table lookup) must act the same sampled as greedy; its action
+        is then the policy (checked on every state, else ``ValueError``).
     """
     td = TensorDict({keys.OBSERVATION: torch.arange(num_states)}, batch_size=[num_states])
     with torch.no_grad():
@@ -30,11 +33,18 @@ def tabulate(
                 return policy(td).get(keys.ACTION).long()
         if exploration is ExplorationType.RANDOM:
             get_dist = getattr(policy, "get_dist", None)
-            if get_dist is None:
+            if get_dist is not None:
+                return torch.softmax(get_dist(td).logits.double(), dim=-1)
+            with set_exploration_type(ExplorationType.DETERMINISTIC):
+                greedy = policy(td.clone()).get(keys.ACTION).long()
+            with torch.random.fork_rng(devices=[]), set_exploration_type(exploration):
+                sampled = policy(td.clone()).get(keys.ACTION).long()
+            if not torch.equal(greedy, sampled):
                 raise ValueError(
-                    "a sampled (RANDOM) policy can only be tabulated through get_dist()"
+                    "a sampled (RANDOM) policy without get_dist() cannot be tabulated: its "
+                    "sampled actions differ from its greedy ones"
                 )
-            return get_dist(td).probs.double()
+            return greedy
     raise ValueError(f"unsupported exploration type {exploration}")
 
 

@@ -43,9 +43,15 @@ from imitrl.policies.distributions import GreedyCategorical
 from imitrl.policies.modules import Module, Value
 from imitrl.rng import rng_from
 
-__all__ = ["HEADS", "ActorCritic"]
+__all__ = ["HEADS", "HEAD_LOSSES", "ActorCritic"]
 
 HEADS = ("categorical", "tanh_normal", "deterministic")
+HEAD_LOSSES = {
+    "categorical": ("nll",),
+    "tanh_normal": ("nll",),
+    "deterministic": ("mse", "l1", "smooth_l1"),
+}
+"""the ``BehaviorCloningLoss`` types each head can be fitted with (the table above)"""
 
 
 class _Squash(nn.Module):
@@ -227,6 +233,11 @@ class ActorCritic(nn.Module):
                 "a deterministic head has no action distribution (use loss mse/l1/smooth_l1)"
             )
         return self.policy.get_dist(tensordict)
+
+    def check_observations(self, obs: torch.Tensor) -> None:
+        """Raise ``ValueError`` unless ``obs`` fits this policy (integer states in range, or
+        vectors of its trailing shape, no NaN)."""
+        self._obs(obs)
 
     # --------------------------------------------------------- array boundary
     def _obs(self, obs: Any) -> tuple[torch.Tensor, str]:

@@ -168,6 +168,10 @@ class TabularMDP:
     ) -> TabularMDP:
         """Read the model of a gymnasium toy-text env (anything with ``unwrapped.P``).
 
+        The model is exactly ``unwrapped.P``: dynamics an env applies outside it (Taxi's
+        ``fickle_passenger``) are not in the kernel, and its exact values do not
+        describe that env.
+
         Args:
             env: an env id (``"FrozenLake-v1"``) or a gymnasium env instance.
             gamma: discount.

@@ -297,6 +297,17 @@ def run_study(config: StudyConfig, *, echo: bool = True) -> dict:
             f"{mdp.name!r} is registered without a time limit: give one with --max-steps "
             "(StudyConfig.max_steps); every success rate here is within a horizon"
         )
+    bad = [s for s in config.probe_states if not 0 <= s < mdp.num_states]
+    if bad:
+        raise ValueError(
+            f"--probe-states {bad} outside the {mdp.num_states} states of {mdp.name!r}"
+        )
+    starts = int((mdp.initial > 0).sum())
+    if config.protocol == "batched" and starts != 1:
+        raise ValueError(
+            f"--protocol batched pins each lane to one start state, and {mdp.name!r} has "
+            f"{starts}: run it with --protocol faithful"
+        )
     stochastic = bool((mdp.P.amax(-1) < 1).any())
     limit = "no time limit" if mdp.max_steps is None else f"time limit {mdp.max_steps}"
     rep.line(
