@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+import logging
 import os
 import re
 from pathlib import Path
@@ -33,11 +34,19 @@ def run(name: str, cwd: Path) -> tuple[dict, list[str]]:
     out = io.StringIO()
     here = os.getcwd()
     os.chdir(cwd)
+    # torchrl logs INFO lines to stdout (storage initialisation): only the block's prints
+    # count. Imported first: torchrl sets its logger's level when imported.
+    import torchrl  # noqa: F401
+
+    log = logging.getLogger("torchrl")
+    level = log.level
+    log.setLevel(logging.WARNING)
     try:
         with contextlib.redirect_stdout(out):
             exec(compile(code, f"README.md:{name}", "exec"), namespace)
     finally:
         os.chdir(here)
+        log.setLevel(level)
     return namespace, out.getvalue().split()
 
 
