@@ -33,6 +33,23 @@ def rows(n, first_episode=0, round_index=0, seed=0, obs_dtype=torch.int64):
     )
 
 
+def cont(a: torch.Tensor, episode: int = 0) -> TensorDict:
+    """One episode of rows with continuous actions ``a`` [n, d] and 3-dim observations."""
+    n = a.shape[0]
+    return TensorDict(
+        {
+            keys.OBSERVATION: torch.zeros(n, 3),
+            keys.EXPERT_ACTION: a,
+            keys.ACTION: a.clone(),
+            keys.EXPERT_EXECUTED: torch.ones(n, dtype=torch.bool),
+            keys.EPISODE: torch.full((n,), episode, dtype=torch.long),
+            keys.ROUND: torch.zeros(n, dtype=torch.long),
+            keys.STEP: torch.arange(n),
+        },
+        [n],
+    )
+
+
 def test_k_rounds_hold_exactly_their_union_and_reload_identically(tmp_path):
     buf = DemonstrationBuffer(capacity=8)
     parts = []
@@ -153,21 +170,6 @@ def test_continuous_actions_checked_against_bounds_and_shape():
     spec = Bounded(-1.0, 1.0, shape=(2,))
     buf = DemonstrationBuffer(action_spec=spec)
 
-    def cont(a):
-        n = a.shape[0]
-        return TensorDict(
-            {
-                keys.OBSERVATION: torch.zeros(n, 3),
-                keys.EXPERT_ACTION: a,
-                keys.ACTION: a.clone(),
-                keys.EXPERT_EXECUTED: torch.ones(n, dtype=torch.bool),
-                keys.EPISODE: torch.zeros(n, dtype=torch.long),
-                keys.ROUND: torch.zeros(n, dtype=torch.long),
-                keys.STEP: torch.arange(n),
-            },
-            [n],
-        )
-
     with pytest.raises(ValueError, match="outside the bounds"):
         buf.extend(cont(torch.tensor([[0.0, 1.5]])))
     with pytest.raises(ValueError, match="expected"):
@@ -233,21 +235,6 @@ def test_action_dtype_must_be_the_specs_and_batched_bounds_are_per_lane():
     ):
         discrete.extend(wrong)
     assert len(discrete) == 0
-
-    def cont(a, episode=0):
-        n = a.shape[0]
-        return TensorDict(
-            {
-                keys.OBSERVATION: torch.zeros(n, 3),
-                keys.EXPERT_ACTION: a,
-                keys.ACTION: a.clone(),
-                keys.EXPERT_EXECUTED: torch.ones(n, dtype=torch.bool),
-                keys.EPISODE: torch.full((n,), episode, dtype=torch.long),
-                keys.ROUND: torch.zeros(n, dtype=torch.long),
-                keys.STEP: torch.arange(n),
-            },
-            [n],
-        )
 
     box = Bounded(-1.0, 1.0, shape=(2,))
     with pytest.raises(
