@@ -126,16 +126,12 @@ def test_fit_rejects_a_loss_the_head_cannot_take_and_foreign_observations():
         },
         [16],
     )
-    with pytest.raises(ValueError, match="loss_type 'nll' does not fit a 'deterministic' head"):
-        fit_bc(ActorCritic.mlp(3, spec, head="deterministic"), cont, BCConfig(num_steps=1))
-    with pytest.raises(ValueError, match="loss_type 'mse' does not fit a 'tanh_normal' head"):
-        fit_bc(ActorCritic.mlp(3, spec), cont, BCConfig(num_steps=1, loss_type="mse"))
+    with pytest.raises(ValueError, match="loss 'nll' does not fit a 'deterministic' head"):
+        ActorCritic.mlp(3, spec, head="deterministic", loss="nll")
+    with pytest.raises(ValueError, match="loss 'mse' does not fit a 'tanh_normal' head"):
+        ActorCritic.mlp(3, spec, head="tanh_normal", loss="mse")
     with pytest.raises(ValueError, match=r"trailing shape \(5,\), got shape \(16, 3\)"):
-        fit_bc(
-            ActorCritic.mlp(5, spec, head="deterministic"),
-            cont,
-            BCConfig(num_steps=1, loss_type="mse"),
-        )
+        fit_bc(ActorCritic.mlp(5, spec, head="deterministic"), cont, BCConfig(num_steps=1))
     states = TensorDict(
         {keys.OBSERVATION: torch.tensor([0, 5, 20]), keys.EXPERT_ACTION: torch.tensor([0, 1, 1])},
         [3],
@@ -162,7 +158,7 @@ def test_sampled_dagger_rounds_are_seeded_by_the_source_generator(lake, expert_t
             Expert.from_table(expert_table),
             lambda: ActorCritic.tabular(16, 4),
             buf,
-            DAggerConfig(rounds=3, episodes_per_round=4, fit=BCConfig(num_steps=10)),
+            DAggerConfig(rounds=3, episodes_per_round=4, bc=BCConfig(num_steps=10)),
         )
         return res.buffer.data.clone()
 
@@ -199,7 +195,7 @@ def test_same_seed_same_numbers(lake, expert_table):
         res, _ = _run(lake, expert_table, seed, beta=Constant(0.5))
         return (
             res.buffer.data.clone(),
-            [r.fit.losses for r in res.rounds],
+            [r.bc.losses for r in res.rounds],
             success_probability(lake, res.learner.greedy_table()),
         )
 
@@ -238,7 +234,7 @@ def test_warm_start_keeps_one_learner_and_scratch_refits(lake, expert_table):
             Expert.from_table(expert_table),
             lambda: ActorCritic.tabular(16, 4),
             buf,
-            DAggerConfig(rounds=3, warm_start=warm, fit=BCConfig(num_steps=20)),
+            DAggerConfig(rounds=3, warm_start=warm, bc=BCConfig(num_steps=20)),
             on_fit=lambda k, learner: seen.append(
                 (learner, int(learner.opt_pi.state_dict()["state"][0]["step"]))
             ),

@@ -94,7 +94,7 @@ def test_fit_and_dagger_extend_the_same_buffer_without_loss(lake, expert_table):
         expert,
         lambda: ActorCritic.tabular(16, 4),
         buf,
-        DAggerConfig(rounds=3, fit=BCConfig(num_steps=50)),
+        DAggerConfig(rounds=3, bc=BCConfig(num_steps=50)),
     )
     assert (buf.data[: snapshot.shape[0]] == snapshot).all()
     assert len(buf) == snapshot.shape[0] + sum(r.rows_collected for r in res.rounds)

@@ -49,12 +49,11 @@ needs_mujoco = pytest.mark.skipif(
 )
 
 
-def learner_for(env, *, head: str | None = None, seed: int = 0, hidden=(64, 64)) -> ActorCritic:
+def learner_for(
+    env, *, head: str | None = None, loss: str | None = None, seed: int = 0, hidden=(64, 64)
+) -> ActorCritic:
     """An MLP for ``env``'s spaces; the same function serves every env."""
-    spec = env.action_spec_unbatched
-    action = int(spec.space.n) if isinstance(spec, Categorical) else spec
-    obs_dim = env.observation_spec[keys.OBSERVATION].shape[-1]
-    return ActorCritic.mlp(obs_dim, action, head=head, hidden=hidden, seed=seed)
+    return ActorCritic.for_env(env, head=head, loss=loss, hidden=hidden, seed=seed)
 
 
 # ------------------------------------------------------------------------ make_env
@@ -215,17 +214,17 @@ def test_bc_and_dagger_loop_on_a_tiny_budget(env_id, build, head, loss):
     env = make_env(env_id, seed=0, num_envs=2, max_episode_steps=12)
     buffer = DemonstrationBuffer(action_spec=env.action_spec_unbatched)
     buffer.extend(rollout_episodes(env, expert.as_actor(), 2, exploration=DET, max_steps=100))
-    fit = BCConfig(num_steps=3, batch_size=8, loss_type=loss)
-    bc = learner_for(env, head=head)
+    fit = BCConfig(num_steps=3, batch_size=8)
+    bc = learner_for(env, head=head, loss=loss)
     assert fit_bc(bc, buffer, fit).num_rows == len(buffer)
     # sampled rollouts for the stochastic head, greedy otherwise; beta mixes in the expert
     exploration = RANDOM if head == "tanh_normal" else DET
     result = dagger(
         EnvSource(env, exploration=exploration, max_steps=100),
         expert,
-        lambda: learner_for(env, head=head),
+        lambda: learner_for(env, head=head, loss=loss),
         buffer,
-        DAggerConfig(rounds=3, episodes_per_round=2, beta=Exponential(0.5), fit=fit),
+        DAggerConfig(rounds=3, episodes_per_round=2, beta=Exponential(0.5), bc=fit),
     )
     data = buffer.data
     assert sorted(data.get(keys.ROUND).unique().tolist()) == [0, 1, 2]
@@ -255,7 +254,7 @@ def test_dagger_mixes_on_an_unbatched_env():
             rounds=2,
             episodes_per_round=3,
             beta=Constant(0.5),
-            fit=BCConfig(num_steps=2, loss_type="nll"),
+            bc=BCConfig(num_steps=2),
         ),
     )
     executed = buffer.data.get(keys.EXPERT_EXECUTED)[buffer.data.get(keys.ROUND) == 1]
@@ -276,9 +275,9 @@ def _bc_vs_dagger(env_id, expert, *, head, loss, demo_steps, max_steps, rounds, 
     result = dagger(
         EnvSource(source, max_steps=10 * max_steps),
         expert,
-        lambda: learner_for(source, head=head),
+        lambda: learner_for(source, head=head, loss=loss),
         buffer,
-        DAggerConfig(rounds=rounds + 1, episodes_per_round=per_round, fit=fit),
+        DAggerConfig(rounds=rounds + 1, episodes_per_round=per_round, bc=fit),
         on_fit=lambda k, learner: fits.setdefault(k, learner),
     )
     eval_env = make_env(env_id, seed=2, num_envs=30, max_episode_steps=max_steps)
@@ -293,7 +292,7 @@ def _bc_vs_dagger(env_id, expert, *, head, loss, demo_steps, max_steps, rounds, 
 
 def test_dagger_beats_bc_discrete_actions():
     # CartPole-v1 from the first 25 steps of one demonstration
-    fit = BCConfig(num_steps=500, batch_size=256, loss_type="nll")
+    fit = BCConfig(num_steps=500, batch_size=256)
     r = _bc_vs_dagger(
         "CartPole-v1",
         cartpole_expert(),
@@ -313,7 +312,7 @@ def test_dagger_beats_bc_discrete_actions():
 @needs_mujoco
 def test_dagger_beats_bc_continuous_actions():
     # InvertedPendulum-v5 (200-step episodes) from one demonstration, deterministic head, MSE
-    fit = BCConfig(num_steps=500, batch_size=256, loss_type="mse")
+    fit = BCConfig(num_steps=500, batch_size=256)
     r = _bc_vs_dagger(
         "InvertedPendulum-v5",
         inverted_pendulum_expert(),

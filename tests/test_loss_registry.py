@@ -78,7 +78,7 @@ def test_every_entry_builds_acts_and_trains(name, tname):
     total = sum(v for k, v in out.items() if k.startswith("loss_"))
     assert total.ndim == 0 and total.requires_grad
     # trains through fit_bc: the loss goes down on a fixed batch
-    result = fit_bc(learner, rows, BCConfig(num_steps=60, seed=0), loss_module=learner.loss)
+    result = fit_bc(learner, rows, BCConfig(num_steps=60, seed=0))
     assert result.losses[-10:].mean() < result.losses[:10].mean()
 
 
@@ -110,7 +110,7 @@ def test_register_rejects_duplicates_and_unknown_requirements():
 
     @registry.register("test_bad_return", actions="discrete", summary="returns the wrong type")
     def _(task, config):
-        return ActorCritic.tabular(2, 2)
+        return ActorCritic.tabular(2, 2).policy  # a policy module, not a Learner
 
     try:
         with pytest.raises(ValueError, match="expected a Learner"):
@@ -194,17 +194,27 @@ def test_diffusion_policy_maps_bounds_and_is_reproducible():
 
 
 # ----------------------------------------------------------- fit_bc / dagger hooks
-def test_fit_bc_with_the_default_loss_module_is_unchanged():
+def test_a_learner_given_its_default_loss_explicitly_fits_identically():
     rows = _rows(TASKS["discrete_vector"], n=128)
     cfg = BCConfig(num_steps=30, batch_size=32, seed=4)
-    a, b = ActorCritic.mlp(4, 3, seed=0), ActorCritic.mlp(4, 3, seed=0)
-    ra = fit_bc(a, rows, cfg)
-    rb = fit_bc(b, rows, cfg, loss_module=BehaviorCloningLoss(b.policy, loss_type="nll"))
-    assert torch.equal(ra.losses, rb.losses)
+    a = ActorCritic.mlp(4, 3, seed=0)
+    policy_b = ActorCritic.mlp(4, 3, seed=0)
+    b = ActorCritic(
+        policy_b.policy,
+        policy_b.value,
+        head="categorical",
+        loss=BehaviorCloningLoss(policy_b.policy, loss_type="nll"),
+        lr=policy_b.lr,
+        observation_shape=(4,),
+        normalizer=policy_b.normalizer,
+    )
+    assert torch.equal(fit_bc(a, rows, cfg).losses, fit_bc(b, rows, cfg).losses)
     loss = BehaviorCloningLoss(b.policy, loss_type="nll")
     loss.set_keys(label="other")
-    with pytest.raises(ValueError, match="set_keys"):
-        fit_bc(b, rows, cfg, loss_module=loss)
+    with pytest.raises(ValueError, match=r"rows lack \['other'\]"):
+        fit_bc(Learner(b.policy, loss, b.opt_pi), rows, cfg)
+    with pytest.raises(ValueError, match="SummedLoss"):
+        Learner(b.policy, torch.nn.MSELoss(), b.opt_pi)
 
 
 def test_dagger_trains_registry_learners_through_the_fit_hook(lake, expert_table):
@@ -220,9 +230,9 @@ def test_dagger_trains_registry_learners_through_the_fit_hook(lake, expert_table
     fitted = []
     cfg = BCConfig(num_steps=50)
 
-    def fit(learner, buf):
+    def train(learner, buf):
         fitted.append(len(buf))
-        return fit_bc(learner, buf, cfg, loss_module=learner.loss)
+        return fit_bc(learner, buf, cfg)
 
     result = dagger(
         EnvSource(env),
@@ -230,7 +240,7 @@ def test_dagger_trains_registry_learners_through_the_fit_hook(lake, expert_table
         lambda: registry.build("cross_entropy_entropy", task, LearnerConfig(lr=0.1)),
         buffer,
         DAggerConfig(rounds=3, episodes_per_round=3),
-        fit=fit,
+        train=train,
     )
     assert fitted == [r.rows_trained for r in result.rounds]
     assert fitted[0] < fitted[1] < fitted[2]
@@ -252,7 +262,7 @@ def test_diffusion_keeps_both_modes_where_mse_averages_them():
     fractions = {}
     for name in ("mse", "diffusion"):
         learner = registry.build(name, task, cfg)
-        fit_bc(learner, rows, fit, loss_module=learner.loss)
+        fit_bc(learner, rows, fit)
         with torch.no_grad(), set_exploration_type(learner.exploration):
             a = learner.policy(test_obs.clone())[keys.ACTION]
         fractions[name] = (

@@ -172,11 +172,7 @@ def test_fit_rejects_non_finite_continuous_labels():
         [3],
     )
     with pytest.raises(ValueError, match="NaN or inf"):
-        fit_bc(
-            ActorCritic.mlp(4, spec, head="deterministic"),
-            rows,
-            BCConfig(num_steps=1, loss_type="mse"),
-        )
+        fit_bc(ActorCritic.mlp(4, spec, head="deterministic", loss="mse"), rows, BCConfig(num_steps=1))
 
 
 def test_log_prob_rejects_out_of_range_actions():
@@ -191,7 +187,7 @@ def test_tanh_normal_nll_of_labels_on_the_bounds_is_finite_and_pulls_towards_the
     rows = TensorDict(
         {keys.OBSERVATION: torch.zeros(64, 3), keys.EXPERT_ACTION: torch.full((64, 1), 2.0)}, [64]
     )
-    fit = fit_bc(ac, rows, BCConfig(num_steps=200, loss_type="nll"))
+    fit = fit_bc(ac, rows, BCConfig(num_steps=200))
     assert torch.isfinite(fit.losses).all() and fit.losses[0] < 1.0  # not TorchRL's clamped -log(0)
     assert (
         float(ac.act_greedy(np.zeros((1, 3), np.float32))[0, 0]) > 1.99

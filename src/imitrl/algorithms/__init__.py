@@ -1,6 +1,6 @@
 """Imitation algorithms: behaviour cloning and DAgger."""
 
-from imitrl.algorithms.bc import BCConfig, FitResult, fit_bc
+from imitrl.algorithms.bc import BCConfig, BCResult, fit_bc
 from imitrl.algorithms.dagger import (
     Constant,
     DAggerConfig,
@@ -15,13 +15,13 @@ from imitrl.algorithms.dagger import (
 
 __all__ = [
     "BCConfig",
+    "BCResult",
     "Constant",
     "DAggerConfig",
     "DAggerResult",
     "EnvSource",
     "EpisodeSource",
     "Exponential",
-    "FitResult",
     "Linear",
     "RoundRecord",
     "dagger",

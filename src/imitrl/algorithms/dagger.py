@@ -22,14 +22,15 @@ import torch
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase
-from torchrl.envs.utils import ExplorationType
+from torchrl.envs.utils import ExplorationType, exploration_type, set_exploration_type
+from torchrl.record.loggers import Logger
 from tqdm.auto import tqdm
 
 from imitrl import keys
-from imitrl.algorithms.bc import BCConfig, FitResult, fit_bc
+from imitrl.algorithms.bc import BCConfig, BCResult, fit_bc
 from imitrl.data.buffer import DemonstrationBuffer
 from imitrl.data.rollout import rollout_episodes
-from imitrl.policies.actor_critic import ActorCritic
+from imitrl.policies.learner import Learner
 from imitrl.policies.mixture import BetaMixer, behaviour_policy
 
 __all__ = [
@@ -108,14 +109,15 @@ class EnvSource:
 
     Attributes:
         env: the env.
-        exploration: how the learner acts in rollouts (``DETERMINISTIC`` = greedy).
+        exploration: how the learner acts in rollouts (``DETERMINISTIC`` = greedy);
+            None = as the learner says (``dagger`` collects under ``learner.exploration``).
         max_steps: safety bound on steps per lane in one collection.
         generator: source of the learner's sampling when ``exploration`` is
             ``RANDOM`` (seed it for reproducible rounds); None: torch's global RNG.
     """
 
     env: EnvBase
-    exploration: ExplorationType = ExplorationType.DETERMINISTIC
+    exploration: ExplorationType | None = None
     max_steps: int = 100_000
     generator: torch.Generator | None = None
 
@@ -132,7 +134,7 @@ class EnvSource:
             self.env,
             behaviour,
             num_episodes,
-            exploration=self.exploration,
+            exploration=self.exploration or exploration_type(),
             max_steps=self.max_steps,
             round_index=round_index,
             first_episode=first_episode,
@@ -152,7 +154,7 @@ class DAggerConfig:
     """probability of executing the expert's action in relabel round i"""
     warm_start: bool = False
     """keep training one learner (True) or refit a fresh one each round (False, the section)"""
-    fit: BCConfig = field(default_factory=BCConfig)
+    bc: BCConfig = field(default_factory=BCConfig)
     """the behaviour-cloning fit of each round"""
     seed: int = 0
     """seed of the mixture's coin flips"""
@@ -173,7 +175,8 @@ class RoundRecord:
     """rows the round's learner was fitted on"""
     expert_queries: int
     """expert labels used so far (= rows trained on)"""
-    fit: FitResult
+    bc: BCResult
+    """the round's fit"""
     beta_next: float | None = None
     """beta of the relabel round collected after this fit"""
     rows_collected: int = 0
@@ -184,7 +187,7 @@ class RoundRecord:
 class DAggerResult:
     """What :func:`dagger` returns."""
 
-    learner: ActorCritic
+    learner: Learner
     """the last round's learner"""
     rounds: list[RoundRecord]
     """one record per fit"""
@@ -195,52 +198,69 @@ class DAggerResult:
 def dagger(
     source: EpisodeSource,
     expert: TensorDictModuleBase,
-    make_learner: Callable[[], ActorCritic],
+    make_learner: Callable[[], Learner],
     buffer: DemonstrationBuffer,
     config: DAggerConfig = DAggerConfig(),
     *,
-    on_fit: Callable[[int, ActorCritic], None] | None = None,
-    fit: Callable[[ActorCritic, DemonstrationBuffer], FitResult] | None = None,
+    on_fit: Callable[[int, Learner], None] | None = None,
+    train: Callable[[Learner, DemonstrationBuffer], BCResult] | None = None,
     progress: bool = False,
+    logger: Logger | None = None,
 ) -> DAggerResult:
     """Run DAgger on top of the demonstrations already in ``buffer`` (extended in place).
 
     Args:
         source: plays the behaviour policy (an :class:`EnvSource` or a faithful stream).
         expert: writes ``EXPERT_ACTION`` for any observation.
-        make_learner: builds a fresh learner (called once with ``warm_start``).
+        make_learner: builds a fresh :class:`~imitrl.policies.Learner` (``ActorCritic``,
+            a registry learner; called once with ``warm_start``). Each round's learner
+            acts in the rollouts as its ``exploration`` says.
         buffer: demonstrations (round 0), extended with every relabel round.
         config: rounds, episodes per round, beta schedule, fit.
         on_fit: called as ``on_fit(round, learner)`` after each fit, before collection.
-        fit: fits a round's learner on the buffer, ``fit(learner, buffer) -> FitResult``;
-            None = ``fit_bc(learner, buffer, config.fit)``. With a registry learner:
-            ``lambda learner, buffer: fit_bc(learner, buffer, config.fit, loss_module=learner.loss)``.
-        progress: progress bar over rounds.
+        train: fits a round's learner on the buffer, ``train(learner, buffer) -> BCResult``;
+            None = ``fit_bc(learner, buffer, config.bc)``.
+        progress: progress bar over rounds (on stderr).
+        logger: a TorchRL logger: each round's fit losses (``bc/loss``, steps counted
+            across rounds), rows and expert queries (``dagger/*``, step = round).
     """
     if len(buffer) == 0:
         raise ValueError("DAgger starts from demonstrations: the buffer is empty")
     mixer = BetaMixer(0.0, generator=torch.Generator().manual_seed(config.seed))
-    learner: ActorCritic | None = None
+    learner: Learner | None = None
     records: list[RoundRecord] = []
+    bc_step = 0
     for k in tqdm(range(config.rounds), desc="dagger", disable=not progress, leave=False):
         if learner is None or not config.warm_start:
             learner = make_learner()
-        result = fit_bc(learner, buffer, config.fit) if fit is None else fit(learner, buffer)
+            if not isinstance(learner, Learner):
+                raise ValueError(
+                    f"make_learner must return an imitrl Learner, got {type(learner).__name__}"
+                )
+        if train is None:
+            result = fit_bc(learner, buffer, config.bc, logger=logger, log_step=bc_step)
+        else:
+            result = train(learner, buffer)
+        bc_step += result.losses.numel()
         record = RoundRecord(
-            round=k, rows_trained=len(buffer), expert_queries=len(buffer), fit=result
+            round=k, rows_trained=len(buffer), expert_queries=len(buffer), bc=result
         )
+        if logger is not None:
+            logger.log_scalar("dagger/rows", float(len(buffer)), step=k)
+            logger.log_scalar("dagger/final_loss", result.final_loss, step=k)
         records.append(record)
         if on_fit is not None:
             on_fit(k, learner)
         if k + 1 < config.rounds:
             mixer.beta = config.beta(k + 1)
             behaviour = behaviour_policy(expert, learner.policy, mixer)
-            rows = source.collect(
-                behaviour,
-                config.episodes_per_round,
-                round_index=k + 1,
-                first_episode=buffer.next_episode,
-            )
+            with set_exploration_type(learner.exploration):  # what EnvSource(exploration=None) uses
+                rows = source.collect(
+                    behaviour,
+                    config.episodes_per_round,
+                    round_index=k + 1,
+                    first_episode=buffer.next_episode,
+                )
             buffer.extend(rows)
             record.beta_next = mixer.beta
             record.rows_collected = rows.shape[0]

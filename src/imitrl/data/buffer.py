@@ -38,6 +38,7 @@ from torchrl.data import Bounded, Categorical, ReplayBuffer, TensorSpec
 from torchrl.data.replay_buffers import LazyTensorStorage, SamplerWithoutReplacement
 
 from imitrl import keys
+from imitrl.compat import set_writer_cursor, writer_cursor
 
 __all__ = ["REQUIRED_KEYS", "DemonstrationBuffer", "GrowingTensorStorage"]
 
@@ -153,10 +154,10 @@ class DemonstrationBuffer:
         n = rows.shape[0]
         before = len(self)
         grew = self.storage.reserve(n)
-        if grew or self.rb._writer._cursor != before:
+        if grew or writer_cursor(self.rb) != before:
             # After a reallocation the round-robin writer must continue at the end,
             # not at its wrapped cursor (torchrl's writer computes cursor % max_size).
-            self.rb._writer._cursor = before
+            set_writer_cursor(self.rb, before)
         index = self.rb.extend(rows)
         if len(self) != before + n:  # guard: nothing may have been overwritten
             raise RuntimeError(f"buffer write lost rows: had {before}, wrote {n}, now {len(self)}")
@@ -239,10 +240,6 @@ class DemonstrationBuffer:
     def rounds(self) -> Iterable[int]:
         """The DAgger rounds present in the buffer, sorted (0 = demonstrations)."""
         return sorted(set(self.data[keys.ROUND].tolist()))
-
-    def expert_queries(self) -> int:
-        """Number of expert labels in the buffer (every row is one query)."""
-        return len(self)
 
     # -------------------------------------------------------------- save/load
     def save(
@@ -336,11 +333,12 @@ _FORMAT = "imitrl.DemonstrationBuffer/2"
 
 
 def _learner_components(learner: torch.nn.Module) -> dict[str, Any]:
+    """The learner's weights and, for an imitrl ``Learner``, every optimizer it declares."""
+    from imitrl.policies.learner import Learner  # policies import the buffer's users, not it
+
     out: dict[str, Any] = {"learner": learner}
-    for name in ("opt_pi", "opt_v"):
-        opt = getattr(learner, name, None)
-        if opt is not None:
-            out[name] = opt
+    if isinstance(learner, Learner):
+        out.update(learner.optimizers())
     return out
 
 

@@ -18,9 +18,9 @@ from collections.abc import Callable
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule
-from torchrl.objectives import LossModule
 
 from imitrl import keys
+from imitrl.objectives.base import ImitationLoss
 from imitrl.objectives.bc import BehaviorCloningLoss
 
 __all__ = ["Advantage", "AdvantageWeightedLoss"]
@@ -29,7 +29,7 @@ Advantage = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 """``A(observation [N, ...], action [N, ...]) -> [N]`` weights"""
 
 
-class AdvantageWeightedLoss(LossModule):
+class AdvantageWeightedLoss(ImitationLoss):
     """``-mean_i A(s_i, a_i) log pi(a_i | s_i)`` with ``A`` computed from each row.
 
     Args:
@@ -50,9 +50,6 @@ class AdvantageWeightedLoss(LossModule):
         self.bc = BehaviorCloningLoss(actor, loss_type="nll", weighted=True)
         self.advantage = advantage
 
-    def _forward_value_estimator_keys(self, **kwargs) -> None:
-        pass
-
     @property
     def in_keys(self):
         return [k for k in self.bc.in_keys if k != self.bc.tensor_keys.weight]
@@ -60,6 +57,15 @@ class AdvantageWeightedLoss(LossModule):
     @in_keys.setter
     def in_keys(self, values):
         pass
+
+    @property
+    def label_key(self):
+        """The inner :class:`BehaviorCloningLoss`'s label key."""
+        return self.bc.label_key
+
+    def check_labels(self, rows: TensorDictBase) -> None:
+        """The inner :class:`BehaviorCloningLoss`'s label checks."""
+        self.bc.check_labels(rows)
 
     def set_keys(self, **kwargs) -> None:
         """Remap keys of the inner :class:`BehaviorCloningLoss` (``label``)."""

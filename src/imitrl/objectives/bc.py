@@ -32,9 +32,9 @@ import torch.nn.functional as F
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModule
 from tensordict.utils import NestedKey
-from torchrl.objectives import LossModule
 
 from imitrl import keys
+from imitrl.objectives.base import ImitationLoss
 
 __all__ = ["LOSS_TYPES", "BehaviorCloningLoss"]
 
@@ -46,7 +46,7 @@ _REGRESSION = {
 }
 
 
-class BehaviorCloningLoss(LossModule):
+class BehaviorCloningLoss(ImitationLoss):
     """``mean_i w_i * l(pi(.|s_i), a*_i)`` for a policy module.
 
     Args:
@@ -79,6 +79,7 @@ class BehaviorCloningLoss(LossModule):
     default_keys = _AcceptedKeys
     tensor_keys: _AcceptedKeys
     out_keys = ["loss_bc"]
+    supports_weights = True
 
     def __init__(
         self,
@@ -107,9 +108,6 @@ class BehaviorCloningLoss(LossModule):
             _categorical_param_modules(actor) if loss_type == "nll" else None,
         )
 
-    def _forward_value_estimator_keys(self, **kwargs) -> None:
-        pass
-
     @property
     def in_keys(self):
         extra = [self.tensor_keys.label] + ([self.tensor_keys.weight] if self.weighted else [])
@@ -137,12 +135,9 @@ class BehaviorCloningLoss(LossModule):
         Finite values; for a categorical actor integer labels with one entry per row,
         in ``[0, num_actions)``; for the regression losses the prediction's shape.
         """
+        super().check_labels(tensordict)
         key = self.tensor_keys.label
-        if key not in tensordict.keys(include_nested=True):
-            raise ValueError(f"rows lack the label key {key!r}")
         label = tensordict.get(key)
-        if label.dtype.is_floating_point and not torch.isfinite(label).all():
-            raise ValueError(f"labels under {key!r} contain NaN or inf")
         if self._logits_modules is None and not (
             self.loss_type == "nll" and not label.dtype.is_floating_point
         ):
@@ -239,9 +234,21 @@ class BehaviorCloningLoss(LossModule):
             )
         return (w * losses).mean()
 
-    def objective(self, tensordict: TensorDictBase) -> torch.Tensor:
-        """The scalar ``loss_bc`` alone (what a training loop differentiates)."""
-        return self.reduce(self.per_row(tensordict)[0], tensordict)
+    def objective(
+        self, tensordict: TensorDictBase, weights: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """The scalar ``loss_bc`` alone (what a training loop differentiates).
+
+        ``weights`` (``[N]``, data) replaces the weight key: ``mean_i w_i l_i``.
+        """
+        losses = self.per_row(tensordict)[0]
+        if weights is None:
+            return self.reduce(losses, tensordict)
+        if weights.shape != losses.shape:
+            raise ValueError(
+                f"weights {tuple(weights.shape)} must have one entry per row {tuple(losses.shape)}"
+            )
+        return (weights.detach().to(losses.dtype) * losses).mean()
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         losses, out = self.per_row(tensordict)

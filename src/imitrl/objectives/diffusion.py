@@ -38,9 +38,10 @@ from tensordict.utils import NestedKey
 from torch import nn
 from torchrl.data import Bounded
 from torchrl.modules import DiffusionActor
-from torchrl.objectives import DiffusionBCLoss, LossModule
+from torchrl.objectives import DiffusionBCLoss
 
 from imitrl import keys
+from imitrl.objectives.base import ImitationLoss
 from imitrl.rng import rng_from
 
 __all__ = ["DiffusionBehaviorCloningLoss", "DiffusionPolicy", "ScoreNetwork"]
@@ -135,7 +136,7 @@ class DiffusionPolicy(TensorDictModuleBase):
         return tensordict
 
 
-class DiffusionBehaviorCloningLoss(LossModule):
+class DiffusionBehaviorCloningLoss(ImitationLoss):
     """TorchRL's ``DiffusionBCLoss`` on the expert's label, mapped to ``[-1, 1]``.
 
     Args:
@@ -165,9 +166,6 @@ class DiffusionBehaviorCloningLoss(LossModule):
         self.inner.set_keys(action=_NORMALIZED, observation=keys.OBSERVATION)
         self.generator = torch.Generator().manual_seed(int(seed))
         self._in_keys = None
-
-    def _forward_value_estimator_keys(self, **kwargs) -> None:
-        pass
 
     @property
     def in_keys(self):

@@ -4,13 +4,14 @@ An entry says, for a task's observation and action spaces, how to build the poli
 that is trained and the TorchRL ``LossModule`` that trains it. Everything that
 compares objectives (``benchmarks/loss_functions.py``, your own study) builds
 learners through :func:`build` and trains them with
-``fit_bc(learner, rows, config, loss_module=learner.loss)``, so adding an objective
-is one registered function::
+``fit_bc(learner, rows, config)`` (a :class:`~imitrl.policies.Learner` carries its
+loss), so adding an objective is one registered function::
 
     @register("mse_wd", actions="continuous", summary="MSE with an L2 penalty 1e-3")
     def _(task: TaskSpec, config: LearnerConfig) -> Learner:
-        ac = mlp(task, config, head="deterministic")
-        return Learner(ac.policy, RegularizedBCLoss(ac.policy, loss_type="mse", l2_coef=1e-3), ac.opt_pi)
+        policy = mlp(task, config, head="deterministic").policy
+        loss = RegularizedBCLoss(policy, loss_type="mse", l2_coef=1e-3)
+        return Learner(policy, loss, torch.optim.Adam(policy.parameters(), lr=config.lr))
 
 Built-in entries:
 
@@ -40,16 +41,15 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, fields
 
 import torch
-from tensordict.nn import TensorDictModuleBase
 from torchrl.data import Bounded
 from torchrl.envs.utils import ExplorationType
-from torchrl.objectives import LossModule
 
 from imitrl.objectives.advantage_weighted import Advantage, AdvantageWeightedLoss
-from imitrl.objectives.bc import BehaviorCloningLoss
+from imitrl.objectives.base import ImitationLoss
 from imitrl.objectives.diffusion import DiffusionBehaviorCloningLoss, DiffusionPolicy
 from imitrl.objectives.regularized import RegularizedBCLoss
 from imitrl.policies.actor_critic import ActorCritic
+from imitrl.policies.learner import Learner
 
 __all__ = [
     "ACTION_KINDS",
@@ -112,20 +112,8 @@ class LearnerConfig:
     """Adam learning rate of the policy"""
     seed: int = 0
     """initialisation seed (and the seed of any sampling the learner does)"""
-
-
-@dataclass(eq=False)
-class Learner:
-    """A policy, the loss that trains it and its optimizer (what ``fit_bc`` and ``dagger`` use)."""
-
-    policy: TensorDictModuleBase
-    """``OBSERVATION -> ACTION``"""
-    loss: LossModule
-    """rows with ``OBSERVATION`` and ``EXPERT_ACTION`` -> ``loss_*`` entries (summed)"""
-    opt_pi: torch.optim.Optimizer
-    """the optimizer over the policy's parameters"""
-    exploration: ExplorationType = ExplorationType.DETERMINISTIC
-    """how the policy acts when it is evaluated or rolled out"""
+    normalize: bool = True
+    """MLP learners: normalise observations by the demonstrations' statistics"""
 
 
 @dataclass(frozen=True)
@@ -217,24 +205,45 @@ def build(name: str, task: TaskSpec, config: LearnerConfig = LearnerConfig()) ->
 
 
 # ----------------------------------------------------------------- policy heads
-def mlp(task: TaskSpec, config: LearnerConfig, *, head: str | None = None) -> ActorCritic:
-    """The task's standard policy: a logits table for integer states, else an MLP with ``head``."""
+def mlp(
+    task: TaskSpec,
+    config: LearnerConfig,
+    *,
+    head: str | None = None,
+    loss: str | ImitationLoss | None = None,
+) -> ActorCritic:
+    """The task's standard learner: a logits table for integer states, else an MLP with
+    ``head``, trained with ``loss`` (a loss type of the head, None = its default)."""
     if task.num_states is not None:
         if task.actions != "discrete" or head not in (None, "categorical"):
             raise ValueError("integer-state tasks support a categorical policy only")
+        if loss not in (None, "nll"):
+            raise ValueError("a tabular policy is built with its cross-entropy loss")
         return ActorCritic.tabular(task.num_states, task.action, lr=config.lr)
     return ActorCritic.mlp(
         task.observation_dim,
         task.action,
         head=head,
+        loss=loss,
         hidden=config.hidden,
         lr=config.lr,
         seed=config.seed,
+        normalize=config.normalize,
     )
 
 
-def _learner(ac: ActorCritic, loss: LossModule) -> Learner:
-    return Learner(policy=ac.policy, loss=loss, opt_pi=ac.opt_pi)
+def _with_loss(ac: ActorCritic, loss: ImitationLoss) -> ActorCritic:
+    """``ac`` trained by ``loss`` (a loss over ``ac.policy``) instead of its default."""
+    return ActorCritic(
+        ac.policy,
+        ac.value,
+        head=ac.head,
+        loss=loss,
+        lr=ac.lr,
+        num_states=ac.num_states,
+        observation_shape=ac.observation_shape,
+        normalizer=ac.normalizer,
+    )
 
 
 # ------------------------------------------------------------- built-in entries
@@ -248,8 +257,7 @@ DIFFUSION_STEPS = 50
 
 @register("cross_entropy", actions="discrete", summary="cross-entropy (categorical NLL)")
 def _cross_entropy(task: TaskSpec, config: LearnerConfig) -> Learner:
-    ac = mlp(task, config)
-    return _learner(ac, BehaviorCloningLoss(ac.policy, loss_type="nll"))
+    return mlp(task, config)
 
 
 @register(
@@ -259,7 +267,7 @@ def _cross_entropy(task: TaskSpec, config: LearnerConfig) -> Learner:
 )
 def _cross_entropy_entropy(task: TaskSpec, config: LearnerConfig) -> Learner:
     ac = mlp(task, config)
-    return _learner(ac, RegularizedBCLoss(ac.policy, loss_type="nll", entropy_coef=ENTROPY_COEF))
+    return _with_loss(ac, RegularizedBCLoss(ac.policy, loss_type="nll", entropy_coef=ENTROPY_COEF))
 
 
 @register(
@@ -270,19 +278,17 @@ def _cross_entropy_entropy(task: TaskSpec, config: LearnerConfig) -> Learner:
 )
 def _advantage_weighted(task: TaskSpec, config: LearnerConfig) -> Learner:
     ac = mlp(task, config)
-    return _learner(ac, AdvantageWeightedLoss(ac.policy, task.advantage))
+    return _with_loss(ac, AdvantageWeightedLoss(ac.policy, task.advantage))
 
 
 @register("gaussian_nll", actions="continuous", summary="tanh-normal NLL, acts with tanh(mean)")
 def _gaussian_nll(task: TaskSpec, config: LearnerConfig) -> Learner:
-    ac = mlp(task, config, head="tanh_normal")
-    return _learner(ac, BehaviorCloningLoss(ac.policy, loss_type="nll"))
+    return mlp(task, config, head="tanh_normal")
 
 
 def _regression(loss_type: str) -> Callable[[TaskSpec, LearnerConfig], Learner]:
     def build_regression(task: TaskSpec, config: LearnerConfig) -> Learner:
-        ac = mlp(task, config, head="deterministic")
-        return _learner(ac, BehaviorCloningLoss(ac.policy, loss_type=loss_type))
+        return mlp(task, config, head="deterministic", loss=loss_type)
 
     return build_regression
 
@@ -297,7 +303,7 @@ register("smooth_l1", actions="continuous", summary="Huber loss (delta 1)")(
 @register("mse_l2", actions="continuous", summary=f"MSE + {L2_COEF} x squared L2 norm of weights")
 def _mse_l2(task: TaskSpec, config: LearnerConfig) -> Learner:
     ac = mlp(task, config, head="deterministic")
-    return _learner(ac, RegularizedBCLoss(ac.policy, loss_type="mse", l2_coef=L2_COEF))
+    return _with_loss(ac, RegularizedBCLoss(ac.policy, loss_type="mse", l2_coef=L2_COEF))
 
 
 @register(
@@ -316,8 +322,8 @@ def _diffusion(task: TaskSpec, config: LearnerConfig) -> Learner:
         seed=config.seed,
     )
     return Learner(
-        policy=policy,
-        loss=DiffusionBehaviorCloningLoss(policy, seed=config.seed),
-        opt_pi=torch.optim.Adam(policy.parameters(), lr=config.lr),
+        policy,
+        DiffusionBehaviorCloningLoss(policy, seed=config.seed),
+        torch.optim.Adam(policy.parameters(), lr=config.lr),
         exploration=ExplorationType.RANDOM,
     )

@@ -19,16 +19,16 @@ from __future__ import annotations
 import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModule
-from torchrl.objectives import LossModule
 
 from imitrl import keys
+from imitrl.objectives.base import ImitationLoss
 from imitrl.objectives.bc import BehaviorCloningLoss
 from imitrl.rng import rng_from
 
 __all__ = ["RegularizedBCLoss"]
 
 
-class RegularizedBCLoss(LossModule):
+class RegularizedBCLoss(ImitationLoss):
     """Behaviour cloning with an entropy bonus and an L2 penalty (see the module docstring).
 
     Args:
@@ -68,9 +68,6 @@ class RegularizedBCLoss(LossModule):
         self.l2_coef = float(l2_coef)
         self.generator = torch.Generator().manual_seed(int(seed))
 
-    def _forward_value_estimator_keys(self, **kwargs) -> None:
-        pass
-
     @property
     def in_keys(self):
         return self.bc.in_keys
@@ -78,6 +75,15 @@ class RegularizedBCLoss(LossModule):
     @in_keys.setter
     def in_keys(self, values):
         pass
+
+    @property
+    def label_key(self):
+        """The inner :class:`BehaviorCloningLoss`'s label key."""
+        return self.bc.label_key
+
+    def check_labels(self, rows: TensorDictBase) -> None:
+        """The inner :class:`BehaviorCloningLoss`'s label checks."""
+        self.bc.check_labels(rows)
 
     def set_keys(self, **kwargs) -> None:
         """Remap keys of the inner :class:`BehaviorCloningLoss` (``label``, ``prediction``)."""

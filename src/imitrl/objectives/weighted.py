@@ -8,7 +8,7 @@ with ``a_t`` the expert's label.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -16,7 +16,9 @@ from tensordict import TensorDict, TensorDictBase
 
 from imitrl import keys
 from imitrl.objectives.bc import BehaviorCloningLoss
-from imitrl.policies.actor_critic import ActorCritic
+
+if TYPE_CHECKING:  # policies import the losses: no runtime import back
+    from imitrl.policies.actor_critic import ActorCritic
 
 __all__ = ["policy_step"]
 

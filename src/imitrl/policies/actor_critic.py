@@ -1,21 +1,16 @@
-"""`ActorCritic`: a policy head and a value head, each with its own optimizer.
+"""`ActorCritic`: the section's container, a policy and a value head, as a :class:`Learner`.
 
-The policy is a TorchRL actor reading ``OBSERVATION`` and writing ``ACTION``
-(``ProbabilisticActor`` for the categorical and tanh-normal heads, a plain
-``TensorDictModule`` for the deterministic head); the value is a ``ValueOperator``
-writing ``STATE_VALUE``. Behaviour cloning trains only the policy; the value head
-and its optimizer are carried so that an actor-critic method needs no new class.
+The policy is a TorchRL actor reading ``OBSERVATION`` and writing ``ACTION`` (see
+:mod:`imitrl.policies.heads` for the heads and the losses each takes); the value is
+a ``ValueOperator`` writing ``STATE_VALUE``. Behaviour cloning trains only the
+policy (``opt_pi``, on the learner's ``loss``); the value head and its optimizer
+(``opt_v``) are carried so that an actor-critic method needs no new class.
 
-Heads:
-
-============== ================================= ===================================
-head           policy                            losses it supports
-============== ================================= ===================================
-categorical    logits -> ``GreedyCategorical``   ``nll`` (cross-entropy)
-tanh_normal    loc, scale -> ``TanhNormal``      ``nll``
-               within the action bounds
-deterministic  ``tanh`` squashed into the bounds ``mse``, ``l1``, ``smooth_l1``
-============== ================================= ===================================
+Build one with :meth:`ActorCritic.tabular` (the section's zero-initialised table),
+:meth:`ActorCritic.mlp` (any observation and action spec) or
+:meth:`ActorCritic.for_env` (the specs read off an env). MLP learners normalise
+observations with the demonstrations' mean and standard deviation by default
+(:class:`~imitrl.policies.normalization.ObservationNormalizer`, inside the networks).
 
 Every method takes tensors, numpy arrays or Python scalars. Tensors in give tensors
 out (``log_prob`` and ``values`` keep the autograd graph); numpy or scalar inputs
@@ -24,69 +19,61 @@ give numpy or Python values out, computed without gradients.
 
 from __future__ import annotations
 
-import itertools
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
 import torch
 from tensordict import TensorDict
-from tensordict.nn import NormalParamExtractor, TensorDictModule
+from tensordict.nn import TensorDictModule
 from torch import nn
-from torchrl.data import Bounded
 from torchrl.data import Categorical as CategoricalSpec
+from torchrl.data import TensorSpec
+from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
-from torchrl.modules import ProbabilisticActor, TanhNormal
+from torchrl.modules import ProbabilisticActor
 
 from imitrl import keys
+from imitrl.objectives.base import ImitationLoss
+from imitrl.objectives.bc import BehaviorCloningLoss
 from imitrl.policies.distributions import GreedyCategorical
+from imitrl.policies.heads import HEAD_LOSSES, HEADS, OneHotInput, build_head, check_head, mlp
+from imitrl.policies.learner import Learner
 from imitrl.policies.modules import Module, Value
+from imitrl.policies.normalization import ObservationNormalizer
+from imitrl.policies.specs import action_space, observation_space
 from imitrl.rng import rng_from
 
 __all__ = ["HEADS", "HEAD_LOSSES", "ActorCritic"]
 
-HEADS = ("categorical", "tanh_normal", "deterministic")
-HEAD_LOSSES = {
-    "categorical": ("nll",),
-    "tanh_normal": ("nll",),
-    "deterministic": ("mse", "l1", "smooth_l1"),
-}
-"""the ``BehaviorCloningLoss`` types each head can be fitted with (the table above)"""
+
+def _loss(policy: TensorDictModule, head: str, loss: str | ImitationLoss | None) -> ImitationLoss:
+    """The learner's loss: given, or a ``BehaviorCloningLoss`` of the head's (default) type."""
+    if isinstance(loss, ImitationLoss):
+        return loss
+    loss_type = loss or HEAD_LOSSES[head][0]
+    if loss_type not in HEAD_LOSSES[head]:
+        raise ValueError(
+            f"loss {loss_type!r} does not fit a {head!r} head; it is fitted with {HEAD_LOSSES[head]}"
+        )
+    return BehaviorCloningLoss(policy, loss_type=loss_type)
 
 
-class _Squash(nn.Module):
-    """``low + (high - low) * (tanh(x) + 1) / 2``: a deterministic action inside the bounds."""
+class ActorCritic(Learner):
+    """A policy and a value function, each with its own Adam optimizer, and the policy's loss.
 
-    def __init__(self, low: torch.Tensor, high: torch.Tensor) -> None:
-        super().__init__()
-        self.register_buffer("low", low.clone().float())
-        self.register_buffer("high", high.clone().float())
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.low + (self.high - self.low) * (torch.tanh(x) + 1) / 2
-
-
-def _mlp(sizes: Sequence[int], activation: type[nn.Module]) -> nn.Sequential:
-    layers: list[nn.Module] = []
-    for i, (a, b) in enumerate(itertools.pairwise(sizes)):
-        layers.append(nn.Linear(a, b))
-        if i < len(sizes) - 2:
-            layers.append(activation())
-    return nn.Sequential(*layers)
-
-
-class ActorCritic(nn.Module):
-    """A policy and a value function, each with its own Adam optimizer.
-
-    Use :meth:`tabular` or :meth:`mlp` rather than the constructor.
+    Use :meth:`tabular`, :meth:`mlp` or :meth:`for_env` rather than the constructor.
 
     Args:
         policy: actor module, ``OBSERVATION -> ACTION`` (TensorDict in, TensorDict out).
         value: ``ValueOperator``, ``OBSERVATION -> STATE_VALUE``.
         head: one of :data:`HEADS`.
+        loss: a loss type of the head (:data:`HEAD_LOSSES`; None = its default) or an
+            ``ImitationLoss`` over ``policy``.
         lr: learning rate of both optimizers.
         num_states: number of states for integer observations, or None.
         observation_shape: trailing shape of vector observations, or None.
+        normalizer: the observation normaliser inside both networks, or None.
     """
 
     def __init__(
@@ -95,22 +82,28 @@ class ActorCritic(nn.Module):
         value: TensorDictModule,
         *,
         head: str,
+        loss: str | ImitationLoss | None = None,
         lr: float = 1e-2,
         num_states: int | None = None,
         observation_shape: Sequence[int] | None = None,
+        normalizer: ObservationNormalizer | None = None,
     ) -> None:
-        super().__init__()
         if head not in HEADS:
             raise ValueError(f"head must be one of {HEADS}, got {head!r}")
         if (num_states is None) == (observation_shape is None):
             raise ValueError(
                 "give exactly one of num_states (integer observations) or observation_shape"
             )
-        self.policy, self.value, self.head = policy, value, head
+        super().__init__(
+            policy,
+            _loss(policy, head, loss),
+            torch.optim.Adam(policy.parameters(), lr=lr),
+            normalizer=normalizer,
+        )
+        self.value, self.head = value, head
         self.num_states = num_states
         self.observation_shape = None if observation_shape is None else tuple(observation_shape)
         self.lr = float(lr)
-        self.opt_pi = torch.optim.Adam(policy.parameters(), lr=lr)
         self.opt_v = torch.optim.Adam(value.parameters(), lr=lr)
 
     # ------------------------------------------------------------ constructors
@@ -118,7 +111,8 @@ class ActorCritic(nn.Module):
     def tabular(cls, num_states: int, num_actions: int, *, lr: float = 0.1) -> ActorCritic:
         """One preference ``theta[s, a]`` per pair: zero-initialised embedding tables.
 
-        At initialisation the policy is exactly uniform and every value is 0.
+        At initialisation the policy is exactly uniform and every value is 0; the loss
+        is the cross-entropy.
         """
         if num_states < 1 or num_actions < 1:
             raise ValueError(
@@ -143,88 +137,105 @@ class ActorCritic(nn.Module):
     @classmethod
     def mlp(
         cls,
-        observation_dim: int,
-        action: int | Bounded,
+        observation: int | TensorSpec,
+        action: int | TensorSpec,
         *,
         head: str | None = None,
+        loss: str | ImitationLoss | None = None,
         hidden: Sequence[int] = (64, 64),
         activation: type[nn.Module] = nn.Tanh,
         lr: float = 1e-3,
         seed: int = 0,
+        normalize: bool = True,
     ) -> ActorCritic:
-        """MLP policy and value for vector observations ``[..., observation_dim]``.
+        """MLP policy and value over any observation and action spec.
 
         Args:
-            observation_dim: length of the observation vector.
-            action: number of discrete actions, or a ``Bounded`` spec of a continuous
-                action (its ``low``/``high`` bound the action).
-            head: ``"categorical"`` (default for discrete), ``"tanh_normal"`` (default
-                for continuous) or ``"deterministic"``.
+            observation: width of vector observations, or the env's (unbatched)
+                observation spec: ``Bounded``/``Unbounded`` ``[d]``, or ``Categorical``
+                integer states (fed to the MLP one-hot).
+            action: number of discrete actions, or the env's (unbatched) action spec:
+                ``Categorical``, ``OneHot``, ``MultiCategorical``, ``Bounded`` or
+                ``Unbounded`` (see :mod:`imitrl.policies.heads`).
+            head: one of :data:`HEADS` that fits the action (None = its default:
+                categorical, multi, or deterministic for continuous actions).
+            loss: the head's loss type (None = its default) or an ``ImitationLoss``.
             hidden: hidden layer sizes.
             activation: hidden activation.
             lr: learning rate of both optimizers.
             seed: initialisation seed (the global RNG is left untouched).
+            normalize: normalise vector observations by the demonstrations' mean and
+                standard deviation (fitted at the first ``fit_bc``).
         """
-        if isinstance(action, (int, np.integer)):
-            head = head or "categorical"
-            if head != "categorical":
-                raise ValueError(f"a discrete action space needs head='categorical', got {head!r}")
-        elif isinstance(action, Bounded):
-            if len(action.shape) != 1:
-                raise ValueError(
-                    f"a continuous action spec must have shape [action_dim], got {tuple(action.shape)} "
-                    "(for a batched env pass env.action_spec_unbatched)"
-                )
-            head = head or "tanh_normal"
-            if head not in ("tanh_normal", "deterministic"):
-                raise ValueError(
-                    f"a continuous action needs head 'tanh_normal' or 'deterministic', got {head!r}"
-                )
+        obs, space = observation_space(observation), action_space(action)
+        head = check_head(space, head)
+        if obs.kind == "states":
+            first: nn.Module = OneHotInput(obs.num_states)
+            width, normalizer, shape = obs.num_states, None, None
         else:
-            raise ValueError(
-                f"action must be an int (number of actions) or a torchrl Bounded spec, got {action!r}"
-            )
-        sizes = [int(observation_dim), *[int(h) for h in hidden]]
+            (width,) = obs.shape
+            normalizer = ObservationNormalizer(obs.shape) if normalize else None
+            first, shape = normalizer or nn.Identity(), obs.shape
+        sizes = [int(width), *[int(h) for h in hidden]]
+        body_width = sizes[-1]
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(seed)
-            if head == "categorical":
-                net = _mlp([*sizes, int(action)], activation)
-                policy = ProbabilisticActor(
-                    Module(net, in_keys=[keys.OBSERVATION], out_keys=[keys.LOGITS]),
-                    in_keys=[keys.LOGITS],
-                    out_keys=[keys.ACTION],
-                    distribution_class=GreedyCategorical,
-                    spec=CategoricalSpec(int(action), dtype=torch.int64),
-                )
-            else:
-                low, high = action.space.low.float(), action.space.high.float()
-                (dim,) = action.shape[-1:]
-                if head == "tanh_normal":
-                    net = nn.Sequential(_mlp([*sizes, 2 * dim], activation), NormalParamExtractor())
-                    policy = ProbabilisticActor(
-                        Module(net, in_keys=[keys.OBSERVATION], out_keys=[keys.LOC, keys.SCALE]),
-                        in_keys=[keys.LOC, keys.SCALE],
-                        out_keys=[keys.ACTION],
-                        distribution_class=TanhNormal,
-                        distribution_kwargs={"low": low, "high": high},
-                        spec=action,
-                    )
-                else:
-                    net = nn.Sequential(_mlp([*sizes, dim], activation), _Squash(low, high))
-                    policy = Module(net, in_keys=[keys.OBSERVATION], out_keys=[keys.ACTION])
-            value = Value(_mlp([*sizes, 1], activation), in_keys=[keys.OBSERVATION])
-        return cls(policy, value, head=head, lr=lr, observation_shape=(int(observation_dim),))
+            trunk = [first, *mlp(sizes, activation), activation()] if hidden else [first]
+            policy = build_head(trunk, body_width, space, head)
+            value_trunk = [first, *mlp(sizes, activation), activation()] if hidden else [first]
+            value = Value(
+                nn.Sequential(*value_trunk, nn.Linear(body_width, 1)), in_keys=[keys.OBSERVATION]
+            )
+        return cls(
+            policy,
+            value,
+            head=head,
+            loss=loss,
+            lr=lr,
+            num_states=obs.num_states,
+            observation_shape=shape,
+            normalizer=normalizer,
+        )
 
-    def reset_optimizers(self, lr: float | None = None) -> None:
-        """Fresh Adam states (and optionally a new learning rate) for both heads."""
-        self.lr = self.lr if lr is None else float(lr)
-        self.opt_pi = torch.optim.Adam(self.policy.parameters(), lr=self.lr)
-        self.opt_v = torch.optim.Adam(self.value.parameters(), lr=self.lr)
+    @classmethod
+    def for_env(
+        cls,
+        env: EnvBase,
+        *,
+        head: str | None = None,
+        loss: str | ImitationLoss | None = None,
+        hidden: Sequence[int] = (64, 64),
+        activation: type[nn.Module] = nn.Tanh,
+        lr: float = 1e-3,
+        seed: int = 0,
+        normalize: bool = True,
+    ) -> ActorCritic:
+        """:meth:`mlp` with the observation and action specs read off ``env`` (batched or not)."""
+        spec = env.observation_spec_unbatched
+        if keys.OBSERVATION not in spec.keys():
+            raise ValueError(
+                f"the env has no {keys.OBSERVATION!r} observation (keys {list(spec.keys())})"
+            )
+        return cls.mlp(
+            spec[keys.OBSERVATION],
+            env.action_spec_unbatched,
+            head=head,
+            loss=loss,
+            hidden=hidden,
+            activation=activation,
+            lr=lr,
+            seed=seed,
+            normalize=normalize,
+        )
 
-    # ------------------------------------------------------------- TensorDict
-    def forward(self, tensordict: TensorDict) -> TensorDict:
-        """Run the policy on a tensordict (writes ``ACTION``)."""
-        return self.policy(tensordict)
+    def optimizers(self) -> dict[str, torch.optim.Optimizer]:
+        """``opt_pi`` (the policy's) and ``opt_v`` (the value head's)."""
+        return {"opt_pi": self.opt_pi, "opt_v": self.opt_v}
+
+    @property
+    def loss_type(self) -> str | None:
+        """The ``BehaviorCloningLoss`` type of the learner's loss (None for another loss)."""
+        return self.loss.loss_type if isinstance(self.loss, BehaviorCloningLoss) else None
 
     def get_dist(self, tensordict: TensorDict) -> torch.distributions.Distribution:
         """The action distribution at the tensordict's observations (probabilistic heads)."""
@@ -267,8 +278,8 @@ class ActorCritic(nn.Module):
                     f"got shape {tuple(t.shape)}"
                 )
             t = t.to(torch.float32)
-            if torch.isnan(t).any():
-                raise ValueError("NaN in observations given to the policy")
+            if not torch.isfinite(t).all():
+                raise ValueError("NaN or inf in observations given to the policy")
         return t, kind
 
     def _batch_shape(self, obs: torch.Tensor) -> torch.Size:
@@ -349,6 +360,3 @@ class ActorCritic(nn.Module):
             else f"observation_shape={self.observation_shape}"
         )
         return f"head={self.head!r}, {space}, lr={self.lr}"
-
-
-PolicyFactory = Callable[[], ActorCritic]

@@ -1,4 +1,9 @@
-"""Exact tabular toolkit: MDPs as dense float64 tensors and pure functions over them."""
+"""Exact tabular toolkit: MDPs as dense float64 tensors and pure functions over them.
+
+Modules import one way, lower to higher: ``validation`` and ``bellman`` (numpy/torch
+only) -> ``gym_model`` -> ``mdp`` -> ``policy`` -> ``dp`` and ``finite_horizon``;
+``sampling`` reads ``mdp`` only.
+"""
 
 from imitrl.tabular.dp import backup, greedy, policy_evaluation, value_iteration
 from imitrl.tabular.finite_horizon import (

@@ -7,18 +7,11 @@ from typing import Any
 import numpy as np
 import torch
 
+from imitrl.tabular.bellman import backup_arrays, backup_dense
 from imitrl.tabular.mdp import TabularMDP
 from imitrl.tabular.policy import kernel_under, reward_under
 
 __all__ = ["backup", "greedy", "policy_evaluation", "value_iteration"]
-
-
-def _backup_np(r: np.ndarray, gamma_P: np.ndarray, V: np.ndarray) -> np.ndarray:
-    # numpy, and (gamma P) @ V in that order: the float64 rounding of the textbook
-    # reference ``r + gamma * P @ V``. Q values that tie mathematically (mirror-image
-    # moves on a symmetric map) then tie, or fail to, exactly as they do there, so the
-    # greedy policy (ties to the lowest action) is the same policy on every map.
-    return r + gamma_P @ V
 
 
 def backup(mdp: TabularMDP, V: torch.Tensor) -> torch.Tensor:
@@ -30,10 +23,7 @@ def backup(mdp: TabularMDP, V: torch.Tensor) -> torch.Tensor:
     Returns:
         ``[S, A]`` float64 action values.
     """
-    V = torch.as_tensor(V, dtype=torch.float64)
-    if V.shape != (mdp.num_states,):
-        raise ValueError(f"V must have shape [{mdp.num_states}], got {tuple(V.shape)}")
-    return torch.from_numpy(_backup_np(mdp.r.numpy(), mdp.gamma * mdp.P.numpy(), V.numpy()))
+    return backup_dense(mdp.P, mdp.r, mdp.gamma, V)
 
 
 def value_iteration(mdp: TabularMDP, num_iters: int = 1000) -> torch.Tensor:
@@ -50,7 +40,7 @@ def value_iteration(mdp: TabularMDP, num_iters: int = 1000) -> torch.Tensor:
     history = np.empty((int(num_iters), mdp.num_states))
     V = np.zeros(mdp.num_states)
     for k in range(int(num_iters)):
-        V = _backup_np(r, gamma_P, V).max(axis=1)
+        V = backup_arrays(r, gamma_P, V).max(axis=1)
         history[k] = V
     return torch.from_numpy(history)
 

@@ -29,9 +29,11 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-__all__ = ["Outcomes", "TabularMDP"]
+from imitrl.tabular.bellman import backup_dense
+from imitrl.tabular.gym_model import make_env, read_gym_model, terminal_states
+from imitrl.tabular.validation import as_float64, check_gamma, check_probabilities
 
-_ROW_TOL = 1e-9
+__all__ = ["Outcomes", "TabularMDP"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -98,14 +100,19 @@ class TabularMDP:
         return torch.from_numpy(np.cumsum(self.initial.numpy()))
 
     def backup(self, V: torch.Tensor) -> torch.Tensor:
-        """Bellman backup ``Q[s, a] = r[s, a] + gamma * sum_s' P[s, a, s'] V[s']``."""
-        from imitrl.tabular.dp import backup
+        """Bellman backup ``Q[s, a] = r[s, a] + gamma * sum_s' P[s, a, s'] V[s']``.
 
-        return backup(self, V)
+        Args:
+            V: ``[S]`` state values.
+
+        Returns:
+            ``[S, A]`` float64 action values (:func:`imitrl.tabular.dp.backup`).
+        """
+        return backup_dense(self.P, self.r, self.gamma, V)
 
     def with_gamma(self, gamma: float) -> TabularMDP:
         """The same MDP with another discount."""
-        _check_gamma(gamma)
+        check_gamma(gamma)
         return TabularMDP(
             P=self.P,
             r=self.r,
@@ -184,21 +191,8 @@ class TabularMDP:
             ValueError: unknown env id, env without a tabular model, or a model that
                 is malformed (probabilities, shapes, non-finite rewards).
         """
-        _check_gamma(gamma)
-        if isinstance(env, str):
-            env_id = env
-            try:
-                env = gym.make(env_id, **dict(make_kwargs or {}))
-            except gym.error.Error as err:
-                raise ValueError(
-                    f"unknown or unbuildable gymnasium env id {env_id!r}: {err}"
-                ) from err
-            except TypeError as err:
-                raise ValueError(
-                    f"gymnasium env {env_id!r} rejected the arguments {dict(make_kwargs or {})}: {err}"
-                ) from err
-        elif make_kwargs:
-            raise ValueError("make_kwargs only applies when env is given as an id string")
+        check_gamma(gamma)
+        env = make_env(env, make_kwargs)
         spec_steps = env.spec.max_episode_steps if env.spec is not None else None
         name = env.spec.id if env.spec is not None else type(env.unwrapped).__name__
         unwrapped = env.unwrapped
@@ -223,7 +217,7 @@ class TabularMDP:
             raise ValueError(
                 f"env {name!r} has no `initial_state_distrib`: cannot build the initial distribution"
             )
-        outcome_lists = _read_gym_model(model, S, A, name)
+        outcome_lists = read_gym_model(model, S, A, name)
         desc = getattr(unwrapped, "desc", None)
         if desc is not None and np.asarray(desc).size != S:
             desc = None  # a picture of the world (Taxi's), not one cell per state
@@ -267,12 +261,12 @@ class TabularMDP:
             ValueError: shape mismatch, negative or non-finite probabilities, rows not
                 summing to 1, non-finite rewards.
         """
-        _check_gamma(gamma)
-        P = _as_float64(P, "P")
+        check_gamma(gamma)
+        P = as_float64(P, "P")
         if P.ndim != 3 or P.shape[0] != P.shape[2]:
             raise ValueError(f"P must have shape [S, A, S], got {tuple(P.shape)}")
         S, A = P.shape[0], P.shape[1]
-        r = _as_float64(r, "r")
+        r = as_float64(r, "r")
         if r.shape == (S, A):
             R = np.broadcast_to(r[:, :, None], (S, A, S))
         elif r.shape == (S, A, S):
@@ -281,11 +275,11 @@ class TabularMDP:
             raise ValueError(
                 f"r must have shape [S, A] = {(S, A)} or [S, A, S], got {tuple(r.shape)}"
             )
-        _check_probabilities(P, "P", axis=-1)
+        check_probabilities(P, "P", axis=-1)
         if initial is None:
             initial = np.zeros(S)
             initial[0] = 1.0
-        initial = _as_float64(initial, "initial")
+        initial = as_float64(initial, "initial")
         if terminal is None:
             terminal = np.zeros(S, dtype=bool)
         terminal = np.asarray(terminal)
@@ -293,15 +287,8 @@ class TabularMDP:
             raise ValueError(
                 f"terminal must be a bool array of shape [{S}], got {terminal.dtype} {terminal.shape}"
             )
-        outcome_lists = [
-            [
-                [(float(P[s, a, t]), t, float(R[s, a, t]), bool(terminal[t])) for t in range(S)]
-                for a in range(A)
-            ]
-            for s in range(S)
-        ]
         return cls._build(
-            outcome_lists,
+            _kernel_outcome_lists(P, R, terminal),
             S=S,
             A=A,
             gamma=gamma,
@@ -330,36 +317,15 @@ class TabularMDP:
             raise ValueError(f"initial distribution must have shape [{S}], got {initial.shape}")
         if not np.isfinite(initial).all():
             raise ValueError("initial distribution must be finite")
-        _check_probabilities(initial, "initial distribution", axis=-1)
+        check_probabilities(initial, "initial distribution", axis=-1)
         if max_steps is not None and (int(max_steps) != max_steps or max_steps < 1):
             raise ValueError(f"max_steps must be a positive integer or None, got {max_steps!r}")
-        K = max(len(outs) for row in outcome_lists for outs in row)
-        next_state = np.zeros((S, A, K), dtype=np.int64)
-        prob = np.zeros((S, A, K))
-        reward = np.zeros((S, A, K))
-        terminated = np.zeros((S, A, K), dtype=bool)
-        size = np.zeros((S, A), dtype=np.int64)
-        for s in range(S):
-            for a in range(A):
-                outs = outcome_lists[s][a]
-                size[s, a] = len(outs)
-                for k, (p, t, rew, term) in enumerate(outs):
-                    next_state[s, a, k], prob[s, a, k] = t, p
-                    reward[s, a, k], terminated[s, a, k] = rew, term
-                next_state[s, a, len(outs) :] = next_state[s, a, 0]
+        next_state, prob, reward, terminated, size = _pad_outcome_lists(outcome_lists, S, A)
         if terminal is None:
-            terminal = _terminal_states(next_state, prob, terminated, size, initial, name)
-        # Success = entering a terminal state with the best entering reward among
-        # terminal states (FrozenLake's G over its holes; CliffWalking's and Taxi's
-        # only kind of terminal state). Entries are read from non-terminal sources,
-        # before the terminal rows become zero-reward self-loops below.
-        entering_reward = np.full(S, -np.inf)
-        live = (prob > 0) & ~terminal[:, None, None]
-        np.maximum.at(entering_reward, next_state[live], reward[live])
+            terminal = terminal_states(next_state, prob, terminated, size, initial, name)
+        # Read before the terminal rows become zero-reward self-loops below.
+        goal = _goal_states(next_state, prob, reward, terminal)
         term_idx = np.flatnonzero(terminal)
-        goal = np.zeros(S, dtype=bool)
-        if term_idx.size:
-            goal = terminal & (entering_reward == entering_reward[term_idx].max())
         # A terminal state is absorbing in the sampling model too (an episode never
         # steps from one; gymnasium's own lists there are arbitrary, e.g. CliffWalking's).
         next_state[term_idx] = term_idx[:, None, None]
@@ -398,119 +364,57 @@ class TabularMDP:
 
 
 # ---------------------------------------------------------------------- helpers
-def _check_gamma(gamma: float) -> None:
-    if not (isinstance(gamma, (int, float)) and 0.0 <= gamma <= 1.0):
-        raise ValueError(f"gamma must be a number in [0, 1], got {gamma!r}")
-
-
-def _as_float64(x: Any, name: str) -> np.ndarray:
-    arr = x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
-    if not np.issubdtype(arr.dtype, np.number) or np.issubdtype(arr.dtype, np.complexfloating):
-        raise ValueError(f"{name} must be a real numeric array, got dtype {arr.dtype}")
-    arr = arr.astype(np.float64)
-    if not np.isfinite(arr).all():
-        raise ValueError(
-            f"{name} must be finite, found {int((~np.isfinite(arr)).sum())} NaN/inf entries"
-        )
-    return arr
-
-
-def _check_probabilities(p: np.ndarray, name: str, axis: int) -> None:
-    if (p < 0).any():
-        idx = tuple(int(i) for i in np.argwhere(p < 0)[0])
-        raise ValueError(f"{name} has a negative probability {p[idx]:.3g} at index {idx}")
-    sums = p.sum(axis=axis)
-    bad = np.abs(sums - 1.0) > _ROW_TOL
-    if np.any(bad):
-        idx = tuple(int(i) for i in np.argwhere(np.atleast_1d(bad))[0])
-        total = np.atleast_1d(sums)[idx]
-        raise ValueError(
-            f"{name} rows must sum to 1 (tolerance {_ROW_TOL}); row {idx} sums to {total:.12g}"
-        )
-
-
-def _read_gym_model(
-    model: Mapping, S: int, A: int, name: str
+def _kernel_outcome_lists(
+    P: np.ndarray, R: np.ndarray, terminal: np.ndarray
 ) -> list[list[list[tuple[float, int, float, bool]]]]:
-    lists: list[list[list[tuple[float, int, float, bool]]]] = []
-    for s in range(S):
-        if s not in model or not isinstance(model[s], Mapping):
-            raise ValueError(
-                f"env {name!r}: model P has no entry for state {s} (expected {S} states)"
-            )
-        row = []
-        for a in range(A):
-            outs = model[s].get(a)
-            if not outs:
-                raise ValueError(f"env {name!r}: model P[{s}] has no outcome list for action {a}")
-            parsed = []
-            for out in outs:
-                if len(out) != 4:
-                    raise ValueError(
-                        f"env {name!r}: P[{s}][{a}] entry {out!r} is not (prob, next_state, reward, terminated)"
-                    )
-                p, t, rew, term = out
-                p, rew = float(p), float(rew)
-                if not (0 <= int(t) < S) or int(t) != t:
-                    raise ValueError(f"env {name!r}: P[{s}][{a}] next state {t!r} outside [0, {S})")
-                if not np.isfinite(p) or p < 0:
-                    raise ValueError(
-                        f"env {name!r}: P[{s}][{a}] has a negative or non-finite probability {p!r}"
-                    )
-                if not np.isfinite(rew):
-                    raise ValueError(f"env {name!r}: P[{s}][{a}] has a non-finite reward {rew!r}")
-                parsed.append((p, int(t), rew, bool(term)))
-            total = sum(o[0] for o in parsed)
-            if abs(total - 1.0) > _ROW_TOL:
-                raise ValueError(
-                    f"env {name!r}: outcome probabilities of P[{s}][{a}] sum to {total:.12g}, not 1"
-                )
-            row.append(parsed)
-        lists.append(row)
-    return lists
+    """``lists[s][a]``: every next state ``t`` in index order, ``(P[s, a, t], t, R[s, a, t], terminal[t])``."""
+    S, A = P.shape[0], P.shape[1]
+    return [
+        [
+            [(float(P[s, a, t]), t, float(R[s, a, t]), bool(terminal[t])) for t in range(S)]
+            for a in range(A)
+        ]
+        for s in range(S)
+    ]
 
 
-def _terminal_states(
-    next_state: np.ndarray,
-    prob: np.ndarray,
-    terminated: np.ndarray,
-    size: np.ndarray,
-    initial: np.ndarray,
-    name: str,
-) -> np.ndarray:
-    """States entered by a ``terminated`` outcome, over transitions an episode can take.
+def _pad_outcome_lists(
+    outcome_lists: list[list[list[tuple[float, int, float, bool]]]], S: int, A: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The lists as ``[S, A, K]`` arrays ``next_state, prob, reward, terminated`` and ``[S, A]`` ``size``.
 
-    Only states reachable from the initial support (without passing a terminating
-    transition) are expanded: gymnasium models also list transitions out of states
-    no episode visits (Taxi's post-drop-off states), which never happen.
-
-    Raises:
-        ValueError: a reachable state is entered both with and without
-            ``terminated`` (termination would depend on more than the next state).
+    ``K`` is the longest list; padding entries are as :class:`Outcomes` describes them.
     """
-    S = next_state.shape[0]
-    real = np.arange(next_state.shape[-1])[None, None, :] < size[:, :, None]
-    live = real & (prob > 0)
-    term_into = np.zeros(S, dtype=bool)
-    cont_into = np.zeros(S, dtype=bool)
-    seen = initial > 0
-    frontier = np.flatnonzero(seen)
-    while frontier.size:
-        nxt = next_state[frontier]  # [F, A, K]
-        ok = live[frontier]
-        term = terminated[frontier]
-        term_into[nxt[ok & term]] = True
-        cont = nxt[ok & ~term]
-        cont_into[cont] = True
-        new = np.zeros(S, dtype=bool)
-        new[cont] = True
-        new &= ~seen
-        seen |= new
-        frontier = np.flatnonzero(new)
-    clash = term_into & cont_into
-    if clash.any():
-        raise ValueError(
-            f"env {name!r}: termination is not a function of the next state: state "
-            f"{int(np.flatnonzero(clash)[0])} is entered both with and without `terminated`"
-        )
-    return term_into
+    K = max(len(outs) for row in outcome_lists for outs in row)
+    next_state = np.zeros((S, A, K), dtype=np.int64)
+    prob = np.zeros((S, A, K))
+    reward = np.zeros((S, A, K))
+    terminated = np.zeros((S, A, K), dtype=bool)
+    size = np.zeros((S, A), dtype=np.int64)
+    for s in range(S):
+        for a in range(A):
+            outs = outcome_lists[s][a]
+            size[s, a] = len(outs)
+            for k, (p, t, rew, term) in enumerate(outs):
+                next_state[s, a, k], prob[s, a, k] = t, p
+                reward[s, a, k], terminated[s, a, k] = rew, term
+            next_state[s, a, len(outs) :] = next_state[s, a, 0]
+    return next_state, prob, reward, terminated, size
+
+
+def _goal_states(
+    next_state: np.ndarray, prob: np.ndarray, reward: np.ndarray, terminal: np.ndarray
+) -> np.ndarray:
+    """``[S]`` bool: the terminal states entered with the best entering reward among terminal states."""
+    # Success = entering a terminal state with the best entering reward among
+    # terminal states (FrozenLake's G over its holes; CliffWalking's and Taxi's
+    # only kind of terminal state). Entries are read from non-terminal sources.
+    S = terminal.shape[0]
+    entering_reward = np.full(S, -np.inf)
+    live = (prob > 0) & ~terminal[:, None, None]
+    np.maximum.at(entering_reward, next_state[live], reward[live])
+    term_idx = np.flatnonzero(terminal)
+    goal = np.zeros(S, dtype=bool)
+    if term_idx.size:
+        goal = terminal & (entering_reward == entering_reward[term_idx].max())
+    return goal

@@ -11,7 +11,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from imitrl.tabular.mdp import _ROW_TOL, TabularMDP
+from imitrl.tabular.mdp import TabularMDP
+from imitrl.tabular.validation import ROW_TOL
 
 __all__ = ["kernel_under", "policy_probs", "reward_under"]
 
@@ -43,7 +44,7 @@ def policy_probs(pi: Any, num_states: int, num_actions: int) -> torch.Tensor:
         if not torch.isfinite(t).all() or (t < 0).any():
             raise ValueError("policy probabilities must be finite and non-negative")
         dev = (t.sum(-1) - 1).abs()
-        if (dev > _ROW_TOL).any():
+        if (dev > ROW_TOL).any():
             s = int(torch.argmax(dev))
             raise ValueError(
                 f"policy probabilities at state {s} sum to {float(t[s].sum()):.12g}, not 1"

@@ -1,0 +1,150 @@
+"""Policy heads: the TensorDictModule a learner acts with, for each kind of action.
+
+============== =============== ============================================ ============
+head           actions         policy                                       losses
+============== =============== ============================================ ============
+categorical    discrete        logits -> ``GreedyCategorical`` (one-hot     ``nll``
+                               actions for ``OneHot`` specs)
+multi          multi-discrete  logits per sub-action -> independent         ``nll``
+                               categoricals
+deterministic  continuous      ``tanh`` squashed into the bounds (identity  ``mse``,
+                               without bounds)                              ``l1``,
+                                                                            ``smooth_l1``
+normal         continuous      loc, scale -> Gaussian, actions clipped to   ``nll``
+                               the bounds (labels on the bounds are fine)
+tanh_normal    continuous      loc, scale -> ``TanhNormal`` inside the      ``nll``
+               (bounded)       bounds (labels on the bounds are refused)
+============== =============== ============================================ ============
+
+The first loss of each row is the default; the default continuous head is
+``deterministic`` (MSE): it clones saturating (bang-bang) and smooth experts alike.
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Sequence
+
+import torch
+from tensordict.nn import NormalParamExtractor, TensorDictModuleBase
+from torch import nn
+from torchrl.modules import ProbabilisticActor, TanhNormal
+
+from imitrl import keys
+from imitrl.policies.distributions import (
+    ClippedNormal,
+    GreedyCategorical,
+    GreedyOneHotCategorical,
+    MultiCategoricalDist,
+)
+from imitrl.policies.modules import Module
+from imitrl.policies.specs import ActionSpace
+
+__all__ = ["DEFAULT_HEAD", "HEADS", "HEAD_LOSSES", "build_head", "mlp"]
+
+HEADS = ("categorical", "multi", "deterministic", "normal", "tanh_normal")
+HEAD_LOSSES = {
+    "categorical": ("nll",),
+    "multi": ("nll",),
+    "deterministic": ("mse", "l1", "smooth_l1"),
+    "normal": ("nll",),
+    "tanh_normal": ("nll",),
+}
+"""the ``BehaviorCloningLoss`` types each head can be fitted with; the first is the default"""
+DEFAULT_HEAD = {"discrete": "categorical", "multi_discrete": "multi", "continuous": "deterministic"}
+_KIND_HEADS = {
+    "discrete": ("categorical",),
+    "multi_discrete": ("multi",),
+    "continuous": ("deterministic", "normal", "tanh_normal"),
+}
+
+
+class Squash(nn.Module):
+    """``low + (high - low) * (tanh(x) + 1) / 2``: a deterministic action inside the bounds."""
+
+    def __init__(self, low: torch.Tensor, high: torch.Tensor) -> None:
+        super().__init__()
+        self.register_buffer("low", low.clone().float())
+        self.register_buffer("high", high.clone().float())
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.low + (self.high - self.low) * (torch.tanh(x) + 1) / 2
+
+
+class OneHotInput(nn.Module):
+    """Integer states ``[...]`` -> one-hot float ``[..., n]`` (MLPs over discrete observations)."""
+
+    def __init__(self, n: int) -> None:
+        super().__init__()
+        self.n = int(n)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return nn.functional.one_hot(x.long(), self.n).float()
+
+
+def mlp(sizes: Sequence[int], activation: type[nn.Module]) -> nn.Sequential:
+    """Linear layers of ``sizes`` with ``activation`` between them (none after the last)."""
+    layers: list[nn.Module] = []
+    for i, (a, b) in enumerate(itertools.pairwise(sizes)):
+        layers.append(nn.Linear(a, b))
+        if i < len(sizes) - 2:
+            layers.append(activation())
+    return nn.Sequential(*layers)
+
+
+def check_head(space: ActionSpace, head: str | None) -> str:
+    """The head for ``space`` (its default when None); ValueError naming the valid ones."""
+    allowed = _KIND_HEADS[space.kind]
+    head = head or DEFAULT_HEAD[space.kind]
+    if head not in allowed:
+        raise ValueError(
+            f"{space.kind} actions need head {' or '.join(map(repr, allowed))}, got {head!r}"
+        )
+    if head == "tanh_normal" and space.low is None:
+        raise ValueError(
+            "head 'tanh_normal' needs a bounded action spec; use 'normal' or 'deterministic'"
+        )
+    return head
+
+
+def _probabilistic(trunk: nn.Module, out_keys, dist, dist_kwargs, spec) -> ProbabilisticActor:
+    return ProbabilisticActor(
+        Module(trunk, in_keys=[keys.OBSERVATION], out_keys=out_keys),
+        in_keys=out_keys,
+        out_keys=[keys.ACTION],
+        distribution_class=dist,
+        distribution_kwargs=dist_kwargs,
+        spec=spec,
+    )
+
+
+def build_head(
+    trunk: Sequence[nn.Module], width: int, space: ActionSpace, head: str
+) -> TensorDictModuleBase:
+    """The policy module: ``trunk`` (input layers, ending in ``width`` features) + ``head``."""
+    if head == "categorical":
+        net = nn.Sequential(*trunk, nn.Linear(width, space.n))
+        if space.one_hot:
+            return _probabilistic(
+                net, [keys.LOGITS], GreedyOneHotCategorical, {"dtype": space.dtype}, space.spec
+            )
+        from torchrl.data import Categorical
+
+        spec = space.spec or Categorical(space.n, dtype=torch.int64)
+        return _probabilistic(net, [keys.LOGITS], GreedyCategorical, {}, spec)
+    if head == "multi":
+        net = nn.Sequential(*trunk, nn.Linear(width, sum(space.nvec)))
+        kwargs = {"nvec": space.nvec, "dtype": space.dtype}
+        return _probabilistic(net, [keys.LOGITS], MultiCategoricalDist, kwargs, space.spec)
+    dim = space.dim
+    if head == "deterministic":
+        last: list[nn.Module] = [] if space.low is None else [Squash(space.low, space.high)]
+        net = nn.Sequential(*trunk, nn.Linear(width, dim), *last)
+        return Module(net, in_keys=[keys.OBSERVATION], out_keys=[keys.ACTION])
+    net = nn.Sequential(*trunk, nn.Linear(width, 2 * dim), NormalParamExtractor())
+    out = [keys.LOC, keys.SCALE]
+    if head == "normal":
+        return _probabilistic(
+            net, out, ClippedNormal, {"low": space.low, "high": space.high}, space.spec
+        )
+    return _probabilistic(net, out, TanhNormal, {"low": space.low, "high": space.high}, space.spec)

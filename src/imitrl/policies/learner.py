@@ -1,0 +1,92 @@
+"""The learner contract: one object that ``fit_bc``, ``dagger`` and ``evaluate`` take.
+
+A :class:`Learner` holds
+
+* ``policy``: a TensorDictModule ``OBSERVATION -> ACTION`` (what rollouts run);
+* ``loss``: an :class:`~imitrl.objectives.base.ImitationLoss` over that policy (the
+  loss is chosen once, when the learner is built);
+* ``opt_pi``: the optimizer over the policy's parameters;
+* ``exploration``: how the policy acts when rolled out or evaluated
+  (``DETERMINISTIC``: the greedy action / mode; ``RANDOM``: a sample);
+* ``normalizer``: an optional :class:`ObservationNormalizer` inside the policy's
+  network, fitted to the demonstrations by :meth:`Learner.prepare`.
+
+:class:`~imitrl.policies.ActorCritic` is a Learner with a value head; the loss
+registry builds Learners; any user policy becomes one with ``Learner(policy, loss,
+opt)``.
+"""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from torch import nn
+from torchrl.envs.utils import ExplorationType
+
+from imitrl import keys
+from imitrl.objectives.base import ImitationLoss
+from imitrl.policies.normalization import ObservationNormalizer
+
+__all__ = ["Learner"]
+
+
+class Learner(nn.Module):
+    """A policy, the loss that trains it, its optimizer and how it acts (module docstring).
+
+    Args:
+        policy: ``OBSERVATION -> ACTION``.
+        loss: an ``ImitationLoss`` over ``policy`` (wrap any other TorchRL loss in
+            :class:`~imitrl.objectives.SummedLoss`).
+        opt_pi: optimizer over ``policy``'s parameters.
+        exploration: how the policy acts in rollouts and evaluation.
+        normalizer: the observation normaliser inside ``policy``'s network, or None.
+    """
+
+    def __init__(
+        self,
+        policy: TensorDictModuleBase,
+        loss: ImitationLoss,
+        opt_pi: torch.optim.Optimizer,
+        *,
+        exploration: ExplorationType = ExplorationType.DETERMINISTIC,
+        normalizer: ObservationNormalizer | None = None,
+    ) -> None:
+        super().__init__()
+        if not isinstance(policy, TensorDictModuleBase):
+            raise ValueError(f"policy must be a TensorDictModule, got {type(policy).__name__}")
+        if not isinstance(loss, ImitationLoss):
+            raise ValueError(
+                f"loss must be an imitrl ImitationLoss, got {type(loss).__name__} "
+                "(wrap a TorchRL LossModule in imitrl.objectives.SummedLoss)"
+            )
+        if not isinstance(opt_pi, torch.optim.Optimizer):
+            raise ValueError(f"opt_pi must be a torch optimizer, got {type(opt_pi).__name__}")
+        if exploration not in (ExplorationType.DETERMINISTIC, ExplorationType.RANDOM):
+            raise ValueError(f"exploration must be DETERMINISTIC or RANDOM, got {exploration}")
+        self.policy = policy
+        self.loss = loss
+        self.opt_pi = opt_pi
+        self.exploration = exploration
+        self.normalizer = normalizer
+
+    def optimizers(self) -> dict[str, torch.optim.Optimizer]:
+        """Every optimizer of the learner by name (saved and restored with it)."""
+        return {"opt_pi": self.opt_pi}
+
+    def check_observations(self, obs: torch.Tensor) -> None:
+        """Raise ``ValueError`` unless ``obs`` is finite (subclasses check shapes too)."""
+        if obs.dtype.is_floating_point and not torch.isfinite(obs).all():
+            raise ValueError("observations contain NaN or inf")
+
+    def prepare(self, rows: TensorDictBase) -> None:
+        """Before a fit: validate the rows' observations and, the first time, fit the
+        normaliser to them (later fits keep the statistics the weights were trained with)."""
+        obs = rows.get(keys.OBSERVATION)
+        self.check_observations(obs)
+        if self.normalizer is not None and not self.normalizer.is_fitted:
+            self.normalizer.fit(obs.reshape(-1, *self.normalizer.shape))
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """Run the policy on a tensordict (writes ``ACTION``)."""
+        return self.policy(tensordict)
