@@ -507,7 +507,7 @@ def test_values_that_do_not_fit_the_declared_dtype_are_refused():
 
 
 def test_image_stats_sample_frames_as_lerobot_does():
-    from imitrl.datasets.lerobot import _sample_frames
+    from imitrl.datasets.lerobot._stats import sample_frames as _sample_frames
 
     # lerobot's estimate_num_samples: 1000 frames -> 177 evenly spaced; 320 px wide -> every 2nd
     frames = np.broadcast_to(

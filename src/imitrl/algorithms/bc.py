@@ -89,11 +89,12 @@ def _rows(data: DemonstrationBuffer | TensorDictBase, reads: list) -> TensorDict
 def distinct_pairs(
     rows: TensorDictBase, label_key=keys.EXPERT_ACTION
 ) -> tuple[TensorDictBase, torch.Tensor] | None:
-    """Distinct (observation, label) rows ``[U]`` and weights ``count * U / N`` ``[U]``.
+    """Distinct (observation, label) rows ``[U]``, sorted by (observation, label), and
+    their ``[U]`` int64 counts; None unless both columns are non-negative integers ``[N]``.
 
-    ``mean_j(w_j l_j)`` over the U distinct pairs equals ``mean_i l_i`` over the N rows:
-    the full-batch objective is unchanged, only summed in another order. None unless
-    observations and labels are non-negative integers ``[N]``.
+    With weights ``count * U / N``, ``mean_j(w_j l_j)`` over the U pairs equals
+    ``mean_i l_i`` over the N rows: the full-batch objective is unchanged, only summed
+    in another order (the FrozenLake study weights K row sets jointly the same way).
     """
     obs, label = rows.get(keys.OBSERVATION), rows.get(label_key)
     if (
@@ -108,11 +109,10 @@ def distinct_pairs(
         return None
     base = int(a.max()) + 1  # one integer per pair: a 1-D unique is far cheaper than dim=0
     codes, counts = torch.unique(o * base + a, return_counts=True)
-    U, N = codes.shape[0], obs.shape[0]
-    out = rows.empty(batch_size=[U])
+    out = rows.empty(batch_size=[codes.shape[0]])
     out.set(keys.OBSERVATION, (codes // base).to(obs.dtype))
     out.set(label_key, (codes % base).to(label.dtype))
-    return out, counts.to(torch.float32) * (U / N)
+    return out, counts
 
 
 def _dedup(learner: Learner, rows: TensorDictBase, config: BCConfig):
@@ -130,7 +130,8 @@ def _dedup(learner: Learner, rows: TensorDictBase, config: BCConfig):
                 "deduplicate=True needs integer observations [N] and integer labels [N]"
             )
         return rows, None
-    return distinct
+    pairs, counts = distinct
+    return pairs, counts.to(torch.float32) * (pairs.shape[0] / rows.shape[0])
 
 
 class _Minibatches:

@@ -24,6 +24,7 @@ from __future__ import annotations
 import io
 import json
 import os
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -204,6 +205,180 @@ def _cat(parts: list[Any], n: int) -> Any:
     return torch.cat(parts)
 
 
+@dataclass(frozen=True)
+class _Episode:
+    """One episode of ``T`` steps, as tensors (observations and actions: a tensor, or a
+    dict of them for Dict/Tuple spaces)."""
+
+    observation: Any  # observations[:T], [T, ...]
+    next_observation: Any  # observations[1:T + 1], or None when not asked for
+    action: Any  # [T, ...]
+    reward: torch.Tensor  # [T, 1]
+    terminated: torch.Tensor  # [T, 1] bool
+    truncated: torch.Tensor  # [T, 1] bool
+    episode: torch.Tensor  # [T] int64: the episode's id + first_episode
+    step: torch.Tensor  # [T] int64: 0..T-1
+
+
+def _open_hdf5(h5_path: Path):
+    """The Minari HDF5 file, open for reading; ValueError when absent or unreadable."""
+    import h5py
+
+    if not h5_path.is_file():
+        raise ValueError(f"{h5_path} not found")
+    try:
+        return h5py.File(h5_path, "r")
+    except OSError as err:
+        raise ValueError(f"{h5_path}: not a readable HDF5 file ({err})") from err
+
+
+def _episode_groups(h5, meta: dict[str, Any], where: str) -> list[str]:
+    """The ``episode_<id>`` groups of the HDF5 file, by id; as many as the metadata says."""
+    names = [n for n in h5.keys() if n.startswith("episode_")]
+    try:
+        order = sorted(names, key=lambda n: int(n.removeprefix("episode_")))
+    except ValueError as err:
+        raise ValueError(f"{where}: unexpected group names {names}") from err
+    if not order:
+        raise ValueError(f"{where}: no episode groups")
+    total = meta.get("total_episodes")
+    if total is not None and int(total) != len(order):
+        raise ValueError(
+            f"{where}: metadata declares {total} episodes, the file holds {len(order)}"
+        )
+    return order
+
+
+def _flags(group, here: str, obs: Any, act: Any, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """An episode's ``[T]`` terminations and truncations, once every array is checked to
+    hold ``T`` steps (``T + 1`` observations) with ``T = n``, the number of rewards."""
+    try:
+        n_obs, n_act = _length(obs), _length(act)
+    except ValueError as err:
+        raise ValueError(f"{here}: observations have {err}") from err
+    terminations = np.asarray(group["terminations"][()], dtype=bool)
+    truncations = np.asarray(group["truncations"][()], dtype=bool)
+    if n_obs != n + 1 or n_act != n or len(terminations) != n or len(truncations) != n:
+        raise ValueError(
+            f"{here}: {n_obs} observations, {n_act} actions, {n} rewards, "
+            f"{len(terminations)} terminations, {len(truncations)} truncations; expected "
+            "T + 1 observations and T of everything else"
+        )
+    declared = group.attrs.get("total_steps")
+    if declared is not None and int(declared) != n:
+        raise ValueError(f"{here}: attrs total_steps={int(declared)} but {n} rewards")
+    return terminations, truncations
+
+
+def _read_episode(
+    group,
+    name: str,
+    spaces: tuple[dict, dict],
+    jpeg: bool,
+    skipped: dict[str, str],
+    where: str,
+    first_episode: int,
+    next_observation: bool,
+) -> _Episode:
+    """One ``episode_<id>`` group, checked (per-step infos are listed in ``skipped``)."""
+    here = f"{where}: {name}"
+    for field in ("observations", "actions", "rewards", "terminations", "truncations"):
+        if field not in group:
+            raise ValueError(f"{here} has no {field!r}")
+    rewards = np.asarray(group["rewards"][()])
+    n = len(rewards)
+    obs_space, act_space = spaces
+    obs = _decode(group["observations"], obs_space, f"{name}/observations", jpeg, skipped, where)
+    act = _decode(group["actions"], act_space, f"{name}/actions", jpeg, skipped, where)
+    if obs is None or act is None:
+        raise ValueError(f"{here}: observations and actions must be numeric")
+    terminations, truncations = _flags(group, here, obs, act, n)
+    if "infos" in group:
+        for leaf in _leaves(group["infos"], "infos"):
+            skipped[leaf] = "per-step infos are not loaded"
+    episode_id = int(group.attrs.get("id", int(name.removeprefix("episode_"))))
+    return _Episode(
+        observation=_tensors(obs, slice(0, n)),
+        next_observation=_tensors(obs, slice(1, n + 1)) if next_observation else None,
+        action=_tensors(act, slice(0, n)),
+        reward=torch.from_numpy(rewards.reshape(n, 1)),
+        terminated=torch.from_numpy(terminations.reshape(n, 1)),
+        truncated=torch.from_numpy(truncations.reshape(n, 1)),
+        episode=torch.full((n,), episode_id + int(first_episode), dtype=torch.int64),
+        step=torch.arange(n, dtype=torch.int64),
+    )
+
+
+def _read_episodes(
+    h5,
+    meta: dict[str, Any],
+    data_dir: Path,
+    skipped: dict[str, str],
+    first_episode: int,
+    next_observation: bool,
+) -> list[_Episode]:
+    """Every episode of the open HDF5 file, in id order, checked against the metadata."""
+    where = str(data_dir / MAIN_FILE)
+    obs_space = _space(meta["observation_space"], f"{data_dir / METADATA_FILE}: observation_space")
+    act_space = _space(meta["action_space"], f"{data_dir / METADATA_FILE}: action_space")
+    jpeg = bool(meta.get("jpeg_encoding", False))
+    spaces = (obs_space, act_space)
+    episodes = [
+        _read_episode(h5[n], n, spaces, jpeg, skipped, where, first_episode, next_observation)
+        for n in _episode_groups(h5, meta, where)
+    ]
+    frames = sum(len(ep.step) for ep in episodes)
+    if meta.get("total_steps") is not None and int(meta["total_steps"]) != frames:
+        raise ValueError(
+            f"{where}: metadata declares {meta['total_steps']} steps, the episodes hold {frames}"
+        )
+    return episodes
+
+
+def _rows(episodes: list[_Episode], next_observation: bool, where: str) -> TensorDict:
+    """The ``[N]`` rows of every episode, back to back, with the buffer's required keys."""
+    frames = sum(len(ep.step) for ep in episodes)
+    if frames == 0:
+        raise ValueError(f"{where}: the dataset holds no steps")
+    terminated = torch.cat([ep.terminated for ep in episodes])
+    truncated = torch.cat([ep.truncated for ep in episodes])
+    columns: dict[NestedKey, Any] = {
+        keys.OBSERVATION: _cat([ep.observation for ep in episodes], frames),
+        keys.EXPERT_ACTION: _cat([ep.action for ep in episodes], frames),
+        (keys.NEXT, keys.REWARD): torch.cat([ep.reward for ep in episodes]),
+        (keys.NEXT, keys.DONE): terminated | truncated,
+        (keys.NEXT, keys.TERMINATED): terminated,
+        (keys.NEXT, keys.TRUNCATED): truncated,
+    }
+    if next_observation:
+        columns[(keys.NEXT, keys.OBSERVATION)] = _cat(
+            [ep.next_observation for ep in episodes], frames
+        )
+    episode = torch.cat([ep.episode for ep in episodes])
+    return required_rows(columns, episode=episode, step=torch.cat([ep.step for ep in episodes]))
+
+
+_LOADED = {
+    "observations": keys.OBSERVATION,
+    "actions": f"{keys.EXPERT_ACTION} (and {keys.ACTION})",
+    "rewards": "next.reward",
+    "terminations": "next.terminated",
+    "truncations": "next.truncated",
+}
+"""Minari dataset -> the buffer key it is loaded into (``LoadedDemonstrations.loaded``)"""
+
+_SOURCES = {
+    keys.OBSERVATION: "observations",
+    keys.ACTION: "actions",
+    keys.EXPERT_ACTION: "actions",
+    "next.reward": "rewards",
+    "next.done": "terminations | truncations",
+    "next.terminated": "terminations",
+    "next.truncated": "truncations",
+}
+"""buffer key name -> the Minari dataset it comes from, for :func:`conform_to_env`'s messages"""
+
+
 def load_minari(
     path_or_id: str | Path,
     *,
@@ -236,121 +411,18 @@ def load_minari(
             an episode whose arrays have inconsistent lengths or shapes; episode counts or
             step totals that contradict the metadata; shapes that contradict ``env``.
     """
-    import h5py
-
     data_dir = resolve_minari_root(path_or_id)
     meta = _metadata(data_dir, None) if (data_dir / METADATA_FILE).is_file() else None
-    h5_path = data_dir / MAIN_FILE
-    if not h5_path.is_file():
-        raise ValueError(f"{h5_path} not found")
     skipped: dict[str, str] = {}
-    try:
-        h5 = h5py.File(h5_path, "r")
-    except OSError as err:
-        raise ValueError(f"{h5_path}: not a readable HDF5 file ({err})") from err
-    with h5:
+    with _open_hdf5(data_dir / MAIN_FILE) as h5:
         if meta is None:
             meta = _metadata(data_dir, h5)
-        where = str(h5_path)
-        obs_space = _space(
-            meta["observation_space"], f"{data_dir / METADATA_FILE}: observation_space"
-        )
-        act_space = _space(meta["action_space"], f"{data_dir / METADATA_FILE}: action_space")
-        jpeg = bool(meta.get("jpeg_encoding", False))
-        names = [n for n in h5.keys() if n.startswith("episode_")]
-        try:
-            order = sorted(names, key=lambda n: int(n.removeprefix("episode_")))
-        except ValueError as err:
-            raise ValueError(f"{where}: unexpected group names {names}") from err
-        if not order:
-            raise ValueError(f"{where}: no episode groups")
-        total = meta.get("total_episodes")
-        if total is not None and int(total) != len(order):
-            raise ValueError(
-                f"{where}: metadata declares {total} episodes, the file holds {len(order)}"
-            )
-        obs_parts, nxt_parts, act_parts = [], [], []
-        rew, term, trunc, ep_ids, steps = [], [], [], [], []
-        for name in order:
-            group = h5[name]
-            here = f"{where}: {name}"
-            for field in ("observations", "actions", "rewards", "terminations", "truncations"):
-                if field not in group:
-                    raise ValueError(f"{here} has no {field!r}")
-            rewards = np.asarray(group["rewards"][()])
-            n = len(rewards)
-            obs = _decode(
-                group["observations"], obs_space, f"{name}/observations", jpeg, skipped, where
-            )
-            act = _decode(group["actions"], act_space, f"{name}/actions", jpeg, skipped, where)
-            if obs is None or act is None:
-                raise ValueError(f"{here}: observations and actions must be numeric")
-            try:
-                n_obs, n_act = _length(obs), _length(act)
-            except ValueError as err:
-                raise ValueError(f"{here}: observations have {err}") from err
-            terminations = np.asarray(group["terminations"][()], dtype=bool)
-            truncations = np.asarray(group["truncations"][()], dtype=bool)
-            if n_obs != n + 1 or n_act != n or len(terminations) != n or len(truncations) != n:
-                raise ValueError(
-                    f"{here}: {n_obs} observations, {n_act} actions, {n} rewards, "
-                    f"{len(terminations)} terminations, {len(truncations)} truncations; expected "
-                    "T + 1 observations and T of everything else"
-                )
-            declared = group.attrs.get("total_steps")
-            if declared is not None and int(declared) != n:
-                raise ValueError(f"{here}: attrs total_steps={int(declared)} but {n} rewards")
-            if "infos" in group:
-                for leaf in _leaves(group["infos"], "infos"):
-                    skipped[leaf] = "per-step infos are not loaded"
-            obs_parts.append(_tensors(obs, slice(0, n)))
-            if next_observation:
-                nxt_parts.append(_tensors(obs, slice(1, n + 1)))
-            act_parts.append(_tensors(act, slice(0, n)))
-            rew.append(torch.from_numpy(rewards.reshape(n, 1)))
-            term.append(torch.from_numpy(terminations.reshape(n, 1)))
-            trunc.append(torch.from_numpy(truncations.reshape(n, 1)))
-            episode_id = int(group.attrs.get("id", int(name.removeprefix("episode_"))))
-            ep_ids.append(torch.full((n,), episode_id + int(first_episode), dtype=torch.int64))
-            steps.append(torch.arange(n, dtype=torch.int64))
-        frames = sum(len(s) for s in steps)
-        if meta.get("total_steps") is not None and int(meta["total_steps"]) != frames:
-            raise ValueError(
-                f"{where}: metadata declares {meta['total_steps']} steps, the episodes hold {frames}"
-            )
-    if frames == 0:
-        raise ValueError(f"{where}: the dataset holds no steps")
-    terminated, truncated = torch.cat(term), torch.cat(trunc)
-    columns: dict[NestedKey, Any] = {
-        keys.OBSERVATION: _cat(obs_parts, frames),
-        keys.EXPERT_ACTION: _cat(act_parts, frames),
-        (keys.NEXT, keys.REWARD): torch.cat(rew),
-        (keys.NEXT, keys.DONE): terminated | truncated,
-        (keys.NEXT, keys.TERMINATED): terminated,
-        (keys.NEXT, keys.TRUNCATED): truncated,
-    }
-    if next_observation:
-        columns[(keys.NEXT, keys.OBSERVATION)] = _cat(nxt_parts, frames)
-    rows = required_rows(columns, episode=torch.cat(ep_ids), step=torch.cat(steps))
+        episodes = _read_episodes(h5, meta, data_dir, skipped, first_episode, next_observation)
+    where = str(data_dir / MAIN_FILE)
+    rows = _rows(episodes, next_observation, where)
     notes: list[str] = []
-    loaded = {
-        "observations": keys.OBSERVATION,
-        "actions": f"{keys.EXPERT_ACTION} (and {keys.ACTION})",
-        "rewards": "next.reward",
-        "terminations": "next.terminated",
-        "truncations": "next.truncated",
-    }
     if env is not None:
-        names = {
-            keys.OBSERVATION: "observations",
-            keys.ACTION: "actions",
-            keys.EXPERT_ACTION: "actions",
-            "next.reward": "rewards",
-            "next.done": "terminations | truncations",
-            "next.terminated": "terminations",
-            "next.truncated": "truncations",
-        }
-        rows = conform_to_env(rows, env, where=where, notes=notes, names=names)
+        rows = conform_to_env(rows, env, where=where, notes=notes, names=dict(_SOURCES))
     # one entry per leaf, not per episode
     skipped = {k.split("/", 1)[1] if k.startswith("episode_") else k: v for k, v in skipped.items()}
     warn_skipped(data_dir, skipped, quiet=frozenset())
@@ -358,8 +430,8 @@ def load_minari(
         rows=rows,
         source=data_dir,
         format=f"minari hdf5 (minari {meta.get('minari_version', '?')})",
-        num_episodes=len(order),
-        loaded=loaded,
+        num_episodes=len(episodes),
+        loaded=dict(_LOADED),
         skipped=skipped,
         notes=notes,
         metadata=meta,

@@ -30,7 +30,7 @@ from imitrl.policies.experts import Expert
 from imitrl.policies.mixture import BetaMixer, behaviour_policy
 from imitrl.tabular.mdp import TabularMDP
 
-__all__ = ["BatchedBackend", "FaithfulBackend", "split_replicates"]
+__all__ = ["BatchedBackend", "Block", "FaithfulBackend", "split_replicates"]
 
 
 def split_replicates(rows: TensorDict, num_states: int, replicates: int) -> list[TensorDict]:
@@ -146,3 +146,7 @@ class BatchedBackend:
 
     def block(self, seed: int) -> _BatchedBlock:
         return _BatchedBlock(self.mdp, self.expert_table, seed)
+
+
+Block = _FaithfulBlock | _BatchedBlock
+"""One seeded stretch of experiment, of either backend (see the module docstring)."""

@@ -1,0 +1,73 @@
+"""LeRobot datasets as a file format: read v2.1 and v3.0 directories, write v3.0.
+
+No ``lerobot`` package is needed (it cannot be installed beside torch 2.13 and
+gymnasium 1.x): the layout is read and written with pyarrow, following
+``lerobot/datasets/lerobot_dataset.py`` and ``utils.py`` (lerobot 0.3.x for v2.1,
+0.4.x for v3.0).
+
+v3.0 (episodes back to back, many episodes per file)::
+
+    meta/info.json                              codebase_version, fps, features, path templates
+    meta/tasks.parquet                          task string (pandas index) -> task_index
+    meta/episodes/chunk-000/file-000.parquet    one row per episode: episode_index, tasks, length,
+                                                data/chunk_index, data/file_index,
+                                                dataset_from_index, dataset_to_index, stats/...
+    meta/stats.json                             per-feature min/max/mean/std/count/quantiles
+    data/chunk-000/file-000.parquet             frames: features + timestamp, frame_index,
+                                                episode_index, index, task_index
+
+v2.1 (one parquet file per episode)::
+
+    meta/info.json, meta/episodes.jsonl, meta/tasks.jsonl, meta/episodes_stats.jsonl
+    data/chunk-{episode_index // chunks_size:03d}/episode_{episode_index:06d}.parquet
+
+Column mapping on load (:data:`DEFAULT_KEY_MAP`, extend or override with ``key_map``):
+``observation.state -> OBSERVATION``, ``action -> EXPERT_ACTION`` (and ``ACTION``: a
+recording is the expert acting), ``next.reward/done/terminated/truncated -> ("next",
+...)``, ``task_index -> "task_index"`` (indexes ``LoadedDemonstrations.tasks``; loaded
+when there is more than one task); with no ``observation.state`` (nothing mapped to
+``OBSERVATION``), every ``observation.<sub>`` feature -> ``("observation", *sub.split("."))``
+(a Dict observation); ``episode_index`` gives ``EPISODE`` and ``frame_index`` gives ``STEP``. Rows get round 0
+and ``EXPERT_EXECUTED`` True unless the dataset carries imitrl's own columns
+(``imitrl.round``, ``imitrl.expert_executed``, ``imitrl.executed_action``,
+``imitrl.episode``), which :func:`save_lerobot` writes so that every DAgger round
+survives the trip. Image features are decoded (``images="load"``) or skipped with a
+warning (``images="skip"``); video features are always skipped with a warning (no
+video decoder is a dependency). Nothing is dropped without a warning.
+
+Modules, one idea each: ``_layout`` (format constants, :func:`resolve_lerobot_root`,
+reading ``meta/``), ``_plan`` (feature -> buffer key, and why others are skipped),
+``_read`` (:func:`load_lerobot`), ``_write`` (:func:`save_lerobot`: rows -> features),
+``_v3_files`` (the files of a v3.0 directory), ``_stats`` (LeRobot's feature and image
+statistics).
+"""
+
+# the format's constants stay importable from here, as before the split into modules
+from imitrl.datasets.lerobot._layout import (  # noqa: F401
+    BOOKKEEPING,
+    CODEBASE_VERSION,
+    DATA_PATH,
+    DEFAULT_CHUNK_SIZE,
+    DEFAULT_DATA_FILE_SIZE_IN_MB,
+    DEFAULT_KEY_MAP,
+    DEFAULT_VIDEO_FILE_SIZE_IN_MB,
+    EPISODES_PATH,
+    IMAGE_NAMES,
+    IMITRL_COLUMNS,
+    LEGACY_DATA_PATH,
+    QUANTILES,
+    READ_VERSIONS,
+    SIDECAR,
+    SIDECAR_FORMAT,
+    resolve_lerobot_root,
+)
+from imitrl.datasets.lerobot._read import load_lerobot
+from imitrl.datasets.lerobot._write import save_lerobot
+
+__all__ = [
+    "DEFAULT_KEY_MAP",
+    "IMITRL_COLUMNS",
+    "load_lerobot",
+    "resolve_lerobot_root",
+    "save_lerobot",
+]

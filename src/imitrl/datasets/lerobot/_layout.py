@@ -1,0 +1,288 @@
+"""Where a LeRobot dataset lives and what its ``meta/`` directory says.
+
+The format's constants (versions, path templates, the column <-> key maps), finding a
+dataset on disk (:func:`resolve_lerobot_root`), and reading ``meta/info.json``, the
+episode table (v3.0 parquet or v2.x ``episodes.jsonl``) and the task table, each
+validated where it is read.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+from pathlib import Path
+from typing import Any
+
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from imitrl import keys
+from imitrl.datasets._arrow import read_parquet
+from imitrl.datasets._common import NestedKey
+
+DEFAULT_KEY_MAP: dict[str, NestedKey] = {
+    "observation.state": keys.OBSERVATION,
+    "action": keys.EXPERT_ACTION,
+    "next.reward": (keys.NEXT, keys.REWARD),
+    "next.done": (keys.NEXT, keys.DONE),
+    "next.terminated": (keys.NEXT, keys.TERMINATED),
+    "next.truncated": (keys.NEXT, keys.TRUNCATED),
+}
+"""dataset feature -> buffer key, applied unless ``key_map`` overrides an entry (``task_index``
+is loaded as ``"task_index"`` when the dataset has more than one task)"""
+
+IMITRL_COLUMNS: dict[str, NestedKey] = {
+    "imitrl.executed_action": keys.ACTION,
+    "imitrl.expert_executed": keys.EXPERT_EXECUTED,
+    "imitrl.round": keys.ROUND,
+    "imitrl.episode": keys.EPISODE,
+}
+"""the columns :func:`save_lerobot` adds so that DAgger rounds round-trip"""
+
+# LeRobot's bookkeeping columns (DEFAULT_FEATURES in lerobot/datasets/utils.py)
+BOOKKEEPING = ("timestamp", "frame_index", "episode_index", "index", "task_index")
+CODEBASE_VERSION = "v3.0"
+READ_VERSIONS = {"v2.0": 2, "v2.1": 2, "v3.0": 3}
+"""codebase_version -> layout major version, for every version :func:`load_lerobot` reads"""
+DEFAULT_CHUNK_SIZE = 1000
+DEFAULT_DATA_FILE_SIZE_IN_MB = 100
+DEFAULT_VIDEO_FILE_SIZE_IN_MB = 200
+DATA_PATH = "data/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet"
+EPISODES_PATH = "meta/episodes/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet"
+LEGACY_DATA_PATH = "data/chunk-{episode_chunk:03d}/episode_{episode_index:06d}.parquet"
+QUANTILES = (0.01, 0.10, 0.50, 0.90, 0.99)
+IMAGE_NAMES = {"hwc": ["height", "width", "channels"], "chw": ["channels", "height", "width"]}
+SIDECAR = "meta/imitrl.json"
+SIDECAR_FORMAT = "imitrl.lerobot/1"
+
+
+# ------------------------------------------------------------------ locate
+def resolve_lerobot_root(
+    repo_id: str, *, revision: str | None = None, cache_dir: str | Path | None = None
+) -> Path:
+    """Find a LeRobot dataset already on disk for ``repo_id``, without any network access.
+
+    Looks, in order, in ``$HF_LEROBOT_HOME/<repo_id>`` (LeRobot's default ``root``,
+    ``$HF_HOME/lerobot``), then the Hugging Face hub cache
+    (``cache_dir`` or ``$HF_HUB_CACHE`` or ``$HF_HOME/hub``):
+    ``datasets--<org>--<name>/snapshots/<commit>/`` with ``revision`` (or ``v3.0``,
+    ``v2.1``, ``main``) resolved through ``refs/``, else the newest snapshot holding
+    ``meta/info.json``.
+
+    Raises:
+        ValueError: nothing found (the message lists where it looked).
+    """
+    hf_home = Path(os.environ.get("HF_HOME", Path.home() / ".cache" / "huggingface"))
+    looked: list[str] = []
+    if cache_dir is None:
+        lerobot_home = Path(os.environ.get("HF_LEROBOT_HOME", hf_home / "lerobot"))
+        candidate = lerobot_home / repo_id
+        looked.append(str(candidate))
+        if (candidate / "meta" / "info.json").is_file():
+            return candidate
+    hub = Path(cache_dir or os.environ.get("HF_HUB_CACHE", hf_home / "hub"))
+    repo_dir = hub / ("datasets--" + repo_id.replace("/", "--"))
+    looked.append(str(repo_dir))
+    found = _hub_snapshot(repo_dir, revision)
+    if found is not None:
+        return found
+    raise ValueError(
+        f"no local copy of LeRobot dataset {repo_id!r}"
+        + (f" at revision {revision!r}" if revision else "")
+        + f" (looked in {looked}); download it first, this loader never uses the network"
+    )
+
+
+def _hub_snapshot(repo_dir: Path, revision: str | None) -> Path | None:
+    """The snapshot of a hub cache's ``datasets--<org>--<name>`` that holds the dataset:
+    ``revision`` (or ``v3.0``, ``v2.1``, ``main``) through ``refs/``, else (no revision
+    asked for) the newest one holding ``meta/info.json``; None if there is none."""
+    snapshots = repo_dir / "snapshots"
+    if not snapshots.is_dir():
+        return None
+    refs = [revision] if revision is not None else ["v3.0", "v2.1", "main"]
+    for ref in refs:
+        ref_file = repo_dir / "refs" / ref
+        commit = ref_file.read_text().strip() if ref_file.is_file() else ref
+        candidate = snapshots / commit
+        if (candidate / "meta" / "info.json").is_file():
+            return candidate
+    if revision is None:
+        found = [p for p in snapshots.iterdir() if (p / "meta" / "info.json").is_file()]
+        if found:
+            return max(found, key=lambda p: (p / "meta" / "info.json").stat().st_mtime)
+    return None
+
+
+def dataset_root(
+    path_or_repo: str | Path, revision: str | None, cache_dir: str | Path | None
+) -> Path:
+    """The dataset directory: ``path_or_repo`` itself, or a ``repo_id`` resolved locally."""
+    path = Path(path_or_repo)
+    if path.is_dir():
+        return path
+    if isinstance(path_or_repo, str) and re.fullmatch(r"[\w.-]+/[\w.-]+", path_or_repo):
+        return resolve_lerobot_root(path_or_repo, revision=revision, cache_dir=cache_dir)
+    raise ValueError(f"{path}: no such dataset directory")
+
+
+# -------------------------------------------------------------------- meta
+def read_json(path: Path) -> Any:
+    """A JSON metadata file; ValueError naming it when absent or malformed."""
+    if not path.is_file():
+        raise ValueError(f"{path} not found: not a LeRobot dataset (meta/info.json is required)")
+    try:
+        return json.loads(path.read_text())
+    except json.JSONDecodeError as err:
+        raise ValueError(f"{path} is not valid JSON: {err}") from err
+
+
+def _read_jsonl(path: Path) -> list[dict]:
+    if not path.is_file():
+        raise ValueError(f"{path} not found (a v2.x LeRobot dataset lists its episodes there)")
+    out = []
+    for i, line in enumerate(path.read_text().splitlines()):
+        if line.strip():
+            try:
+                out.append(json.loads(line))
+            except json.JSONDecodeError as err:
+                raise ValueError(f"{path}:{i + 1} is not valid JSON: {err}") from err
+    return out
+
+
+def read_info(root: Path) -> tuple[dict, int]:
+    """``meta/info.json``, validated, and its layout's major version (2 or 3)."""
+    path = root / "meta" / "info.json"
+    info = read_json(path)
+    for field in ("codebase_version", "fps", "features", "data_path"):
+        if field not in info:
+            raise ValueError(f"{path}: missing {field!r}")
+    major = READ_VERSIONS.get(str(info["codebase_version"]))
+    if major is None:
+        raise ValueError(
+            f"{path}: codebase_version {info['codebase_version']!r} is not supported "
+            f"(only {', '.join(READ_VERSIONS)} are)"
+        )
+    if not isinstance(info["features"], dict):
+        raise ValueError(f"{path}: 'features' must map feature names to descriptions")
+    for name, ft in info["features"].items():
+        if not isinstance(ft, dict) or not isinstance(ft.get("dtype"), str):
+            raise ValueError(f"{path}: feature {name!r} needs a dtype and a shape, got {ft!r}")
+        shape = ft.get("shape")
+        if not isinstance(shape, list | tuple) or not all(
+            isinstance(d, int) and d >= 0 for d in shape
+        ):
+            raise ValueError(
+                f"{path}: feature {name!r} needs a shape (a list of sizes), got {shape!r}"
+            )
+    return info, major
+
+
+def read_episodes(root: Path, info: dict, major: int) -> list[dict]:
+    """The episode table in episode order, each entry with its data ``"file"``, checked
+    against ``info.json``'s ``total_episodes`` and for repeated indices."""
+    episodes = _episodes_v3(root, info) if major == 3 else _episodes_v2(root, info)
+    total = info.get("total_episodes")
+    if total is not None and total != len(episodes):
+        raise ValueError(
+            f"{root / 'meta' / 'info.json'} declares {total} episodes, the episode metadata lists "
+            f"{len(episodes)}"
+        )
+    ids = [int(e["episode_index"]) for e in episodes]
+    if len(set(ids)) != len(ids):
+        raise ValueError(f"{root / 'meta'}: episode indices repeat: {ids}")
+    return episodes
+
+
+def _episodes_v3(root: Path, info: dict) -> list[dict]:
+    ep_dir = root / "meta" / "episodes"
+    files = sorted(ep_dir.glob("*/*.parquet"))
+    if not files:
+        raise ValueError(
+            f"{ep_dir}: no episode metadata files (meta/episodes/chunk-*/file-*.parquet)"
+        )
+    need = ["episode_index", "length", "data/chunk_index", "data/file_index"]
+    optional = ["dataset_from_index", "dataset_to_index", "tasks"]
+    episodes: list[dict] = []
+    for f in files:
+        table = read_parquet(f)
+        missing = [c for c in need if c not in table.column_names]
+        if missing:
+            raise ValueError(f"{f}: episode metadata lacks column(s) {missing}")
+        table = table.select(need + [c for c in optional if c in table.column_names])
+        nulls = [c for c in table.column_names if c != "tasks" and table.column(c).null_count]
+        if nulls:
+            raise ValueError(f"{f}: episode metadata column(s) {nulls} hold null entries")
+        episodes.extend(table.to_pylist())
+    episodes.sort(key=lambda e: e["episode_index"])
+    template = info["data_path"]
+    for ep in episodes:
+        ep["file"] = template.format(
+            chunk_index=ep["data/chunk_index"], file_index=ep["data/file_index"]
+        )
+    return episodes
+
+
+def _episodes_v2(root: Path, info: dict) -> list[dict]:
+    path = root / "meta" / "episodes.jsonl"
+    episodes = _read_jsonl(path)
+    for ep in episodes:
+        for field in ("episode_index", "length"):
+            if not isinstance(ep, dict) or not isinstance(ep.get(field), int):
+                raise ValueError(f"{path}: entry {ep!r} has no integer {field!r}")
+    episodes.sort(key=lambda e: e["episode_index"])
+    chunks = int(info.get("chunks_size", DEFAULT_CHUNK_SIZE))
+    template = info["data_path"]
+    for ep in episodes:
+        ep["file"] = template.format(
+            episode_chunk=ep["episode_index"] // chunks, episode_index=ep["episode_index"]
+        )
+    return episodes
+
+
+def read_tasks(root: Path, major: int) -> list[str]:
+    """The task strings, indexed by ``task_index`` (which must run 0..T-1)."""
+    pairs = _task_pairs_v2(root) if major == 2 else _task_pairs_v3(root)
+    pairs.sort()
+    tasks = [t for _, t in pairs]
+    if [i for i, _ in pairs] != list(range(len(pairs))):
+        raise ValueError(f"{root / 'meta'}: task indices are not 0..{len(pairs) - 1}")
+    return tasks
+
+
+def _task_pairs_v2(root: Path) -> list[tuple[int, str]]:
+    path = root / "meta" / "tasks.jsonl"
+    rows = _read_jsonl(path)
+    for r in rows:
+        if not (
+            isinstance(r, dict)
+            and isinstance(r.get("task_index"), int)
+            and isinstance(r.get("task"), str)
+        ):
+            raise ValueError(f"{path}: entry {r!r} needs an integer 'task_index' and a 'task'")
+    return [(r["task_index"], r["task"]) for r in rows]
+
+
+def _task_pairs_v3(root: Path) -> list[tuple[int, str]]:
+    path = root / "meta" / "tasks.parquet"
+    table = read_parquet(path)
+    pandas_meta = json.loads((table.schema.metadata or {}).get(b"pandas", b"{}"))
+    index_cols = [c for c in pandas_meta.get("index_columns", []) if isinstance(c, str)]
+    for name in (*index_cols, "task", "__index_level_0__"):
+        if name in table.column_names:
+            strings = table.column(name).to_pylist()
+            break
+    else:
+        raise ValueError(f"{path}: no task string column (pandas index or 'task')")
+    if "task_index" not in table.column_names:
+        raise ValueError(f"{path}: no 'task_index' column")
+    return list(zip(table.column("task_index").to_pylist(), strings))
+
+
+def rows_in(path: Path) -> int:
+    """Frames in a parquet file, from its footer (0 if unreadable: reported when it is read)."""
+    try:
+        return pq.read_metadata(path).num_rows
+    except (pa.ArrowException, OSError):
+        return 0

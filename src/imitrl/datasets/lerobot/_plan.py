@@ -1,0 +1,200 @@
+"""Which LeRobot feature is loaded into which buffer key, and why each other one is not.
+
+The plan comes from ``meta/imitrl.json`` when :func:`save_lerobot` wrote the dataset
+(exact keys and per-frame shapes), else from :data:`DEFAULT_KEY_MAP` and
+:data:`IMITRL_COLUMNS`; ``key_map`` overrides either. Every feature left out gets a
+reason, for the one warning :func:`load_lerobot` gives.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Literal
+
+from imitrl import keys
+from imitrl.datasets._common import NestedKey, as_key, key_name
+from imitrl.datasets.lerobot._layout import (
+    DEFAULT_KEY_MAP,
+    IMITRL_COLUMNS,
+    SIDECAR,
+    SIDECAR_FORMAT,
+    read_json,
+)
+
+_LEFT_OUT = "left out by key_map"
+"""why a feature ``key_map`` maps to None is skipped (listed, not warned about)"""
+
+
+def _under_observation(key: NestedKey) -> bool:
+    return key == keys.OBSERVATION or (isinstance(key, tuple) and key[0] == keys.OBSERVATION)
+
+
+def plan_features(
+    root: Path,
+    info: dict,
+    key_map: Mapping[str, NestedKey | None] | None,
+    images: Literal["skip", "load"],
+) -> tuple[dict[str, NestedKey], dict[str, tuple[int, ...]]]:
+    """feature -> buffer key, and the exact per-frame shapes recorded by :func:`save_lerobot`.
+
+    Without ``meta/imitrl.json`` and with no feature mapped to ``OBSERVATION`` (no
+    ``observation.state``, say), every ``observation.<sub>`` feature maps to the nested key
+    ``("observation", *sub.split("."))``: a Dict observation.
+    """
+    features = info["features"]
+    sidecar = root / SIDECAR
+    if sidecar.is_file():
+        mapping, shapes = _sidecar_mapping(sidecar, features, images)
+    else:
+        mapping = {k: v for k, v in DEFAULT_KEY_MAP.items() if k in features}
+        mapping.update({k: v for k, v in IMITRL_COLUMNS.items() if k in features})
+        shapes = {}
+    for name, key in (key_map or {}).items():
+        if name not in features:
+            raise ValueError(
+                f"{root / 'meta' / 'info.json'}: key_map names feature {name!r}, which the "
+                f"dataset does not declare (features: {sorted(features)})"
+            )
+        mapping[name] = key
+    if not sidecar.is_file() and not any(
+        v is not None and _under_observation(v) for v in mapping.values()
+    ):
+        mapping.update(_observation_group(features, mapping, images))
+    plan = {k: v for k, v in mapping.items() if v is not None}
+    _check_targets(root, plan, features)
+    return plan, shapes
+
+
+def _sidecar_mapping(
+    sidecar: Path, features: dict[str, dict], images: Literal["skip", "load"]
+) -> tuple[dict[str, NestedKey | None], dict[str, tuple[int, ...]]]:
+    """feature -> key and exact per-frame shape, as ``meta/imitrl.json`` records them
+    (image features only with ``images="load"``)."""
+    meta = read_json(sidecar)
+    if meta.get("format") != SIDECAR_FORMAT:
+        raise ValueError(f"{sidecar}: unknown format {meta.get('format')!r}")
+    mapping: dict[str, NestedKey | None] = {}
+    shapes: dict[str, tuple[int, ...]] = {}
+    for name, entry in meta["columns"].items():
+        if name not in features:
+            raise ValueError(f"{sidecar}: column {name!r} is not a feature of meta/info.json")
+        shapes[name] = tuple(entry["shape"])
+        if features[name]["dtype"] != "image" or images == "load":
+            mapping[name] = as_key(entry["key"])
+    return mapping, shapes
+
+
+def _observation_group(
+    features: dict[str, dict],
+    mapping: Mapping[str, NestedKey | None],
+    images: Literal["skip", "load"],
+) -> dict[str, NestedKey]:
+    """Every loadable ``observation.<sub>`` feature not mapped yet ->
+    ``("observation", *sub.split("."))``: a Dict observation."""
+    prefix = keys.OBSERVATION + "."
+    group: dict[str, NestedKey] = {}
+    for name, ft in features.items():
+        loadable = ft["dtype"] not in ("video", "string", "image") or (
+            ft["dtype"] == "image" and images == "load"
+        )
+        if name.startswith(prefix) and name not in mapping and loadable:
+            group[name] = (keys.OBSERVATION, *name.removeprefix(prefix).split("."))
+    return group
+
+
+def _check_targets(root: Path, plan: dict[str, NestedKey], features: dict[str, dict]) -> None:
+    """Each key is loaded from one feature, is a tensor or a group (not both), and
+    something is loaded under ``OBSERVATION``."""
+    targets = [key_name(v) for v in plan.values()]
+    dup = sorted({t for t in targets if targets.count(t) > 1})
+    if dup:
+        raise ValueError(f"several features map to the same buffer key(s) {dup}: fix key_map")
+    paths = {(v,) if isinstance(v, str) else tuple(v): k for k, v in plan.items()}
+    for path, name in paths.items():
+        for i in range(1, len(path)):
+            if path[:i] in paths:
+                raise ValueError(
+                    f"{root / 'meta' / 'info.json'}: feature {paths[path[:i]]!r} maps to "
+                    f"{key_name(path[:i])!r} and feature {name!r} inside it to "
+                    f"{key_name(path)!r}; a key cannot be both a tensor and a group (fix key_map)"
+                )
+    if not any(_under_observation(v) for v in plan.values()):
+        numeric = [k for k, f in features.items() if f["dtype"] not in ("image", "video", "string")]
+        raise ValueError(
+            f"{root / 'meta' / 'info.json'}: no feature maps to {keys.OBSERVATION!r}; pass "
+            f"key_map={{'<feature>': {keys.OBSERVATION!r}}} (features: {numeric})"
+        )
+
+
+def settle_features(
+    root: Path,
+    features: dict[str, dict],
+    plan: dict[str, NestedKey],
+    exact_shapes: dict[str, tuple[int, ...]],
+    tasks: list[str],
+    key_map: Mapping[str, NestedKey | None] | None,
+    images: Literal["skip", "load"],
+) -> tuple[dict[str, NestedKey], dict[str, str], set[str]]:
+    """The final plan (``task_index`` when there are several tasks, image features under
+    their own names), every other feature -> why it is skipped, and the skipped features
+    not warned about (bookkeeping, a single task, the caller's own ``key_map`` choices).
+
+    ``task_index`` is loaded only for a dataset with several tasks that imitrl did not
+    write (imitrl records it in ``meta/imitrl.json`` when the rows had it)."""
+    plan = dict(plan)
+    quiet = {"index", "timestamp"}
+    if (
+        "task_index" in features
+        and "task_index" not in plan
+        and "task_index" not in (key_map or {})
+    ):
+        if len(tasks) > 1 and not exact_shapes:
+            plan["task_index"] = "task_index"
+        else:
+            quiet.add("task_index")
+    skipped: dict[str, str] = {}
+    for name, ft in features.items():
+        if name in plan or name in ("episode_index", "frame_index"):
+            continue
+        reason = _skip_reason(name, ft, tasks, quiet, key_map, images)
+        if reason is None:
+            plan[name] = name
+            continue
+        skipped[name] = reason
+        if reason == _LEFT_OUT:
+            quiet.add(name)  # the caller's choice: listed, not warned about
+    for name, key in plan.items():
+        if features[name]["dtype"] in ("video", "string"):
+            raise ValueError(
+                f"{root / 'meta' / 'info.json'}: feature {name!r} has dtype "
+                f"{features[name]['dtype']!r}, which cannot be loaded into {key_name(key)!r}"
+            )
+    return plan, skipped, quiet
+
+
+def _skip_reason(
+    name: str,
+    ft: dict,
+    tasks: list[str],
+    quiet: set[str],
+    key_map: Mapping[str, NestedKey | None] | None,
+    images: Literal["skip", "load"],
+) -> str | None:
+    """Why an unplanned feature is not loaded; None for an image feature to load
+    (``images="load"``)."""
+    if name == "task_index" and name in quiet:
+        return f"a single task ({tasks[0]!r})" if len(tasks) == 1 else "not recorded by imitrl"
+    if ft["dtype"] == "video":
+        return "video feature (mp4 under videos/): video decoding is not supported"
+    if ft["dtype"] == "string":
+        return "string feature: text cannot go into a tensor"
+    if ft["dtype"] == "image" and images == "skip":
+        return "image feature not loaded (images='skip'; pass images='load')"
+    if ft["dtype"] == "image":
+        return None
+    if name in ("index", "timestamp"):
+        return "bookkeeping (derivable from episode order and frame_index / fps)"
+    if key_map is not None and name in key_map:
+        return _LEFT_OUT
+    return "no buffer key for it (add it to key_map)"

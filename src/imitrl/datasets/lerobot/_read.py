@@ -1,0 +1,280 @@
+"""Read a LeRobot dataset's frames into demonstration rows (:func:`load_lerobot`).
+
+Frames are read file by file; v3.0 files are concatenated in sorted order, as LeRobot
+does, and each episode is the slice ``[dataset_from_index, dataset_to_index)`` of that
+concatenation (the episode table's file pointers are not needed, and LeRobot's own
+aggregate tool leaves them stale: they only name a missing file when frames are
+missing too); v2.x has one file per episode. Everything is checked against the
+metadata before a row is returned.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import torch
+from torchrl.envs import EnvBase
+
+from imitrl import keys
+from imitrl.datasets._arrow import column_to_tensor, decode_images, read_parquet
+from imitrl.datasets._common import (
+    LoadedDemonstrations,
+    NestedKey,
+    conform_to_env,
+    key_name,
+    required_rows,
+    warn_skipped,
+)
+from imitrl.datasets.lerobot._layout import (
+    dataset_root,
+    read_episodes,
+    read_info,
+    read_tasks,
+    rows_in,
+)
+from imitrl.datasets.lerobot._plan import plan_features, settle_features
+
+
+@dataclass(frozen=True)
+class _Frames:
+    """Every frame of the data files, back to back in file order (``F`` frames)."""
+
+    columns: dict[str, list[torch.Tensor]]
+    """feature -> its values, one ``[F_file, *shape]`` tensor per file"""
+    episode_index: torch.Tensor
+    """``[F]`` the ``episode_index`` column"""
+    frame_index: torch.Tensor
+    """``[F]`` the ``frame_index`` column"""
+    bounds: list[tuple[int, int, Path]]
+    """``(first frame, end frame, file)`` of each file"""
+    total: int
+    """``F``"""
+
+    def file_at(self, i: int) -> Path:
+        """The file holding frame ``i`` (the last file past the end)."""
+        return next((p for s, e, p in self.bounds if s <= i < e), self.bounds[-1][2])
+
+
+def _data_files(root: Path, episodes: list[dict], major: int) -> list[Path]:
+    """The data files to read, in order: v3.0's sorted ``data/*/*.parquet`` (a missing
+    file the episode table names is reported when frames are missing), v2.x's one per
+    episode."""
+    if major != 3:
+        return [root / ep["file"] for ep in episodes]
+    files = sorted((root / "data").glob("*/*.parquet"))
+    expected = sum(int(ep["length"]) for ep in episodes)
+    held = sum(rows_in(f) for f in files)
+    if held < expected:
+        absent = [ep["file"] for ep in episodes if not (root / ep["file"]).is_file()]
+        if absent:
+            eps = [int(ep["episode_index"]) for ep in episodes if ep["file"] == absent[0]]
+            raise ValueError(
+                f"{root / absent[0]}: file not found (the episode table places episode(s) "
+                f"{eps} there; the data files hold {held} of {expected} frames)"
+            )
+    if not files:
+        raise ValueError(f"{root / 'data'}: no data files (data/chunk-*/file-*.parquet)")
+    return files
+
+
+def _read_frames(
+    root: Path, files: list[Path], plan: Mapping[str, NestedKey], features: dict[str, dict]
+) -> _Frames:
+    """The planned features and the episode/frame indices of every file, as tensors."""
+    columns: dict[str, list[torch.Tensor]] = {name: [] for name in plan}
+    ep_parts, fi_parts, bounds = [], [], []
+    total = 0
+    for path in files:
+        table = read_parquet(path, [*plan, "episode_index", "frame_index"])
+        for name in plan:
+            ft = features[name]
+            where = f"{path}: feature {name!r}"
+            if ft["dtype"] == "image":
+                value = decode_images(
+                    table.column(name), shape=tuple(ft["shape"]), root=root, where=where
+                )
+            else:
+                value = column_to_tensor(
+                    table.column(name), shape=tuple(ft["shape"]), dtype=ft["dtype"], where=where
+                )
+            columns[name].append(value)
+        for col, parts in (("episode_index", ep_parts), ("frame_index", fi_parts)):
+            parts.append(
+                column_to_tensor(
+                    table.column(col), shape=(1,), dtype="int64", where=f"{path}: {col!r}"
+                )
+            )
+        bounds.append((total, total + table.num_rows, path))
+        total += table.num_rows
+    return _Frames(columns, torch.cat(ep_parts), torch.cat(fi_parts), bounds, total)
+
+
+def _episode_span(
+    root: Path, i: int, ep: dict, major: int, frames: _Frames
+) -> tuple[int, int, Path]:
+    """``(begin, stop, file)``: where episode ``ep`` (the ``i``-th) lies among the frames."""
+    e, length = int(ep["episode_index"]), int(ep["length"])
+    if major == 3 and "dataset_from_index" in ep:
+        begin, stop = int(ep["dataset_from_index"]), int(ep["dataset_to_index"])
+        if stop - begin != length or begin < 0 or stop > frames.total:
+            raise ValueError(
+                f"{root / 'meta' / 'episodes'}: episode {e} spans frames [{begin}, {stop}) "
+                f"with length {length}, the data files hold {frames.total} frames"
+            )
+        return begin, stop, frames.file_at(begin)
+    if major == 3:
+        hits = torch.nonzero(frames.episode_index == e).flatten()
+        begin, stop = (int(hits[0]), int(hits[-1]) + 1) if len(hits) else (0, 0)
+        path = frames.file_at(begin)
+        if len(hits) != stop - begin:
+            raise ValueError(f"{path}: the frames of episode {e} are not contiguous")
+        return begin, stop, path
+    return frames.bounds[i]
+
+
+def _check_episode(ep: dict, begin: int, stop: int, path: Path, frames: _Frames) -> None:
+    """The frames ``[begin, stop)`` are the episode's: its length, its index, rising
+    ``frame_index``."""
+    e, length = int(ep["episode_index"]), int(ep["length"])
+    if stop - begin != length:
+        raise ValueError(
+            f"{path}: episode {e} has {stop - begin} frames, the episode metadata says {length}"
+        )
+    found = frames.episode_index[begin:stop].unique().tolist()
+    if found != [e] and length:
+        raise ValueError(
+            f"{path}: frames [{begin}, {stop}) should hold episode {e}, they hold episode(s) {found}"
+        )
+    fi = frames.frame_index[begin:stop]
+    if length and not bool((fi[1:] > fi[:-1]).all()):
+        raise ValueError(f"{path}: frame_index of episode {e} is not increasing")
+
+
+def _frame_order(
+    root: Path, info: dict, episodes: list[dict], major: int, frames: _Frames
+) -> torch.Tensor:
+    """``[N]`` indices of the frames in episode order; every frame in exactly one episode,
+    as many as ``info.json`` declares."""
+    order = []
+    for i, ep in enumerate(episodes):
+        begin, stop, path = _episode_span(root, i, ep, major, frames)
+        _check_episode(ep, begin, stop, path, frames)
+        order.append(torch.arange(begin, stop))
+    index = torch.cat(order)
+    n = len(index)
+    if n == 0:
+        raise ValueError(f"{root}: the dataset holds no frames")
+    if frames.total != n or len(index.unique()) != n:
+        raise ValueError(
+            f"{root / 'data'}: the data files hold {frames.total} frames, the episode table covers "
+            f"{len(index.unique())} of them"
+        )
+    total_frames = info.get("total_frames")
+    if total_frames is not None and total_frames != n:
+        raise ValueError(
+            f"{root / 'meta' / 'info.json'} declares {total_frames} frames, the data files hold {n}"
+        )
+    return index
+
+
+def _columns(
+    root: Path,
+    plan: Mapping[str, NestedKey],
+    frames: _Frames,
+    index: torch.Tensor,
+    exact_shapes: Mapping[str, tuple[int, ...]],
+    tasks: list[str],
+) -> tuple[dict[NestedKey, torch.Tensor], dict[str, str]]:
+    """Buffer key -> ``[N, ...]`` values in episode order, and feature -> key name loaded."""
+    out: dict[NestedKey, torch.Tensor] = {}
+    loaded: dict[str, str] = {}
+    values = {name: torch.cat(frames.columns[name])[index] for name in plan}
+    for name, key in plan.items():
+        value = values[name]
+        if name in exact_shapes:
+            value = value.reshape(value.shape[0], *exact_shapes[name])
+        elif key_name(key).startswith(keys.NEXT + ".") and value.ndim == 1:
+            value = value.unsqueeze(-1)  # TorchRL keeps reward/done as [..., 1]
+        out[key] = value
+        loaded[name] = key_name(key)
+    if "task_index" in plan and len(tasks):
+        bad = out[plan["task_index"]]
+        if int(bad.min()) < 0 or int(bad.max()) >= len(tasks):
+            raise ValueError(f"{root}: task_index outside the {len(tasks)} tasks of the task table")
+    return out, loaded
+
+
+def load_lerobot(
+    path_or_repo: str | Path,
+    *,
+    key_map: Mapping[str, NestedKey | None] | None = None,
+    images: Literal["skip", "load"] = "skip",
+    env: EnvBase | None = None,
+    first_episode: int = 0,
+    revision: str | None = None,
+    cache_dir: str | Path | None = None,
+) -> LoadedDemonstrations:
+    """Read a local LeRobot dataset (v2.0, v2.1 or v3.0) into demonstration rows.
+
+    Args:
+        path_or_repo: the dataset directory, or a ``repo_id`` found in a local Hugging
+            Face cache (:func:`resolve_lerobot_root`; never downloads).
+        key_map: dataset feature -> buffer key (a str or a nested tuple), merged over
+            :data:`DEFAULT_KEY_MAP`; map a feature to None to leave it out on purpose.
+        images: ``"load"`` decodes image features into uint8 tensors in the declared
+            layout; ``"skip"`` leaves them out with a warning (those :func:`save_lerobot`
+            wrote too). Video features are always skipped with a warning.
+        env: if given, observation and action shapes must match its specs (else
+            ValueError), dtypes are cast where no value changes (within a kind, or
+            integer -> floating when exact), reward/done take its shapes, and a missing
+            ``terminated``/``truncated`` is derived from ``done``.
+        first_episode: added to the episode ids (use ``buffer.next_episode``).
+        revision, cache_dir: for resolving a ``repo_id`` (see :func:`resolve_lerobot_root`).
+
+    Returns:
+        :class:`LoadedDemonstrations` whose ``rows`` extend a :class:`DemonstrationBuffer`.
+
+    Raises:
+        ValueError: missing ``meta/info.json``; a declared feature absent from a data
+            file; a truncated or unreadable parquet file; episode lengths or indices that
+            contradict the metadata; values that contradict a declared shape; shapes that
+            contradict ``env``. The message names the file and the problem, and nothing is
+            returned half-loaded.
+    """
+    if images not in ("skip", "load"):
+        raise ValueError(f"images must be 'skip' or 'load', got {images!r}")
+    root = dataset_root(path_or_repo, revision, cache_dir)
+    info, major = read_info(root)
+    features: dict[str, dict] = info["features"]
+    plan, exact_shapes = plan_features(root, info, key_map, images)
+    tasks = read_tasks(root, major)
+    plan, skipped, quiet = settle_features(
+        root, features, plan, exact_shapes, tasks, key_map, images
+    )
+    episodes = read_episodes(root, info, major)
+    frames = _read_frames(root, _data_files(root, episodes, major), plan, features)
+    index = _frame_order(root, info, episodes, major, frames)
+    out, loaded = _columns(root, plan, frames, index, exact_shapes, tasks)
+    episode = out.pop(keys.EPISODE) if keys.EPISODE in out else frames.episode_index[index]
+    rows = required_rows(out, episode=episode + int(first_episode), step=frames.frame_index[index])
+    notes: list[str] = []
+    if env is not None:
+        names = {v: k for k, v in loaded.items()}
+        where = str(root / "meta" / "info.json")
+        rows = conform_to_env(rows, env, where=where, notes=notes, names=names)
+    warn_skipped(root, skipped, quiet=frozenset(quiet))
+    return LoadedDemonstrations(
+        rows=rows,
+        source=root,
+        format=f"lerobot {info['codebase_version']}",
+        num_episodes=len(episodes),
+        tasks=tasks,
+        fps=info.get("fps"),
+        loaded=loaded,
+        skipped=skipped,
+        notes=notes,
+        metadata=info,
+    )
