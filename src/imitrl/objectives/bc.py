@@ -138,6 +138,12 @@ class BehaviorCloningLoss(ImitationLoss):
         super().check_labels(tensordict)
         key = self.tensor_keys.label
         label = tensordict.get(key)
+        dist_class = _distribution_class(self.actor)
+        if dist_class is not None and dist_class.__name__ == "GreedyOneHotCategorical":
+            return _check_one_hot(label, self.num_actions, key, tensordict.shape[0])
+        if dist_class is not None and dist_class.__name__ == "MultiCategoricalDist":
+            nvec = self.actor.spec[keys.ACTION].nvec
+            return _check_multi(label, nvec.reshape(-1), key, tensordict.shape[0])
         if self._logits_modules is None and not (
             self.loss_type == "nll" and not label.dtype.is_floating_point
         ):
@@ -267,6 +273,40 @@ def _plain_modules() -> tuple[type, ...]:
 
 
 _PLAIN_MODULES = _plain_modules()
+
+
+def _distribution_class(actor: TensorDictModule) -> type | None:
+    """The distribution class of a ``ProbabilisticActor`` (None for other actors)."""
+    from tensordict.nn import ProbabilisticTensorDictModule, ProbabilisticTensorDictSequential
+
+    if not isinstance(actor, ProbabilisticTensorDictSequential):
+        return None
+    last = list(actor.module)[-1]
+    return last.distribution_class if isinstance(last, ProbabilisticTensorDictModule) else None
+
+
+def _check_one_hot(label: torch.Tensor, n: int | None, key, rows: int) -> None:
+    """One-hot labels ``[N, n]``: entries 0 or 1, exactly one 1 per row."""
+    if label.shape != (rows, n):
+        raise ValueError(
+            f"one-hot labels under {key!r} need shape ({rows}, {n}), got {tuple(label.shape)}"
+        )
+    values = label.double()
+    if not ((values == 0) | (values == 1)).all() or not (values.sum(-1) == 1).all():
+        raise ValueError(f"one-hot labels under {key!r} need exactly one 1 per row, the rest 0")
+
+
+def _check_multi(label: torch.Tensor, nvec: torch.Tensor, key, rows: int) -> None:
+    """Multi-discrete labels ``[N, k]``: integers, column ``i`` in ``[0, nvec[i])``."""
+    if label.dtype.is_floating_point or label.dtype == torch.bool:
+        raise ValueError(f"multi-discrete labels under {key!r} must be integers, got {label.dtype}")
+    if label.shape != (rows, nvec.numel()):
+        raise ValueError(
+            f"multi-discrete labels under {key!r} need shape ({rows}, {nvec.numel()}), got {tuple(label.shape)}"
+        )
+    bad = (label < 0) | (label >= nvec.to(label.device))
+    if bad.any():
+        raise ValueError(f"multi-discrete labels under {key!r} must lie in [0, {nvec.tolist()})")
 
 
 def _categorical_param_modules(actor: TensorDictModule) -> list[TensorDictModule] | None:

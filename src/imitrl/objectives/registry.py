@@ -9,9 +9,9 @@ loss), so adding an objective is one registered function::
 
     @register("mse_wd", actions="continuous", summary="MSE with an L2 penalty 1e-3")
     def _(task: TaskSpec, config: LearnerConfig) -> Learner:
-        policy = mlp(task, config, head="deterministic").policy
-        loss = RegularizedBCLoss(policy, loss_type="mse", l2_coef=1e-3)
-        return Learner(policy, loss, torch.optim.Adam(policy.parameters(), lr=config.lr))
+        ac = mlp(task, config, head="deterministic")
+        loss = RegularizedBCLoss(ac.policy, loss_type="mse", l2_coef=1e-3)
+        return Learner(ac.policy, loss, ac.opt_pi, normalizer=ac.normalizer)
 
 Built-in entries:
 

@@ -1,0 +1,162 @@
+"""Learners from every kind of spec TorchRL builds for gymnasium spaces, and the
+observation normaliser: fitted once from the demonstrations, saved with the learner,
+never seen by the expert or written to a tensordict."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from tensordict import TensorDict
+from torchrl.data import Bounded, Categorical, MultiCategorical, OneHot, Unbounded
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from imitrl import keys
+from imitrl.algorithms import BCConfig, fit_bc
+from imitrl.data import DemonstrationBuffer
+from imitrl.policies import ActorCritic, Learner
+from imitrl.policies.specs import action_space
+
+G = torch.Generator().manual_seed(0)
+
+
+def _rows(obs: torch.Tensor, label: torch.Tensor) -> TensorDict:
+    return TensorDict({keys.OBSERVATION: obs, keys.EXPERT_ACTION: label}, [obs.shape[0]])
+
+
+def _greedy(learner: Learner, obs: torch.Tensor) -> torch.Tensor:
+    td = TensorDict({keys.OBSERVATION: obs}, [obs.shape[0]])
+    with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+        return learner.policy(td).get(keys.ACTION)
+
+
+# a labelling rule per action kind: the clone must learn it from 256 rows
+def _discrete(obs):  # 3 actions by the sign pattern of two features
+    return (obs[:, 0] > 0).long() + (obs[:, 1] > 0).long()
+
+
+SPECS = {
+    "categorical": (Categorical(3), lambda o: _discrete(o)),
+    "one_hot": (OneHot(3), lambda o: torch.nn.functional.one_hot(_discrete(o), 3)),
+    "multi_categorical": (
+        MultiCategorical([2, 3]),
+        lambda o: torch.stack([(o[:, 0] > 0).long(), _discrete(o)], -1),
+    ),
+    "bounded": (Bounded(-1.0, 1.0, shape=(2,)), lambda o: torch.tanh(o[:, :2])),
+    "unbounded": (Unbounded(shape=(2,)), lambda o: 3.0 * o[:, :2] - 1.0),
+}
+
+
+@pytest.mark.parametrize("kind", sorted(SPECS))
+def test_an_mlp_learner_from_every_action_spec_clones_its_labels(kind):
+    spec, rule = SPECS[kind]
+    obs_spec = Unbounded(shape=(4,))
+    obs = torch.randn(256, 4, generator=G) * torch.tensor([1.0, 1.0, 50.0, 0.01]) + 5.0 * (
+        torch.arange(4) == 3
+    )
+    label = rule(obs).to(spec.dtype)
+    learner = ActorCritic.mlp(obs_spec, spec, hidden=(64, 64), lr=3e-3, seed=0)
+    fit = fit_bc(learner, _rows(obs, label), BCConfig(num_steps=800, batch_size=64))
+    assert torch.isfinite(fit.losses).all()
+    pred = _greedy(learner, obs)
+    assert pred.dtype == label.dtype and pred.shape == label.shape  # what the env takes
+    assert spec.is_in(pred[0])
+    if label.dtype.is_floating_point:
+        assert float((pred - label).abs().mean()) < 0.1
+    else:
+        exact = (pred == label).reshape(256, -1).all(-1).float().mean()
+        assert float(exact) > 0.9
+
+
+def test_integer_state_observations_feed_the_mlp_one_hot():
+    learner = ActorCritic.mlp(Categorical(5), 2, seed=0, lr=1e-2)
+    obs = torch.arange(5).repeat(20)
+    label = (obs % 2).long()
+    fit_bc(learner, _rows(obs, label), BCConfig(num_steps=200))
+    assert torch.equal(_greedy(learner, torch.arange(5)), torch.tensor([0, 1, 0, 1, 0]))
+    assert learner.normalizer is None  # nothing to normalise on integer states
+
+
+@pytest.mark.parametrize(
+    ("bad", "match"),
+    [
+        (Bounded(-1.0, 1.0, shape=(4, 2)), "shape \\[action_dim\\]"),
+        (Categorical(3, shape=(2,)), "scalar action"),
+        ("three", "number of actions or a Categorical"),
+        (0, "at least one action"),
+    ],
+)
+def test_action_specs_that_do_not_fit_are_refused_by_name(bad, match):
+    with pytest.raises(ValueError, match=match):
+        ActorCritic.mlp(4, bad)
+
+
+def test_heads_that_do_not_fit_the_action_are_refused_naming_the_valid_ones():
+    with pytest.raises(ValueError, match="'deterministic' or 'normal' or 'tanh_normal'"):
+        ActorCritic.mlp(4, Bounded(-1.0, 1.0, shape=(1,)), head="categorical")
+    with pytest.raises(ValueError, match="needs a bounded action spec"):
+        ActorCritic.mlp(4, Unbounded(shape=(1,)), head="tanh_normal")
+    assert action_space(Bounded(-1.0, 1.0, shape=(1,))).kind == "continuous"
+    assert ActorCritic.mlp(4, Bounded(-1.0, 1.0, shape=(1,))).head == "deterministic"
+
+
+# ------------------------------------------------------------------ normaliser
+def test_the_normaliser_is_fitted_once_from_the_first_fit_and_is_then_frozen():
+    obs = torch.randn(200, 3, generator=G) * torch.tensor([100.0, 1.0, 0.001]) + 7.0
+    rows = _rows(obs, torch.zeros(200, dtype=torch.long))
+    learner = ActorCritic.mlp(3, 2, seed=0)
+    assert not learner.normalizer.is_fitted
+    fit_bc(learner, rows, BCConfig(num_steps=1))
+    assert torch.allclose(learner.normalizer.loc, obs.double().mean(0).float())
+    assert torch.allclose(learner.normalizer.scale, obs.double().std(0, correction=0).float())
+    loc = learner.normalizer.loc.clone()
+    fit_bc(learner, _rows(obs + 1000.0, rows.get(keys.EXPERT_ACTION)), BCConfig(num_steps=1))
+    assert torch.equal(learner.normalizer.loc, loc)  # the weights were trained with these
+
+
+def test_the_normaliser_is_saved_with_the_learner(tmp_path):
+    obs = torch.randn(64, 3, generator=G) * 10.0 + 3.0
+    rows = _rows(obs, (obs[:, 0] > 3.0).long())
+    rows.set(keys.ACTION, rows.get(keys.EXPERT_ACTION))
+    buffer = DemonstrationBuffer()
+    buffer.extend(_with_episode_keys(rows))
+    learner = ActorCritic.mlp(3, 2, seed=0)
+    fit_bc(learner, buffer, BCConfig(num_steps=5))
+    buffer.save(tmp_path / "ckpt", learner=learner)
+    fresh = ActorCritic.mlp(3, 2, seed=1)
+    DemonstrationBuffer.load(tmp_path / "ckpt", learner=fresh)
+    assert fresh.normalizer.is_fitted
+    assert torch.equal(fresh.normalizer.loc, learner.normalizer.loc)
+    assert torch.equal(_greedy(fresh, obs), _greedy(learner, obs))
+
+
+def _with_episode_keys(rows: TensorDict) -> TensorDict:
+    n = rows.shape[0]
+    rows.set(keys.EXPERT_EXECUTED, torch.ones(n, dtype=torch.bool))
+    rows.set(keys.EPISODE, torch.zeros(n, dtype=torch.long))
+    rows.set(keys.ROUND, torch.zeros(n, dtype=torch.long))
+    rows.set(keys.STEP, torch.arange(n))
+    done = torch.zeros(n, 1, dtype=torch.bool)
+    done[-1] = True
+    nxt = {keys.REWARD: torch.zeros(n, 1), keys.DONE: done, keys.TERMINATED: done.clone()}
+    nxt[keys.TRUNCATED] = torch.zeros(n, 1, dtype=torch.bool)
+    rows.set(keys.NEXT, TensorDict(nxt, [n]))
+    return rows
+
+
+def test_the_policy_never_writes_normalised_observations_into_the_tensordict():
+    obs = torch.randn(32, 3, generator=G) * 50.0
+    learner = ActorCritic.mlp(3, 2, seed=0)
+    fit_bc(learner, _rows(obs, torch.zeros(32, dtype=torch.long)), BCConfig(num_steps=1))
+    td = TensorDict({keys.OBSERVATION: obs.clone()}, [32])
+    out = learner.policy(td)
+    assert torch.equal(out.get(keys.OBSERVATION), obs)  # what an expert reads after it
+    assert set(out.keys()) <= {keys.OBSERVATION, keys.ACTION, keys.LOGITS}
+
+
+def test_fit_bc_refuses_non_finite_observations_naming_them():
+    obs = torch.randn(8, 3, generator=G)
+    obs[3, 1] = float("inf")
+    with pytest.raises(ValueError, match="NaN or inf"):
+        fit_bc(ActorCritic.mlp(3, 2), _rows(obs, torch.zeros(8, dtype=torch.long)))
+    with pytest.raises(ValueError, match="NaN or inf"):
+        ActorCritic.mlp(3, 2).act(obs)
