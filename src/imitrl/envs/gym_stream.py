@@ -258,6 +258,51 @@ _SCALAR_LIMIT = 2500
 """Below this many expected uniforms a plain scalar walk beats simulating every offset."""
 
 
+_SCALAR_KEYS = (
+    "observation",
+    "action",
+    "next_observation",
+    "reward",
+    "terminated",
+    "step",
+    "episode",
+)
+
+
+def _scalar_episode(
+    lists: dict, shape: tuple[int, int, int], act: list, buf: list, i: int, T: int, e: int, out
+) -> tuple[int, float, int, bool, int]:
+    """Episode ``e`` from stream position ``i`` -> (last state, return, length, done, new i).
+
+    Appends each transition to ``out`` (a dict of lists) unless ``out`` is None.
+    """
+    A, K, S = shape
+    cdf, nxt, rew, term = lists["cdf"], lists["next_state"], lists["reward"], lists["terminated"]
+    u = buf[i]
+    s = sum(1 for c in lists["initial_cdf"] if c <= u)
+    s = 0 if s >= S else s
+    i += 1
+    ret, t, done = 0.0, 0, False
+    while not done and t < T:
+        a = act[s]
+        u = buf[i]
+        i += 1
+        sa = s * A + a
+        k = 0
+        row = cdf[sa]
+        while k < K and row[k] <= u:
+            k += 1
+        flat = sa * K + (0 if k == K else k)
+        s2, r, done = nxt[flat], rew[flat], term[flat]
+        if out is not None:
+            for key, v in zip(_SCALAR_KEYS, (s, a, s2, r, done, t, e)):
+                out[key].append(v)
+        ret += r
+        t += 1
+        s = s2
+    return s, ret, t, bool(done), i
+
+
 def _play_scalar(
     sampler: OutcomeSampler,
     table: torch.Tensor,
@@ -273,66 +318,17 @@ def _play_scalar(
     entries <= u, all-below mapping to outcome 0), so both paths agree exactly.
     """
     lists = sampler.as_lists()
-    cdf, nxt, rew, term, init = (
-        lists["cdf"],
-        lists["next_state"],
-        lists["reward"],
-        lists["terminated"],
-        lists["initial_cdf"],
-    )
-    A, K, S = sampler.num_actions, sampler.num_outcomes, sampler.num_states
+    shape = (sampler.num_actions, sampler.num_outcomes, sampler.num_states)
     act, is_goal = table.tolist(), goal.tolist()
     buf: list[float] = stream.window(max(64, 64 * n)).tolist()
     i = 0
-    out = {
-        k: []
-        for k in (
-            "observation",
-            "action",
-            "next_observation",
-            "reward",
-            "terminated",
-            "step",
-            "episode",
-        )
-    }
+    out = {k: [] for k in _SCALAR_KEYS} if record else None
     starts, lengths, returns, success = [], [], [], []
     for e in range(n):
         starts.append(i)
         if i + T + 1 >= len(buf):
             buf = stream.window(2 * len(buf) + T + 1).tolist()
-        u = buf[i]
-        s = sum(1 for c in init if c <= u)
-        s = 0 if s >= S else s
-        i += 1
-        ret, t = 0.0, 0
-        while True:
-            a = act[s]
-            u = buf[i]
-            i += 1
-            sa = s * A + a
-            k = 0
-            row = cdf[sa]
-            while k < K and row[k] <= u:
-                k += 1
-            flat = sa * K + (0 if k == K else k)
-            s2, r, done = nxt[flat], rew[flat], term[flat]
-            if record:
-                for key, v in (
-                    ("observation", s),
-                    ("action", a),
-                    ("next_observation", s2),
-                    ("reward", r),
-                    ("terminated", done),
-                    ("step", t),
-                    ("episode", e),
-                ):
-                    out[key].append(v)
-            ret += r
-            t += 1
-            s = s2
-            if done or t >= T:
-                break
+        s, ret, t, done, i = _scalar_episode(lists, shape, act, buf, i, T, e, out)
         lengths.append(t)
         returns.append(ret)
         success.append(bool(done and is_goal[s]))
