@@ -1,0 +1,126 @@
+"""Flags from a frozen config dataclass: every field is a flag, its docstring the help.
+
+A field ``num_envs: int = 1`` becomes ``--num-envs NUM_ENVS`` (dashes for
+underscores) with the field's docstring and default as help text. Types:
+
+* ``bool`` (or ``bool | None``): ``--flag`` / ``--no-flag``;
+* ``X | None``: the word ``none`` gives None;
+* ``tuple[X, ...]``: comma-separated (``--hidden 64,64``); ``tuple[tuple[A, B], ...]``:
+  comma-separated ``a:b`` pairs (``--chain-panels 0.05:10,0.01:64``);
+* ``Path``, ``int``, ``float``, ``str``: converted by the type itself.
+
+Two field metadata switches serve commands that wrap another program
+(``imitrl bench NAME [args...]``): ``{"positional": True}`` makes the field a
+positional argument, ``{"remainder": True}`` collects every argument after the
+positionals (``tuple[str, ...]``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import dataclasses
+import inspect
+import itertools
+import types
+import typing
+from pathlib import Path
+
+__all__ = ["add_config_flags", "config_from_args", "field_docs"]
+
+
+def field_docs(cls: type) -> dict[str, str]:
+    """The docstring written under each dataclass field (``field: type`` then ``\"\"\"doc\"\"\"``).
+
+    Base classes are read too, so a config that extends another documents the
+    inherited fields with their own docstrings.
+    """
+    docs: dict[str, str] = {}
+    for klass in reversed(cls.__mro__):
+        if not dataclasses.is_dataclass(klass):
+            continue
+        tree = ast.parse(inspect.getsource(klass))
+        body = tree.body[0].body
+        for node, nxt in itertools.pairwise(body):
+            if isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name):
+                if (
+                    isinstance(nxt, ast.Expr)
+                    and isinstance(nxt.value, ast.Constant)
+                    and isinstance(nxt.value.value, str)
+                ):
+                    docs[node.target.id] = " ".join(nxt.value.value.split())
+    return docs
+
+
+def _parser_for(tp) -> typing.Callable[[str], object]:
+    """A string -> value converter for a (possibly optional or tuple) field type."""
+    origin, args = typing.get_origin(tp), typing.get_args(tp)
+    if origin in (typing.Union, types.UnionType) and type(None) in args:
+        inner = _parser_for(next(a for a in args if a is not type(None)))
+        return lambda s: None if s.lower() == "none" else inner(s)
+    if origin is tuple:
+        item = args[0]
+        if typing.get_origin(item) is tuple:  # pairs "a:b"
+            a, b = typing.get_args(item)
+
+            def pairs(text: str) -> tuple:
+                out = []
+                for part in filter(None, text.split(",")):
+                    left, sep, right = part.partition(":")
+                    if not sep:
+                        raise argparse.ArgumentTypeError(
+                            f"expected comma-separated a:b pairs, got {part!r}"
+                        )
+                    out.append((a(left), b(right)))
+                return tuple(out)
+
+            return pairs
+        return lambda s: tuple(item(x) for x in s.split(",") if x)
+    if tp is Path:
+        return Path
+    return tp
+
+
+def add_config_flags(parser: argparse.ArgumentParser, cls: type) -> None:
+    """Add one flag (or positional) per field of the dataclass ``cls`` to ``parser``."""
+    docs = field_docs(cls)
+    hints = typing.get_type_hints(cls)
+    for f in dataclasses.fields(cls):
+        doc = docs.get(f.name, "")
+        if f.metadata.get("positional"):
+            parser.add_argument(
+                f.name, type=_parser_for(hints[f.name]), metavar=f.name.upper(), help=doc
+            )
+            continue
+        if f.metadata.get("remainder"):
+            parser.add_argument(f.name, nargs=argparse.REMAINDER, metavar=f.name.upper(), help=doc)
+            continue
+        flag = "--" + f.name.replace("_", "-")
+        default = f.default
+        help_text = f"{doc} (default: {default})"
+        if hints[f.name] in (bool, bool | None):
+            parser.add_argument(
+                flag,
+                dest=f.name,
+                action=argparse.BooleanOptionalAction,
+                default=default,
+                help=help_text,
+            )
+        else:
+            parser.add_argument(
+                flag,
+                dest=f.name,
+                type=_parser_for(hints[f.name]),
+                default=default,
+                help=help_text,
+                metavar=f.name.upper(),
+            )
+
+
+def config_from_args(cls: type, args: argparse.Namespace):
+    """The ``cls`` instance the parsed flags describe (its ``__post_init__`` validates it)."""
+    values = {f.name: getattr(args, f.name) for f in dataclasses.fields(cls)}
+    for f in dataclasses.fields(cls):
+        if f.metadata.get("remainder"):
+            values[f.name] = tuple(values[f.name])
+    return cls(**values)

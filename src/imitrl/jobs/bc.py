@@ -1,0 +1,277 @@
+"""``imitrl bc``: behaviour cloning on expert demonstrations or a dataset, in one function.
+
+``run_bc(BCJob(...)) -> dict`` is the whole job (tests and benchmarks call it
+directly):
+
+1. resolve every flag (env, expert, loss, dataset, logger): bad input fails here;
+2. demonstrations: ``--demos`` greedy expert episodes on the env seeded ``--seed``,
+   or the rows of ``--dataset``, into a ``DemonstrationBuffer``;
+3. ``fit_bc`` the learner (``--steps`` Adam steps, minibatches of ``--batch-size``),
+   its loss logged per step;
+4. evaluate the expert and the learner on the same ``--eval-episodes`` initial states;
+5. write ``results.json``, the checkpoint (``config.json`` + ``learner.pt``) and
+   ``curves.png`` into ``--out``.
+
+:func:`prepare`, :func:`demonstrations`, :func:`evaluate_learner` and :func:`finish`
+are shared with ``imitrl dagger``.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+from tensordict.nn import TensorDictModuleBase
+from torchrl.envs import EnvBase
+from torchrl.envs.utils import ExplorationType
+from torchrl.record.loggers import Logger
+
+from imitrl.algorithms import BCConfig, fit_bc
+from imitrl.data import DemonstrationBuffer, rollout_episodes
+from imitrl.envs import make_env
+from imitrl.jobs.checkpoint import save_run
+from imitrl.jobs.curves import LOGGERS, make_logger, plot_curves, scalars_dir
+from imitrl.jobs.evaluate import evaluate_returns, format_return
+from imitrl.jobs.resolve import (
+    EXPERT_KINDS,
+    dataset_format,
+    learner_factory,
+    load_dataset,
+    make_expert,
+    step_bound,
+    time_limit,
+)
+from imitrl.policies import Learner, as_actor
+
+__all__ = [
+    "BCJob",
+    "Setup",
+    "bc_config",
+    "demonstrations",
+    "evaluate_expert",
+    "evaluate_learner",
+    "finish",
+    "log_evaluation",
+    "prepare",
+    "report",
+    "run_bc",
+]
+
+DETERMINISTIC = ExplorationType.DETERMINISTIC
+
+
+@dataclass(frozen=True)
+class BCJob:
+    """Behaviour cloning, evaluated against the expert on the same initial states."""
+
+    env: str = "CartPole-v1"
+    """gymnasium id, or module:Env-v0 (importing module registers Env-v0)"""
+    num_envs: int = 1
+    """env copies stepped together (lanes) when collecting episodes"""
+    max_episode_steps: int | None = None
+    """override the env's time limit; none = its registered limit"""
+    expert: str | None = "cartpole"
+    """a built-in expert (listed below) or module:function; none = no expert (needs
+    --dataset, and nothing is compared with the learner)"""
+    expert_kind: str = "builder"
+    """what the function of --expert module:function is: builder (function() returns
+    an expert module writing expert_action) or callable (function(obs [N, d]) ->
+    action, batched, wrapped with Expert.from_callable)"""
+    dataset: Path | None = None
+    """LeRobot (meta/info.json) or Minari (main_data.hdf5) directory of demonstrations;
+    none = play --demos expert episodes"""
+    demos: int = 5
+    """greedy expert demonstration episodes (when no --dataset)"""
+    loss: str = "default"
+    """default (ActorCritic.for_env: categorical head for discrete actions,
+    deterministic MSE head for continuous ones) or a loss-registry name (listed below)"""
+    hidden: tuple[int, ...] = (64, 64)
+    """hidden layer sizes of the learner's network"""
+    lr: float = 1e-3
+    """Adam learning rate of the learner"""
+    steps: int = 1000
+    """gradient steps of the behaviour-cloning fit (of every round's fit for dagger)"""
+    batch_size: int | None = 256
+    """rows per gradient step; none = the full batch every step"""
+    eval_episodes: int = 10
+    """evaluation episodes of the expert and of the learner"""
+    eval_seed: int = 10_000
+    """seed of the evaluation env: the expert and every learner play the same initial states"""
+    seed: int = 0
+    """seeds the env that plays the demonstrations, the learner's initialisation and
+    the minibatch order"""
+    out: Path = Path("results/bc")
+    """output directory: results.json, config.json + learner.pt (the checkpoint that
+    imitrl eval --checkpoint reads), curves.png, logs/"""
+    logger: str = "csv"
+    """where the curves are logged: csv, tensorboard or wandb (the CSV files that
+    curves.png is drawn from are written in every case)"""
+    progress: bool = True
+    """progress bars on stderr"""
+
+    def __post_init__(self) -> None:
+        if not self.env:
+            raise ValueError("--env must name a gymnasium env")
+        if self.num_envs < 1 or self.eval_episodes < 1 or self.steps < 0:
+            raise ValueError("--num-envs and --eval-episodes must be >= 1, --steps >= 0")
+        if self.dataset is None and (self.expert is None or self.demos < 1):
+            raise ValueError("without --dataset, --expert must play --demos >= 1 episodes")
+        if self.expert_kind not in EXPERT_KINDS:
+            raise ValueError(
+                f"--expert-kind must be one of {EXPERT_KINDS}, got {self.expert_kind!r}"
+            )
+        if self.logger not in LOGGERS:
+            raise ValueError(f"--logger must be one of {', '.join(LOGGERS)}, got {self.logger!r}")
+        if self.batch_size is not None and self.batch_size < 1:
+            raise ValueError(f"--batch-size must be >= 1 or none, got {self.batch_size}")
+
+
+@dataclass
+class Setup:
+    """Everything a job's flags name, resolved and checked."""
+
+    env: EnvBase
+    """plays the demonstrations (and DAgger's rounds): ``--num-envs`` lanes, seed ``--seed``"""
+    limit: int
+    """steps per episode (the time limit)"""
+    expert: TensorDictModuleBase | None
+    """writes ``expert_action``"""
+    make_learner: Callable[[], Learner]
+    """a fresh learner, same initialisation each call"""
+    logger: Logger
+    """the run's TorchRL logger"""
+
+
+def prepare(config: BCJob, name: str) -> Setup:
+    """Resolve and check every flag of ``config`` before any work (ValueError otherwise)."""
+    env = make_env(
+        config.env,
+        seed=config.seed,
+        num_envs=config.num_envs,
+        max_episode_steps=config.max_episode_steps,
+    )
+    limit = time_limit(config.env, config.max_episode_steps)
+    expert = None
+    if config.expert is not None:
+        expert = make_expert(config.expert, config.expert_kind)
+        expert(env.fake_tensordict().select(*expert.in_keys))  # observations it can read
+    make_learner = learner_factory(
+        config.loss, env, hidden=config.hidden, lr=config.lr, seed=config.seed
+    )
+    if config.dataset is not None:
+        dataset_format(config.dataset)
+    logger = make_logger(config.logger, config.out, name)
+    return Setup(env, limit, expert, make_learner, logger)
+
+
+def demonstrations(config: BCJob, setup: Setup) -> DemonstrationBuffer:
+    """The rows of ``--dataset``, or ``--demos`` greedy expert episodes, in a buffer."""
+    if config.dataset is not None:
+        rows = load_dataset(config.dataset, setup.env)
+    else:
+        rows = rollout_episodes(
+            setup.env,
+            as_actor(setup.expert),
+            config.demos,
+            exploration=DETERMINISTIC,
+            max_steps=step_bound(setup.limit, config.demos, config.num_envs),
+        )
+    buffer = DemonstrationBuffer(action_spec=setup.env.action_spec_unbatched)
+    buffer.extend(rows)
+    return buffer
+
+
+def bc_config(config: BCJob) -> BCConfig:
+    """The behaviour-cloning fit the flags describe."""
+    return BCConfig(num_steps=config.steps, batch_size=config.batch_size, seed=config.seed)
+
+
+def evaluate_learner(config: BCJob, learner: Learner) -> dict:
+    """The learner's evaluation, acting as it says (``learner.exploration``)."""
+    return evaluate_returns(
+        config.env,
+        learner.policy,
+        exploration=learner.exploration,
+        episodes=config.eval_episodes,
+        seed=config.eval_seed,
+        max_episode_steps=config.max_episode_steps,
+    )
+
+
+def evaluate_expert(config: BCJob, setup: Setup) -> dict | None:
+    """The expert's greedy evaluation on the learner's initial states (None without one)."""
+    if setup.expert is None:
+        return None
+    return evaluate_returns(
+        config.env,
+        as_actor(setup.expert),
+        exploration=DETERMINISTIC,
+        episodes=config.eval_episodes,
+        seed=config.eval_seed,
+        max_episode_steps=config.max_episode_steps,
+    )
+
+
+def log_evaluation(logger: Logger, round_index: int, ev: dict, expert: dict | None) -> None:
+    """``eval/return`` (and its interval) at step ``round_index``; the expert's at step 0."""
+    logger.log_scalar("eval/return", ev["mean_return"], step=round_index)
+    logger.log_scalar("eval/return_lo", ev["return_ci"][0], step=round_index)
+    logger.log_scalar("eval/return_hi", ev["return_ci"][1], step=round_index)
+    if expert is not None:
+        logger.log_scalar("eval/expert_return", expert["mean_return"], step=0)
+
+
+def finish(config: BCJob, name: str, learner: Learner, results: dict, setup: Setup) -> None:
+    """Write results.json, the checkpoint and curves.png; close the env and the logger."""
+    setup.env.close()
+    setup.logger.shutdown()
+    curves = plot_curves(
+        scalars_dir(config.out, name),
+        config.out / "curves.png",
+        title=f"imitrl {name} on {config.env} (loss {config.loss}, seed {config.seed})",
+    )
+    results["files"] = {"curves": str(curves), "logs": str(config.out / "logs")}
+    save_run(config.out, name, config, learner, results)
+
+
+def run_bc(config: BCJob) -> dict:
+    """Behaviour cloning as ``config`` says (module docstring); returns what results.json holds."""
+    start = time.perf_counter()
+    setup = prepare(config, "bc")
+    buffer = demonstrations(config, setup)
+    learner = setup.make_learner()
+    fit = fit_bc(learner, buffer, bc_config(config), progress=config.progress, logger=setup.logger)
+    expert_ev = evaluate_expert(config, setup)
+    learner_ev = evaluate_learner(config, learner)
+    log_evaluation(setup.logger, 0, learner_ev, expert_ev)
+    results = {
+        "command": "bc",
+        "env": config.env,
+        "demonstrations": {
+            "source": str(config.dataset) if config.dataset else f"expert {config.expert}",
+            "episodes": buffer.num_episodes,
+            "rows": len(buffer),
+        },
+        "final_loss": fit.final_loss,
+        "expert": expert_ev,
+        "learner": learner_ev,
+        "seconds": time.perf_counter() - start,
+    }
+    finish(config, "bc", learner, results, setup)
+    return results
+
+
+def report(results: dict) -> list[str]:
+    """What ``imitrl bc`` prints."""
+    demos = results["demonstrations"]
+    lines = [
+        f"demonstrations: {demos['episodes']} episodes, {demos['rows']} rows ({demos['source']})",
+        f"final training loss: {results['final_loss']:.4g}",
+    ]
+    if results["expert"] is not None:
+        lines.append(format_return("expert", results["expert"]))
+    lines.append(format_return("learner", results["learner"]))
+    lines.append(f"wrote {Path(results['files']['curves']).parent}")
+    return lines

@@ -1,0 +1,53 @@
+"""``imitrl bench NAME [args...]``: run ``benchmarks/NAME.py`` with the remaining arguments.
+
+The benchmarks live in the source checkout, next to ``src/`` (they are scripts, not
+part of the installed package); each runs as its own process with this Python, so
+its ``import _report`` and its own argument parser work as when it is run directly.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import imitrl
+
+__all__ = ["BENCHMARKS_DIR", "BenchJob", "available", "run_bench"]
+
+BENCHMARKS_DIR = Path(imitrl.__file__).resolve().parents[2] / "benchmarks"
+"""``<checkout>/benchmarks`` (``src/imitrl/__init__.py`` is two levels below the checkout)"""
+
+
+def available(directory: Path = BENCHMARKS_DIR) -> list[str]:
+    """Benchmark names: the ``*.py`` scripts of ``directory`` not starting with ``_``."""
+    if not directory.is_dir():
+        return []
+    return sorted(p.stem for p in directory.glob("*.py") if not p.name.startswith("_"))
+
+
+@dataclass(frozen=True)
+class BenchJob:
+    """One benchmark script and its arguments."""
+
+    name: str = field(metadata={"positional": True})
+    """the benchmark: benchmarks/NAME.py (listed below)"""
+    args: tuple[str, ...] = field(default=(), metadata={"remainder": True})
+    """every argument after NAME, passed on to the script (e.g. --quick --out DIR; NAME
+    --help shows the script's own flags)"""
+
+
+def run_bench(config: BenchJob) -> dict:
+    """Run the benchmark as a subprocess; returns ``{"benchmark", "returncode"}``."""
+    if not BENCHMARKS_DIR.is_dir():
+        raise ValueError(
+            f"no benchmarks directory at {BENCHMARKS_DIR}: imitrl bench runs from a "
+            "source checkout (pip install -e .)"
+        )
+    names = available(BENCHMARKS_DIR)
+    if config.name not in names:
+        raise ValueError(f"unknown benchmark {config.name!r}; available: {', '.join(names)}")
+    script = BENCHMARKS_DIR / f"{config.name}.py"
+    proc = subprocess.run([sys.executable, str(script), *config.args], check=False)
+    return {"benchmark": config.name, "returncode": proc.returncode}

@@ -1,0 +1,89 @@
+"""A run's files: ``config.json`` + ``learner.pt`` (the checkpoint) and ``results.json``.
+
+The checkpoint is the job's config (enough to rebuild the learner: env, loss,
+hidden sizes, learning rate, seed) and ``torch.save(learner.state_dict())`` (the
+weights and the observation normaliser's statistics). ``imitrl eval --checkpoint
+DIR`` rebuilds the learner from the config and loads the weights.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+from typing import Any
+
+import torch
+from torchrl.envs import EnvBase
+
+from imitrl.jobs.resolve import learner_factory
+from imitrl.policies import Learner
+
+__all__ = [
+    "CONFIG_FILE",
+    "RESULTS_FILE",
+    "WEIGHTS_FILE",
+    "load_learner",
+    "read_config",
+    "save_run",
+    "to_json",
+]
+
+CONFIG_FILE, WEIGHTS_FILE, RESULTS_FILE = "config.json", "learner.pt", "results.json"
+
+
+def to_json(value: Any) -> Any:
+    """Dataclasses, paths and tuples as plain JSON values."""
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return {f.name: to_json(getattr(value, f.name)) for f in dataclasses.fields(value)}
+    if isinstance(value, dict):
+        return {str(k): to_json(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [to_json(v) for v in value]
+    if isinstance(value, Path):
+        return str(value)
+    return value
+
+
+def save_run(out: Path, command: str, config: Any, learner: Learner, results: dict) -> None:
+    """Write ``config.json``, ``learner.pt`` and ``results.json`` into ``out``."""
+    out.mkdir(parents=True, exist_ok=True)
+    meta = {"command": command, "config": to_json(config)}
+    (out / CONFIG_FILE).write_text(json.dumps(meta, indent=2) + "\n")
+    torch.save(learner.state_dict(), out / WEIGHTS_FILE)
+    (out / RESULTS_FILE).write_text(json.dumps(to_json(results), indent=2) + "\n")
+
+
+def read_config(checkpoint: Path) -> dict:
+    """The saved job config (a dict of the ``bc`` / ``dagger`` flags)."""
+    path = Path(checkpoint) / CONFIG_FILE
+    if not path.is_file() or not (Path(checkpoint) / WEIGHTS_FILE).is_file():
+        raise ValueError(
+            f"--checkpoint {checkpoint}: expected {CONFIG_FILE} and {WEIGHTS_FILE} "
+            "(the --out directory of imitrl bc or imitrl dagger)"
+        )
+    try:
+        return json.loads(path.read_text())["config"]
+    except (json.JSONDecodeError, KeyError) as err:
+        raise ValueError(f"{path}: not a config written by imitrl bc/dagger ({err})") from err
+
+
+def load_learner(checkpoint: Path, env: EnvBase) -> Learner:
+    """The learner saved in ``checkpoint``, rebuilt for ``env`` and loaded with its weights."""
+    config = read_config(checkpoint)
+    make = learner_factory(
+        config["loss"],
+        env,
+        hidden=tuple(config["hidden"]),
+        lr=config["lr"],
+        seed=config["seed"],
+    )
+    learner = make()
+    state = torch.load(Path(checkpoint) / WEIGHTS_FILE, weights_only=True)
+    try:
+        learner.load_state_dict(state)
+    except RuntimeError as err:  # shapes or names that do not match the rebuilt learner
+        raise ValueError(
+            f"{checkpoint}: the weights do not fit the rebuilt learner ({err})"
+        ) from err
+    return learner

@@ -1,0 +1,144 @@
+"""``imitrl dagger``: DAgger from the same demonstrations as ``imitrl bc``, in one function.
+
+``run_dagger(DAggerJob(...)) -> dict``: steps 1-2 of ``imitrl bc`` (resolve the
+flags, the demonstrations), then :func:`imitrl.algorithms.dagger`: round 0 is BC on
+the demonstrations; after each fit the learner is evaluated (logged as
+``eval/return`` at step = round) and, but after the last, rolls
+``--episodes-per-round`` episodes on the env (the expert's action executed with
+probability ``--beta``), every visited state labelled by the expert and added to
+the buffer. The last round's learner is saved as the checkpoint.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from imitrl.algorithms import Constant, DAggerConfig, EnvSource, dagger
+from imitrl.jobs.bc import (
+    BCJob,
+    bc_config,
+    demonstrations,
+    evaluate_expert,
+    evaluate_learner,
+    finish,
+    log_evaluation,
+    prepare,
+)
+from imitrl.jobs.evaluate import format_return
+from imitrl.jobs.resolve import step_bound
+from imitrl.policies import Learner
+
+__all__ = ["DAggerJob", "report", "run_dagger"]
+
+
+@dataclass(frozen=True)
+class DAggerJob(BCJob):
+    """DAgger: every flag of imitrl bc, plus the rounds."""
+
+    out: Path = Path("results/dagger")
+    """output directory: results.json, config.json + learner.pt (the last round's
+    learner, read by imitrl eval --checkpoint), curves.png, logs/"""
+    rounds: int = 4
+    """fits: round 0 is BC on the demonstrations, each later one refits on the
+    aggregated buffer"""
+    episodes_per_round: int = 3
+    """learner episodes rolled out and labelled by the expert after each fit but the last"""
+    beta: float = 0.0
+    """probability of executing the expert's action in the relabel rounds (constant)"""
+    warm_start: bool = False
+    """keep training one learner across rounds instead of fitting a fresh one each round"""
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.expert is None:
+            raise ValueError("dagger needs --expert to label the learner's states")
+        if self.rounds < 1 or self.episodes_per_round < 1:
+            raise ValueError("--rounds and --episodes-per-round must be >= 1")
+        if not 0.0 <= self.beta <= 1.0:
+            raise ValueError(f"--beta must be in [0, 1], got {self.beta}")
+
+
+def run_dagger(config: DAggerJob) -> dict:
+    """DAgger as ``config`` says (module docstring); returns what results.json holds."""
+    start = time.perf_counter()
+    setup = prepare(config, "dagger")
+    buffer = demonstrations(config, setup)
+    demo_rows, demo_episodes = len(buffer), buffer.num_episodes
+    expert_ev = evaluate_expert(config, setup)
+    evaluations: list[dict] = []
+
+    def on_fit(round_index: int, learner: Learner) -> None:
+        ev = evaluate_learner(config, learner)
+        evaluations.append(ev)
+        log_evaluation(setup.logger, round_index, ev, expert_ev if round_index == 0 else None)
+
+    source = EnvSource(
+        setup.env,  # exploration None: each round's learner acts as it says
+        max_steps=step_bound(setup.limit, config.episodes_per_round, config.num_envs),
+        generator=torch.Generator().manual_seed(config.seed),
+    )
+    result = dagger(
+        source,
+        setup.expert,
+        setup.make_learner,
+        buffer,
+        DAggerConfig(
+            rounds=config.rounds,
+            episodes_per_round=config.episodes_per_round,
+            beta=Constant(config.beta),
+            warm_start=config.warm_start,
+            bc=bc_config(config),
+            seed=config.seed,
+        ),
+        on_fit=on_fit,
+        progress=config.progress,
+        logger=setup.logger,
+    )
+    rounds = [
+        {
+            "round": r.round,
+            "rows_trained": r.rows_trained,
+            "final_loss": r.bc.final_loss,
+            "beta_next": r.beta_next,
+            "rows_collected": r.rows_collected,
+            "expert_executed_fraction": r.expert_executed_fraction,
+            "evaluation": ev,
+        }
+        for r, ev in zip(result.rounds, evaluations)
+    ]
+    results = {
+        "command": "dagger",
+        "env": config.env,
+        "demonstrations": {
+            "source": str(config.dataset) if config.dataset else f"expert {config.expert}",
+            "episodes": demo_episodes,
+            "rows": demo_rows,
+        },
+        "final_loss": result.rounds[-1].bc.final_loss,
+        "expert": expert_ev,
+        "learner": evaluations[-1],
+        "rounds": rounds,
+        "seconds": time.perf_counter() - start,
+    }
+    finish(config, "dagger", result.learner, results, setup)
+    return results
+
+
+def report(results: dict) -> list[str]:
+    """What ``imitrl dagger`` prints: one line per round, then the expert and the learner."""
+    demos = results["demonstrations"]
+    lines = [
+        f"demonstrations: {demos['episodes']} episodes, {demos['rows']} rows ({demos['source']})"
+    ]
+    for r in results["rounds"]:
+        lines.append(
+            format_return(f"round {r['round']} ({r['rows_trained']} rows)", r["evaluation"])
+        )
+    if results["expert"] is not None:
+        lines.append(format_return("expert", results["expert"]))
+    lines.append(f"wrote {Path(results['files']['curves']).parent}")
+    return lines

@@ -1,0 +1,147 @@
+"""``imitrl eval``: the mean return of a saved learner or of an expert, with its interval.
+
+:func:`evaluate_returns` is the one place every job evaluates a policy: a fresh env
+seeded ``eval_seed`` (lane ``i`` seeded ``eval_seed + i``, at most
+:data:`EVAL_LANES` lanes), so the expert and every learner of a run, and ``imitrl
+eval`` on the run's checkpoint with the same ``--eval-episodes`` / ``--eval-seed``,
+play the same initial states and give the same digits.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from tensordict.nn import TensorDictModuleBase
+from torchrl.envs.utils import ExplorationType
+
+from imitrl.envs import make_env
+from imitrl.evaluation import evaluate
+from imitrl.jobs.checkpoint import load_learner, read_config
+from imitrl.jobs.resolve import EXPERT_KINDS, make_expert, step_bound, time_limit
+from imitrl.policies import as_actor
+
+__all__ = ["EVAL_LANES", "EvalJob", "evaluate_returns", "format_return", "report", "run_eval"]
+
+EVAL_LANES = 16
+"""most env copies an evaluation steps together"""
+
+
+def evaluate_returns(
+    env_id: str,
+    policy: TensorDictModuleBase,
+    *,
+    exploration: ExplorationType,
+    episodes: int,
+    seed: int,
+    max_episode_steps: int | None,
+) -> dict:
+    """Mean return of ``policy`` (writes ``action``) over ``episodes`` episodes, 95% interval.
+
+    Returns ``{"mean_return", "return_ci": [lo, hi], "mean_length", "episodes",
+    "exploration", "seed"}`` (a NaN interval for one episode).
+    """
+    lanes = min(episodes, EVAL_LANES)
+    env = make_env(env_id, seed=seed, num_envs=lanes, max_episode_steps=max_episode_steps)
+    limit = time_limit(env_id, max_episode_steps)
+    try:
+        ev = evaluate(
+            env,
+            policy,
+            episodes,
+            exploration=exploration,
+            max_steps=step_bound(limit, episodes, lanes),
+            generator=torch.Generator().manual_seed(seed),  # sampled policies, reproducibly
+        )
+    finally:
+        env.close()
+    return {
+        "mean_return": ev.mean_return,
+        "return_ci": list(ev.return_ci),
+        "mean_length": ev.mean_length,
+        "episodes": episodes,
+        "exploration": ev.exploration,
+        "seed": seed,
+    }
+
+
+def format_return(name: str, ev: dict) -> str:
+    """One report line: ``name: return m [lo, hi] over n episodes (exploration)``."""
+    lo, hi = ev["return_ci"]
+    return (
+        f"{name}: return {ev['mean_return']:.2f} [{lo:.2f}, {hi:.2f}] over "
+        f"{ev['episodes']} episodes ({ev['exploration']}), mean length {ev['mean_length']:.1f}"
+    )
+
+
+@dataclass(frozen=True)
+class EvalJob:
+    """Evaluate a saved learner (``--checkpoint``) or an expert (``--expert``)."""
+
+    checkpoint: Path | None = None
+    """the --out directory of imitrl bc / imitrl dagger (config.json + learner.pt)"""
+    expert: str | None = None
+    """evaluate this expert instead: a built-in name (cartpole, mountaincar, acrobot,
+    pendulum, inverted_pendulum, inverted_double_pendulum) or module:function"""
+    expert_kind: str = "builder"
+    """what the function of --expert module:function is: builder (returns an expert
+    module writing expert_action) or callable (a batched obs -> action function)"""
+    env: str | None = None
+    """gymnasium id or module:Env-v0; none = the checkpoint's env"""
+    max_episode_steps: int | None = None
+    """override the env's time limit; none = the checkpoint's (or the env's own limit)"""
+    eval_episodes: int = 10
+    """evaluation episodes (the default of bc/dagger, so the run's numbers reproduce)"""
+    eval_seed: int = 10_000
+    """seed of the evaluation env (the default of bc/dagger)"""
+    out: Path | None = None
+    """also write eval.json into this directory; none = print only"""
+
+    def __post_init__(self) -> None:
+        if (self.checkpoint is None) == (self.expert is None):
+            raise ValueError("give exactly one of --checkpoint or --expert")
+        if self.expert is not None and self.env is None:
+            raise ValueError("--expert needs --env (the env to evaluate it on)")
+        if self.expert_kind not in EXPERT_KINDS:
+            raise ValueError(
+                f"--expert-kind must be one of {EXPERT_KINDS}, got {self.expert_kind!r}"
+            )
+        if self.eval_episodes < 1:
+            raise ValueError(f"--eval-episodes must be >= 1, got {self.eval_episodes}")
+
+
+def run_eval(config: EvalJob) -> dict:
+    """Evaluate what ``config`` names; returns ``{"policy", "env", "evaluation"}``."""
+    if config.checkpoint is not None:
+        saved = read_config(config.checkpoint)
+        env_id = config.env or saved["env"]
+        steps = config.max_episode_steps or saved["max_episode_steps"]
+        specs = make_env(env_id, seed=0, max_episode_steps=steps)  # the learner's shapes
+        learner = load_learner(config.checkpoint, specs)
+        specs.close()
+        policy, exploration, name = learner.policy, learner.exploration, "learner"
+    else:
+        env_id, steps = config.env, config.max_episode_steps
+        expert = make_expert(config.expert, config.expert_kind)
+        policy, exploration = as_actor(expert), ExplorationType.DETERMINISTIC
+        name = f"expert {config.expert}"
+    ev = evaluate_returns(
+        env_id,
+        policy,
+        exploration=exploration,
+        episodes=config.eval_episodes,
+        seed=config.eval_seed,
+        max_episode_steps=steps,
+    )
+    results = {"policy": name, "env": env_id, "evaluation": ev}
+    if config.out is not None:
+        config.out.mkdir(parents=True, exist_ok=True)
+        (config.out / "eval.json").write_text(json.dumps(results, indent=2) + "\n")
+    return results
+
+
+def report(results: dict) -> list[str]:
+    """What ``imitrl eval`` prints."""
+    return [format_return(f"{results['policy']} on {results['env']}", results["evaluation"])]

@@ -1,0 +1,205 @@
+"""Names on the command line -> objects: experts, learners, datasets, time limits.
+
+Every function here fails with a ``ValueError`` that names the flag and what was
+expected, before any work is done; the CLI turns it into one line on stderr and
+exit status 2.
+
+* ``--expert``: a built-in name (:data:`EXPERTS`) or ``module:function``. What the
+  function is, is stated by ``--expert-kind``, never guessed: ``builder`` =
+  ``function()`` returns an expert module (a TensorDictModule writing
+  ``expert_action``, e.g. ``Expert.from_callable(...)``); ``callable`` =
+  ``function(obs [N, d]) -> action [N] or [N, m]``, a batched policy wrapped with
+  :meth:`~imitrl.policies.Expert.from_callable`. A builder's return value is checked
+  once, when it is built.
+* ``--loss``: ``default`` (``ActorCritic.for_env``: categorical head for discrete
+  actions, deterministic MSE head for continuous ones) or a name of the loss
+  registry (:mod:`imitrl.objectives.registry`).
+* ``--dataset``: a directory; its files say its format (``meta/info.json``: LeRobot;
+  ``main_data.hdf5`` / ``metadata.json``, or a ``data/`` folder holding them: Minari).
+"""
+
+from __future__ import annotations
+
+import importlib
+import math
+from collections.abc import Callable
+from pathlib import Path
+
+import gymnasium
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from torchrl.data import Bounded, Categorical
+from torchrl.envs import EnvBase
+
+from imitrl import experts, keys
+from imitrl.data.buffer import REQUIRED_KEYS
+from imitrl.objectives import registry
+from imitrl.objectives.registry import LearnerConfig, TaskSpec
+from imitrl.policies import ActorCritic, Expert, Learner
+
+__all__ = [
+    "EXPERTS",
+    "EXPERT_KINDS",
+    "dataset_format",
+    "learner_factory",
+    "load_dataset",
+    "make_expert",
+    "step_bound",
+    "task_spec",
+    "time_limit",
+]
+
+EXPERTS: dict[str, Callable[[], TensorDictModuleBase]] = {
+    "cartpole": experts.cartpole_expert,
+    "mountaincar": experts.mountaincar_expert,
+    "acrobot": experts.acrobot_expert,
+    "pendulum": experts.pendulum_expert,
+    "inverted_pendulum": experts.inverted_pendulum_expert,
+    "inverted_double_pendulum": experts.inverted_double_pendulum_expert,
+}
+"""built-in expert name -> builder (CartPole-v1, MountainCar-v0, Acrobot-v1, Pendulum-v1,
+InvertedPendulum-v5, InvertedDoublePendulum-v5; the MuJoCo ones need the mujoco extra)"""
+
+EXPERT_KINDS = ("builder", "callable")
+"""what the ``function`` of ``--expert module:function`` is (see the module docstring)"""
+
+# the keys a rollout writes (imitrl.data.rollout_episodes): loaded rows keep only these,
+# so that DAgger's rollouts can extend the same buffer
+ROW_KEYS = (
+    *REQUIRED_KEYS,
+    *[(keys.NEXT, k) for k in (keys.REWARD, keys.DONE, keys.TERMINATED, keys.TRUNCATED)],
+)
+
+
+def _import(spec: str) -> object:
+    """``"module:attribute"`` -> the attribute."""
+    module_name, _, attr = spec.partition(":")
+    if not module_name or not attr:
+        raise ValueError(f"--expert {spec!r}: expected module:function")
+    try:
+        module = importlib.import_module(module_name)
+    except ImportError as err:
+        raise ValueError(f"--expert {spec!r}: cannot import {module_name!r} ({err})") from err
+    if not hasattr(module, attr):
+        raise ValueError(f"--expert {spec!r}: module {module_name!r} has no {attr!r}")
+    return getattr(module, attr)
+
+
+def make_expert(spec: str, kind: str = "builder") -> TensorDictModuleBase:
+    """The expert named by ``spec`` (a built-in name or ``module:function``), built.
+
+    Returns a TensorDictModule reading ``observation`` and writing ``expert_action``.
+    """
+    if kind not in EXPERT_KINDS:
+        raise ValueError(f"--expert-kind must be one of {EXPERT_KINDS}, got {kind!r}")
+    if ":" not in spec:
+        if spec not in EXPERTS:
+            raise ValueError(
+                f"unknown expert {spec!r}; built-in: {', '.join(EXPERTS)}, "
+                "or module:function (see --expert-kind)"
+            )
+        return EXPERTS[spec]()
+    fn = _import(spec)
+    if not callable(fn):
+        raise ValueError(f"--expert {spec!r} is a {type(fn).__name__}, not a function")
+    if kind == "callable":
+        return Expert.from_callable(fn)
+    expert = fn()
+    if not isinstance(expert, TensorDictModuleBase) or keys.EXPERT_ACTION not in expert.out_keys:
+        raise ValueError(
+            f"--expert {spec!r}: the builder returned a {type(expert).__name__}, expected a "
+            f"TensorDictModule writing {keys.EXPERT_ACTION!r} (for a batched function "
+            "obs -> action, pass --expert-kind callable)"
+        )
+    return expert
+
+
+def time_limit(env_id: str, override: int | None) -> int:
+    """Steps per episode: ``override``, else the gymnasium spec's ``max_episode_steps``."""
+    if override is not None:
+        return int(override)
+    limit = gymnasium.spec(env_id.split(":", 1)[-1]).max_episode_steps
+    if limit is None:
+        raise ValueError(f"{env_id} is registered without a time limit: pass --max-episode-steps")
+    return int(limit)
+
+
+def step_bound(limit: int, episodes: int, lanes: int) -> int:
+    """Safety bound on steps per lane for ``episodes`` whole episodes over ``lanes`` lanes
+    (each lane plays ``ceil(episodes / lanes)`` episodes of at most ``limit`` steps)."""
+    return limit * (math.ceil(episodes / lanes) + 1)
+
+
+def task_spec(env: EnvBase) -> TaskSpec:
+    """The registry's view of ``env``: action count or ``Bounded`` spec, observation size."""
+    obs = env.observation_spec_unbatched[keys.OBSERVATION]
+    action = env.action_spec_unbatched
+    if isinstance(action, Categorical):
+        act: int | Bounded = int(action.space.n)
+    elif isinstance(action, Bounded):
+        act = action
+    else:
+        raise ValueError(
+            f"the loss registry needs Categorical or Bounded actions, got {type(action).__name__}"
+        )
+    if isinstance(obs, Categorical):
+        return TaskSpec(action=act, num_states=int(obs.space.n))
+    if len(obs.shape) != 1:
+        raise ValueError(f"the loss registry needs vector observations [d], got {tuple(obs.shape)}")
+    return TaskSpec(action=act, observation_dim=int(obs.shape[0]))
+
+
+def learner_factory(
+    loss: str, env: EnvBase, *, hidden: tuple[int, ...], lr: float, seed: int
+) -> Callable[[], Learner]:
+    """``() -> Learner``: a fresh learner for ``env`` trained by ``loss``, same init each call.
+
+    Builds one learner right away, so that an unknown loss, or a loss for the other
+    kind of action, fails here.
+    """
+    if loss == "default":
+
+        def make() -> Learner:
+            return ActorCritic.for_env(env, hidden=hidden, lr=lr, seed=seed)
+
+    else:
+        if loss not in registry.names():
+            raise ValueError(
+                f"unknown loss {loss!r}; choose default or one of: {', '.join(registry.names())}"
+            )
+        task, config = task_spec(env), LearnerConfig(hidden=tuple(hidden), lr=lr, seed=seed)
+
+        def make() -> Learner:
+            return registry.build(loss, task, config)
+
+    make()
+    return make
+
+
+def dataset_format(path: Path) -> str:
+    """``"lerobot"`` or ``"minari"``, read off the files in ``path``."""
+    if not path.is_dir():
+        raise ValueError(f"--dataset {path}: no such directory")
+    if (path / "meta" / "info.json").is_file():
+        return "lerobot"
+    for folder in (path, path / "data"):
+        if (folder / "main_data.hdf5").is_file() or (folder / "metadata.json").is_file():
+            return "minari"
+    raise ValueError(
+        f"--dataset {path}: neither a LeRobot dataset (meta/info.json) nor a Minari one "
+        "(main_data.hdf5 or metadata.json, possibly under data/)"
+    )
+
+
+def load_dataset(path: Path, env: EnvBase) -> TensorDictBase:
+    """Demonstration rows ``[N]`` of the dataset at ``path``, conformed to ``env``'s specs.
+
+    Only the keys a rollout writes are kept (:data:`ROW_KEYS`), so DAgger's rounds
+    can extend the same buffer.
+    """
+    from imitrl.datasets import load_lerobot, load_minari  # needs the datasets extra
+
+    fmt = dataset_format(path)
+    loaded = (load_lerobot if fmt == "lerobot" else load_minari)(path, env=env)
+    present = set(loaded.rows.keys(include_nested=True))
+    return loaded.rows.select(*[k for k in ROW_KEYS if k in present])
