@@ -160,3 +160,33 @@ def test_fit_bc_refuses_non_finite_observations_naming_them():
         fit_bc(ActorCritic.mlp(3, 2), _rows(obs, torch.zeros(8, dtype=torch.long)))
     with pytest.raises(ValueError, match="NaN or inf"):
         ActorCritic.mlp(3, 2).act(obs)
+
+
+# ------------------------------------------------------------ learner vs env
+def test_a_learner_that_does_not_fit_the_env_is_refused_naming_both():
+    from imitrl.envs import make_env
+
+    cartpole, pendulum = make_env("CartPole-v1", seed=0), make_env("Pendulum-v1", seed=0)
+    ActorCritic.for_env(cartpole).check_env(cartpole)
+    ActorCritic.for_env(pendulum).check_env(pendulum)
+    cases = [
+        (ActorCritic.mlp(4, 3), cartpole, "writes 3 discrete actions; the env takes 2"),
+        (ActorCritic.mlp(5, 2), cartpole, r"shape \(5,\); the env gives shape \(4,\)"),
+        (ActorCritic.for_env(cartpole), pendulum, r"shape \(4,\); the env gives shape \(3,\)"),
+        (
+            ActorCritic.mlp(3, Bounded(-1.0, 1.0, shape=(1,))),
+            pendulum,
+            r"in \[\[-1.0\], \[1.0\]\]; the env takes continuous actions of size 1 in \[\[-2.0\]",
+        ),
+        (ActorCritic.tabular(15, 4), _lake_env(), "15 states; the env gives 16 states"),
+    ]
+    for learner, env, match in cases:
+        with pytest.raises(ValueError, match=match):
+            learner.check_env(env)
+
+
+def _lake_env():
+    from imitrl.envs import TabularEnv
+    from imitrl.tabular import TabularMDP
+
+    return TabularEnv(TabularMDP.from_gym("FrozenLake-v1", gamma=0.95), batch_size=(2,), seed=0)

@@ -41,7 +41,7 @@ from imitrl.policies.heads import HEAD_LOSSES, HEADS, OneHotInput, build_head, c
 from imitrl.policies.learner import Learner
 from imitrl.policies.modules import Module, Value
 from imitrl.policies.normalization import ObservationNormalizer
-from imitrl.policies.specs import action_space, observation_space
+from imitrl.policies.specs import ActionSpace, action_space, observation_space
 from imitrl.rng import rng_from
 
 __all__ = ["HEADS", "HEAD_LOSSES", "ActorCritic"]
@@ -57,6 +57,25 @@ def _loss(policy: TensorDictModule, head: str, loss: str | ImitationLoss | None)
             f"loss {loss_type!r} does not fit a {head!r} head; it is fitted with {HEAD_LOSSES[head]}"
         )
     return BehaviorCloningLoss(policy, loss_type=loss_type)
+
+
+def _describe(space: ActionSpace) -> str:
+    if space.kind == "discrete":
+        return f"{space.n} discrete actions" + (" (one-hot)" if space.one_hot else "")
+    if space.kind == "multi_discrete":
+        return f"multi-discrete actions {list(space.nvec)}"
+    bounds = "" if space.low is None else f" in [{space.low.tolist()}, {space.high.tolist()}]"
+    return f"continuous actions of size {space.dim}{bounds}"
+
+
+def _check_same_actions(mine: ActionSpace, env: ActionSpace) -> None:
+    """ValueError naming both unless the learner's actions are the env's."""
+    same = (mine.kind, mine.n, mine.nvec, mine.dim) == (env.kind, env.n, env.nvec, env.dim)
+    same = same and (mine.kind != "discrete" or mine.one_hot == env.one_hot)
+    if same and mine.low is not None and env.low is not None:
+        same = torch.equal(mine.low, env.low) and torch.equal(mine.high, env.high)
+    if not same:
+        raise ValueError(f"the learner writes {_describe(mine)}; the env takes {_describe(env)}")
 
 
 class ActorCritic(Learner):
@@ -87,6 +106,7 @@ class ActorCritic(Learner):
         num_states: int | None = None,
         observation_shape: Sequence[int] | None = None,
         normalizer: ObservationNormalizer | None = None,
+        action: ActionSpace | None = None,
     ) -> None:
         if head not in HEADS:
             raise ValueError(f"head must be one of {HEADS}, got {head!r}")
@@ -105,6 +125,7 @@ class ActorCritic(Learner):
         self.observation_shape = None if observation_shape is None else tuple(observation_shape)
         self.lr = float(lr)
         self.opt_v = torch.optim.Adam(value.parameters(), lr=lr)
+        self.action_space = action
 
     # ------------------------------------------------------------ constructors
     @classmethod
@@ -132,7 +153,14 @@ class ActorCritic(Learner):
             spec=CategoricalSpec(num_actions, dtype=torch.int64),
         )
         value = Value(value_table, in_keys=[keys.OBSERVATION])
-        return cls(policy, value, head="categorical", lr=lr, num_states=num_states)
+        return cls(
+            policy,
+            value,
+            head="categorical",
+            lr=lr,
+            num_states=num_states,
+            action=action_space(num_actions),
+        )
 
     @classmethod
     def mlp(
@@ -195,6 +223,7 @@ class ActorCritic(Learner):
             num_states=obs.num_states,
             observation_shape=shape,
             normalizer=normalizer,
+            action=space,
         )
 
     @classmethod
@@ -227,6 +256,23 @@ class ActorCritic(Learner):
             seed=seed,
             normalize=normalize,
         )
+
+    def check_env(self, env: EnvBase) -> None:
+        """Raise ``ValueError``, naming both, unless this learner reads the env's observations
+        and writes actions of the env's kind and size (checked before any step)."""
+        obs_spec = env.observation_spec_unbatched.get(keys.OBSERVATION, None)
+        if obs_spec is None:
+            raise ValueError(f"the env has no {keys.OBSERVATION!r} observation for the learner")
+        try:
+            obs = observation_space(obs_spec)
+        except ValueError as err:
+            raise ValueError(f"the env's observations do not fit an imitrl learner: {err}") from err
+        mine = f"{self.num_states} states" if self.num_states else f"shape {self.observation_shape}"
+        theirs = f"{obs.num_states} states" if obs.num_states else f"shape {obs.shape}"
+        if (obs.num_states, obs.shape) != (self.num_states, self.observation_shape):
+            raise ValueError(f"the learner reads observations of {mine}; the env gives {theirs}")
+        if self.action_space is not None:
+            _check_same_actions(self.action_space, action_space(env.action_spec_unbatched))
 
     def optimizers(self) -> dict[str, torch.optim.Optimizer]:
         """``opt_pi`` (the policy's) and ``opt_v`` (the value head's)."""

@@ -1,29 +1,42 @@
-"""Experts: modules that write their label under ``EXPERT_ACTION`` for any state.
+"""Experts: the one type that labels observations, ``OBSERVATION -> EXPERT_ACTION``.
 
-An expert is a :class:`~tensordict.nn.TensorDictModule` reading ``OBSERVATION`` and
-writing ``EXPERT_ACTION``; it never writes the learner's ``ACTION``. To let an expert
-drive an env, :meth:`Expert.as_actor` chains it with a copy into ``ACTION``.
+An :class:`Expert` is a TensorDict module that reads its ``in_keys`` (the
+observation, plus any latent the expert alone may see) and writes ``EXPERT_ACTION``;
+it never writes the learner's ``ACTION``. The same object is what ``rollout_episodes``,
+``episode_returns``, ``evaluate``, ``dagger`` and ``EnvSource`` take: handed a bare
+Expert, a rollout drives the env with :meth:`Expert.as_actor` (the label copied into
+``ACTION``).
 
 Build one from a policy table (:meth:`Expert.from_table`), a Q table
-(:meth:`Expert.from_q`), any batched callable ``obs -> action``
-(:meth:`Expert.from_callable`), or any TensorDictModule that writes an action
+(:meth:`Expert.from_q`), any batched function ``obs -> action`` on torch tensors or
+numpy arrays (:meth:`Expert.from_callable`), any ``nn.Module`` of tensors
+(``Expert(module)``), or any TensorDict policy that writes an action
 (:meth:`Expert.from_policy`, e.g. a trained TorchRL actor run in deterministic mode).
+
+**Action spec.** An expert that knows its env's action spec (one lane's,
+``env.action_spec_unbatched``) casts every label to it when the cast is exact (float64
+-> float32, ``(N,)`` -> ``(N, 1)``, ints -> int64; see
+:func:`~imitrl.policies.action_check.cast_action`) and refuses it otherwise. Give the
+spec at construction (``action_spec=``) or let the first rollout give the env's
+(:meth:`Expert.bind`); without one, labels pass unchanged.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase, TensorDictSequential
+from tensordict.utils import NestedKey
 from torch import nn
+from torchrl.data import TensorSpec
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from imitrl import keys
-from imitrl.policies.modules import Module
+from imitrl.policies.action_check import cast_action
 
-__all__ = ["Expert", "TableLookup"]
+__all__ = ["Expert", "TableLookup", "as_actor"]
 
 
 class TableLookup(nn.Module):
@@ -50,41 +63,16 @@ class TableLookup(nn.Module):
 
 
 class _Call(nn.Module):
-    """Wraps a plain callable so TensorDictModule can hold it."""
+    """Holds a plain function (torch or numpy) so the expert can own it as a module."""
 
-    def __init__(self, fn: Callable[[torch.Tensor], torch.Tensor]) -> None:
+    def __init__(self, fn: Callable) -> None:
         super().__init__()
+        if not callable(fn):
+            raise ValueError(f"an expert needs a callable obs -> action, got {type(fn).__name__}")
         self.fn = fn
 
-    def forward(self, obs: torch.Tensor) -> torch.Tensor:
-        with torch.no_grad():
-            return torch.as_tensor(self.fn(obs))
-
-
-class _Deterministic(TensorDictModuleBase):
-    """Runs a policy in deterministic mode and moves its action to ``EXPERT_ACTION``.
-
-    The wrapped policy writes into a private copy of the input, so nothing it writes
-    (its ``ACTION``, logits, ...) leaks into the caller's tensordict.
-    """
-
-    def __init__(self, policy: TensorDictModuleBase, action_key, observation_key) -> None:
-        super().__init__()
-        self.policy = policy
-        self.action_key = action_key
-        self.in_keys = [observation_key]
-        self.out_keys = [keys.EXPERT_ACTION]
-
-    def as_actor(self) -> TensorDictSequential:
-        """This expert driving an env (see :meth:`Expert.as_actor`)."""
-        return as_actor(self)
-
-    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        scratch = tensordict.select(*self.policy.in_keys, strict=True).copy()
-        with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
-            out = self.policy(scratch)
-        tensordict.set(keys.EXPERT_ACTION, out.get(self.action_key))
-        return tensordict
+    def forward(self, *inputs: torch.Tensor) -> object:
+        return self.fn(*inputs)  # may be a numpy array: Expert casts it
 
 
 class _ExecuteExpert(TensorDictModuleBase):
@@ -100,68 +88,167 @@ class _ExecuteExpert(TensorDictModuleBase):
         return tensordict
 
 
-class Expert(Module):
-    """A queryable expert: ``OBSERVATION -> EXPERT_ACTION``.
+class Expert(TensorDictModuleBase):
+    """A queryable expert: reads ``in_keys``, writes ``EXPERT_ACTION`` (no gradients).
 
     Args:
-        module: a callable ``obs -> action`` on batched tensors (or an ``nn.Module``).
-        observation_key: the key the expert reads (default ``"observation"``).
+        module: ``module(*[td[k] for k in in_keys]) -> action`` on batched tensors (an
+            ``nn.Module``, or any callable; its output may be a numpy array).
+        in_keys: the keys the expert reads, in ``module``'s argument order (default
+            the observation alone).
+        action_spec: one lane's action spec to cast every label to (see the module
+            docstring); None: cast once a rollout binds the env's (:meth:`bind`).
+
+    Attributes:
+        action_spec: the spec labels are cast to, or None.
     """
 
     def __init__(
         self,
-        module: nn.Module | Callable[[torch.Tensor], torch.Tensor],
+        module: nn.Module | Callable,
         *,
-        observation_key=keys.OBSERVATION,
+        in_keys: Sequence[NestedKey] = (keys.OBSERVATION,),
+        action_spec: TensorSpec | None = None,
     ) -> None:
-        if not isinstance(module, nn.Module):
-            module = _Call(module)
-        super().__init__(module, in_keys=[observation_key], out_keys=[keys.EXPERT_ACTION])
+        super().__init__()
+        self.module = module if isinstance(module, nn.Module) else _Call(module)
+        self.in_keys = list(in_keys)
+        self.out_keys = [keys.EXPERT_ACTION]
+        self.action_spec = None
+        if action_spec is not None:
+            self.bind(action_spec)
 
+    # ------------------------------------------------------------ builders
     @classmethod
-    def from_table(cls, table: torch.Tensor, *, observation_key=keys.OBSERVATION) -> Expert:
-        """Expert from a ``[S]`` table of actions (tabular envs)."""
+    def from_table(
+        cls,
+        table: torch.Tensor,
+        *,
+        observation_key: NestedKey = keys.OBSERVATION,
+        action_spec: TensorSpec | None = None,
+    ) -> Expert:
+        """Expert from a ``[S]`` table of actions (tabular envs); labels int64 ``[...]``."""
         table = torch.as_tensor(table)
         if table.ndim != 1 or table.dtype.is_floating_point:
             raise ValueError(
                 f"a policy table must be a 1-D integer tensor [S], got {table.dtype} {tuple(table.shape)}"
             )
-        return cls(TableLookup(table.long()), observation_key=observation_key)
+        return cls(TableLookup(table.long()), in_keys=[observation_key], action_spec=action_spec)
 
     @classmethod
-    def from_q(cls, Q: torch.Tensor, *, observation_key=keys.OBSERVATION) -> Expert:
+    def from_q(
+        cls,
+        Q: torch.Tensor,
+        *,
+        observation_key: NestedKey = keys.OBSERVATION,
+        action_spec: TensorSpec | None = None,
+    ) -> Expert:
         """Expert acting greedily on a ``[S, A]`` Q table (ties to the lowest action)."""
         Q = torch.as_tensor(Q)
         if Q.ndim != 2:
             raise ValueError(f"Q must have shape [S, A], got {tuple(Q.shape)}")
-        return cls.from_table(Q.argmax(dim=1), observation_key=observation_key)
+        return cls.from_table(
+            Q.argmax(dim=1), observation_key=observation_key, action_spec=action_spec
+        )
 
     @classmethod
     def from_callable(
-        cls, fn: Callable[[torch.Tensor], torch.Tensor], *, observation_key=keys.OBSERVATION
+        cls,
+        fn: Callable,
+        *,
+        action_spec: TensorSpec | None = None,
+        observation_key: NestedKey = keys.OBSERVATION,
     ) -> Expert:
-        """Expert from any batched ``obs -> action`` function (run without gradients)."""
-        return cls(_Call(fn), observation_key=observation_key)
+        """Expert from a batched function ``obs [*B, d] -> action`` (torch or numpy).
 
-    @staticmethod
+        ``fn`` receives the observation tensor (numpy functions usually accept it); it
+        may return a tensor, a numpy array or a python number. Its output is cast to
+        ``action_spec`` (one lane's spec; None: the env's, at the first rollout) when
+        the cast is exact, and refused with a ``ValueError`` otherwise.
+        """
+        return cls(_Call(fn), in_keys=[observation_key], action_spec=action_spec)
+
+    @classmethod
     def from_policy(
+        cls,
         policy: TensorDictModuleBase,
         *,
-        action_key=keys.ACTION,
-        observation_key=keys.OBSERVATION,
-    ) -> TensorDictModuleBase:
+        action_key: NestedKey = keys.ACTION,
+        action_spec: TensorSpec | None = None,
+    ) -> Expert:
         """Wrap a policy module (e.g. a trained TorchRL actor) as an expert.
 
-        The policy runs in ``ExplorationType.DETERMINISTIC`` on a private copy of
-        the input; its ``action_key`` output is written to ``EXPERT_ACTION``.
+        The policy runs in ``ExplorationType.DETERMINISTIC`` on a private copy of its
+        ``in_keys``; its ``action_key`` output becomes ``EXPERT_ACTION``, and nothing
+        else it writes (its ``ACTION``, logits, ...) reaches the caller's tensordict.
         """
-        return _Deterministic(policy, action_key, observation_key)
+        if not isinstance(policy, TensorDictModuleBase):
+            raise ValueError(f"from_policy needs a TensorDict module, got {type(policy).__name__}")
+        return _PolicyExpert(policy, action_key=action_key, action_spec=action_spec)
+
+    # ------------------------------------------------------------ contract
+    def bind(self, action_spec: TensorSpec) -> Expert:
+        """Cast labels to ``action_spec`` (one lane's) from now on; returns ``self``.
+
+        Rollouts call it with the env's ``action_spec_unbatched``. Binding again to a
+        spec of the same dtype and shape keeps the first spec.
+
+        Raises:
+            ValueError: the expert is already bound to a spec of another dtype or shape.
+        """
+        if not isinstance(action_spec, TensorSpec):
+            raise ValueError(f"action_spec must be a TorchRL TensorSpec, got {action_spec!r}")
+        if self.action_spec is None:
+            self.action_spec = action_spec
+        elif (self.action_spec.dtype, self.action_spec.shape) != (
+            action_spec.dtype,
+            action_spec.shape,
+        ):
+            raise ValueError(
+                f"this expert labels in dtype {self.action_spec.dtype}, shape "
+                f"{tuple(self.action_spec.shape)}; the env's action spec is dtype "
+                f"{action_spec.dtype}, shape {tuple(action_spec.shape)}"
+            )
+        return self
+
+    def label(self, tensordict: TensorDictBase) -> object:
+        """The raw label of ``module`` on ``tensordict`` (before the cast)."""
+        return self.module(*(tensordict.get(k) for k in self.in_keys))
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        with torch.no_grad():
+            raw = self.label(tensordict)
+        if self.action_spec is not None:
+            raw = cast_action(raw, self.action_spec, batch_shape=tensordict.batch_size)
+        elif not isinstance(raw, torch.Tensor):
+            raw = torch.as_tensor(raw)
+        tensordict.set(keys.EXPERT_ACTION, raw)
+        return tensordict
 
     def as_actor(self) -> TensorDictSequential:
         """This expert driving an env: writes ``EXPERT_ACTION``, ``ACTION`` and ``EXPERT_EXECUTED``."""
         return as_actor(self)
 
 
-def as_actor(expert: TensorDictModuleBase) -> TensorDictSequential:
-    """Any expert module (writing ``EXPERT_ACTION``) made to drive an env."""
+class _PolicyExpert(Expert):
+    """An Expert whose label is a TensorDict policy's action in deterministic mode."""
+
+    def __init__(
+        self,
+        policy: TensorDictModuleBase,
+        *,
+        action_key: NestedKey,
+        action_spec: TensorSpec | None,
+    ) -> None:
+        super().__init__(policy, in_keys=policy.in_keys, action_spec=action_spec)
+        self.action_key = action_key
+
+    def label(self, tensordict: TensorDictBase) -> torch.Tensor:
+        scratch = tensordict.select(*self.in_keys, strict=True).copy()
+        with set_exploration_type(ExplorationType.DETERMINISTIC):
+            return self.module(scratch).get(self.action_key)
+
+
+def as_actor(expert: Expert) -> TensorDictSequential:
+    """``expert`` made to drive an env (``expert.as_actor()``; kept for older code)."""
     return TensorDictSequential(expert, _ExecuteExpert())

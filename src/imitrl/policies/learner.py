@@ -79,6 +79,13 @@ class Learner(nn.Module):
         if obs.dtype.is_floating_point and not torch.isfinite(obs).all():
             raise ValueError("observations contain NaN or inf")
 
+    def check_env(self, env) -> None:
+        """Raise ``ValueError`` (naming both) when the learner cannot act in ``env``.
+
+        The base class knows nothing of its policy's spaces and accepts every env;
+        :class:`~imitrl.policies.ActorCritic` compares its observation and action spaces.
+        """
+
     def prepare(self, rows: TensorDictBase) -> None:
         """Before a fit: validate the rows' observations and, the first time, fit the
         normaliser to them (later fits keep the statistics the weights were trained with)."""
