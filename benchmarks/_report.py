@@ -1,17 +1,23 @@
-"""Shared by the benchmark scripts: write raw results and refresh README tables.
+"""Shared by the benchmark scripts: where a run writes, raw results, README tables.
 
-Each script writes ``benchmarks/results/<name>.json`` (machine-readable, with the
+A full run writes ``benchmarks/results/<name>.json`` (machine-readable, with the
 machine and package versions) and replaces the block between
 ``<!-- BEGIN <name> -->`` and ``<!-- END <name> -->`` in ``benchmarks/README.md``,
-so every number in the README is produced by the script as it is now.
+so every number in the README is produced by the script as it is now. ``--out DIR``
+writes the JSON (and figures) to ``DIR`` and leaves the README alone; ``--quick``
+without ``--out`` writes to a fresh temporary directory: a smoke run never touches
+the committed ``README.md`` or ``results/``.
 """
 
 from __future__ import annotations
 
+import argparse
 import json
+import math
 import os
 import platform
 import re
+import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -20,6 +26,44 @@ RESULTS = HERE / "results"
 README = HERE / "README.md"
 
 
+# ------------------------------------------------------------------ where to write
+def parser(doc: str | None) -> argparse.ArgumentParser:
+    """An argument parser with the two flags every benchmark takes, ``--quick`` and ``--out``."""
+    p = argparse.ArgumentParser(description=(doc or "").splitlines()[0])
+    p.add_argument(
+        "--quick",
+        action="store_true",
+        help="smoke run on a tiny budget (without --out: into a temporary directory)",
+    )
+    p.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        help="write results here and leave benchmarks/README.md alone",
+    )
+    return p
+
+
+def destination(name: str, *, quick: bool, out: Path | None) -> Path | None:
+    """Where a run writes: ``out`` if given; for a ``quick`` run a new temporary
+    directory (printed); otherwise None, meaning ``results/`` and the README block."""
+    if out is not None:
+        return Path(out)
+    if quick:
+        path = Path(tempfile.mkdtemp(prefix=f"{name}-quick-"))
+        print(f"--quick without --out: writing to {path} (README.md and results/ untouched)")
+        return path
+    return None
+
+
+def results_dir(out_dir: Path | None) -> Path:
+    """The directory a run's files go to (created): ``out_dir``, or ``results/``."""
+    target = RESULTS if out_dir is None else Path(out_dir)
+    target.mkdir(parents=True, exist_ok=True)
+    return target
+
+
+# ------------------------------------------------------------------------ writing
 def machine() -> dict[str, Any]:
     import gymnasium
     import tensordict
@@ -42,9 +86,7 @@ def write(
     name: str, payload: dict[str, Any], markdown: str, *, out_dir: Path | None = None
 ) -> Path:
     """Write ``<out_dir or results>/<name>.json``; refresh the README block unless ``out_dir`` is given."""
-    target = RESULTS if out_dir is None else Path(out_dir)
-    target.mkdir(parents=True, exist_ok=True)
-    path = target / f"{name}.json"
+    path = results_dir(out_dir) / f"{name}.json"
     path.write_text(json.dumps({"machine": machine(), **payload}, indent=2) + "\n")
     if out_dir is None:
         update_readme(name, markdown)
@@ -62,7 +104,31 @@ def update_readme(name: str, markdown: str) -> None:
     README.write_text(text)
 
 
+# ------------------------------------------------------------------------- tables
 def table(header: list[str], rows: list[list[Any]]) -> str:
     lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
     lines += ["| " + " | ".join(str(c) for c in row) + " |" for row in rows]
     return "\n".join(lines)
+
+
+def section(title: str, body: str) -> str:
+    """A bold-titled paragraph, a blank line, then ``body`` (a table)."""
+    return f"{title}\n\n{body}"
+
+
+def fmt_ci(ci: tuple[float, float, float], digits: int = 2, *, unit: bool = False) -> str:
+    """``mean [lo, hi]`` of a ``t_interval``; the mean alone without bounds (one seed),
+    ``-`` without a mean; ``unit``: a probability, its interval clipped to [0, 1]."""
+    mean, lo, hi = ci
+    if math.isnan(mean):
+        return "-"
+    if math.isnan(lo):
+        return f"{mean:.{digits}f}"
+    if unit:
+        lo, hi = max(lo, 0.0), min(hi, 1.0)
+    return f"{mean:.{digits}f} [{lo:.{digits}f}, {hi:.{digits}f}]"
+
+
+def env_label(env_id: str) -> str:
+    """``module:Env-v0`` without its module, for tables."""
+    return env_id.split(":", 1)[-1]

@@ -2,36 +2,39 @@
 
 1. MLP minibatch fit (the target: imitrl >= 0.8x the plain loop's samples/s): a
    categorical MLP on vector observations, Adam, cross-entropy, minibatches drawn
-   without replacement. imitrl runs `fit_bc` with `ActorCritic.mlp` through the TorchRL
-   loss module; the plain loop is the same network and optimizer written directly.
+   without replacement. imitrl runs `fit_bc` with `ActorCritic.mlp` (observations
+   normalised inside the network, the library's default) through the learner's loss;
+   the plain loop is the same network, normalisation included, and optimizer written
+   directly.
 2. Tabular full-batch fit of the section's size (96 rows, 200 Adam steps).
 3. DAgger on slippery FrozenLake (4 rounds, 3 relabelled episodes per round, 200-step
    fits): rounds per second on the batched TabularEnv and on gymnasium's stream.
 
     python benchmarks/bc_throughput.py              # full run, refreshes README
-    python benchmarks/bc_throughput.py --quick --out /tmp/x
+    python benchmarks/bc_throughput.py --quick      # smoke run, into a temporary directory
 """
 
 from __future__ import annotations
 
-import argparse
+import logging
 import time
 from dataclasses import dataclass
-from pathlib import Path
 
 import torch
 import torch.nn.functional as F
 from tensordict import TensorDict
 from torch import nn
-from torchrl.envs.utils import ExplorationType
 
 import _report
+from _common import DET, lake, rollout, source
 from imitrl import keys
-from imitrl.algorithms import BCConfig, DAggerConfig, EnvSource, dagger, fit_bc
-from imitrl.data import DemonstrationBuffer, rollout_episodes
+from imitrl.algorithms import BCConfig, DAggerConfig, dagger, fit_bc
+from imitrl.data import DemonstrationBuffer
 from imitrl.envs import GymnasiumStream, GymnasiumStreamSource, TabularEnv
-from imitrl.policies import ActorCritic, Expert
-from imitrl.tabular import TabularMDP, greedy, value_iteration
+from imitrl.policies import ActorCritic, BetaMixer, Expert, behaviour_policy
+from imitrl.tabular import greedy
+
+NAME = "bc_throughput"
 
 
 @dataclass(frozen=True)
@@ -56,6 +59,9 @@ class Config:
     """best of this many repeats"""
 
 
+QUICK = Config(rows=2_000, mlp_steps=30, tabular_steps=20, dagger_runs=1, repeats=1)
+
+
 def mlp_task(cfg: Config) -> TensorDict:
     g = torch.Generator().manual_seed(0)
     obs = torch.randn(cfg.rows, cfg.obs_dim, generator=g)
@@ -63,10 +69,22 @@ def mlp_task(cfg: Config) -> TensorDict:
     return TensorDict({keys.OBSERVATION: obs, keys.EXPERT_ACTION: (obs @ W).argmax(-1)}, [cfg.rows])
 
 
+class Standardize(nn.Module):
+    """``(x - mean) / std`` with the data's statistics, as the library's normaliser."""
+
+    def __init__(self, x: torch.Tensor) -> None:
+        super().__init__()
+        self.register_buffer("loc", x.double().mean(0).float())
+        self.register_buffer("scale", x.double().std(0, correction=0).float())
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return (x - self.loc) / self.scale
+
+
 def plain_mlp(cfg: Config, data: TensorDict) -> float:
     torch.manual_seed(0)
     sizes = [cfg.obs_dim, *cfg.hidden, cfg.num_actions]
-    layers: list[nn.Module] = []
+    layers: list[nn.Module] = [Standardize(data[keys.OBSERVATION])]
     for i, (a, b) in enumerate(zip(sizes[:-1], sizes[1:])):
         layers.append(nn.Linear(a, b))
         if i < len(sizes) - 2:
@@ -110,32 +128,21 @@ def imitrl_mlp_from_buffer(cfg: Config, data: TensorDict) -> float:
     )
     buf.extend(rows)
     learner = ActorCritic.mlp(cfg.obs_dim, cfg.num_actions, hidden=cfg.hidden, lr=1e-3)
-    from imitrl.objectives import BehaviorCloningLoss
-
-    loss_module = BehaviorCloningLoss(learner.policy)
+    learner.prepare(rows)  # what fit_bc does first: fit the observation normaliser
     t0 = time.perf_counter()
     for _ in range(cfg.mlp_steps):
-        loss = loss_module(buf.sample())["loss_bc"]
+        loss = learner.loss.objective(buf.sample())
         learner.opt_pi.zero_grad(set_to_none=True)
         loss.backward()
         learner.opt_pi.step()
     return cfg.mlp_steps * cfg.batch_size / (time.perf_counter() - t0)
 
 
-def lake():
-    mdp = TabularMDP.from_gym("FrozenLake-v1", 0.95)
-    return mdp, greedy(mdp.backup(value_iteration(mdp, 1000)[-1]))
-
-
 def tabular_fits(cfg: Config) -> tuple[float, float]:
-    mdp, expert = lake()
+    mdp, Q = lake()
     env = TabularEnv(mdp, batch_size=(3,), seed=0)
-    rows = rollout_episodes(
-        env,
-        Expert.from_table(expert).as_actor(),
-        3,
-        exploration=ExplorationType.DETERMINISTIC,
-        max_steps=10_000,
+    rows = rollout(
+        env, Expert.from_table(greedy(Q)).as_actor(), 3, exploration=DET, max_steps=10_000
     )
     obs, act = rows[keys.OBSERVATION], rows[keys.EXPERT_ACTION]
     t0 = time.perf_counter()
@@ -155,33 +162,24 @@ def tabular_fits(cfg: Config) -> tuple[float, float]:
 
 
 def dagger_rounds(cfg: Config, source_kind: str) -> float:
-    mdp, expert_table = lake()
-    expert = Expert.from_table(expert_table)
+    mdp, Q = lake()
+    expert = Expert.from_table(greedy(Q))
     rounds = 0
     t0 = time.perf_counter()
     for seed in range(cfg.dagger_runs):
         if source_kind == "tabular_env":
             env = TabularEnv(mdp, batch_size=(3,), seed=seed)
-            demos = rollout_episodes(
-                env,
-                expert.as_actor(),
-                3,
-                exploration=ExplorationType.DETERMINISTIC,
-                max_steps=10_000,
-            )
-            source = EnvSource(env)
+            demos = rollout(env, expert.as_actor(), 3, exploration=DET, max_steps=10_000)
+            episodes = source(env, exploration=None, max_steps=100_000)
         else:
-            stream = GymnasiumStream(seed)
-            source = GymnasiumStreamSource(mdp, stream)
-            from imitrl.policies import BetaMixer, behaviour_policy
-
-            demos = source.collect(
+            episodes = GymnasiumStreamSource(mdp, GymnasiumStream(seed))
+            demos = episodes.collect(
                 behaviour_policy(expert, None, BetaMixer(1.0)), 3, round_index=0, first_episode=0
             )
         buf = DemonstrationBuffer(num_states=16)
         buf.extend(demos)
         res = dagger(
-            source,
+            episodes,
             expert,
             lambda: ActorCritic.tabular(16, 4),
             buf,
@@ -191,21 +189,11 @@ def dagger_rounds(cfg: Config, source_kind: str) -> float:
     return rounds / (time.perf_counter() - t0)
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="tiny budget (smoke test)")
-    parser.add_argument(
-        "--out", type=Path, default=None, help="write results here (README untouched)"
-    )
-    args = parser.parse_args()
-    cfg = (
-        Config(rows=2_000, mlp_steps=30, tabular_steps=20, dagger_runs=1, repeats=1)
-        if args.quick
-        else Config()
-    )
+def main(argv: list[str] | None = None) -> dict:
+    args = _report.parser(__doc__).parse_args(argv)
+    out_dir = _report.destination(NAME, quick=args.quick, out=args.out)
+    cfg = QUICK if args.quick else Config()
     torch.set_num_threads(1)
-    import logging
-
     logging.getLogger("torchrl").setLevel(logging.WARNING)
     data = mlp_task(cfg)
     plain = max(plain_mlp(cfg, data) for _ in range(cfg.repeats))
@@ -235,8 +223,9 @@ def main() -> None:
     for r in rows:
         print(" | ".join(r))
     md = (
-        f"MLP {cfg.obs_dim}-{'-'.join(map(str, cfg.hidden))}-{cfg.num_actions}, batch {cfg.batch_size}, "
-        f"{cfg.mlp_steps} steps; best of {cfg.repeats}. Target: imitrl fit_bc >= 0.8x plain.\n\n"
+        f"MLP {cfg.obs_dim}-{'-'.join(map(str, cfg.hidden))}-{cfg.num_actions} (observations "
+        f"normalised), batch {cfg.batch_size}, {cfg.mlp_steps} steps; best of {cfg.repeats}. "
+        "Target: imitrl fit_bc >= 0.8x plain.\n\n"
         + _report.table(["what", "throughput", "x plain"], rows)
     )
     payload = {
@@ -250,7 +239,8 @@ def main() -> None:
         "dagger_rounds_per_s_tabular_env": dg_env,
         "dagger_rounds_per_s_stream": dg_stream,
     }
-    print("results:", _report.write("bc_throughput", payload, md, out_dir=args.out))
+    print("results:", _report.write(NAME, payload, md, out_dir=out_dir))
+    return payload
 
 
 if __name__ == "__main__":

@@ -9,77 +9,89 @@ For each env and seed (same code path for every env; nothing below branches on t
    visited state with the expert, aggregate, refit;
 3. "BC, matched": a fresh MLP fitted on as many expert-driven rows as DAgger's final
    buffer holds (the first N rows of fresh expert episodes);
-4. every learner, and the expert, is evaluated greedily on the same
-   ``eval_episodes`` initial states (the eval env is re-seeded before each call).
+4. every learner, the expert and a uniformly random policy are evaluated greedily on
+   the same ``eval_episodes`` initial states (the eval env is re-seeded before each).
 
-Scores are normalised per seed: ``(R - R_random) / (R_expert - R_random)`` with
-``R_expert`` the expert's mean return on the same initial states and ``R_random``
-a uniform-random policy's mean over ``reference_episodes``. "Reached" means a
-DAgger round 1..5 scored at least ``threshold`` (0.95). The expert table measures every
-built-in expert over ``reference_episodes`` (100) episodes. Intervals are 95%
-Student-t over seeds.
+The learners are ``ActorCritic.for_env`` MLPs with the library's defaults, observations
+normalised by the demonstrations' statistics included. Scores are normalised per seed:
+``(R - R_random) / (R_expert - R_random)`` with ``R_expert`` and ``R_random`` the
+expert's and the random policy's mean returns on the seed's evaluation states.
+"Reached" means a DAgger round 1..5 scored at least ``threshold`` (0.95). The expert
+table measures each expert and the random policy over ``reference_episodes`` (100)
+episodes from the same initial states: every built-in expert, or the ``--env`` ones.
+Intervals are 95% Student-t over seeds.
 
     python benchmarks/bc_vs_dagger.py            # full run, refreshes benchmarks/README.md
-    python benchmarks/bc_vs_dagger.py --quick --out /tmp/smoke
+    python benchmarks/bc_vs_dagger.py --quick    # smoke run, into a temporary directory
     python benchmarks/bc_vs_dagger.py --parallel # DAgger rollouts in worker processes
+    python benchmarks/bc_vs_dagger.py --env Pendulum-v1 --env CartPole-v1 --out /tmp/x
+    PYTHONPATH=examples python benchmarks/bc_vs_dagger.py --out /tmp/x \\
+        --env MountainCarContinuous-v0 --expert mypkg.experts:mountain_car
+
+``--env`` takes a gymnasium id (or ``module:Env-v0``, imported first); ``--expert``
+takes ``module:function``, an expert builder or a batched ``obs -> action`` callable,
+for an env without a built-in expert.
 """
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import partial
-from pathlib import Path
 
-import gymnasium
 import torch
+from tensordict import TensorDict
 from tensordict.nn import TensorDictModuleBase
-from torchrl.data import Categorical
 from torchrl.envs import EnvBase
-from torchrl.envs.utils import ExplorationType, RandomPolicy
 
 import _report
-from imitrl import keys
-from imitrl.algorithms import BCConfig, Constant, DAggerConfig, EnvSource, dagger, fit_bc
-from imitrl.data import DemonstrationBuffer, rollout_episodes
+from _bc_vs_dagger_report import figure, markdown
+from _common import (
+    BUILT_IN_EXPERTS,
+    DET,
+    expert_for,
+    reference_returns,
+    returns,
+    rollout,
+    source,
+    time_limit,
+)
+from imitrl.algorithms import BCConfig, Constant, DAggerConfig, dagger, fit_bc
+from imitrl.data import DemonstrationBuffer
 from imitrl.envs import make_env
-from imitrl.evaluation import evaluate, t_interval
+from imitrl.evaluation import t_interval
 from imitrl.experts import (
-    acrobot_expert,
     cartpole_expert,
     inverted_double_pendulum_expert,
     inverted_pendulum_expert,
-    mountaincar_expert,
     pendulum_expert,
 )
-from imitrl.policies import ActorCritic
+from imitrl.policies import HEADS, ActorCritic
 
 NAME = "bc_vs_dagger"
-DET = ExplorationType.DETERMINISTIC
 EVAL_SEED, SOURCE_SEED, MATCHED_SEED, REFERENCE_SEED = 10_000, 1_000, 2_000, 50_000
 
 
 @dataclass(frozen=True)
 class Task:
-    """One env of the study: its expert, the learner's head and the DAgger budget."""
+    """One env of the study: its expert, the learner's head and loss, the DAgger budget."""
 
     env_id: str
-    """gymnasium id, built by ``imitrl.envs.make_env``"""
+    """gymnasium id (or ``module:Env-v0``), built by ``imitrl.envs.make_env``"""
     expert: Callable[[], TensorDictModuleBase]
     """builds the queryable expert"""
-    head: str
-    """ActorCritic.mlp head: categorical | tanh_normal | deterministic"""
-    loss_type: str
-    """BC loss: nll | mse | l1 | smooth_l1"""
-    demo_steps: int | None
+    head: str | None = None
+    """ActorCritic head (None: categorical for discrete actions, else deterministic)"""
+    loss: str | None = None
+    """BC loss type of the head (None: its default, nll or mse)"""
+    demo_steps: int | None = None
     """keep only the first steps of the one demonstration (None = the whole episode)"""
-    episodes_per_round: int
+    episodes_per_round: int = 4
     """learner episodes relabelled per DAgger round (rolled in parallel lanes)"""
-    fit_steps: int
+    fit_steps: int = 1000
     """Adam steps of every fit (minibatches of Config.batch_size)"""
 
 
@@ -97,14 +109,6 @@ TASKS = (
         1000,
     ),
 )
-REFERENCE_EXPERTS = (
-    ("CartPole-v1", cartpole_expert),
-    ("MountainCar-v0", mountaincar_expert),
-    ("Acrobot-v1", acrobot_expert),
-    ("Pendulum-v1", pendulum_expert),
-    ("InvertedPendulum-v5", inverted_pendulum_expert),
-    ("InvertedDoublePendulum-v5", inverted_double_pendulum_expert),
-)
 
 
 @dataclass(frozen=True)
@@ -118,7 +122,7 @@ class Config:
     eval_episodes: int = 50
     """greedy evaluation episodes per learner (one lane each, same initial states)"""
     reference_episodes: int = 100
-    """episodes for the expert table and the random-policy baseline"""
+    """episodes of the expert table (expert and uniform random, same initial states)"""
     batch_size: int = 256
     """minibatch of every fit"""
     lr: float = 1e-3
@@ -146,66 +150,85 @@ QUICK = Config(
 
 
 def horizon(env_id: str, cfg: Config) -> int:
-    return cfg.max_episode_steps or gymnasium.spec(env_id).max_episode_steps
+    return cfg.max_episode_steps or time_limit(env_id)
 
 
 def make_learner(env: EnvBase, task: Task, cfg: Config, seed: int) -> ActorCritic:
-    """Fresh MLP for ``env``'s spaces: categorical for integer actions, else bounded continuous."""
-    spec = env.action_spec_unbatched
-    action = int(spec.space.n) if isinstance(spec, Categorical) else spec
-    obs_dim = env.observation_spec[keys.OBSERVATION].shape[-1]
-    return ActorCritic.mlp(obs_dim, action, head=task.head, hidden=cfg.hidden, lr=cfg.lr, seed=seed)
+    """Fresh MLP for ``env``'s observation and action specs."""
+    return ActorCritic.for_env(
+        env, head=task.head, loss=task.loss, hidden=cfg.hidden, lr=cfg.lr, seed=seed
+    )
 
 
-def reference_returns(env_id: str, expert: TensorDictModuleBase, cfg: Config) -> dict:
+def expert_table(experts: dict[str, Callable], cfg: Config) -> dict:
     """Expert and uniform-random returns over ``reference_episodes`` (one lane each)."""
-    n, limit = cfg.reference_episodes, 2 * horizon(env_id, cfg)
-    env = make_env(env_id, seed=REFERENCE_SEED, num_envs=n, max_episode_steps=cfg.max_episode_steps)
     out = {}
-    for name, policy in (
-        ("expert", expert.as_actor()),
-        ("random", RandomPolicy(env.action_spec)),
-    ):
-        env.set_seed(REFERENCE_SEED)
-        torch.manual_seed(REFERENCE_SEED)  # RandomPolicy draws from the global RNG
-        ev = evaluate(env, policy, n, exploration=DET, max_steps=limit)
-        out[name] = {"mean": ev.mean_return, "ci": list(ev.return_ci), "episodes": n}
-    env.close()
+    for env_id, build in experts.items():
+        n = cfg.reference_episodes
+        env = make_env(
+            env_id, seed=REFERENCE_SEED, num_envs=n, max_episode_steps=cfg.max_episode_steps
+        )
+        ref = reference_returns(
+            env, build(), n, seed=REFERENCE_SEED, max_steps=2 * horizon(env_id, cfg)
+        )
+        env.close()
+        out[env_id] = {}
+        for who, r in ref.items():
+            mean, lo, hi = t_interval(r.tolist())
+            out[env_id][who] = {"mean": mean, "ci": [lo, hi], "episodes": n}
     return out
 
 
-def run_seed(task: Task, seed: int, cfg: Config, random_return: float) -> dict:
-    """One training seed of one env: BC, DAgger per round, BC with matched samples."""
+def demonstration(task: Task, seed: int, cfg: Config) -> DemonstrationBuffer:
+    """One expert episode (cut to ``demo_steps``) in a buffer."""
+    env = make_env(task.env_id, seed=seed, max_episode_steps=cfg.max_episode_steps)
     limit = 4 * horizon(task.env_id, cfg)
-    fit = BCConfig(
-        num_steps=cfg.fit_steps or task.fit_steps,
-        batch_size=cfg.batch_size,
-        loss_type=task.loss_type,
-        seed=seed,
-    )
-    expert = task.expert()
-    steps = cfg.max_episode_steps
-
-    # -- the demonstration: one expert episode (cut for CartPole)
-    demo_env = make_env(task.env_id, seed=seed, max_episode_steps=steps)
-    demo = rollout_episodes(demo_env, expert.as_actor(), 1, exploration=DET, max_steps=limit)
+    demo = rollout(env, task.expert().as_actor(), 1, exploration=DET, max_steps=limit)
     if task.demo_steps is not None:
         demo = demo[: task.demo_steps]
-    buffer = DemonstrationBuffer(action_spec=demo_env.action_spec)
+    buffer = DemonstrationBuffer(action_spec=env.action_spec)
     buffer.extend(demo)
+    env.close()
+    return buffer
+
+
+def expert_rows(task: Task, seed: int, cfg: Config, n: int) -> TensorDict:
+    """The first ``n`` rows of fresh expert episodes (``episodes_per_round`` lanes)."""
+    env = make_env(
+        task.env_id,
+        seed=MATCHED_SEED + seed,
+        num_envs=task.episodes_per_round,
+        max_episode_steps=cfg.max_episode_steps,
+    )
+    limit = 4 * horizon(task.env_id, cfg)
+    expert = task.expert().as_actor()
+    chunks, have = [], 0
+    while have < n:
+        chunk = rollout(env, expert, task.episodes_per_round, exploration=DET, max_steps=limit)
+        chunks.append(chunk)
+        have += chunk.shape[0]
+    env.close()
+    return torch.cat(chunks)[:n]
+
+
+def run_seed(task: Task, seed: int, cfg: Config) -> dict:
+    """One training seed of one env: BC, DAgger per round, BC with matched samples."""
+    limit = 4 * horizon(task.env_id, cfg)
+    bc = BCConfig(num_steps=cfg.fit_steps or task.fit_steps, batch_size=cfg.batch_size, seed=seed)
+    expert = task.expert()
+    buffer = demonstration(task, seed, cfg)
 
     # -- evaluation on the same initial states for every policy of this seed
+    n, eval_seed = cfg.eval_episodes, EVAL_SEED + seed
     eval_env = make_env(
-        task.env_id, seed=EVAL_SEED + seed, num_envs=cfg.eval_episodes, max_episode_steps=steps
+        task.env_id, seed=eval_seed, num_envs=n, max_episode_steps=cfg.max_episode_steps
     )
+    ref = reference_returns(eval_env, expert, n, seed=eval_seed, max_steps=limit)
+    expert_return, random_return = float(ref["expert"].mean()), float(ref["random"].mean())
 
     def score(policy: TensorDictModuleBase) -> float:
-        eval_env.set_seed(EVAL_SEED + seed)
-        return evaluate(
-            eval_env, policy, cfg.eval_episodes, exploration=DET, max_steps=limit
-        ).mean_return
-
-    expert_return = score(expert.as_actor())
+        eval_env.set_seed(eval_seed)
+        return float(returns(eval_env, policy, n, exploration=DET, max_steps=limit).mean())
 
     def normalise(r: float) -> float:
         gap = expert_return - random_return
@@ -217,13 +240,13 @@ def run_seed(task: Task, seed: int, cfg: Config, random_return: float) -> dict:
         seed=SOURCE_SEED + seed,
         num_envs=task.episodes_per_round,
         parallel=cfg.parallel,
-        max_episode_steps=steps,
+        max_episode_steps=cfg.max_episode_steps,
     )
     learner_of = partial(make_learner, source_env, task, cfg, seed)
-    returns: list[float] = []
+    dagger_returns: list[float] = []
     t0 = time.perf_counter()
     result = dagger(
-        EnvSource(source_env, exploration=DET, max_steps=limit),
+        source(source_env, exploration=DET, max_steps=limit),
         expert,
         learner_of,
         buffer,
@@ -231,48 +254,32 @@ def run_seed(task: Task, seed: int, cfg: Config, random_return: float) -> dict:
             rounds=cfg.relabel_rounds + 1,
             episodes_per_round=task.episodes_per_round,
             beta=Constant(0.0),
-            fit=fit,
+            bc=bc,
             seed=seed,
         ),
-        on_fit=lambda k, learner: returns.append(score(learner.policy)),
+        on_fit=lambda k, learner: dagger_returns.append(score(learner.policy)),
     )
     dagger_s = time.perf_counter() - t0
-    source_env.close()
     rows = [r.rows_trained for r in result.rounds]
 
     # -- BC with as many expert samples as DAgger's last fit used
-    matched_env = make_env(
-        task.env_id,
-        seed=MATCHED_SEED + seed,
-        num_envs=task.episodes_per_round,
-        max_episode_steps=steps,
-    )
-    chunks, have = [], 0
-    while have < rows[-1]:
-        chunk = rollout_episodes(
-            matched_env,
-            expert.as_actor(),
-            task.episodes_per_round,
-            exploration=DET,
-            max_steps=limit,
-        )
-        chunks.append(chunk)
-        have += chunk.shape[0]
-    matched_rows = torch.cat(chunks)[: rows[-1]]
     matched = learner_of()
-    fit_bc(matched, matched_rows, fit)
+    source_env.close()
+    matched_rows = expert_rows(task, seed, cfg, rows[-1])
+    fit_bc(matched, matched_rows, bc)
     matched_return = score(matched.policy)
     eval_env.close()
 
-    scores = [normalise(r) for r in returns]
+    scores = [normalise(r) for r in dagger_returns]
     reached = [k for k in range(1, len(scores)) if scores[k] >= cfg.threshold]
     return {
         "seed": seed,
         "expert_return": expert_return,
-        "dagger_returns": returns,
+        "random_return": random_return,
+        "dagger_returns": dagger_returns,
         "dagger_scores": scores,
         "rows": rows,
-        "bc_return": returns[0],
+        "bc_return": dagger_returns[0],
         "bc_score": scores[0],
         "bc_matched_return": matched_return,
         "bc_matched_score": normalise(matched_return),
@@ -282,157 +289,33 @@ def run_seed(task: Task, seed: int, cfg: Config, random_return: float) -> dict:
     }
 
 
-def fmt(values: list[float], digits: int = 2) -> str:
-    m, lo, hi = t_interval(values)
-    return f"{m:.{digits}f} [{lo:.{digits}f}, {hi:.{digits}f}]"
-
-
-def markdown(results: dict, cfg: Config) -> str:
-    lines = [
-        f"{cfg.seeds} seeds per env; {cfg.eval_episodes} greedy evaluation episodes per learner "
-        f"(same initial states for every policy of a seed); score = (R - R_random) / "
-        f"(R_expert - R_random); mean [95% t-interval over seeds]. Total time "
-        f"{results['seconds']:.0f} s on {results['machine']['cpu_count']} CPU cores "
-        f"(`torch.set_num_threads(1)`){' with parallel rollouts' if cfg.parallel else ''}.",
-        "",
-        "Built-in experts over " + f"{cfg.reference_episodes} episodes (seeded lanes):",
-        "",
-    ]
-    ref_rows = [
-        [
-            env_id,
-            f"{r['expert']['mean']:.1f} [{r['expert']['ci'][0]:.1f}, {r['expert']['ci'][1]:.1f}]",
-            f"{r['random']['mean']:.1f}",
-        ]
-        for env_id, r in results["references"].items()
-    ]
-    lines += [_report.table(["env", "expert return", "uniform random"], ref_rows), ""]
-    rows = []
-    for env_id, per in results["tasks"].items():
-        seeds = per["seeds"]
-        n_reached = sum(s["first_round_reached"] is not None for s in seeds)
-        firsts = [s["first_round_reached"] for s in seeds if s["first_round_reached"] is not None]
-        last = [s["dagger_scores"][-1] for s in seeds]
-        rows.append(
-            [
-                env_id,
-                per["demo"],
-                fmt([s["bc_score"] for s in seeds]),
-                *[
-                    fmt([s["dagger_scores"][k] for s in seeds])
-                    for k in range(1, cfg.relabel_rounds + 1)
-                ],
-                f"{n_reached}/{len(seeds)}"
-                + (f" (round {min(firsts)}-{max(firsts)})" if firsts else ""),
-                f"{sum(x >= cfg.threshold for x in last)}/{len(seeds)}",
-                fmt([s["bc_matched_score"] for s in seeds])
-                + f" (N={round(sum(s['bc_matched_rows'] for s in seeds) / len(seeds))})",
-                f"{per['seconds']:.0f}",
-            ]
-        )
-    header = [
-        "env",
-        "demo",
-        "BC (same demo)",
-        *[f"DAgger r{k}" for k in range(1, cfg.relabel_rounds + 1)],
-        f">= {cfg.threshold} within {cfg.relabel_rounds} rounds",
-        f">= {cfg.threshold} at r{cfg.relabel_rounds}",
-        "BC, matched samples (mean N)",
-        "s",
-    ]
-    lines += ["Normalised scores:", "", _report.table(header, rows), ""]
-    ret_rows = []
-    for env_id, per in results["tasks"].items():
-        seeds = per["seeds"]
-        ret_rows.append(
-            [
-                env_id,
-                fmt([s["expert_return"] for s in seeds], 1),
-                fmt([s["bc_return"] for s in seeds], 1),
-                fmt([s["dagger_returns"][-1] for s in seeds], 1),
-                fmt([s["bc_matched_return"] for s in seeds], 1),
-                fmt([s["rows"][-1] for s in seeds], 0),
-            ]
-        )
-    lines += [
-        "Raw returns (same evaluation states):",
-        "",
-        _report.table(
-            [
-                "env",
-                "expert",
-                "BC",
-                f"DAgger r{cfg.relabel_rounds}",
-                "BC, matched",
-                "expert labels used",
-            ],
-            ret_rows,
-        ),
-        "",
-        f"![BC vs DAgger](results/{NAME}.png)",
-    ]
-    return "\n".join(lines)
-
-
-def figure(results: dict, cfg: Config, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    tasks = list(results["tasks"].items())
-    fig, axes = plt.subplots(1, len(tasks), figsize=(4 * len(tasks), 3.4), squeeze=False)
-    rounds = list(range(cfg.relabel_rounds + 1))
-    for ax, (env_id, per) in zip(axes[0], tasks):
-        seeds = per["seeds"]
-        for s in seeds:
-            ax.plot(rounds, s["dagger_scores"], color="tab:blue", alpha=0.25, lw=0.8)
-        stats = [t_interval([s["dagger_scores"][k] for s in seeds]) for k in rounds]
-        ax.plot(rounds, [m for m, _, _ in stats], color="tab:blue", marker="o", label="DAgger")
-        ax.fill_between(rounds, [lo for _, lo, _ in stats], [hi for _, _, hi in stats], alpha=0.2)
-        m, lo, hi = t_interval([s["bc_matched_score"] for s in seeds])
-        ax.errorbar(
-            [rounds[-1] + 0.15],
-            [m],
-            yerr=[[m - lo], [hi - m]],
-            color="tab:orange",
-            marker="s",
-            label="BC, matched samples",
-        )
-        ax.axhline(1.0, color="k", lw=0.8, label="expert")
-        ax.axhline(cfg.threshold, color="k", lw=0.8, ls="--")
-        ax.set_title(env_id, fontsize=10)
-        ax.set_xlabel("DAgger round (0 = BC on the demo)")
-        ax.set_xticks(rounds)
-        ax.set_ylim(min(-0.1, ax.get_ylim()[0]), 1.1)
-    axes[0][0].set_ylabel("normalised return")
-    axes[0][0].legend(fontsize=7, loc="lower right")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-
-
-def run(cfg: Config, tasks: tuple[Task, ...] = TASKS, log=print) -> dict:
+def run(
+    cfg: Config,
+    tasks: tuple[Task, ...] = TASKS,
+    experts: dict[str, Callable] | None = None,
+    log=print,
+) -> dict:
+    """Every task's seeds, and the expert table of ``experts`` (default: the tasks' own)."""
     t_start = time.perf_counter()
-    references = {}
-    for env_id, expert in REFERENCE_EXPERTS:
-        references[env_id] = reference_returns(env_id, expert(), cfg)
-        log(f"reference {env_id}: {references[env_id]}")
+    experts = experts if experts is not None else {t.env_id: t.expert for t in tasks}
+    references = expert_table(experts, cfg)
+    for env_id, ref in references.items():
+        log(f"reference {env_id}: {ref}")
     out = {}
     for task in tasks:
         t0 = time.perf_counter()
-        random_return = references[task.env_id]["random"]["mean"]
         seeds = []
         for seed in range(cfg.seeds):
-            record = run_seed(task, seed, cfg, random_return)
+            record = run_seed(task, seed, cfg)
             seeds.append(record)
             log(
                 f"{task.env_id} seed {seed}: bc {record['bc_score']:.2f} dagger "
                 f"{[round(x, 2) for x in record['dagger_scores']]} matched "
                 f"{record['bc_matched_score']:.2f} rows {record['rows']}"
             )
+        fields = {f.name: getattr(task, f.name) for f in dataclasses.fields(task)}
         out[task.env_id] = {
-            "task": {k: v for k, v in dataclasses.asdict(task).items() if k != "expert"},
+            "task": {**fields, "expert": task.expert.__name__},
             "demo": (
                 f"1 episode, first {task.demo_steps} steps"
                 if task.demo_steps is not None
@@ -449,29 +332,61 @@ def run(cfg: Config, tasks: tuple[Task, ...] = TASKS, log=print) -> dict:
     }
 
 
+def tasks_from(
+    env_ids: list[str] | None, expert: str | None, overrides: dict
+) -> tuple[tuple[Task, ...], dict[str, Callable]]:
+    """The tasks and the expert table named on the command line.
+
+    No ``--env``: every task of ``TASKS``, and every built-in expert in the table. An
+    ``--env`` of ``TASKS`` without ``--expert`` keeps its row; otherwise the env takes
+    ``--expert`` (or its built-in expert) and the ``Task`` defaults. ``overrides``
+    replace fields of every task.
+    """
+    if expert is not None and (not env_ids or len(env_ids) != 1):
+        raise ValueError("--expert labels one env: give exactly one --env with it")
+    if not env_ids:
+        tasks = tuple(dataclasses.replace(t, **overrides) for t in TASKS)
+        return tasks, dict(BUILT_IN_EXPERTS)
+    rows = {t.env_id: t for t in TASKS}
+    tasks = []
+    for env_id in env_ids:
+        if expert is None and env_id in rows:
+            task = rows[env_id]
+        else:
+            task = Task(env_id, expert_for(env_id, expert))
+        tasks.append(dataclasses.replace(task, **overrides))
+    tasks = tuple(tasks)
+    return tasks, {t.env_id: t.expert for t in tasks}
+
+
 def main(argv: list[str] | None = None) -> dict:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="smoke run on a tiny budget")
-    parser.add_argument("--out", type=Path, default=None, help="write here, not to the README")
-    parser.add_argument("--seeds", type=int, default=None)
+    parser = _report.parser(__doc__)
+    parser.add_argument("--seeds", type=int, default=None, help="training seeds per env")
     parser.add_argument("--parallel", action="store_true", help="ParallelEnv rollouts")
-    parser.add_argument("--envs", nargs="*", default=None, help="subset of the env ids")
+    parser.add_argument(
+        "--env", action="append", default=None, metavar="ID", help="env id (repeatable)"
+    )
+    parser.add_argument("--expert", default=None, metavar="MODULE:FUNCTION")
+    parser.add_argument("--head", default=None, choices=HEADS)
+    parser.add_argument("--loss", default=None, help="loss type of the head (nll, mse, l1, ...)")
+    parser.add_argument("--demo-steps", type=int, default=None)
+    parser.add_argument("--episodes-per-round", type=int, default=None)
+    parser.add_argument("--fit-steps", type=int, default=None)
     args = parser.parse_args(argv)
+    knobs = ("head", "loss", "demo_steps", "episodes_per_round", "fit_steps")
+    overrides = {k: getattr(args, k) for k in knobs if getattr(args, k) is not None}
+    tasks, experts = tasks_from(args.env, args.expert, overrides)
+    out_dir = _report.destination(NAME, quick=args.quick, out=args.out)
     torch.set_num_threads(1)
     cfg = QUICK if args.quick else Config()
     if args.seeds is not None:
         cfg = dataclasses.replace(cfg, seeds=args.seeds)
     if args.parallel:
         cfg = dataclasses.replace(cfg, parallel=True)
-    tasks = TASKS if not args.envs else tuple(t for t in TASKS if t.env_id in args.envs)
-    if not tasks:
-        raise ValueError(f"--envs must name some of {[t.env_id for t in TASKS]}")
-    results = run(cfg, tasks, log=lambda s: print(s, file=sys.stderr, flush=True))
+    results = run(cfg, tasks, experts, log=lambda s: print(s, file=sys.stderr, flush=True))
     results["machine"] = _report.machine()
-    target = _report.RESULTS if args.out is None else Path(args.out)
-    target.mkdir(parents=True, exist_ok=True)
-    figure(results, cfg, target / f"{NAME}.png")
-    _report.write(NAME, results, markdown(results, cfg), out_dir=args.out)
+    figure(results, cfg, _report.results_dir(out_dir) / f"{NAME}.png")
+    _report.write(NAME, results, markdown(results, cfg), out_dir=out_dir)
     print(markdown(results, cfg))
     return results
 

@@ -6,7 +6,9 @@
    observation of a lane that ends before the others; ``make_env``'s
    ``GymWrapper(SyncVectorEnv(..., autoreset_mode=DISABLED))`` records the real one.
 3. ``frame_skip``: an expert tuned for the env's time step, run with each action
-   held for k steps, against the same expert re-identified for the k-step model.
+   held for k steps, against the same expert re-identified for the k-step model
+   (when its builder takes ``action_repeat``), beside a uniformly random policy
+   from the same initial states.
 4. ``bang_bang``: DAgger on Pendulum-v1 with a bang-bang swing-up expert; the
    fraction of evaluation episodes still spinning (at least one full turn in the
    last half of the episode) per round, with beta = 0, with beta schedules that
@@ -17,49 +19,40 @@
    cheap simulators and for ``CostlyPendulum-v0`` (5 ms of CPU work per step).
 
     python benchmarks/continuous_traps.py            # refreshes benchmarks/README.md
-    python benchmarks/continuous_traps.py --quick --out /tmp/smoke
+    python benchmarks/continuous_traps.py --quick    # smoke run, into a temporary directory
+    PYTHONPATH=examples python benchmarks/continuous_traps.py --out /tmp/x \\
+        --env MountainCarContinuous-v0 --expert mypkg.experts:mountain_car
+
+Every env id is a flag (defaults: the ids of the committed tables): ``--float64-envs``
+(trap 1), ``--vector-env`` (2), ``--env`` with ``--expert module:function`` (3; an
+env without a built-in expert needs ``--expert``), ``--dagger-env`` (4, an env with
+Pendulum-v1's observation ``[cos, sin, velocity]``), ``--startup-envs`` (5).
 """
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import math
 import sys
 import time
 from dataclasses import dataclass
-from pathlib import Path
 
 import gymnasium
 import torch
 from gymnasium.envs.classic_control.pendulum import PendulumEnv
 from torchrl.envs import GymEnv
-from torchrl.envs.utils import ExplorationType
 
 import _report
-from bc_vs_dagger import t_interval
+from _common import DET, Uniform, accepts, expert_for, reference_returns, rollout, source
+from _continuous_traps_report import markdown
 from imitrl import keys
-from imitrl.algorithms import (
-    BCConfig,
-    Constant,
-    DAggerConfig,
-    EnvSource,
-    Exponential,
-    Linear,
-    dagger,
-)
-from imitrl.data import DemonstrationBuffer, rollout_episodes
+from imitrl.algorithms import BCConfig, Constant, DAggerConfig, Exponential, Linear, dagger
+from imitrl.data import DemonstrationBuffer
 from imitrl.envs import make_env
-from imitrl.evaluation import evaluate
-from imitrl.experts import (
-    inverted_double_pendulum_expert,
-    inverted_pendulum_expert,
-    pendulum_expert,
-)
+from imitrl.experts import pendulum_expert
 from imitrl.policies import ActorCritic, BetaMixer, behaviour_policy
 
 NAME = "continuous_traps"
-DET = ExplorationType.DETERMINISTIC
 COSTLY_STEP_S = 5e-3
 
 
@@ -83,14 +76,28 @@ if "CostlyPendulum-v0" not in gymnasium.registry:
 class Config:
     """The whole run."""
 
+    float64_envs: tuple[str, ...] = ("InvertedPendulum-v5", "InvertedDoublePendulum-v5")
+    """envs of trap 1"""
+    vector_env: str = "CartPole-v1"
+    """env of trap 2 (four lanes)"""
     vector_steps: int = 500
-    """random-action steps of the 4-lane CartPole envs compared in trap 2"""
+    """random-action steps of the 4-lane envs compared in trap 2"""
     async_gymenv: bool = True
     """also build GymEnv(id, num_envs=4) in trap 2 (4 processes; the smoke run skips it)"""
+    frame_skip_envs: tuple[str, ...] = (
+        "Pendulum-v1",
+        "InvertedPendulum-v5",
+        "InvertedDoublePendulum-v5",
+    )
+    """envs of trap 3"""
+    frame_skip_expert: str | None = None
+    """trap 3's expert as ``module:function`` (one env); None: the envs' built-in experts"""
     frame_skips: tuple[int, ...] = (1, 2, 4)
     """action repeats of trap 3"""
     frame_skip_episodes: int = 5
-    """episodes per (env, repeat, expert) in trap 3"""
+    """episodes per (env, repeat, policy) in trap 3"""
+    dagger_env: str = "Pendulum-v1"
+    """env of trap 4 (observation [cos, sin, velocity], Pendulum-v1's experts)"""
     seeds: int = 5
     """DAgger seeds per configuration in trap 4"""
     relabel_rounds: int = 4
@@ -101,6 +108,12 @@ class Config:
     """Adam steps per fit in trap 4"""
     eval_episodes: int = 50
     """evaluation episodes per learner in trap 4"""
+    startup_envs: tuple[str, ...] = (
+        "Pendulum-v1",
+        "InvertedDoublePendulum-v5",
+        f"{NAME}:CostlyPendulum-v0",
+    )
+    """envs of trap 5"""
     startup_lanes: tuple[int, ...] = (2, 4)
     """lane counts of trap 5"""
     startup_steps: int = 500
@@ -125,14 +138,14 @@ QUICK = Config(
 
 
 # ------------------------------------------------------------------------- trap 1
-def float64_trap() -> dict:
+def float64_trap(cfg: Config) -> dict:
     out = {}
-    for env_id in ("InvertedPendulum-v5", "InvertedDoublePendulum-v5"):
+    for env_id in cfg.float64_envs:
         raw = GymEnv(env_id)
         raw.set_seed(0)
         td = raw.reset()
         dim = td.get(keys.OBSERVATION).shape[-1]
-        learner = ActorCritic.mlp(dim, raw.action_spec, head="deterministic")
+        learner = ActorCritic.mlp(dim, raw.action_spec)  # the action's default head
         try:
             learner.policy(td)
             error = None
@@ -151,13 +164,12 @@ def float64_trap() -> dict:
 
 # ------------------------------------------------------------------------- trap 2
 def _final_obs(env, steps: int) -> dict:
-    g = torch.Generator().manual_seed(0)
+    policy = Uniform(env.action_spec_unbatched, seed=0)
     td = env.reset()
     ends = zeros = 0
     lanes = env.batch_size[0]
     for _ in range(steps):
-        td.set(keys.ACTION, torch.randint(0, 2, (lanes,), generator=g))
-        out, td = env.step_and_maybe_reset(td)
+        out, td = env.step_and_maybe_reset(policy(td))
         done = out.get((keys.NEXT, keys.DONE)).reshape(lanes)
         final = out.get((keys.NEXT, keys.OBSERVATION))[done]
         ends += int(done.sum())
@@ -169,13 +181,13 @@ def vector_trap(cfg: Config) -> dict:
     out = {}
     if cfg.async_gymenv:
         t0 = time.perf_counter()
-        env = GymEnv("CartPole-v1", num_envs=4, categorical_action_encoding=True)
+        env = GymEnv(cfg.vector_env, num_envs=4, categorical_action_encoding=True)
         env.set_seed(0)
         build = time.perf_counter() - t0
         out["GymEnv(num_envs=4)"] = {"build_s": build, **_final_obs(env, cfg.vector_steps)}
         env.close()
     t0 = time.perf_counter()
-    env = make_env("CartPole-v1", seed=0, num_envs=4)
+    env = make_env(cfg.vector_env, seed=0, num_envs=4)
     build = time.perf_counter() - t0
     out["make_env(num_envs=4)"] = {"build_s": build, **_final_obs(env, cfg.vector_steps)}
     env.close()
@@ -184,32 +196,22 @@ def vector_trap(cfg: Config) -> dict:
 
 # ------------------------------------------------------------------------- trap 3
 def frame_skip_trap(cfg: Config) -> dict:
-    builders = {
-        "Pendulum-v1": lambda repeat: pendulum_expert(),
-        "InvertedPendulum-v5": lambda repeat: inverted_pendulum_expert(action_repeat=repeat),
-        "InvertedDoublePendulum-v5": lambda repeat: inverted_double_pendulum_expert(
-            action_repeat=repeat
-        ),
-    }
+    """Per env and repeat k: the one-step expert, the expert re-identified for k steps
+    (if its builder takes ``action_repeat``) and uniform random actions, all from the
+    same initial states."""
     out = {}
-    for env_id, build in builders.items():
+    for env_id in cfg.frame_skip_envs:
+        build = expert_for(env_id, cfg.frame_skip_expert)
         rows = {}
         for k in cfg.frame_skips:
             env = make_env(env_id, seed=0, frame_skip=k, max_episode_steps=cfg.max_episode_steps)
-            entry = {}
-            variants = {"one-step expert": build(1)}
-            if env_id != "Pendulum-v1" and k > 1:
-                variants["re-identified for k steps"] = build(k)
-            for name, expert in variants.items():
-                env.set_seed(0)
-                ev = evaluate(
-                    env,
-                    expert.as_actor(),
-                    cfg.frame_skip_episodes,
-                    exploration=DET,
-                    max_steps=100_000,
-                )
-                entry[name] = ev.mean_return
+            n = cfg.frame_skip_episodes
+            ref = reference_returns(env, build(), n, seed=0, max_steps=100_000)
+            entry = {"one-step expert": float(ref["expert"].mean())}
+            if accepts(build, "action_repeat") and k > 1:
+                again = reference_returns(env, build(action_repeat=k), n, seed=0, max_steps=100_000)
+                entry["re-identified for k steps"] = float(again["expert"].mean())
+            entry["uniform random"] = float(ref["random"].mean())
             rows[str(k)] = entry
             env.close()
         out[env_id] = rows
@@ -242,62 +244,49 @@ BANG_BANG_CONFIGS = {
 """trap 4: swing-up law, beta schedule, multiple of Config.episodes_per_round"""
 
 
+def bang_bang_seed(cfg: Config, swing_up: str, beta, per_round: int, seed: int) -> dict:
+    """One DAgger run of trap 4: per round, the fraction of evaluation episodes spinning
+    and the mean return (the learner alone, beta = 0)."""
+    env_id, steps = cfg.dagger_env, cfg.max_episode_steps
+    expert = pendulum_expert(swing_up=swing_up)
+    demo_env = make_env(env_id, seed=seed, max_episode_steps=steps)
+    buffer = DemonstrationBuffer()
+    buffer.extend(rollout(demo_env, expert.as_actor(), 1, exploration=DET, max_steps=1000))
+    env = make_env(env_id, seed=1000 + seed, num_envs=per_round, max_episode_steps=steps)
+    n = cfg.eval_episodes
+    eval_env = make_env(env_id, seed=10_000 + seed, num_envs=n, max_episode_steps=steps)
+    record = {"spinning": [], "return": []}
+
+    def on_fit(k, learner):
+        eval_env.set_seed(10_000 + seed)
+        learner_only = behaviour_policy(expert, learner.policy, BetaMixer(0.0))
+        rows = rollout(eval_env, learner_only, n, exploration=DET, max_steps=1000)
+        record["spinning"].append(_spinning(rows, n))
+        record["return"].append(float(rows.get((keys.NEXT, keys.REWARD)).sum() / n))
+
+    dagger(
+        source(env, exploration=DET, max_steps=1000),
+        expert,
+        lambda: ActorCritic.for_env(env, head="deterministic", loss="mse", seed=seed),
+        buffer,
+        DAggerConfig(
+            rounds=cfg.relabel_rounds + 1,
+            episodes_per_round=per_round,
+            beta=beta,
+            bc=BCConfig(num_steps=cfg.fit_steps, batch_size=256, seed=seed),
+            seed=seed,
+        ),
+        on_fit=on_fit,
+    )
+    return record
+
+
 def bang_bang_trap(cfg: Config, configs: dict = BANG_BANG_CONFIGS) -> dict:
-    steps = cfg.max_episode_steps
     out = {}
     for name, (swing_up, beta, factor) in configs.items():
-        per_round = cfg.episodes_per_round * factor
-        expert = pendulum_expert(swing_up=swing_up)
         seeds = []
         for seed in range(cfg.seeds):
-            demo_env = make_env("Pendulum-v1", seed=seed, max_episode_steps=steps)
-            buffer = DemonstrationBuffer()
-            buffer.extend(
-                rollout_episodes(demo_env, expert.as_actor(), 1, exploration=DET, max_steps=1000)
-            )
-            source = make_env(
-                "Pendulum-v1",
-                seed=1000 + seed,
-                num_envs=per_round,
-                max_episode_steps=steps,
-            )
-            eval_env = make_env(
-                "Pendulum-v1",
-                seed=10_000 + seed,
-                num_envs=cfg.eval_episodes,
-                max_episode_steps=steps,
-            )
-            record = {"spinning": [], "return": []}
-
-            def on_fit(k, learner, record=record, eval_env=eval_env, seed=seed, expert=expert):
-                eval_env.set_seed(10_000 + seed)
-                learner_only = behaviour_policy(expert, learner.policy, BetaMixer(0.0))
-                rows = rollout_episodes(
-                    eval_env, learner_only, cfg.eval_episodes, exploration=DET, max_steps=1000
-                )
-                record["spinning"].append(_spinning(rows, cfg.eval_episodes))
-                ret = rows.get((keys.NEXT, keys.REWARD)).sum() / cfg.eval_episodes
-                record["return"].append(float(ret))
-
-            spec = source.action_spec_unbatched
-            dagger(
-                EnvSource(source, exploration=DET, max_steps=1000),
-                expert,
-                lambda spec=spec, seed=seed: ActorCritic.mlp(
-                    3, spec, head="deterministic", seed=seed
-                ),
-                buffer,
-                DAggerConfig(
-                    rounds=cfg.relabel_rounds + 1,
-                    episodes_per_round=per_round,
-                    beta=beta,
-                    fit=BCConfig(
-                        num_steps=cfg.fit_steps, batch_size=256, loss_type="mse", seed=seed
-                    ),
-                    seed=seed,
-                ),
-                on_fit=on_fit,
-            )
+            record = bang_bang_seed(cfg, swing_up, beta, cfg.episodes_per_round * factor, seed)
             seeds.append(record)
             print(f"{name} seed {seed}: {record}", file=sys.stderr, flush=True)
         out[name] = seeds
@@ -307,7 +296,7 @@ def bang_bang_trap(cfg: Config, configs: dict = BANG_BANG_CONFIGS) -> dict:
 # ------------------------------------------------------------------------- trap 5
 def startup_cost(cfg: Config) -> dict:
     out = {}
-    for env_id in ("Pendulum-v1", "InvertedDoublePendulum-v5", f"{NAME}:CostlyPendulum-v0"):
+    for env_id in cfg.startup_envs:
         for lanes in cfg.startup_lanes:
             for parallel in (False, True):
                 t0 = time.perf_counter()
@@ -323,7 +312,8 @@ def startup_cost(cfg: Config) -> dict:
                 t0 = time.perf_counter()
                 env.close()
                 close = time.perf_counter() - t0
-                out[f"{env_id} x{lanes} {'parallel' if parallel else 'in-process'}"] = {
+                label = f"{_report.env_label(env_id)} x{lanes}"
+                out[f"{label} {'parallel' if parallel else 'in-process'}"] = {
                     "start_s": start,
                     "close_s": close,
                     "frames_per_s": lanes * cfg.startup_steps / run,
@@ -331,138 +321,11 @@ def startup_cost(cfg: Config) -> dict:
     return out
 
 
-# ------------------------------------------------------------------------- report
-def markdown(results: dict, cfg: Config) -> str:
-    lines = [f"Total time {results['seconds']:.0f} s (1 torch thread).", ""]
-    lines += ["**1. float64 observations** (a float32 MLP fed a `GymEnv` observation):", ""]
-    rows = [
-        [k, v["gymenv_dtype"], f"`{v['float32_policy_on_gymenv']}`", v["make_env_dtype"]]
-        for k, v in results["float64"].items()
-    ]
-    lines += [
-        _report.table(["env", "GymEnv obs", "float32 policy on it", "make_env obs"], rows),
-        "",
-    ]
-    lines += [
-        f"**2. final observations of vectorised CartPole** (4 lanes, {cfg.vector_steps} "
-        "random-action steps):",
-        "",
-    ]
-    rows = [
-        [k, v["episode_ends"], v["all_zero_final_obs"], f"{v['build_s']:.1f}"]
-        for k, v in results["vector_final_obs"].items()
-    ]
-    lines += [
-        _report.table(["env", "episode ends", "all-zero final observations", "build s"], rows),
-        "",
-    ]
-    lines += [
-        f"**3. frame_skip** (each action held k steps; mean return of "
-        f"{cfg.frame_skip_episodes} episodes):",
-        "",
-    ]
-    rows = []
-    for env_id, per in results["frame_skip"].items():
-        for k, entry in per.items():
-            rows.append(
-                [
-                    env_id,
-                    k,
-                    f"{entry['one-step expert']:.1f}",
-                    f"{entry['re-identified for k steps']:.1f}"
-                    if "re-identified for k steps" in entry
-                    else "-",
-                ]
-            )
-    lines += [
-        _report.table(
-            ["env", "k", "expert tuned for one step", "LQR re-identified for k steps"], rows
-        ),
-        "",
-    ]
-    lines += [
-        f"**4. DAgger on Pendulum-v1 with a bang-bang expert** ({cfg.seeds} seeds, one "
-        f"demonstration, {cfg.episodes_per_round} episodes per round unless stated, "
-        f"{cfg.fit_steps} fit steps, {cfg.eval_episodes} "
-        "evaluation episodes; spinning = at least one full turn in the second half of an "
-        "episode; mean [95% t-interval over seeds]):",
-        "",
-    ]
-    rows = []
-    rounds = cfg.relabel_rounds + 1
-    for name, seeds in results["bang_bang"].items():
-        spin = [f"{t_interval([s['spinning'][k] for s in seeds])[0]:.2f}" for k in range(rounds)]
-        spinning_rounds = sum(x >= 0.2 for s in seeds for x in s["spinning"][1:])
-        final = t_interval([s["return"][-1] for s in seeds])
-        rows.append(
-            [
-                name,
-                *spin,
-                f"{spinning_rounds}/{len(seeds) * (rounds - 1)}",
-                f"{sum(s['spinning'][-1] >= 0.2 for s in seeds)}/{len(seeds)}",
-                f"{final[0]:.0f} [{final[1]:.0f}, {final[2]:.0f}]",
-            ]
-        )
-    lines += [
-        _report.table(
-            [
-                "expert, beta",
-                *[f"spinning r{k}" for k in range(rounds)],
-                "(seed, round >= 1) spinning >= 20%",
-                f"seeds spinning >= 20% at r{rounds - 1}",
-                f"return r{rounds - 1}",
-            ],
-            rows,
-        ),
-        "",
-    ]
-    lines += [
-        f"**5. start-up cost of `parallel=True`** ({cfg.startup_steps} batched steps of "
-        "zero actions):",
-        "",
-    ]
-    rows, paying = [], []
-    for k, v in results["startup"].items():
-        pays = "-"
-        if k.endswith(" parallel"):
-            base = results["startup"][k.replace(" parallel", " in-process")]
-            saved = 1 / base["frames_per_s"] - 1 / v["frames_per_s"]  # seconds per frame
-            extra = v["start_s"] - base["start_s"]
-            pays = f"{extra / saved:.0f}" if saved > 0 else "never (slower per frame)"
-            if saved > 0:
-                paying.append(k.replace(f"{NAME}:", "").replace(" parallel", ""))
-        rows.append(
-            [
-                k.replace(f"{NAME}:", ""),
-                f"{v['start_s']:.2f}",
-                f"{v['close_s']:.2f}",
-                f"{v['frames_per_s']:.0f}",
-                pays,
-            ]
-        )
-    lines += [
-        _report.table(
-            ["env x lanes", "start s", "close s", "frames/s", "pays after (frames)"], rows
-        ),
-        "",
-        f"CostlyPendulum-v0 is Pendulum-v1 with {COSTLY_STEP_S * 1e3:.0f} ms of CPU work per "
-        "step, a stand-in for an expensive simulator. "
-        + (
-            f"Here `parallel=True` paid off only for: {', '.join(paying)}."
-            if paying
-            else "Here `parallel=True` never paid off: the inter-process round trip cost "
-            "more than it saved (on a 2-core machine the workers also compete with the "
-            "main process); keep `parallel=False` unless a step costs far more and idle "
-            "cores are available."
-        ),
-    ]
-    return "\n".join(lines)
-
-
+# ---------------------------------------------------------------------------- run
 def run(cfg: Config) -> dict:
     t0 = time.perf_counter()
-    results = {"config": dataclasses.asdict(cfg)}
-    results["float64"] = float64_trap()
+    results = {"config": dataclasses.asdict(cfg), "costly_step_s": COSTLY_STEP_S}
+    results["float64"] = float64_trap(cfg)
     results["vector_final_obs"] = vector_trap(cfg)
     results["frame_skip"] = frame_skip_trap(cfg)
     results["bang_bang"] = bang_bang_trap(cfg)
@@ -472,14 +335,39 @@ def run(cfg: Config) -> dict:
 
 
 def main(argv: list[str] | None = None) -> dict:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="smoke run on a tiny budget")
-    parser.add_argument("--out", type=Path, default=None, help="write here, not to the README")
+    parser = _report.parser(__doc__)
+    default = Config()
+    parser.add_argument("--float64-envs", nargs="+", default=list(default.float64_envs))
+    parser.add_argument("--vector-env", default=default.vector_env)
+    parser.add_argument(
+        "--env",
+        action="append",
+        default=None,
+        metavar="ID",
+        help=f"env of trap 3, repeatable (default: {' '.join(default.frame_skip_envs)})",
+    )
+    parser.add_argument(
+        "--expert", default=None, metavar="MODULE:FUNCTION", help="trap 3's expert (one --env)"
+    )
+    parser.add_argument("--dagger-env", default=default.dagger_env)
+    parser.add_argument("--startup-envs", nargs="+", default=list(default.startup_envs))
     args = parser.parse_args(argv)
+    args.env = args.env or list(default.frame_skip_envs)
+    if args.expert is not None and len(args.env) != 1:
+        parser.error("--expert labels one env: give exactly one --env with it")
+    out_dir = _report.destination(NAME, quick=args.quick, out=args.out)
     torch.set_num_threads(1)
-    cfg = QUICK if args.quick else Config()
+    cfg = dataclasses.replace(
+        QUICK if args.quick else default,
+        float64_envs=tuple(args.float64_envs),
+        vector_env=args.vector_env,
+        frame_skip_envs=tuple(args.env),
+        frame_skip_expert=args.expert,
+        dagger_env=args.dagger_env,
+        startup_envs=tuple(args.startup_envs),
+    )
     results = run(cfg)
-    _report.write(NAME, results, markdown(results, cfg), out_dir=args.out)
+    _report.write(NAME, results, markdown(results, cfg), out_dir=out_dir)
     print(markdown(results, cfg))
     return results
 

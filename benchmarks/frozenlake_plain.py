@@ -8,12 +8,17 @@ faithful protocol (main blocks and exercises alike), so it doubles as an indepen
 cross-check.
 
     python benchmarks/frozenlake_plain.py --out /tmp/plain [--no-exercises]
+    python benchmarks/frozenlake_plain.py --quick     # no exercises, figures to a temporary dir
+
+It writes only figures (to ``--out``, by default a new temporary directory), never
+``benchmarks/README.md`` or ``benchmarks/results/``.
 """
 
 from __future__ import annotations
 
 import argparse
 import math
+import tempfile
 import time
 from pathlib import Path
 
@@ -28,11 +33,16 @@ from torch import nn
 
 torch.set_num_threads(1)
 t_start = time.perf_counter()
-parser = argparse.ArgumentParser()
-parser.add_argument("--out", type=Path, default=Path("results/frozenlake_plain"))
-parser.add_argument("--no-exercises", action="store_true")
+parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+parser.add_argument("--out", type=Path, default=None, help="figures (default: a temporary dir)")
+parser.add_argument("--no-exercises", action="store_true", help="skip the exercises")
+parser.add_argument("--quick", action="store_true", help="smoke run: --no-exercises")
 args = parser.parse_args()
+if args.out is None:
+    args.out = Path(tempfile.mkdtemp(prefix="frozenlake_plain-"))
+    print(f"figures go to {args.out}")
 args.out.mkdir(parents=True, exist_ok=True)
+args.no_exercises = args.no_exercises or args.quick
 
 # ----------------------------------------------------------------- the expert
 gamma = 0.95

@@ -8,21 +8,19 @@ after another, best of ``--repeats``:
 * batched:  imitrl frozenlake --protocol batched    (100x the evaluation episodes)
 
     python benchmarks/frozenlake_timing.py              # full run, refreshes README
-    python benchmarks/frozenlake_timing.py --quick --out /tmp/x
+    python benchmarks/frozenlake_timing.py --quick      # smoke run, into a temporary directory
 """
 
 from __future__ import annotations
 
-import argparse
 import subprocess
 import sys
 import tempfile
 import time
-from pathlib import Path
 
 import _report
 
-HERE = Path(__file__).resolve().parent
+NAME = "frozenlake_timing"
 
 
 def wall(cmd: list[str]) -> float:
@@ -31,16 +29,11 @@ def wall(cmd: list[str]) -> float:
     return time.perf_counter() - t0
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument(
-        "--quick", action="store_true", help="without the exercises, one repeat (smoke test)"
-    )
-    parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument(
-        "--out", type=Path, default=None, help="write results here (README untouched)"
-    )
-    args = parser.parse_args()
+def main(argv: list[str] | None = None) -> dict:
+    parser = _report.parser(__doc__)
+    parser.add_argument("--repeats", type=int, default=3, help="best of (1 with --quick)")
+    args = parser.parse_args(argv)
+    out_dir = _report.destination(NAME, quick=args.quick, out=args.out)
     repeats = 1 if args.quick else args.repeats
     extra = ["--no-exercises"] if args.quick else []
     py = sys.executable
@@ -48,7 +41,7 @@ def main() -> None:
         commands = {
             "plain gymnasium + numpy script": [
                 py,
-                str(HERE / "frozenlake_plain.py"),
+                str(_report.HERE / "frozenlake_plain.py"),
                 "--out",
                 f"{tmp}/plain",
                 *extra,
@@ -93,7 +86,8 @@ def main() -> None:
         + _report.table(["command", "wall time", "speed vs plain"], rows)
     )
     payload = {"repeats": repeats, "quick": args.quick, "times": times, "best": best}
-    print("results:", _report.write("frozenlake_timing", payload, md, out_dir=args.out))
+    print("results:", _report.write(NAME, payload, md, out_dir=out_dir))
+    return payload
 
 
 if __name__ == "__main__":

@@ -4,15 +4,13 @@ All three play slippery FrozenLake-v1 with the value-iteration expert (a table l
 auto-resetting finished episodes, on one CPU thread. Frames/s = env steps per second.
 
     python benchmarks/tabular_env_throughput.py            # full run, refreshes README
-    python benchmarks/tabular_env_throughput.py --quick --out /tmp/x   # smoke test
+    python benchmarks/tabular_env_throughput.py --quick    # smoke run, into a temporary directory
 """
 
 from __future__ import annotations
 
-import argparse
 import time
 from dataclasses import dataclass
-from pathlib import Path
 
 import gymnasium as gym
 import torch
@@ -20,9 +18,12 @@ from torchrl.collectors import Collector
 from torchrl.envs import GymEnv
 
 import _report
+from _common import lake
 from imitrl.envs import TabularEnv
 from imitrl.policies import Expert
-from imitrl.tabular import TabularMDP, greedy, value_iteration
+from imitrl.tabular import greedy
+
+NAME = "tabular_env_throughput"
 
 
 @dataclass(frozen=True)
@@ -37,6 +38,11 @@ class Config:
     """frames per TabularEnv measurement (at least 50 steps of the batch)"""
     repeats: int = 3
     """best of this many timed repeats"""
+
+
+QUICK = Config(
+    gym_steps=2_000, torchrl_frames=1_000, batch_sizes=(1, 1_000), min_frames=2_000, repeats=1
+)
 
 
 def plain_gym(table: list[int], steps: int) -> float:
@@ -84,28 +90,13 @@ def tabular_env(mdp, expert, batch: int, min_frames: int) -> float:
     return batch * steps / (time.perf_counter() - t0)
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="tiny budget (smoke test)")
-    parser.add_argument(
-        "--out",
-        type=Path,
-        default=None,
-        help="write results here instead of benchmarks/results (README untouched)",
-    )
-    args = parser.parse_args()
-    cfg = Config()
-    if args.quick:
-        cfg = Config(
-            gym_steps=2_000,
-            torchrl_frames=1_000,
-            batch_sizes=(1, 1_000),
-            min_frames=20_000,
-            repeats=1,
-        )
+def main(argv: list[str] | None = None) -> list[dict]:
+    args = _report.parser(__doc__).parse_args(argv)
+    out_dir = _report.destination(NAME, quick=args.quick, out=args.out)
+    cfg = QUICK if args.quick else Config()
     torch.set_num_threads(1)
-    mdp = TabularMDP.from_gym("FrozenLake-v1", 0.95)
-    table = greedy(mdp.backup(value_iteration(mdp, 1000)[-1]))
+    mdp, Q = lake()
+    table = greedy(Q)
     expert = Expert.from_table(table)
 
     gym_fps = max(plain_gym(table.tolist(), cfg.gym_steps) for _ in range(cfg.repeats))
@@ -134,10 +125,9 @@ def main() -> None:
             for r in rows
         ],
     )
-    path = _report.write(
-        "tabular_env_throughput", {"config": cfg.__dict__, "rows": rows}, md, out_dir=args.out
-    )
+    path = _report.write(NAME, {"config": cfg.__dict__, "rows": rows}, md, out_dir=out_dir)
     print(f"results: {path}")
+    return rows
 
 
 if __name__ == "__main__":

@@ -1,8 +1,10 @@
-"""Every benchmark script runs end to end on a tiny budget (results to a temp dir)."""
+"""Every benchmark script runs end to end on a tiny budget, and ``--quick`` never touches
+the committed ``benchmarks/README.md`` or ``benchmarks/results/``."""
 
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -10,24 +12,49 @@ from pathlib import Path
 import pytest
 
 BENCH = Path(__file__).resolve().parents[1] / "benchmarks"
+SCRIPTS = sorted(p.name for p in BENCH.glob("*.py") if not p.name.startswith("_"))
+"""every runnable benchmark (helpers are ``_``-prefixed)"""
 
 
-@pytest.mark.parametrize(
-    ("script", "result"),
-    [
-        ("tabular_env_throughput.py", "tabular_env_throughput.json"),
-        ("bc_throughput.py", "bc_throughput.json"),
-        ("frozenlake_timing.py", "frozenlake_timing.json"),
-    ],
-)
-def test_benchmark_quick(script, result, tmp_path):
+def committed() -> dict[str, bytes]:
+    """``README.md`` and every file under ``results/``, byte for byte."""
+    files = [BENCH / "README.md", *(p for p in (BENCH / "results").rglob("*") if p.is_file())]
+    return {str(p.relative_to(BENCH)): p.read_bytes() for p in files}
+
+
+def test_every_script_is_covered():
+    assert {
+        "bc_throughput.py",
+        "bc_vs_dagger.py",
+        "continuous_traps.py",
+        "frozenlake_plain.py",
+        "frozenlake_timing.py",
+        "loss_functions.py",
+        "tabular_env_throughput.py",
+    } <= set(SCRIPTS)
+
+
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_quick_leaves_the_committed_results_alone(script, tmp_path):
+    before = committed()
     proc = subprocess.run(
-        [sys.executable, script, "--quick", "--out", str(tmp_path)],
+        [sys.executable, script, "--quick"],
         cwd=BENCH,
+        env={**os.environ, "TMPDIR": str(tmp_path)},  # where --quick writes
         capture_output=True,
         text=True,
-        timeout=600,
+        timeout=900,
     )
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    data = json.loads((tmp_path / result).read_text())
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    after = committed()
+    assert after.keys() == before.keys(), f"{script} --quick added or removed committed files"
+    changed = [name for name in before if before[name] != after[name]]
+    assert not changed, f"{script} --quick rewrote {changed}"
+    # what it measured went to a temporary directory instead
+    stem = Path(script).stem
+    if stem == "frozenlake_plain":  # figures only
+        assert list(tmp_path.rglob("*.png"))
+        return
+    (result,) = tmp_path.rglob(f"{stem}.json")
+    data = json.loads(result.read_text())
     assert data["machine"]["torch"].startswith("2.13")

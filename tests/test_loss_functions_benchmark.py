@@ -1,4 +1,5 @@
-"""benchmarks/loss_functions.py: smoke run, reproducible cells, statistics, CONTRIBUTING's example."""
+"""benchmarks/loss_functions.py (and its parts in benchmarks/_loss_functions/): smoke run,
+reproducible cells, statistics, CONTRIBUTING's example."""
 
 from __future__ import annotations
 
@@ -18,7 +19,8 @@ from imitrl.tabular import success_probability
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-import loss_functions as bench  # noqa: E402
+from _loss_functions.run import loss_cell, run  # noqa: E402
+from _loss_functions.tasks import TASKS, TwoWay, tasks  # noqa: E402
 
 TIMING = {"fit_seconds", "eval_seconds", "cell_seconds"}
 
@@ -41,13 +43,13 @@ def test_quick_run_covers_every_loss_on_every_task(tmp_path, lake, expert_table)
     assert data["machine"]["torch"].startswith("2.13")
     assert (tmp_path / "loss_functions.png").stat().st_size > 10_000
     cells = {(r["task"], r["loss"], r["algorithm"]) for r in data["rows"]}
-    factories = bench._tasks(quick_mode=True)
-    for task in bench.TASKS:
+    factories = tasks(quick_mode=True)
+    for task in TASKS:
         spec = factories[task]().spec()
         for loss in registry.names(spec):
             assert (task, loss, "bc") in cells and (task, loss, "dagger") in cells
     assert {(r["task"], r["policy"]) for r in data["references"]} == {
-        (t, p) for t in bench.TASKS for p in ("expert", "random")
+        (t, p) for t in TASKS for p in ("expert", "random")
     }
     two_way = [r for r in data["rows"] if r["task"] == "two_way"]
     assert all(
@@ -64,11 +66,11 @@ def test_quick_run_covers_every_loss_on_every_task(tmp_path, lake, expert_table)
 
 @pytest.mark.parametrize(("task", "loss"), [("two_way", "diffusion"), ("pendulum", "gaussian_nll")])
 def test_cells_are_reproducible_from_their_seed(task, loss):
-    a = bench.loss_cell(task, loss, 3, True)
-    b = bench.loss_cell(task, loss, 3, True)
+    a = loss_cell(task, loss, 3, True)
+    b = loss_cell(task, loss, 3, True)
     strip = [{k: v for k, v in r.items() if k not in TIMING} for r in a]
     assert strip == [{k: v for k, v in r.items() if k not in TIMING} for r in b]
-    c = bench.loss_cell(task, loss, 4, True)
+    c = loss_cell(task, loss, 4, True)
     assert strip != [{k: v for k, v in r.items() if k not in TIMING} for r in c]
 
 
@@ -83,10 +85,8 @@ def test_contributing_example_registers_a_loss_that_the_benchmark_runs():
     try:
         exec(compile(block.group(1), "CONTRIBUTING.md", "exec"), {})
         entry = registry.get("l1_l2")
-        assert entry.applies_to(
-            TaskSpec(action=bench.TwoWay(None).spec().action, observation_dim=2)
-        )
-        raw = bench.run(tasks=["two_way"], losses=["l1_l2"], seeds=1, quick_mode=True)
+        assert entry.applies_to(TaskSpec(action=TwoWay(None).spec().action, observation_dim=2))
+        raw = run(tasks=["two_way"], losses=["l1_l2"], seeds=1, quick_mode=True)
         assert [(r["loss"], r["algorithm"]) for r in raw["rows"]] == [
             ("l1_l2", "bc"),
             ("l1_l2", "dagger"),
