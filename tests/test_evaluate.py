@@ -77,8 +77,14 @@ def test_evaluate_on_a_gym_env():
         max_steps=2000,
     )
     assert ev.mean_return == 500.0 and ev.success_rate is None and ev.exact_success is None
-    with pytest.raises(ValueError, match="max_steps is required"):
-        evaluate(env, cartpole_expert().as_actor(), 1, exploration=ExplorationType.DETERMINISTIC)
+    # the gymnasium TimeLimit (500) ends every episode: no bound needed, and the bare
+    # Expert drives the env deterministically without as_actor()
+    ev = evaluate(env, cartpole_expert(), 2)
+    assert ev.mean_return == 500.0 and ev.mean_length == 500.0 and ev.exploration == "deterministic"
+    with pytest.raises(ValueError, match=r"past max_steps=100 steps"):
+        evaluate(env, cartpole_expert(), 1, max_steps=100)
+    with pytest.raises(ValueError, match="exploration is required"):
+        evaluate(env, cartpole_expert().as_actor(), 1)
     with pytest.raises(ValueError, match="num_episodes must be positive"):
         evaluate(
             env,
@@ -188,5 +194,7 @@ def test_one_episode_has_no_interval_and_policies_must_match_the_action_spec(lak
     )
     assert math.isnan(ev.return_ci[0]) and math.isnan(ev.return_ci[1])
     wide = Expert.from_callable(lambda obs: torch.zeros(*obs.shape, 2, dtype=torch.int64))
-    with pytest.raises(ValueError, match=r"the env expects shape \(\) and dtype torch.int64"):
+    with pytest.raises(ValueError, match=r"needs dtype torch.int64, shape \(\)"):
         evaluate(env, wide.as_actor(), 2, exploration=ExplorationType.DETERMINISTIC)
+    with pytest.raises(ValueError, match=r"returned dtype torch.int64, shape \(2,\)"):
+        evaluate(env, wide, 2)  # a bare expert is cast to the spec, and refused here

@@ -123,7 +123,7 @@ def lunar_lander(obs: np.ndarray) -> np.ndarray:
         ],
         [2, 3, 1],
         default=0,
-    ).astype(np.int64)
+    ).astype(np.int64).reshape(obs.shape[:-1])  # np.select gives [1] for one observation
 
 
 # --------------------------------------------------------------------------------------

@@ -12,6 +12,8 @@ private attribute                   used by
 tensordict`` (overridden)
 ``RoundRobinWriter._cursor``        :func:`writer_cursor`, :func:`set_writer_cursor`
                                     (``imitrl.data.buffer.DemonstrationBuffer.extend``)
+``LazyTensorStorage._storage``      :func:`grow_tensor_storage`
+                                    (``imitrl.data.buffer.GrowingTensorStorage.reserve``)
 =================================== ==========================================================
 """
 
@@ -22,9 +24,9 @@ from collections.abc import Iterable, Sequence
 import torch
 from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
-from torchrl.data import ReplayBuffer
+from torchrl.data import LazyTensorStorage, ReplayBuffer
 
-__all__ = ["DirectWriteMixin", "set_writer_cursor", "writer_cursor"]
+__all__ = ["DirectWriteMixin", "grow_tensor_storage", "set_writer_cursor", "writer_cursor"]
 
 
 class DirectWriteMixin:
@@ -88,3 +90,44 @@ def set_writer_cursor(rb: ReplayBuffer, value: int) -> None:
     the same private name, spelled as a state-dict key.
     """
     rb.writer._cursor = int(value)
+
+
+def grow_tensor_storage(storage: LazyTensorStorage, new_size: int) -> None:
+    """Give ``storage`` room for ``new_size`` rows, keeping the rows it holds.
+
+    Why: a ``LazyTensorStorage`` preallocates one tensordict of ``max_size`` rows at
+    its first write and keeps it in the private ``_storage``; torchrl has no public
+    way to enlarge it (``max_size`` alone only changes where the writer wraps). The
+    demonstration buffer must grow instead of wrapping, so this reallocates that
+    tensordict at ``new_size`` rows and copies the first ``len(storage)`` rows over.
+    ``tests/test_buffer_properties.py`` checks that a buffer grown this way holds the
+    same rows as a ``LazyTensorStorage`` allocated large enough from the start.
+    """
+    if new_size < len(storage):
+        raise ValueError(f"cannot shrink a storage of {len(storage)} rows to {new_size}")
+    if storage.initialized:
+        old = storage._storage
+        rows = len(storage)
+        grown = torch.empty_like(old[:1].expand(new_size, *old.shape[1:]))
+        grown[:rows] = old[:rows]
+        storage._storage = grown
+    storage.max_size = int(new_size)
+
+
+from torchrl.envs import GymWrapper  # noqa: E402  (appended with wrapped_gym_env)
+
+
+def wrapped_gym_env(env: GymWrapper) -> object:
+    """The gymnasium env (or vector env) inside a TorchRL ``GymWrapper``/``GymEnv``.
+
+    Why: ``imitrl.envs.limits.episode_limit`` reads the wrapped env's time limit
+    (``spec.max_episode_steps``). torchrl keeps the wrapped env in the private
+    ``_EnvWrapper._env``; its only public route is ``_EnvWrapper.__getattr__``, which
+    forwards any attribute the TorchRL env lacks (``env.spec`` reaches the gymnasium
+    env's ``spec``) - an implicit fallthrough that an attribute added to ``EnvBase``
+    would silently shadow. ``tests/test_episode_limits.py`` checks that both give the
+    same spec.
+    """
+    if not isinstance(env, GymWrapper):
+        raise ValueError(f"expected a TorchRL GymWrapper or GymEnv, got {type(env).__name__}")
+    return env._env

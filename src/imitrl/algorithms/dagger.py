@@ -30,6 +30,7 @@ from imitrl import keys
 from imitrl.algorithms.bc import BCConfig, BCResult, fit_bc
 from imitrl.data.buffer import DemonstrationBuffer
 from imitrl.data.rollout import rollout_episodes
+from imitrl.envs.limits import episode_limit
 from imitrl.policies.learner import Learner
 from imitrl.policies.mixture import BetaMixer, behaviour_policy
 
@@ -107,19 +108,41 @@ class EpisodeSource(Protocol):
 class EnvSource:
     """Episodes from a TorchRL env (batched or not) via :func:`rollout_episodes`.
 
+    ``collect`` plays a DAgger behaviour policy, or a bare
+    :class:`~imitrl.policies.Expert` (demonstrations from the same expert object).
+
     Attributes:
         env: the env.
         exploration: how the learner acts in rollouts (``DETERMINISTIC`` = greedy);
             None = as the learner says (``dagger`` collects under ``learner.exploration``).
-        max_steps: safety bound on steps per lane in one collection.
+        max_steps: most steps ONE episode may take; None (default): the env's own time
+            limit (:func:`~imitrl.envs.episode_limit`). An env without one needs it:
+            the source refuses to be built otherwise.
         generator: source of the learner's sampling when ``exploration`` is
             ``RANDOM`` (seed it for reproducible rounds); None: torch's global RNG.
     """
 
     env: EnvBase
     exploration: ExplorationType | None = None
-    max_steps: int = 100_000
+    max_steps: int | None = None
     generator: torch.Generator | None = None
+    _episode_steps: int = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        if self.max_steps is not None:
+            if int(self.max_steps) != self.max_steps or self.max_steps < 1:
+                raise ValueError(
+                    f"max_steps must be a positive integer or None, got {self.max_steps!r}"
+                )
+            self._episode_steps = int(self.max_steps)
+            return
+        limit = episode_limit(self.env)  # looked up once, not at every round
+        if limit is None:
+            raise ValueError(
+                f"{type(self.env).__name__} has no time limit of its own: pass "
+                "EnvSource(env, max_steps=...) (the most steps one episode may take)"
+            )
+        self._episode_steps = limit
 
     def collect(
         self,
@@ -135,7 +158,7 @@ class EnvSource:
             behaviour,
             num_episodes,
             exploration=self.exploration or exploration_type(),
-            max_steps=self.max_steps,
+            max_steps=self._episode_steps,
             round_index=round_index,
             first_episode=first_episode,
             generator=self.generator,

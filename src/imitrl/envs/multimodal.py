@@ -48,7 +48,7 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from imitrl import keys
-from imitrl.policies.modules import Module
+from imitrl.policies.experts import Expert
 
 __all__ = [
     "INTENT",
@@ -239,7 +239,7 @@ class _TwoWayExpert(nn.Module):
         return ((target - y) / g.dx).clamp(-g.expert_speed, g.expert_speed).unsqueeze(-1)
 
 
-def two_way_expert(geometry: ObstacleGeometry = ObstacleGeometry()) -> Module:
+def two_way_expert(geometry: ObstacleGeometry = ObstacleGeometry()) -> Expert:
     """The task's queryable expert: reads ``"observation"`` and ``"intent"``, writes ``"expert_action"``.
 
     Inside the band ``|y| <= band`` it steers towards the side of its intent, outside
@@ -247,9 +247,7 @@ def two_way_expert(geometry: ObstacleGeometry = ObstacleGeometry()) -> Module:
     margin`` until past the disc, then returns to the centre line. It labels any
     state: DAgger queries it at the learner's states with the episode's intent.
     """
-    return Module(
-        _TwoWayExpert(geometry), in_keys=[keys.OBSERVATION, INTENT], out_keys=[keys.EXPERT_ACTION]
-    )
+    return Expert(_TwoWayExpert(geometry), in_keys=[keys.OBSERVATION, INTENT])
 
 
 def decision_states(

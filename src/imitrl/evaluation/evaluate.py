@@ -17,10 +17,12 @@ from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType
 
 from imitrl import keys
-from imitrl.data.rollout import SuccessFn, episode_returns
+from imitrl.data.rollout import SuccessFn, episode_returns, rollout_policy
 from imitrl.envs.tabular_env import TabularEnv
 from imitrl.evaluation.statistics import t_interval
 from imitrl.evaluation.tabular import exact_values
+from imitrl.policies.experts import Expert
+from imitrl.policies.learner import Learner
 
 __all__ = ["Evaluation", "evaluate", "mean_ci", "wilson_interval"]
 
@@ -101,11 +103,12 @@ def _tabular_success(env: TabularEnv) -> SuccessFn:
 
 def evaluate(
     env: EnvBase,
-    policy: TensorDictModuleBase,
+    policy: Learner | Expert | TensorDictModuleBase,
     num_episodes: int,
     *,
-    exploration: ExplorationType,
+    exploration: ExplorationType | None = None,
     max_steps: int | None = None,
+    seed: int | None = None,
     success_fn: SuccessFn | None = None,
     confidence: float = 0.95,
     generator: torch.Generator | None = None,
@@ -114,33 +117,40 @@ def evaluate(
 
     Args:
         env: any TorchRL env (batched envs play ``num_episodes / lanes`` episodes per lane).
-        policy: writes ``ACTION``.
-        exploration: ``DETERMINISTIC`` (greedy) or ``RANDOM`` (sampled).
-        max_steps: safety bound on steps per lane; defaults to 100 x the env's time
-            limit for a TabularEnv, required otherwise.
+        policy: a :class:`~imitrl.policies.Learner` (its ``policy`` acts), an
+            :class:`~imitrl.policies.Expert` (drives the env, its labels cast to the
+            env's action spec), or a module writing ``ACTION``.
+        exploration: ``DETERMINISTIC`` (greedy) or ``RANDOM`` (sampled). None: the
+            learner's ``exploration``, ``DETERMINISTIC`` for an expert; required for a
+            bare policy module.
+        max_steps: most steps one episode may take; None: the env's own time limit
+            (gymnasium ``TimeLimit``, ``StepCounter``, ``TabularEnv.max_steps``),
+            refused when the env has none.
+        seed: seeds the env (``env.set_seed(seed)``) and, unless ``generator`` is
+            given, the policy's sampling: two policies evaluated with one seed start
+            from the same initial states.
         success_fn: end-of-episode success criterion; defaults to "entered a goal
             state" on a TabularEnv, none elsewhere.
         confidence: level of the intervals.
         generator: source of the policy's sampling in ``RANDOM`` mode (seed it for
-            reproducible sampled evaluations); None: torch's global RNG.
+            reproducible sampled evaluations); None: torch's global RNG (or ``seed``'s).
     """
     if num_episodes < 1:
         raise ValueError(f"num_episodes must be positive, got {num_episodes}")
+    if isinstance(policy, Learner):
+        exploration = policy.exploration if exploration is None else exploration
+        policy = policy.policy
+    actor, exploration = rollout_policy(env, policy, exploration)
     tabular = isinstance(env, TabularEnv)
-    if max_steps is None:
-        if tabular and env.max_steps is not None:
-            lanes = env.batch_size.numel() if len(env.batch_size) else 1
-            max_steps = env.max_steps * (math.ceil(num_episodes / lanes) + 1)
-        else:
-            raise ValueError("max_steps is required for envs other than a time-limited TabularEnv")
     if success_fn is None and tabular:
         success_fn = _tabular_success(env)
     summary = episode_returns(
         env,
-        policy,
+        actor,
         num_episodes,
         exploration=exploration,
         max_steps=max_steps,
+        seed=seed,
         success_fn=success_fn,
         generator=generator,
     )
@@ -160,7 +170,7 @@ def evaluate(
     if tabular and env.max_steps is not None:
         exact = exact_values(
             env.mdp,
-            policy,
+            actor,
             exploration,
             env.max_steps,
             initial=env.start_distribution(num_episodes),

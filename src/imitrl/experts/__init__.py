@@ -1,4 +1,4 @@
-"""Built-in queryable experts (TensorDict modules writing ``expert_action``).
+"""Built-in queryable experts: every builder returns an :class:`imitrl.policies.Expert`.
 
 Classic control needs only gymnasium; building a MuJoCo expert
 (``imitrl.experts.mujoco``) needs the ``mujoco`` extra.

@@ -163,5 +163,5 @@ def pendulum_expert(
     """
     return Expert(
         PendulumSwingUp(swing_up=swing_up, energy_gain=energy_gain, lqr_cos=lqr_cos),
-        observation_key=observation_key,
+        in_keys=[observation_key],
     )

@@ -161,7 +161,7 @@ def _lqr_expert(
     K = dlqr(lin.A, lin.B, Q, R)
     return Expert(
         LinearFeedback(K, lin.action_low, lin.action_high, state=state, setpoint=lin.x0),
-        observation_key=observation_key,
+        in_keys=[observation_key],
     )
 
 
