@@ -31,6 +31,7 @@ from imitrl.algorithms.bc import BCConfig, BCResult, fit_bc
 from imitrl.data.buffer import DemonstrationBuffer
 from imitrl.data.rollout import rollout_episodes
 from imitrl.envs.limits import episode_limit
+from imitrl.policies.experts import Expert
 from imitrl.policies.learner import Learner
 from imitrl.policies.mixture import BetaMixer, behaviour_policy
 
@@ -92,7 +93,13 @@ class Exponential:
 
 
 class EpisodeSource(Protocol):
-    """Where relabel rounds come from: plays a behaviour policy, returns buffer rows."""
+    """Where relabel rounds come from: plays a behaviour policy, returns buffer rows.
+
+    ``check(expert, learner)`` runs before a learner's first round: it binds the expert
+    to the actions the source takes and refuses a learner that cannot act there.
+    """
+
+    def check(self, expert: Expert, learner: Learner) -> None: ...
 
     def collect(
         self,
@@ -143,6 +150,12 @@ class EnvSource:
                 "EnvSource(env, max_steps=...) (the most steps one episode may take)"
             )
         self._episode_steps = limit
+
+    def check(self, expert: Expert, learner: Learner) -> None:
+        """Bind ``expert`` to the env's action spec; refuse a ``learner`` that does not fit
+        the env (both before the first step, naming what differs)."""
+        expert.bind(self.env.action_spec_unbatched)
+        learner.check_env(self.env)
 
     def collect(
         self,
@@ -220,7 +233,7 @@ class DAggerResult:
 
 def dagger(
     source: EpisodeSource,
-    expert: TensorDictModuleBase,
+    expert: Expert,
     make_learner: Callable[[], Learner],
     buffer: DemonstrationBuffer,
     config: DAggerConfig = DAggerConfig(),
@@ -249,6 +262,11 @@ def dagger(
     """
     if len(buffer) == 0:
         raise ValueError("DAgger starts from demonstrations: the buffer is empty")
+    if not isinstance(expert, Expert):
+        raise ValueError(
+            f"the expert must be an imitrl Expert, got {type(expert).__name__} "
+            "(wrap a policy module with Expert.from_policy, a function with Expert.from_callable)"
+        )
     mixer = BetaMixer(0.0, generator=torch.Generator().manual_seed(config.seed))
     learner: Learner | None = None
     records: list[RoundRecord] = []
@@ -260,6 +278,7 @@ def dagger(
                 raise ValueError(
                     f"make_learner must return an imitrl Learner, got {type(learner).__name__}"
                 )
+            source.check(expert, learner)
         if train is None:
             result = fit_bc(learner, buffer, config.bc, logger=logger, log_step=bc_step)
         else:

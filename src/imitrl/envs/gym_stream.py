@@ -364,6 +364,13 @@ class GymnasiumStreamSource:
     def __init__(self, mdp: TabularMDP, stream: GymnasiumStream) -> None:
         self.mdp, self.stream = mdp, stream
 
+    def check(self, expert, learner) -> None:
+        """Refuse a learner that does not act on the MDP's states and actions (the expert's
+        table is read on every state directly: nothing to bind)."""
+        from imitrl.envs.tabular_env import TabularEnv  # the MDP's own spaces, as an env
+
+        learner.check_env(TabularEnv(self.mdp, batch_size=(), seed=0))
+
     def collect(
         self,
         behaviour: TensorDictModuleBase,

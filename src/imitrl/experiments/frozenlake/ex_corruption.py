@@ -47,6 +47,10 @@ class CorruptedSource:
         self.A = num_actions
         self.generator = generator
 
+    def check(self, expert, learner) -> None:
+        """The wrapped source's checks."""
+        self.source.check(expert, learner)
+
     def collect(
         self,
         behaviour: TensorDictModuleBase,
@@ -146,4 +150,4 @@ def ex_corruption(ctx: StudyContext) -> None:
             "states_changed": {"bc": changed[0], "dagger": changed[1]},
         },
     )
-    figures.plot_corruption(["BC", "DAgger"], clean, bad, cfg.out / "ex_corruption.png")
+    figures.plot_corruption(["BC", "DAgger"], clean, bad, ctx.figure("ex_corruption"))
