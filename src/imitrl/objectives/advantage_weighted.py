@@ -20,7 +20,7 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule
 
 from imitrl import keys
-from imitrl.objectives.base import ImitationLoss
+from imitrl.objectives.base import InnerBCLoss
 from imitrl.objectives.bc import BehaviorCloningLoss
 
 __all__ = ["Advantage", "AdvantageWeightedLoss"]
@@ -29,7 +29,7 @@ Advantage = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 """``A(observation [N, ...], action [N, ...]) -> [N]`` weights"""
 
 
-class AdvantageWeightedLoss(ImitationLoss):
+class AdvantageWeightedLoss(InnerBCLoss):
     """``-mean_i A(s_i, a_i) log pi(a_i | s_i)`` with ``A`` computed from each row.
 
     Args:
@@ -57,19 +57,6 @@ class AdvantageWeightedLoss(ImitationLoss):
     @in_keys.setter
     def in_keys(self, values):
         pass
-
-    @property
-    def label_key(self):
-        """The inner :class:`BehaviorCloningLoss`'s label key."""
-        return self.bc.label_key
-
-    def check_labels(self, rows: TensorDictBase) -> None:
-        """The inner :class:`BehaviorCloningLoss`'s label checks."""
-        self.bc.check_labels(rows)
-
-    def set_keys(self, **kwargs) -> None:
-        """Remap keys of the inner :class:`BehaviorCloningLoss` (``label``)."""
-        self.bc.set_keys(**kwargs)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         label_key = self.bc.tensor_keys.label

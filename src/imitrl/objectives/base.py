@@ -25,7 +25,7 @@ from torchrl.objectives import LossModule
 
 from imitrl import keys
 
-__all__ = ["ImitationLoss", "SummedLoss", "sum_losses"]
+__all__ = ["ImitationLoss", "InnerBCLoss", "SummedLoss", "sum_losses"]
 
 
 def sum_losses(out: TensorDictBase) -> torch.Tensor:
@@ -100,3 +100,30 @@ class SummedLoss(ImitationLoss):
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         return self.inner(tensordict)
+
+
+class InnerBCLoss(ImitationLoss):
+    """A loss built around an inner ``BehaviorCloningLoss`` ``self.bc`` (set by the
+    subclass): keys, label checks and ``set_keys`` are the inner loss's."""
+
+    bc: ImitationLoss
+
+    @property
+    def in_keys(self):
+        return list(self.bc.in_keys)
+
+    @in_keys.setter
+    def in_keys(self, values):
+        pass
+
+    @property
+    def label_key(self) -> NestedKey:
+        return self.bc.label_key
+
+    def check_labels(self, rows: TensorDictBase) -> None:
+        """The inner loss's label checks."""
+        self.bc.check_labels(rows)
+
+    def set_keys(self, **kwargs) -> None:
+        """Remap keys of the inner loss (``label``, ``prediction``)."""
+        self.bc.set_keys(**kwargs)

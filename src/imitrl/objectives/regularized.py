@@ -21,14 +21,14 @@ from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModule
 
 from imitrl import keys
-from imitrl.objectives.base import ImitationLoss
+from imitrl.objectives.base import InnerBCLoss
 from imitrl.objectives.bc import BehaviorCloningLoss
 from imitrl.rng import rng_from
 
 __all__ = ["RegularizedBCLoss"]
 
 
-class RegularizedBCLoss(ImitationLoss):
+class RegularizedBCLoss(InnerBCLoss):
     """Behaviour cloning with an entropy bonus and an L2 penalty (see the module docstring).
 
     Args:
@@ -67,27 +67,6 @@ class RegularizedBCLoss(ImitationLoss):
         self.entropy_coef = float(entropy_coef)
         self.l2_coef = float(l2_coef)
         self.generator = torch.Generator().manual_seed(int(seed))
-
-    @property
-    def in_keys(self):
-        return self.bc.in_keys
-
-    @in_keys.setter
-    def in_keys(self, values):
-        pass
-
-    @property
-    def label_key(self):
-        """The inner :class:`BehaviorCloningLoss`'s label key."""
-        return self.bc.label_key
-
-    def check_labels(self, rows: TensorDictBase) -> None:
-        """The inner :class:`BehaviorCloningLoss`'s label checks."""
-        self.bc.check_labels(rows)
-
-    def set_keys(self, **kwargs) -> None:
-        """Remap keys of the inner :class:`BehaviorCloningLoss` (``label``, ``prediction``)."""
-        self.bc.set_keys(**kwargs)
 
     def _entropy(self, out: TensorDictBase) -> torch.Tensor:
         if keys.LOGITS in out.keys():
