@@ -137,6 +137,26 @@ class TabularEnv(EnvBase):
                 seeding.np_random(None if base is None else base + i)[0] for i in range(self._n)
             ]
 
+    def random_state(self) -> dict:
+        """The lanes' random state (JSON-able): what the next ``reset``/``step`` will draw."""
+        if self.rng_kind == "torch":
+            return {"torch": self._generator.get_state().tolist()}
+        return {"numpy": [g.bit_generator.state for g in self._np_generators]}
+
+    def set_random_state(self, state: dict) -> None:
+        """Restore a :meth:`random_state` (ValueError if it is of another kind or size)."""
+        if self.rng_kind == "torch" and "torch" in state:
+            self._generator.set_state(torch.tensor(state["torch"], dtype=torch.uint8))
+            return
+        if self.rng_kind == "gymnasium" and len(state.get("numpy", ())) == self._n:
+            for g, st in zip(self._np_generators, state["numpy"]):
+                g.bit_generator.state = st
+            return
+        raise ValueError(
+            f"random state {sorted(state)} does not fit a TabularEnv with rng={self.rng_kind!r} "
+            f"and {self._n} lanes"
+        )
+
     def _uniforms(self, lanes: torch.Tensor | None) -> torch.Tensor:
         """float64 uniforms for ``lanes`` (bool mask ``[n]``, None = all lanes)."""
         if self.rng_kind == "torch":
