@@ -67,7 +67,9 @@ class TabularMDP:
         initial: ``[S]`` float64 initial state distribution.
         terminal: ``[S]`` bool, states whose entry ends the episode.
         goal: ``[S]`` bool, the terminal states whose entering reward is the highest
-            among terminal states: reaching one is a success.
+            among terminal states: reaching one is a success. On a grid map that
+            names its goal cells (FrozenLake's ``G``), the terminal ones among them
+            (none when no ``G`` can be reached).
         outcomes: the sampling model (see :class:`Outcomes`).
         max_steps: time limit of an episode (gymnasium's ``max_episode_steps``) or None.
         desc: the grid map for grid worlds (``[rows, cols]`` of single bytes) or None.
@@ -221,6 +223,9 @@ class TabularMDP:
         desc = getattr(unwrapped, "desc", None)
         if desc is not None and np.asarray(desc).size != S:
             desc = None  # a picture of the world (Taxi's), not one cell per state
+        # FrozenLake's G cells are its goals: with no G reachable the holes' 0 is the best entry
+        is_g = None if desc is None else np.asarray(desc).ravel() == b"G"
+        goal_cells = is_g if is_g is not None and is_g.any() else None
         return cls._build(
             outcome_lists,
             S=S,
@@ -230,6 +235,7 @@ class TabularMDP:
             max_steps=max_steps if max_steps is not None else spec_steps,
             desc=None if desc is None else np.asarray(desc).copy(),
             name=name,
+            goal_cells=goal_cells,
         )
 
     @classmethod
@@ -312,6 +318,7 @@ class TabularMDP:
         desc: np.ndarray | None,
         name: str,
         terminal: np.ndarray | None = None,
+        goal_cells: np.ndarray | None = None,
     ) -> TabularMDP:
         if initial.shape != (S,):
             raise ValueError(f"initial distribution must have shape [{S}], got {initial.shape}")
@@ -324,7 +331,11 @@ class TabularMDP:
         if terminal is None:
             terminal = terminal_states(next_state, prob, terminated, size, initial, name)
         # Read before the terminal rows become zero-reward self-loops below.
-        goal = _goal_states(next_state, prob, reward, terminal)
+        goal = (
+            _goal_states(next_state, prob, reward, terminal)
+            if goal_cells is None
+            else terminal & goal_cells
+        )
         term_idx = np.flatnonzero(terminal)
         # A terminal state is absorbing in the sampling model too (an episode never
         # steps from one; gymnasium's own lists there are arbitrary, e.g. CliffWalking's).

@@ -41,4 +41,4 @@ def compounding_error(ctx: StudyContext) -> None:
             }
         )
     rep.set("chain.panels", panels)
-    figures.plot_chain(panels, cfg.out / "chain.png")
+    figures.plot_chain(panels, ctx.figure("chain"))

@@ -2,12 +2,86 @@
 
 from __future__ import annotations
 
+import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-__all__ = ["PROTOCOLS", "StudyConfig"]
+import numpy as np
+from gymnasium.envs.toy_text.frozen_lake import MAPS
+
+__all__ = ["MAP_LETTERS", "PROTOCOLS", "StudyConfig", "check_desc"]
 
 PROTOCOLS = ("faithful", "batched")
+
+
+# integer fields that count something (episodes, datasets, steps, sweeps): each >= 1
+_COUNTS = (
+    "eval_scale",
+    "vi_iters",
+    "demo_episodes",
+    "fit_steps",
+    "eval_episodes",
+    "sweep_datasets",
+    "sweep_fit_steps",
+    "sweep_eval_episodes",
+    "chain_samples",
+    "dagger_rounds",
+    "dagger_episodes",
+    "ex_datasets",
+    "ex_fit_steps",
+    "ex_error_datasets",
+)
+_SEEDS = ("demo_seed", "eval_seed", "sweep_seed", "chain_seed", "dagger_seed", "ex_seed")
+# tuples of counts, each >= 1 and given once (results are keyed by them)
+_COUNT_TUPLES = ("sweep_sizes", "tv_steps", "ex_demo_counts")
+MAP_LETTERS = {"S": "start", "F": "frozen", "H": "hole", "G": "goal"}
+"""The letters of a FrozenLake map (``--desc``)."""
+
+
+def _flag(name: str) -> str:
+    return "--" + name.replace("_", "-")
+
+
+def _check_count(name: str, value: object, *, least: int = 1, shown: object = None) -> None:
+    """Raise unless ``value`` is an integer >= ``least``; ``shown`` is the whole flag value."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < least:
+        got = value if shown is None else f"{value!r} in {list(shown)}"
+        raise ValueError(f"{_flag(name)} must be an integer >= {least}, got {got}")
+
+
+def _check_real(name: str, value: object, expected: str, ok: Callable[[float], bool]) -> None:
+    """Raise unless ``value`` is a finite real number for which ``ok`` holds."""
+    real = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
+    if not (real and math.isfinite(value) and ok(value)):
+        raise ValueError(f"{_flag(name)} must be {expected}, got {value!r}")
+
+
+def check_desc(desc: tuple[str, ...]) -> None:
+    """Raise ``ValueError`` unless ``desc`` is a FrozenLake map the study can score.
+
+    Rows of one length, only the letters of :data:`MAP_LETTERS`, exactly one start
+    ``S`` and at least one goal ``G`` (without one, gymnasium's model gives the holes
+    the best entering reward among terminal states, and they would count as goals).
+    """
+    rows = list(desc)
+    shown = ",".join(rows)
+    if not rows or not all(rows):
+        raise ValueError(f"--desc needs non-empty rows, e.g. SFFF,FHFH,FFFH,HFFG; got {shown!r}")
+    if len({len(r) for r in rows}) != 1:
+        raise ValueError(
+            f"--desc rows must all have the same length, got lengths "
+            f"{[len(r) for r in rows]} in {shown}"
+        )
+    bad = sorted(set("".join(rows)) - set(MAP_LETTERS))
+    if bad:
+        letters = ", ".join(f"{k} ({v})" for k, v in MAP_LETTERS.items())
+        raise ValueError(f"--desc letters must be {letters}; got {bad} in {shown}")
+    starts = shown.count("S")
+    if starts != 1:
+        raise ValueError(f"--desc needs exactly one start S, got {starts} in {shown}")
+    if "G" not in shown:
+        raise ValueError(f"--desc has no goal G in {shown}: success is reaching a G cell")
 
 
 @dataclass(frozen=True)
@@ -94,20 +168,35 @@ class StudyConfig:
     def __post_init__(self) -> None:
         if self.protocol not in PROTOCOLS:
             raise ValueError(f"protocol must be one of {PROTOCOLS}, got {self.protocol!r}")
-        for name in (
-            "eval_scale",
-            "vi_iters",
-            "demo_episodes",
-            "eval_episodes",
-            "sweep_datasets",
-            "dagger_rounds",
-        ):
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
-        if self.max_steps is not None and self.max_steps < 1:
-            raise ValueError(f"max_steps must be >= 1 or None, got {self.max_steps}")
-        if not 0.0 <= self.ex_corruption <= 1.0:
-            raise ValueError(f"ex_corruption must be in [0, 1], got {self.ex_corruption}")
+        for name in _COUNTS:
+            _check_count(name, getattr(self, name))
+        for name in _SEEDS:
+            _check_count(name, getattr(self, name), least=0)
+        for name in _COUNT_TUPLES:
+            values = getattr(self, name)
+            for v in values:
+                _check_count(name, v, shown=values)
+            if len(set(values)) != len(values):
+                raise ValueError(f"{_flag(name)}: each value once, got {list(values)}")
+        if not self.tv_steps:
+            raise ValueError("--tv-steps: give at least one step (e.g. 3,5,10,20)")
+        for s in self.probe_states:  # the upper bound needs the env: run_study checks it
+            _check_count("probe_states", s, least=0, shown=self.probe_states)
+        if self.max_steps is not None:
+            _check_count("max_steps", self.max_steps)
+        _check_real("gamma", self.gamma, "in (0, 1]", lambda g: 0.0 < g <= 1.0)
+        _check_real("lr", self.lr, "> 0", lambda x: x > 0.0)
+        _check_real("ex_corruption", self.ex_corruption, "in [0, 1]", lambda x: 0.0 <= x <= 1.0)
+        for eps, T in self.chain_panels:
+            _check_real("chain_panels", eps, "eps:T with eps in (0, 1]", lambda e: 0 < e <= 1)
+            _check_count("chain_panels", T, shown=self.chain_panels)
+        if self.map_name is not None and self.map_name not in MAPS:
+            raise ValueError(
+                f"--map-name {self.map_name!r} is not a gymnasium FrozenLake map: "
+                f"one of {', '.join(MAPS)}, or give the rows with --desc"
+            )
+        if self.desc is not None:
+            check_desc(self.desc)
 
     @property
     def make_kwargs(self) -> dict:

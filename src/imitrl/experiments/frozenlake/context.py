@@ -5,6 +5,7 @@ backend, the report, and the results earlier sections leave for later ones.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -17,6 +18,7 @@ from imitrl.algorithms.dagger import DAggerConfig
 from imitrl.data.buffer import DemonstrationBuffer
 from imitrl.experiments.frozenlake.backends import BatchedBackend, FaithfulBackend
 from imitrl.experiments.frozenlake.config import StudyConfig
+from imitrl.experiments.frozenlake.outputs import FIGURES
 from imitrl.experiments.frozenlake.report import Report
 from imitrl.policies.actor_critic import ActorCritic
 from imitrl.tabular.finite_horizon import state_distributions, success_probability
@@ -61,6 +63,12 @@ class StudyContext:
     def exact_each(self, tables: torch.Tensor) -> np.ndarray:
         """``[K]`` exact success of each of the ``[K, S]`` tables."""
         return np.array([self.exact(t) for t in tables])
+
+    def figure(self, name: str) -> Path:
+        """Where figure ``name`` (one of :data:`outputs.FIGURES`) is drawn: the staging folder."""
+        if name not in FIGURES:
+            raise ValueError(f"unknown figure {name!r}: add it to outputs.FIGURES")
+        return self.report.out / f"{name}.png"
 
     def eval_episodes(self, episodes: int) -> int:
         """Monte Carlo episodes of an estimate: ``episodes`` times the backend's scale."""

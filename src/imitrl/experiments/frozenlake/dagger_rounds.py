@@ -57,5 +57,5 @@ def dagger_rounds(ctx: StudyContext) -> None:
         [r["ci"] for r in rounds],
         [r["exact"] for r in rounds],
         ctx.exact(ctx.expert_table),
-        cfg.out / "dagger.png",
+        ctx.figure("dagger"),
     )

@@ -40,5 +40,5 @@ def divergence(ctx: StudyContext) -> None:
         [occ_exp.numpy(), occ_clo.numpy()],
         [ctx.expert_table.numpy(), ctx.clone_table.numpy()],
         ["expert occupancy", "clone occupancy"],
-        cfg.out / "occupancy.png",
+        ctx.figure("occupancy"),
     )

@@ -81,5 +81,5 @@ def ex_budget(ctx: StudyContext) -> None:
         },
     )
     figures.plot_budget(
-        budgets.numpy(), dg, bc, bc0, ctx.exact(ctx.expert_table), cfg.out / "ex_budget.png"
+        budgets.numpy(), dg, bc, bc0, ctx.exact(ctx.expert_table), ctx.figure("ex_budget")
     )

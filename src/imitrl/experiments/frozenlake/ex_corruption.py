@@ -126,8 +126,9 @@ def ex_corruption(ctx: StudyContext) -> None:
     bad = np.array([ctx.exact_each(tables[m][1]) for m in ("bc", "dagger")])
     for i, m in enumerate(("BC", "DAgger")):
         drop = clean[i] - bad[i]
+        se = drop.std(ddof=1) / math.sqrt(K) if K > 1 else float("nan")  # one seed: no spread
         rep.line(
-            f"{m:<6}: exact success clean {clean[i].mean():.3f}, corrupted {bad[i].mean():.3f}, drop {drop.mean():+.3f} (se {drop.std(ddof=1) / math.sqrt(K):.3f})"
+            f"{m:<6}: exact success clean {clean[i].mean():.3f}, corrupted {bad[i].mean():.3f}, drop {drop.mean():+.3f} (se {se:.3f})"
         )
     faster, verdict = _degrades_more(clean, bad, K)
     changed = [

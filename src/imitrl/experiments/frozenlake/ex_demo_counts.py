@@ -83,5 +83,5 @@ def ex_demo_counts(ctx: StudyContext) -> None:
         )
     rep.set("exercises.demo_counts.answer", _answer(ctx, success, agree, expert_success))
     figures.plot_demo_counts(
-        list(cfg.ex_demo_counts), success, agree, expert_success, cfg.out / "ex_demo_counts.png"
+        list(cfg.ex_demo_counts), success, agree, expert_success, ctx.figure("ex_demo_counts")
     )

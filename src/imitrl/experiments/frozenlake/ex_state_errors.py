@@ -62,5 +62,5 @@ def ex_state_errors(ctx: StudyContext) -> None:
         },
     )
     figures.plot_state_errors(
-        visit[live].numpy(), error[live].numpy(), live.tolist(), cfg.out / "ex_state_errors.png"
+        visit[live].numpy(), error[live].numpy(), live.tolist(), ctx.figure("ex_state_errors")
     )

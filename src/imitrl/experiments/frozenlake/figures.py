@@ -34,8 +34,20 @@ def _save(fig: Figure, path: Path, **margins: float) -> Path:
     return path
 
 
+def _nothing(path: Path, title: str, why: str) -> Path:
+    """A figure that says why there is nothing to draw (an empty sweep, no chain panels)."""
+    fig = Figure(figsize=(5.5, 4.0))
+    ax = fig.add_subplot(1, 1, 1)
+    ax.text(0.5, 0.5, why, ha="center", va="center", transform=ax.transAxes)
+    ax.set_axis_off()
+    ax.set_title(title)
+    return _save(fig, path)
+
+
 def plot_chain(panels: Sequence[dict], path: Path) -> Path:
     """Log-log lost return vs horizon, one panel per (eps, T): measured, exact and references."""
+    if not panels:
+        return _nothing(path, "compounding error on the chain", "no panels (--chain-panels)")
     fig = Figure(figsize=(5.2 * len(panels), 4.0))
     for i, p in enumerate(panels):
         ax = fig.add_subplot(1, len(panels), i + 1)
@@ -125,6 +137,8 @@ def plot_sweep(
     path: Path,
 ) -> Path:
     """Success of each cloned dataset by dataset size: Monte Carlo and exact."""
+    if not sizes:
+        return _nothing(path, "cloning from redrawn datasets", "no dataset sizes (--sweep-sizes)")
     fig = Figure(figsize=(5.5, 4.0))
     ax = fig.add_subplot(1, 1, 1)
     for i, (r, e) in enumerate(zip(rates, exact)):
@@ -151,8 +165,9 @@ def plot_dagger(
     fig = Figure(figsize=(5.5, 4.0))
     ax = fig.add_subplot(1, 1, 1)
     k = np.arange(len(rates))
-    lo = np.array([r - c[0] for r, c in zip(rates, ci)])
-    hi = np.array([c[1] - r for r, c in zip(rates, ci)])
+    # at 0% or 100% the Wilson bound sits a rounding error past the rate: bars are >= 0
+    lo = np.maximum(0.0, [r - c[0] for r, c in zip(rates, ci)])
+    hi = np.maximum(0.0, [c[1] - r for r, c in zip(rates, ci)])
     ax.errorbar(k, rates, yerr=[lo, hi], fmt="o-", capsize=3, label="measured (95% CI)")
     ax.plot(k, exact, "x--", color="C3", label="exact")
     ax.axhline(expert, ls=":", color="gray", label="expert (exact)")
@@ -167,6 +182,8 @@ def plot_demo_counts(
     counts: Sequence[int], success: np.ndarray, accuracy: np.ndarray, expert: float, path: Path
 ) -> Path:
     """Exercise: exact success and expert-state accuracy against the number of demonstrations."""
+    if not len(counts):
+        return _nothing(path, "how many demonstrations", "no counts (--ex-demo-counts)")
     fig = Figure(figsize=(10, 4.0))
     ax1, ax2 = fig.add_subplot(1, 2, 1), fig.add_subplot(1, 2, 2)
     for ax, y, label in (

@@ -3,7 +3,9 @@
 ``run_study(config)`` is a function of its config: same config, same digits. It
 prints the report, writes ``report.txt``, ``results.json`` and the figures to
 ``config.out``, and returns the results dict. Every Monte Carlo rate is printed next
-to the exact finite-horizon value of the same policy.
+to the exact finite-horizon value of the same policy. Every flag is checked before
+any work (:mod:`.config`, then against the env's MDP); the outputs go to a staging
+folder that replaces ``config.out`` only when the run completes (:mod:`.outputs`).
 
 One module per part, run in this order on one shared :class:`StudyContext`:
 
@@ -21,7 +23,9 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import asdict
+from pathlib import Path
 
+from imitrl.experiments.frozenlake import outputs
 from imitrl.experiments.frozenlake.backends import BatchedBackend, FaithfulBackend
 from imitrl.experiments.frozenlake.cloning import behaviour_cloning, evaluation
 from imitrl.experiments.frozenlake.compounding_error import compounding_error
@@ -63,13 +67,18 @@ def _check_runnable(config: StudyConfig, mdp: TabularMDP) -> None:
         )
 
 
-def _context(config: StudyConfig, echo: bool) -> StudyContext:
-    """The MDP, the expert by value iteration, the backend; the config recorded, then checked."""
-    config.out.mkdir(parents=True, exist_ok=True)
-    rep = Report(config.out, echo=echo)
+def _mdp(config: StudyConfig) -> TabularMDP:
+    """The env's MDP, checked against the config (before any output or work)."""
     mdp = TabularMDP.from_gym(
         config.env_id, config.gamma, make_kwargs=config.make_kwargs, max_steps=config.max_steps
     )
+    _check_runnable(config, mdp)
+    return mdp
+
+
+def _context(config: StudyConfig, mdp: TabularMDP, staging: Path, echo: bool) -> StudyContext:
+    """The expert by value iteration, the backend, the report (written to ``staging``)."""
+    rep = Report(staging, echo=echo)
     V = value_iteration(mdp, config.vi_iters)[-1]
     expert_table = greedy(mdp.backup(V))
     backend = (
@@ -81,7 +90,6 @@ def _context(config: StudyConfig, echo: bool) -> StudyContext:
         "config", {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(config).items()}
     )
     rep.set("protocol", config.protocol)
-    _check_runnable(config, mdp)
     return StudyContext(config, mdp, expert_table, backend, rep)
 
 
@@ -120,27 +128,42 @@ def _sections(config: StudyConfig) -> list[tuple[str, Callable[[StudyContext], N
     return sections
 
 
-def _write_outputs(rep: Report, timing: dict[str, float]) -> None:
+def _write_outputs(rep: Report, timing: dict[str, float], out: Path) -> None:
+    """Write report.txt and results.json to the staging folder; the lines name their place in ``out``."""
     rep.set("timing", timing)
     rep.section("Outputs")
-    text, data = rep.write()
-    rep.line(f"report: {text}")
-    rep.line(f"results: {data}")
+    rep.line(f"report: {out / 'report.txt'}")
+    rep.line(f"results: {out / 'results.json'}")
     rep.line(f"figures: {', '.join(sorted(p.name for p in rep.out.glob('*.png')))}")
     rep.line(f"wall time: {timing['total']:.1f} s")
     rep.write()
 
 
 def run_study(config: StudyConfig, *, echo: bool = True) -> dict:
-    """Run the whole study (see the module docstring); returns the results dict."""
+    """Run the whole study (see the module docstring); returns the results dict.
+
+    Every flag is checked before any work. The outputs are written to a staging
+    folder beside ``config.out`` and moved there only when the run completes
+    (:mod:`.outputs`): an interrupted run leaves the previous results whole.
+
+    Raises:
+        ValueError: a config the env cannot run, or an ``out`` that cannot take the results.
+    """
     t0 = time.perf_counter()
-    ctx = _context(config, echo)
-    _header(ctx)
-    timing: dict[str, float] = {}
-    for name, fn in _sections(config):
-        ts = time.perf_counter()
-        fn(ctx)
-        timing[name] = time.perf_counter() - ts
-    timing["total"] = time.perf_counter() - t0
-    _write_outputs(ctx.report, timing)
+    mdp = _mdp(config)
+    staging = outputs.prepare(config.out)
+    try:
+        ctx = _context(config, mdp, staging, echo)
+        _header(ctx)
+        timing: dict[str, float] = {}
+        for name, fn in _sections(config):
+            ts = time.perf_counter()
+            fn(ctx)
+            timing[name] = time.perf_counter() - ts
+        timing["total"] = time.perf_counter() - t0
+        _write_outputs(ctx.report, timing, config.out)
+        outputs.install(staging, config.out)
+    except BaseException:  # Ctrl-C included: nothing half-written reaches config.out
+        outputs.discard(staging)
+        raise
     return ctx.report.results

@@ -44,5 +44,5 @@ def sweep(ctx: StudyContext) -> None:
         all_rates.append(rates)
         all_exact.append(exact)
     figures.plot_sweep(
-        cfg.sweep_sizes, all_rates, all_exact, ctx.exact(ctx.expert_table), cfg.out / "sweep.png"
+        cfg.sweep_sizes, all_rates, all_exact, ctx.exact(ctx.expert_table), ctx.figure("sweep")
     )

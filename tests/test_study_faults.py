@@ -1,0 +1,240 @@
+"""`imitrl frozenlake` under bad input and interruption: nothing lost, nothing silently wrong.
+
+Every bad flag is refused before any work (exit 2, one line on stderr, nothing at
+--out); a goal that cannot be reached scores 0 and still draws its figures; an
+exception, Ctrl-C or SIGKILL mid-run leaves the previous results at --out whole.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from imitrl.cli import main
+from imitrl.evaluation.evaluate import wilson_interval
+from imitrl.experiments.frozenlake import figures, outputs, study
+from imitrl.tabular import TabularMDP
+
+UNREACHABLE = "SFFF,FFFF,FFHH,FFHG"  # the goal is walled off by holes
+
+# (flags, what the one line on stderr says)
+BAD_FLAGS = [
+    (["--map-name", "5x5"], "'5x5' is not a gymnasium FrozenLake map: one of 4x4, 8x8"),
+    (["--desc", "SFFF,FHF,FFFH,HFFG"], "rows must all have the same length"),
+    (["--desc", "FFFF,FHFH,FFFH,HFFG"], "exactly one start S, got 0"),
+    (["--desc", "SFFS,FHFH,FFFH,HFFG"], "exactly one start S, got 2"),
+    (["--desc", "SFFF,FHFH,FFFH,HFFF"], "no goal G"),
+    (["--desc", "SFFF,FXFH,FFFH,HFFG"], "letters must be S (start), F (frozen)"),
+    (["--desc", "sfff,fhfh,fffh,hffg"], "letters must be"),
+    (["--desc", ","], "--desc needs non-empty rows"),
+    (["--gamma", "0"], "--gamma must be in (0, 1], got 0.0"),
+    (["--gamma", "1.5"], "--gamma must be in (0, 1]"),
+    (["--gamma", "nan"], "--gamma must be in (0, 1]"),
+    (["--lr", "0"], "--lr must be > 0"),
+    (["--ex-corruption", "1.5"], "--ex-corruption must be in [0, 1]"),
+    (["--sweep-sizes", "0,3"], "--sweep-sizes must be an integer >= 1, got 0 in [0, 3]"),
+    (["--sweep-sizes", "3,3"], "--sweep-sizes: each value once"),
+    (["--ex-demo-counts", "5,-20"], "--ex-demo-counts must be an integer >= 1"),
+    (["--tv-steps", "0,5"], "--tv-steps must be an integer >= 1"),
+    (["--tv-steps", ""], "--tv-steps: give at least one step"),
+    (["--chain-panels", "0:10"], "--chain-panels must be eps:T with eps in (0, 1]"),
+    (["--chain-panels", "0.1:0"], "--chain-panels must be an integer >= 1"),
+    (["--probe-states", "16"], "--probe-states [16] outside the 16 states"),
+    (["--probe-states", "-1"], "--probe-states must be an integer >= 0"),
+    (["--max-steps", "0"], "--max-steps must be an integer >= 1"),
+    (["--demo-seed", "-1"], "--demo-seed must be an integer >= 0"),
+    (["--ex-seed", "-5"], "--ex-seed must be an integer >= 0"),
+    *(
+        ([flag, value], f"{flag} must be an integer >= 1")
+        for flag, value in [
+            ("--eval-scale", "0"),
+            ("--vi-iters", "0"),
+            ("--demo-episodes", "0"),
+            ("--fit-steps", "0"),
+            ("--eval-episodes", "-3"),
+            ("--sweep-datasets", "0"),
+            ("--sweep-fit-steps", "0"),
+            ("--sweep-eval-episodes", "0"),
+            ("--chain-samples", "0"),
+            ("--dagger-rounds", "0"),
+            ("--dagger-episodes", "-1"),
+            ("--ex-datasets", "-1"),
+            ("--ex-fit-steps", "0"),
+            ("--ex-error-datasets", "-2"),
+        ]
+    ),
+]
+
+
+def _small(out: Path, *extra: str) -> list[str]:
+    """A run of a few seconds: no exercises, small episode counts."""
+    return [
+        "frozenlake",
+        "--out",
+        str(out),
+        "--no-progress",
+        "--no-exercises",
+        "--eval-episodes",
+        "50",
+        "--sweep-sizes",
+        "1,3",
+        "--sweep-datasets",
+        "2",
+        "--sweep-eval-episodes",
+        "20",
+        "--chain-samples",
+        "200",
+        "--dagger-rounds",
+        "2",
+        *extra,
+    ]
+
+
+def _files(folder: Path) -> dict[str, bytes]:
+    return {p.name: p.read_bytes() for p in sorted(folder.iterdir())}
+
+
+def _leftovers(out: Path) -> list[Path]:
+    return sorted(out.parent.glob(f".{out.name}.*"))
+
+
+def _refused(capsys, argv: list[str], expected: str) -> None:
+    """``argv`` exits 2 with one line on stderr holding ``expected``, and no traceback."""
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("imitrl frozenlake: ") and err.count("\n") == 1, err
+    assert expected in err and "Traceback" not in err
+
+
+@pytest.fixture(scope="module")
+def previous(tmp_path_factory) -> Path:
+    """The output of one finished small run (copied by the tests that need a previous run)."""
+    out = tmp_path_factory.mktemp("previous") / "out"
+    assert main(_small(out)) == 0
+    return out
+
+
+@pytest.mark.parametrize(
+    "flags, expected", BAD_FLAGS, ids=lambda x: " ".join(x) if isinstance(x, list) else ""
+)
+def test_bad_flag_refused_before_any_work(tmp_path, capsys, flags, expected):
+    _refused(capsys, ["frozenlake", "--out", str(tmp_path / "out"), *flags], expected)
+    assert list(tmp_path.iterdir()) == []  # neither --out nor a staging folder beside it
+
+
+def test_bad_out_refused_and_left_alone(tmp_path, capsys, monkeypatch):
+    a_file = tmp_path / "a_file"
+    a_file.write_text("mine")
+    user = tmp_path / "user"
+    user.mkdir()
+    (user / "notes.txt").write_text("mine too")
+    (tmp_path / "link").symlink_to(user)
+    cases = [
+        (a_file, "is a file, not a folder"),
+        (a_file / "sub" / "out", f"is under {a_file}, a file"),
+        (user, "holds files the study did not write (notes.txt)"),
+        (tmp_path / "link", "is a symbolic link"),
+        (Path("."), "is the working directory or holds it"),
+    ]
+    if Path("/proc/self").is_dir():
+        cases.append((Path("/proc/study"), "cannot create the output folder beside it"))
+    before = {p: _files(p) if p.is_dir() else p.read_bytes() for p in (user, a_file)}
+    monkeypatch.chdir(tmp_path)
+    for out, expected in cases:
+        _refused(capsys, ["frozenlake", "--out", str(out)], expected)
+    assert {p: _files(p) if p.is_dir() else p.read_bytes() for p in (user, a_file)} == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a_file", "link", "user"]
+
+
+def test_unreachable_goal_scores_zero_and_draws_every_figure(tmp_path):
+    mdp = TabularMDP.from_gym("FrozenLake-v1", 0.95, make_kwargs={"desc": UNREACHABLE.split(",")})
+    assert not mdp.goal.any()  # the holes are not goals because the G cannot be reached
+    out = tmp_path / "out"
+    exercises = ["--exercises", "--ex-demo-counts", "1,2", "--ex-datasets", "2"]
+    exercises += ["--ex-error-datasets", "2", "--ex-fit-steps", "5", "--max-steps", "20"]
+    assert main(_small(out, "--desc", UNREACHABLE, *exercises)) == 0
+    r = json.loads((out / "results.json").read_text())
+    assert r["expert"]["exact_success"] == 0.0
+    assert r["evaluation"]["expert"]["rate"] == r["evaluation"]["clone"]["rate"] == 0.0
+    assert all(x["rate"] == 0.0 and x["exact"] == 0.0 for x in r["dagger"]["rounds"])
+    assert all(max(r["sweep"][n]["rates"]) == 0.0 for n in ("1", "3"))
+    assert np.all(np.array(r["exercises"]["budget"]["dagger"]) == 0.0)
+    assert {f"{f}.png" for f in outputs.FIGURES} <= set(os.listdir(out))
+    claims = {c["claim"]: c for c in r["prose_checks"]}
+    assert claims["expert success rate 0.0%"]["agrees"]  # 0 lies in the Wilson interval at 0/50
+
+
+def test_figures_at_zero_and_full_success_and_empty_sweeps(tmp_path):
+    n = 100
+    rates, ci = [0.0, 1.0], [wilson_interval(0, n), wilson_interval(n, n)]
+    drawn = [
+        figures.plot_dagger([3, 6], rates, ci, rates, 1.0, tmp_path / "dagger.png"),
+        figures.plot_sweep([], [], [], 0.0, tmp_path / "sweep.png"),
+        figures.plot_chain([], tmp_path / "chain.png"),
+        figures.plot_demo_counts([], np.zeros((0, 2)), np.zeros((0, 2)), 0.0, tmp_path / "d.png"),
+        figures.plot_occupancy(
+            np.array([[b"S", b"G"]]), [np.zeros(2)], [np.zeros(2)], ["x"], tmp_path / "o.png"
+        ),
+    ]
+    assert all(p.stat().st_size > 1000 for p in drawn)
+
+
+def test_interrupted_run_leaves_previous_results_whole(tmp_path, previous, monkeypatch):
+    out = tmp_path / "out"
+    shutil.copytree(previous, out)
+    before = _files(out)
+
+    def interrupted(ctx):
+        raise KeyboardInterrupt  # Ctrl-C in section 7, after four figures were drawn
+
+    monkeypatch.setattr(study, "dagger_rounds", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        main(_small(out, "--demo-seed", "7"))
+    assert _files(out) == before and _leftovers(out) == []
+    fresh = tmp_path / "fresh"
+    with pytest.raises(KeyboardInterrupt):
+        main(_small(fresh))
+    assert not fresh.exists() and _leftovers(fresh) == []  # no partial --out
+
+
+def test_sigkill_mid_run_leaves_previous_results_whole(tmp_path, previous, capsys):
+    out = tmp_path / "out"
+    shutil.copytree(previous, out)
+    before = _files(out)
+    argv = _small(out, "--dagger-rounds", "1000")  # long enough to be killed mid-run
+    proc = subprocess.Popen([sys.executable, "-m", "imitrl", *argv], stdout=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 60
+        while not any(p.glob("*.png") for p in _leftovers(out)):  # a figure drawn: mid-run
+            assert proc.poll() is None and time.monotonic() < deadline
+            time.sleep(0.05)
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+    assert _files(out) == before
+    (killed,) = _leftovers(out)  # the killed run's staging folder, named by its pid
+    assert f".partial-{proc.pid}-" in killed.name
+    assert main(_small(out)) == 0  # the next run removes it and replaces the previous results
+    assert f"removed {killed}" in capsys.readouterr().err
+    assert _leftovers(out) == [] and _files(out) != before
+
+
+def test_previous_results_left_aside_by_a_kill_are_put_back(tmp_path, previous, capsys):
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()  # a pid that no longer runs
+    out = tmp_path / "out"
+    shutil.copytree(previous, tmp_path / f".out.previous-{dead.pid}-0000")
+    before = _files(tmp_path / f".out.previous-{dead.pid}-0000")
+    staging = outputs.prepare(out)  # killed between the two renames: out missing
+    assert _files(out) == before and "put back" in capsys.readouterr().err
+    outputs.discard(staging)
+    assert _leftovers(out) == [] and outputs.is_study_output(out)
