@@ -151,6 +151,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (ValueError, ImportError) as err:  # bad flags, unknown names, missing extras
         print(f"imitrl {args.command}: {err}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:  # outputs are written whole or not at all (see each job)
+        print(f"imitrl {args.command}: interrupted", file=sys.stderr)
+        return 130
     if command.report is not None:
         for line in command.report(results):
             print(line)
