@@ -190,9 +190,8 @@ def test_load_errors(tmp_path):
     buf.save(tmp_path / "ok")
     with pytest.raises(ValueError, match="cannot load"):  # no learner was saved
         DemonstrationBuffer.load(tmp_path / "ok", learner=ActorCritic.tabular(16, 4))
-    meta = next((tmp_path / "ok" / "components").glob("*buffer_meta")) / "value.json"
-    meta.write_text("{not json")
-    with pytest.raises(ValueError, match="cannot read the checkpoint's metadata"):
+    (tmp_path / "ok" / "manifest.json").write_text("{not json")
+    with pytest.raises(ValueError, match=r"manifest\.json: not a checkpoint manifest"):
         DemonstrationBuffer.load(tmp_path / "ok")
     with pytest.raises(ValueError, match="empty"):
         DemonstrationBuffer().save(tmp_path / "empty")

@@ -176,10 +176,10 @@ def test_extend_after_an_exactly_full_storage_lands_after_the_old_rows():
     first = _rows(8, 0)
     assert torch.equal(buf.extend(first), torch.arange(8))
     # torchrl's writer has wrapped: left alone, the next extend would overwrite row 0.
-    assert len(buf) == 8 and writer_cursor(buf.rb) == 0
+    assert len(buf) == 8 and writer_cursor(buf._rb) == 0
     index = buf.extend(_rows(5, buf.next_episode))
     assert torch.equal(index, torch.arange(8, 13))
-    assert len(buf) == 13 and writer_cursor(buf.rb) == 13
+    assert len(buf) == 13 and writer_cursor(buf._rb) == 13
     assert torch.equal(buf.data[:8][keys.OBSERVATION], first[keys.OBSERVATION])
     assert buf.data[keys.EPISODE].tolist() == [0] * 8 + [1] * 5
 
@@ -189,7 +189,7 @@ def test_a_rejected_extend_changes_nothing_and_the_next_lands_after_the_old_rows
     buf = DemonstrationBuffer(capacity=8)
     buf.extend(_rows(filled, 0))
     before = buf.data.clone()
-    cursor, capacity = writer_cursor(buf.rb), buf.storage.max_size
+    cursor, capacity = writer_cursor(buf._rb), buf.capacity
     bad = [
         _rows(5, buf.next_episode, nan=True),  # NaN reward
         _rows(5, 0),  # episode id already used
@@ -198,20 +198,21 @@ def test_a_rejected_extend_changes_nothing_and_the_next_lands_after_the_old_rows
     for rows in bad:
         with pytest.raises(ValueError):
             buf.extend(rows)
-        assert len(buf) == filled and buf.storage.max_size == capacity
-        assert writer_cursor(buf.rb) == cursor
+        assert len(buf) == filled and buf.capacity == capacity
+        assert writer_cursor(buf._rb) == cursor
         _assert_same_tensordict(buf.data, before)
     index = buf.extend(_rows(5, buf.next_episode))
     assert torch.equal(index, torch.arange(filled, filled + 5))
     _assert_same_tensordict(buf.data[:filled], before)
-    assert len(buf) == filled + 5 == writer_cursor(buf.rb)
+    assert len(buf) == filled + 5 == writer_cursor(buf._rb)
 
 
 def test_a_reloaded_full_buffer_extends_after_its_old_rows(tmp_path):
     buf = DemonstrationBuffer(capacity=8)
     buf.extend(_rows(8, 0))
     loaded, _ = DemonstrationBuffer.load(buf.save(tmp_path / "ckpt"))
-    assert writer_cursor(loaded.rb) == writer_cursor(buf.rb) == 0  # the wrapped cursor is saved
+    # a loaded buffer is exactly full: its writer has wrapped, like the saved one
+    assert writer_cursor(loaded._rb) == writer_cursor(buf._rb) == 0
     index = loaded.extend(_rows(3, loaded.next_episode))
     assert torch.equal(index, torch.arange(8, 11))
     _assert_same_tensordict(loaded.data[:8], buf.data)

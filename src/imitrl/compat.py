@@ -97,9 +97,11 @@ def grow_tensor_storage(storage: LazyTensorStorage, new_size: int) -> None:
 
     Why: a ``LazyTensorStorage`` preallocates one tensordict of ``max_size`` rows at
     its first write and keeps it in the private ``_storage``; torchrl has no public
-    way to enlarge it (``max_size`` alone only changes where the writer wraps). The
-    demonstration buffer must grow instead of wrapping, so this reallocates that
-    tensordict at ``new_size`` rows and copies the first ``len(storage)`` rows over.
+    way to enlarge it. Raising ``max_size`` alone is silently wrong: the tensordict keeps
+    its old size, writes past it land on the first rows and ``len`` counts rows that do
+    not exist (seen on torchrl 0.14.1). The demonstration buffer must grow instead of
+    wrapping, so this reallocates that tensordict at ``new_size`` rows and copies the
+    first ``len(storage)`` rows over.
     ``tests/test_buffer_properties.py`` checks that a buffer grown this way holds the
     same rows as a ``LazyTensorStorage`` allocated large enough from the start.
     """

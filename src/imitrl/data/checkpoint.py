@@ -1,0 +1,442 @@
+"""The demonstration buffer's checkpoint: files listed in a manifest with sizes and SHA-256.
+
+Layout of a checkpoint at ``path`` (:meth:`~imitrl.data.DemonstrationBuffer.save`)::
+
+    path/
+      manifest.json     {"format": ..., "content": {..., "files": {name: {"bytes", "sha256"}}},
+                         "content_sha256": sha256 of the canonical JSON of "content"}
+      <name>            every file "content.files" lists, and nothing else
+
+What the files hold: one raw file per key of the rows (:func:`encode_rows` /
+:func:`decode_rows`: the rows only, never the storage's spare capacity), the learner's
+and its optimizers' state dicts (:func:`learner_components`, :func:`restore_learner`),
+and a JSON state (:func:`state_json`). The rest of this module knows nothing of that.
+
+Writing (:func:`write_checkpoint`) is atomic: the files go to a hidden temporary
+sibling ``.<name>.tmp-<pid>-<hex>``, each is fsynced, then the directory is moved into
+place. An existing ``path`` is replaced only when it is empty or a checkpoint of the
+same format holding nothing but its listed files; the swap is one
+``renameat2(RENAME_EXCHANGE)`` on Linux, so ``path`` always holds the old or the new
+checkpoint, whole, even under ``kill -9``. (Where the exchange is unsupported the old
+checkpoint is moved aside to ``.<name>.old-<pid>-<hex>`` for the instant between two
+renames; a load that finds ``path`` missing names that folder.) Leftover temporary
+siblings of killed saves are removed by the next save to the same path.
+
+Reading (:func:`read_checkpoint`) checks everything before interpreting any byte:
+the manifest's format and its own checksum, that the directory holds exactly the
+listed files, each file's size and SHA-256. Any mismatch is a ``ValueError`` that names
+the file. Reading opens files read-only and writes nothing.
+"""
+
+from __future__ import annotations
+
+import copy
+import ctypes
+import errno
+import hashlib
+import io
+import json
+import os
+import re
+import shutil
+import stat
+import sys
+import uuid
+from pathlib import Path
+from typing import Any
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+
+__all__ = [
+    "MANIFEST",
+    "decode_rows",
+    "encode_rows",
+    "learner_components",
+    "read_checkpoint",
+    "restore_learner",
+    "state_json",
+    "write_checkpoint",
+]
+
+MANIFEST = "manifest.json"
+_NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,127}$")  # flat names, no path parts
+_LEFTOVER = re.compile(r"^\.(?P<name>.+)\.(?P<kind>tmp|old)-(?P<pid>\d+)-[0-9a-f]{32}$")
+_MAX_MANIFEST_BYTES = 16 << 20
+
+
+# ------------------------------------------------------------------------ rows
+# the dtypes a column file may hold, by the name the manifest records
+_DTYPES = {
+    name: getattr(torch, name)
+    for name in (
+        *("bool", "uint8", "int8", "int16", "int32", "int64"),
+        *("float16", "bfloat16", "float32", "float64", "complex64", "complex128"),
+    )
+}
+
+
+def encode_rows(rows: TensorDictBase) -> tuple[dict[str, memoryview], list[dict[str, Any]]]:
+    """One file per key of ``rows`` [N]: ``(files, columns)``, ``files[name]`` the key's
+    N rows as raw bytes (C order, this machine's byte order), ``columns`` the manifest
+    entries ``{"key": [parts], "dtype", "shape": trailing shape, "file"}``."""
+    files, columns = {}, []
+    for i, key in enumerate(rows.keys(include_nested=True, leaves_only=True)):
+        value = rows.get(key)
+        dtype = str(value.dtype).removeprefix("torch.")
+        if _DTYPES.get(dtype) is not value.dtype:
+            raise ValueError(f"cannot save {key!r}: dtype {value.dtype} has no file encoding")
+        name = f"column_{i:03d}.bin"
+        flat = value.detach().cpu().contiguous().reshape(-1)  # no copy for a storage slice
+        files[name] = memoryview(flat.view(torch.uint8).numpy())
+        parts = [key] if isinstance(key, str) else list(key)
+        columns.append({"key": parts, "dtype": dtype, "shape": list(value.shape[1:]), "file": name})
+    return files, columns
+
+
+def decode_rows(content: dict[str, Any], files: dict[str, torch.Tensor]) -> TensorDict:
+    """The rows that :func:`encode_rows` wrote, from verified files (views, no copy).
+
+    ``content`` holds ``rows`` (N), ``byteorder`` and ``columns``; raises ``ValueError``
+    (or ``KeyError``/``TypeError`` on a malformed entry) if they disagree with the files.
+    """
+    if content["byteorder"] != sys.byteorder:
+        raise ValueError(f"{content['byteorder']}-endian data on a {sys.byteorder}-endian machine")
+    n = content["rows"]
+    if type(n) is not int or n < 1:
+        raise ValueError(f"rows must be a positive integer, got {n!r}")
+    rows = TensorDict({}, batch_size=[n])
+    for column in content["columns"]:
+        dtype, shape = _DTYPES[column["dtype"]], torch.Size(column["shape"])
+        raw = files[column["file"]]
+        expected = n * shape.numel() * torch.empty((), dtype=dtype).element_size()
+        if raw.numel() != expected:
+            raise ValueError(f"{column['file']}: {raw.numel()} bytes, {n} rows need {expected}")
+        parts = column["key"]
+        rows.set(tuple(parts) if len(parts) > 1 else parts[0], raw.view(dtype).reshape(n, *shape))
+    return rows
+
+
+def state_json(state: dict[str, Any] | None) -> str:
+    """``state`` as JSON text; refuses what JSON would not give back unchanged."""
+    state = {} if state is None else state
+    if not isinstance(state, dict):
+        raise ValueError(f"state must be a dict of plain JSON values, got {type(state).__name__}")
+    try:
+        text = json.dumps(state, allow_nan=False)
+    except (TypeError, ValueError) as err:
+        raise ValueError(
+            f"state must be plain JSON (dict, list, str, int, float, bool, None): {err}"
+        ) from None
+    if json.loads(text) != state:
+        raise ValueError("state does not survive a JSON round trip unchanged (tuples? int keys?)")
+    return text
+
+
+# ---------------------------------------------------------------------- learner
+def learner_components(learner: torch.nn.Module) -> dict[str, Any]:
+    """The learner's weights and, for an imitrl ``Learner``, every optimizer it declares."""
+    from imitrl.policies.learner import Learner  # policies import the buffer's users, not it
+
+    out: dict[str, Any] = {"learner": learner}
+    if isinstance(learner, Learner):
+        out.update(learner.optimizers())
+    return out
+
+
+def restore_learner(
+    learner: torch.nn.Module,
+    saved: dict[str, str] | None,
+    files: dict[str, torch.Tensor],
+    path: Path,
+) -> None:
+    """Load the saved weights and optimizers into ``learner``; all or nothing."""
+    components = learner_components(learner)
+    if saved is None:
+        raise ValueError(f"{path}: cannot load the learner: the checkpoint was saved without one")
+    if set(saved) != set(components):
+        raise ValueError(
+            f"{path}: cannot load the learner: the checkpoint holds {sorted(saved)}, "
+            f"the given learner has {sorted(components)}"
+        )
+    states = {}
+    for component, name in saved.items():
+        try:
+            states[component] = torch.load(
+                io.BytesIO(bytes(files[name].numpy())), weights_only=True
+            )
+        except Exception as err:  # torch.load raises assorted errors on a bad archive
+            raise ValueError(f"{path / name}: cannot load {component} ({err})") from None
+    backup = {c: copy.deepcopy(obj.state_dict()) for c, obj in components.items()}
+    for component, obj in components.items():
+        try:
+            obj.load_state_dict(states[component])
+        except (RuntimeError, ValueError, KeyError, TypeError) as err:
+            for c, o in components.items():  # leave the caller's learner as it was
+                o.load_state_dict(backup[c])
+            raise ValueError(
+                f"{path / saved[component]}: cannot load {component} into the given learner ({err})"
+            ) from None
+
+
+def _canonical(content: dict[str, Any]) -> bytes:
+    return json.dumps(content, sort_keys=True, separators=(",", ":"), allow_nan=False).encode()
+
+
+# ------------------------------------------------------------------------ write
+def write_checkpoint(
+    path: str | Path, files: dict[str, bytes | memoryview], content: dict[str, Any], *, fmt: str
+) -> Path:
+    """Write ``files`` and a manifest (``fmt``, ``content`` plus every file's size and
+    SHA-256) as the checkpoint directory ``path``, atomically; returns the resolved path.
+
+    Raises:
+        ValueError: ``path`` is a file, the working directory or one of its parents, or a
+            directory that is not a checkpoint of format ``fmt`` (it is left untouched);
+            a file name is not a plain name.
+    """
+    target = Path(path).expanduser().absolute()
+    if target.name in ("", ".", ".."):
+        target = target.resolve()
+    for name in files:
+        if not _NAME.match(name) or name == MANIFEST:
+            raise ValueError(f"checkpoint file name {name!r} must be a plain file name")
+    _check_replaceable(target, fmt)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    _remove_leftovers(target)
+    tmp = target.parent / f".{target.name}.tmp-{os.getpid()}-{uuid.uuid4().hex}"
+    tmp.mkdir()
+    try:
+        listed = {name: _write_file(tmp / name, data) for name, data in files.items()}
+        body = {**content, "files": listed}
+        manifest = {"format": fmt, "content": body, "content_sha256": _sha256(_canonical(body))}
+        text = json.dumps(manifest, indent=1, sort_keys=True, allow_nan=False) + "\n"
+        _write_file(tmp / MANIFEST, text.encode())
+        _fsync_dir(tmp)
+        _swap_into_place(tmp, target, fmt)
+    finally:
+        if tmp.exists():  # an error before the swap, or the old checkpoint after an exchange
+            shutil.rmtree(tmp, ignore_errors=True)
+    return target
+
+
+def _write_file(path: Path, data: bytes | memoryview) -> dict[str, Any]:
+    with open(path, "xb") as f:
+        f.write(data)
+        f.flush()
+        os.fsync(f.fileno())
+    return {"bytes": memoryview(data).nbytes, "sha256": _sha256(data)}
+
+
+def _sha256(data: bytes | memoryview) -> str:
+    return hashlib.sha256(data).hexdigest()
+
+
+def _fsync_dir(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _check_replaceable(target: Path, fmt: str) -> None:
+    """Refuse (ValueError) to replace anything at ``target`` but an empty directory or a
+    checkpoint of format ``fmt`` holding only its own files."""
+    if not os.path.lexists(target):
+        return
+    if target.is_symlink() or not target.is_dir():
+        raise ValueError(f"{target} is a link or not a directory: refusing to replace it")
+    cwd = Path.cwd().resolve()
+    if target.resolve() == cwd or target.resolve() in cwd.parents:
+        raise ValueError(f"{target} is the working directory or holds it: refusing to replace it")
+    entries = sorted(os.listdir(target))
+    if not entries:
+        return
+    try:
+        content = _read_manifest(target, fmt)
+    except ValueError as err:
+        raise ValueError(
+            f"{target} exists and is not a readable checkpoint of format {fmt!r}: refusing "
+            f"to replace it ({err})"
+        ) from None
+    unlisted = sorted(set(entries) - set(content["files"]) - {MANIFEST})
+    if unlisted:
+        raise ValueError(
+            f"{target} holds files its manifest does not list ({unlisted[:5]}): refusing to "
+            "replace it"
+        )
+
+
+def _swap_into_place(tmp: Path, target: Path, fmt: str) -> None:
+    try:
+        os.rename(tmp, target)  # no checkpoint there yet (or an empty directory)
+    except OSError as err:
+        if err.errno not in (errno.ENOTEMPTY, errno.EEXIST):
+            raise
+        _check_replaceable(target, fmt)  # again: it may have changed since the first check
+        if not _exchange(tmp, target):  # tmp now holds the old checkpoint, removed by the caller
+            old = target.parent / f".{target.name}.old-{os.getpid()}-{uuid.uuid4().hex}"
+            os.rename(target, old)
+            try:
+                os.rename(tmp, target)
+            except BaseException:
+                os.rename(old, target)
+                raise
+            shutil.rmtree(old)
+    _fsync_dir(target.parent)
+
+
+def _exchange(a: Path, b: Path) -> bool:
+    """Swap two directory entries atomically (Linux ``renameat2(RENAME_EXCHANGE)``);
+    False where the platform or file system does not offer it."""
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        renameat2 = libc.renameat2
+    except (OSError, AttributeError):
+        return False
+    at_fdcwd, rename_exchange = -100, 2
+    if renameat2(at_fdcwd, os.fsencode(a), at_fdcwd, os.fsencode(b), rename_exchange) == 0:
+        return True
+    code = ctypes.get_errno()
+    if code in (errno.ENOSYS, errno.EINVAL, errno.ENOTSUP, errno.EOPNOTSUPP):
+        return False
+    raise OSError(code, os.strerror(code), str(b))
+
+
+def _remove_leftovers(target: Path) -> None:
+    """Remove the temporary siblings that killed saves to ``target`` left behind (their
+    process is gone); an ``.old-`` sibling is kept unless ``target`` holds a checkpoint."""
+    if not target.parent.is_dir():
+        return
+    for entry in os.listdir(target.parent):
+        m = _LEFTOVER.match(entry)
+        if m is None or m["name"] != target.name or _alive(int(m["pid"])):  # a live save
+            continue
+        if m["kind"] == "old" and not (target / MANIFEST).exists():
+            continue  # the only copy of the previous checkpoint: load() names it
+        shutil.rmtree(target.parent / entry, ignore_errors=True)
+
+
+def _alive(pid: int) -> bool:
+    if pid == os.getpid():  # this process saves one checkpoint at a time: ours are stale
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+# ------------------------------------------------------------------------- read
+def read_checkpoint(
+    path: str | Path, *, fmt: str
+) -> tuple[dict[str, Any], dict[str, torch.Tensor]]:
+    """Verify and read the checkpoint directory ``path``; returns ``(content, files)``,
+    ``files[name]`` the file's bytes as a uint8 tensor ``[size]``.
+
+    Every listed file is checked for presence, size and SHA-256, and the directory for
+    unlisted entries, before any of it is returned. Nothing is written.
+
+    Raises:
+        ValueError: naming the file: no manifest, a manifest of another format or edited,
+            a file missing, unlisted, of another size, or with another checksum.
+    """
+    path = Path(path)
+    if not (path / MANIFEST).is_file():
+        raise ValueError(_missing_message(path))
+    content = _read_manifest(path, fmt)
+    listed = content["files"]
+    present = set(os.listdir(path)) - {MANIFEST}
+    unlisted = sorted(present - set(listed))
+    if unlisted:
+        raise ValueError(f"{path / unlisted[0]}: a file the checkpoint's {MANIFEST} does not list")
+    for name, entry in sorted(listed.items()):  # sizes first: cheap, before any hashing
+        _check_size(path / name, entry["bytes"], os.lstat(path / name) if name in present else None)
+    files = {}
+    for name, entry in sorted(listed.items()):
+        files[name] = _read_verified(path / name, entry["bytes"], entry["sha256"])
+    return content, files
+
+
+def _missing_message(path: Path) -> str:
+    hint = ""
+    if path.parent.is_dir():
+        aside = [e for e in os.listdir(path.parent) if e.startswith(f".{path.name}.old-")]
+        if aside and not path.exists():
+            hint = (
+                f"; an interrupted save left the previous checkpoint at {path.parent / aside[0]}"
+                f" (rename it to {path.name} to use it)"
+            )
+    return f"{path} is not a saved DemonstrationBuffer (no {MANIFEST}){hint}"
+
+
+def _read_manifest(path: Path, fmt: str) -> dict[str, Any]:
+    """The manifest's ``content``, checked against its checksum and for its file table."""
+    where = path / MANIFEST
+    info = os.lstat(where) if os.path.lexists(where) else None
+    if info is None or not stat.S_ISREG(info.st_mode):
+        raise ValueError(f"{where}: missing or not a regular file")
+    if info.st_size > _MAX_MANIFEST_BYTES:
+        raise ValueError(f"{where}: {info.st_size} bytes, too large for a manifest")
+    try:
+        manifest = json.loads(where.read_bytes())
+        body, declared = manifest["content"], manifest["content_sha256"]
+        found = manifest["format"]
+    except (ValueError, KeyError, TypeError) as err:
+        raise ValueError(f"{where}: not a checkpoint manifest ({err})") from None
+    if found != fmt:
+        raise ValueError(f"{where}: format {found!r}, expected {fmt!r}")
+    try:
+        actual = _sha256(_canonical(body))
+    except (ValueError, TypeError) as err:
+        raise ValueError(f"{where}: content is not plain JSON ({err})") from None
+    if actual != declared:
+        raise ValueError(f"{where}: edited or damaged (its content does not match its checksum)")
+    files = body.get("files") if isinstance(body, dict) else None
+    if not isinstance(files, dict) or not all(_valid_entry(n, e) for n, e in files.items()):
+        raise ValueError(f"{where}: malformed file table")
+    return body
+
+
+def _valid_entry(name: Any, entry: Any) -> bool:
+    return (
+        isinstance(name, str)
+        and bool(_NAME.match(name))
+        and name != MANIFEST
+        and isinstance(entry, dict)
+        and type(entry.get("bytes")) is int
+        and entry["bytes"] >= 0
+        and isinstance(entry.get("sha256"), str)
+        and re.fullmatch(r"[0-9a-f]{64}", entry["sha256"]) is not None
+    )
+
+
+def _check_size(where: Path, size: int, info: os.stat_result | None) -> None:
+    if info is None:
+        raise ValueError(f"{where}: missing (the checkpoint's {MANIFEST} lists it)")
+    if not stat.S_ISREG(info.st_mode):
+        raise ValueError(f"{where}: not a regular file")
+    if info.st_size != size:
+        raise ValueError(
+            f"{where}: {info.st_size} bytes, the manifest says {size} (truncated or appended to)"
+        )
+
+
+def _read_verified(where: Path, size: int, sha256: str) -> torch.Tensor:
+    out = torch.empty(size, dtype=torch.uint8)
+    view = memoryview(out.numpy())
+    with open(where, "rb", buffering=0) as f:
+        got = 0
+        while got < size:
+            n = f.readinto(view[got:])
+            if not n:
+                break
+            got += n
+        if got != size or f.read(1):
+            raise ValueError(f"{where}: changed size while being read")
+    if _sha256(view) != sha256:
+        raise ValueError(f"{where}: SHA-256 does not match the manifest (the file was altered)")
+    return out
