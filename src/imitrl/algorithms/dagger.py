@@ -16,6 +16,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Protocol
 
 import torch
@@ -28,9 +29,17 @@ from tqdm.auto import tqdm
 
 from imitrl import keys
 from imitrl.algorithms.bc import BCConfig, BCResult, fit_bc
+from imitrl.algorithms.dagger_checkpoint import (
+    RunState,
+    generator_state,
+    load_run,
+    save_run,
+    set_generator_state,
+)
 from imitrl.data.buffer import DemonstrationBuffer
 from imitrl.data.rollout import rollout_episodes
 from imitrl.envs.limits import episode_limit
+from imitrl.envs.random_state import env_random_state, set_env_random_state
 from imitrl.policies.experts import Expert
 from imitrl.policies.learner import Learner
 from imitrl.policies.mixture import BetaMixer, behaviour_policy
@@ -97,9 +106,15 @@ class EpisodeSource(Protocol):
 
     ``check(expert, learner)`` runs before a learner's first round: it binds the expert
     to the actions the source takes and refuses a learner that cannot act there.
+    ``state_dict()`` / ``load_state_dict(state)`` give and restore, as JSON-able data,
+    the random state the next collection draws from (for resumable runs).
     """
 
     def check(self, expert: Expert, learner: Learner) -> None: ...
+
+    def state_dict(self) -> dict: ...
+
+    def load_state_dict(self, state: dict) -> None: ...
 
     def collect(
         self,
@@ -156,6 +171,15 @@ class EnvSource:
         the env (both before the first step, naming what differs)."""
         expert.bind(self.env.action_spec_unbatched)
         learner.check_env(self.env)
+
+    def state_dict(self) -> dict:
+        """The env's random generators and the learner's sampling generator."""
+        return {"env": env_random_state(self.env), "generator": generator_state(self.generator)}
+
+    def load_state_dict(self, state: dict) -> None:
+        """Restore :meth:`state_dict` (the same kind of env and generator)."""
+        set_env_random_state(self.env, state["env"])
+        set_generator_state(self.generator, state["generator"])
 
     def collect(
         self,
@@ -217,6 +241,8 @@ class RoundRecord:
     """beta of the relabel round collected after this fit"""
     rows_collected: int = 0
     expert_executed_fraction: float | None = None
+    info: dict | None = None
+    """what ``on_fit`` returned for this round (e.g. its evaluation), kept in checkpoints"""
 
 
 @dataclass
@@ -238,10 +264,12 @@ def dagger(
     buffer: DemonstrationBuffer,
     config: DAggerConfig = DAggerConfig(),
     *,
-    on_fit: Callable[[int, Learner], None] | None = None,
+    on_fit: Callable[[int, Learner], dict | None] | None = None,
     train: Callable[[Learner, DemonstrationBuffer], BCResult] | None = None,
     progress: bool = False,
     logger: Logger | None = None,
+    checkpoint_dir: str | Path | None = None,
+    resume: bool = False,
 ) -> DAggerResult:
     """Run DAgger on top of the demonstrations already in ``buffer`` (extended in place).
 
@@ -253,13 +281,51 @@ def dagger(
             acts in the rollouts as its ``exploration`` says.
         buffer: demonstrations (round 0), extended with every relabel round.
         config: rounds, episodes per round, beta schedule, fit.
-        on_fit: called as ``on_fit(round, learner)`` after each fit, before collection.
+        on_fit: called as ``on_fit(round, learner)`` after each fit, before collection;
+            a dict it returns (JSON-able) is kept as the round record's ``info``.
         train: fits a round's learner on the buffer, ``train(learner, buffer) -> BCResult``;
             None = ``fit_bc(learner, buffer, config.bc)``.
         progress: progress bar over rounds (on stderr).
         logger: a TorchRL logger: each round's fit losses (``bc/loss``, steps counted
             across rounds), rows and expert queries (``dagger/*``, step = round).
+        checkpoint_dir: save everything the next round depends on there after every
+            round (:mod:`imitrl.algorithms.dagger_checkpoint`); a directory that already
+            holds a run is refused unless ``resume``.
+        resume: continue the run saved in ``checkpoint_dir`` (a fresh start when it holds
+            none): ``buffer`` must hold the run's demonstrations; the result is identical
+            to the bit to an uninterrupted run.
     """
+    _check_inputs(buffer, expert, checkpoint_dir, resume)
+    coins = torch.Generator().manual_seed(config.seed)
+    mixer = BetaMixer(0.0, generator=coins)
+    run = RunState(next_round=0, records=[], bc_step=0, learner=None)
+    if resume and _holds_run(checkpoint_dir):
+        run = load_run(
+            Path(checkpoint_dir), buffer, make_learner, config=config,
+            record_cls=RoundRecord, mixer_generator=coins, source=source,
+        )  # fmt: skip
+    learner = run.learner
+    rounds = range(run.next_round, config.rounds)
+    for k in tqdm(rounds, desc="dagger", disable=not progress, leave=False):
+        if learner is None or not config.warm_start:
+            learner = _fresh_learner(make_learner, source, expert)
+        record = _fit(k, learner, buffer, config, train, logger, run.bc_step)
+        run.bc_step += record.bc.losses.numel()
+        run.records.append(record)
+        if on_fit is not None:
+            record.info = _info(on_fit(k, learner))
+        if k + 1 < config.rounds:
+            _collect(k, learner, expert, mixer, source, buffer, config, record)
+        if checkpoint_dir is not None:
+            save_run(
+                Path(checkpoint_dir), buffer, learner, next_round=k + 1, config=config,
+                records=run.records, bc_step=run.bc_step, mixer_generator=coins, source=source,
+            )  # fmt: skip
+    assert learner is not None
+    return DAggerResult(learner=learner, rounds=run.records, buffer=buffer)
+
+
+def _check_inputs(buffer, expert, checkpoint_dir, resume: bool) -> None:
     if len(buffer) == 0:
         raise ValueError("DAgger starts from demonstrations: the buffer is empty")
     if not isinstance(expert, Expert):
@@ -267,45 +333,59 @@ def dagger(
             f"the expert must be an imitrl Expert, got {type(expert).__name__} "
             "(wrap a policy module with Expert.from_policy, a function with Expert.from_callable)"
         )
-    mixer = BetaMixer(0.0, generator=torch.Generator().manual_seed(config.seed))
-    learner: Learner | None = None
-    records: list[RoundRecord] = []
-    bc_step = 0
-    for k in tqdm(range(config.rounds), desc="dagger", disable=not progress, leave=False):
-        if learner is None or not config.warm_start:
-            learner = make_learner()
-            if not isinstance(learner, Learner):
-                raise ValueError(
-                    f"make_learner must return an imitrl Learner, got {type(learner).__name__}"
-                )
-            source.check(expert, learner)
-        if train is None:
-            result = fit_bc(learner, buffer, config.bc, logger=logger, log_step=bc_step)
-        else:
-            result = train(learner, buffer)
-        bc_step += result.losses.numel()
-        record = RoundRecord(
-            round=k, rows_trained=len(buffer), expert_queries=len(buffer), bc=result
+    if resume and checkpoint_dir is None:
+        raise ValueError("resume=True needs the checkpoint_dir of the run to continue")
+    if checkpoint_dir is not None and not resume and _holds_run(checkpoint_dir):
+        raise ValueError(
+            f"{checkpoint_dir} holds a saved DAgger run: pass resume=True to continue it, "
+            "or give another checkpoint_dir"
         )
-        if logger is not None:
-            logger.log_scalar("dagger/rows", float(len(buffer)), step=k)
-            logger.log_scalar("dagger/final_loss", result.final_loss, step=k)
-        records.append(record)
-        if on_fit is not None:
-            on_fit(k, learner)
-        if k + 1 < config.rounds:
-            mixer.beta = config.beta(k + 1)
-            behaviour = behaviour_policy(expert, learner.policy, mixer)
-            with set_exploration_type(learner.exploration):  # what EnvSource(exploration=None) uses
-                rows = source.collect(
-                    behaviour,
-                    config.episodes_per_round,
-                    round_index=k + 1,
-                    first_episode=buffer.next_episode,
-                )
-            buffer.extend(rows)
-            record.beta_next = mixer.beta
-            record.rows_collected = rows.shape[0]
-            record.expert_executed_fraction = float(rows.get(keys.EXPERT_EXECUTED).float().mean())
-    assert learner is not None
-    return DAggerResult(learner=learner, rounds=records, buffer=buffer)
+
+
+def _holds_run(checkpoint_dir) -> bool:
+    return (Path(checkpoint_dir) / "manifest.json").exists()
+
+
+def _info(value) -> dict | None:
+    if value is not None and not isinstance(value, dict):
+        raise ValueError(f"on_fit must return None or a dict, got {type(value).__name__}")
+    return value
+
+
+def _fresh_learner(make_learner, source, expert) -> Learner:
+    learner = make_learner()
+    if not isinstance(learner, Learner):
+        raise ValueError(
+            f"make_learner must return an imitrl Learner, got {type(learner).__name__}"
+        )
+    source.check(expert, learner)
+    return learner
+
+
+def _fit(k, learner, buffer, config, train, logger, bc_step) -> RoundRecord:
+    """Round ``k``'s fit on the whole buffer, logged and recorded."""
+    if train is None:
+        result = fit_bc(learner, buffer, config.bc, logger=logger, log_step=bc_step)
+    else:
+        result = train(learner, buffer)
+    if logger is not None:
+        logger.log_scalar("dagger/rows", float(len(buffer)), step=k)
+        logger.log_scalar("dagger/final_loss", result.final_loss, step=k)
+    return RoundRecord(round=k, rows_trained=len(buffer), expert_queries=len(buffer), bc=result)
+
+
+def _collect(k, learner, expert, mixer, source, buffer, config, record) -> None:
+    """Relabel round ``k + 1``: the behaviour policy's episodes, labelled, into the buffer."""
+    mixer.beta = config.beta(k + 1)
+    behaviour = behaviour_policy(expert, learner.policy, mixer)
+    with set_exploration_type(learner.exploration):  # what EnvSource(exploration=None) uses
+        rows = source.collect(
+            behaviour,
+            config.episodes_per_round,
+            round_index=k + 1,
+            first_episode=buffer.next_episode,
+        )
+    buffer.extend(rows)
+    record.beta_next = mixer.beta
+    record.rows_collected = rows.shape[0]
+    record.expert_executed_fraction = float(rows.get(keys.EXPERT_EXECUTED).float().mean())

@@ -67,6 +67,18 @@ class GymnasiumStream:
     def advance(self, count: int) -> None:
         self.position += int(count)
 
+    def state_dict(self) -> dict:
+        """``{"seed", "position"}``: the stream is a function of its seed, so that is all."""
+        return {"seed": self.seed, "position": self.position}
+
+    def load_state_dict(self, state: dict) -> None:
+        """Continue the stream of ``state`` (its seed must be this stream's)."""
+        if state.get("seed") != self.seed or int(state.get("position", -1)) < 1:
+            raise ValueError(
+                f"stream state {state} does not continue this stream (seed {self.seed})"
+            )
+        self.position = int(state["position"])
+
 
 @dataclass(frozen=True)
 class Episodes:
@@ -363,6 +375,14 @@ class GymnasiumStreamSource:
 
     def __init__(self, mdp: TabularMDP, stream: GymnasiumStream) -> None:
         self.mdp, self.stream = mdp, stream
+
+    def state_dict(self) -> dict:
+        """The stream's position (see :meth:`GymnasiumStream.state_dict`)."""
+        return {"stream": self.stream.state_dict()}
+
+    def load_state_dict(self, state: dict) -> None:
+        """Continue from :meth:`state_dict`."""
+        self.stream.load_state_dict(state["stream"])
 
     def check(self, expert, learner) -> None:
         """Refuse a learner that does not act on the MDP's states and actions (the expert's

@@ -51,6 +51,18 @@ class CorruptedSource:
         """The wrapped source's checks."""
         self.source.check(expert, learner)
 
+    def state_dict(self) -> dict:
+        """The wrapped source's state and the corruption generator's."""
+        return {
+            "source": self.source.state_dict(),
+            "generator": self.generator.get_state().tolist(),
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        """Restore :meth:`state_dict`."""
+        self.source.load_state_dict(state["source"])
+        self.generator.set_state(torch.tensor(state["generator"], dtype=torch.uint8))
+
     def collect(
         self,
         behaviour: TensorDictModuleBase,
