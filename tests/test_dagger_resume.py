@@ -93,3 +93,39 @@ def test_resuming_with_another_config_or_other_demonstrations_is_refused(tmp_pat
     wrong.extend(source.collect(expert.as_actor(), 1, round_index=0, first_episode=3))
     with pytest.raises(ValueError, match="does not hold the demonstrations"):
         dagger(source, expert, make_learner, wrong, config, checkpoint_dir=ckpt, resume=True)
+
+
+def test_imitrl_dagger_resume_after_a_kill_gives_the_uninterrupted_results(tmp_path):
+    """The CLI: kill `imitrl dagger` once its first round is checkpointed, then --resume."""
+    import json
+    import time
+
+    from imitrl.cli import main
+
+    flags = [
+        "dagger", "--env", "CartPole-v1", "--expert", "cartpole", "--demos", "1",
+        "--rounds", "4", "--episodes-per-round", "2", "--steps", "40", "--batch-size", "32",
+        "--hidden", "16,16", "--eval-episodes", "4", "--max-episode-steps", "60", "--no-progress",
+    ]  # fmt: skip
+    assert main([*flags, "--out", str(tmp_path / "whole")]) == 0
+    killed = tmp_path / "killed"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "imitrl", *flags, "--out", str(killed)],
+        cwd=ROOT,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    manifest = killed / "run" / "manifest.json"
+    deadline = time.monotonic() + 240
+    while not manifest.exists() and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    assert manifest.exists(), "the run ended before its first checkpoint"
+    assert not (killed / "results.json").exists(), "the run finished before the kill"
+    assert main([*flags, "--out", str(killed)]) == 2  # a saved run is not overwritten
+    assert main([*flags, "--out", str(killed), "--resume"]) == 0
+    whole = json.loads((tmp_path / "whole" / "results.json").read_text())
+    resumed = json.loads((killed / "results.json").read_text())
+    for key in ("rounds", "learner", "expert", "final_loss"):
+        assert resumed[key] == whole[key], key

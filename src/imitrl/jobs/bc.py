@@ -40,7 +40,6 @@ from imitrl.jobs.resolve import (
     learner_factory,
     load_dataset,
     make_expert,
-    step_bound,
     time_limit,
 )
 from imitrl.policies import Learner, as_actor
@@ -144,8 +143,11 @@ class Setup:
     """the run's TorchRL logger"""
 
 
-def prepare(config: BCJob, name: str) -> Setup:
-    """Resolve and check every flag of ``config`` before any work (ValueError otherwise)."""
+def prepare(config: BCJob, name: str, *, keep_logs: bool = False) -> Setup:
+    """Resolve and check every flag of ``config`` before any work (ValueError otherwise).
+
+    ``keep_logs``: append to the command's earlier CSV logs (a resumed run) instead of
+    starting them afresh."""
     env = make_env(
         config.env,
         seed=config.seed,
@@ -162,7 +164,7 @@ def prepare(config: BCJob, name: str) -> Setup:
     )
     if config.dataset is not None:
         dataset_format(config.dataset)
-    logger = make_logger(config.logger, config.out, name)
+    logger = make_logger(config.logger, config.out, name, fresh=not keep_logs)
     return Setup(env, limit, expert, make_learner, logger)
 
 
@@ -171,13 +173,7 @@ def demonstrations(config: BCJob, setup: Setup) -> DemonstrationBuffer:
     if config.dataset is not None:
         rows = load_dataset(config.dataset, setup.env)
     else:
-        rows = rollout_episodes(
-            setup.env,
-            as_actor(setup.expert),
-            config.demos,
-            exploration=DETERMINISTIC,
-            max_steps=step_bound(setup.limit, config.demos, config.num_envs),
-        )
+        rows = rollout_episodes(setup.env, setup.expert, config.demos)  # greedy, whole episodes
     buffer = DemonstrationBuffer(action_spec=setup.env.action_spec_unbatched)
     buffer.extend(rows)
     return buffer

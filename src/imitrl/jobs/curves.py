@@ -73,8 +73,11 @@ def scalars_dir(out: Path, name: str) -> Path:
     return Path(out) / "logs" / "csv" / name / "scalars"
 
 
-def make_logger(kind: str, out: Path, name: str) -> Logger:
+def make_logger(kind: str, out: Path, name: str, *, fresh: bool = True) -> Logger:
     """The run's logger: CSV files under ``out/logs/csv/name``, plus ``kind``'s backend.
+
+    ``fresh`` removes the command's earlier CSV files first (TorchRL's CSV logger
+    appends); a resumed run keeps them and logs its rounds after theirs.
 
     Raises:
         ValueError: unknown ``kind``; ``tensorboard`` or ``wandb`` not installed.
@@ -83,7 +86,8 @@ def make_logger(kind: str, out: Path, name: str) -> Logger:
         raise ValueError(f"--logger must be one of {', '.join(LOGGERS)}, got {kind!r}")
     if kind != "csv" and importlib.util.find_spec(kind) is None:
         raise ValueError(f"--logger {kind} needs the {kind!r} package (pip install {kind})")
-    shutil.rmtree(scalars_dir(out, name).parent, ignore_errors=True)
+    if fresh:
+        shutil.rmtree(scalars_dir(out, name).parent, ignore_errors=True)
     csv = CSVLogger(exp_name=name, log_dir=str(Path(out) / "logs" / "csv"))
     if kind == "csv":
         return csv

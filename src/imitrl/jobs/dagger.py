@@ -6,7 +6,9 @@ the demonstrations; after each fit the learner is evaluated (logged as
 ``eval/return`` at step = round) and, but after the last, rolls
 ``--episodes-per-round`` episodes on the env (the expert's action executed with
 probability ``--beta``), every visited state labelled by the expert and added to
-the buffer. The last round's learner is saved as the checkpoint.
+the buffer. The last round's learner is saved as the checkpoint. After every round
+the whole run is checkpointed in ``OUT/run`` (:func:`imitrl.algorithms.dagger`'s
+``checkpoint_dir``); ``--resume`` continues an interrupted run from there.
 """
 
 from __future__ import annotations
@@ -29,7 +31,6 @@ from imitrl.jobs.bc import (
     prepare,
 )
 from imitrl.jobs.evaluate import format_return
-from imitrl.jobs.resolve import step_bound
 from imitrl.policies import Learner
 
 __all__ = ["DAggerJob", "report", "run_dagger"]
@@ -51,6 +52,9 @@ class DAggerJob(BCJob):
     """probability of executing the expert's action in the relabel rounds (constant)"""
     warm_start: bool = False
     """keep training one learner across rounds instead of fitting a fresh one each round"""
+    resume: bool = False
+    """continue the run saved in OUT/run by an interrupted imitrl dagger with the same
+    flags (bit-identical to an uninterrupted run); without it an OUT holding a run is refused"""
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -65,21 +69,24 @@ class DAggerJob(BCJob):
 def run_dagger(config: DAggerJob) -> dict:
     """DAgger as ``config`` says (module docstring); returns what results.json holds."""
     start = time.perf_counter()
-    setup = prepare(config, "dagger")
+    checkpoint = config.out / "run"
+    if (checkpoint / "manifest.json").exists() and not config.resume:
+        raise ValueError(
+            f"{config.out} holds a saved DAgger run: add --resume to continue it, or give "
+            "another --out"
+        )
+    setup = prepare(config, "dagger", keep_logs=config.resume)
     buffer = demonstrations(config, setup)
     demo_rows, demo_episodes = len(buffer), buffer.num_episodes
     expert_ev = evaluate_expert(config, setup)
-    evaluations: list[dict] = []
 
-    def on_fit(round_index: int, learner: Learner) -> None:
+    def on_fit(round_index: int, learner: Learner) -> dict:
         ev = evaluate_learner(config, learner)
-        evaluations.append(ev)
         log_evaluation(setup.logger, round_index, ev, expert_ev if round_index == 0 else None)
+        return ev  # kept in the round's record, and so in the checkpoint
 
-    source = EnvSource(
-        setup.env,  # exploration None: each round's learner acts as it says
-        max_steps=step_bound(setup.limit, config.episodes_per_round, config.num_envs),
-        generator=torch.Generator().manual_seed(config.seed),
+    source = EnvSource(  # exploration None: each round's learner acts as it says
+        setup.env, generator=torch.Generator().manual_seed(config.seed)
     )
     result = dagger(
         source,
@@ -97,7 +104,10 @@ def run_dagger(config: DAggerJob) -> dict:
         on_fit=on_fit,
         progress=config.progress,
         logger=setup.logger,
+        checkpoint_dir=checkpoint,
+        resume=config.resume,
     )
+    evaluations = [r.info for r in result.rounds]
     rounds = [
         {
             "round": r.round,

@@ -20,7 +20,7 @@ from torchrl.envs.utils import ExplorationType
 from imitrl.envs import make_env
 from imitrl.evaluation import evaluate
 from imitrl.jobs.checkpoint import load_learner, read_config
-from imitrl.jobs.resolve import EXPERT_KINDS, make_expert, step_bound, time_limit
+from imitrl.jobs.resolve import EXPERT_KINDS, make_expert, time_limit
 from imitrl.policies import as_actor
 
 __all__ = ["EVAL_LANES", "EvalJob", "evaluate_returns", "format_return", "report", "run_eval"]
@@ -45,14 +45,13 @@ def evaluate_returns(
     """
     lanes = min(episodes, EVAL_LANES)
     env = make_env(env_id, seed=seed, num_envs=lanes, max_episode_steps=max_episode_steps)
-    limit = time_limit(env_id, max_episode_steps)
+    time_limit(env_id, max_episode_steps)  # an env without a time limit is refused up front
     try:
         ev = evaluate(
             env,
             policy,
             episodes,
             exploration=exploration,
-            max_steps=step_bound(limit, episodes, lanes),
             generator=torch.Generator().manual_seed(seed),  # sampled policies, reproducibly
         )
     finally:

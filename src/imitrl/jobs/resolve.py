@@ -21,7 +21,6 @@ exit status 2.
 from __future__ import annotations
 
 import importlib
-import math
 from collections.abc import Callable
 from pathlib import Path
 
@@ -44,7 +43,6 @@ __all__ = [
     "learner_factory",
     "load_dataset",
     "make_expert",
-    "step_bound",
     "task_spec",
     "time_limit",
 ]
@@ -122,12 +120,6 @@ def time_limit(env_id: str, override: int | None) -> int:
     if limit is None:
         raise ValueError(f"{env_id} is registered without a time limit: pass --max-episode-steps")
     return int(limit)
-
-
-def step_bound(limit: int, episodes: int, lanes: int) -> int:
-    """Safety bound on steps per lane for ``episodes`` whole episodes over ``lanes`` lanes
-    (each lane plays ``ceil(episodes / lanes)`` episodes of at most ``limit`` steps)."""
-    return limit * (math.ceil(episodes / lanes) + 1)
 
 
 def task_spec(env: EnvBase) -> TaskSpec:
