@@ -190,3 +190,14 @@ def _lake_env():
     from imitrl.tabular import TabularMDP
 
     return TabularEnv(TabularMDP.from_gym("FrozenLake-v1", gamma=0.95), batch_size=(2,), seed=0)
+
+
+def test_evaluate_refuses_a_learner_that_does_not_fit_the_env_before_any_step():
+    from imitrl.envs import make_env
+    from imitrl.evaluation import evaluate
+
+    env = make_env("CartPole-v1", seed=0)
+    with pytest.raises(ValueError, match=r"shape \(5,\); the env gives shape \(4,\)"):
+        evaluate(env, ActorCritic.mlp(5, 2), 1)
+    with pytest.raises(ValueError, match="writes 3 discrete actions; the env takes 2"):
+        evaluate(env, ActorCritic.mlp(4, 3), 1)

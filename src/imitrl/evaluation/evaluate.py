@@ -141,6 +141,7 @@ def evaluate(
     if num_episodes < 1:
         raise ValueError(f"num_episodes must be positive, got {num_episodes}")
     if isinstance(policy, Learner):
+        policy.check_env(env)  # before the first step, naming both spaces
         exploration = policy.exploration if exploration is None else exploration
         policy = policy.policy
     actor, exploration = rollout_policy(env, policy, exploration)
