@@ -33,7 +33,7 @@ def _batched(fn: Callable[[np.ndarray], np.ndarray]) -> Callable:
         if isinstance(obs, torch.Tensor):
             device = obs.device
             out = fn(_as_float(obs.detach().cpu().numpy()))
-            return torch.from_numpy(np.ascontiguousarray(out)).to(device)
+            return torch.from_numpy(np.array(out)).to(device)  # (ascontiguousarray makes 0-d 1-d)
         return fn(_as_float(np.asarray(obs)))
 
     wrapper.__name__ = fn.__name__
@@ -123,7 +123,7 @@ def lunar_lander(obs: np.ndarray) -> np.ndarray:
         ],
         [2, 3, 1],
         default=0,
-    ).astype(np.int64).reshape(obs.shape[:-1])  # np.select gives [1] for one observation
+    ).astype(np.int64)
 
 
 # --------------------------------------------------------------------------------------

@@ -20,7 +20,7 @@ import pyarrow.compute as pc
 import pyarrow.parquet as pq
 import torch
 
-from imitrl.datasets._common import TORCH_DTYPES, WIDEN
+from imitrl.datasets._common import TORCH_DTYPES, WIDEN, check_finite, exact_cast
 
 __all__ = [
     "column_to_tensor",
@@ -32,21 +32,35 @@ __all__ = [
 ]
 
 
-def read_parquet(path: Path, columns: list[str] | None = None) -> pa.Table:
-    """Read a parquet file, naming the file (and missing columns) in every error."""
+def read_parquet(
+    path: Path, columns: list[str] | None = None, *, declared: list[str] | None = None
+) -> pa.Table:
+    """Read a parquet file, naming the file (and missing columns) in every error.
+
+    Args:
+        columns: the columns to read (all when None).
+        declared: the columns the file must hold, no more and no fewer (a pandas index
+            column aside): a name that differs between a file and its metadata is refused.
+    """
     if not path.is_file():
         raise ValueError(f"{path}: file not found")
     try:
         schema = pq.read_schema(path)
     except (pa.ArrowException, OSError) as err:
         raise ValueError(f"{path}: not a readable parquet file ({err})") from err
-    if columns is not None:
-        missing = [c for c in columns if c not in schema.names]
-        if missing:
-            raise ValueError(
-                f"{path}: declared feature(s) {missing} absent from the file "
-                f"(columns present: {schema.names})"
-            )
+    missing = [c for c in [*(columns or []), *(declared or [])] if c not in schema.names]
+    if missing:
+        raise ValueError(
+            f"{path}: declared feature(s) {sorted(set(missing))} absent from the file "
+            f"(columns present: {schema.names})"
+        )
+    extra = [
+        c
+        for c in schema.names
+        if declared is not None and c not in declared and not c.startswith("__index_level_")
+    ]
+    if extra:
+        raise ValueError(f"{path}: column(s) {extra} are not declared in meta/info.json")
     try:
         return pq.read_table(path, columns=columns)
     except (pa.ArrowException, OSError) as err:
@@ -66,8 +80,12 @@ def column_to_tensor(
     A declared shape ``(1,)`` stored as a scalar column (LeRobot's layout) gives
     ``[N]``; stored as a one-element list it gives ``[N, 1]``.
 
+    Values are cast to the declared dtype only when none changes
+    (:func:`~imitrl.datasets._common.exact_cast`); NaN and inf are refused.
+
     Raises:
-        ValueError: nulls, list lengths that contradict ``shape``, a non-numeric column.
+        ValueError: nulls, list lengths that contradict ``shape``, a non-numeric column,
+            values the declared dtype cannot hold, NaN or inf.
     """
     arr = _storage(col.combine_chunks() if isinstance(col, pa.ChunkedArray) else col)
     n = len(arr)
@@ -114,27 +132,8 @@ def column_to_tensor(
     target = WIDEN.get(dtype, dtype)
     if target not in TORCH_DTYPES:
         raise ValueError(f"{where}: unsupported dtype {dtype!r}")
-    values = np.asarray(arr.to_numpy(zero_copy_only=False))
-    if values.dtype != np.dtype(target):
-        # LeRobot casts columns to the declared dtype on load; do the same, but never
-        # silently between kinds (a float column declared int64 is corrupt)
-        kind_ok = (values.dtype.kind == "f") == (np.dtype(target).kind == "f") or (
-            values.dtype.kind in "iub" and np.dtype(target).kind in "iub"
-        )
-        if not kind_ok:
-            raise ValueError(f"{where}: stores {values.dtype} values but declares dtype {dtype!r}")
-        with np.errstate(over="ignore", invalid="ignore"):
-            cast = values.astype(target)
-        if np.dtype(target).kind in "iub":
-            # integers and booleans must survive the cast (int64 -> int8 would wrap)
-            lost = cast.astype(values.dtype) != values
-        else:
-            # floats may round (LeRobot casts float64 to float32 too) but not overflow
-            lost = np.isfinite(values) & ~np.isfinite(cast)
-        if lost.any():
-            bad = values.ravel()[np.flatnonzero(lost.ravel())[0]].item()
-            raise ValueError(f"{where}: value {bad!r} does not fit the declared dtype {dtype!r}")
-        values = cast
+    values = exact_cast(np.asarray(arr.to_numpy(zero_copy_only=False)), target, where=where)
+    check_finite(values, where=where)
     return torch.from_numpy(values.reshape(n, *dims).copy())
 
 

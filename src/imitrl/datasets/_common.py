@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 from tensordict import TensorDict
 from torchrl.envs import EnvBase
@@ -40,6 +41,58 @@ TORCH_DTYPES: dict[str, torch.dtype] = {
 NUMPY_NAMES: dict[torch.dtype, str] = {v: k for k, v in TORCH_DTYPES.items()}
 # numpy has unsigned types torch lacks: widen them to the next signed type
 WIDEN = {"uint16": "int32", "uint32": "int64"}
+
+
+def exact_cast(values: np.ndarray, dtype: str, *, where: str) -> np.ndarray:
+    """``values`` in the declared numpy ``dtype`` (LeRobot's ``info.json``, a Minari space)
+    when no value changes; ValueError naming ``where`` otherwise.
+
+    Kept: every cast that gives each value back (int64 -> int8 of small values, 0/1 ->
+    bool, integers -> floating when exactly representable), and float64 -> float32,
+    which may round but not overflow (LeRobot itself casts a float64 column to a declared
+    float32; float32 data stored as float64 comes back exactly). Refused: floating ->
+    integer or bool (truncation: 0.7 would load as 0, 0.3 as True), any other float
+    narrowing that changes a value (float32 data declared float16), integers that wrap.
+    """
+    target = np.dtype(dtype)
+    if values.dtype == target:
+        return values
+    if values.dtype.kind not in "fiub":
+        raise ValueError(f"{where}: holds {values.dtype} values, expected numbers or booleans")
+    if values.dtype.kind == "f" and target.kind != "f":
+        raise ValueError(
+            f"{where}: stores {values.dtype} values but declares dtype {dtype!r} (refusing to "
+            "truncate floating data to integers or booleans)"
+        )
+    with np.errstate(all="ignore"):
+        cast = values.astype(target)
+        if values.dtype == np.float64 and target == np.float32:
+            lost = np.isfinite(values) & ~np.isfinite(cast)
+        else:
+            back = cast.astype(values.dtype)
+            lost = back != values
+            if values.dtype.kind == "f":
+                lost &= ~(np.isnan(values) & np.isnan(back))
+    if lost.any():
+        bad = values.ravel()[np.flatnonzero(lost.ravel())[0]].item()
+        raise ValueError(f"{where}: value {bad!r} does not fit the declared dtype {dtype!r}")
+    return cast
+
+
+def check_finite(array: np.ndarray, *, where: str) -> None:
+    """ValueError naming ``where`` and the first frame if floating ``[N, ...]`` values hold
+    NaN or inf."""
+    if array.dtype.kind != "f":
+        return
+    flat = array.reshape(len(array), -1) if array.ndim else array.reshape(1, 1)
+    bad = ~np.isfinite(flat)
+    if bad.any():
+        frame = int(np.flatnonzero(bad.any(axis=1))[0])
+        value = flat[frame][bad[frame]][0]
+        raise ValueError(
+            f"{where}: frame {frame} holds {float(value)!r} (NaN and inf are refused: "
+            "they would poison training)"
+        )
 
 
 def key_name(key: NestedKey) -> str:
@@ -120,8 +173,12 @@ def required_rows(
 
 def _survives(value: torch.Tensor, cast: torch.Tensor) -> torch.Tensor:
     """Mask of the entries of ``value`` that ``cast`` (``value`` in another dtype) holds exactly;
-    for float -> float only overflow counts (rounding float64 to float32 is accepted)."""
+    for float -> float only overflow counts (rounding float64 to float32 is accepted), except
+    into a half-precision float, which must be exact (as :func:`exact_cast`)."""
     if value.dtype.is_floating_point:
+        if cast.dtype.itemsize < min(4, value.dtype.itemsize):  # float16 / bfloat16
+            back = cast.to(value.dtype)
+            return (back == value) | (torch.isnan(value) & torch.isnan(back))
         return ~torch.isfinite(value) | torch.isfinite(cast)
     if value.dtype == torch.bool:
         return torch.ones_like(value)
@@ -187,6 +244,59 @@ def _fit(
     return value
 
 
+def _derive_endings(rows: TensorDict, env: EnvBase, nxt_keys: list[str], notes: list[str]) -> None:
+    """``("next", terminated|truncated)`` the env has and the dataset lacks, from ``done``.
+
+    Recorded flags are kept as they are. With one of the two recorded, the other is
+    ``done`` and not it. With only ``done``: an episode that ends (``done``) at exactly
+    the env's time limit (:func:`~imitrl.envs.episode_limit`) ended by it, as gymnasium
+    reports it when replayed: ``truncated=True, terminated=False``; every other ``done``
+    is ``terminated``.
+    """
+    nxt = rows.keys(include_nested=True)
+    if (keys.NEXT, keys.DONE) not in nxt:
+        return
+    done = rows.get((keys.NEXT, keys.DONE))
+    flag = done.reshape(done.shape[0]).bool()
+    term, trunc = (keys.NEXT, keys.TERMINATED), (keys.NEXT, keys.TRUNCATED)
+    want = [
+        k for k in (keys.TERMINATED, keys.TRUNCATED) if k in nxt_keys and (keys.NEXT, k) not in nxt
+    ]
+    if not want:
+        return
+    if term in nxt:
+        truncated = flag & ~rows.get(term).reshape(flag.shape).bool()
+        terminated = None
+        notes.append("next.truncated: not in the dataset, taken as next.done & ~next.terminated")
+    elif trunc in nxt:
+        terminated = flag & ~rows.get(trunc).reshape(flag.shape).bool()
+        truncated = None
+        notes.append("next.terminated: not in the dataset, taken as next.done & ~next.truncated")
+    else:
+        from imitrl.envs.limits import episode_limit  # the envs package needs no datasets
+
+        truncated = torch.zeros_like(flag)
+        limit = episode_limit(env)
+        if limit is not None:
+            episode, step = rows.get(keys.EPISODE), rows.get(keys.STEP)
+            last = torch.ones_like(flag)
+            last[:-1] = episode[1:] != episode[:-1]
+            truncated = flag & last & (step == limit - 1)
+        terminated = flag & ~truncated
+        by_limit = (
+            f"{int(truncated.sum())} episode(s) end at the env's time limit ({limit} steps) "
+            "and are truncated, every other done is terminated"
+            if limit is not None
+            else "the env has no time limit: every done is terminated"
+        )
+        notes.append(
+            f"next.terminated/next.truncated: not in the dataset, from next.done: {by_limit}"
+        )
+    for k, value in ((keys.TERMINATED, terminated), (keys.TRUNCATED, truncated)):
+        if k in want and value is not None:
+            rows.set((keys.NEXT, k), value.reshape(done.shape).to(done.dtype))
+
+
 def conform_to_env(
     rows: TensorDict, env: EnvBase, *, where: str, notes: list[str], names: dict[str, str]
 ) -> TensorDict:
@@ -198,10 +308,9 @@ def conform_to_env(
     wrap, floats not overflow) and from integer or bool to floating when every value
     is exactly representable (int64 rewards -> float32); floating -> integer and
     integer <-> bool are refused, as is any cast that would change a value. Reward and
-    done flags take the env's shapes and dtypes; a dataset that records only ``done``
-    gets ``terminated = done`` and ``truncated = False`` when the env has those keys
-    (noted in ``notes``), so that rows from the env and from the dataset can share one
-    buffer.
+    done flags take the env's shapes and dtypes; ``terminated``/``truncated`` the dataset
+    does not record are derived (:func:`_derive_endings`, noted in ``notes``), so that
+    rows from the env and from the dataset can share one buffer.
 
     Args:
         names: buffer key name -> dataset feature, for error messages.
@@ -233,14 +342,7 @@ def conform_to_env(
     reward_spec = env.full_reward_spec[keys.REWARD]
     done_specs = env.full_done_spec
     nxt_keys = [keys.REWARD, *[k for k in done_specs.keys() if isinstance(k, str)]]
-    if (keys.NEXT, keys.DONE) in rows.keys(include_nested=True):
-        done = rows.get((keys.NEXT, keys.DONE))
-        if keys.TERMINATED in nxt_keys and (keys.NEXT, keys.TERMINATED) not in rows.keys(True):
-            rows.set((keys.NEXT, keys.TERMINATED), done.clone())
-            notes.append("next.terminated: not in the dataset, taken as next.done")
-        if keys.TRUNCATED in nxt_keys and (keys.NEXT, keys.TRUNCATED) not in rows.keys(True):
-            rows.set((keys.NEXT, keys.TRUNCATED), torch.zeros_like(done))
-            notes.append("next.truncated: not in the dataset, taken as False")
+    _derive_endings(rows, env, nxt_keys, notes)
     for k in nxt_keys:
         key = (keys.NEXT, k)
         if key not in rows.keys(include_nested=True):

@@ -37,9 +37,11 @@ video decoder is a dependency). Nothing is dropped without a warning.
 
 Modules, one idea each: ``_layout`` (format constants, :func:`resolve_lerobot_root`,
 reading ``meta/``), ``_plan`` (feature -> buffer key, and why others are skipped),
-``_read`` (:func:`load_lerobot`), ``_write`` (:func:`save_lerobot`: rows -> features),
-``_v3_files`` (the files of a v3.0 directory), ``_stats`` (LeRobot's feature and image
-statistics).
+``_read`` (:func:`load_lerobot`), ``_checks`` (what frames must satisfy: timestamps
+against ``fps``, ``frame_index``, ``task_index``, the checksums :func:`save_lerobot`
+records), ``_write`` (:func:`save_lerobot`: rows -> features, written atomically by
+``imitrl.datasets._publish``), ``_v3_files`` (the files of a v3.0 directory), ``_stats``
+(LeRobot's feature and image statistics).
 """
 
 # the format's constants stay importable from here, as before the split into modules

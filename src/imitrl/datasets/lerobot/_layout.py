@@ -9,6 +9,7 @@ validated where it is read.
 from __future__ import annotations
 
 import json
+import math
 import os
 import re
 from pathlib import Path
@@ -19,7 +20,7 @@ import pyarrow.parquet as pq
 
 from imitrl import keys
 from imitrl.datasets._arrow import read_parquet
-from imitrl.datasets._common import NestedKey
+from imitrl.datasets._common import NestedKey, key_name
 
 DEFAULT_KEY_MAP: dict[str, NestedKey] = {
     "observation.state": keys.OBSERVATION,
@@ -53,8 +54,28 @@ EPISODES_PATH = "meta/episodes/chunk-{chunk_index:03d}/file-{file_index:03d}.par
 LEGACY_DATA_PATH = "data/chunk-{episode_chunk:03d}/episode_{episode_index:06d}.parquet"
 QUANTILES = (0.01, 0.10, 0.50, 0.90, 0.99)
 IMAGE_NAMES = {"hwc": ["height", "width", "channels"], "chw": ["channels", "height", "width"]}
+DATASET_ENTRIES = frozenset(
+    {"meta", "data", "videos", "images", "README.md", ".gitattributes", ".cache"}
+)
+"""what the top level of a LeRobot dataset directory holds (a hub download adds the last three)"""
 SIDECAR = "meta/imitrl.json"
 SIDECAR_FORMAT = "imitrl.lerobot/1"
+
+
+def feature_name(key: NestedKey) -> str:
+    """The LeRobot feature :func:`save_lerobot` writes a buffer key as (``OBSERVATION`` ->
+    ``observation.state``, ``EXPERT_ACTION`` -> ``action``, imitrl's own columns, else the
+    dotted key name); ``meta/imitrl.json`` entries are checked against it on load."""
+    special = {
+        keys.OBSERVATION: "observation.state",
+        keys.EXPERT_ACTION: "action",
+        **{key_name(v): k for k, v in IMITRL_COLUMNS.items()},
+        "task_index": "task_index",
+    }
+    name = special.get(key_name(key), key_name(key))
+    if "/" in name:
+        raise ValueError(f"LeRobot feature names cannot contain '/': {name!r}")
+    return name
 
 
 # ------------------------------------------------------------------ locate
@@ -124,6 +145,12 @@ def dataset_root(
         return path
     if isinstance(path_or_repo, str) and re.fullmatch(r"[\w.-]+/[\w.-]+", path_or_repo):
         return resolve_lerobot_root(path_or_repo, revision=revision, cache_dir=cache_dir)
+    aside = sorted(path.parent.glob(f".{path.name}.imitrl-old-*")) if path.name else []
+    if aside:  # a save_lerobot killed between its two renames (imitrl.datasets._publish)
+        raise ValueError(
+            f"{path}: no such dataset directory; a killed save_lerobot left the previous one "
+            f"beside it as {aside[0].name}: the next save_lerobot to {path.name} moves it back"
+        )
     raise ValueError(f"{path}: no such dataset directory")
 
 
@@ -155,9 +182,18 @@ def read_info(root: Path) -> tuple[dict, int]:
     """``meta/info.json``, validated, and its layout's major version (2 or 3)."""
     path = root / "meta" / "info.json"
     info = read_json(path)
+    if not isinstance(info, dict):
+        raise ValueError(f"{path}: expected a JSON object, got {type(info).__name__}")
     for field in ("codebase_version", "fps", "features", "data_path"):
         if field not in info:
             raise ValueError(f"{path}: missing {field!r}")
+    fps = info["fps"]
+    if isinstance(fps, bool) or not isinstance(fps, int | float) or not math.isfinite(fps):
+        raise ValueError(f"{path}: fps must be a number of frames per second, got {fps!r}")
+    if fps <= 0:
+        raise ValueError(f"{path}: fps must be positive, got {fps!r}")
+    if not isinstance(info["data_path"], str):
+        raise ValueError(f"{path}: data_path must be a path template, got {info['data_path']!r}")
     major = READ_VERSIONS.get(str(info["codebase_version"]))
     if major is None:
         raise ValueError(
@@ -216,10 +252,9 @@ def _episodes_v3(root: Path, info: dict) -> list[dict]:
             raise ValueError(f"{f}: episode metadata column(s) {nulls} hold null entries")
         episodes.extend(table.to_pylist())
     episodes.sort(key=lambda e: e["episode_index"])
-    template = info["data_path"]
     for ep in episodes:
-        ep["file"] = template.format(
-            chunk_index=ep["data/chunk_index"], file_index=ep["data/file_index"]
+        ep["file"] = _data_file(
+            root, info, chunk_index=ep["data/chunk_index"], file_index=ep["data/file_index"]
         )
     return episodes
 
@@ -232,13 +267,24 @@ def _episodes_v2(root: Path, info: dict) -> list[dict]:
             if not isinstance(ep, dict) or not isinstance(ep.get(field), int):
                 raise ValueError(f"{path}: entry {ep!r} has no integer {field!r}")
     episodes.sort(key=lambda e: e["episode_index"])
-    chunks = int(info.get("chunks_size", DEFAULT_CHUNK_SIZE))
-    template = info["data_path"]
+    chunks = info.get("chunks_size", DEFAULT_CHUNK_SIZE)
+    if isinstance(chunks, bool) or not isinstance(chunks, int) or chunks < 1:
+        raise ValueError(f"{root / 'meta' / 'info.json'}: chunks_size must be >= 1, got {chunks!r}")
     for ep in episodes:
-        ep["file"] = template.format(
-            episode_chunk=ep["episode_index"] // chunks, episode_index=ep["episode_index"]
-        )
+        e = ep["episode_index"]
+        ep["file"] = _data_file(root, info, episode_chunk=e // chunks, episode_index=e)
     return episodes
+
+
+def _data_file(root: Path, info: dict, **fields: int) -> str:
+    """``info.json``'s ``data_path`` template filled in, naming the template when it breaks."""
+    try:
+        return info["data_path"].format(**fields)
+    except (KeyError, IndexError, ValueError, AttributeError, TypeError) as err:
+        raise ValueError(
+            f"{root / 'meta' / 'info.json'}: data_path {info['data_path']!r} cannot be filled "
+            f"with {sorted(fields)} ({type(err).__name__}: {err})"
+        ) from err
 
 
 def read_tasks(root: Path, major: int) -> list[str]:
@@ -277,7 +323,10 @@ def _task_pairs_v3(root: Path) -> list[tuple[int, str]]:
         raise ValueError(f"{path}: no task string column (pandas index or 'task')")
     if "task_index" not in table.column_names:
         raise ValueError(f"{path}: no 'task_index' column")
-    return list(zip(table.column("task_index").to_pylist(), strings))
+    indices = table.column("task_index").to_pylist()
+    if not all(isinstance(i, int) for i in indices) or not all(isinstance(t, str) for t in strings):
+        raise ValueError(f"{path}: needs an integer task_index and a string task in every row")
+    return list(zip(indices, strings))
 
 
 def rows_in(path: Path) -> int:

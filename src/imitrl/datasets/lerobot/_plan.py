@@ -8,6 +8,7 @@ reason, for the one warning :func:`load_lerobot` gives.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Literal
@@ -19,6 +20,7 @@ from imitrl.datasets.lerobot._layout import (
     IMITRL_COLUMNS,
     SIDECAR,
     SIDECAR_FORMAT,
+    feature_name,
     read_json,
 )
 
@@ -72,17 +74,49 @@ def _sidecar_mapping(
     """feature -> key and exact per-frame shape, as ``meta/imitrl.json`` records them
     (image features only with ``images="load"``)."""
     meta = read_json(sidecar)
-    if meta.get("format") != SIDECAR_FORMAT:
-        raise ValueError(f"{sidecar}: unknown format {meta.get('format')!r}")
+    if not isinstance(meta, dict) or meta.get("format") != SIDECAR_FORMAT:
+        got = meta.get("format") if isinstance(meta, dict) else meta
+        raise ValueError(f"{sidecar}: unknown format {got!r}")
+    if not isinstance(meta.get("columns"), dict):
+        raise ValueError(f"{sidecar}: 'columns' must map features to keys and shapes")
     mapping: dict[str, NestedKey | None] = {}
     shapes: dict[str, tuple[int, ...]] = {}
     for name, entry in meta["columns"].items():
         if name not in features:
             raise ValueError(f"{sidecar}: column {name!r} is not a feature of meta/info.json")
-        shapes[name] = tuple(entry["shape"])
+        key, shape = _sidecar_entry(sidecar, name, entry, features[name])
+        shapes[name] = shape
         if features[name]["dtype"] != "image" or images == "load":
-            mapping[name] = as_key(entry["key"])
+            mapping[name] = key
     return mapping, shapes
+
+
+def _sidecar_entry(
+    sidecar: Path, name: str, entry: object, feature: dict
+) -> tuple[NestedKey, tuple[int, ...]]:
+    """One ``meta/imitrl.json`` column: its key (which :func:`save_lerobot` would have written
+    as this very feature) and its exact per-frame shape (as many entries as ``info.json``'s)."""
+    key = entry.get("key") if isinstance(entry, dict) else None
+    shape = entry.get("shape") if isinstance(entry, dict) else None
+    valid_key = isinstance(key, str) or (
+        isinstance(key, list) and key and all(isinstance(k, str) and k for k in key)
+    )
+    if not valid_key or as_key(key) == "" or feature_name(as_key(key)) != name:
+        raise ValueError(f"{sidecar}: column {name!r} records key {key!r}, not this feature's")
+    if not isinstance(shape, list) or not all(
+        isinstance(d, int) and not isinstance(d, bool) and d >= 0 for d in shape
+    ):
+        raise ValueError(
+            f"{sidecar}: column {name!r} needs a shape (a list of sizes), got {shape!r}"
+        )
+    declared = feature["shape"]
+    if math.prod(shape) != math.prod(declared) or (
+        feature["dtype"] == "image" and list(shape) != list(declared)
+    ):
+        raise ValueError(
+            f"{sidecar}: column {name!r} has shape {shape}, meta/info.json declares {declared}"
+        )
+    return as_key(key), tuple(shape)
 
 
 def _observation_group(

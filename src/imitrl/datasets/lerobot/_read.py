@@ -28,10 +28,13 @@ from imitrl.datasets._common import (
     required_rows,
     warn_skipped,
 )
+from imitrl.datasets.lerobot._checks import check_frames, verify_files
 from imitrl.datasets.lerobot._layout import (
+    SIDECAR,
     dataset_root,
     read_episodes,
     read_info,
+    read_json,
     read_tasks,
     rows_in,
 )
@@ -44,14 +47,21 @@ class _Frames:
 
     columns: dict[str, list[torch.Tensor]]
     """feature -> its values, one ``[F_file, *shape]`` tensor per file"""
-    episode_index: torch.Tensor
-    """``[F]`` the ``episode_index`` column"""
-    frame_index: torch.Tensor
-    """``[F]`` the ``frame_index`` column"""
+    book: dict[str, torch.Tensor]
+    """``[F]`` LeRobot's ``episode_index`` and ``frame_index`` columns, and its ``timestamp``
+    and ``task_index`` where ``info.json`` declares them"""
     bounds: list[tuple[int, int, Path]]
     """``(first frame, end frame, file)`` of each file"""
     total: int
     """``F``"""
+
+    @property
+    def episode_index(self) -> torch.Tensor:
+        return self.book["episode_index"]
+
+    @property
+    def frame_index(self) -> torch.Tensor:
+        return self.book["frame_index"]
 
     def file_at(self, i: int) -> Path:
         """The file holding frame ``i`` (the last file past the end)."""
@@ -83,12 +93,16 @@ def _data_files(root: Path, episodes: list[dict], major: int) -> list[Path]:
 def _read_frames(
     root: Path, files: list[Path], plan: Mapping[str, NestedKey], features: dict[str, dict]
 ) -> _Frames:
-    """The planned features and the episode/frame indices of every file, as tensors."""
+    """The planned features and the bookkeeping columns of every file, as tensors."""
+    book_names = ["episode_index", "frame_index"]
+    book_names += [c for c in ("timestamp", "task_index") if c in features]
     columns: dict[str, list[torch.Tensor]] = {name: [] for name in plan}
-    ep_parts, fi_parts, bounds = [], [], []
+    book: dict[str, list[torch.Tensor]] = {name: [] for name in book_names}
+    bounds = []
     total = 0
+    declared = [name for name, ft in features.items() if ft["dtype"] != "video"]
     for path in files:
-        table = read_parquet(path, [*plan, "episode_index", "frame_index"])
+        table = read_parquet(path, list(dict.fromkeys([*plan, *book_names])), declared=declared)
         for name in plan:
             ft = features[name]
             where = f"{path}: feature {name!r}"
@@ -101,15 +115,16 @@ def _read_frames(
                     table.column(name), shape=tuple(ft["shape"]), dtype=ft["dtype"], where=where
                 )
             columns[name].append(value)
-        for col, parts in (("episode_index", ep_parts), ("frame_index", fi_parts)):
-            parts.append(
+        for name in book_names:
+            dtype = "float64" if name == "timestamp" else "int64"
+            book[name].append(
                 column_to_tensor(
-                    table.column(col), shape=(1,), dtype="int64", where=f"{path}: {col!r}"
-                )
+                    table.column(name), shape=(1,), dtype=dtype, where=f"{path}: {name!r}"
+                ).reshape(-1)
             )
         bounds.append((total, total + table.num_rows, path))
         total += table.num_rows
-    return _Frames(columns, torch.cat(ep_parts), torch.cat(fi_parts), bounds, total)
+    return _Frames(columns, {k: torch.cat(v) for k, v in book.items()}, bounds, total)
 
 
 def _episode_span(
@@ -136,8 +151,7 @@ def _episode_span(
 
 
 def _check_episode(ep: dict, begin: int, stop: int, path: Path, frames: _Frames) -> None:
-    """The frames ``[begin, stop)`` are the episode's: its length, its index, rising
-    ``frame_index``."""
+    """The frames ``[begin, stop)`` are the episode's: its length and its index."""
     e, length = int(ep["episode_index"]), int(ep["length"])
     if stop - begin != length:
         raise ValueError(
@@ -148,9 +162,6 @@ def _check_episode(ep: dict, begin: int, stop: int, path: Path, frames: _Frames)
         raise ValueError(
             f"{path}: frames [{begin}, {stop}) should hold episode {e}, they hold episode(s) {found}"
         )
-    fi = frames.frame_index[begin:stop]
-    if length and not bool((fi[1:] > fi[:-1]).all()):
-        raise ValueError(f"{path}: frame_index of episode {e} is not increasing")
 
 
 def _frame_order(
@@ -186,7 +197,6 @@ def _columns(
     frames: _Frames,
     index: torch.Tensor,
     exact_shapes: Mapping[str, tuple[int, ...]],
-    tasks: list[str],
 ) -> tuple[dict[NestedKey, torch.Tensor], dict[str, str]]:
     """Buffer key -> ``[N, ...]`` values in episode order, and feature -> key name loaded."""
     out: dict[NestedKey, torch.Tensor] = {}
@@ -200,11 +210,28 @@ def _columns(
             value = value.unsqueeze(-1)  # TorchRL keeps reward/done as [..., 1]
         out[key] = value
         loaded[name] = key_name(key)
-    if "task_index" in plan and len(tasks):
-        bad = out[plan["task_index"]]
-        if int(bad.min()) < 0 or int(bad.max()) >= len(tasks):
-            raise ValueError(f"{root}: task_index outside the {len(tasks)} tasks of the task table")
     return out, loaded
+
+
+def _checked_frames(
+    root: Path, info: dict, major: int, plan: Mapping[str, NestedKey], n_tasks: int
+) -> tuple[list[dict], _Frames, torch.Tensor]:
+    """The episode table, the frames, and ``[N]`` the frames' order, once the frames agree
+    with the episode table and with LeRobot's bookkeeping (``frame_index``, ``timestamp``,
+    ``task_index``: :func:`~imitrl.datasets.lerobot._checks.check_frames`)."""
+    episodes = read_episodes(root, info, major)
+    if not episodes:
+        raise ValueError(f"{root / 'meta'}: the dataset has no episodes (nothing to load)")
+    frames = _read_frames(root, _data_files(root, episodes, major), plan, info["features"])
+    index = _frame_order(root, info, episodes, major, frames)
+    step = torch.cat([torch.arange(int(ep["length"])) for ep in episodes])
+    book = {k: v[index] for k, v in frames.book.items() if k != "episode_index"}
+
+    def file_of(i: int) -> Path:
+        return frames.file_at(int(index[i]))
+
+    check_frames(frames.episode_index[index], step, book, file_of, info["fps"], n_tasks)
+    return episodes, frames, index
 
 
 def load_lerobot(
@@ -230,7 +257,8 @@ def load_lerobot(
         env: if given, observation and action shapes must match its specs (else
             ValueError), dtypes are cast where no value changes (within a kind, or
             integer -> floating when exact), reward/done take its shapes, and a missing
-            ``terminated``/``truncated`` is derived from ``done``.
+            ``terminated``/``truncated`` is derived from ``done`` (an episode that ends at
+            the env's time limit is truncated; recorded flags are kept as they are).
         first_episode: added to the episode ids (use ``buffer.next_episode``).
         revision, cache_dir: for resolving a ``repo_id`` (see :func:`resolve_lerobot_root`).
 
@@ -238,15 +266,20 @@ def load_lerobot(
         :class:`LoadedDemonstrations` whose ``rows`` extend a :class:`DemonstrationBuffer`.
 
     Raises:
-        ValueError: missing ``meta/info.json``; a declared feature absent from a data
-            file; a truncated or unreadable parquet file; episode lengths or indices that
-            contradict the metadata; values that contradict a declared shape; shapes that
-            contradict ``env``. The message names the file and the problem, and nothing is
-            returned half-loaded.
+        ValueError: missing ``meta/info.json``; no episodes; a declared feature absent
+            from a data file; a truncated or unreadable parquet file; a file changed since
+            :func:`save_lerobot` wrote it; episode lengths or indices that contradict the
+            metadata; ``frame_index`` not 0..length-1; timestamps not ``1 / fps`` apart
+            (LeRobot's tolerance, 1e-4 s); a ``task_index`` outside the task table; values
+            that contradict a declared shape or dtype (no value is ever changed by a cast);
+            NaN or inf; shapes that contradict ``env``. The message names the file and the
+            problem, and nothing is returned half-loaded.
     """
     if images not in ("skip", "load"):
         raise ValueError(f"images must be 'skip' or 'load', got {images!r}")
     root = dataset_root(path_or_repo, revision, cache_dir)
+    if (root / SIDECAR).is_file():  # written by save_lerobot: every file as it was written
+        verify_files(root, read_json(root / SIDECAR))
     info, major = read_info(root)
     features: dict[str, dict] = info["features"]
     plan, exact_shapes = plan_features(root, info, key_map, images)
@@ -254,10 +287,8 @@ def load_lerobot(
     plan, skipped, quiet = settle_features(
         root, features, plan, exact_shapes, tasks, key_map, images
     )
-    episodes = read_episodes(root, info, major)
-    frames = _read_frames(root, _data_files(root, episodes, major), plan, features)
-    index = _frame_order(root, info, episodes, major, frames)
-    out, loaded = _columns(root, plan, frames, index, exact_shapes, tasks)
+    episodes, frames, index = _checked_frames(root, info, major, plan, len(tasks))
+    out, loaded = _columns(root, plan, frames, index, exact_shapes)
     episode = out.pop(keys.EPISODE) if keys.EPISODE in out else frames.episode_index[index]
     rows = required_rows(out, episode=episode + int(first_episode), step=frames.frame_index[index])
     notes: list[str] = []

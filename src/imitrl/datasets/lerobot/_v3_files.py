@@ -3,7 +3,8 @@
 ``data/chunk-*/file-*.parquet`` (one row group per episode), the episode table
 ``meta/episodes/chunk-000/file-000.parquet`` with each episode's statistics,
 ``meta/tasks.parquet``, ``meta/stats.json``, ``meta/info.json`` and imitrl's own
-``meta/imitrl.json``, laid out as lerobot 0.4 writes them.
+``meta/imitrl.json`` (each column's buffer key and exact shape, each other file's size
+and SHA-256, and the SHA-256 of its own content), laid out as lerobot 0.4 writes them.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ import pyarrow.parquet as pq
 import torch
 
 from imitrl.datasets._arrow import hf_feature, hf_schema_metadata
+from imitrl.datasets.lerobot._checks import file_digest, sidecar_digest
 from imitrl.datasets.lerobot._layout import (
     CODEBASE_VERSION,
     DATA_PATH,
@@ -103,9 +105,14 @@ def write_v3(
         "features": features.info,
     }
     (root / "meta" / "info.json").write_text(json.dumps(info, indent=4))
-    (root / SIDECAR).write_text(
-        json.dumps({"format": SIDECAR_FORMAT, "columns": features.sidecar}, indent=2)
-    )
+    files = {  # every other file's size and SHA-256: a changed byte is refused on load
+        f.relative_to(root).as_posix(): file_digest(f)
+        for f in sorted(root.rglob("*"))
+        if f.is_file()
+    }
+    sidecar = {"format": SIDECAR_FORMAT, "columns": features.sidecar, "files": files}
+    sidecar["digest"] = sidecar_digest(sidecar)
+    (root / SIDECAR).write_text(json.dumps(sidecar, indent=2))
 
 
 def _write_data(

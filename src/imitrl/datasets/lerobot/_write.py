@@ -2,15 +2,14 @@
 
 Rows are checked first (contiguous episodes whose ``STEP`` runs 0..length-1, tasks,
 dtypes LeRobot can hold), turned into one arrow column per feature, and written into
-a temporary directory that replaces ``path`` only once every file is complete.
+a temporary directory that becomes ``path`` only once every file is complete, atomically
+and with one writer per path (:func:`~imitrl.datasets._publish.publishing`).
 """
 
 from __future__ import annotations
 
-import shutil
-import tempfile
-from collections.abc import Iterator, Mapping, Sequence
-from contextlib import contextmanager
+import json
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, Literal
 
@@ -22,30 +21,19 @@ from tensordict import TensorDictBase
 from imitrl import keys
 from imitrl.data.buffer import DemonstrationBuffer
 from imitrl.datasets._arrow import encode_images, tensor_to_array
-from imitrl.datasets._common import NUMPY_NAMES, NestedKey, key_name
+from imitrl.datasets._common import NUMPY_NAMES, key_name
+from imitrl.datasets._publish import publishing
 from imitrl.datasets.lerobot._layout import (
     BOOKKEEPING,
+    DATASET_ENTRIES,
     DEFAULT_CHUNK_SIZE,
     IMAGE_NAMES,
-    IMITRL_COLUMNS,
+    feature_name,
 )
 from imitrl.datasets.lerobot._v3_files import Episodes, Features, write_v3
 
 
 # -------------------------------------------------------------- features
-def _feature_name(key: NestedKey) -> str:
-    special = {
-        keys.OBSERVATION: "observation.state",
-        keys.EXPERT_ACTION: "action",
-        **{key_name(v): k for k, v in IMITRL_COLUMNS.items()},
-        "task_index": "task_index",
-    }
-    name = special.get(key_name(key), key_name(key))
-    if "/" in name:
-        raise ValueError(f"LeRobot feature names cannot contain '/': {name!r}")
-    return name
-
-
 def _image_layout(name: str, value: torch.Tensor) -> Literal["hwc", "chw"] | None:
     """How a column is written as a LeRobot image feature, or None to write it as an array.
 
@@ -129,7 +117,7 @@ def _features(
         value = rows.get(key)
         if value.dtype not in NUMPY_NAMES:
             raise ValueError(f"{key_name(key)!r}: dtype {value.dtype} has no LeRobot equivalent")
-        name = _feature_name(key)
+        name = feature_name(key)
         if name in BOOKKEEPING:
             raise ValueError(f"{key_name(key)!r} would overwrite LeRobot's {name!r} column")
         out.sidecar[name] = {
@@ -233,22 +221,27 @@ def _task_column(
     return task_list, task_index
 
 
-@contextmanager
-def _replacing(path: Path) -> Iterator[Path]:
-    """A fresh directory beside ``path`` to write into; it replaces ``path`` when the
-    block ends without error, and is removed either way."""
-    tmp = Path(
-        tempfile.mkdtemp(prefix=f".{path.name}.", dir=path.parent if path.parent.exists() else None)
-    )
+def _replaceable(path: Path) -> None:
+    """``overwrite=True`` replaces only a LeRobot dataset directory: one whose
+    ``meta/info.json`` names a ``codebase_version`` (LeRobot and :func:`save_lerobot` write
+    one) and that holds nothing beside the dataset's own entries (:data:`DATASET_ENTRIES`:
+    ``meta``, ``data``, ``videos``, ``images``, a hub download's ``README.md``,
+    ``.gitattributes`` and ``.cache``). Anything else is someone's folder: ValueError."""
     try:
-        yield tmp
-        if path.exists():
-            shutil.rmtree(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        shutil.move(str(tmp), str(path))
-    finally:
-        if tmp.exists():
-            shutil.rmtree(tmp)
+        info = json.loads((path / "meta" / "info.json").read_text())
+    except (OSError, ValueError):
+        info = None
+    if not isinstance(info, dict) or not isinstance(info.get("codebase_version"), str):
+        raise ValueError(
+            f"{path} is not a LeRobot dataset (no meta/info.json naming a codebase_version); "
+            "overwrite=True replaces only a dataset: refusing to delete it"
+        )
+    other = sorted(p.name for p in path.iterdir() if p.name not in DATASET_ENTRIES)
+    if other:
+        raise ValueError(
+            f"{path} holds {other} beside the dataset; overwrite=True replaces only a directory "
+            f"holding nothing but a LeRobot dataset ({sorted(DATASET_ENTRIES)}): refusing"
+        )
 
 
 def save_lerobot(
@@ -283,7 +276,8 @@ def save_lerobot(
     Args:
         data: a buffer or ``[N]`` rows; each episode one contiguous block whose ``STEP``
             runs 0..length-1 (as :func:`~imitrl.data.rollout_episodes` produces).
-        path: the dataset directory (must not exist unless ``overwrite``).
+        path: the dataset directory (must not exist unless ``overwrite``; never the working
+            directory or one holding it).
         fps: frames per second (``timestamp = frame_index / fps``).
         tasks: the task of every frame, or the task strings a ``"task_index"`` key indexes.
         robot_type: written to ``info.json``.
@@ -295,21 +289,24 @@ def save_lerobot(
             pass ``{f: ft["names"] for f, ft in loaded.metadata["features"].items()}``.
             Entries for features not written (bookkeeping, videos, skipped features) are
             ignored; image features always get their layout's names. Default: None for all.
-        overwrite: replace an existing directory.
+        overwrite: replace an existing LeRobot dataset that holds nothing else
+            (:func:`_replaceable`); the old one stays whole until the new one is complete.
 
     Returns:
         the dataset directory.
+
+    Raises:
+        ValueError: rows LeRobot cannot hold; ``path`` exists (without ``overwrite``), is no
+            replaceable dataset, is or holds the working directory, or another process is
+            writing it. Under any error or kill ``path`` keeps what it held.
     """
     rows = _rows_to_write(data, fps, episodes_per_file, chunks_size)
-    path = Path(path)
-    if path.exists() and not overwrite:
-        raise ValueError(f"{path} exists; pass overwrite=True to replace it")
     starts, lengths = _episode_blocks(rows)
     task_list, task_index = _task_column(rows, tasks)
     episodes = Episodes(starts, lengths, task_index, task_list)
     features = _features(rows, dict(names or {}), fps, episodes)
     table = features.table()
-    with _replacing(path) as tmp:
+    with publishing(path, overwrite=overwrite, replaceable=_replaceable) as tmp:
         write_v3(
             tmp,
             table,
@@ -320,4 +317,4 @@ def save_lerobot(
             episodes_per_file=episodes_per_file or len(starts),
             chunks_size=chunks_size,
         )
-    return path
+    return Path(path)

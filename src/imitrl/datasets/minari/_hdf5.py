@@ -1,0 +1,143 @@
+"""Minari's ``hdf5`` storage (``minari/dataset/_storages/hdf5_storage.py``, Minari 0.5)::
+
+    <dataset>/data/main_data.hdf5   one group per episode, "episode_<id>", attrs id, seed,
+                                    total_steps; datasets observations [T+1, ...] (a group per
+                                    Dict key, "_index_<i>" per Tuple entry), actions [T, ...],
+                                    rewards [T], terminations [T], truncations [T], infos/...
+
+(Minari < 0.5 kept the dataset's metadata in the file's root attributes: read too.)
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from imitrl.datasets.minari._episodes import Steps, as_count
+from imitrl.datasets.minari._spaces import decode
+
+__all__ = ["MAIN_FILE", "attrs_metadata", "open_hdf5", "read_hdf5"]
+
+MAIN_FILE = "main_data.hdf5"
+_FIELDS = ("observations", "actions", "rewards", "terminations", "truncations")
+
+
+class _Groups:
+    """A space's values in HDF5: a group per Dict key / Tuple entry, a dataset per leaf."""
+
+    def child(self, node: Any, name: str, kind: str, where: str) -> Any:
+        import h5py
+
+        if not isinstance(node, h5py.Group):
+            raise ValueError(f"{where.rsplit('/', 1)[0]} should be a group for a {kind} space")
+        if name not in node:
+            raise ValueError(f"{where} is missing")
+        return node[name]
+
+    def leaf(self, node: Any, space: dict, jpeg: bool, where: str) -> Any:
+        import h5py
+
+        if not isinstance(node, h5py.Dataset):
+            raise ValueError(f"{where} should be a dataset for a {space['type']} space")
+        return node[()]
+
+
+def open_hdf5(h5_path: Path):
+    """The Minari HDF5 file, open for reading; ValueError when absent or unreadable."""
+    import h5py
+
+    if not h5_path.is_file():
+        raise ValueError(f"{h5_path} not found")
+    try:
+        return h5py.File(h5_path, "r")
+    except OSError as err:
+        raise ValueError(f"{h5_path}: not a readable HDF5 file ({err})") from err
+
+
+def attrs_metadata(h5file, where: str) -> dict[str, Any]:
+    """The metadata Minari < 0.5 kept as root attributes of the HDF5 file."""
+    meta = {k: (v.item() if hasattr(v, "item") else v) for k, v in h5file.attrs.items()}
+    meta = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in meta.items()}
+    if not meta:
+        raise ValueError(f"{where}: no metadata.json beside it and no metadata in its attributes")
+    return meta
+
+
+def _episode_groups(h5, where: str) -> list[tuple[str, int]]:
+    """The ``episode_<id>`` groups of the file with their ids, in id order."""
+    found = []
+    for name in h5.keys():
+        if not name.startswith("episode_"):
+            continue
+        suffix = name.removeprefix("episode_")
+        if not (suffix.isascii() and suffix.isdigit()):
+            raise ValueError(f"{where}: unexpected group name {name!r} (episode_<id>)")
+        found.append((name, int(suffix)))
+    if not found:
+        raise ValueError(f"{where}: no episode groups")
+    return sorted(found, key=lambda item: item[1])
+
+
+def _array(group, field: str, here: str) -> np.ndarray:
+    import h5py
+
+    node = group[field]
+    if not isinstance(node, h5py.Dataset):
+        raise ValueError(f"{here}/{field} should be a dataset")
+    return np.asarray(node[()])
+
+
+def _infos(node, path: str) -> list[str]:
+    """Paths of the datasets under ``node`` (itself, when it is one: infos stored whole)."""
+    import h5py
+
+    if not isinstance(node, h5py.Group):
+        return [path]
+    return [leaf for name, sub in node.items() for leaf in _infos(sub, f"{path}/{name}")]
+
+
+def _read_group(
+    group, name: str, ep_id: int, spaces: tuple[dict, dict], jpeg: bool, skipped: dict, where: str
+) -> Steps:
+    """One ``episode_<id>`` group (per-step infos are listed in ``skipped``)."""
+    here = f"{where}: {name}"
+    for field in _FIELDS:
+        if field not in group:
+            raise ValueError(f"{here} has no {field!r}")
+    recorded = group.attrs.get("id")
+    if recorded is not None and as_count(recorded, "attrs id", here) != ep_id:
+        raise ValueError(f"{here}: attrs id={int(recorded)} contradicts the group's name")
+    declared = group.attrs.get("total_steps")
+    common = {"storage": _Groups(), "jpeg": jpeg, "skipped": skipped, "where": here}
+    obs = decode(group["observations"], spaces[0], "observations", **common)
+    act = decode(group["actions"], spaces[1], "actions", **common)
+    if obs is None or act is None:
+        raise ValueError(f"{here}: observations and actions must be numeric")
+    if "infos" in group:
+        for leaf in _infos(group["infos"], "infos"):
+            skipped[leaf] = "per-step infos are not loaded"
+    return Steps(
+        name=here,
+        id=ep_id,
+        observations=obs,
+        actions=act,
+        rewards=_array(group, "rewards", here),
+        terminations=_array(group, "terminations", here),
+        truncations=_array(group, "truncations", here),
+        declared_steps=None if declared is None else as_count(declared, "attrs total_steps", here),
+    )
+
+
+def read_hdf5(
+    h5, spaces: tuple[dict, dict], jpeg: bool, skipped: dict[str, str], where: str
+) -> list[Steps]:
+    """Every episode group of the open file, in id order."""
+    try:
+        return [
+            _read_group(h5[name], name, ep_id, spaces, jpeg, skipped, where)
+            for name, ep_id in _episode_groups(h5, where)
+        ]
+    except (OSError, KeyError, RuntimeError) as err:  # h5py's errors for a damaged file
+        raise ValueError(f"{where}: unreadable HDF5 data ({type(err).__name__}: {err})") from err
