@@ -12,7 +12,6 @@ from pathlib import Path
 import pytest
 import torch
 from tensordict import TensorDict
-from torchrl.data import Categorical
 from torchrl.envs import GymEnv, ParallelEnv
 from torchrl.envs.utils import ExplorationType
 

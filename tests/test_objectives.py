@@ -172,7 +172,9 @@ def test_fit_rejects_non_finite_continuous_labels():
         [3],
     )
     with pytest.raises(ValueError, match="NaN or inf"):
-        fit_bc(ActorCritic.mlp(4, spec, head="deterministic", loss="mse"), rows, BCConfig(num_steps=1))
+        fit_bc(
+            ActorCritic.mlp(4, spec, head="deterministic", loss="mse"), rows, BCConfig(num_steps=1)
+        )
 
 
 def test_log_prob_rejects_out_of_range_actions():

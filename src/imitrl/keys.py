@@ -7,7 +7,12 @@ demonstrations can never overwrite the labels it is trained on.
 Per-transition keys (root of a rollout / demonstration row):
 
 ========================  ==========================================================
-``OBSERVATION``           what the policy sees at step t (env's observation key)
+``OBSERVATION``           what the policy sees at step t (env's observation key); in a
+                          pixel env, the state (a privileged expert reads it)
+``PIXELS``                uint8 ``[H, W, C]`` camera image at step t (TorchRL's and
+                          LeRobot's layout; C = 3 per stacked frame). One camera for
+                          now; several cameras as nested ``("pixels", name)`` keys
+                          are not supported yet
 ``ACTION``                the action executed in the env at step t
 ``EXPERT_ACTION``         the expert's label for the state at step t (never written
                           by a learner)
@@ -31,6 +36,7 @@ Keys under ``"next"`` follow TorchRL: ``("next", "reward")``, ``("next", "done")
 from __future__ import annotations
 
 OBSERVATION = "observation"
+PIXELS = "pixels"
 ACTION = "action"
 EXPERT_ACTION = "expert_action"
 LEARNER_ACTION = "learner_action"
@@ -61,6 +67,7 @@ __all__ = [
     "LOGITS",
     "NEXT",
     "OBSERVATION",
+    "PIXELS",
     "REWARD",
     "ROUND",
     "SCALE",

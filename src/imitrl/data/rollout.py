@@ -45,6 +45,8 @@ ROW_KEYS = (
     keys.EXPERT_EXECUTED,
 )
 NEXT_KEYS = (keys.REWARD, keys.DONE, keys.TERMINATED, keys.TRUNCATED)
+OPTIONAL_ROW_KEYS = (keys.PIXELS,)
+"""kept in the rows when the env gives them (a pixel env's images beside its state)"""
 
 SuccessFn = Callable[[TensorDictBase], torch.Tensor]
 
@@ -191,8 +193,8 @@ def rollout_episodes(
 
     Returns:
         rows ``[R]`` with ``OBSERVATION, ACTION, EXPERT_ACTION, EXPERT_EXECUTED,
-        EPISODE, ROUND, STEP`` and ``("next", reward|done|terminated|truncated)``,
-        episodes back to back in id order.
+        EPISODE, ROUND, STEP`` and ``("next", reward|done|terminated|truncated)``
+        (and ``PIXELS`` when the env gives images), episodes back to back in id order.
 
     Raises:
         ValueError: the policy does not write an expert label or the env's action; the
@@ -204,6 +206,7 @@ def rollout_episodes(
     lanes = _lanes(env)
     quota = _quota(int(num_episodes), lanes)
     steps: list[TensorDictBase] = []
+    row_keys = list(ROW_KEYS)
     finished = torch.zeros(lanes, dtype=torch.int64)
     length = torch.zeros(lanes, dtype=torch.int64)  # steps since the lane's last reset
     with torch.no_grad(), set_exploration_type(exploration), rng_from(generator):
@@ -212,13 +215,14 @@ def rollout_episodes(
             td = actor(td)
             if not steps:
                 _check_action(env, td)
+                row_keys += [k for k in OPTIONAL_ROW_KEYS if k in td.keys()]
             out, td = env.step_and_maybe_reset(td)
             for k in (keys.EXPERT_ACTION, keys.EXPERT_EXECUTED):
                 if k not in out.keys():
                     raise ValueError(
                         f"the rollout policy must write {k!r} (pass an Expert or a DAgger behaviour policy)"
                     )
-            steps.append(out.select(*ROW_KEYS, *[(keys.NEXT, k) for k in NEXT_KEYS]))
+            steps.append(out.select(*row_keys, *[(keys.NEXT, k) for k in NEXT_KEYS]))
             done = out.get((keys.NEXT, keys.DONE)).reshape(lanes)
             length += 1
             _overrun(length, done, finished < quota, bound, bound_name)

@@ -14,6 +14,13 @@ policies and experts use), whatever the id:
   sub-env that ends before the others (measured in
   ``benchmarks/continuous_traps.py``). With ``DISABLED`` TorchRL resets only the
   finished lanes and the true final observation is kept;
+* ``pixels=(H, W)`` adds ``"pixels"``, uint8 ``[*batch, H, W, 3]``, beside the state
+  ``"observation"``: the gymnasium env renders ``rgb_array`` frames (headless: the
+  classic-control envs draw with pygame on an off-screen surface, no display), TorchRL's
+  ``PixelRenderTransform`` writes them at every reset and step, resized by
+  :class:`ResizeFrame` (torchvision, which TorchRL's ``Resize`` needs, is not a
+  dependency; ``ToTensorImage`` would store float CHW, 4x larger: the learner scales
+  and permutes inside its network instead);
 * ``parallel=True`` runs each copy in its own process (``torchrl.envs.ParallelEnv``).
   Starting the processes costs seconds (measured in ``benchmarks/continuous_traps.py``):
   it pays only when one env step costs far more than the inter-process round trip.
@@ -27,9 +34,13 @@ from functools import partial
 
 import gymnasium
 import numpy as np
+import torch
 from torchrl.envs import DoubleToFloat, EnvBase, GymWrapper, ParallelEnv, TransformedEnv
+from torchrl.record.recorder import PixelRenderTransform
 
-__all__ = ["make_env"]
+from imitrl import keys
+
+__all__ = ["ResizeFrame", "make_env"]
 
 
 def _spec(env_id: str) -> gymnasium.envs.registration.EnvSpec:
@@ -52,14 +63,24 @@ def _spec(env_id: str) -> gymnasium.envs.registration.EnvSpec:
         ) from err
 
 
-def _gym(env_id: str, max_episode_steps: int | None) -> gymnasium.Env:
+def _gym(env_id: str, max_episode_steps: int | None, render: bool = False) -> gymnasium.Env:
+    """``gymnasium.make`` (rendering ``rgb_array`` frames when ``render``)."""
+    extra = {"render_mode": "rgb_array"} if render else {}
     try:
-        return gymnasium.make(env_id, max_episode_steps=max_episode_steps)
+        env = gymnasium.make(env_id, max_episode_steps=max_episode_steps, **extra)
     except gymnasium.error.DependencyNotInstalled as err:
         raise ValueError(
             f"{env_id} needs an optional dependency ({err}); for MuJoCo envs install "
-            "the 'mujoco' extra (gymnasium[mujoco])"
+            "the 'mujoco' extra (gymnasium[mujoco]), for classic-control pixels pygame"
         ) from err
+    modes = env.metadata.get("render_modes", [])
+    if render and ("rgb_array" not in modes or env.render_mode != "rgb_array"):
+        env.close()
+        raise ValueError(
+            f"{env_id} does not render rgb_array frames (render modes {modes}): it cannot "
+            "be a pixel env"
+        )
+    return env
 
 
 def _check_spaces(env: gymnasium.Env, env_id: str) -> tuple[bool, bool]:
@@ -82,13 +103,51 @@ def _check_spaces(env: gymnasium.Env, env_id: str) -> tuple[bool, bool]:
     return discrete, obs.dtype == np.float64 or (not discrete and act.dtype == np.float64)
 
 
-def _single(env_id: str, frame_skip: int, max_episode_steps: int | None, seed: int) -> EnvBase:
+class ResizeFrame:
+    """A rendered ``[H0, W0, 3]`` uint8 frame -> uint8 ``[H, W, 3]`` tensor (antialiased
+    bilinear; the ``preproc`` of ``PixelRenderTransform``, picklable for workers)."""
+
+    def __init__(self, size: tuple[int, int]) -> None:
+        self.size = (int(size[0]), int(size[1]))
+
+    def __call__(self, frame) -> torch.Tensor:
+        image = torch.as_tensor(np.ascontiguousarray(frame))
+        if image.dtype != torch.uint8 or image.ndim != 3 or image.shape[-1] != 3:
+            raise ValueError(
+                f"expected a rendered uint8 [H, W, 3] frame, got {image.dtype} {tuple(image.shape)}"
+            )
+        if tuple(image.shape[:2]) == self.size:
+            return image
+        x = image.permute(2, 0, 1)[None].to(torch.float32)  # [1, 3, H0, W0]
+        x = torch.nn.functional.interpolate(x, size=self.size, mode="bilinear", antialias=True)
+        return x[0].round().clamp(0, 255).to(torch.uint8).permute(1, 2, 0).contiguous()
+
+
+def _check_pixels(pixels) -> tuple[int, int] | None:
+    if pixels is None:
+        return None
+    size = tuple(pixels)
+    if len(size) != 2 or any(int(p) != p or p < 1 for p in size):
+        raise ValueError(f"pixels must be (H, W) positive integers or None, got {pixels!r}")
+    return int(size[0]), int(size[1])
+
+
+def _single(
+    env_id: str,
+    frame_skip: int,
+    max_episode_steps: int | None,
+    seed: int,
+    pixels: tuple[int, int] | None = None,
+) -> EnvBase:
     """One seeded TorchRL env (module-level so ``ParallelEnv`` workers can unpickle it)."""
-    gym_env = _gym(env_id, max_episode_steps)
+    gym_env = _gym(env_id, max_episode_steps, render=pixels is not None)
     discrete, double = _check_spaces(gym_env, env_id)
     env = GymWrapper(gym_env, categorical_action_encoding=discrete, frame_skip=frame_skip)
     if double:
         env = TransformedEnv(env, DoubleToFloat())
+    if pixels is not None:
+        render = PixelRenderTransform(out_keys=[keys.PIXELS], preproc=ResizeFrame(pixels))
+        env = env.append_transform(render) if double else TransformedEnv(env, render)
     env.set_seed(seed)
     return env
 
@@ -101,6 +160,7 @@ def make_env(
     parallel: bool = False,
     frame_skip: int = 1,
     max_episode_steps: int | None = None,
+    pixels: tuple[int, int] | None = None,
 ) -> EnvBase:
     """A seeded TorchRL env for a registered gymnasium id.
 
@@ -122,6 +182,9 @@ def make_env(
             under a repeat: build it for the repeated step (e.g. ``action_repeat=``
             of the MuJoCo experts). Not available for in-process vectorised envs.
         max_episode_steps: override the id's time limit (None keeps it).
+        pixels: ``(H, W)``: also give the rendered frame as ``"pixels"``, uint8
+            ``[*batch, H, W, 3]`` (the env must render ``rgb_array``); needs
+            ``num_envs=1`` or ``parallel=True``.
 
     Returns:
         a TorchRL env: ``"observation"`` float32 ``[*batch, d]`` (int64 ``[*batch]``
@@ -140,17 +203,20 @@ def make_env(
     if max_episode_steps is not None and max_episode_steps < 1:
         raise ValueError(f"max_episode_steps must be positive or None, got {max_episode_steps}")
     num_envs, frame_skip, seed = int(num_envs), int(frame_skip), int(seed)
+    pixels = _check_pixels(pixels)
     if parallel:
         # Worker i seeds its own copy with seed + i, as SyncVectorEnv does, so the
         # switch changes where the copies run, not the episodes they play.
         # (ParallelEnv.set_seed would derive the workers' seeds by hashing instead.)
         makers = [
-            partial(_single, env_id, frame_skip, max_episode_steps, seed + i)
+            partial(_single, env_id, frame_skip, max_episode_steps, seed + i, pixels)
             for i in range(num_envs)
         ]
         return ParallelEnv(num_envs, makers)
     if num_envs == 1:
-        return _single(env_id, frame_skip, max_episode_steps, seed)
+        return _single(env_id, frame_skip, max_episode_steps, seed, pixels)
+    if pixels is not None:
+        raise ValueError("pixels needs num_envs=1 or parallel=True (one renderer per copy)")
     if frame_skip != 1:
         # GymLikeEnv's repeat loop stops when any lane ends, so lanes would
         # repeat their actions a different number of times.

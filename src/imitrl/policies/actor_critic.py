@@ -37,11 +37,18 @@ from imitrl import keys
 from imitrl.objectives.base import ImitationLoss
 from imitrl.objectives.bc import BehaviorCloningLoss
 from imitrl.policies.distributions import GreedyCategorical
+from imitrl.policies.encoders import check_pixel_env, pixel_inputs, pixel_networks
+from imitrl.policies.encoders import pixel_shape as pixel_shape_of
 from imitrl.policies.heads import HEAD_LOSSES, HEADS, OneHotInput, build_head, check_head, mlp
 from imitrl.policies.learner import Learner
 from imitrl.policies.modules import Module, Value
 from imitrl.policies.normalization import ObservationNormalizer
-from imitrl.policies.specs import ActionSpace, action_space, observation_space
+from imitrl.policies.specs import (
+    ActionSpace,
+    action_space,
+    check_same_actions,
+    observation_space,
+)
 from imitrl.rng import rng_from
 
 __all__ = ["HEADS", "HEAD_LOSSES", "ActorCritic"]
@@ -59,25 +66,6 @@ def _loss(policy: TensorDictModule, head: str, loss: str | ImitationLoss | None)
     return BehaviorCloningLoss(policy, loss_type=loss_type)
 
 
-def _describe(space: ActionSpace) -> str:
-    if space.kind == "discrete":
-        return f"{space.n} discrete actions" + (" (one-hot)" if space.one_hot else "")
-    if space.kind == "multi_discrete":
-        return f"multi-discrete actions {list(space.nvec)}"
-    bounds = "" if space.low is None else f" in [{space.low.tolist()}, {space.high.tolist()}]"
-    return f"continuous actions of size {space.dim}{bounds}"
-
-
-def _check_same_actions(mine: ActionSpace, env: ActionSpace) -> None:
-    """ValueError naming both unless the learner's actions are the env's."""
-    same = (mine.kind, mine.n, mine.nvec, mine.dim) == (env.kind, env.n, env.nvec, env.dim)
-    same = same and (mine.kind != "discrete" or mine.one_hot == env.one_hot)
-    if same and mine.low is not None and env.low is not None:
-        same = torch.equal(mine.low, env.low) and torch.equal(mine.high, env.high)
-    if not same:
-        raise ValueError(f"the learner writes {_describe(mine)}; the env takes {_describe(env)}")
-
-
 class ActorCritic(Learner):
     """A policy and a value function, each with its own Adam optimizer, and the policy's loss.
 
@@ -91,8 +79,11 @@ class ActorCritic(Learner):
             ``ImitationLoss`` over ``policy``.
         lr: learning rate of both optimizers.
         num_states: number of states for integer observations, or None.
-        observation_shape: trailing shape of vector observations, or None.
+        observation_shape: trailing shape of vector observations (the state a pixel
+            learner reads beside its images), or None.
         normalizer: the observation normaliser inside both networks, or None.
+        action: the action space the policy writes (checked against envs), or None.
+        pixel_shape: ``(H, W, C)`` of the uint8 images a pixel learner reads, or None.
     """
 
     def __init__(
@@ -107,10 +98,11 @@ class ActorCritic(Learner):
         observation_shape: Sequence[int] | None = None,
         normalizer: ObservationNormalizer | None = None,
         action: ActionSpace | None = None,
+        pixel_shape: Sequence[int] | None = None,
     ) -> None:
         if head not in HEADS:
             raise ValueError(f"head must be one of {HEADS}, got {head!r}")
-        if (num_states is None) == (observation_shape is None):
+        if pixel_shape is None and (num_states is None) == (observation_shape is None):
             raise ValueError(
                 "give exactly one of num_states (integer observations) or observation_shape"
             )
@@ -123,6 +115,7 @@ class ActorCritic(Learner):
         self.value, self.head = value, head
         self.num_states = num_states
         self.observation_shape = None if observation_shape is None else tuple(observation_shape)
+        self.pixel_shape = None if pixel_shape is None else pixel_shape_of(pixel_shape)
         self.lr = float(lr)
         self.opt_v = torch.optim.Adam(value.parameters(), lr=lr)
         self.action_space = action
@@ -227,20 +220,71 @@ class ActorCritic(Learner):
         )
 
     @classmethod
+    def pixels(
+        cls,
+        pixels: Sequence[int] | TensorSpec,
+        action: int | TensorSpec,
+        *,
+        state: int | TensorSpec | None = None,
+        frames: int = 1,
+        head: str | None = None,
+        loss: str | ImitationLoss | None = None,
+        channels: Sequence[int] = (32, 64, 64),
+        kernels: Sequence[int] | None = None,
+        strides: Sequence[int] | None = None,
+        hidden: Sequence[int] = (256,),
+        activation: type[nn.Module] = nn.ReLU,
+        lr: float = 1e-3,
+        seed: int = 0,
+        normalize: bool = True,
+    ) -> ActorCritic:
+        """CNN policy and value over uint8 images ``PIXELS`` ``[H, W, C * frames]``, any head
+        (:mod:`imitrl.policies.encoders`: layout, scaling, conv defaults).
+
+        ``pixels``: ``(H, W, C)`` of one frame or the env's unbatched uint8 pixel spec;
+        ``state``: also read ``OBSERVATION`` (a width or a ``[d]`` spec; normalised when
+        ``normalize``, concatenated to the CNN features), None: the image alone;
+        ``frames``: frames stacked on the channel axis; ``channels``/``kernels``/
+        ``strides``: the conv layers; ``hidden``: the MLP after them; ``activation``
+        follows every layer; the rest as in :meth:`mlp`.
+        """
+        net = pixel_networks(
+            pixels, action, state=state, frames=frames, head=head, channels=channels,
+            kernels=kernels, strides=strides, hidden=hidden, activation=activation, seed=seed,
+            normalize=normalize,
+        )  # fmt: skip
+        return cls(
+            net.policy, net.value, head=net.head, loss=loss, lr=lr, normalizer=net.normalizer,
+            action=net.space, observation_shape=net.state_shape, pixel_shape=net.shape,
+        )  # fmt: skip
+
+    @classmethod
     def for_env(
         cls,
         env: EnvBase,
         *,
         head: str | None = None,
         loss: str | ImitationLoss | None = None,
-        hidden: Sequence[int] = (64, 64),
-        activation: type[nn.Module] = nn.Tanh,
+        hidden: Sequence[int] | None = None,
+        activation: type[nn.Module] | None = None,
         lr: float = 1e-3,
         seed: int = 0,
         normalize: bool = True,
+        state: bool = False,
+        channels: Sequence[int] = (32, 64, 64),
     ) -> ActorCritic:
-        """:meth:`mlp` with the observation and action specs read off ``env`` (batched or not)."""
+        """:meth:`mlp` with the observation and action specs read off ``env`` (batched or not);
+        :meth:`pixels` when the env has a ``PIXELS`` observation (reading the state beside
+        it only when ``state``: by default the state is the privileged expert's).
+        ``hidden``/``activation`` None: each builder's default."""
         spec = env.observation_spec_unbatched
+        if keys.PIXELS in spec.keys():
+            return cls.pixels(
+                spec[keys.PIXELS], env.action_spec_unbatched, head=head, loss=loss,
+                state=spec[keys.OBSERVATION] if state else None, channels=channels,
+                hidden=(256,) if hidden is None else hidden, activation=activation or nn.ReLU,
+                lr=lr, seed=seed, normalize=normalize,
+            )  # fmt: skip
         if keys.OBSERVATION not in spec.keys():
             raise ValueError(
                 f"the env has no {keys.OBSERVATION!r} observation (keys {list(spec.keys())})"
@@ -250,8 +294,8 @@ class ActorCritic(Learner):
             env.action_spec_unbatched,
             head=head,
             loss=loss,
-            hidden=hidden,
-            activation=activation,
+            hidden=(64, 64) if hidden is None else hidden,
+            activation=activation or nn.Tanh,
             lr=lr,
             seed=seed,
             normalize=normalize,
@@ -260,6 +304,8 @@ class ActorCritic(Learner):
     def check_env(self, env: EnvBase) -> None:
         """Raise ``ValueError``, naming both, unless this learner reads the env's observations
         and writes actions of the env's kind and size (checked before any step)."""
+        if self.pixel_shape is not None:
+            return check_pixel_env(env, self.pixel_shape, self.observation_shape, self.action_space)
         obs_spec = env.observation_spec_unbatched.get(keys.OBSERVATION, None)
         if obs_spec is None:
             raise ValueError(f"the env has no {keys.OBSERVATION!r} observation for the learner")
@@ -272,7 +318,7 @@ class ActorCritic(Learner):
         if (obs.num_states, obs.shape) != (self.num_states, self.observation_shape):
             raise ValueError(f"the learner reads observations of {mine}; the env gives {theirs}")
         if self.action_space is not None:
-            _check_same_actions(self.action_space, action_space(env.action_spec_unbatched))
+            check_same_actions(self.action_space, action_space(env.action_spec_unbatched))
 
     def optimizers(self) -> dict[str, torch.optim.Optimizer]:
         """``opt_pi`` (the policy's) and ``opt_v`` (the value head's)."""
@@ -291,14 +337,26 @@ class ActorCritic(Learner):
             )
         return self.policy.get_dist(tensordict)
 
-    def check_observations(self, obs: torch.Tensor) -> None:
+    def check_observations(self, obs: Any) -> None:
         """Raise ``ValueError`` unless ``obs`` fits this policy (integer states in range, or
-        vectors of its trailing shape, no NaN)."""
+        vectors of its trailing shape, no NaN; a pixel learner's: a TensorDict or dict with
+        uint8 ``PIXELS`` of its shape, and the state when it reads it)."""
         self._obs(obs)
+
+    def prepare(self, rows: TensorDict) -> None:
+        """:meth:`Learner.prepare`; a pixel learner checks the rows' images first."""
+        if self.pixel_shape is None:
+            return super().prepare(rows)
+        self.check_observations(rows)
+        if self.normalizer is not None and not self.normalizer.is_fitted:
+            self.normalizer.fit(rows.get(keys.OBSERVATION).reshape(-1, *self.normalizer.shape))
 
     # --------------------------------------------------------- array boundary
     def _obs(self, obs: Any) -> tuple[torch.Tensor, str]:
-        """Observation tensor and the kind of the input (``tensor``, ``numpy``, ``scalar``)."""
+        """Observation tensor and the kind of the input (``tensor``, ``numpy``, ``scalar``);
+        for a pixel learner a dict of what it reads (:func:`encoders.pixel_inputs`)."""
+        if self.pixel_shape is not None:
+            return pixel_inputs(obs, self.pixel_shape, self.observation_shape)
         if isinstance(obs, torch.Tensor):
             kind, t = "tensor", obs
         elif isinstance(obs, np.ndarray):
@@ -331,7 +389,9 @@ class ActorCritic(Learner):
     def _batch_shape(self, obs: torch.Tensor) -> torch.Size:
         return obs.shape if self.num_states is not None else obs.shape[:-1]
 
-    def _td(self, obs: torch.Tensor) -> TensorDict:
+    def _td(self, obs: torch.Tensor | dict) -> TensorDict:
+        if isinstance(obs, dict):  # a pixel learner's inputs (pixel_inputs)
+            return TensorDict(obs, batch_size=obs[keys.PIXELS].shape[:-3])
         return TensorDict({keys.OBSERVATION: obs}, batch_size=self._batch_shape(obs))
 
     @staticmethod
@@ -405,4 +465,6 @@ class ActorCritic(Learner):
             if self.num_states is not None
             else f"observation_shape={self.observation_shape}"
         )
+        if self.pixel_shape is not None:
+            space = f"pixel_shape={self.pixel_shape}, {space}"
         return f"head={self.head!r}, {space}, lr={self.lr}"

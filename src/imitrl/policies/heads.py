@@ -27,6 +27,7 @@ from collections.abc import Sequence
 
 import torch
 from tensordict.nn import NormalParamExtractor, TensorDictModuleBase
+from tensordict.utils import NestedKey
 from torch import nn
 from torchrl.modules import ProbabilisticActor, TanhNormal
 
@@ -40,7 +41,7 @@ from imitrl.policies.distributions import (
 from imitrl.policies.modules import Module
 from imitrl.policies.specs import ActionSpace
 
-__all__ = ["DEFAULT_HEAD", "HEADS", "HEAD_LOSSES", "build_head", "mlp"]
+__all__ = ["DEFAULT_HEAD", "HEADS", "HEAD_LOSSES", "Chain", "build_head", "mlp"]
 
 HEADS = ("categorical", "multi", "deterministic", "normal", "tanh_normal")
 HEAD_LOSSES = {
@@ -82,6 +83,17 @@ class OneHotInput(nn.Module):
         return nn.functional.one_hot(x.long(), self.n).float()
 
 
+class Chain(nn.Sequential):
+    """``nn.Sequential`` whose first module may take several inputs (a pixel encoder reads
+    the image and the state); with one input it is ``nn.Sequential`` itself."""
+
+    def forward(self, *inputs: torch.Tensor) -> torch.Tensor:
+        x = self[0](*inputs)
+        for module in self[1:]:
+            x = module(x)
+        return x
+
+
 def mlp(sizes: Sequence[int], activation: type[nn.Module]) -> nn.Sequential:
     """Linear layers of ``sizes`` with ``activation`` between them (none after the last)."""
     layers: list[nn.Module] = []
@@ -107,9 +119,11 @@ def check_head(space: ActionSpace, head: str | None) -> str:
     return head
 
 
-def _probabilistic(trunk: nn.Module, out_keys, dist, dist_kwargs, spec) -> ProbabilisticActor:
+def _probabilistic(
+    trunk: nn.Module, out_keys, dist, dist_kwargs, spec, in_keys
+) -> ProbabilisticActor:
     return ProbabilisticActor(
-        Module(trunk, in_keys=[keys.OBSERVATION], out_keys=out_keys),
+        Module(trunk, in_keys=in_keys, out_keys=out_keys),
         in_keys=out_keys,
         out_keys=[keys.ACTION],
         distribution_class=dist,
@@ -119,32 +133,48 @@ def _probabilistic(trunk: nn.Module, out_keys, dist, dist_kwargs, spec) -> Proba
 
 
 def build_head(
-    trunk: Sequence[nn.Module], width: int, space: ActionSpace, head: str
+    trunk: Sequence[nn.Module],
+    width: int,
+    space: ActionSpace,
+    head: str,
+    *,
+    in_keys: Sequence[NestedKey] = (keys.OBSERVATION,),
 ) -> TensorDictModuleBase:
-    """The policy module: ``trunk`` (input layers, ending in ``width`` features) + ``head``."""
+    """The policy module: ``trunk`` (input layers, ending in ``width`` features) + ``head``.
+
+    ``trunk``'s first module takes the ``in_keys`` entries as its arguments (one, the
+    observation, for MLPs; the image and the state for a pixel encoder).
+    """
+    in_keys = list(in_keys)
     if head == "categorical":
-        net = nn.Sequential(*trunk, nn.Linear(width, space.n))
+        net = Chain(*trunk, nn.Linear(width, space.n))
         if space.one_hot:
             return _probabilistic(
-                net, [keys.LOGITS], GreedyOneHotCategorical, {"dtype": space.dtype}, space.spec
+                net,
+                [keys.LOGITS],
+                GreedyOneHotCategorical,
+                {"dtype": space.dtype},
+                space.spec,
+                in_keys,
             )
         from torchrl.data import Categorical
 
         spec = space.spec or Categorical(space.n, dtype=torch.int64)
-        return _probabilistic(net, [keys.LOGITS], GreedyCategorical, {}, spec)
+        return _probabilistic(net, [keys.LOGITS], GreedyCategorical, {}, spec, in_keys)
     if head == "multi":
-        net = nn.Sequential(*trunk, nn.Linear(width, sum(space.nvec)))
+        net = Chain(*trunk, nn.Linear(width, sum(space.nvec)))
         kwargs = {"nvec": space.nvec, "dtype": space.dtype}
-        return _probabilistic(net, [keys.LOGITS], MultiCategoricalDist, kwargs, space.spec)
+        return _probabilistic(net, [keys.LOGITS], MultiCategoricalDist, kwargs, space.spec, in_keys)
     dim = space.dim
     if head == "deterministic":
         last: list[nn.Module] = [] if space.low is None else [Squash(space.low, space.high)]
-        net = nn.Sequential(*trunk, nn.Linear(width, dim), *last)
-        return Module(net, in_keys=[keys.OBSERVATION], out_keys=[keys.ACTION])
-    net = nn.Sequential(*trunk, nn.Linear(width, 2 * dim), NormalParamExtractor())
+        net = Chain(*trunk, nn.Linear(width, dim), *last)
+        return Module(net, in_keys=in_keys, out_keys=[keys.ACTION])
+    net = Chain(*trunk, nn.Linear(width, 2 * dim), NormalParamExtractor())
     out = [keys.LOC, keys.SCALE]
     if head == "normal":
         return _probabilistic(
-            net, out, ClippedNormal, {"low": space.low, "high": space.high}, space.spec
+            net, out, ClippedNormal, {"low": space.low, "high": space.high}, space.spec, in_keys
         )
-    return _probabilistic(net, out, TanhNormal, {"low": space.low, "high": space.high}, space.spec)
+    kwargs = {"low": space.low, "high": space.high}
+    return _probabilistic(net, out, TanhNormal, kwargs, space.spec, in_keys)

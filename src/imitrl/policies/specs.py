@@ -15,7 +15,14 @@ import numpy as np
 import torch
 from torchrl.data import Bounded, Categorical, MultiCategorical, OneHot, TensorSpec, Unbounded
 
-__all__ = ["ActionSpace", "ObservationSpace", "action_space", "observation_space"]
+__all__ = [
+    "ActionSpace",
+    "ObservationSpace",
+    "action_space",
+    "check_same_actions",
+    "describe_actions",
+    "observation_space",
+]
 
 
 @dataclass(frozen=True)
@@ -125,3 +132,25 @@ def action_space(action: int | TensorSpec) -> ActionSpace:
         "action must be a number of actions or a Categorical, OneHot, MultiCategorical, "
         f"Bounded or Unbounded spec, got {action!r}"
     )
+
+
+def describe_actions(space: ActionSpace) -> str:
+    """The action space in words (for error messages naming a learner and an env)."""
+    if space.kind == "discrete":
+        return f"{space.n} discrete actions" + (" (one-hot)" if space.one_hot else "")
+    if space.kind == "multi_discrete":
+        return f"multi-discrete actions {list(space.nvec)}"
+    bounds = "" if space.low is None else f" in [{space.low.tolist()}, {space.high.tolist()}]"
+    return f"continuous actions of size {space.dim}{bounds}"
+
+
+def check_same_actions(mine: ActionSpace, env: ActionSpace) -> None:
+    """ValueError naming both unless the learner's actions are the env's."""
+    same = (mine.kind, mine.n, mine.nvec, mine.dim) == (env.kind, env.n, env.nvec, env.dim)
+    same = same and (mine.kind != "discrete" or mine.one_hot == env.one_hot)
+    if same and mine.low is not None and env.low is not None:
+        same = torch.equal(mine.low, env.low) and torch.equal(mine.high, env.high)
+    if not same:
+        raise ValueError(
+            f"the learner writes {describe_actions(mine)}; the env takes {describe_actions(env)}"
+        )
