@@ -282,7 +282,8 @@ def dagger(
         buffer: demonstrations (round 0), extended with every relabel round.
         config: rounds, episodes per round, beta schedule, fit.
         on_fit: called as ``on_fit(round, learner)`` after each fit, before collection;
-            a dict it returns (JSON-able) is kept as the round record's ``info``.
+            a dict it returns (JSON-able) is kept as the round record's ``info``
+            (anything else it returns is ignored).
         train: fits a round's learner on the buffer, ``train(learner, buffer) -> BCResult``;
             None = ``fit_bc(learner, buffer, config.bc)``.
         progress: progress bar over rounds (on stderr).
@@ -347,9 +348,8 @@ def _holds_run(checkpoint_dir) -> bool:
 
 
 def _info(value) -> dict | None:
-    if value is not None and not isinstance(value, dict):
-        raise ValueError(f"on_fit must return None or a dict, got {type(value).__name__}")
-    return value
+    """What ``on_fit`` returned, kept when it is a dict (any other return is ignored)."""
+    return value if isinstance(value, dict) else None
 
 
 def _fresh_learner(make_learner, source, expert) -> Learner:
