@@ -198,3 +198,16 @@ def test_plain_modules_must_state_exploration(lake):
         rollout_episodes(env, lambda td: td, 1, exploration=ExplorationType.DETERMINISTIC)
     learner = ActorCritic.tabular(16, 4)  # a Learner acts as its exploration says
     assert evaluate(env, learner, 3).exploration == "deterministic"
+
+
+def test_a_rollout_policy_that_writes_no_expert_label_is_refused():
+    from torchrl.envs.utils import ExplorationType
+
+    from imitrl.data import rollout_episodes
+    from imitrl.envs import make_env
+    from imitrl.policies import ActorCritic
+
+    env = make_env("CartPole-v1", seed=0)
+    learner = ActorCritic.for_env(env)  # writes "action" only: no label to keep as a row
+    with pytest.raises(ValueError, match="must write 'expert_action'"):
+        rollout_episodes(env, learner.policy, 1, exploration=ExplorationType.DETERMINISTIC)

@@ -213,12 +213,13 @@ def rollout_episodes(
         td = env.reset()
         while bool((finished < quota).any()):
             td = actor(td)
-            if not steps:
+            first = not steps
+            if first:
                 _check_action(env, td)
                 row_keys += [k for k in OPTIONAL_ROW_KEYS if k in td.keys()]
             out, td = env.step_and_maybe_reset(td)
-            for k in (keys.EXPERT_ACTION, keys.EXPERT_EXECUTED):
-                if k not in out.keys():
+            for k in (keys.EXPERT_ACTION, keys.EXPERT_EXECUTED) if first else ():
+                if k not in out.keys():  # the policy is fixed: checked once, not every step
                     raise ValueError(
                         f"the rollout policy must write {k!r} (pass an Expert or a DAgger behaviour policy)"
                     )
