@@ -116,9 +116,10 @@ class LoadedDemonstrations:
     """
 
     rows: TensorDict
-    """``[N]`` rows: ``OBSERVATION, EXPERT_ACTION, ACTION, EXPERT_EXECUTED, EPISODE, ROUND,
-    STEP`` and whatever else the dataset carried (``("next", "reward")``, ...), episodes
-    back to back in the dataset's episode order"""
+    """``[N]`` rows: ``OBSERVATION`` and/or ``PIXELS`` (a camera, uint8 ``[N, H, W, 3]``;
+    several as ``("pixels", name)``), ``EXPERT_ACTION, ACTION, EXPERT_EXECUTED, EPISODE,
+    ROUND, STEP`` and whatever else the dataset carried (``("next", "reward")``, ...),
+    episodes back to back in the dataset's episode order"""
     source: Path
     """the directory read"""
     format: str
@@ -302,7 +303,8 @@ def conform_to_env(
 ) -> TensorDict:
     """Check (and where harmless, fit) loaded rows against ``env``'s specs.
 
-    Observation and action shapes must match the env's per-frame shapes (size-1 dims
+    Observation (``OBSERVATION``, and the camera ``PIXELS`` where the rows have it) and
+    action shapes must match the env's per-frame shapes (size-1 dims
     may be added or removed: LeRobot stores a per-frame scalar as shape ``[1]``);
     dtypes are cast within a kind (float64 -> float32, int32 -> int64; ints must not
     wrap, floats not overflow) and from integer or bool to floating when every value
@@ -320,12 +322,21 @@ def conform_to_env(
     def per_frame(spec) -> tuple[torch.Size, torch.dtype]:
         return spec.shape[batch:], spec.dtype
 
-    obs_spec = env.observation_spec.get(keys.OBSERVATION, None)
-    if obs_spec is None:
+    checks: list[tuple[NestedKey, Any]] = []
+    for key in (keys.OBSERVATION, keys.PIXELS):  # the state, the camera: either or both
+        spec = env.observation_spec.get(key, None)
+        if spec is not None:
+            checks.append((key, spec))
+        elif key in rows.keys():
+            raise ValueError(
+                f"{where}: the dataset has {key!r} (from feature {names.get(key, '?')!r}), "
+                f"the env has no {key!r} observation (leave the feature out with key_map)"
+            )
+    if not checks:
         raise ValueError(
-            f"the env has no {keys.OBSERVATION!r} observation to check the dataset against"
+            f"the env has no {keys.OBSERVATION!r} (or {keys.PIXELS!r}) observation to check "
+            "the dataset against"
         )
-    checks: list[tuple[NestedKey, Any]] = [(keys.OBSERVATION, obs_spec)]
     action_spec = env.full_action_spec[keys.ACTION]
     checks += [(keys.EXPERT_ACTION, action_spec), (keys.ACTION, action_spec)]
     for key, spec in checks:

@@ -15,29 +15,43 @@ v3.0 (episodes back to back, many episodes per file)::
     meta/stats.json                             per-feature min/max/mean/std/count/quantiles
     data/chunk-000/file-000.parquet             frames: features + timestamp, frame_index,
                                                 episode_index, index, task_index
+    videos/<camera>/chunk-000/file-000.mp4      a camera's episodes back to back (AV1 by
+                                                default); the episode table adds, per camera,
+                                                videos/<camera>/{chunk_index, file_index,
+                                                from_timestamp, to_timestamp}
 
 v2.1 (one parquet file per episode)::
 
     meta/info.json, meta/episodes.jsonl, meta/tasks.jsonl, meta/episodes_stats.jsonl
     data/chunk-{episode_index // chunks_size:03d}/episode_{episode_index:06d}.parquet
+    videos/chunk-{episode_index // chunks_size:03d}/<camera>/episode_{episode_index:06d}.mp4
 
 Column mapping on load (:data:`DEFAULT_KEY_MAP`, extend or override with ``key_map``):
 ``observation.state -> OBSERVATION``, ``action -> EXPERT_ACTION`` (and ``ACTION``: a
 recording is the expert acting), ``next.reward/done/terminated/truncated -> ("next",
 ...)``, ``task_index -> "task_index"`` (indexes ``LoadedDemonstrations.tasks``; loaded
 when there is more than one task); with no ``observation.state`` (nothing mapped to
-``OBSERVATION``), every ``observation.<sub>`` feature -> ``("observation", *sub.split("."))``
-(a Dict observation); ``episode_index`` gives ``EPISODE`` and ``frame_index`` gives ``STEP``. Rows get round 0
+``OBSERVATION``), every ``observation.<sub>`` feature but the cameras ->
+``("observation", *sub.split("."))`` (a Dict observation); ``episode_index`` gives ``EPISODE`` and ``frame_index`` gives ``STEP``. Rows get round 0
 and ``EXPERT_EXECUTED`` True unless the dataset carries imitrl's own columns
 (``imitrl.round``, ``imitrl.expert_executed``, ``imitrl.executed_action``,
 ``imitrl.episode``), which :func:`save_lerobot` writes so that every DAgger round
-survives the trip. Image features are decoded (``images="load"``) or skipped with a
-warning (``images="skip"``); video features are always skipped with a warning (no
-video decoder is a dependency). Nothing is dropped without a warning.
+survives the trip. Image features are decoded (``images="load"``, under their own
+names) or skipped with a warning (``images="skip"``). Video (camera) features are
+decoded with PyAV on CPU (``videos="decode"``, the default; ``videos="skip"`` drops them
+with a warning) into uint8 ``[N, H, W, 3]`` under ``PIXELS`` (TorchRL's convention):
+``observation.image -> "pixels"``, ``observation.images.<cam> -> ("pixels", "<cam>")``,
+any other ``observation.<x> -> ("pixels", "<x>")``; ``key_map`` overrides or drops them.
+Frame ``t`` of an episode is the video frame at its ``timestamp`` (v3.0: plus the
+episode's ``from_timestamp``) within LeRobot's tolerance, 1e-4 s; ``decode_dir`` puts the
+frames in memory-mapped files instead of memory. A dataset whose only observation is a
+camera gives rows with ``PIXELS`` and no ``OBSERVATION``. Nothing is dropped without a
+warning.
 
 Modules, one idea each: ``_layout`` (format constants, :func:`resolve_lerobot_root`,
 reading ``meta/``), ``_plan`` (feature -> buffer key, and why others are skipped),
-``_read`` (:func:`load_lerobot`), ``_checks`` (what frames must satisfy: timestamps
+``_read`` (:func:`load_lerobot`), ``_video`` (where each episode's camera frames lie in
+which mp4, and decoding them), ``_checks`` (what frames must satisfy: timestamps
 against ``fps``, ``frame_index``, ``task_index``, the checksums :func:`save_lerobot`
 records), ``_write`` (:func:`save_lerobot`: rows -> features, written atomically by
 ``imitrl.datasets._publish``), ``_v3_files`` (the files of a v3.0 directory), ``_stats``

@@ -62,17 +62,39 @@ SIDECAR = "meta/imitrl.json"
 SIDECAR_FORMAT = "imitrl.lerobot/1"
 
 
+CAMERA_PREFIX = "observation.images."
+"""LeRobot's name for the cameras of a robot: ``observation.images.<camera>``"""
+
+
+def camera_key(name: str) -> NestedKey:
+    """The buffer key a LeRobot camera (video) feature loads into, under ``PIXELS``
+    (TorchRL's convention): ``observation.image -> "pixels"``, ``observation.images.<cam>
+    -> ("pixels", "<cam>")``, any other ``observation.<x>`` (or ``<x>``) -> ``("pixels",
+    "<x>")``; dots inside the camera name become nesting, as for a Dict observation."""
+    if name == "observation.image":
+        return keys.PIXELS
+    camera = name.removeprefix(CAMERA_PREFIX)
+    if camera == name:
+        camera = name.removeprefix(keys.OBSERVATION + ".")
+    return (keys.PIXELS, *camera.split("."))
+
+
 def feature_name(key: NestedKey) -> str:
     """The LeRobot feature :func:`save_lerobot` writes a buffer key as (``OBSERVATION`` ->
-    ``observation.state``, ``EXPERT_ACTION`` -> ``action``, imitrl's own columns, else the
-    dotted key name); ``meta/imitrl.json`` entries are checked against it on load."""
+    ``observation.state``, ``EXPERT_ACTION`` -> ``action``, imitrl's own columns, ``PIXELS``
+    -> ``observation.image`` and ``("pixels", cam)`` -> ``observation.images.<cam>``
+    (:func:`camera_key` backwards), else the dotted key name); ``meta/imitrl.json`` entries
+    are checked against it on load."""
     special = {
         keys.OBSERVATION: "observation.state",
         keys.EXPERT_ACTION: "action",
         **{key_name(v): k for k, v in IMITRL_COLUMNS.items()},
         "task_index": "task_index",
+        keys.PIXELS: "observation.image",
     }
     name = special.get(key_name(key), key_name(key))
+    if isinstance(key, tuple) and len(key) > 1 and key[0] == keys.PIXELS:
+        name = CAMERA_PREFIX + key_name(key[1:])
     if "/" in name:
         raise ValueError(f"LeRobot feature names cannot contain '/': {name!r}")
     return name
@@ -246,15 +268,22 @@ def _episodes_v3(root: Path, info: dict) -> list[dict]:
         missing = [c for c in need if c not in table.column_names]
         if missing:
             raise ValueError(f"{f}: episode metadata lacks column(s) {missing}")
-        table = table.select(need + [c for c in optional if c in table.column_names])
+        # where each camera's frames lie: videos/<feature>/{chunk_index, file_index,
+        # from_timestamp, to_timestamp} (checked where the videos are read)
+        cameras = [c for c in table.column_names if c.startswith("videos/")]
+        table = table.select(need + [c for c in optional if c in table.column_names] + cameras)
         nulls = [c for c in table.column_names if c != "tasks" and table.column(c).null_count]
         if nulls:
             raise ValueError(f"{f}: episode metadata column(s) {nulls} hold null entries")
         episodes.extend(table.to_pylist())
     episodes.sort(key=lambda e: e["episode_index"])
     for ep in episodes:
-        ep["file"] = _data_file(
-            root, info, chunk_index=ep["data/chunk_index"], file_index=ep["data/file_index"]
+        ep["file"] = fill_template(
+            root,
+            info,
+            "data_path",
+            chunk_index=ep["data/chunk_index"],
+            file_index=ep["data/file_index"],
         )
     return episodes
 
@@ -272,17 +301,26 @@ def _episodes_v2(root: Path, info: dict) -> list[dict]:
         raise ValueError(f"{root / 'meta' / 'info.json'}: chunks_size must be >= 1, got {chunks!r}")
     for ep in episodes:
         e = ep["episode_index"]
-        ep["file"] = _data_file(root, info, episode_chunk=e // chunks, episode_index=e)
+        ep["chunk"] = e // chunks
+        ep["file"] = fill_template(
+            root, info, "data_path", episode_chunk=ep["chunk"], episode_index=e
+        )
     return episodes
 
 
-def _data_file(root: Path, info: dict, **fields: int) -> str:
-    """``info.json``'s ``data_path`` template filled in, naming the template when it breaks."""
+def fill_template(root: Path, info: dict, field: str, **fields: int | str) -> str:
+    """``info.json``'s path template ``field`` (``data_path``, ``video_path``) filled in,
+    naming the template when it breaks."""
+    template = info.get(field)
+    if not isinstance(template, str):
+        raise ValueError(
+            f"{root / 'meta' / 'info.json'}: {field} must be a path template, got {template!r}"
+        )
     try:
-        return info["data_path"].format(**fields)
+        return template.format(**fields)
     except (KeyError, IndexError, ValueError, AttributeError, TypeError) as err:
         raise ValueError(
-            f"{root / 'meta' / 'info.json'}: data_path {info['data_path']!r} cannot be filled "
+            f"{root / 'meta' / 'info.json'}: {field} {template!r} cannot be filled "
             f"with {sorted(fields)} ({type(err).__name__}: {err})"
         ) from err
 

@@ -20,6 +20,7 @@ from imitrl.datasets.lerobot._layout import (
     IMITRL_COLUMNS,
     SIDECAR,
     SIDECAR_FORMAT,
+    camera_key,
     feature_name,
     read_json,
 )
@@ -28,8 +29,12 @@ _LEFT_OUT = "left out by key_map"
 """why a feature ``key_map`` maps to None is skipped (listed, not warned about)"""
 
 
+def _under(key: NestedKey, root_key: str) -> bool:
+    return key == root_key or (isinstance(key, tuple) and key[0] == root_key)
+
+
 def _under_observation(key: NestedKey) -> bool:
-    return key == keys.OBSERVATION or (isinstance(key, tuple) and key[0] == keys.OBSERVATION)
+    return _under(key, keys.OBSERVATION)
 
 
 def plan_features(
@@ -37,12 +42,15 @@ def plan_features(
     info: dict,
     key_map: Mapping[str, NestedKey | None] | None,
     images: Literal["skip", "load"],
+    videos: Literal["decode", "skip"],
 ) -> tuple[dict[str, NestedKey], dict[str, tuple[int, ...]]]:
     """feature -> buffer key, and the exact per-frame shapes recorded by :func:`save_lerobot`.
 
+    Video features map to :func:`~imitrl.datasets.lerobot._layout.camera_key` (under
+    ``PIXELS``) unless ``key_map`` says otherwise; with ``videos="skip"`` none is planned.
     Without ``meta/imitrl.json`` and with no feature mapped to ``OBSERVATION`` (no
-    ``observation.state``, say), every ``observation.<sub>`` feature maps to the nested key
-    ``("observation", *sub.split("."))``: a Dict observation.
+    ``observation.state``, say), every ``observation.<sub>`` feature that is not a camera
+    maps to the nested key ``("observation", *sub.split("."))``: a Dict observation.
     """
     features = info["features"]
     sidecar = root / SIDECAR
@@ -52,6 +60,9 @@ def plan_features(
         mapping = {k: v for k, v in DEFAULT_KEY_MAP.items() if k in features}
         mapping.update({k: v for k, v in IMITRL_COLUMNS.items() if k in features})
         shapes = {}
+    for name, ft in features.items():
+        if ft["dtype"] == "video" and name not in mapping:
+            mapping[name] = camera_key(name)
     for name, key in (key_map or {}).items():
         if name not in features:
             raise ValueError(
@@ -63,7 +74,11 @@ def plan_features(
         v is not None and _under_observation(v) for v in mapping.values()
     ):
         mapping.update(_observation_group(features, mapping, images))
-    plan = {k: v for k, v in mapping.items() if v is not None}
+    plan = {
+        k: v
+        for k, v in mapping.items()
+        if v is not None and (videos == "decode" or features[k]["dtype"] != "video")
+    }
     _check_targets(root, plan, features)
     return plan, shapes
 
@@ -103,6 +118,7 @@ def _sidecar_entry(
     )
     if not valid_key or as_key(key) == "" or feature_name(as_key(key)) != name:
         raise ValueError(f"{sidecar}: column {name!r} records key {key!r}, not this feature's")
+    pictures = feature["dtype"] in ("image", "video")
     if not isinstance(shape, list) or not all(
         isinstance(d, int) and not isinstance(d, bool) and d >= 0 for d in shape
     ):
@@ -110,9 +126,7 @@ def _sidecar_entry(
             f"{sidecar}: column {name!r} needs a shape (a list of sizes), got {shape!r}"
         )
     declared = feature["shape"]
-    if math.prod(shape) != math.prod(declared) or (
-        feature["dtype"] == "image" and list(shape) != list(declared)
-    ):
+    if math.prod(shape) != math.prod(declared) or (pictures and list(shape) != list(declared)):
         raise ValueError(
             f"{sidecar}: column {name!r} has shape {shape}, meta/info.json declares {declared}"
         )
@@ -139,7 +153,7 @@ def _observation_group(
 
 def _check_targets(root: Path, plan: dict[str, NestedKey], features: dict[str, dict]) -> None:
     """Each key is loaded from one feature, is a tensor or a group (not both), and
-    something is loaded under ``OBSERVATION``."""
+    something is loaded under ``OBSERVATION`` or ``PIXELS`` (a camera-only dataset)."""
     targets = [key_name(v) for v in plan.values()]
     dup = sorted({t for t in targets if targets.count(t) > 1})
     if dup:
@@ -153,11 +167,12 @@ def _check_targets(root: Path, plan: dict[str, NestedKey], features: dict[str, d
                     f"{key_name(path[:i])!r} and feature {name!r} inside it to "
                     f"{key_name(path)!r}; a key cannot be both a tensor and a group (fix key_map)"
                 )
-    if not any(_under_observation(v) for v in plan.values()):
+    if not any(_under_observation(v) or _under(v, keys.PIXELS) for v in plan.values()):
         numeric = [k for k, f in features.items() if f["dtype"] not in ("image", "video", "string")]
         raise ValueError(
-            f"{root / 'meta' / 'info.json'}: no feature maps to {keys.OBSERVATION!r}; pass "
-            f"key_map={{'<feature>': {keys.OBSERVATION!r}}} (features: {numeric})"
+            f"{root / 'meta' / 'info.json'}: no feature maps to {keys.OBSERVATION!r} (nor a "
+            f"camera to {keys.PIXELS!r}); pass key_map={{'<feature>': {keys.OBSERVATION!r}}} "
+            f"(features: {numeric})"
         )
 
 
@@ -169,6 +184,7 @@ def settle_features(
     tasks: list[str],
     key_map: Mapping[str, NestedKey | None] | None,
     images: Literal["skip", "load"],
+    videos: Literal["decode", "skip"],
 ) -> tuple[dict[str, NestedKey], dict[str, str], set[str]]:
     """The final plan (``task_index`` when there are several tasks, image features under
     their own names), every other feature -> why it is skipped, and the skipped features
@@ -191,7 +207,7 @@ def settle_features(
     for name, ft in features.items():
         if name in plan or name in ("episode_index", "frame_index"):
             continue
-        reason = _skip_reason(name, ft, tasks, quiet, key_map, images)
+        reason = _skip_reason(name, ft, tasks, quiet, key_map, images, videos)
         if reason is None:
             plan[name] = name
             continue
@@ -199,7 +215,7 @@ def settle_features(
         if reason == _LEFT_OUT:
             quiet.add(name)  # the caller's choice: listed, not warned about
     for name, key in plan.items():
-        if features[name]["dtype"] in ("video", "string"):
+        if features[name]["dtype"] == "string":
             raise ValueError(
                 f"{root / 'meta' / 'info.json'}: feature {name!r} has dtype "
                 f"{features[name]['dtype']!r}, which cannot be loaded into {key_name(key)!r}"
@@ -214,13 +230,14 @@ def _skip_reason(
     quiet: set[str],
     key_map: Mapping[str, NestedKey | None] | None,
     images: Literal["skip", "load"],
+    videos: Literal["decode", "skip"],
 ) -> str | None:
     """Why an unplanned feature is not loaded; None for an image feature to load
     (``images="load"``)."""
     if name == "task_index" and name in quiet:
         return f"a single task ({tasks[0]!r})" if len(tasks) == 1 else "not recorded by imitrl"
-    if ft["dtype"] == "video":
-        return "video feature (mp4 under videos/): video decoding is not supported"
+    if ft["dtype"] == "video" and videos == "skip" and name not in (key_map or {}):
+        return "video feature (mp4 under videos/) not decoded (videos='skip'; pass videos='decode')"
     if ft["dtype"] == "string":
         return "string feature: text cannot go into a tensor"
     if ft["dtype"] == "image" and images == "skip":

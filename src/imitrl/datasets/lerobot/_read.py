@@ -4,8 +4,9 @@ Frames are read file by file; v3.0 files are concatenated in sorted order, as Le
 does, and each episode is the slice ``[dataset_from_index, dataset_to_index)`` of that
 concatenation (the episode table's file pointers are not needed, and LeRobot's own
 aggregate tool leaves them stale: they only name a missing file when frames are
-missing too); v2.x has one file per episode. Everything is checked against the
-metadata before a row is returned.
+missing too); v2.x has one file per episode. Camera (video) features are decoded
+afterwards, file by file (:mod:`~imitrl.datasets.lerobot._video`). Everything is checked
+against the metadata before a row is returned.
 """
 
 from __future__ import annotations
@@ -39,6 +40,7 @@ from imitrl.datasets.lerobot._layout import (
     rows_in,
 )
 from imitrl.datasets.lerobot._plan import plan_features, settle_features
+from imitrl.datasets.lerobot._video import decode_videos
 
 
 @dataclass(frozen=True)
@@ -234,11 +236,21 @@ def _checked_frames(
     return episodes, frames, index
 
 
+def _timestamps(frames: _Frames, index: torch.Tensor, fps: float) -> torch.Tensor:
+    """``[N]`` float64 each row's ``timestamp`` in its episode (``frame_index / fps`` where the
+    dataset has no ``timestamp`` column): where its camera frames lie in the videos."""
+    if "timestamp" in frames.book:
+        return frames.book["timestamp"][index].double()
+    return frames.frame_index[index].double() / fps
+
+
 def load_lerobot(
     path_or_repo: str | Path,
     *,
     key_map: Mapping[str, NestedKey | None] | None = None,
     images: Literal["skip", "load"] = "skip",
+    videos: Literal["decode", "skip"] = "decode",
+    decode_dir: str | Path | None = None,
     env: EnvBase | None = None,
     first_episode: int = 0,
     revision: str | None = None,
@@ -253,7 +265,17 @@ def load_lerobot(
             :data:`DEFAULT_KEY_MAP`; map a feature to None to leave it out on purpose.
         images: ``"load"`` decodes image features into uint8 tensors in the declared
             layout; ``"skip"`` leaves them out with a warning (those :func:`save_lerobot`
-            wrote too). Video features are always skipped with a warning.
+            wrote too).
+        videos: ``"decode"`` decodes every video (camera) feature with PyAV into uint8
+            ``[N, H, W, 3]`` under ``PIXELS``: ``observation.image -> "pixels"``,
+            ``observation.images.<cam> -> ("pixels", "<cam>")``, any other
+            ``observation.<x> -> ("pixels", "<x>")`` (``key_map`` overrides or drops
+            them), frame ``t`` being the video frame at its timestamp within LeRobot's
+            tolerance (1e-4 s); ``"skip"`` leaves them out with a warning.
+        decode_dir: where decoded frames go: each video feature into the memory-mapped
+            file ``<decode_dir>/<feature>.uint8`` (a tensordict ``MemoryMappedTensor``,
+            replaced if present), so that a large dataset's frames stay on disk instead of
+            in resident memory; None decodes into ordinary tensors.
         env: if given, observation and action shapes must match its specs (else
             ValueError), dtypes are cast where no value changes (within a kind, or
             integer -> floating when exact), reward/done take its shapes, and a missing
@@ -263,7 +285,9 @@ def load_lerobot(
         revision, cache_dir: for resolving a ``repo_id`` (see :func:`resolve_lerobot_root`).
 
     Returns:
-        :class:`LoadedDemonstrations` whose ``rows`` extend a :class:`DemonstrationBuffer`.
+        :class:`LoadedDemonstrations` whose ``rows`` extend a :class:`DemonstrationBuffer`;
+        a dataset whose only observation is a camera gives rows with ``PIXELS`` and no
+        ``OBSERVATION``.
 
     Raises:
         ValueError: missing ``meta/info.json``; no episodes; a declared feature absent
@@ -272,23 +296,35 @@ def load_lerobot(
             metadata; ``frame_index`` not 0..length-1; timestamps not ``1 / fps`` apart
             (LeRobot's tolerance, 1e-4 s); a ``task_index`` outside the task table; values
             that contradict a declared shape or dtype (no value is ever changed by a cast);
-            NaN or inf; shapes that contradict ``env``. The message names the file and the
-            problem, and nothing is returned half-loaded.
+            NaN or inf; shapes that contradict ``env``; a video file missing, unreadable
+            (truncated, corrupt), of another size than declared, or without a frame at one
+            of its episodes' timestamps. The message names the file and the problem, and
+            nothing is returned half-loaded.
+        ImportError: a video to decode and no PyAV (``pip install 'imitrl[datasets]'``).
     """
     if images not in ("skip", "load"):
         raise ValueError(f"images must be 'skip' or 'load', got {images!r}")
+    if videos not in ("decode", "skip"):
+        raise ValueError(f"videos must be 'decode' or 'skip', got {videos!r}")
     root = dataset_root(path_or_repo, revision, cache_dir)
     if (root / SIDECAR).is_file():  # written by save_lerobot: every file as it was written
         verify_files(root, read_json(root / SIDECAR))
     info, major = read_info(root)
     features: dict[str, dict] = info["features"]
-    plan, exact_shapes = plan_features(root, info, key_map, images)
+    plan, exact_shapes = plan_features(root, info, key_map, images, videos)
     tasks = read_tasks(root, major)
     plan, skipped, quiet = settle_features(
-        root, features, plan, exact_shapes, tasks, key_map, images
+        root, features, plan, exact_shapes, tasks, key_map, images, videos
     )
+    cameras = {k: v for k, v in plan.items() if features[k]["dtype"] == "video"}
+    plan = {k: v for k, v in plan.items() if k not in cameras}
     episodes, frames, index = _checked_frames(root, info, major, plan, len(tasks))
     out, loaded = _columns(root, plan, frames, index, exact_shapes)
+    if cameras:
+        times = _timestamps(frames, index, info["fps"])
+        where = None if decode_dir is None else Path(decode_dir)
+        out.update(decode_videos(root, info, major, episodes, cameras, times, where))
+        loaded.update({name: key_name(key) for name, key in cameras.items()})
     episode = out.pop(keys.EPISODE) if keys.EPISODE in out else frames.episode_index[index]
     rows = required_rows(out, episode=episode + int(first_episode), step=frames.frame_index[index])
     notes: list[str] = []

@@ -60,3 +60,28 @@ def image_stats(frames: np.ndarray) -> dict[str, Any]:
     channels = frames.shape[1]
     x = frames.transpose(0, 2, 3, 1).reshape(-1, channels).astype(np.float64) / 255.0
     return _summary(x, x, (channels, 1, 1), len(frames))
+
+
+def aggregate_stats(per_episode: list[dict[str, Any]]) -> dict[str, Any]:
+    """One feature's statistics over the whole dataset from its episodes' (lerobot 0.4
+    ``compute_stats.aggregate_feature_stats``): min of mins, max of maxes, the count-weighted
+    mean, the pooled variance ``sum_e c_e (var_e + (mean_e - mean)^2) / sum_e c_e``, summed
+    counts, and each quantile as the count-weighted mean of the episodes' quantiles."""
+    means = np.stack([s["mean"] for s in per_episode])  # [E, *shape]
+    variances = np.stack([s["std"] ** 2 for s in per_episode])
+    counts = np.stack([s["count"] for s in per_episode])  # [E, 1]
+    total = counts.sum(axis=0)  # [1]
+    weights = counts.reshape(len(counts), *([1] * (means.ndim - 1)))  # [E, 1, ...]
+    mean = (means * weights).sum(axis=0) / total
+    variance = ((variances + (means - mean) ** 2) * weights).sum(axis=0) / total
+    out: dict[str, Any] = {
+        "min": np.min(np.stack([s["min"] for s in per_episode]), axis=0),
+        "max": np.max(np.stack([s["max"] for s in per_episode]), axis=0),
+        "mean": mean,
+        "std": np.sqrt(variance),
+        "count": total,
+    }
+    for q in QUANTILES:
+        name = f"q{round(q * 100):02d}"
+        out[name] = (np.stack([s[name] for s in per_episode]) * weights).sum(axis=0) / total
+    return out

@@ -2,15 +2,16 @@
 
 ``data/chunk-*/file-*.parquet`` (one row group per episode), the episode table
 ``meta/episodes/chunk-000/file-000.parquet`` with each episode's statistics,
-``meta/tasks.parquet``, ``meta/stats.json``, ``meta/info.json`` and imitrl's own
-``meta/imitrl.json`` (each column's buffer key and exact shape, each other file's size
-and SHA-256, and the SHA-256 of its own content), laid out as lerobot 0.4 writes them.
+``meta/tasks.parquet``, ``meta/stats.json``, ``meta/info.json``, the cameras' videos
+(:mod:`~imitrl.datasets.lerobot._video_write`) and imitrl's own ``meta/imitrl.json`` (each
+column's buffer key and exact shape, each other file's size and SHA-256, videos included,
+and the SHA-256 of its own content), laid out as lerobot 0.4 writes them.
 """
 
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -25,12 +26,17 @@ from imitrl.datasets.lerobot._layout import (
     CODEBASE_VERSION,
     DATA_PATH,
     DEFAULT_DATA_FILE_SIZE_IN_MB,
-    DEFAULT_VIDEO_FILE_SIZE_IN_MB,
     EPISODES_PATH,
     SIDECAR,
     SIDECAR_FORMAT,
 )
-from imitrl.datasets.lerobot._stats import feature_stats, image_stats, sample_frames
+from imitrl.datasets.lerobot._stats import (
+    aggregate_stats,
+    feature_stats,
+    image_stats,
+    sample_frames,
+)
+from imitrl.datasets.lerobot._video_write import VIDEO_PATH, VideoFiles, next_file, write_videos
 
 
 @dataclass(frozen=True)
@@ -60,11 +66,18 @@ class Features:
     arrays: dict[str, np.ndarray]
     """feature -> ``[N, ...]`` values for :func:`feature_stats`"""
     images: dict[str, np.ndarray]
-    """image feature -> ``[N, C, H, W]`` frames for :func:`image_stats`"""
+    """image and video feature -> ``[N, C, H, W]`` frames for :func:`image_stats`"""
+    videos: dict[str, np.ndarray] = field(default_factory=dict)
+    """video feature -> uint8 ``[N, H, W, 3]`` frames to encode (no column in the data files)"""
 
     def table(self) -> pa.Table:
-        """The frames as one table, with the Hugging Face ``datasets`` schema metadata."""
-        hf = {name: hf_feature(ft["dtype"], tuple(ft["shape"])) for name, ft in self.info.items()}
+        """The frames as one table, with the Hugging Face ``datasets`` schema metadata (of the
+        columns only: video features live in ``videos/``, as LeRobot's ``get_hf_features``
+        leaves them out)."""
+        hf = {
+            name: hf_feature(self.info[name]["dtype"], tuple(self.info[name]["shape"]))
+            for name in self.columns
+        }
         return pa.table(self.columns).replace_schema_metadata(hf_schema_metadata(hf))
 
 
@@ -78,16 +91,29 @@ def write_v3(
     robot_type: str | None,
     episodes_per_file: int,
     chunks_size: int,
+    video_files_size_in_mb: float,
 ) -> None:
-    """Every file of a v3.0 dataset under ``root``: data, episode table, tasks, stats,
-    ``info.json`` and ``meta/imitrl.json``."""
+    """Every file of a v3.0 dataset under ``root``: data, videos, episode table, tasks,
+    stats, ``info.json`` and ``meta/imitrl.json``."""
     places = _write_data(root, table, episodes, episodes_per_file, chunks_size)
-    ep_rows = _episode_rows(features, episodes, places)
+    videos = VideoFiles([{} for _ in episodes.starts], {})
+    if features.videos:
+        videos = write_videos(
+            root,
+            features.videos,
+            episodes.starts,
+            episodes.lengths,
+            fps=fps,
+            chunks_size=chunks_size,
+            file_size_in_mb=video_files_size_in_mb,
+        )
+    ep_stats = _episode_stats(features, episodes)
+    ep_rows = _episode_rows(features, episodes, places, videos.episode_columns, ep_stats)
     ep_path = root / EPISODES_PATH.format(chunk_index=0, file_index=0)
     ep_path.parent.mkdir(parents=True, exist_ok=True)
     pq.write_table(pa.Table.from_pylist(ep_rows), ep_path, compression="snappy")
     _write_tasks(root, episodes.tasks)
-    _write_stats(root, features, episodes)
+    _write_stats(root, features, ep_stats)
     n_eps = len(episodes.starts)
     info = {
         "codebase_version": CODEBASE_VERSION,
@@ -97,15 +123,18 @@ def write_v3(
         "total_tasks": len(episodes.tasks),
         "chunks_size": chunks_size,
         "data_files_size_in_mb": DEFAULT_DATA_FILE_SIZE_IN_MB,
-        "video_files_size_in_mb": DEFAULT_VIDEO_FILE_SIZE_IN_MB,
+        "video_files_size_in_mb": video_files_size_in_mb,
         "fps": fps,
         "splits": {"train": f"0:{n_eps}"},
         "data_path": DATA_PATH,
-        "video_path": None,
-        "features": features.info,
+        "video_path": VIDEO_PATH if features.videos else None,
+        "features": {  # a video feature with the info LeRobot probes from its first file
+            name: {**ft, "info": videos.info[name]} if name in videos.info else ft
+            for name, ft in features.info.items()
+        },
     }
     (root / "meta" / "info.json").write_text(json.dumps(info, indent=4))
-    files = {  # every other file's size and SHA-256: a changed byte is refused on load
+    files = {  # every other file's size and SHA-256 (videos too): a changed byte is refused
         f.relative_to(root).as_posix(): file_digest(f)
         for f in sorted(root.rglob("*"))
         if f.is_file()
@@ -131,7 +160,7 @@ def _write_data(
         if i and i % episodes_per_file == 0:  # next file (lerobot's update_chunk_file_indices)
             writer.close()
             writer = None
-            chunk, file = (chunk + 1, 0) if file == chunks_size - 1 else (chunk, file + 1)
+            chunk, file = next_file(chunk, file, chunks_size)
         if writer is None:
             data_path = root / DATA_PATH.format(chunk_index=chunk, file_index=file)
             data_path.parent.mkdir(parents=True, exist_ok=True)
@@ -146,10 +175,15 @@ def _write_data(
 
 
 def _episode_rows(
-    features: Features, episodes: Episodes, places: list[tuple[int, int]]
+    features: Features,
+    episodes: Episodes,
+    places: list[tuple[int, int]],
+    video_columns: list[dict[str, Any]],
+    ep_stats: list[dict[str, dict[str, np.ndarray]]],
 ) -> list[dict[str, Any]]:
     """One row of the episode table per episode: tasks, length, data file, frame range,
-    and its ``stats/<feature>/<stat>``."""
+    each camera's video file and time span, and its ``stats/<feature>/<stat>``, in the
+    order LeRobot's ``save_episode`` writes them."""
     ep_rows: list[dict[str, Any]] = []
     for i, (s, n) in enumerate(zip(episodes.starts, episodes.lengths)):
         chunk, file = places[i]
@@ -162,18 +196,10 @@ def _episode_rows(
             "data/file_index": file,
             "dataset_from_index": s,
             "dataset_to_index": s + n,
+            **video_columns[i],
         }
-        ep_stats = {
-            name: feature_stats(values[s : s + n]) for name, values in features.arrays.items()
-        }
-        ep_stats.update(
-            {
-                name: image_stats(sample_frames(chw[s : s + n]))
-                for name, chw in features.images.items()
-            }
-        )
         for name in features.info:  # in feature order, as LeRobot writes the columns
-            for stat, v in ep_stats.get(name, {}).items():
+            for stat, v in ep_stats[i].get(name, {}).items():
                 row[f"stats/{name}/{stat}"] = v.tolist()
         row["meta/episodes/chunk_index"] = 0
         row["meta/episodes/file_index"] = 0
@@ -192,18 +218,26 @@ def _write_tasks(root: Path, task_list: list[str]) -> None:
     pq.write_table(tasks_table, root / "meta" / "tasks.parquet")
 
 
-def _write_stats(root: Path, features: Features, episodes: Episodes) -> None:
-    """``meta/stats.json``: every feature's statistics over the whole dataset (image
-    statistics over each episode's sampled frames, as LeRobot aggregates them)."""
-    all_stats = {name: feature_stats(values) for name, values in features.arrays.items()}
-    for name, chw in features.images.items():
-        blocks = zip(episodes.starts, episodes.lengths)
-        samples = [sample_frames(chw[s : s + n]) for s, n in blocks]
-        all_stats[name] = image_stats(np.concatenate(samples))
+def _episode_stats(features: Features, episodes: Episodes) -> list[dict[str, dict]]:
+    """Each episode's statistics of every feature (images and videos: of its sampled
+    frames), as LeRobot's ``compute_episode_stats`` computes them."""
+    out = []
+    for s, n in zip(episodes.starts, episodes.lengths):
+        stats = {name: feature_stats(values[s : s + n]) for name, values in features.arrays.items()}
+        for name, chw in features.images.items():
+            stats[name] = image_stats(sample_frames(chw[s : s + n]))
+        out.append(stats)
+    return out
+
+
+def _write_stats(root: Path, features: Features, ep_stats: list[dict[str, dict]]) -> None:
+    """``meta/stats.json``: every feature's statistics over the whole dataset, the episodes'
+    aggregated as LeRobot aggregates them (:func:`aggregate_stats`; memory of one episode's
+    frames, not the dataset's)."""
     stats = {
-        name: {k: v.tolist() for k, v in all_stats[name].items()}
+        name: {k: v.tolist() for k, v in aggregate_stats([e[name] for e in ep_stats]).items()}
         for name in features.info
-        if name in all_stats
+        if name in ep_stats[0]
     }
     (root / "meta" / "stats.json").write_text(json.dumps(stats, indent=4))
 

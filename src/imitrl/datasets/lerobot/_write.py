@@ -1,9 +1,11 @@
 """Write demonstration rows as a LeRobot v3.0 dataset (:func:`save_lerobot`).
 
 Rows are checked first (contiguous episodes whose ``STEP`` runs 0..length-1, tasks,
-dtypes LeRobot can hold), turned into one arrow column per feature, and written into
-a temporary directory that becomes ``path`` only once every file is complete, atomically
-and with one writer per path (:func:`~imitrl.datasets._publish.publishing`).
+dtypes LeRobot can hold), turned into one arrow column per feature (or, with
+``video=True``, one mp4 stream per camera: :mod:`~imitrl.datasets.lerobot._video_write`),
+and written into a temporary directory that becomes ``path`` only once every file is
+complete, atomically and with one writer per path
+(:func:`~imitrl.datasets._publish.publishing`).
 """
 
 from __future__ import annotations
@@ -27,10 +29,12 @@ from imitrl.datasets.lerobot._layout import (
     BOOKKEEPING,
     DATASET_ENTRIES,
     DEFAULT_CHUNK_SIZE,
+    DEFAULT_VIDEO_FILE_SIZE_IN_MB,
     IMAGE_NAMES,
     feature_name,
 )
 from imitrl.datasets.lerobot._v3_files import Episodes, Features, write_v3
+from imitrl.datasets.lerobot._video_write import MIN_SIDE, import_av
 
 
 # -------------------------------------------------------------- features
@@ -81,6 +85,23 @@ def _image_feature(
     return column, entry, chw
 
 
+def _video_feature(
+    name: str, value: torch.Tensor, layout: Literal["hwc", "chw"]
+) -> tuple[np.ndarray, dict, np.ndarray]:
+    """A uint8 image key as LeRobot's video feature: the ``[N, H, W, 3]`` frames to encode
+    (a view of ``value``), its ``info.json`` entry (``info`` is added once encoded), and the
+    ``[N, C, H, W]`` frames its per-channel statistics read."""
+    pixels = value.numpy() if layout == "hwc" else value.numpy().transpose(0, 2, 3, 1)
+    if min(pixels.shape[1:3]) < MIN_SIDE:
+        raise ValueError(
+            f"{name!r}: frames of {pixels.shape[1]}x{pixels.shape[2]} (height x width) cannot "
+            f"be encoded as video: SVT-AV1 needs at least {MIN_SIDE}x{MIN_SIDE}; save with "
+            "video=False to store them as images"
+        )
+    entry = {"dtype": "video", "shape": list(pixels.shape[1:]), "names": IMAGE_NAMES["hwc"]}
+    return pixels, entry, pixels.transpose(0, 3, 1, 2)
+
+
 def _array_feature(
     name: str, value: torch.Tensor, names: Any, n_frames: int
 ) -> tuple[pa.Array, dict, np.ndarray]:
@@ -105,12 +126,13 @@ def _features(
     names: Mapping[str, Any],
     fps: int,
     episodes: Episodes,
+    video: bool,
 ) -> Features:
-    """Every leaf key as a feature (``STEP`` and ``"task_index"`` become bookkeeping),
-    then LeRobot's bookkeeping columns."""
+    """Every leaf key as a feature (``STEP`` and ``"task_index"`` become bookkeeping; image
+    keys become video features if ``video``), then LeRobot's bookkeeping columns."""
     n_frames = rows.shape[0]
     frame_index = rows.get(keys.STEP).numpy().astype(np.int64)
-    out = Features({}, {}, {}, {}, {})
+    out = Features({}, {}, {}, {}, {}, {})
     for key in rows.keys(include_nested=True, leaves_only=True):
         if key_name(key) in (keys.STEP, "task_index"):
             continue
@@ -125,14 +147,24 @@ def _features(
             "shape": list(value.shape[1:]),
         }
         layout = _image_layout(name, value)
-        if layout is not None:  # LeRobot's image feature: PNG frames, per-channel stats
-            column, entry, chw = _image_feature(value, layout, frame_index)
-            out.images[name] = chw
+        if video:
+            _check_camera(key, name, value, layout)
+        if layout is not None and video:  # LeRobot's video feature: mp4 frames, image stats
+            out.videos[name], entry, out.images[name] = _video_feature(name, value, layout)
+            out.sidecar[name]["shape"] = entry["shape"]  # decoded frames are [H, W, 3]
+        elif layout is not None:  # LeRobot's image feature: PNG frames, per-channel stats
+            out.columns[name], entry, out.images[name] = _image_feature(value, layout, frame_index)
         else:
             column, entry, values = _array_feature(name, value, names.get(name), n_frames)
+            out.columns[name] = column
             out.arrays[name] = values
-        out.columns[name] = column
         out.info[name] = entry
+    if video and not out.videos:
+        raise ValueError(
+            "video=True but no key is a camera: a uint8 [N, H, W, 3] (or [N, 3, H, W]) key "
+            f"{keys.PIXELS!r}, ({keys.PIXELS!r}, <camera>) or one whose feature name holds "
+            f"'image'; keys: {[key_name(k) for k in rows.keys(True, True)]}"
+        )
     book = {
         "timestamp": (frame_index / fps).astype(np.float32),
         "frame_index": frame_index,
@@ -152,6 +184,20 @@ def _features(
             "shape": list(rows.get("task_index").shape[1:]),
         }
     return out
+
+
+def _check_camera(
+    key: Any, name: str, value: torch.Tensor, layout: Literal["hwc", "chw"] | None
+) -> None:
+    """With ``video=True``, a key under ``PIXELS`` must be a uint8 ``[N, H, W, 3]`` (or
+    ``[N, 3, H, W]``) camera: it would otherwise be written as a plain array, silently."""
+    under_pixels = key == keys.PIXELS or (isinstance(key, tuple) and key[0] == keys.PIXELS)
+    if under_pixels and layout is None:
+        raise ValueError(
+            f"{key_name(key)!r} (feature {name!r}): video=True writes it as a LeRobot video, "
+            f"which needs uint8 [N, H, W, 3] or [N, 3, H, W] frames; got {value.dtype} "
+            f"{list(value.shape)}"
+        )
 
 
 # ------------------------------------------------------------------ rows
@@ -255,6 +301,8 @@ def save_lerobot(
     chunks_size: int = DEFAULT_CHUNK_SIZE,
     names: Mapping[str, Any] | None = None,
     overwrite: bool = False,
+    video: bool = False,
+    video_files_size_in_mb: float = DEFAULT_VIDEO_FILE_SIZE_IN_MB,
 ) -> Path:
     """Write demonstrations as a LeRobot v3.0 dataset that LeRobot's own reader opens.
 
@@ -287,24 +335,45 @@ def save_lerobot(
         names: feature -> LeRobot ``names`` for ``info.json`` (None, a list with one string
             per entry of a vector, or a mapping to such lists); to keep a source dataset's,
             pass ``{f: ft["names"] for f, ft in loaded.metadata["features"].items()}``.
-            Entries for features not written (bookkeeping, videos, skipped features) are
-            ignored; image features always get their layout's names. Default: None for all.
+            Entries for features not written (bookkeeping, skipped features) are
+            ignored; image and video features always get their layout's names. Default: None
+            for all.
         overwrite: replace an existing LeRobot dataset that holds nothing else
             (:func:`_replaceable`); the old one stays whole until the new one is complete.
+        video: write every image key (a uint8 ``[N, H, W, 3]`` or ``[N, 3, H, W]`` key
+            ``PIXELS`` -> ``observation.image``, ``(PIXELS, cam)`` ->
+            ``observation.images.<cam>``, or one whose feature name holds ``"image"``) as a
+            LeRobot video feature instead of PNG frames: AV1 mp4 files encoded as LeRobot
+            encodes them, ``videos/<feature>/chunk-XXX/file-YYY.mp4``, episodes back to back
+            with their ``from_timestamp``/``to_timestamp`` in the episode table
+            (:mod:`~imitrl.datasets.lerobot._video_write`). Needs PyAV
+            (``pip install 'imitrl[datasets]'``). AV1 is lossy: frames load back close to,
+            not equal to, the source (32-37 dB PSNR on small smooth test images).
+        video_files_size_in_mb: a camera's episodes go into one mp4 file until the next
+            would bring it to this size, then into the next file (LeRobot's
+            ``video_files_size_in_mb``).
 
     Returns:
         the dataset directory.
 
     Raises:
-        ValueError: rows LeRobot cannot hold; ``path`` exists (without ``overwrite``), is no
-            replaceable dataset, is or holds the working directory, or another process is
-            writing it. Under any error or kill ``path`` keeps what it held.
+        ValueError: rows LeRobot cannot hold; ``video=True`` without a camera key, or with
+            a ``PIXELS`` key that is no uint8 image; ``path`` exists (without
+            ``overwrite``), is no replaceable dataset, is or holds the working directory,
+            or another process is writing it. Under any error or kill ``path`` keeps what
+            it held.
+        ImportError: ``video=True`` and PyAV is not installed (the message says how).
     """
     rows = _rows_to_write(data, fps, episodes_per_file, chunks_size)
+    size = video_files_size_in_mb
+    if isinstance(size, bool) or not isinstance(size, int | float) or not size > 0:
+        raise ValueError(f"video_files_size_in_mb must be > 0, got {video_files_size_in_mb!r}")
     starts, lengths = _episode_blocks(rows)
     task_list, task_index = _task_column(rows, tasks)
     episodes = Episodes(starts, lengths, task_index, task_list)
-    features = _features(rows, dict(names or {}), fps, episodes)
+    features = _features(rows, dict(names or {}), fps, episodes, video)
+    if features.videos:
+        import_av()  # before anything is written: a missing PyAV says how to install it
     table = features.table()
     with publishing(path, overwrite=overwrite, replaceable=_replaceable) as tmp:
         write_v3(
@@ -316,5 +385,6 @@ def save_lerobot(
             robot_type=robot_type,
             episodes_per_file=episodes_per_file or len(starts),
             chunks_size=chunks_size,
+            video_files_size_in_mb=video_files_size_in_mb,
         )
     return Path(path)
