@@ -14,6 +14,8 @@ tensordict`` (overridden)
                                     (``imitrl.data.buffer.DemonstrationBuffer.extend``)
 ``LazyTensorStorage._storage``      :func:`grow_tensor_storage`
                                     (``imitrl.data.buffer.GrowingTensorStorage.reserve``)
+``LazyTensorStorage._storage``,     :func:`replace_storage_contents`
+``LazyTensorStorage._len``          (``imitrl.data.disk.GrowingMemmapStorage``)
 =================================== ==========================================================
 """
 
@@ -26,7 +28,14 @@ from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
 from torchrl.data import LazyTensorStorage, ReplayBuffer
 
-__all__ = ["DirectWriteMixin", "grow_tensor_storage", "set_writer_cursor", "writer_cursor"]
+__all__ = [
+    "DirectWriteMixin",
+    "grow_tensor_storage",
+    "replace_storage_contents",
+    "set_writer_cursor",
+    "wrapped_gym_env",
+    "writer_cursor",
+]
 
 
 class DirectWriteMixin:
@@ -133,3 +142,25 @@ def wrapped_gym_env(env: GymWrapper) -> object:
     if not isinstance(env, GymWrapper):
         raise ValueError(f"expected a TorchRL GymWrapper or GymEnv, got {type(env).__name__}")
     return env._env
+
+
+def replace_storage_contents(
+    storage: LazyTensorStorage, contents: TensorDictBase, rows: int
+) -> None:
+    """Make ``contents`` (a TensorDict ``[capacity]``) the rows of ``storage``, of which
+    the first ``rows`` count as written.
+
+    Why: ``imitrl.data.disk.GrowingMemmapStorage`` grows its memory-mapped files in place
+    (lengthen each file, map it again at the new size: no row is copied) and reopens a
+    disk buffer a previous process wrote; both hand the storage tensors it did not
+    allocate. torchrl keeps them in the private ``_storage`` and its row count in the
+    private ``_len`` (a property over a shared ``mp.Value``), with no public setter; its
+    ``load_state_dict`` would copy every row. ``tests/test_buffer_disk.py`` checks that a
+    disk buffer grown this way holds the same rows as an in-memory buffer fed the same rows.
+    """
+    if not 0 <= rows <= contents.shape[0]:
+        raise ValueError(f"{rows} written rows do not fit a capacity of {contents.shape[0]}")
+    storage._storage = contents
+    storage.max_size = int(contents.shape[0])
+    storage.initialized = True
+    storage._len = int(rows)

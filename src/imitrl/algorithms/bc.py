@@ -17,6 +17,21 @@ normaliser (``learner.prepare``), and the loss validates every label a step can 
 (``supports_weights``) and reads only observations and labels train on the distinct
 (observation, label) pairs weighted by their counts (:func:`distinct_pairs`): the
 same objective, at a cost that does not grow with repeated rows.
+
+The fit reads the keys the loss reads (``learner.loss.in_keys``) and ``OBSERVATION``
+when the rows have it (the normaliser's input); a camera-only row has ``PIXELS`` alone.
+
+Memory. A full batch over every row allocates the network's activations for all of
+them (about 1 GB per 1e6 rows for a 256-wide MLP), so it is refused, with a message
+asking for ``BCConfig(batch_size=...)``, on a disk buffer and beyond
+``config.full_batch_max_rows`` rows; distinct pairs are not limited (their number, not
+the rows', sets the cost). On a disk buffer (``DemonstrationBuffer(path=...)``) the fit
+never holds more than a batch of rows: minibatches index the memory-mapped files (only
+the drawn rows are read) in the order of a :class:`~imitrl.data.permutation.LazyPermutation`
+(no ``[N]`` permutation in memory); the normaliser is fitted on at most
+``CHUNK_BYTES`` of rows (every row when they fit, else a uniform sample drawn with
+``config.seed``), and the learner's and the loss's checks run over every row in slices of
+that size; distinct pairs are counted slice by slice.
 """
 
 from __future__ import annotations
@@ -29,7 +44,8 @@ from torchrl.record.loggers import Logger
 from tqdm.auto import tqdm
 
 from imitrl import keys
-from imitrl.data.buffer import DemonstrationBuffer
+from imitrl.data.buffer import CHUNK_BYTES, DemonstrationBuffer
+from imitrl.data.permutation import LazyPermutation
 from imitrl.policies.learner import Learner
 
 __all__ = ["BCConfig", "BCResult", "distinct_pairs", "fit_bc"]
@@ -50,11 +66,20 @@ class BCConfig:
     (observation, label) pairs weighted by their counts, the same objective at a cost
     that does not grow with the rows; None = whenever it applies"""
 
+    full_batch_max_rows: int | None = 1 << 20
+    """the most rows a full-batch fit (``batch_size=None``) runs on before it is refused
+    (activations for every row every step; distinct pairs are not limited); None = no
+    limit. A disk buffer always needs a ``batch_size``"""
+
     def __post_init__(self) -> None:
         if int(self.num_steps) != self.num_steps or self.num_steps < 0:
             raise ValueError(f"num_steps must be an integer >= 0, got {self.num_steps!r}")
         if self.batch_size is not None and self.batch_size < 1:
             raise ValueError(f"batch_size must be positive or None, got {self.batch_size}")
+        if self.full_batch_max_rows is not None and self.full_batch_max_rows < 1:
+            raise ValueError(
+                f"full_batch_max_rows must be positive or None, got {self.full_batch_max_rows}"
+            )
 
 
 @dataclass
@@ -80,14 +105,15 @@ def _rows(data: DemonstrationBuffer | TensorDictBase, reads: list) -> TensorDict
             f"fit_bc needs a non-empty batch of rows, got batch_size {tuple(td.batch_size)}"
         )
     present = set(td.keys(include_nested=True))
-    missing = [k for k in (keys.OBSERVATION, *reads) if k not in present]
+    missing = [k for k in reads if k not in present]
     if missing:
         raise ValueError(f"rows lack {missing}: the learner's loss reads {reads}")
-    return td.select(*dict.fromkeys([keys.OBSERVATION, *reads]))
+    extra = [keys.OBSERVATION] if keys.OBSERVATION in present else []  # the normaliser's input
+    return td.select(*dict.fromkeys([*extra, *reads]))
 
 
 def distinct_pairs(
-    rows: TensorDictBase, label_key=keys.EXPERT_ACTION
+    rows: TensorDictBase, label_key=keys.EXPERT_ACTION, *, chunk: int = 1 << 22
 ) -> tuple[TensorDictBase, torch.Tensor] | None:
     """Distinct (observation, label) rows ``[U]``, sorted by (observation, label), and
     their ``[U]`` int64 counts; None unless both columns are non-negative integers ``[N]``.
@@ -95,20 +121,28 @@ def distinct_pairs(
     With weights ``count * U / N``, ``mean_j(w_j l_j)`` over the U pairs equals
     ``mean_i l_i`` over the N rows: the full-batch objective is unchanged, only summed
     in another order (the FrozenLake study weights K row sets jointly the same way).
+    Rows are read ``chunk`` at a time (a disk buffer's rows are never all in memory);
+    the pairs and counts are exact integers, the same for any ``chunk``.
     """
-    obs, label = rows.get(keys.OBSERVATION), rows.get(label_key)
+    obs, label = rows.get(keys.OBSERVATION, None), rows.get(label_key)
     if (
-        obs.ndim != 1
+        obs is None
+        or obs.ndim != 1
         or label.ndim != 1
         or obs.dtype.is_floating_point
         or label.dtype.is_floating_point
     ):
         return None
-    o, a = obs.long(), label.long()
-    if int(a.min()) < 0 or int(o.min()) < 0:
+    n = obs.shape[0]
+    parts = [(obs[i : i + chunk].long(), label[i : i + chunk].long()) for i in range(0, n, chunk)]
+    if any(int(o.min()) < 0 or int(a.min()) < 0 for o, a in parts):
         return None
-    base = int(a.max()) + 1  # one integer per pair: a 1-D unique is far cheaper than dim=0
-    codes, counts = torch.unique(o * base + a, return_counts=True)
+    base = max(int(a.max()) for _, a in parts) + 1  # one integer per pair: a 1-D unique
+    codes, counts = zip(*(torch.unique(o * base + a, return_counts=True) for o, a in parts))
+    codes, counts = torch.cat(codes), torch.cat(counts)
+    if len(parts) > 1:  # merge the slices' pairs, adding their counts
+        codes, inverse = torch.unique(codes, return_inverse=True)
+        counts = torch.zeros_like(codes).scatter_add_(0, inverse, counts)
     out = rows.empty(batch_size=[codes.shape[0]])
     out.set(keys.OBSERVATION, (codes // base).to(obs.dtype))
     out.set(label_key, (codes % base).to(label.dtype))
@@ -135,23 +169,70 @@ def _dedup(learner: Learner, rows: TensorDictBase, config: BCConfig):
 
 
 class _Minibatches:
-    """Rows without replacement, epoch after epoch (the tail of an epoch is dropped)."""
+    """Rows without replacement, epoch after epoch (the tail of an epoch is dropped):
+    a ``randperm`` per epoch in memory, a :class:`LazyPermutation` on disk."""
 
-    def __init__(self, rows: TensorDictBase, batch_size: int, seed: int) -> None:
+    def __init__(self, rows: TensorDictBase, batch_size: int, seed: int, *, lazy: bool) -> None:
         self.rows, self.batch_size, self.n = rows, batch_size, rows.shape[0]
-        self.columns = {k: rows.get(k) for k in rows.keys(include_nested=True, leaves_only=True)}
+        # plain-tensor views (on disk: of the mapped files; indexing reads the drawn rows)
+        self.columns = {
+            k: rows.get(k).as_subclass(torch.Tensor)
+            for k in rows.keys(include_nested=True, leaves_only=True)
+        }
         self.generator = torch.Generator().manual_seed(seed)
-        self.perm, self.cursor = torch.randperm(self.n, generator=self.generator), 0
+        self.lazy = LazyPermutation(self.n, self.generator) if lazy else None
+        if self.lazy is None:
+            self.perm, self.cursor = torch.randperm(self.n, generator=self.generator), 0
 
-    def next(self) -> TensorDictBase:
+    def _indices(self) -> torch.Tensor:
+        if self.lazy is not None:
+            if self.lazy.remaining < self.batch_size:  # next epoch
+                self.lazy.new_epoch()
+            return self.lazy.take(self.batch_size)
         if self.cursor + self.batch_size > self.n:  # next epoch
             self.perm, self.cursor = torch.randperm(self.n, generator=self.generator), 0
         idx = self.perm[self.cursor : self.cursor + self.batch_size]
         self.cursor += self.batch_size
+        return idx
+
+    def next(self) -> TensorDictBase:
+        idx = self._indices()
         batch = self.rows.empty(batch_size=[idx.numel()])
         for key, column in self.columns.items():
             batch.set(key, column[idx])
         return batch
+
+
+def _prepare_streaming(learner: Learner, rows: TensorDictBase, seed: int) -> None:
+    """``learner.prepare`` and ``loss.check_labels`` over rows that stay on disk: the
+    normaliser (if not fitted yet) from at most ``CHUNK_BYTES`` of rows (all of them when
+    they fit, else a uniform sample with replacement drawn with ``seed``), then both
+    checks over every row, one ``CHUNK_BYTES`` slice at a time."""
+    n = rows.shape[0]
+    row_bytes = sum(v[0].nbytes for v in rows.values(include_nested=True, leaves_only=True))
+    step = max(1, CHUNK_BYTES // max(1, row_bytes))
+    if n <= step:
+        first = rows
+    else:
+        g = torch.Generator().manual_seed(seed)
+        first = rows[torch.randint(n, (step,), generator=g).sort().values]
+    learner.prepare(first)  # fits the normaliser once; later calls only check
+    for start in range(0, n, step):
+        part = rows[start : start + step]
+        learner.prepare(part)
+        learner.loss.check_labels(part)
+
+
+def _check_full_batch(n: int, on_disk: bool, config: BCConfig) -> None:
+    """Refuse a full batch over every row on disk or beyond ``full_batch_max_rows``."""
+    limit = config.full_batch_max_rows
+    if on_disk or (limit is not None and n > limit):
+        where = "a disk buffer" if on_disk else f"more than full_batch_max_rows = {limit:,}"
+        raise ValueError(
+            f"a full-batch fit (batch_size=None) over {n:,} rows of {where} would hold every "
+            "row and its activations in memory at each step: pass BCConfig(batch_size=...) "
+            "(e.g. 256)" + ("" if on_disk else ", or raise full_batch_max_rows")
+        )
 
 
 def fit_bc(
@@ -181,15 +262,21 @@ def fit_bc(
             f"{type(learner).__name__}"
         )
     rows = _rows(data, list(learner.loss.in_keys))
-    learner.prepare(rows)
-    learner.loss.check_labels(rows)  # once, over every row the fit can draw
+    on_disk = isinstance(data, DemonstrationBuffer) and data.path is not None
+    if on_disk:
+        _prepare_streaming(learner, rows, config.seed)
+    else:
+        learner.prepare(rows)
+        learner.loss.check_labels(rows)  # once, over every row the fit can draw
     n = rows.shape[0]
     minibatch = config.batch_size is not None and config.batch_size < n
     weights = None
     if minibatch:
-        batches = _Minibatches(rows, config.batch_size, config.seed)
+        batches = _Minibatches(rows, config.batch_size, config.seed, lazy=on_disk)
     else:
         rows, weights = _dedup(learner, rows, config)
+        if weights is None:
+            _check_full_batch(n, on_disk, config)
     objective, opt = learner.loss.objective, learner.opt_pi
     losses = torch.empty(config.num_steps)
     steps = tqdm(range(config.num_steps), desc="bc fit", disable=not progress, leave=False)

@@ -1,9 +1,15 @@
-"""Demonstration data: the growing buffer and whole-episode rollouts."""
+"""Demonstration data: the growing buffer (in memory or on disk) and whole-episode rollouts."""
 
-from imitrl.data.buffer import REQUIRED_KEYS, DemonstrationBuffer, GrowingTensorStorage
+from imitrl.data.buffer import (
+    OBSERVATION_KEYS,
+    REQUIRED_KEYS,
+    DemonstrationBuffer,
+    GrowingTensorStorage,
+)
 from imitrl.data.rollout import EpisodeSummary, episode_returns, rollout_episodes
 
 __all__ = [
+    "OBSERVATION_KEYS",
     "REQUIRED_KEYS",
     "DemonstrationBuffer",
     "EpisodeSummary",

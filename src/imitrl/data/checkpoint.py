@@ -332,13 +332,18 @@ def _alive(pid: int) -> bool:
 
 # ------------------------------------------------------------------------- read
 def read_checkpoint(
-    path: str | Path, *, fmt: str
+    path: str | Path, *, fmt: str, map_bytes: int | None = None
 ) -> tuple[dict[str, Any], dict[str, torch.Tensor]]:
     """Verify and read the checkpoint directory ``path``; returns ``(content, files)``,
     ``files[name]`` the file's bytes as a uint8 tensor ``[size]``.
 
     Every listed file is checked for presence, size and SHA-256, and the directory for
     unlisted entries, before any of it is returned. Nothing is written.
+
+    ``map_bytes``: files of at least this many bytes are hashed in a streaming pass and
+    returned memory-mapped (copy-on-write, paged in as they are read) instead of read
+    into memory: resident memory does not grow with them, at the price of a window
+    between the hash and the use in which a change to the file goes unnoticed.
 
     Raises:
         ValueError: naming the file: no manifest, a manifest of another format or edited,
@@ -357,7 +362,11 @@ def read_checkpoint(
         _check_size(path / name, entry["bytes"], os.lstat(path / name) if name in present else None)
     files = {}
     for name, entry in sorted(listed.items()):
-        files[name] = _read_verified(path / name, entry["bytes"], entry["sha256"])
+        size, sha256 = entry["bytes"], entry["sha256"]
+        if map_bytes is not None and size >= max(1, map_bytes):
+            files[name] = _map_verified(path / name, size, sha256)
+        else:
+            files[name] = _read_verified(path / name, size, sha256)
     return content, files
 
 
@@ -440,3 +449,22 @@ def _read_verified(where: Path, size: int, sha256: str) -> torch.Tensor:
     if _sha256(view) != sha256:
         raise ValueError(f"{where}: SHA-256 does not match the manifest (the file was altered)")
     return out
+
+
+def _map_verified(where: Path, size: int, sha256: str, block: int = 8 << 20) -> torch.Tensor:
+    """The file as a private (copy-on-write) memory map, after a streaming SHA-256 pass."""
+    digest, buffer = hashlib.sha256(), bytearray(block)
+    view = memoryview(buffer)
+    with open(where, "rb", buffering=0) as f:
+        got = 0
+        while True:
+            n = f.readinto(view)
+            if not n:
+                break
+            digest.update(view[:n])
+            got += n
+    if got != size:
+        raise ValueError(f"{where}: changed size while being read")
+    if digest.hexdigest() != sha256:
+        raise ValueError(f"{where}: SHA-256 does not match the manifest (the file was altered)")
+    return torch.from_file(str(where), shared=False, size=size, dtype=torch.uint8)

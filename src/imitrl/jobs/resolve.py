@@ -31,7 +31,7 @@ from torchrl.data import Bounded, Categorical
 from torchrl.envs import EnvBase
 
 from imitrl import experts, keys
-from imitrl.data.buffer import REQUIRED_KEYS
+from imitrl.data.buffer import OBSERVATION_KEYS, REQUIRED_KEYS
 from imitrl.objectives import registry
 from imitrl.objectives.registry import LearnerConfig, TaskSpec
 from imitrl.policies import ActorCritic, Expert, Learner
@@ -65,6 +65,7 @@ EXPERT_KINDS = ("builder", "callable")
 # so that DAgger's rollouts can extend the same buffer
 ROW_KEYS = (
     *REQUIRED_KEYS,
+    *OBSERVATION_KEYS,  # the state, the camera(s) (a nested "pixels" keeps every camera)
     *[(keys.NEXT, k) for k in (keys.REWARD, keys.DONE, keys.TERMINATED, keys.TRUNCATED)],
 )
 

@@ -1,0 +1,210 @@
+"""A demonstration buffer's rows on disk: memory-mapped files that grow, never wrap.
+
+``DemonstrationBuffer(path=...)`` keeps its rows in TorchRL's ``LazyMemmapStorage``
+(scratch directory ``path/storage``), one file per key, mapped into memory: the rows
+live in the page cache, which the kernel evicts as it needs, not in the process's own
+memory. Layout of ``path``::
+
+    path/
+      imitrl_buffer.json   format, rows, capacity, next_episode, num_episodes,
+                           num_states, schema, and every column (key, dtype, trailing
+                           shape, file); rewritten (atomically) after every extend
+      imitrl_buffer.lock   held (flock) by the one buffer object using the directory
+      storage/...          TorchRL's memory-mapped files, ``capacity`` rows each
+
+Growth (:meth:`GrowingMemmapStorage.reserve`): when the rows would not fit, every file
+is lengthened in place (``os.truncate``; the new tail is sparse, so capacity costs no
+disk) and mapped again at the new size, doubling the capacity: no row is copied, so a
+growth costs the same at 1e3 rows as at 1e8 (measured in ``benchmarks/scale_buffer.py``;
+allocating a bigger memmap and copying would write every row again at each doubling).
+The mapping is also renewed after every ``REMAP_BYTES`` written, so pages this process
+wrote leave its resident set (they stay in the page cache, written back by the kernel).
+
+Crash safety: rows are written into the files first and counted in
+``imitrl_buffer.json`` after, so a process killed mid-extend leaves the previous rows
+and count; the rows past the count are ignored on resume. Nothing is fsynced: the files
+survive the process, not a power cut.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+import torch
+from tensordict import MemoryMappedTensor, TensorDict
+from torchrl.data.replay_buffers import LazyMemmapStorage
+
+from imitrl.compat import replace_storage_contents
+
+__all__ = ["LAYOUT", "DiskLayout", "GrowingMemmapStorage"]
+
+LAYOUT = "imitrl_buffer.json"
+LOCK = "imitrl_buffer.lock"
+STORAGE = "storage"
+FORMAT = "imitrl.DiskBuffer/1"
+REMAP_BYTES = 64 << 20
+"""written bytes after which the files are mapped again (bounds this process's RssFile)"""
+FAULT_AROUND_BYTES = 64 << 10
+"""what one page fault may map of a file in the page cache (Linux ``fault_around_bytes``)"""
+
+Schema = dict[str, tuple[str, tuple[int, ...]]]
+
+
+class GrowingMemmapStorage(LazyMemmapStorage):
+    """A ``LazyMemmapStorage`` in ``scratch_dir`` that grows its files instead of wrapping.
+
+    Call :meth:`reserve` before writing ``n`` rows (``DemonstrationBuffer.extend`` does).
+    """
+
+    def __init__(self, scratch_dir: Path, capacity: int) -> None:
+        super().__init__(int(capacity), scratch_dir=scratch_dir, existsok=False, auto_cleanup=False)
+        self._unmapped_rows = 0  # rows written since the files were last mapped
+        self._read_bytes = 0  # what random reads may have mapped since then
+
+    def reserve(self, n: int) -> bool:
+        """Make room for ``n`` more rows; returns True if the storage grew."""
+        need = len(self) + int(n)
+        if need > self.max_size:
+            self.map(max(2 * self.max_size, need))
+            return True
+        if self.initialized and self._unmapped_rows * self.row_bytes() > REMAP_BYTES:
+            self.map(self.max_size)
+        self._unmapped_rows += int(n)
+        return False
+
+    def note_reads(self, n: int) -> None:
+        """Count ``n`` randomly read rows; map the files again once they may have mapped
+        ``REMAP_BYTES`` (each read of a row maps up to ``FAULT_AROUND_BYTES`` per column:
+        the kernel maps the cached neighbours of a faulting page too)."""
+        columns = len(list(self._storage.keys(include_nested=True, leaves_only=True)))
+        self._read_bytes += n * columns * FAULT_AROUND_BYTES
+        if self._read_bytes > REMAP_BYTES:
+            self.map(self.max_size)
+
+    def row_bytes(self) -> int:
+        return sum(t[0].nbytes for t in self._storage.values(True, True)) if self.initialized else 0
+
+    def map(
+        self, capacity: int, columns: list[dict[str, Any]] | None = None, rows: int = -1
+    ) -> None:
+        """(Re)map every file at ``capacity`` rows, lengthening files that are shorter.
+
+        Without ``columns``: the storage's own files, keeping its rows. With ``columns``
+        (entries of :meth:`columns`, relative to the buffer's directory) and ``rows``:
+        open the files a previous process wrote (resume); a file too short for the
+        ``rows`` it should hold is refused.
+        """
+        root = Path(self.scratch_dir).parent
+        if columns is None:
+            if not self.initialized:
+                self.max_size = int(capacity)
+                return
+            columns, rows = self.columns(root), len(self)
+        contents = TensorDict({}, batch_size=[capacity])
+        for column in columns:
+            shape = torch.Size(column["shape"])
+            dtype = getattr(torch, column["dtype"])
+            filename = root / column["file"]
+            row = shape.numel() * torch.empty((), dtype=dtype).element_size()
+            size = filename.stat().st_size
+            if size < rows * row:
+                raise ValueError(f"{filename}: {size} bytes, {rows} rows need {rows * row}")
+            if size < capacity * row:
+                os.truncate(filename, capacity * row)  # sparse: no disk used until written
+            tensor = MemoryMappedTensor.from_filename(filename, dtype, (capacity, *shape))
+            parts = column["key"]
+            contents.set(tuple(parts) if len(parts) > 1 else parts[0], tensor)
+        replace_storage_contents(self, contents, rows)
+        self._unmapped_rows = self._read_bytes = 0
+
+    def columns(self, root: Path) -> list[dict[str, Any]]:
+        """Every key's ``{"key": [parts], "dtype", "shape", "file"}`` (file relative to ``root``)."""
+        if not self.initialized:
+            return []
+        out = []
+        for key, tensor in self._storage.items(include_nested=True, leaves_only=True):
+            out.append(
+                {
+                    "key": [key] if isinstance(key, str) else list(key),
+                    "dtype": str(tensor.dtype).removeprefix("torch."),
+                    "shape": list(tensor.shape[1:]),
+                    "file": os.path.relpath(tensor.filename, root),
+                }
+            )
+        return out
+
+
+class DiskLayout:
+    """The directory of a disk buffer: refuses an occupied one, holds its lock, writes
+    ``imitrl_buffer.json``.
+
+    Args:
+        path: the buffer's directory: absent or empty for a new buffer; with ``resume``
+            one a disk buffer wrote.
+        resume: continue the buffer stored at ``path`` (its rows, schema, episode ids).
+    """
+
+    def __init__(self, path: str | Path, *, resume: bool) -> None:
+        self.path = Path(path).expanduser().absolute()
+        if self.path.exists() and not self.path.is_dir():
+            raise ValueError(f"{self.path} is not a directory: a disk buffer needs a directory")
+        entries = sorted(os.listdir(self.path)) if self.path.is_dir() else []
+        if resume and LAYOUT not in entries:
+            raise ValueError(f"cannot resume: {self.path} holds no disk buffer (no {LAYOUT})")
+        if not resume and entries:
+            what = "a disk buffer" if LAYOUT in entries else f"other files ({entries[:3]})"
+            raise ValueError(
+                f"{self.path} already holds {what}: refusing to overwrite it; pass "
+                "resume=True to continue a disk buffer there, or choose an empty directory"
+            )
+        self.path.mkdir(parents=True, exist_ok=True)
+        self._lock = open(self.path / LOCK, "a")
+        try:
+            fcntl.flock(self._lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            self._lock.close()
+            raise ValueError(f"{self.path} is in use by another disk buffer") from None
+        self.stored = self._read() if resume else None
+
+    def close(self) -> None:
+        """Release the directory's lock (another buffer may then resume it)."""
+        self._lock.close()
+
+    @property
+    def scratch_dir(self) -> Path:
+        return self.path / STORAGE
+
+    def _read(self) -> dict[str, Any]:
+        where = self.path / LAYOUT
+        try:
+            stored = json.loads(where.read_text())
+            if stored["format"] != FORMAT:
+                raise ValueError(f"format {stored['format']!r}, expected {FORMAT!r}")
+            for name in ("rows", "capacity", "next_episode", "num_episodes"):
+                if type(stored[name]) is not int or stored[name] < 0:
+                    raise ValueError(f"{name} must be a non-negative integer")
+            if stored["rows"] > stored["capacity"]:
+                raise ValueError("more rows than capacity")
+            stored["schema"] = _schema_from_json(stored["schema"])
+        except (OSError, KeyError, TypeError, ValueError) as err:
+            raise ValueError(f"{where}: not a readable disk buffer layout ({err})") from None
+        return stored
+
+    def write(self, content: dict[str, Any]) -> None:
+        """Replace ``imitrl_buffer.json`` atomically (a crash leaves the old or the new)."""
+        body = {"format": FORMAT, **content}
+        if body["schema"] is not None:
+            body["schema"] = {k: [d, list(s)] for k, (d, s) in body["schema"].items()}
+        tmp = self.path / f".{LAYOUT}.tmp-{os.getpid()}"
+        tmp.write_text(json.dumps(body, indent=1, sort_keys=True) + "\n")
+        os.replace(tmp, self.path / LAYOUT)
+
+
+def _schema_from_json(schema: Any) -> Schema | None:
+    if schema is None:
+        return None
+    return {k: (str(d), tuple(int(s) for s in shape)) for k, (d, shape) in schema.items()}

@@ -1,0 +1,220 @@
+"""The checks every row passes on its way into a :class:`~imitrl.data.DemonstrationBuffer`.
+
+:func:`check_rows` is the one place the buffer's row contract is enforced (schema,
+dtypes, episode ids, finiteness, actions, integer states); the in-memory and the disk
+buffer, ``extend`` and ``load``, all call it.
+"""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDictBase
+from torchrl.data import Bounded, Categorical, TensorSpec
+
+from imitrl import keys
+
+__all__ = ["OBSERVATION_KEYS", "REQUIRED_KEYS", "Schema", "check_rows", "episode_runs"]
+
+REQUIRED_KEYS = (
+    keys.EXPERT_ACTION,
+    keys.ACTION,
+    keys.EXPERT_EXECUTED,
+    keys.EPISODE,
+    keys.ROUND,
+    keys.STEP,
+)
+"""keys every row carries"""
+OBSERVATION_KEYS = (keys.OBSERVATION, keys.PIXELS)
+"""every row carries at least one of these (a camera-only dataset has no ``OBSERVATION``;
+``PIXELS`` may be a tensor or hold one tensor per camera, ``("pixels", name)``)"""
+_INT_KEYS = (keys.EPISODE, keys.ROUND, keys.STEP)
+
+Schema = dict[str, tuple[str, tuple[int, ...]]]
+
+
+def schema_of(rows: TensorDictBase) -> Schema:
+    """``{"a.b": (dtype name, trailing shape)}`` of every leaf of ``rows``."""
+    out = {}
+    for key in rows.keys(include_nested=True, leaves_only=True):
+        value = rows.get(key)
+        name = key if isinstance(key, str) else ".".join(key)
+        out[name] = (str(value.dtype).replace("torch.", ""), tuple(value.shape[1:]))
+    return out
+
+
+def check_rows(
+    rows: TensorDictBase,
+    *,
+    schema: Schema | None,
+    next_episode: int | None,
+    action_spec: TensorSpec | None,
+    num_states: int | None,
+) -> Schema:
+    """Raise ``ValueError`` unless ``rows`` may extend a buffer; returns their schema.
+
+    ``schema`` is the buffer's (None before its first rows: then the first-rows checks
+    run); ``next_episode`` None skips the episode-id checks (the caller checked every
+    id of a stream at once, see :func:`episode_runs`).
+    """
+    if not isinstance(rows, TensorDictBase):
+        raise ValueError(f"extend expects a TensorDict of rows, got {type(rows).__name__}")
+    if rows.batch_dims != 1:
+        raise ValueError(
+            f"rows must have exactly one batch dimension, got batch_size {tuple(rows.batch_size)}"
+        )
+    if rows.shape[0] == 0:
+        raise ValueError("cannot extend the demonstration buffer with zero rows")
+    present = rows.keys()
+    missing = [k for k in REQUIRED_KEYS if k not in present]
+    if missing:
+        raise ValueError(
+            f"rows are missing required keys {missing}; required: {list(REQUIRED_KEYS)} "
+            f"and at least one of {list(OBSERVATION_KEYS)}"
+        )
+    if not any(k in present for k in OBSERVATION_KEYS):
+        raise ValueError(
+            f"rows carry no observation: at least one of {list(OBSERVATION_KEYS)} is required "
+            f"(a camera under {keys.PIXELS!r} or ({keys.PIXELS!r}, name))"
+        )
+    new = schema_of(rows)
+    if schema is None:
+        _check_first_rows(rows, new)
+    elif new != schema:
+        raise ValueError("rows do not match the buffer's schema: " + _schema_diff(schema, new))
+    for key in rows.keys(include_nested=True, leaves_only=True):
+        value = rows.get(key)
+        if value.dtype.is_floating_point and value.numel() and not _finite(value):
+            raise ValueError(f"rows contain NaN or inf under {key!r}")
+    if next_episode is not None:
+        _check_episodes(rows.get(keys.EPISODE), next_episode)
+    if (rows.get(keys.ROUND) < 0).any() or (rows.get(keys.STEP) < 0).any():
+        raise ValueError(f"{keys.ROUND!r} and {keys.STEP!r} must be non-negative")
+    if action_spec is not None:
+        for k in (keys.EXPERT_ACTION, keys.ACTION):
+            _check_action(rows.get(k), action_spec, k)
+    if num_states is not None:
+        obs = rows.get(keys.OBSERVATION, None)
+        if obs is None or obs.dtype.is_floating_point or int(obs.min()) < 0:
+            raise ValueError(f"observations must be integer states in [0, {num_states})")
+        if int(obs.max()) >= num_states:
+            raise ValueError(f"observations must be integer states in [0, {num_states})")
+    return new
+
+
+def _check_first_rows(rows: TensorDictBase, schema: Schema) -> None:
+    for k in _INT_KEYS:
+        if rows.get(k).dtype != torch.int64 or rows.get(k).ndim != 1:
+            raise ValueError(
+                f"{k!r} must be an int64 vector [N], got {rows.get(k).dtype} {tuple(rows.get(k).shape)}"
+            )
+    if rows.get(keys.EXPERT_EXECUTED).dtype != torch.bool:
+        raise ValueError(
+            f"{keys.EXPERT_EXECUTED!r} must be bool, got {rows.get(keys.EXPERT_EXECUTED).dtype}"
+        )
+    if schema[keys.ACTION] != schema[keys.EXPERT_ACTION]:
+        raise ValueError(
+            f"{keys.ACTION!r} {schema[keys.ACTION]} and {keys.EXPERT_ACTION!r} "
+            f"{schema[keys.EXPERT_ACTION]} must share dtype and shape"
+        )
+
+
+def _check_episodes(episodes: torch.Tensor, next_episode: int) -> None:
+    starts = int((episodes[1:] != episodes[:-1]).sum()) + 1
+    # non-decreasing ids are contiguous blocks; only other orders need the sort
+    ordered = bool((episodes[1:] >= episodes[:-1]).all())
+    if not ordered and starts != int(episodes.unique().numel()):
+        raise ValueError(
+            f"each episode's rows must be contiguous: {keys.EPISODE!r} ids reappear after another episode"
+        )
+    if int(episodes.min()) < next_episode:
+        raise ValueError(
+            f"episode id {int(episodes.min())} is already used in this buffer; "
+            f"new episodes must start at buffer.next_episode = {next_episode}"
+        )
+
+
+def episode_runs(episodes: torch.Tensor, chunk: int, next_episode: int) -> tuple[int, int]:
+    """``(number of episodes, largest id)`` of an episode column ``[N]`` read ``chunk``
+    rows at a time; raises ``ValueError`` unless each id's rows are contiguous and every
+    id is at least ``next_episode``.
+
+    Memory: one int64 per episode (the id of each run), never the whole column.
+    """
+    run_ids, last = [], None
+    for start in range(0, episodes.shape[0], chunk):
+        part = episodes[start : start + chunk].as_subclass(torch.Tensor)
+        change = torch.ones(part.shape[0], dtype=torch.bool)
+        change[1:] = part[1:] != part[:-1]
+        if last is not None and int(part[0]) == last:
+            change[0] = False  # the run continues across the chunk boundary
+        run_ids.append(part[change].clone())
+        last = int(part[-1])
+    ids = torch.cat(run_ids)
+    if int(ids.min()) < next_episode:
+        raise ValueError(
+            f"episode id {int(ids.min())} is below the buffer's next_episode = {next_episode}"
+        )
+    if int(ids.unique().numel()) != ids.numel():
+        raise ValueError(
+            f"each episode's rows must be contiguous: {keys.EPISODE!r} ids reappear after another episode"
+        )
+    return ids.numel(), int(ids.max())
+
+
+def _finite(value: torch.Tensor) -> bool:
+    """No NaN or inf in a non-empty float tensor (min and max propagate NaN: one pass,
+    no [N, ...] bool temporary; 20x faster than ``isfinite(value).all()`` on 4e7 floats)."""
+    low, high = torch.aminmax(value)
+    return bool(torch.isfinite(low)) and bool(torch.isfinite(high))
+
+
+def _schema_diff(old: dict, new: dict) -> str:
+    parts = []
+    for k in sorted(set(old) - set(new)):
+        parts.append(f"missing key {k!r}")
+    for k in sorted(set(new) - set(old)):
+        parts.append(f"unexpected key {k!r}")
+    for k in sorted(set(old) & set(new)):
+        if old[k] != new[k]:
+            parts.append(
+                f"{k!r} is {new[k][0]} {list(new[k][1])}, expected {old[k][0]} {list(old[k][1])}"
+            )
+    return "; ".join(parts)
+
+
+def _check_action(action: torch.Tensor, spec: TensorSpec, key: str) -> None:
+    # the labels must carry the spec's own dtype: a learner acts in it, and an expert
+    # label of another dtype would only fail later, when the two are mixed in DAgger
+    if action.dtype != spec.dtype:
+        raise ValueError(f"{key!r} has dtype {action.dtype}, the action spec expects {spec.dtype}")
+    if isinstance(spec, Categorical):
+        n = spec.space.n
+        # rows carry the unbatched action shape: the spec's own, or its shape without
+        # the leading env-batch dimension of a batched env's spec
+        allowed = {tuple(spec.shape), tuple(spec.shape[1:])}
+        if tuple(action.shape[1:]) not in allowed:
+            raise ValueError(
+                f"{key!r} rows have shape {tuple(action.shape[1:])}, expected one of {sorted(allowed)} "
+                "for this discrete action spec"
+            )
+        if int(action.min()) < 0 or int(action.max()) >= n:
+            bad = int(action.min()) if int(action.min()) < 0 else int(action.max())
+            raise ValueError(f"{key!r} holds action {bad}, outside [0, {n})")
+    elif isinstance(spec, Bounded):
+        d = spec.shape[-1]
+        if action.ndim < 2 or action.shape[-1] != d:
+            raise ValueError(f"{key!r} has shape {tuple(action.shape[1:])}, expected (..., {d})")
+        # a batched env's spec repeats the bounds per lane: rows hold one lane's action
+        low, high = spec.space.low.reshape(-1, d), spec.space.high.reshape(-1, d)
+        if not bool((low == low[0]).all() and (high == high[0]).all()):
+            raise ValueError(
+                "the action spec's lanes have different bounds: pass one lane's spec "
+                "(env.action_spec_unbatched) to the buffer"
+            )
+        low, high = low[0], high[0]
+        if (action < low).any() or (action > high).any():
+            raise ValueError(
+                f"{key!r} holds actions outside the bounds [{low.tolist()}, {high.tolist()}]"
+            )
+    elif not spec.is_in(action):  # TorchRL specs check a leading batch of rows at once
+        raise ValueError(f"{key!r} holds actions outside {spec}")
