@@ -9,10 +9,19 @@ probability ``--beta``), every visited state labelled by the expert and added to
 the buffer. The last round's learner is saved as the checkpoint. After every round
 the whole run is checkpointed in ``OUT/run`` (:func:`imitrl.algorithms.dagger`'s
 ``checkpoint_dir``); ``--resume`` continues an interrupted run from there.
+
+``--workers N`` plays the relabel rounds on N Ray workers
+(:class:`~imitrl.algorithms.ray_source.RaySource`: one env and the expert per worker,
+the learner's weights sent once per round; needs ``pip install 'imitrl[distributed]'``),
+on a local Ray instance or on the cluster at ``--address``. The rows then depend on
+``--seed`` and ``--workers`` (not on ``--num-envs``, which still sets the lanes of the
+demonstrations); the evaluation stays in this process, so its numbers compare with
+``imitrl eval``.
 """
 
 from __future__ import annotations
 
+import functools
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -20,8 +29,11 @@ from pathlib import Path
 import torch
 
 from imitrl.algorithms import Constant, DAggerConfig, EnvSource, dagger
+from imitrl.algorithms.ray_source import RaySource
+from imitrl.envs import make_env
 from imitrl.jobs.bc import (
     BCJob,
+    Setup,
     bc_config,
     demonstrations,
     evaluate_expert,
@@ -55,6 +67,12 @@ class DAggerJob(BCJob):
     resume: bool = False
     """continue the run saved in OUT/run by an interrupted imitrl dagger with the same
     flags (bit-identical to an uninterrupted run); without it an OUT holding a run is refused"""
+    workers: int | None = None
+    """Ray workers that play the relabel rounds, one env and the expert each (needs
+    imitrl[distributed]); none = the rounds run in this process"""
+    address: str | None = None
+    """the Ray cluster for --workers (auto, or ray://HOST:10001); none = a local Ray
+    instance with --workers CPUs"""
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -64,6 +82,10 @@ class DAggerJob(BCJob):
             raise ValueError("--rounds and --episodes-per-round must be >= 1")
         if not 0.0 <= self.beta <= 1.0:
             raise ValueError(f"--beta must be in [0, 1], got {self.beta}")
+        if self.workers is not None and self.workers < 1:
+            raise ValueError(f"--workers must be >= 1 or none, got {self.workers}")
+        if self.address is not None and self.workers is None:
+            raise ValueError("--address names the Ray cluster for --workers: give --workers too")
 
 
 def run_dagger(config: DAggerJob) -> dict:
@@ -85,28 +107,30 @@ def run_dagger(config: DAggerJob) -> dict:
         log_evaluation(setup.logger, round_index, ev, expert_ev if round_index == 0 else None)
         return ev  # kept in the round's record, and so in the checkpoint
 
-    source = EnvSource(  # exploration None: each round's learner acts as it says
-        setup.env, generator=torch.Generator().manual_seed(config.seed)
-    )
-    result = dagger(
-        source,
-        setup.expert,
-        setup.make_learner,
-        buffer,
-        DAggerConfig(
-            rounds=config.rounds,
-            episodes_per_round=config.episodes_per_round,
-            beta=Constant(config.beta),
-            warm_start=config.warm_start,
-            bc=bc_config(config),
-            seed=config.seed,
-        ),
-        on_fit=on_fit,
-        progress=config.progress,
-        logger=setup.logger,
-        checkpoint_dir=checkpoint,
-        resume=config.resume,
-    )
+    source = episode_source(config, setup)
+    try:
+        result = dagger(
+            source,
+            setup.expert,
+            setup.make_learner,
+            buffer,
+            DAggerConfig(
+                rounds=config.rounds,
+                episodes_per_round=config.episodes_per_round,
+                beta=Constant(config.beta),
+                warm_start=config.warm_start,
+                bc=bc_config(config),
+                seed=config.seed,
+            ),
+            on_fit=on_fit,
+            progress=config.progress,
+            logger=setup.logger,
+            checkpoint_dir=checkpoint,
+            resume=config.resume,
+        )
+    finally:
+        if isinstance(source, RaySource):
+            source.close()  # the Ray workers, and Ray where the source started it
     evaluations = [r.info for r in result.rounds]
     rounds = [
         {
@@ -136,6 +160,17 @@ def run_dagger(config: DAggerJob) -> dict:
     }
     finish(config, "dagger", result.learner, results, setup)
     return results
+
+
+def episode_source(config: DAggerJob, setup: Setup) -> EnvSource | RaySource:
+    """Where the relabel rounds are played: ``setup.env`` in this process, or
+    ``--workers`` Ray workers each building the env as ``--env``/``--seed`` say."""
+    if config.workers is None:  # exploration None: each round's learner acts as it says
+        return EnvSource(setup.env, generator=torch.Generator().manual_seed(config.seed))
+    env_fn = functools.partial(
+        make_env, config.env, seed=config.seed, max_episode_steps=config.max_episode_steps
+    )
+    return RaySource(env_fn, config.workers, seed=config.seed, address=config.address)
 
 
 def report(results: dict) -> list[str]:

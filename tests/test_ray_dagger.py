@@ -1,0 +1,171 @@
+"""DAgger on Ray workers (RaySource): same seed and workers, same rows; a dying worker.
+
+Starting Ray and its worker actors costs most of this module's time on 2 cores, so
+one local Ray instance serves the module and one RaySource (2 workers) plays three
+DAgger runs: a clean run, its repeat (the workers' earlier rounds must not leak into
+the rows), and a run in which one worker's env kills its process mid-round (armed by
+a file the test creates). The CLI job starts one more worker of its own.
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+import sys
+
+import pytest
+import torch
+from torchrl.envs import Transform, TransformedEnv
+from torchrl.envs.utils import ExplorationType
+
+from imitrl import keys
+from imitrl.algorithms import BCConfig, Constant, DAggerConfig, dagger
+from imitrl.data import DemonstrationBuffer, rollout_episodes
+from imitrl.envs import make_env
+from imitrl.experts import cartpole_expert
+from imitrl.policies import ActorCritic
+
+ray = pytest.importorskip("ray")
+from imitrl.algorithms.ray_source import RaySource, init_ray  # noqa: E402
+from imitrl.cli import build_parser  # noqa: E402
+from imitrl.cli.flags import config_from_args  # noqa: E402
+from imitrl.jobs.dagger import DAggerJob  # noqa: E402
+from imitrl.jobs.dagger import run_dagger as run_dagger_job  # noqa: E402
+
+WORKERS = 2
+
+
+@pytest.fixture(scope="module")
+def ray_session():
+    started = init_ray(WORKERS + 1)  # + 1: the CLI job's worker
+    yield
+    if started:
+        ray.shutdown()
+
+
+class _ExitWhenArmed(Transform):
+    """Once ``armed`` exists, kills its process at its next env step, in the first process
+    to get there (the one that creates ``fired``): exactly one worker dies, mid-round."""
+
+    def __init__(self, armed: str, fired: str) -> None:
+        super().__init__()
+        self.armed, self.fired = armed, fired
+
+    def _step(self, tensordict, next_tensordict):
+        if os.path.exists(self.armed):
+            try:
+                os.close(os.open(self.fired, os.O_CREAT | os.O_EXCL))
+            except FileExistsError:
+                return next_tensordict
+            os._exit(1)
+        return next_tensordict
+
+
+def cartpole_with_fault(armed: str, fired: str, *, seed: int):
+    return TransformedEnv(make_env("CartPole-v1", seed=seed), _ExitWhenArmed(armed, fired))
+
+
+def _learner(env):
+    learner = ActorCritic.for_env(env, hidden=(16,), seed=0)
+    learner.exploration = ExplorationType.RANDOM  # the workers' torch RNG is exercised
+    return learner
+
+
+def run_dagger(source: RaySource) -> torch.Tensor:
+    """2-round DAgger (one relabel round of 5 episodes, beta 0.5) on CartPole; the buffer."""
+    env = make_env("CartPole-v1", seed=0)
+    expert = cartpole_expert()
+    buffer = DemonstrationBuffer(action_spec=env.action_spec_unbatched)
+    buffer.extend(rollout_episodes(env, expert, 1))
+    config = DAggerConfig(
+        rounds=2, episodes_per_round=5, beta=Constant(0.5), bc=BCConfig(num_steps=5), seed=0
+    )
+    dagger(source, expert, lambda: _learner(env), buffer, config)
+    return buffer.data
+
+
+def assert_whole_episodes(rows) -> None:
+    """Every episode: steps 0..len-1 in order, done at its last step and nowhere else."""
+    episodes = rows[keys.EPISODE]
+    for e in episodes.unique().tolist():
+        ep = rows[episodes == e]
+        assert torch.equal(ep[keys.STEP], torch.arange(ep.shape[0]))
+        done = ep[keys.NEXT, keys.DONE].reshape(-1)
+        assert done[-1] and not done[:-1].any()
+
+
+@pytest.fixture(scope="module")
+def fault_files(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("fault")
+    return str(folder / "armed"), str(folder / "fired")
+
+
+@pytest.fixture(scope="module")
+def source(ray_session, fault_files):
+    env_fn = functools.partial(cartpole_with_fault, *fault_files, seed=0)
+    with RaySource(env_fn, WORKERS, seed=3) as source:
+        yield source
+
+
+@pytest.fixture(scope="module")
+def clean_rows(source):
+    return run_dagger(source)
+
+
+def test_same_seed_and_workers_give_identical_rows(source, clean_rows):
+    again = run_dagger(source)
+    relabelled = clean_rows[clean_rows[keys.ROUND] == 1]
+    assert relabelled.shape[0] > 5  # 5 whole episodes
+    assert relabelled[keys.EPISODE].unique().numel() == 5
+    assert 0 < relabelled[keys.EXPERT_EXECUTED].float().mean() < 1  # coins were flipped
+    assert set(clean_rows.keys(True, True)) == set(again.keys(True, True))
+    for key in clean_rows.keys(True, True):
+        assert torch.equal(clean_rows[key], again[key]), key
+    order = (
+        clean_rows[keys.ROUND] * 10**6 + clean_rows[keys.EPISODE] * 10**3 + clean_rows[keys.STEP]
+    )
+    assert bool((order.diff() > 0).all())  # (round, worker slot, episode, step) order
+    assert_whole_episodes(clean_rows)
+
+
+def test_evaluation_runs_on_the_workers(source, clean_rows):
+    env = make_env("CartPole-v1", seed=0)
+    learner, expert = _learner(env), cartpole_expert()
+    source.check(expert, learner)
+    first = source.evaluate(expert, learner, 3, seed=1)
+    again = source.evaluate(expert, learner, 3, seed=1)
+    assert first.returns.shape == (3,) and bool((first.lengths > 0).all())
+    assert torch.equal(first.returns, first.lengths.double())  # CartPole: 1 per step
+    assert torch.equal(first.returns, again.returns)
+
+
+def test_a_worker_dying_mid_round_replays_its_slot(source, clean_rows, fault_files):
+    armed, fired = fault_files
+    open(armed, "w").close()
+    with pytest.warns(RuntimeWarning, match="died"):
+        rows = run_dagger(source)
+    assert os.path.exists(fired)  # the fault fired: one worker is left
+    assert source.live_workers == WORKERS - 1
+    assert_whole_episodes(rows)
+    for key in clean_rows.keys(True, True):  # the round completed as if undisturbed
+        assert torch.equal(clean_rows[key], rows[key]), key
+
+
+def test_the_cli_job_runs_dagger_on_workers(ray_session, tmp_path):
+    job = DAggerJob(
+        env="CartPole-v1", demos=1, rounds=2, episodes_per_round=2, steps=5, hidden=(8,),
+        eval_episodes=2, out=tmp_path, progress=False, workers=1,
+    )  # fmt: skip
+    results = run_dagger_job(job)
+    assert results["rounds"][0]["rows_collected"] > 0
+    args = build_parser().parse_args(["dagger", "--workers", "3", "--address", "auto"])
+    parsed = config_from_args(DAggerJob, args)
+    assert (parsed.workers, parsed.address) == (3, "auto")
+    with pytest.raises(ValueError, match="--workers"):
+        DAggerJob(address="auto")
+
+
+def test_missing_ray_gives_the_install_hint(monkeypatch):
+    monkeypatch.setitem(sys.modules, "ray", None)  # `import ray` raises ImportError
+    with pytest.raises(ImportError, match=r"imitrl\[distributed\]"):
+        RaySource(functools.partial(make_env, "CartPole-v1", seed=0), 2)
