@@ -26,6 +26,7 @@ def test_every_script_is_covered():
     assert {
         "bc_throughput.py",
         "bc_vs_dagger.py",
+        "camera.py",
         "continuous_traps.py",
         "frozenlake_plain.py",
         "frozenlake_timing.py",

@@ -6,6 +6,7 @@ import importlib.util
 
 import pytest
 import torch
+from tensordict import TensorDict
 from torchrl.data import Bounded
 from torchrl.envs import CatFrames, TransformedEnv
 from torchrl.envs.utils import ExplorationType
@@ -16,9 +17,15 @@ from imitrl.algorithms.dagger import DAggerConfig, EnvSource, dagger
 from imitrl.data.buffer import DemonstrationBuffer
 from imitrl.data.rollout import rollout_episodes
 from imitrl.envs.multimodal import TwoWayObstacleEnv
-from imitrl.envs.pixel_tasks import PixelTwoWayEnv, state_expert
+from imitrl.envs.pixel_tasks import (
+    Hilltop,
+    PixelBalanceEnv,
+    PixelTwoWayEnv,
+    balance_expert,
+    state_expert,
+)
 from imitrl.evaluation.evaluate import evaluate
-from imitrl.policies import ActorCritic
+from imitrl.policies import ActorCritic, Learner
 from imitrl.policies.encoders import PixelEncoder
 
 ACTION = Bounded(-1.0, 1.0, shape=(1,), dtype=torch.float32)
@@ -162,3 +169,98 @@ def test_make_env_renders_cartpole_as_uint8_hwc():
     assert rows.get(keys.PIXELS).shape == (3, 24, 36, 3)
     assert rows.get(keys.PIXELS).dtype == torch.uint8
     env.close()
+
+
+# ------------------------------------------------------------------ the hilltop task
+def test_balance_env_draws_the_ball_where_the_state_is_and_replays_under_a_seed():
+    env = PixelBalanceEnv(pixels=(16, 16), batch_size=(3,), seed=0)
+    spec = env.observation_spec_unbatched
+    assert spec[keys.PIXELS].shape == (16, 16, 3) and spec[keys.PIXELS].dtype == torch.uint8
+    rows = rollout_episodes(env, balance_expert(), 3, max_steps=100, seed=5)
+    pixels, obs = rows.get(keys.PIXELS), rows.get(keys.OBSERVATION)
+    assert pixels.dtype == torch.uint8 and pixels.shape == (rows.shape[0], 16, 16, 3)
+    # the green blob's centroid is the ball's position (view [-1, 1]^2, +y up)
+    green = pixels[..., 1].double()  # [N, 16, 16]
+    centres = (torch.arange(16, dtype=torch.float64) + 0.5) / 16 * 2 - 1
+    mass = green.sum((-2, -1))
+    x = (green.sum(-2) * centres).sum(-1) / mass
+    y = (green.sum(-1) * -centres).sum(-1) / mass
+    assert torch.allclose(torch.stack([x, y], -1).float(), obs, atol=0.02)
+    again = rollout_episodes(env, balance_expert(), 3, max_steps=100, seed=5)
+    assert torch.equal(again.get(keys.PIXELS), pixels)
+    other = rollout_episodes(env, balance_expert(), 3, max_steps=100, seed=6)
+    assert not torch.equal(other.get(keys.OBSERVATION)[:3], obs[:3])
+
+
+def test_balance_expert_is_lipschitz_and_holds_the_ball_where_random_actions_drop_it():
+    net = balance_expert(gain=8.0).module  # the expert's obs -> action map
+    g = torch.Generator().manual_seed(0)
+    p, q = torch.rand(2, 1000, 2, generator=g) - 0.5
+    gap = (net(p) - net(q)).abs().amax(-1)
+    assert bool((gap <= 8.0 * (p - q).abs().amax(-1) + 1e-6).all())  # no jump anywhere
+    env = PixelBalanceEnv(pixels=(8, 8), batch_size=(20,), seed=0)
+    expert = evaluate(env, balance_expert(), 20, max_steps=100, seed=1)
+    assert expert.mean_return == Hilltop().horizon  # the most: every episode, every step
+    random = Bounded(-1.0, 1.0, shape=(20, 2), dtype=torch.float32)
+    env.set_seed(1)
+    rows = env.rollout(100, policy=lambda td: td.set(keys.ACTION, random.rand()))
+    assert float(rows.get(("next", keys.REWARD)).sum(-2).mean()) < 0.5 * Hilltop().horizon
+    with pytest.raises(ValueError, match="gain must exceed the instability"):
+        balance_expert(gain=1.0)
+    with pytest.raises(ValueError, match="start"):
+        Hilltop(start=0.6)
+
+
+# ------------------------------------------------------------- pixel keys, cameras
+TOP = ("pixels", "top")
+
+
+def test_a_nested_camera_key_is_read_by_the_policy_the_value_and_the_loss():
+    learner = ActorCritic.pixels((16, 16, 3), ACTION, pixel_key=TOP, **SMALL)
+    assert learner.pixel_key == TOP and learner.policy.in_keys == [TOP]
+    assert TOP in learner.loss.in_keys and keys.PIXELS not in learner.loss.in_keys
+    images = _images(4)
+    as_td = TensorDict({"pixels": {"top": images, "side": _images(4, seed=1)}}, [4])
+    action = learner.act_greedy(as_td)
+    assert action.shape == (4, 1)
+    assert torch.equal(learner.act_greedy({"pixels": {"top": images}}), action)  # dict of dicts
+    assert torch.equal(learner.act_greedy({TOP: images}), action)  # keyed by the tuple
+    assert learner.values(as_td).shape == (4,)
+    with pytest.raises(ValueError, match=r"lack \('pixels', 'top'\)"):
+        learner.act_greedy(TensorDict({"pixels": {"side": images}}, [4]))
+    rows = TensorDict(
+        {"pixels": {"top": images}, keys.EXPERT_ACTION: torch.zeros(4, 1)},
+        [4],
+    )
+    rows.set(keys.OBSERVATION, torch.zeros(4, 2))  # fit_bc's rows keep the state today
+    assert fit_bc(learner, rows, BCConfig(num_steps=2)).num_rows == 4
+    with pytest.raises(ValueError, match="pixel_key must be"):
+        ActorCritic.pixels((16, 16, 3), ACTION, pixel_key=("pixels", ""))
+    with pytest.raises(ValueError, match="lies under 'observation'"):
+        ActorCritic.pixels((16, 16, 3), ACTION, state=2, pixel_key=("observation", "cam"))
+
+
+def test_a_camera_key_the_env_lacks_is_refused_naming_it():
+    env = PixelBalanceEnv(pixels=(16, 16), seed=0)
+    learner = ActorCritic.pixels((16, 16, 3), Bounded(-1.0, 1.0, shape=(2,)), pixel_key=TOP)
+    with pytest.raises(ValueError, match=r"no \('pixels', 'top'\) observation"):
+        learner.check_env(env)
+    with pytest.raises(ValueError, match=r"reads \[\('pixels', 'top'\)\]"):
+        ActorCritic.for_env(env, pixel_key=TOP)
+    assert ActorCritic.for_env(env, pixel_key=keys.PIXELS, **SMALL).pixel_key == keys.PIXELS
+
+
+def test_camera_only_rows_pass_prepare_when_the_state_is_not_read():
+    rows = TensorDict({keys.PIXELS: _images(6), keys.EXPERT_ACTION: torch.zeros(6, 1)}, [6])
+    images_only = ActorCritic.pixels((16, 16, 3), ACTION, **SMALL)
+    images_only.prepare(rows)  # no OBSERVATION anywhere: fine
+    images_only.check_observations(rows)
+    with_state = ActorCritic.pixels((16, 16, 3), ACTION, state=2, **SMALL)
+    with pytest.raises(ValueError, match="reads the state 'observation'"):
+        with_state.prepare(rows)
+    mlp = ActorCritic.mlp(2, ACTION, hidden=(8,))
+    with pytest.raises(ValueError, match="rows lack 'observation', which the policy reads"):
+        mlp.prepare(rows)
+    # the base contract too: a user's Learner of images alone takes camera-only rows
+    plain = Learner(images_only.policy, images_only.loss, images_only.opt_pi)
+    plain.prepare(rows)

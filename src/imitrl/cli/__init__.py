@@ -1,4 +1,4 @@
-"""Command line: ``imitrl {bc,dagger,eval,bench,frozenlake} [--<field> VALUE ...]``.
+"""Command line: ``imitrl {bc,dagger,gail,airl,eval,bench,frozenlake} [--<field> VALUE ...]``.
 
 Every command is a function of one frozen config dataclass, and every field of that
 dataclass is a flag (dashes for underscores) whose help text is the field's
@@ -12,6 +12,8 @@ command     config                  function
 =========== ======================= =========================================
 bc          ``jobs.bc.BCJob``        ``jobs.bc.run_bc``
 dagger      ``jobs.dagger.DAggerJob`` ``jobs.dagger.run_dagger``
+gail        ``jobs.gail.GAILJob``    ``jobs.gail.run_gail``
+airl        ``jobs.gail.AIRLJob``    ``jobs.gail.run_airl``
 eval        ``jobs.evaluate.EvalJob`` ``jobs.evaluate.run_eval``
 bench       ``jobs.bench.BenchJob``  ``jobs.bench.run_bench``
 frozenlake  ``StudyConfig``          ``experiments.frozenlake.run_study``
@@ -35,7 +37,7 @@ import torch
 
 from imitrl.cli.flags import add_config_flags, config_from_args
 from imitrl.experiments.frozenlake import StudyConfig, run_study
-from imitrl.jobs import bc, bench, dagger, evaluate
+from imitrl.jobs import bc, bench, dagger, evaluate, gail
 from imitrl.jobs.resolve import EXPERTS
 from imitrl.objectives import registry
 
@@ -87,6 +89,24 @@ COMMANDS: dict[str, Command] = {
         "Every round is evaluated; results.json, the last learner's checkpoint, curves.png "
         "and logs/ go to --out.",
     ),
+    "gail": Command(
+        gail.GAILJob,
+        gail.run_gail,
+        gail.report,
+        "GAIL: PPO on a discriminator's reward -log(1 - D(s, a)), from demonstrations",
+        "Adversarial imitation (Ho & Ermon 2016) from --demos episodes of --expert or a "
+        "LeRobot/Minari --dataset: --total-steps env steps of PPO on the discriminator's "
+        "reward; no expert queries after the demonstrations. Writes results.json, a "
+        "checkpoint (config.json + learner.pt), curves.png and logs/ to --out.",
+    ),
+    "airl": Command(
+        gail.AIRLJob,
+        gail.run_airl,
+        gail.report,
+        "AIRL: PPO on f(s, a, s') - log pi(a|s), f = g(s) + gamma h(s') - h(s)",
+        "Adversarial inverse RL (Fu et al. 2018), state-only reward g, from the same "
+        "demonstrations and flags as imitrl gail; outputs as imitrl gail.",
+    ),
     "eval": Command(
         evaluate.EvalJob,
         evaluate.run_eval,
@@ -122,6 +142,8 @@ def build_parser() -> argparse.ArgumentParser:
     epilogs = {
         "bc": _names_epilog(),
         "dagger": _names_epilog(),
+        "gail": _names_epilog(),
+        "airl": _names_epilog(),
         "bench": f"benchmarks: {', '.join(bench.available()) or '(none found)'}",
     }
     for name, command in COMMANDS.items():

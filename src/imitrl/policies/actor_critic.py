@@ -7,7 +7,9 @@ policy (``opt_pi``, on the learner's ``loss``); the value head and its optimizer
 (``opt_v``) are carried so that an actor-critic method needs no new class.
 
 Build one with :meth:`ActorCritic.tabular` (the section's zero-initialised table),
-:meth:`ActorCritic.mlp` (any observation and action spec) or
+:meth:`ActorCritic.mlp` (any observation and action spec), :meth:`ActorCritic.pixels`
+(a CNN over uint8 images under a pixel key, and optionally the state:
+:mod:`imitrl.policies.pixel_learner` holds what it reads and builds) or
 :meth:`ActorCritic.for_env` (the specs read off an env). MLP learners normalise
 observations with the demonstrations' mean and standard deviation by default
 (:class:`~imitrl.policies.normalization.ObservationNormalizer`, inside the networks).
@@ -24,8 +26,9 @@ from typing import Any
 
 import numpy as np
 import torch
-from tensordict import TensorDict
+from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModule
+from tensordict.utils import NestedKey
 from torch import nn
 from torchrl.data import Categorical as CategoricalSpec
 from torchrl.data import TensorSpec
@@ -37,12 +40,12 @@ from imitrl import keys
 from imitrl.objectives.base import ImitationLoss
 from imitrl.objectives.bc import BehaviorCloningLoss
 from imitrl.policies.distributions import GreedyCategorical
-from imitrl.policies.encoders import check_pixel_env, pixel_inputs, pixel_networks
-from imitrl.policies.encoders import pixel_shape as pixel_shape_of
 from imitrl.policies.heads import HEAD_LOSSES, HEADS, OneHotInput, build_head, check_head, mlp
 from imitrl.policies.learner import Learner
 from imitrl.policies.modules import Module, Value
 from imitrl.policies.normalization import ObservationNormalizer
+from imitrl.policies.observations import read_observations
+from imitrl.policies.pixel_learner import PixelInputs, env_pixel_specs, pixel_networks
 from imitrl.policies.specs import (
     ActionSpace,
     action_space,
@@ -83,7 +86,7 @@ class ActorCritic(Learner):
             learner reads beside its images), or None.
         normalizer: the observation normaliser inside both networks, or None.
         action: the action space the policy writes (checked against envs), or None.
-        pixel_shape: ``(H, W, C)`` of the uint8 images a pixel learner reads, or None.
+        pixel_inputs: what a pixel learner reads (image key and shape, state shape), or None.
     """
 
     def __init__(
@@ -98,11 +101,11 @@ class ActorCritic(Learner):
         observation_shape: Sequence[int] | None = None,
         normalizer: ObservationNormalizer | None = None,
         action: ActionSpace | None = None,
-        pixel_shape: Sequence[int] | None = None,
+        pixel_inputs: PixelInputs | None = None,
     ) -> None:
         if head not in HEADS:
             raise ValueError(f"head must be one of {HEADS}, got {head!r}")
-        if pixel_shape is None and (num_states is None) == (observation_shape is None):
+        if pixel_inputs is None and (num_states is None) == (observation_shape is None):
             raise ValueError(
                 "give exactly one of num_states (integer observations) or observation_shape"
             )
@@ -115,7 +118,7 @@ class ActorCritic(Learner):
         self.value, self.head = value, head
         self.num_states = num_states
         self.observation_shape = None if observation_shape is None else tuple(observation_shape)
-        self.pixel_shape = None if pixel_shape is None else pixel_shape_of(pixel_shape)
+        self.pixel_inputs = pixel_inputs
         self.lr = float(lr)
         self.opt_v = torch.optim.Adam(value.parameters(), lr=lr)
         self.action_space = action
@@ -237,11 +240,14 @@ class ActorCritic(Learner):
         lr: float = 1e-3,
         seed: int = 0,
         normalize: bool = True,
+        pixel_key: NestedKey = keys.PIXELS,
     ) -> ActorCritic:
-        """CNN policy and value over uint8 images ``PIXELS`` ``[H, W, C * frames]``, any head
-        (:mod:`imitrl.policies.encoders`: layout, scaling, conv defaults).
+        """CNN policy and value over uint8 images ``[H, W, C * frames]`` under ``pixel_key``,
+        any head (:mod:`imitrl.policies.encoders`: layout, scaling, conv defaults).
 
         ``pixels``: ``(H, W, C)`` of one frame or the env's unbatched uint8 pixel spec;
+        ``pixel_key``: where the images are (``"pixels"``, or a nested camera key such
+        as ``("pixels", "top")``), read by the policy, the value and the loss alike;
         ``state``: also read ``OBSERVATION`` (a width or a ``[d]`` spec; normalised when
         ``normalize``, concatenated to the CNN features), None: the image alone;
         ``frames``: frames stacked on the channel axis; ``channels``/``kernels``/
@@ -249,13 +255,13 @@ class ActorCritic(Learner):
         follows every layer; the rest as in :meth:`mlp`.
         """
         net = pixel_networks(
-            pixels, action, state=state, frames=frames, head=head, channels=channels,
-            kernels=kernels, strides=strides, hidden=hidden, activation=activation, seed=seed,
-            normalize=normalize,
+            pixels, action, pixel_key=pixel_key, state=state, frames=frames, head=head,
+            channels=channels, kernels=kernels, strides=strides, hidden=hidden,
+            activation=activation, seed=seed, normalize=normalize,
         )  # fmt: skip
         return cls(
             net.policy, net.value, head=net.head, loss=loss, lr=lr, normalizer=net.normalizer,
-            action=net.space, observation_shape=net.state_shape, pixel_shape=net.shape,
+            action=net.space, observation_shape=net.inputs.state_shape, pixel_inputs=net.inputs,
         )  # fmt: skip
 
     @classmethod
@@ -272,18 +278,20 @@ class ActorCritic(Learner):
         normalize: bool = True,
         state: bool = False,
         channels: Sequence[int] = (32, 64, 64),
+        pixel_key: NestedKey | None = None,
     ) -> ActorCritic:
         """:meth:`mlp` with the observation and action specs read off ``env`` (batched or not);
-        :meth:`pixels` when the env has a ``PIXELS`` observation (reading the state beside
-        it only when ``state``: by default the state is the privileged expert's).
-        ``hidden``/``activation`` None: each builder's default."""
+        :meth:`pixels` when the env has a ``PIXELS`` observation or ``pixel_key`` names
+        one (reading the state beside it only when ``state``: by default the state is the
+        privileged expert's). ``hidden``/``activation`` None: each builder's default."""
         spec = env.observation_spec_unbatched
-        if keys.PIXELS in spec.keys():
+        if pixel_key is not None or keys.PIXELS in spec.keys():
+            pixels, state_spec, pixel_key = env_pixel_specs(env, pixel_key, state=state)
             return cls.pixels(
-                spec[keys.PIXELS], env.action_spec_unbatched, head=head, loss=loss,
-                state=spec[keys.OBSERVATION] if state else None, channels=channels,
-                hidden=(256,) if hidden is None else hidden, activation=activation or nn.ReLU,
-                lr=lr, seed=seed, normalize=normalize,
+                pixels, env.action_spec_unbatched, head=head, loss=loss, state=state_spec,
+                channels=channels, hidden=(256,) if hidden is None else hidden,
+                activation=activation or nn.ReLU, lr=lr, seed=seed, normalize=normalize,
+                pixel_key=pixel_key,
             )  # fmt: skip
         if keys.OBSERVATION not in spec.keys():
             raise ValueError(
@@ -304,8 +312,8 @@ class ActorCritic(Learner):
     def check_env(self, env: EnvBase) -> None:
         """Raise ``ValueError``, naming both, unless this learner reads the env's observations
         and writes actions of the env's kind and size (checked before any step)."""
-        if self.pixel_shape is not None:
-            return check_pixel_env(env, self.pixel_shape, self.observation_shape, self.action_space)
+        if self.pixel_inputs is not None:
+            return self.pixel_inputs.check_env(env, self.action_space)
         obs_spec = env.observation_spec_unbatched.get(keys.OBSERVATION, None)
         if obs_spec is None:
             raise ValueError(f"the env has no {keys.OBSERVATION!r} observation for the learner")
@@ -337,61 +345,45 @@ class ActorCritic(Learner):
             )
         return self.policy.get_dist(tensordict)
 
+    @property
+    def pixel_shape(self) -> tuple[int, int, int] | None:
+        """``(H, W, C)`` of the images a pixel learner reads (None: not a pixel learner)."""
+        return None if self.pixel_inputs is None else self.pixel_inputs.shape
+
+    @property
+    def pixel_key(self) -> NestedKey | None:
+        """The key of the images a pixel learner reads (None: not a pixel learner)."""
+        return None if self.pixel_inputs is None else self.pixel_inputs.key
+
     def check_observations(self, obs: Any) -> None:
         """Raise ``ValueError`` unless ``obs`` fits this policy (integer states in range, or
         vectors of its trailing shape, no NaN; a pixel learner's: a TensorDict or dict with
-        uint8 ``PIXELS`` of its shape, and the state when it reads it)."""
+        uint8 images of its shape under its pixel key, and the state when it reads it)."""
         self._obs(obs)
 
-    def prepare(self, rows: TensorDict) -> None:
-        """:meth:`Learner.prepare`; a pixel learner checks the rows' images first."""
-        if self.pixel_shape is None:
+    def prepare(self, rows: TensorDictBase) -> None:
+        """:meth:`Learner.prepare`; a pixel learner checks the rows' images (and the state,
+        only when it reads it: rows of images alone are fine) first."""
+        if self.pixel_inputs is None:
             return super().prepare(rows)
-        self.check_observations(rows)
+        self.check_observations(rows.select(*self.pixel_inputs.in_keys, strict=False))
         if self.normalizer is not None and not self.normalizer.is_fitted:
             self.normalizer.fit(rows.get(keys.OBSERVATION).reshape(-1, *self.normalizer.shape))
 
     # --------------------------------------------------------- array boundary
-    def _obs(self, obs: Any) -> tuple[torch.Tensor, str]:
+    def _obs(self, obs: Any) -> tuple[torch.Tensor | TensorDict, str]:
         """Observation tensor and the kind of the input (``tensor``, ``numpy``, ``scalar``);
-        for a pixel learner a dict of what it reads (:func:`encoders.pixel_inputs`)."""
-        if self.pixel_shape is not None:
-            return pixel_inputs(obs, self.pixel_shape, self.observation_shape)
-        if isinstance(obs, torch.Tensor):
-            kind, t = "tensor", obs
-        elif isinstance(obs, np.ndarray):
-            kind, t = "numpy", torch.from_numpy(obs)
-        elif isinstance(obs, (int, float, np.integer, np.floating, list, tuple)):
-            kind, t = ("scalar" if np.ndim(obs) == 0 else "numpy"), torch.as_tensor(np.asarray(obs))
-        else:
-            raise ValueError(
-                f"observations must be a tensor, numpy array or number, got {type(obs).__name__}"
-            )
-        if self.num_states is not None:
-            if t.dtype.is_floating_point or t.dtype == torch.bool:
-                raise ValueError(
-                    f"this policy expects integer state observations, got dtype {t.dtype}"
-                )
-            t = t.long()
-            if t.numel() and (int(t.min()) < 0 or int(t.max()) >= self.num_states):
-                raise ValueError(f"state observation outside [0, {self.num_states})")
-        else:
-            if t.shape[-1:] != self.observation_shape[-1:]:
-                raise ValueError(
-                    f"this policy expects observations of trailing shape {self.observation_shape}, "
-                    f"got shape {tuple(t.shape)}"
-                )
-            t = t.to(torch.float32)
-            if not torch.isfinite(t).all():
-                raise ValueError("NaN or inf in observations given to the policy")
-        return t, kind
+        for a pixel learner a TensorDict of what it reads (:meth:`PixelInputs.read`)."""
+        if self.pixel_inputs is not None:
+            return self.pixel_inputs.read(obs)
+        return read_observations(obs, num_states=self.num_states, shape=self.observation_shape)
 
     def _batch_shape(self, obs: torch.Tensor) -> torch.Size:
         return obs.shape if self.num_states is not None else obs.shape[:-1]
 
-    def _td(self, obs: torch.Tensor | dict) -> TensorDict:
-        if isinstance(obs, dict):  # a pixel learner's inputs (pixel_inputs)
-            return TensorDict(obs, batch_size=obs[keys.PIXELS].shape[:-3])
+    def _td(self, obs: torch.Tensor | TensorDict) -> TensorDict:
+        if isinstance(obs, TensorDict):  # a pixel learner's inputs (PixelInputs.read)
+            return obs
         return TensorDict({keys.OBSERVATION: obs}, batch_size=self._batch_shape(obs))
 
     @staticmethod
@@ -465,6 +457,6 @@ class ActorCritic(Learner):
             if self.num_states is not None
             else f"observation_shape={self.observation_shape}"
         )
-        if self.pixel_shape is not None:
-            space = f"pixel_shape={self.pixel_shape}, {space}"
+        if self.pixel_inputs is not None:
+            space = f"pixel_key={self.pixel_key!r}, pixel_shape={self.pixel_shape}, {space}"
         return f"head={self.head!r}, {space}, lr={self.lr}"

@@ -1,7 +1,8 @@
-"""Pixel learners: a CNN encoder in front of every head, reading ``PIXELS`` (and the state).
+"""The CNN encoder of pixel learners: uint8 images (and the state) -> features.
 
 Images are stored as they come from TorchRL's renderers and LeRobot datasets: uint8
-``[*batch, H, W, C]`` under ``keys.PIXELS`` (``C = 3 * frames`` when frames are stacked
+``[*batch, H, W, C]`` under a pixel key (``keys.PIXELS`` or a nested camera key, see
+:mod:`imitrl.policies.pixel_learner`; ``C = 3 * frames`` when frames are stacked
 on the channel axis, e.g. by ``CatFrames(N=frames, dim=-1, in_keys=["pixels"])``). The
 learner alone turns them into what a CNN takes, inside its network::
 
@@ -11,52 +12,30 @@ learner alone turns them into what a CNN takes, inside its network::
     f = cat([f, normalizer(observation)], -1)   # only when the learner reads the state too
 
 so the buffer, the expert and the env keep the raw uint8 image (4x smaller than float).
-``ActorCritic.pixels`` puts an MLP and any head of :mod:`imitrl.policies.heads` after ``f``.
+``ActorCritic.pixels`` puts an MLP and any head of :mod:`imitrl.policies.heads` after ``f``
+(:func:`imitrl.policies.pixel_learner.pixel_networks`).
 
 Default convolutions (``kernels=None``): three layers of ``channels`` with the DQN
 ("Nature") kernels ``(8, 4, 3)`` / strides ``(4, 2, 1)`` when the image is at least
 36 pixels on its short side (84x84 -> 7x7); otherwise kernel 3, stride 2, padding 1 per
 layer (32x32 -> 4x4), which keeps small images from shrinking to nothing.
 
-Several cameras (nested ``("pixels", name)`` keys) are not supported yet: one image key.
+A learner reads one camera; with several (nested ``("pixels", name)`` keys) it is built
+for one of them (``pixel_key``).
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
-from typing import Any
+from collections.abc import Sequence
 
-import numpy as np
 import torch
-from tensordict import TensorDictBase
-from tensordict.nn import TensorDictModuleBase
 from torch import nn
 from torchrl.data import TensorSpec
-from torchrl.envs import EnvBase
 from torchrl.modules import ConvNet
 
 from imitrl import keys
-from imitrl.policies.heads import Chain, build_head, check_head, mlp
-from imitrl.policies.modules import Value
-from imitrl.policies.normalization import ObservationNormalizer
-from imitrl.policies.specs import (
-    ActionSpace,
-    action_space,
-    check_same_actions,
-    observation_space,
-)
 
-__all__ = [
-    "PixelEncoder",
-    "PixelNetworks",
-    "check_pixel_env",
-    "check_pixels",
-    "conv_layout",
-    "pixel_inputs",
-    "pixel_networks",
-    "pixel_shape",
-]
+__all__ = ["PixelEncoder", "check_pixels", "conv_layout", "pixel_shape"]
 
 _NATURE_MIN_SIDE = 36  # 8/4 -> 2/1 -> 1 needs 36 px: (36 - 8) // 4 + 1 = 8, (8 - 4) // 2 + 1 = 3
 
@@ -176,154 +155,3 @@ class PixelEncoder(nn.Module):
 
     def extra_repr(self) -> str:
         return f"shape={self.shape}, state_width={self.state_width}, out={self.out_features}"
-
-
-def _tensor(x: Any, name: str) -> tuple[torch.Tensor, bool]:
-    """``(tensor, was_tensor)`` of a tensor or numpy array."""
-    if isinstance(x, torch.Tensor):
-        return x, True
-    if isinstance(x, np.ndarray):
-        return torch.from_numpy(x), False
-    raise ValueError(f"{name} must be a tensor or a numpy array, got {type(x).__name__}")
-
-
-def pixel_inputs(
-    obs: Any, shape: tuple[int, int, int], state_shape: tuple[int, ...] | None
-) -> tuple[dict, str]:
-    """What a pixel learner reads, validated: ``({PIXELS: .., [OBSERVATION: ..]}, kind)``.
-
-    ``obs`` is a TensorDict or dict holding ``PIXELS`` (and ``OBSERVATION`` when the
-    learner reads the state), or, for a learner of pixels alone, the image itself.
-    ``kind`` is ``"tensor"`` when the inputs were tensors, else ``"numpy"``.
-    """
-    if not isinstance(obs, (TensorDictBase, Mapping)):
-        if state_shape is not None:
-            raise ValueError(
-                f"this learner reads {keys.PIXELS!r} and {keys.OBSERVATION!r}: pass a dict or "
-                "TensorDict with both"
-            )
-        obs = {keys.PIXELS: obs}
-    if keys.PIXELS not in obs.keys():
-        raise ValueError(f"the observations lack {keys.PIXELS!r} (keys {list(obs.keys())})")
-    pixels, is_tensor = _tensor(obs[keys.PIXELS], keys.PIXELS)
-    check_pixels(pixels, shape)
-    out = {keys.PIXELS: pixels}
-    if state_shape is not None:
-        if keys.OBSERVATION not in obs.keys():
-            raise ValueError(f"this learner reads the state {keys.OBSERVATION!r} beside the pixels")
-        state, _ = _tensor(obs[keys.OBSERVATION], keys.OBSERVATION)
-        if tuple(state.shape) != (*pixels.shape[:-3], *state_shape):
-            raise ValueError(
-                f"the state must be [..., {', '.join(map(str, state_shape))}] with the pixels' "
-                f"batch {tuple(pixels.shape[:-3])}, got {tuple(state.shape)}"
-            )
-        state = state.to(torch.float32)
-        if not torch.isfinite(state).all():
-            raise ValueError("NaN or inf in the state given to the policy")
-        out[keys.OBSERVATION] = state
-    return out, "tensor" if is_tensor else "numpy"
-
-
-@dataclass(frozen=True)
-class PixelNetworks:
-    """What :func:`pixel_networks` builds for ``ActorCritic.pixels``."""
-
-    policy: TensorDictModuleBase
-    value: Value
-    normalizer: ObservationNormalizer | None
-    head: str
-    space: ActionSpace
-    shape: tuple[int, int, int]
-    """``(H, W, C * frames)`` the learner reads"""
-    state_shape: tuple[int] | None
-
-
-def pixel_networks(
-    pixels: Sequence[int] | TensorSpec,
-    action: int | TensorSpec,
-    *,
-    state: int | TensorSpec | None,
-    frames: int,
-    head: str | None,
-    channels: Sequence[int],
-    kernels: Sequence[int] | None,
-    strides: Sequence[int] | None,
-    hidden: Sequence[int],
-    activation: type[nn.Module],
-    seed: int,
-    normalize: bool,
-) -> PixelNetworks:
-    """The policy and value of a pixel learner (arguments: ``ActorCritic.pixels``).
-
-    Each network is ``PixelEncoder -> MLP(hidden) -> head``, with its own encoder; the
-    state normaliser (when the state is read and ``normalize``) is shared by both.
-    """
-    if int(frames) != frames or frames < 1:
-        raise ValueError(f"frames must be a positive integer, got {frames!r}")
-    height, width, c = pixel_shape(pixels)
-    shape = (height, width, c * int(frames))
-    obs = None if state is None else observation_space(state)
-    if obs is not None and obs.kind != "vector":
-        raise ValueError("a pixel learner reads a vector state [d] beside its images")
-    space = action_space(action)
-    head = check_head(space, head)
-    in_keys = [keys.PIXELS] if obs is None else [keys.PIXELS, keys.OBSERVATION]
-    normalizer = ObservationNormalizer(obs.shape) if obs is not None and normalize else None
-    state_in = None if obs is None else (normalizer or nn.Identity(), obs.shape[0])
-
-    def trunk() -> tuple[list[nn.Module], int]:
-        encoder = PixelEncoder(
-            shape,
-            channels=channels,
-            kernels=kernels,
-            strides=strides,
-            activation=activation,
-            state=state_in,
-        )
-        sizes = [encoder.out_features, *[int(h) for h in hidden]]
-        layers = [encoder, *mlp(sizes, activation), activation()] if hidden else [encoder]
-        return layers, sizes[-1]
-
-    with torch.random.fork_rng(devices=[]):
-        torch.manual_seed(seed)
-        layers, width = trunk()
-        policy = build_head(layers, width, space, head, in_keys=in_keys)
-        layers, width = trunk()
-        value = Value(Chain(*layers, nn.Linear(width, 1)), in_keys=in_keys)
-    state_shape = None if obs is None else obs.shape
-    return PixelNetworks(policy, value, normalizer, head, space, shape, state_shape)
-
-
-def check_pixel_env(
-    env: EnvBase,
-    shape: tuple[int, int, int],
-    state_shape: tuple[int, ...] | None,
-    actions: ActionSpace | None,
-) -> None:
-    """Raise ``ValueError``, naming both, unless ``env`` gives the images (and state) a pixel
-    learner reads, uint8 ``PIXELS`` of ``shape`` (and ``OBSERVATION`` ``[*state_shape]``),
-    and takes its ``actions`` (when known)."""
-    spec = env.observation_spec_unbatched
-    mine = f"uint8 {keys.PIXELS!r} {list(shape)}"
-    if state_shape is not None:
-        mine += f" and {keys.OBSERVATION!r} {list(state_shape)}"
-    pixels = spec.get(keys.PIXELS, None)
-    if pixels is None:
-        raise ValueError(
-            f"the learner reads {mine}; the env has no {keys.PIXELS!r} observation "
-            f"(keys {list(spec.keys())}; make_env(..., pixels=(H, W)) renders one)"
-        )
-    if pixels.dtype != torch.uint8 or tuple(pixels.shape) != shape:
-        raise ValueError(
-            f"the learner reads {mine}; the env gives {keys.PIXELS!r} {pixels.dtype} "
-            f"{list(pixels.shape)}"
-        )
-    if state_shape is not None:
-        obs = spec.get(keys.OBSERVATION, None)
-        if obs is None or tuple(obs.shape) != tuple(state_shape):
-            theirs = "none" if obs is None else list(obs.shape)
-            raise ValueError(
-                f"the learner reads {mine}; the env's {keys.OBSERVATION!r} is {theirs}"
-            )
-    if actions is not None:
-        check_same_actions(actions, action_space(env.action_spec_unbatched))

@@ -88,8 +88,18 @@ class Learner(nn.Module):
 
     def prepare(self, rows: TensorDictBase) -> None:
         """Before a fit: validate the rows' observations and, the first time, fit the
-        normaliser to them (later fits keep the statistics the weights were trained with)."""
-        obs = rows.get(keys.OBSERVATION)
+        normaliser to them (later fits keep the statistics the weights were trained with).
+
+        Only a policy that reads ``OBSERVATION`` needs it: rows of a learner of images
+        alone (``in_keys`` a pixel key) may come without one."""
+        if keys.OBSERVATION not in self.policy.in_keys:
+            return
+        obs = rows.get(keys.OBSERVATION, None)
+        if obs is None:
+            raise ValueError(
+                f"the rows lack {keys.OBSERVATION!r}, which the policy reads (its in_keys "
+                f"{list(self.policy.in_keys)}; the rows' keys {list(rows.keys())})"
+            )
         self.check_observations(obs)
         if self.normalizer is not None and not self.normalizer.is_fitted:
             self.normalizer.fit(obs.reshape(-1, *self.normalizer.shape))

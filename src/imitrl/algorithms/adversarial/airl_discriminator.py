@@ -1,0 +1,181 @@
+"""AIRL's discriminator (Fu, Luo & Levine 2018) and its reward, as exact formulas first.
+
+The discriminator is structured by the generator's own policy (eq. 2 of the paper)::
+
+    D(s, a, s') = exp(f(s, a, s')) / (exp(f(s, a, s')) + pi(a|s))
+                = sigmoid(f(s, a, s') - log pi(a|s))                     (logit = f - log pi)
+
+with the shaped f of section 5 (the disentangled reward)::
+
+    f(s, a, s') = g(s) + gamma * (1 - terminated) * h(s') - h(s)
+
+``g`` is a *state-only* reward (what the paper needs for the recovered reward to transfer
+to other dynamics; we use that variant), ``h`` a shaping potential; at a terminal
+transition there is no next state and ``h(s')`` is zeroed. The generator's reward is::
+
+    r(s, a, s') = log D - log(1 - D) = f(s, a, s') - log pi(a|s)
+
+``log pi`` is the current policy's, always detached: the discriminator's loss moves only
+``g`` and ``h``, never the policy. The loss is the same binary cross-entropy as GAIL's
+(expert pairs labelled 1, the policy's 0, summed per pair and averaged), written on the
+logit; the optional gradient penalty mirrors ``GAILLoss``'s: ``lambda * mean((|grad f| -
+1)^2)`` at per-row interpolations of the expert and policy ``(s, s')``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torch import nn
+
+from imitrl import keys
+from imitrl.algorithms.adversarial.transitions import NEXT_OBS, NEXT_TERMINATED
+from imitrl.policies.actor_critic import ActorCritic
+from imitrl.policies.heads import mlp
+
+__all__ = ["AIRLDiscriminator", "ShapedReward", "airl_reward", "shaped_f"]
+
+
+def shaped_f(
+    g: torch.Tensor, h: torch.Tensor, h_next: torch.Tensor, terminated: torch.Tensor, gamma: float
+) -> torch.Tensor:
+    """``f = g(s) + gamma * (1 - terminated) * h(s') - h(s)``; every input ``[N, 1]``."""
+    return g + gamma * (~terminated).to(h_next.dtype) * h_next - h
+
+
+def airl_reward(f: torch.Tensor, log_pi: torch.Tensor) -> torch.Tensor:
+    """``log D - log(1 - D) = f - log pi(a|s)`` (the logit of ``D``); inputs ``[N, 1]``."""
+    return f - log_pi
+
+
+class ShapedReward(nn.Module):
+    """``g(s)`` and ``h(s)``: two MLPs over normalised observations.
+
+    ``forward(obs [N, d], next_obs [N, d], terminated [N, 1] bool) -> f, g, h(s), h(s')``,
+    each ``[N, 1]``.
+    """
+
+    def __init__(
+        self, obs_dim: int, hidden: Sequence[int], normalizer: nn.Module, gamma: float
+    ) -> None:
+        super().__init__()
+        self.normalizer, self.gamma = normalizer, float(gamma)
+        self.g = mlp([obs_dim, *hidden, 1], nn.Tanh)
+        self.h = mlp([obs_dim, *hidden, 1], nn.Tanh)
+
+    def forward(self, obs, next_obs, terminated) -> tuple[torch.Tensor, ...]:
+        x, x_next = self.normalizer(obs), self.normalizer(next_obs)
+        g, h, h_next = self.g(x), self.h(x), self.h(x_next)
+        return shaped_f(g, h, h_next, terminated, self.gamma), g, h, h_next
+
+
+class AIRLDiscriminator:
+    """``D = sigmoid(f - log pi)`` over transitions, its loss and Adam optimizer (module
+    docstring).
+
+    Args:
+        learner: the generator, whose ``log pi(a|s)`` structures ``D`` (a probabilistic
+            head: categorical, normal or tanh_normal).
+        gamma: the discount of ``f``'s shaping (the generator's own).
+        hidden: hidden layer sizes of ``g`` and ``h``.
+        lr: Adam learning rate.
+        grad_penalty: weight of the gradient penalty; 0 disables it.
+        seed: initialisation seed (the global RNG is left untouched).
+    """
+
+    def __init__(
+        self,
+        learner: ActorCritic,
+        *,
+        gamma: float,
+        hidden: Sequence[int] = (64, 64),
+        lr: float = 3e-4,
+        grad_penalty: float = 0.0,
+        seed: int = 0,
+    ) -> None:
+        if not 0.0 <= gamma <= 1.0:
+            raise ValueError(f"gamma must be in [0, 1], got {gamma}")
+        if grad_penalty < 0:
+            raise ValueError(f"grad_penalty must be >= 0, got {grad_penalty}")
+        if learner.head == "deterministic":
+            raise ValueError("AIRL needs log pi(a|s): build the learner with a probabilistic head")
+        self.learner, self.grad_penalty = learner, float(grad_penalty)
+        (obs_dim,) = learner.observation_shape
+        normalizer = learner.normalizer if learner.normalizer is not None else nn.Identity()
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(seed)
+            self.network = ShapedReward(obs_dim, hidden, normalizer, gamma)
+        self.optimizer = torch.optim.Adam(self.network.parameters(), lr=lr)
+
+    def log_pi(self, transitions: TensorDictBase) -> torch.Tensor:
+        """``[N, 1]`` ``log pi(a|s)`` of the current policy, detached."""
+        td = TensorDict({keys.OBSERVATION: transitions.get(keys.OBSERVATION)}, transitions.shape)
+        with torch.no_grad():
+            lp = self.learner.get_dist(td).log_prob(transitions.get(keys.ACTION))
+        return lp.reshape(transitions.shape[0], 1)
+
+    def f(self, transitions: TensorDictBase) -> torch.Tensor:
+        """``[N, 1]`` shaped ``f(s, a, s')`` (keeps the graph)."""
+        return self.network(
+            transitions.get(keys.OBSERVATION),
+            transitions.get(NEXT_OBS),
+            transitions.get(NEXT_TERMINATED),
+        )[0]
+
+    def logits(self, transitions: TensorDictBase) -> torch.Tensor:
+        """``[N, 1]`` logit of ``D``: ``f - log pi`` (graph through ``f`` only)."""
+        return airl_reward(self.f(transitions), self.log_pi(transitions))
+
+    def loss(self, expert: TensorDictBase, policy: TensorDictBase) -> dict[str, torch.Tensor]:
+        """``{"loss", "grad_penalty"}``: the BCE of ``[B]`` expert (label 1) and ``[B]``
+        policy (label 0) transitions, plus the penalty (included in ``loss``)."""
+        if expert.shape != policy.shape:
+            raise ValueError(
+                f"the AIRL loss pairs expert and policy rows one to one: got "
+                f"{tuple(expert.shape)} and {tuple(policy.shape)}"
+            )
+        bce = nn.functional.binary_cross_entropy_with_logits
+        le, lp = self.logits(expert), self.logits(policy)
+        loss = (
+            bce(le, torch.ones_like(le), reduction="none")
+            + bce(lp, torch.zeros_like(lp), reduction="none")
+        ).mean()
+        gp = self._penalty(expert, policy) if self.grad_penalty > 0 else torch.zeros(())
+        return {"loss": loss + gp, "grad_penalty": gp.detach()}
+
+    def _penalty(self, expert: TensorDictBase, policy: TensorDictBase) -> torch.Tensor:
+        alpha = torch.rand(expert.shape[0], 1)  # global RNG: the run seeds it
+        mix = {}
+        for key in (keys.OBSERVATION, NEXT_OBS):
+            mix[key] = (alpha * policy.get(key) + (1 - alpha) * expert.get(key)).requires_grad_(
+                True
+            )
+        f = self.network(mix[keys.OBSERVATION], mix[NEXT_OBS], expert.get(NEXT_TERMINATED))[0]
+        grads = torch.autograd.grad(
+            f.sum(), (mix[keys.OBSERVATION], mix[NEXT_OBS]), create_graph=True
+        )
+        norm = torch.cat(grads, dim=-1).norm(dim=-1)
+        return self.grad_penalty * ((norm - 1) ** 2).mean()
+
+    def update(self, expert: TensorDictBase, policy: TensorDictBase) -> dict[str, float]:
+        """One Adam step on :meth:`loss`; returns it and each side's accuracy."""
+        out = self.loss(expert, policy)
+        self.optimizer.zero_grad(set_to_none=True)
+        out["loss"].backward()
+        self.optimizer.step()
+        with torch.no_grad():
+            expert_acc = (self.logits(expert) > 0).float().mean()
+            policy_acc = (self.logits(policy) < 0).float().mean()
+        return {
+            "loss": float(out["loss"].detach()),
+            "grad_penalty": float(out["grad_penalty"]),
+            "expert_accuracy": float(expert_acc),
+            "policy_accuracy": float(policy_acc),
+        }
+
+    def reward(self, transitions: TensorDictBase) -> torch.Tensor:
+        """``[N, 1]`` ``f - log pi``, without gradient."""
+        with torch.no_grad():
+            return self.logits(transitions)

@@ -1,0 +1,172 @@
+"""GAIL's discriminator (Ho & Ermon 2016): ``D(s, a)`` = P(the pair is the expert's), trained
+with TorchRL's ``GAILLoss``, and the reward it hands the generator.
+
+``GAILLoss`` (torchrl 0.14.1, ``objectives/gail.py``) labels its ``expert_*`` inputs 1 and
+its ``collector_*`` inputs 0 and applies ``BCELoss`` to what the discriminator writes under
+``discriminator_pred``: a probability, not a logit, whatever its default key name
+(``"d_logits"``) suggests. So ``D`` is the probability of "expert", and the reward that
+is large on expert-like pairs is (Ho & Ermon's cost ``log D`` with the labels swapped)::
+
+    r(s, a) = -log(1 - D(s, a)) = softplus(logit(s, a))            (computed from the logit)
+
+Its gradient penalty (``use_grad_penalty``, weight ``gp_lambda``) is
+``lambda * mean((|grad_x D(x_mix)| - 1)^2)`` at random per-entry interpolations ``x_mix``
+of the expert and policy (observation, action) pairs; actions enter as float
+:func:`~imitrl.algorithms.adversarial.transitions.action_features` (one-hot for discrete
+actions) so that they can be interpolated.
+
+The network reads raw observations through the learner's own
+:class:`~imitrl.policies.normalization.ObservationNormalizer` (the same module, fitted to
+the demonstrations; it has no parameters, so nothing the discriminator learns moves it).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torch import nn
+from torchrl.objectives import GAILLoss
+
+from imitrl import keys
+from imitrl.algorithms.adversarial.keys import (
+    ACTION_FEATURES,
+    DISCRIMINATOR_LOGIT,
+    EXPERT_PROBABILITY,
+    POLICY,
+)
+from imitrl.algorithms.adversarial.transitions import action_features
+from imitrl.policies.actor_critic import ActorCritic
+from imitrl.policies.heads import mlp
+from imitrl.policies.modules import Module
+
+__all__ = ["GAILDiscriminator", "PairNetwork", "gail_reward"]
+
+
+def gail_reward(logit: torch.Tensor) -> torch.Tensor:
+    """``-log(1 - sigmoid(logit)) = softplus(logit)``, elementwise (finite for any logit)."""
+    return nn.functional.softplus(logit)
+
+
+class PairNetwork(nn.Module):
+    """``(obs [N, d], features [N, k]) -> (logit [N, 1], sigmoid(logit) [N, 1])``: an MLP over
+    ``[normalize(obs), features]``."""
+
+    def __init__(
+        self, obs_dim: int, feature_dim: int, hidden: Sequence[int], normalizer: nn.Module
+    ) -> None:
+        super().__init__()
+        self.normalizer = normalizer
+        self.body = mlp([obs_dim + feature_dim, *hidden, 1], nn.Tanh)
+
+    def forward(self, obs: torch.Tensor, features: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        logit = self.body(torch.cat([self.normalizer(obs), features], dim=-1))
+        return logit, torch.sigmoid(logit)
+
+
+class GAILDiscriminator:
+    """``D(s, a)``, its ``GAILLoss`` and Adam optimizer (module docstring).
+
+    Args:
+        learner: the generator (its action space sizes the network, its normaliser
+            is reused).
+        hidden: hidden layer sizes of the discriminator's MLP.
+        lr: Adam learning rate of the discriminator.
+        grad_penalty: ``GAILLoss``'s ``gp_lambda``; 0 disables the penalty.
+        seed: initialisation seed (the global RNG is left untouched).
+    """
+
+    def __init__(
+        self,
+        learner: ActorCritic,
+        *,
+        hidden: Sequence[int] = (64, 64),
+        lr: float = 3e-4,
+        grad_penalty: float = 0.0,
+        seed: int = 0,
+    ) -> None:
+        if grad_penalty < 0:
+            raise ValueError(f"grad_penalty must be >= 0, got {grad_penalty}")
+        self.space = learner.action_space
+        features = action_features(_probe_action(self.space), self.space).shape[-1]
+        (obs_dim,) = learner.observation_shape
+        normalizer = learner.normalizer if learner.normalizer is not None else nn.Identity()
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(seed)
+            net = PairNetwork(obs_dim, features, hidden, normalizer)
+        self.module = Module(
+            net,
+            in_keys=[keys.OBSERVATION, ACTION_FEATURES],
+            out_keys=[DISCRIMINATOR_LOGIT, EXPERT_PROBABILITY],
+        )
+        self.loss = GAILLoss(self.module, use_grad_penalty=grad_penalty > 0, gp_lambda=grad_penalty)
+        self.loss.set_keys(
+            expert_observation=keys.OBSERVATION,
+            expert_action=ACTION_FEATURES,
+            collector_observation=(POLICY, keys.OBSERVATION),
+            collector_action=(POLICY, ACTION_FEATURES),
+            discriminator_pred=EXPERT_PROBABILITY,
+        )
+        self.optimizer = torch.optim.Adam(self.loss.parameters(), lr=lr)
+
+    def pairs(self, transitions: TensorDictBase) -> TensorDict:
+        """``OBSERVATION`` and ``ACTION_FEATURES`` ``[N]`` of transitions ``[N]``."""
+        return TensorDict(
+            {
+                keys.OBSERVATION: transitions.get(keys.OBSERVATION),
+                ACTION_FEATURES: action_features(transitions.get(keys.ACTION), self.space),
+            },
+            batch_size=transitions.shape,
+        )
+
+    def batch(self, expert: TensorDictBase, policy: TensorDictBase) -> TensorDict:
+        """The ``GAILLoss`` input: expert pairs at the root, the policy's under ``POLICY``."""
+        if expert.shape != policy.shape:
+            raise ValueError(
+                f"GAILLoss pairs expert and policy rows one to one: got {tuple(expert.shape)} "
+                f"expert and {tuple(policy.shape)} policy rows"
+            )
+        out = self.pairs(expert)
+        out.set(POLICY, self.pairs(policy))
+        return out
+
+    def logits(self, transitions: TensorDictBase) -> torch.Tensor:
+        """``[N, 1]`` logit of ``D`` (keeps the graph)."""
+        return self.module(self.pairs(transitions)).get(DISCRIMINATOR_LOGIT)
+
+    def update(self, expert: TensorDictBase, policy: TensorDictBase) -> dict[str, float]:
+        """One Adam step on ``GAILLoss`` over ``[B]`` expert and ``[B]`` policy transitions;
+        returns the loss (penalty included), the penalty and each side's accuracy."""
+        out = self.loss(self.batch(expert, policy))
+        self.optimizer.zero_grad(set_to_none=True)
+        out.get("loss").backward()
+        self.optimizer.step()
+        with torch.no_grad():
+            expert_acc = (self.logits(expert) > 0).float().mean()
+            policy_acc = (self.logits(policy) < 0).float().mean()
+        gp = out.get("gp_loss", torch.zeros(()))
+        return {
+            "loss": float(out.get("loss").detach()),
+            "grad_penalty": float(gp),
+            "expert_accuracy": float(expert_acc),
+            "policy_accuracy": float(policy_acc),
+        }
+
+    def reward(self, transitions: TensorDictBase) -> torch.Tensor:
+        """``[N, 1]`` ``-log(1 - D(s, a))``, without gradient."""
+        with torch.no_grad():
+            return gail_reward(self.logits(transitions))
+
+
+def _probe_action(space) -> torch.Tensor:
+    """One action of ``space`` (to size the action features)."""
+    if space is None:
+        raise ValueError("the learner has no action space (build it with ActorCritic.for_env/mlp)")
+    if space.kind == "discrete":
+        return torch.zeros((1, space.n) if space.one_hot else (1,), dtype=torch.int64)
+    if space.kind == "continuous":
+        return torch.zeros(1, space.dim)
+    raise ValueError(
+        f"adversarial imitation supports discrete or continuous actions, got {space.kind}"
+    )

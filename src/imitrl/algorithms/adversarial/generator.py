@@ -1,0 +1,108 @@
+"""The generator: the learner's policy trained by TorchRL's ``ClipPPOLoss`` with ``GAE`` on
+the discriminator's reward.
+
+Why PPO, not SAC, for discrete *and* continuous actions: the reward is re-learned every
+round (GAIL's ``D`` moves; AIRL's reward contains ``-log pi`` of the current policy), so
+an off-policy learner would have to relabel its whole replay buffer each round, and the
+learner (:class:`~imitrl.policies.ActorCritic`) carries a state-value head ``V(s)``, what
+GAE needs, not the twin ``Q(s, a)`` heads SAC needs. PPO trains the same object
+:func:`~imitrl.evaluation.evaluate` evaluates and the checkpoint saves. (This choice was
+made on these grounds, not measured against SAC.)
+
+One update (:meth:`PPOGenerator.update`) on a collector batch ``[*B, T]`` carrying
+``("next", LEARNED_REWARD)``:
+
+1. ``log pi_old(a|s)`` of the collected actions, written under the loss's
+   ``sample_log_prob`` key (the heads do not return it; the policy has not changed since
+   it acted, so this is the behaviour policy's);
+2. ``epochs`` times: GAE (``gamma``, ``lambda``) on the whole batch with the current value
+   head, then minibatches of ``minibatch_size`` rows in an order drawn from ``generator``;
+   each step minimises ``loss_objective + loss_entropy + loss_critic`` with the learner's
+   own ``opt_pi`` and ``opt_v``, gradients clipped to ``max_grad_norm``.
+"""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDictBase
+from torchrl.objectives import ClipPPOLoss
+from torchrl.objectives.value import GAE
+
+from imitrl import keys
+from imitrl.algorithms.adversarial.keys import LEARNED_REWARD
+from imitrl.policies.actor_critic import ActorCritic
+
+__all__ = ["PPOGenerator"]
+
+
+class PPOGenerator:
+    """``ClipPPOLoss`` + ``GAE`` over an :class:`ActorCritic`'s policy and value head.
+
+    Args:
+        learner: a probabilistic-head ``ActorCritic`` (categorical, normal, tanh_normal).
+        gamma, gae_lambda: GAE's discount and trace parameter.
+        clip_epsilon: PPO's ratio clip.
+        entropy_coeff: weight of the entropy bonus (0: none).
+        epochs, minibatch_size: passes over each batch, rows per gradient step.
+        max_grad_norm: gradient-norm clip of each step.
+    """
+
+    def __init__(
+        self,
+        learner: ActorCritic,
+        *,
+        gamma: float,
+        gae_lambda: float,
+        clip_epsilon: float,
+        entropy_coeff: float,
+        epochs: int,
+        minibatch_size: int,
+        max_grad_norm: float,
+    ) -> None:
+        if learner.head == "deterministic":
+            raise ValueError(
+                "PPO needs a probabilistic policy: build the learner with head categorical, "
+                "normal or tanh_normal (a deterministic head has no log pi)"
+            )
+        self.learner, self.epochs, self.minibatch_size = learner, epochs, minibatch_size
+        self.max_grad_norm = max_grad_norm
+        self.loss = ClipPPOLoss(
+            learner.policy,
+            learner.value,
+            clip_epsilon=clip_epsilon,
+            entropy_bonus=entropy_coeff > 0,
+            entropy_coeff=entropy_coeff if entropy_coeff > 0 else None,
+            normalize_advantage=True,
+        )
+        self.loss.set_keys(reward=LEARNED_REWARD)
+        self.gae = GAE(gamma=gamma, lmbda=gae_lambda, value_network=learner.value)
+        self.gae.set_keys(reward=LEARNED_REWARD)
+        self.params = [*learner.policy.parameters(), *learner.value.parameters()]
+
+    def update(self, batch: TensorDictBase, generator: torch.Generator) -> dict[str, float]:
+        """PPO epochs on ``batch`` (module docstring); returns the last epoch's mean losses."""
+        with torch.no_grad():
+            log_prob = self.learner.get_dist(batch).log_prob(batch.get(keys.ACTION))
+        batch.set(self.loss.tensor_keys.sample_log_prob, log_prob)
+        n = batch.numel()
+        sums: dict[str, float] = {}
+        for _ in range(self.epochs):
+            with torch.no_grad():
+                self.gae(batch)
+            flat = batch.reshape(-1)
+            order = torch.randperm(n, generator=generator)
+            sums = {}
+            for start in range(0, n, self.minibatch_size):
+                out = self.loss(flat[order[start : start + self.minibatch_size]])
+                losses = {k: v for k, v in out.items() if k.startswith("loss_")}
+                total = sum(losses.values())
+                self.learner.opt_pi.zero_grad(set_to_none=True)
+                self.learner.opt_v.zero_grad(set_to_none=True)
+                total.backward()
+                torch.nn.utils.clip_grad_norm_(self.params, self.max_grad_norm)
+                self.learner.opt_pi.step()
+                self.learner.opt_v.step()
+                for k, v in losses.items():
+                    sums[k] = sums.get(k, 0.0) + float(v.detach())
+        steps = -(-n // self.minibatch_size)
+        return {k: v / steps for k, v in sums.items()}

@@ -1,0 +1,269 @@
+"""The adversarial imitation loop GAIL and AIRL share: collect, discriminate, reinforce.
+
+Round after round, until ``total_steps`` environment steps:
+
+1. a TorchRL ``Collector`` plays ``rollout_steps`` steps of the learner's policy on the
+   env, sampling its actions (``ExplorationType.RANDOM``);
+2. ``discriminator_updates`` steps of the discriminator, each on ``discriminator_batch``
+   expert transitions and as many of this round's policy transitions, drawn with
+   replacement;
+3. the updated discriminator's reward is written under ``("next", LEARNED_REWARD)`` and
+   the generator (:class:`~imitrl.algorithms.adversarial.generator.PPOGenerator`) takes
+   its PPO epochs on the batch.
+
+Before the first round the learner fits its observation normaliser to the
+demonstrations (``learner.prepare``, as behaviour cloning does; a learner already fitted
+keeps its statistics); both discriminators read observations through it. Expert queries
+are the demonstration rows only: neither method asks the expert anything afterwards.
+
+Every random draw comes from ``config.seed``: the torch global RNG (the policy's samples,
+GAILLoss's penalty interpolations) is seeded with it inside ``fork_rng`` (the caller's
+global state is left untouched) and the minibatch draws use generators seeded from it;
+the env is seeded by whoever built it. Same seed, same env seed: same numbers.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import torch
+from tensordict import TensorDictBase
+from torchrl.collectors import Collector
+from torchrl.envs import EnvBase
+from torchrl.envs.utils import ExplorationType
+from torchrl.record.loggers import Logger
+from tqdm.auto import tqdm
+
+from imitrl import keys
+from imitrl.algorithms.adversarial.generator import PPOGenerator
+from imitrl.algorithms.adversarial.keys import LEARNED_REWARD
+from imitrl.algorithms.adversarial.transitions import (
+    expert_transitions,
+    policy_transitions,
+    sample_rows,
+)
+from imitrl.data.buffer import DemonstrationBuffer
+from imitrl.policies.actor_critic import ActorCritic
+
+__all__ = [
+    "AdversarialConfig",
+    "AdversarialResult",
+    "Discriminator",
+    "RoundRecord",
+    "train_adversarial",
+]
+
+
+@dataclass(frozen=True)
+class AdversarialConfig:
+    """What GAIL and AIRL share: budget, generator (PPO + GAE), discriminator schedule.
+
+    The generator's learning rate is the learner's own (its ``opt_pi`` / ``opt_v``, set
+    when it is built)."""
+
+    total_steps: int = 100_000
+    """environment steps of the whole run (rounded up to whole rounds)"""
+    rollout_steps: int = 2048
+    """environment steps collected per round (the collector's frames_per_batch)"""
+    ppo_epochs: int = 10
+    """PPO passes over each round's batch"""
+    minibatch_size: int = 256
+    """rows per PPO gradient step"""
+    discriminator_updates: int = 10
+    """discriminator Adam steps per round"""
+    discriminator_batch: int = 256
+    """expert (and as many policy) transitions per discriminator step"""
+    discriminator_lr: float = 3e-4
+    """Adam learning rate of the discriminator"""
+    discriminator_hidden: tuple[int, ...] = (64, 64)
+    """hidden layer sizes of the discriminator's networks"""
+    grad_penalty: float = 0.0
+    """weight of the discriminator's gradient penalty (GAILLoss's gp_lambda); 0 = none"""
+    gamma: float = 0.99
+    """discount of GAE (and of AIRL's shaping)"""
+    gae_lambda: float = 0.95
+    """GAE's lambda"""
+    clip_epsilon: float = 0.2
+    """PPO's ratio clip"""
+    entropy_coeff: float = 0.0
+    """weight of PPO's entropy bonus"""
+    max_grad_norm: float = 0.5
+    """gradient-norm clip of each PPO step"""
+    seed: int = 0
+    """seeds the policy's samples, the discriminator's initialisation and every minibatch"""
+
+    def __post_init__(self) -> None:
+        for name in ("total_steps", "rollout_steps", "ppo_epochs", "minibatch_size",
+                     "discriminator_batch"):  # fmt: skip
+            value = getattr(self, name)
+            if int(value) != value or value < 1:
+                raise ValueError(f"{name} must be a positive integer, got {value!r}")
+        if (
+            int(self.discriminator_updates) != self.discriminator_updates
+            or self.discriminator_updates < 0
+        ):
+            raise ValueError(
+                f"discriminator_updates must be an integer >= 0, got {self.discriminator_updates!r}"
+            )
+        if not 0.0 <= self.gamma <= 1.0 or not 0.0 <= self.gae_lambda <= 1.0:
+            raise ValueError(
+                f"gamma and gae_lambda must be in [0, 1], got {self.gamma}, {self.gae_lambda}"
+            )
+        for name in ("discriminator_lr", "clip_epsilon", "max_grad_norm"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
+        if self.grad_penalty < 0 or self.entropy_coeff < 0:
+            raise ValueError("grad_penalty and entropy_coeff must be >= 0")
+
+
+class Discriminator(Protocol):
+    """What the loop needs of a discriminator: a step on transitions, and a reward."""
+
+    def update(self, expert: TensorDictBase, policy: TensorDictBase) -> dict[str, float]: ...
+
+    def reward(self, transitions: TensorDictBase) -> torch.Tensor: ...
+
+
+@dataclass
+class RoundRecord:
+    """One round of the loop."""
+
+    round: int
+    env_steps: int
+    """environment steps so far (this round's included)"""
+    discriminator: dict[str, float]
+    """the last discriminator step's loss, penalty and accuracies"""
+    generator: dict[str, float]
+    """the round's last PPO epoch: mean ``loss_objective``, ``loss_critic`` (, entropy)"""
+    learned_reward: float
+    """mean learned reward of the round's transitions"""
+    info: dict | None = None
+    """what ``on_round`` returned (e.g. an evaluation)"""
+
+
+@dataclass
+class AdversarialResult:
+    """What :func:`train_adversarial` (and so ``gail``/``airl``) returns."""
+
+    learner: ActorCritic
+    """the trained learner (the one passed in)"""
+    rounds: list[RoundRecord] = field(repr=False)
+    env_steps: int = 0
+    """environment steps taken by the generator"""
+    expert_queries: int = 0
+    """expert actions used: the demonstration rows, none after them"""
+    expert_transitions: int = 0
+    """demonstration rows with a known next state (the discriminator's expert data)"""
+
+
+def _check(env: EnvBase, learner: ActorCritic, buffer: DemonstrationBuffer) -> None:
+    if not isinstance(learner, ActorCritic) or learner.observation_shape is None:
+        raise ValueError(
+            "adversarial imitation trains an ActorCritic over vector observations "
+            f"(ActorCritic.for_env / mlp), got {type(learner).__name__}"
+        )
+    if learner.pixel_shape is not None:
+        raise ValueError("adversarial imitation on pixel observations is not supported")
+    if not isinstance(buffer, DemonstrationBuffer) or len(buffer) == 0:
+        raise ValueError("the demonstrations must be a non-empty DemonstrationBuffer")
+    learner.check_env(env)
+
+
+def train_adversarial(
+    env: EnvBase,
+    learner: ActorCritic,
+    demonstrations: DemonstrationBuffer,
+    discriminator: Discriminator,
+    config: AdversarialConfig,
+    *,
+    name: str = "adversarial",
+    progress: bool = False,
+    logger: Logger | None = None,
+    on_round: Callable[[int, ActorCritic, int], dict | None] | None = None,
+) -> AdversarialResult:
+    """Run the loop (module docstring) and train ``learner`` in place.
+
+    Args:
+        env: the seeded env the generator plays (``make_env``; batched or not).
+        learner: the generator, a probabilistic-head ``ActorCritic``.
+        demonstrations: the expert's rows (every one executed the expert's action).
+        discriminator: a ``GAILDiscriminator`` or ``AIRLDiscriminator`` over ``learner``.
+        config: budget and hyperparameters.
+        name: the progress bar's and the logged scalars' prefix.
+        progress: a progress bar over environment steps (stderr).
+        logger: a TorchRL logger: discriminator and generator metrics at step = env steps.
+        on_round: ``on_round(round, learner, env_steps)`` after each round; a dict it
+            returns is kept as the round's ``info``.
+    """
+    _check(env, learner, demonstrations)
+    rows = demonstrations.data
+    learner.prepare(rows)
+    expert = expert_transitions(rows)
+    records: list[RoundRecord] = []
+    steps = 0
+    bar = tqdm(total=config.total_steps, desc=name, disable=not progress, leave=False)
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(config.seed)
+        draws = torch.Generator().manual_seed(config.seed)
+        generator = PPOGenerator(
+            learner, gamma=config.gamma, gae_lambda=config.gae_lambda,
+            clip_epsilon=config.clip_epsilon, entropy_coeff=config.entropy_coeff,
+            epochs=config.ppo_epochs, minibatch_size=config.minibatch_size,
+            max_grad_norm=config.max_grad_norm,
+        )  # fmt: skip
+        collector = Collector(
+            env,
+            learner.policy,
+            frames_per_batch=config.rollout_steps,
+            total_frames=config.total_steps,
+            exploration_type=ExplorationType.RANDOM,
+            auto_register_policy_transforms=False,
+        )
+        try:
+            for k, batch in enumerate(collector):
+                steps += batch.numel()
+                record = _round(k, steps, batch, expert, discriminator, generator, config, draws)
+                collector.update_policy_weights_()
+                if on_round is not None:
+                    info = on_round(k, learner, steps)
+                    record.info = info if isinstance(info, dict) else None
+                records.append(record)
+                _log(logger, name, record)
+                bar.update(batch.numel())
+        finally:
+            collector.shutdown(close_env=False)
+            bar.close()
+    return AdversarialResult(
+        learner=learner, rounds=records, env_steps=steps,
+        expert_queries=len(demonstrations), expert_transitions=expert.shape[0],
+    )  # fmt: skip
+
+
+def _round(k, steps, batch, expert, discriminator, generator, config, draws) -> RoundRecord:
+    """Discriminator steps, then the learned reward, then PPO, on one collector batch."""
+    policy = policy_transitions(batch)
+    metrics: dict[str, float] = {}
+    for _ in range(config.discriminator_updates):
+        metrics = discriminator.update(
+            sample_rows(expert, config.discriminator_batch, draws),
+            sample_rows(policy, config.discriminator_batch, draws),
+        )
+    reward = discriminator.reward(policy)  # [N, 1], rows in the batch's order
+    batch.set((keys.NEXT, LEARNED_REWARD), reward.reshape(*batch.shape, 1))
+    ppo = generator.update(batch, draws)
+    return RoundRecord(
+        round=k, env_steps=steps, discriminator=metrics, generator=ppo,
+        learned_reward=float(reward.mean()),
+    )  # fmt: skip
+
+
+def _log(logger: Logger | None, name: str, record: RoundRecord) -> None:
+    if logger is None:
+        return
+    values = {f"{name}/discriminator_{k}": v for k, v in record.discriminator.items()}
+    values.update({f"{name}/{k}": v for k, v in record.generator.items()})
+    values[f"{name}/learned_reward"] = record.learned_reward
+    for key, value in values.items():
+        logger.log_scalar(key, value, step=record.env_steps)

@@ -1,0 +1,112 @@
+"""Transitions ``(s, a, s', terminated)``: what both discriminators read, from either side.
+
+* :func:`expert_transitions`: the demonstrations' rows (a ``DemonstrationBuffer``, a
+  LeRobot or Minari dataset loaded into one). Rows hold no ``("next", OBSERVATION)``
+  (see :mod:`imitrl.data.rollout`): ``s'`` of a row is the observation of the next row
+  of its episode (``STEP + 1``). An episode's last row has no successor: kept when it
+  terminated (AIRL zeroes ``h(s')`` there, so ``s'`` is never read; it is set to
+  ``s``), dropped when the episode was cut by a time limit or the data says nothing.
+  Every row must have executed the expert's action (``EXPERT_EXECUTED``): adversarial
+  imitation matches the expert's state-action occupancy, which only its own
+  trajectories sample.
+* :func:`policy_transitions`: a collector batch ``[*B, T]`` flattened to rows.
+* :func:`action_features`: the float ``[N, k]`` action a discriminator network reads.
+
+Every returned TensorDict holds ``OBSERVATION [N, d]``, ``ACTION [N, ...]``,
+``("next", OBSERVATION) [N, d]`` and ``("next", TERMINATED) [N, 1]`` bool.
+"""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+
+from imitrl import keys
+from imitrl.policies.specs import ActionSpace
+
+__all__ = ["action_features", "expert_transitions", "policy_transitions", "sample_rows"]
+
+NEXT_OBS = (keys.NEXT, keys.OBSERVATION)
+NEXT_TERMINATED = (keys.NEXT, keys.TERMINATED)
+
+
+def _terminated(rows: TensorDictBase) -> torch.Tensor:
+    """``[N]`` bool: the row's episode terminated there (False where the data says nothing)."""
+    if NEXT_TERMINATED in rows.keys(include_nested=True):
+        return rows.get(NEXT_TERMINATED).reshape(rows.shape[0], -1).any(-1)
+    return torch.zeros(rows.shape[0], dtype=torch.bool)
+
+
+def expert_transitions(rows: TensorDictBase) -> TensorDict:
+    """Demonstration rows ``[N]`` (episodes back to back) -> transitions ``[M]``, ``M <= N``
+    (module docstring: which rows are kept).
+
+    Raises:
+        ValueError: no rows, a missing key, a row where the expert's action was not
+            executed, or no row with a known successor.
+    """
+    if not isinstance(rows, TensorDictBase) or rows.batch_dims != 1 or rows.shape[0] == 0:
+        raise ValueError("expert_transitions needs demonstration rows: a TensorDict [N], N >= 1")
+    need = (keys.OBSERVATION, keys.ACTION, keys.EPISODE, keys.STEP, keys.EXPERT_EXECUTED)
+    missing = [k for k in need if k not in rows.keys()]
+    if missing:
+        raise ValueError(
+            f"demonstration rows lack {missing} (a DemonstrationBuffer's rows have them)"
+        )
+    executed = rows.get(keys.EXPERT_EXECUTED)
+    if not bool(executed.all()):
+        raise ValueError(
+            f"{int((~executed).sum())} demonstration rows executed another action than the "
+            "expert's: adversarial imitation needs the expert's own trajectories"
+        )
+    obs, episode, step = rows.get(keys.OBSERVATION), rows.get(keys.EPISODE), rows.get(keys.STEP)
+    terminated = _terminated(rows)
+    has_next = torch.zeros_like(terminated)
+    has_next[:-1] = (episode[1:] == episode[:-1]) & (step[1:] == step[:-1] + 1)
+    next_obs = obs.clone()  # terminal rows keep s' = s: h(s') is zeroed there, never read
+    next_obs[:-1][has_next[:-1]] = obs[1:][has_next[:-1]]
+    keep = has_next | terminated
+    if not bool(keep.any()):
+        raise ValueError("no demonstration row has a known next observation")
+    return TensorDict(
+        {
+            keys.OBSERVATION: obs[keep],
+            keys.ACTION: rows.get(keys.ACTION)[keep],
+            NEXT_OBS: next_obs[keep],
+            NEXT_TERMINATED: terminated[keep].unsqueeze(-1),
+        },
+        batch_size=[int(keep.sum())],
+    )
+
+
+def policy_transitions(batch: TensorDictBase) -> TensorDict:
+    """A collector batch ``[*B, T]`` -> transitions ``[N]``, ``N = prod(B) * T``, same order."""
+    flat = batch.reshape(-1)
+    return TensorDict(
+        {
+            keys.OBSERVATION: flat.get(keys.OBSERVATION),
+            keys.ACTION: flat.get(keys.ACTION),
+            NEXT_OBS: flat.get(NEXT_OBS),
+            NEXT_TERMINATED: flat.get(NEXT_TERMINATED).reshape(flat.shape[0], 1),
+        },
+        batch_size=flat.shape,
+    )
+
+
+def action_features(action: torch.Tensor, space: ActionSpace) -> torch.Tensor:
+    """Actions ``[N, ...]`` -> float ``[N, k]``: one-hot ``k = n`` (discrete), ``k = dim``
+    (continuous)."""
+    if space.kind == "discrete":
+        if space.one_hot:
+            return action.to(torch.float32)
+        return torch.nn.functional.one_hot(action.long().reshape(-1), space.n).to(torch.float32)
+    if space.kind == "continuous":
+        return action.to(torch.float32).reshape(action.shape[0], space.dim)
+    raise ValueError(
+        f"adversarial imitation supports discrete or continuous actions, got {space.kind}"
+    )
+
+
+def sample_rows(td: TensorDictBase, n: int, generator: torch.Generator) -> TensorDictBase:
+    """``n`` rows of ``td [N]`` drawn uniformly with replacement from ``generator``."""
+    return td[torch.randint(td.shape[0], (n,), generator=generator)]
