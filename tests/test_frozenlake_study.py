@@ -9,9 +9,18 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from imitrl.cli import main
-from imitrl.tabular import TabularMDP, greedy, success_probability, value_iteration
+from imitrl.tabular import (
+    TabularMDP,
+    greedy,
+    linear_reward,
+    next_state_features,
+    soft_value_iteration,
+    success_probability,
+    value_iteration,
+)
 
 
 @pytest.fixture(scope="module")
@@ -133,12 +142,50 @@ def test_report_and_figures(study):
         "ex_state_errors",
         "ex_budget",
         "ex_corruption",
+        "irl_reward",
+        "irl_sweep",
     ):
         png = out / f"{name}.png"
         head = png.read_bytes()[:24]
         assert head[:8] == b"\x89PNG\r\n\x1a\n"
         width, height = int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
         assert width >= 400 and height >= 300 and png.stat().st_size > 10_000
+
+
+def test_irl_section(study):
+    """Section 8: exact values, recomputed here from the printed policy and reward."""
+    out, r = study
+    text = (out / "report.txt").read_text()
+    fit = r["irl"]["fit"]
+    assert (
+        "planning against it: greedy policy 72.98% exact success, soft-optimal policy "
+        f"{fit['exact_success_soft']:.2%} (the expert 72.98%, the clone 18.97%)"
+    ) in text
+    assert (
+        "on the 4 reachable states the demonstrations never visited [1, 2, 3, 13]: "
+        "IRL's greedy action is the expert's on 4, the clone's on 1"
+    ) in text
+    mdp = TabularMDP.from_gym("FrozenLake-v1", 0.95)
+    policy = torch.tensor(fit["policy"])
+    assert success_probability(mdp, policy) == pytest.approx(fit["exact_success_greedy"], abs=1e-12)
+    # the greedy plan is the argmax of the soft Q_0 of the printed reward
+    reward = linear_reward(
+        torch.tensor(fit["theta"], dtype=torch.float64), next_state_features(mdp)
+    )
+    q0 = soft_value_iteration(mdp, reward).q[0]
+    live = ~mdp.terminal
+    assert torch.equal(q0.argmax(-1)[live], policy[live])
+    assert fit["demonstrations_argmax"] == 1.0 and fit["log_likelihood"] > -1.0
+    for n in ("1", "3", "10"):
+        assert {len(v) for v in r["irl"]["sweep"][n].values()} == {10}
+    assert r["irl"]["sweep"]["10"]["irl"][0] == pytest.approx(fit["exact_success_greedy"])
+    targets = {t["target"]: t for t in r["irl"]["transfer"]}
+    assert set(targets) == {"is_slippery=False", "success_rate=0.5", "success_rate=0.9"}
+    det = TabularMDP.from_gym("FrozenLake-v1", 0.95, make_kwargs={"is_slippery": False})
+    own = greedy(det.backup(value_iteration(det, 1000)[-1]))
+    assert targets["is_slippery=False"]["target_expert"] == success_probability(det, own) == 1.0
+    claims = {c["claim"]: c for c in r["prose_checks"]}
+    assert claims["planning against the inferred reward recovers the expert"]["agrees"]
 
 
 def _small(out, *extra):
@@ -156,6 +203,12 @@ def _small(out, *extra):
         "50",
         "--chain-samples",
         "2000",
+        "--irl-steps",
+        "10",
+        "--irl-datasets",
+        "2",
+        "--irl-sizes",
+        "1",
         *extra,
     ]
 
@@ -235,6 +288,11 @@ def test_bad_flags_fail_clearly(tmp_path, capsys):
     assert main(["frozenlake", "--out", str(tmp_path), *taxi]) == 2
     assert "pins each lane to one start state, and 'Taxi-v4' has 300" in capsys.readouterr().err
     assert main(["frozenlake", "--out", str(tmp_path), "--protocol", "gpu"]) == 2
+    bad = ["--irl-transfer", "no_such_argument:1"]
+    assert main(["frozenlake", "--out", str(tmp_path), *bad]) == 2
+    err = capsys.readouterr().err
+    assert "--irl-transfer no_such_argument:1: FrozenLake-v1 cannot be built" in err
+    assert not any(tmp_path.iterdir())  # refused before any work or output
 
 
 def test_console_entry_points(tmp_path):

@@ -21,7 +21,7 @@ import pytest
 
 from imitrl.cli import main
 from imitrl.evaluation.evaluate import wilson_interval
-from imitrl.experiments.frozenlake import figures, outputs, study
+from imitrl.experiments.frozenlake import figures, figures_irl, outputs, study
 from imitrl.tabular import TabularMDP
 
 UNREACHABLE = "SFFF,FFFF,FFHH,FFHG"  # the goal is walled off by holes
@@ -94,6 +94,12 @@ def _small(out: Path, *extra: str) -> list[str]:
         "--chain-samples",
         "200",
         "--dagger-rounds",
+        "2",
+        "--irl-steps",
+        "5",
+        "--irl-sizes",
+        "1",
+        "--irl-datasets",
         "2",
         *extra,
     ]
@@ -183,6 +189,11 @@ def test_figures_at_zero_and_full_success_and_empty_sweeps(tmp_path):
         figures.plot_demo_counts([], np.zeros((0, 2)), np.zeros((0, 2)), 0.0, tmp_path / "d.png"),
         figures.plot_occupancy(
             np.array([[b"S", b"G"]]), [np.zeros(2)], [np.zeros(2)], ["x"], tmp_path / "o.png"
+        ),
+        figures_irl.plot_irl_sweep({}, 0.0, tmp_path / "irl_sweep.png"),
+        figures_irl.plot_reward(None, np.zeros(3), np.zeros(3), tmp_path / "r0.png"),
+        figures_irl.plot_reward(
+            np.array([[b"S", b"G"]]), np.zeros(2), np.zeros(2), tmp_path / "r.png"
         ),
     ]
     assert all(p.stat().st_size > 1000 for p in drawn)

@@ -76,10 +76,11 @@ def next_state_features(mdp: TabularMDP) -> torch.Tensor:
 
 
 def linear_reward(theta: torch.Tensor, phi: torch.Tensor) -> torch.Tensor:
-    """``r_theta[s, a] = sum_k theta[k] phi[k, s, a]``: ``[K]``, ``[K, S, A]`` -> ``[S, A]``."""
+    """``r_theta[s, a] = sum_k theta[k] phi[k, s, a]``: ``[K]``, ``[K, S, A]`` -> ``[S, A]``
+    (``theta`` ``[B, K]`` -> ``[B, S, A]``)."""
     phi = _check_tensor(phi, "features", (-1, -1, -1))
-    theta = _check_tensor(theta, "theta", (phi.shape[0],))
-    return torch.einsum("k,ksa->sa", theta, phi)
+    theta = _check_batched(theta, "theta", (phi.shape[0],))
+    return torch.einsum("...k,ksa->...sa", theta, phi)
 
 
 # ------------------------------------------------------------------------- soft planning
@@ -98,19 +99,21 @@ def soft_value_iteration(
     """Finite-horizon soft Bellman recursion (module docstring) for ``reward`` ``[S, A]``.
 
     ``horizon`` defaults to the MDP's time limit; ``T`` decisions at ``t = 0 .. T - 1``.
+    A leading batch ``[B, S, A]`` plans B rewards at once (``q`` ``[B, T, S, A]``, ...).
     """
     T, S, A = _horizon(mdp, horizon), mdp.num_states, mdp.num_actions
-    reward = _check_tensor(reward, "reward", (S, A))
+    reward = _check_batched(reward, "reward", (S, A))
+    batch = reward.shape[:-2]
     live = ~mdp.terminal  # [S]
     r = reward * live[:, None]  # terminal states collect nothing
-    P = mdp.P.reshape(S * A, S)  # [S * A, S]: one matmul per backup
-    q = torch.zeros(T, S, A, dtype=torch.float64)
-    v = torch.zeros(T + 1, S, dtype=torch.float64)
+    Pt = mdp.P.reshape(S * A, S).T  # [S, S * A]: one matmul per backup
+    q = torch.zeros(*batch, T, S, A, dtype=torch.float64)
+    v = torch.zeros(*batch, T + 1, S, dtype=torch.float64)
     for t in reversed(range(T)):
-        q[t] = (r + (P @ v[t + 1]).view(S, A)) * live[:, None]
-        v[t] = torch.logsumexp(q[t], dim=1) * live  # V_t(terminal) = 0, not log A
-    policy = torch.exp(q - v[:-1, :, None])
-    policy[:, ~live] = 1.0 / A  # never used: no decision is taken in a terminal state
+        q[..., t, :, :] = (r + (v[..., t + 1, :] @ Pt).view(*batch, S, A)) * live[:, None]
+        v[..., t, :] = torch.logsumexp(q[..., t, :, :], dim=-1) * live  # V_t(terminal) = 0
+    policy = torch.exp(q - v[..., :-1, :, None])
+    policy[..., ~live, :] = 1.0 / A  # never used: no decision is taken in a terminal state
     return SoftPolicy(q=q, v=v, policy=policy)
 
 
@@ -120,15 +123,18 @@ def time_indexed_state_distributions(
     """``[T + 1, S]`` state distributions ``d_0 .. d_T`` under ``policy`` ``[T, S, A]``.
 
     ``d_{t+1}(s') = sum_{s,a} d_t(s) pi_t(a|s) P(s'|s, a)``; ``d_T[goal].sum()`` is the exact
-    success probability of the time-indexed policy within ``T`` steps.
+    success probability of the time-indexed policy within ``T`` steps. A leading batch
+    (``policy`` ``[B, T, S, A]``, ``initial`` ``[S]`` or ``[B, S]``) gives ``[B, T + 1, S]``.
     """
-    T, S, A = policy.shape[0], mdp.num_states, mdp.num_actions
-    policy = _check_tensor(policy, "policy", (T, S, A))
-    d = torch.empty(T + 1, S, dtype=torch.float64)
-    d[0] = mdp.initial if initial is None else _check_tensor(initial, "initial", (S,))
+    S, A = mdp.num_states, mdp.num_actions
+    policy = _check_batched(policy, "policy", (-1, S, A))
+    batch, T = policy.shape[:-3], policy.shape[-3]
+    d = torch.empty(*batch, T + 1, S, dtype=torch.float64)
+    d0 = mdp.initial if initial is None else _check_batched(initial, "initial", (S,))
+    d[..., 0, :] = d0
     P = mdp.P.reshape(S * A, S)  # [S * A, S]
     for t in range(T):
-        d[t + 1] = (d[t][:, None] * policy[t]).view(-1) @ P
+        d[..., t + 1, :] = (d[..., t, :, None] * policy[..., t, :, :]).reshape(*batch, S * A) @ P
     return d
 
 
@@ -136,14 +142,15 @@ def occupancy_measure(
     mdp: TabularMDP, policy: torch.Tensor, initial: torch.Tensor | None = None
 ) -> torch.Tensor:
     """``[T, S, A]`` ``D[t, s, a] = d_t(s) pi_t(a|s)`` on live states, 0 on terminal ones."""
-    d = time_indexed_state_distributions(mdp, policy, initial)  # [T + 1, S]
+    d = time_indexed_state_distributions(mdp, policy, initial)  # [..., T + 1, S]
     live = (~mdp.terminal).to(torch.float64)
-    return (d[:-1] * live)[:, :, None] * policy
+    return (d[..., :-1, :] * live)[..., None] * policy
 
 
 def feature_expectations(occupancy: torch.Tensor, phi: torch.Tensor) -> torch.Tensor:
-    """``mu[k] = sum_{t,s,a} D[t, s, a] phi[k, s, a]``: ``[T, S, A]``, ``[K, S, A]`` -> ``[K]``."""
-    return torch.einsum("tsa,ksa->k", occupancy, phi)
+    """``mu[k] = sum_{t,s,a} D[t, s, a] phi[k, s, a]``: ``[T, S, A]``, ``[K, S, A]`` -> ``[K]``
+    (a leading batch ``[B, T, S, A]`` gives ``[B, K]``)."""
+    return torch.einsum("...tsa,ksa->...k", occupancy, phi)
 
 
 # ------------------------------------------------------------------------ demonstrations
@@ -151,8 +158,23 @@ def feature_expectations(occupancy: torch.Tensor, phi: torch.Tensor) -> torch.Te
 class Demonstrations:
     """Demonstrated decisions as counts: ``counts[t, s, a]`` summed over ``episodes``."""
 
-    counts: torch.Tensor  # [T, S, A] float64, zero on terminal states
-    episodes: float  # N: the divisor turning sums into per-demonstration means
+    counts: torch.Tensor  # [T, S, A] float64, zero on terminal states ([B, T, S, A]: B sets)
+    episodes: float | torch.Tensor  # N: the divisor turning sums into per-episode means ([B])
+
+    @classmethod
+    def stack(cls, demos: list[Demonstrations]) -> Demonstrations:
+        """B unbatched demonstration sets as one batch: fitted at once, each on its own."""
+        if not demos or any(d.counts.ndim != 3 for d in demos):
+            raise ValueError("stack needs a non-empty list of unbatched Demonstrations")
+        if len({tuple(d.counts.shape) for d in demos}) != 1:
+            raise ValueError(f"shapes differ: {sorted({tuple(d.counts.shape) for d in demos})}")
+        episodes = torch.tensor([float(d.episodes) for d in demos], dtype=torch.float64)
+        return cls(counts=torch.stack([d.counts for d in demos]), episodes=episodes)
+
+    def per_episode(self, x: torch.Tensor) -> torch.Tensor:
+        """``x`` ``[..., *]`` divided by each set's episode count (broadcast on the batch)."""
+        n = torch.as_tensor(self.episodes, dtype=torch.float64)
+        return x / n.reshape(n.shape + (1,) * (x.ndim - n.ndim))
 
     @classmethod
     def from_tuples(cls, mdp: TabularMDP, rows: torch.Tensor, horizon: int | None = None):
@@ -216,16 +238,23 @@ class Demonstrations:
 
 
 # ------------------------------------------------------------------ objectives, gradients
-def log_likelihood(soft: SoftPolicy, demos: Demonstrations) -> float:
-    """``(1/N) sum_{t,s,a} C[t, s, a] log pi_t(a|s)``: mean log-likelihood per episode."""
-    logp = soft.q - soft.v[:-1, :, None]  # [T, S, A] log pi_t(a|s), exact (no exp/log)
-    return float((demos.counts * logp).sum() / demos.episodes)
+def _log_likelihoods(soft: SoftPolicy, demos: Demonstrations) -> torch.Tensor:
+    """``[]`` or ``[B]`` mean log-likelihood per episode of each demonstration set."""
+    logp = soft.q - soft.v[..., :-1, :, None]  # [..., T, S, A] log pi_t(a|s), exact
+    return demos.per_episode((demos.counts * logp).sum(dim=(-3, -2, -1)))
+
+
+def log_likelihood(soft: SoftPolicy, demos: Demonstrations) -> float | torch.Tensor:
+    """``(1/N) sum_{t,s,a} C[t, s, a] log pi_t(a|s)``: mean log-likelihood per episode
+    (a float; a ``[B]`` tensor for batched demonstrations)."""
+    ll = _log_likelihoods(soft, demos)
+    return float(ll) if ll.ndim == 0 else ll
 
 
 def likelihood_gradient(
     mdp: TabularMDP, soft: SoftPolicy, demos: Demonstrations, phi: torch.Tensor
 ) -> torch.Tensor:
-    """``[K]`` exact gradient of :func:`log_likelihood` in ``theta``.
+    """``[K]`` exact gradient of :func:`log_likelihood` in ``theta`` (``[B, K]`` batched).
 
     ``dL = sum_t nu_t . dQ_t`` with ``nu_t = C_t - pi_t c_t`` (``c_t(s) = sum_a C_t(s, a)``);
     unrolling ``dQ_t = dr + P dV_{t+1}`` forward gives the adjoint occupancy
@@ -233,36 +262,40 @@ def likelihood_gradient(
     ``dL/dtheta = (1/N) sum_t X_t . phi``: the demonstrated features minus those of the
     soft policy re-started from every demonstrated state the kernel did not predict.
     """
-    T, S, A = soft.policy.shape
+    S, A = mdp.num_states, mdp.num_actions
+    batch, T = demos.counts.shape[:-3], demos.counts.shape[-3]
     live = (~mdp.terminal).to(torch.float64)
     P = mdp.P.reshape(S * A, S)  # [S * A, S]
-    m = torch.zeros(S, dtype=torch.float64)
-    X = torch.empty_like(demos.counts)  # [T, S, A]
+    m = torch.zeros(*batch, S, dtype=torch.float64)
+    X = torch.empty_like(demos.counts)  # [..., T, S, A]
     for t in range(T):
-        c = demos.counts[t].sum(dim=1)  # [S]
-        X[t] = (demos.counts[t] - soft.policy[t] * (c - m)[:, None]) * live[:, None]
-        m = (X[t].reshape(-1) @ P) * live
-    return feature_expectations(X, phi) / demos.episodes
+        C_t, pi_t = demos.counts[..., t, :, :], soft.policy[..., t, :, :]
+        X[..., t, :, :] = (C_t - pi_t * (C_t.sum(dim=-1) - m)[..., None]) * live[:, None]
+        m = (X[..., t, :, :].reshape(*batch, S * A) @ P) * live
+    return demos.per_episode(feature_expectations(X, phi))
 
 
-def dual_objective(soft: SoftPolicy, demos: Demonstrations, theta: torch.Tensor, phi) -> float:
+def dual_objective(
+    soft: SoftPolicy, demos: Demonstrations, theta: torch.Tensor, phi
+) -> float | torch.Tensor:
     """MCE dual ``g = theta . mu_E - (1/N) sum_s C_0(s) V_0(s)``; gradient ``mu_E - mu_pi``."""
-    mu_E = feature_expectations(demos.counts, phi) / demos.episodes
-    start = demos.counts[0].sum(dim=1) / demos.episodes  # [S] empirical d_0
-    return float(theta @ mu_E - start @ soft.v[0])
+    mu_E = demos.per_episode(feature_expectations(demos.counts, phi))
+    start = demos.per_episode(demos.counts[..., 0, :, :].sum(dim=-1))  # [..., S] empirical d_0
+    g = (theta * mu_E).sum(-1) - (start * soft.v[..., 0, :]).sum(-1)
+    return float(g) if g.ndim == 0 else g
 
 
 def _feature_gap(mdp, soft: SoftPolicy, demos: Demonstrations, phi) -> torch.Tensor:
-    """``[K]`` ``mu_E - mu_pi``, the soft policy started from the demonstrations' ``d_0``."""
-    start = demos.counts[0].sum(dim=1) / demos.episodes  # [S]
+    """``[..., K]`` ``mu_E - mu_pi``, the soft policy started from the demonstrations' ``d_0``."""
+    start = demos.per_episode(demos.counts[..., 0, :, :].sum(dim=-1))  # [..., S]
     mu_pi = feature_expectations(occupancy_measure(mdp, soft.policy, start), phi)
-    return feature_expectations(demos.counts, phi) / demos.episodes - mu_pi
+    return demos.per_episode(feature_expectations(demos.counts, phi)) - mu_pi
 
 
 # ------------------------------------------------------------------------------ the fit
 @dataclass(frozen=True, eq=False)
 class IRLResult:
-    """What :func:`maxent_irl` recovers."""
+    """What :func:`maxent_irl` recovers (batched demonstrations: a leading ``[B]`` on each)."""
 
     theta: torch.Tensor  # [K] reward weights
     reward: torch.Tensor  # [S, A] r_theta (zero on terminal states)
@@ -270,6 +303,10 @@ class IRLResult:
     policy: torch.Tensor  # [T, S, A] soft-optimal pi_t(a|s)
     log_likelihood: torch.Tensor  # [steps + 1] mean log-likelihood per episode, per iterate
     feature_gap: torch.Tensor  # [K] mu_E - mu_pi at the final theta
+
+    def greedy(self) -> torch.Tensor:
+        """``[S]`` (``[B, S]``) stationary greedy policy: argmax of the soft ``Q_0``."""
+        return self.q[..., 0, :, :].argmax(dim=-1)
 
 
 def maxent_irl(
@@ -299,21 +336,22 @@ def maxent_irl(
     """
     T, S, A = _horizon(mdp, horizon), mdp.num_states, mdp.num_actions
     phi = _check_tensor(features, "features", (-1, S, A))
-    _check_tensor(demos.counts, "demonstration counts", (T, S, A))
+    counts = _check_batched(demos.counts, "demonstration counts", (T, S, A))
     if objective not in OBJECTIVES or optimizer not in OPTIMIZERS:
         raise ValueError(f"objective must be one of {OBJECTIVES} and optimizer one of {OPTIMIZERS}")
     if int(steps) != steps or steps < 0 or not lr > 0 or not l2 >= 0:
         raise ValueError(f"need integer steps >= 0, lr > 0, l2 >= 0; got {steps}, {lr}, {l2}")
-    K = phi.shape[0]
-    start = torch.zeros(K, dtype=torch.float64) if theta0 is None else theta0
-    theta = _check_tensor(start, "theta0", (K,)).clone().requires_grad_(False)
+    batch, K = counts.shape[:-3], phi.shape[0]
+    start = torch.zeros(*batch, K, dtype=torch.float64) if theta0 is None else theta0
+    theta = _check_batched(start, "theta0", (K,)).expand(*batch, K).clone()
+    # Adam and SGD update elementwise: B rows of theta are B independent fits
     opt = (torch.optim.Adam if optimizer == "adam" else torch.optim.SGD)(
         [theta], lr=lr, maximize=True
     )
-    history = torch.empty(int(steps) + 1, dtype=torch.float64)
+    history = torch.empty(int(steps) + 1, *batch, dtype=torch.float64)
     for k in range(int(steps) + 1):
         soft = soft_value_iteration(mdp, linear_reward(theta, phi), T)
-        history[k] = log_likelihood(soft, demos)
+        history[k] = _log_likelihoods(soft, demos)
         if k == steps:
             break
         if objective == "likelihood":
@@ -327,22 +365,29 @@ def maxent_irl(
         reward=linear_reward(theta, phi) * (~mdp.terminal)[:, None],
         q=soft.q,
         policy=soft.policy,
-        log_likelihood=history,
+        log_likelihood=history.movedim(0, -1),
         feature_gap=_feature_gap(mdp, soft, demos, phi),
     )
 
 
-def _check_tensor(x, name: str, shape: tuple[int, ...]) -> torch.Tensor:
+def _check_tensor(x, name: str, shape: tuple[int, ...], batch: bool = False) -> torch.Tensor:
     """``x`` as a finite float64 tensor of ``shape`` (``-1``: any size), else ``ValueError``."""
     t = torch.as_tensor(x)
     if t.is_complex() or t.dtype == torch.bool:
         raise ValueError(f"{name} must be real, got dtype {t.dtype}")
     t = t.to(torch.float64)
     if t.ndim != len(shape) or any(w != -1 and w != n for w, n in zip(shape, t.shape)):
-        want = ", ".join(
-            "K" if w == -1 and i == 0 else "*" if w == -1 else str(w) for i, w in enumerate(shape)
-        )
-        raise ValueError(f"{name} must have shape [{want}], got {tuple(t.shape)}")
+        dims = ["B" if batch and i == 0 else "K" if w == -1 and i == int(batch) else
+                "*" if w == -1 else str(w) for i, w in enumerate(shape)]  # fmt: skip
+        raise ValueError(f"{name} must have shape [{', '.join(dims)}], got {tuple(t.shape)}")
     if not torch.isfinite(t).all():
         raise ValueError(f"{name} must be finite, found {int((~torch.isfinite(t)).sum())} NaN/inf")
     return t
+
+
+def _check_batched(x, name: str, shape: tuple[int, ...]) -> torch.Tensor:
+    """:func:`_check_tensor` allowing one leading batch dimension: ``[B, *shape]``."""
+    t = torch.as_tensor(x)
+    if t.ndim == len(shape) + 1:
+        return _check_tensor(t, name, (-1, *shape), batch=True)
+    return _check_tensor(t, name, shape)

@@ -31,10 +31,20 @@ _COUNTS = (
     "ex_datasets",
     "ex_fit_steps",
     "ex_error_datasets",
+    "irl_steps",
+    "irl_datasets",
 )
-_SEEDS = ("demo_seed", "eval_seed", "sweep_seed", "chain_seed", "dagger_seed", "ex_seed")
+_SEEDS = (
+    "demo_seed",
+    "eval_seed",
+    "sweep_seed",
+    "chain_seed",
+    "dagger_seed",
+    "ex_seed",
+    "irl_seed",
+)
 # tuples of counts, each >= 1 and given once (results are keyed by them)
-_COUNT_TUPLES = ("sweep_sizes", "tv_steps", "ex_demo_counts")
+_COUNT_TUPLES = ("sweep_sizes", "tv_steps", "ex_demo_counts", "irl_sizes")
 MAP_LETTERS = {"S": "start", "F": "frozen", "H": "hole", "G": "goal"}
 """The letters of a FrozenLake map (``--desc``)."""
 
@@ -162,6 +172,22 @@ class StudyConfig:
     """exercise 5: fraction of corrupted expert labels"""
     ex_seed: int = 5
     """seed of the exercise blocks (one block per exercise: ex_seed, ex_seed + 1, ...)"""
+    irl: bool = True
+    """run section 8, maximum-entropy IRL (``--no-irl`` skips it)"""
+    irl_steps: int = 100
+    """Adam steps of each IRL fit (exact likelihood gradient)"""
+    irl_lr: float = 0.5
+    """Adam learning rate of the IRL fits"""
+    irl_sizes: tuple[int, ...] = (1, 3, 10)
+    """section 8: demonstration episodes per redrawn dataset"""
+    irl_datasets: int = 10
+    """section 8: redrawn datasets per size (IRL, BC and DAgger from each)"""
+    irl_seed: int = 9
+    """seed of the section 8 block"""
+    irl_transfer: tuple[tuple[str, str], ...] | None = None
+    """reward-transfer targets as env constructor arguments ``name:value``
+    (``is_slippery:False,success_rate:0.5``); none: those of is_slippery:False,
+    success_rate:0.5, success_rate:0.9 that the env takes"""
     progress: bool = True
     """progress bars for the longer blocks"""
 
@@ -186,6 +212,7 @@ class StudyConfig:
             _check_count("max_steps", self.max_steps)
         _check_real("gamma", self.gamma, "in (0, 1]", lambda g: 0.0 < g <= 1.0)
         _check_real("lr", self.lr, "> 0", lambda x: x > 0.0)
+        _check_real("irl_lr", self.irl_lr, "> 0", lambda x: x > 0.0)
         _check_real("ex_corruption", self.ex_corruption, "in [0, 1]", lambda x: 0.0 <= x <= 1.0)
         for eps, T in self.chain_panels:
             _check_real("chain_panels", eps, "eps:T with eps in (0, 1]", lambda e: 0 < e <= 1)

@@ -33,6 +33,8 @@ FIGURES = (
     "ex_state_errors",
     "ex_budget",
     "ex_corruption",
+    "irl_reward",
+    "irl_sweep",
 )
 """The figures a run may draw, each ``<name>.png``."""
 OUTPUT_FILES = frozenset({"report.txt", "results.json", *(f"{f}.png" for f in FIGURES)})

@@ -119,6 +119,28 @@ def _dagger_claim(checks: _Checks, rounds: list[dict], results: dict) -> None:
         )
 
 
+def _irl_claims(checks: _Checks, fit: dict, expert: float) -> None:
+    """Section 8 against the closing pointer: "inferring the reward function under which the
+    demonstrations are (softly) optimal and planning against it"."""
+    if not fit:
+        return
+    share = fit["demonstrations_argmax"]
+    checks.check(
+        "maximum-entropy IRL infers a reward under which the demonstrations are softly optimal",
+        share,
+        share,
+        share == 1.0,
+        "share of demonstrated actions that are the soft-optimal policy's most likely action",
+    )
+    checks.check(
+        "planning against the inferred reward recovers the expert",
+        fit["exact_success_greedy"],
+        expert,
+        abs(fit["exact_success_greedy"] - expert) < 0.01,
+        "exact success of the greedy plan vs the expert's",
+    )
+
+
 def prose_checks(ctx: StudyContext) -> None:
     """Where the section's prose and the exact numbers agree or not."""
     r, rep = ctx.report.results, ctx.report
@@ -133,4 +155,5 @@ def prose_checks(ctx: StudyContext) -> None:
     _chain_claims(checks, r.get("chain", {}).get("panels", []))
     _divergence_claim(checks, r.get("divergence", {}) if faithful else {})
     _dagger_claim(checks, r.get("dagger", {}).get("rounds", []) if faithful else [], r)
+    _irl_claims(checks, r.get("irl", {}).get("fit", {}), r["expert"]["exact_success"])
     rep.set("prose_checks", checks.rows)

@@ -12,7 +12,8 @@ One module per part, run in this order on one shared :class:`StudyContext`:
 * :mod:`.demonstrations` (1. the expert and its demonstrations),
   :mod:`.cloning` (2. behaviour cloning, 3. acting on its own), :mod:`.sweep`
   (4. redrawn datasets), :mod:`.compounding_error` (5. the chain),
-  :mod:`.divergence` (6. state distributions), :mod:`.dagger_rounds` (7. DAgger);
+  :mod:`.divergence` (6. state distributions), :mod:`.dagger_rounds` (7. DAgger),
+  :mod:`.irl` (8. maximum-entropy IRL, exactly; ``--no-irl`` skips it);
 * the exercises :mod:`.ex_demo_counts`, :mod:`.ex_state_errors`, :mod:`.ex_budget`,
   :mod:`.ex_corruption`, built on :mod:`.replicates` (K datasets fitted as one);
 * :mod:`.prose_check`, the section's claims against the exact numbers.
@@ -38,6 +39,7 @@ from imitrl.experiments.frozenlake.ex_budget import ex_budget
 from imitrl.experiments.frozenlake.ex_corruption import ex_corruption
 from imitrl.experiments.frozenlake.ex_demo_counts import ex_demo_counts
 from imitrl.experiments.frozenlake.ex_state_errors import ex_state_errors
+from imitrl.experiments.frozenlake.irl import irl, transfer_mdps
 from imitrl.experiments.frozenlake.prose_check import prose_checks
 from imitrl.experiments.frozenlake.report import Report
 from imitrl.experiments.frozenlake.sweep import sweep
@@ -73,6 +75,8 @@ def _mdp(config: StudyConfig) -> TabularMDP:
         config.env_id, config.gamma, make_kwargs=config.make_kwargs, max_steps=config.max_steps
     )
     _check_runnable(config, mdp)
+    if config.irl:
+        transfer_mdps(config)  # --irl-transfer targets the env cannot build: refused now
     return mdp
 
 
@@ -117,6 +121,8 @@ def _sections(config: StudyConfig) -> list[tuple[str, Callable[[StudyContext], N
         ("divergence", divergence),
         ("dagger", dagger_rounds),
     ]
+    if config.irl:
+        sections.append(("irl", irl))
     if config.exercises:
         sections += [
             ("ex_demo_counts", ex_demo_counts),
