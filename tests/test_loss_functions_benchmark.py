@@ -95,3 +95,15 @@ def test_contributing_example_registers_a_loss_that_the_benchmark_runs():
     finally:
         if "l1_l2" in registry.names():
             registry.unregister("l1_l2")
+
+
+def test_quick_without_out_never_writes_the_committed_results(monkeypatch):
+    import _report
+    from _loss_functions.report import NAME
+
+    written = []
+    monkeypatch.setattr(_report, "update_readme", lambda *a: written.append(a))
+    out = _report.destination(NAME, quick=True, out=None)
+    assert out is not None and out.resolve() != _report.RESULTS.resolve()
+    _report.write(NAME, {"rows": []}, "table", out_dir=out)
+    assert (out / f"{NAME}.json").exists() and written == []

@@ -12,6 +12,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from imitrl import keys
 from imitrl.algorithms import BCConfig, DAggerConfig, EnvSource, dagger, fit_bc
 from imitrl.data import DemonstrationBuffer, rollout_episodes
+from imitrl.data.chunks import EXPERT_CHUNK, IS_INIT, add_chunk_labels
 from imitrl.envs import TabularEnv
 from imitrl.objectives import (
     AdvantageWeightedLoss,
@@ -43,7 +44,12 @@ def _rows(task: TaskSpec, n: int = 64, seed: int = 0) -> TensorDict:
         label = torch.randint(task.action, (n,), generator=g)
     else:
         label = torch.rand(n, 1, generator=g) * 4 - 2
-    return TensorDict({keys.OBSERVATION: obs, keys.EXPERT_ACTION: label}, [n])
+    # four episodes of n / 4 steps (what chunk labels are formed from)
+    episode, step = torch.arange(n) // (n // 4), torch.arange(n) % (n // 4)
+    return TensorDict(
+        {keys.OBSERVATION: obs, keys.EXPERT_ACTION: label, keys.EPISODE: episode, keys.STEP: step},
+        [n],
+    )
 
 
 def _cases():
@@ -61,10 +67,14 @@ def test_every_entry_builds_acts_and_trains(name, tname):
     task = TASKS[tname]
     learner = registry.build(name, task, CONFIG)
     assert isinstance(learner, Learner)
-    rows = _rows(task)
-    # acts: one action per row, of the action space's dtype, inside the bounds
+    horizon = registry.get(name).horizon
+    rows = _rows(task) if horizon is None else add_chunk_labels(_rows(task), horizon)
+    # acts: one action per row, of the action space's dtype, inside the bounds (a chunked
+    # learner: the first action of a fresh plan)
+    inputs = rows.select(keys.OBSERVATION).clone()
+    inputs.set(IS_INIT, torch.ones(rows.shape[0], 1, dtype=torch.bool))
     with torch.no_grad(), set_exploration_type(learner.exploration):
-        action = learner.policy(rows.select(keys.OBSERVATION).clone()).get(keys.ACTION)
+        action = learner.policy(inputs).get(keys.ACTION)
     assert action.shape == rows[keys.EXPERT_ACTION].shape
     if task.actions == "discrete":
         assert not action.dtype.is_floating_point
@@ -73,7 +83,7 @@ def test_every_entry_builds_acts_and_trains(name, tname):
         assert action.dtype == torch.float32
         assert ((action >= -2) & (action <= 2)).all()
     # the loss reads the label key, returns scalar loss_* entries with gradients
-    assert keys.EXPERT_ACTION in learner.loss.in_keys
+    assert (keys.EXPERT_ACTION if horizon is None else EXPERT_CHUNK) in learner.loss.in_keys
     out = learner.loss(rows)
     total = sum(v for k, v in out.items() if k.startswith("loss_"))
     assert total.ndim == 0 and total.requires_grad
@@ -272,3 +282,18 @@ def test_diffusion_keeps_both_modes_where_mse_averages_them():
     # MSE: nothing near either mode; diffusion: each mode 30-70% of 2000 samples
     assert max(fractions["mse"]) == 0
     assert all(0.3 < f < 0.7 for f in fractions["diffusion"]), fractions
+
+
+def test_a_pixel_learner_given_another_loss_keeps_its_pixel_inputs_and_action_space():
+    # registry._with_loss used to rebuild the ActorCritic without pixel_inputs / action
+    from imitrl.envs.pixel_tasks import PixelTwoWayEnv
+    from imitrl.objectives.registry import _with_loss
+
+    spec = Bounded(-1.0, 1.0, shape=(1,))
+    ac = ActorCritic.pixels((16, 16, 3), spec, channels=(8, 8), hidden=(32,))
+    swapped = _with_loss(ac, RegularizedBCLoss(ac.policy, loss_type="mse", l2_coef=1e-4))
+    assert swapped.pixel_inputs is ac.pixel_inputs and swapped.pixel_key == keys.PIXELS
+    assert swapped.action_space is ac.action_space
+    swapped.check_env(PixelTwoWayEnv(pixels=(16, 16), seed=0))  # reads the images: no error
+    images = torch.zeros(4, 16, 16, 3, dtype=torch.uint8)
+    assert swapped.act_greedy({keys.PIXELS: images}).shape == (4, 1)

@@ -18,6 +18,7 @@ from _common import DET, rollout, source
 from _loss_functions.tasks import tasks as task_table
 from imitrl.algorithms import DAggerConfig, dagger, fit_bc
 from imitrl.data import DemonstrationBuffer
+from imitrl.data.chunks import add_chunk_labels
 from imitrl.objectives import registry
 from imitrl.objectives.registry import Learner
 from imitrl.policies import as_actor
@@ -63,9 +64,14 @@ def loss_cell(task_name: str, loss: str, seed: int, quick_mode: bool) -> list[di
     results: dict[int, dict] = {}
     fit_seconds: list[float] = []
 
+    horizon = registry.get(loss).horizon
+
     def timed_fit(learner: Learner, buf: DemonstrationBuffer):
         t = time.perf_counter()
-        out = fit_bc(learner, buf, bc)  # what dagger does without train=, timed
+        # a chunked learner: every row's label chunk, from the (relabelled) rows of its
+        # episode (imitrl.data.chunks); otherwise what dagger does without train=, timed
+        rows = buf if horizon is None else add_chunk_labels(buf.data, horizon)
+        out = fit_bc(learner, rows, bc)
         fit_seconds.append(time.perf_counter() - t)
         return out
 

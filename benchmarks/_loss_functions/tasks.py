@@ -15,12 +15,14 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from _common import DET, RND, Uniform, lake, returns, rollout
 from imitrl import keys
 from imitrl.algorithms import BCConfig
+from imitrl.data.chunks import IS_INIT
 from imitrl.envs import TabularEnv, make_env
 from imitrl.envs import multimodal as mm
 from imitrl.evaluation import exact_values
 from imitrl.experts import cartpole_expert, inverted_pendulum_expert, pendulum_expert
 from imitrl.objectives.registry import Learner, LearnerConfig, TaskSpec
 from imitrl.policies import BetaMixer, Expert, as_actor, behaviour_policy
+from imitrl.policies.chunking import chunk_env
 from imitrl.tabular import greedy, success_probability
 
 TASKS = ("frozenlake", "cartpole", "pendulum", "inverted_pendulum", "two_way")
@@ -154,12 +156,13 @@ class Gym(Task):
         return self._expert()
 
     def env(self, *, seed: int, lanes: int) -> EnvBase:
-        return make_env(
+        env = make_env(
             self.env_id,
             seed=seed,
             num_envs=lanes,
             max_episode_steps=self.protocol.max_episode_steps,
         )
+        return chunk_env(env)  # is_init: where a chunked learner replans
 
     def max_steps(self) -> int:
         return 20_000
@@ -189,7 +192,8 @@ class TwoWay(Task):
         return mm.two_way_expert(self.geometry)
 
     def env(self, *, seed: int, lanes: int) -> EnvBase:
-        return mm.TwoWayObstacleEnv(batch_size=(lanes,), geometry=self.geometry, seed=seed)
+        env = mm.TwoWayObstacleEnv(batch_size=(lanes,), geometry=self.geometry, seed=seed)
+        return chunk_env(env)  # is_init: where a chunked learner replans
 
     def max_steps(self) -> int:
         return 100 * self.geometry.steps
@@ -215,7 +219,10 @@ class TwoWay(Task):
             (RND, "modes_rnd"),
         ):
             with torch.no_grad(), set_exploration_type(exploration):
-                td = learner.policy(TensorDict({keys.OBSERVATION: obs}, batch_size=[obs.shape[0]]))
+                # is_init: a chunked learner plans afresh at each state, acts its first action
+                init = torch.ones(obs.shape[0], 1, dtype=torch.bool)
+                td = TensorDict({keys.OBSERVATION: obs, IS_INIT: init}, batch_size=[obs.shape[0]])
+                td = learner.policy(td)
             fractions = mm.mode_fractions(obs, td.get(keys.ACTION), geometry=self.geometry)
             out.update({f"{tag}_{k}": v for k, v in fractions.items()})
         return out

@@ -24,6 +24,18 @@ What this module adds around the two TorchRL classes, and why:
 Exploration: ``RANDOM`` samples (a fresh Gaussian latent per call); ``DETERMINISTIC``
 starts TorchRL's chain from a zero latent without injected noise, which is repeatable
 but not a sample and may pick one mode everywhere.
+
+Few-step sampling (``sampler="ddim"``): the same trained network, sampled by DDIM
+(Song et al. 2021, eta = 0) on ``sample_steps`` of the ``num_steps`` training steps,
+``tau_1 > ... > tau_S`` evenly spaced from ``T - 1`` to 0 (:func:`ddim_sample`):
+
+    x0_hat = (x_tau - sqrt(1 - abar_tau) eps) / sqrt(abar_tau),   clipped to [-1, 1]
+    x_prev = sqrt(abar_prev) x0_hat + sqrt(1 - abar_prev) eps     (abar after tau_S: 1)
+
+deterministic given the starting latent (drawn as for DDPM), so ``S`` network calls
+per action instead of ``T``. TorchRL's ``DiffusionActor`` has only the DDPM chain; the
+schedule ``abar`` is recomputed here from the same betas (``torch.linspace(beta_start,
+beta_end, T)``, the actor's own formula; a test checks they agree).
 """
 
 from __future__ import annotations
@@ -33,7 +45,8 @@ from dataclasses import dataclass
 
 import torch
 from tensordict import TensorDict, TensorDictBase
-from tensordict.nn import TensorDictModuleBase
+from tensordict.nn import InteractionType, TensorDictModuleBase
+from tensordict.nn.probabilistic import interaction_type
 from tensordict.utils import NestedKey
 from torch import nn
 from torchrl.data import Bounded
@@ -44,7 +57,15 @@ from imitrl import keys
 from imitrl.objectives.base import ImitationLoss
 from imitrl.rng import rng_from
 
-__all__ = ["DiffusionBehaviorCloningLoss", "DiffusionPolicy", "ScoreNetwork"]
+__all__ = [
+    "SAMPLERS",
+    "DiffusionBehaviorCloningLoss",
+    "DiffusionPolicy",
+    "ScoreNetwork",
+    "ddim_sample",
+]
+
+SAMPLERS = ("ddpm", "ddim")
 
 _NORMALIZED = "diffusion_action"
 """key of the action in ``[-1, 1]``, before it is mapped to the bounds"""
@@ -73,6 +94,30 @@ class ScoreNetwork(nn.Module):
         return self.net(torch.cat([x[..., :-1], x[..., -1:] / self.num_steps], dim=-1))
 
 
+def ddim_sample(
+    score: nn.Module,
+    obs: torch.Tensor,
+    x: torch.Tensor,
+    alphas_cumprod: torch.Tensor,
+    sample_steps: int,
+) -> torch.Tensor:
+    """DDIM (eta = 0) from the latent ``x`` ``[..., d]`` on ``sample_steps`` of the ``T`` steps.
+
+    ``score([x, obs, t]) -> eps`` as ``DiffusionActor`` calls it (``t`` the raw step
+    index); ``alphas_cumprod`` ``[T]``. Returns ``x0`` ``[..., d]`` (module docstring).
+    """
+    T = alphas_cumprod.shape[0]
+    taus = torch.linspace(T - 1, 0, int(sample_steps)).round().long().unique_consecutive()
+    for i, tau in enumerate(taus.tolist()):
+        abar = alphas_cumprod[tau]
+        abar_prev = alphas_cumprod[taus[i + 1]] if i + 1 < len(taus) else torch.tensor(1.0)
+        t = torch.full((*x.shape[:-1], 1), float(tau))
+        eps = score(torch.cat([x, obs.to(x.dtype), t], dim=-1))
+        x0 = ((x - (1 - abar).sqrt() * eps) / abar.sqrt()).clamp(-1.0, 1.0)
+        x = abar_prev.sqrt() * x0 + (1 - abar_prev).sqrt() * eps
+    return x
+
+
 class DiffusionPolicy(TensorDictModuleBase):
     """``OBSERVATION -> ACTION`` by a DDPM reverse chain, inside the bounds of ``action_spec``.
 
@@ -80,9 +125,12 @@ class DiffusionPolicy(TensorDictModuleBase):
         observation_dim: length of the observation vector ``[..., d]``.
         action_spec: ``Bounded`` spec of shape ``[m]``; actions are written float32 ``[..., m]``.
         hidden: hidden layer sizes of the score network.
-        num_steps: denoising steps (each action costs ``num_steps`` network calls).
+        num_steps: denoising steps ``T`` of training (and of the DDPM chain).
         beta_start, beta_end: the linear noise schedule.
         seed: initialisation and sampling seed.
+        sampler: ``"ddpm"`` (TorchRL's chain, ``T`` network calls per action) or
+            ``"ddim"`` (``sample_steps`` calls, :func:`ddim_sample`).
+        sample_steps: DDIM steps (ignored by DDPM).
 
     Writes ``"diffusion_action"`` (the sample in ``[-1, 1]``) and ``ACTION``.
     """
@@ -97,8 +145,17 @@ class DiffusionPolicy(TensorDictModuleBase):
         beta_start: float = 1e-4,
         beta_end: float = 0.2,
         seed: int = 0,
+        sampler: str = "ddpm",
+        sample_steps: int = 8,
     ) -> None:
         super().__init__()
+        if sampler not in SAMPLERS:
+            raise ValueError(f"sampler must be one of {SAMPLERS}, got {sampler!r}")
+        if sampler == "ddim" and not 1 <= sample_steps <= num_steps:
+            raise ValueError(
+                f"sample_steps must be in [1, num_steps={num_steps}], got {sample_steps}"
+            )
+        self.sampler, self.sample_steps = sampler, int(sample_steps)
         if not isinstance(action_spec, Bounded) or len(action_spec.shape) != 1:
             raise ValueError(
                 f"a diffusion policy needs a Bounded action spec of shape [action_dim], got {action_spec!r}"
@@ -120,6 +177,11 @@ class DiffusionPolicy(TensorDictModuleBase):
             in_keys=[keys.OBSERVATION],
             out_keys=[_NORMALIZED],
         )
+        # plain attributes, not registered: the network already belongs to the actor, and
+        # the state dict (checkpoints) stays what it was before DDIM
+        object.__setattr__(self, "_score", score)
+        betas = torch.linspace(beta_start, beta_end, num_steps)  # DiffusionActor's schedule
+        self._alphas_cumprod = torch.cumprod(1.0 - betas, dim=0)
         self.register_buffer("low", action_spec.space.low.float().clone())
         self.register_buffer("high", action_spec.space.high.float().clone())
         self.generator = torch.Generator().manual_seed(int(seed) + 1)
@@ -129,8 +191,18 @@ class DiffusionPolicy(TensorDictModuleBase):
         return 2 * (action.float() - self.low) / (self.high - self.low) - 1
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        with rng_from(self.generator):
-            tensordict = self.actor(tensordict)
+        if self.sampler == "ddim":
+            obs = tensordict.get(keys.OBSERVATION)
+            shape = (*obs.shape[:-1], self.low.shape[0])
+            if interaction_type() == InteractionType.DETERMINISTIC:
+                x = torch.zeros(shape)  # as TorchRL's chain starts in this mode
+            else:
+                x = torch.randn(shape, generator=self.generator)
+            x = ddim_sample(self._score, obs, x, self._alphas_cumprod, self.sample_steps)
+            tensordict.set(_NORMALIZED, x)
+        else:
+            with rng_from(self.generator):
+                tensordict = self.actor(tensordict)
         x = tensordict.get(_NORMALIZED).clamp(-1.0, 1.0)
         tensordict.set(keys.ACTION, self.low + (self.high - self.low) * (x + 1) / 2)
         return tensordict

@@ -27,7 +27,14 @@ l1                     continuous deterministic (tanh)  ``|mu(s) - a*|``
 smooth_l1              continuous deterministic (tanh)  Huber(1)
 mse_l2                 continuous deterministic (tanh)  MSE + 1e-4 ||W||^2
 diffusion              continuous DDPM (DiffusionActor) epsilon-prediction (DiffusionBCLoss), sampled
+diffusion_ddim         continuous the same network      the same loss; sampled by DDIM in 8 steps
+flow                   continuous rectified flow        conditional flow matching, 8 Euler steps
 ====================== ========== ===================== =====================================
+
+Chunked entries (``*_chunk``: the learner predicts the expert's next ``H`` actions;
+:mod:`imitrl.objectives.registry_chunks`) carry ``LossEntry.horizon``: their rows need
+chunk labels (:func:`imitrl.data.chunks.add_chunk_labels`) and their envs
+``is_init`` (:func:`imitrl.policies.chunking.chunk_env`).
 
 Integer observations (tabular tasks) get a table of logits (``ActorCritic.tabular``),
 vector observations an MLP (``ActorCritic.mlp``). Each entry states how its policy
@@ -47,6 +54,7 @@ from torchrl.envs.utils import ExplorationType
 from imitrl.objectives.advantage_weighted import Advantage, AdvantageWeightedLoss
 from imitrl.objectives.base import ImitationLoss
 from imitrl.objectives.diffusion import DiffusionBehaviorCloningLoss, DiffusionPolicy
+from imitrl.objectives.flow import FlowMatchingLoss, FlowPolicy
 from imitrl.objectives.regularized import RegularizedBCLoss
 from imitrl.policies.actor_critic import ActorCritic
 from imitrl.policies.learner import Learner
@@ -130,6 +138,9 @@ class LossEntry:
     """one line for tables and ``--help``"""
     requires: tuple[str, ...] = ()
     """``TaskSpec`` fields that must be set (e.g. ``("advantage",)``)"""
+    horizon: int | None = None
+    """``H`` of a chunked learner: its rows need ``add_chunk_labels(rows, H)`` and its envs
+    ``chunk_env(env)``; None: one action per step"""
 
     def applies_to(self, task: TaskSpec) -> bool:
         """Whether this objective can train a policy for ``task``."""
@@ -143,9 +154,15 @@ _TASK_FIELDS = {f.name for f in fields(TaskSpec)}
 
 
 def register(
-    name: str, *, actions: str, summary: str, requires: Sequence[str] = ()
+    name: str,
+    *,
+    actions: str,
+    summary: str,
+    requires: Sequence[str] = (),
+    horizon: int | None = None,
 ) -> Callable[[Callable[[TaskSpec, LearnerConfig], Learner]], Callable]:
-    """Decorator: register ``build(task, config) -> Learner`` under ``name``.
+    """Decorator: register ``build(task, config) -> Learner`` under ``name``
+    (``horizon``: the chunk length of a chunked learner, see :class:`LossEntry`).
 
     Raises:
         ValueError: the name is taken, ``actions`` is not one of :data:`ACTION_KINDS`,
@@ -158,11 +175,13 @@ def register(
         raise ValueError(f"requires names unknown TaskSpec fields {sorted(unknown)}")
     if not name or not isinstance(name, str):
         raise ValueError(f"a loss needs a non-empty string name, got {name!r}")
+    if horizon is not None and (int(horizon) != horizon or horizon < 1):
+        raise ValueError(f"horizon must be a positive integer or None, got {horizon!r}")
 
     def decorator(fn: Callable[[TaskSpec, LearnerConfig], Learner]) -> Callable:
         if name in _REGISTRY:
             raise ValueError(f"a loss named {name!r} is already registered")
-        _REGISTRY[name] = LossEntry(name, actions, fn, summary, tuple(requires))
+        _REGISTRY[name] = LossEntry(name, actions, fn, summary, tuple(requires), horizon)
         return fn
 
     return decorator
@@ -233,7 +252,8 @@ def mlp(
 
 
 def _with_loss(ac: ActorCritic, loss: ImitationLoss) -> ActorCritic:
-    """``ac`` trained by ``loss`` (a loss over ``ac.policy``) instead of its default."""
+    """``ac`` trained by ``loss`` (a loss over ``ac.policy``) instead of its default: every
+    constructor argument carried over (a pixel learner's inputs, the action space)."""
     return ActorCritic(
         ac.policy,
         ac.value,
@@ -243,6 +263,8 @@ def _with_loss(ac: ActorCritic, loss: ImitationLoss) -> ActorCritic:
         num_states=ac.num_states,
         observation_shape=ac.observation_shape,
         normalizer=ac.normalizer,
+        action=ac.action_space,
+        pixel_inputs=ac.pixel_inputs,
     )
 
 
@@ -253,6 +275,10 @@ L2_COEF = 1e-4
 """weight of the L2 penalty of ``mse_l2``"""
 DIFFUSION_STEPS = 50
 """denoising steps of ``diffusion`` (each action costs this many network calls)"""
+DDIM_STEPS = 8
+"""DDIM sampling steps of ``diffusion_ddim`` (of the ``DIFFUSION_STEPS`` it trains on)"""
+FLOW_STEPS = 8
+"""Euler steps of ``flow``"""
 
 
 @register("cross_entropy", actions="discrete", summary="cross-entropy (categorical NLL)")
@@ -312,18 +338,75 @@ def _mse_l2(task: TaskSpec, config: LearnerConfig) -> Learner:
     summary=f"diffusion policy (DDPM, {DIFFUSION_STEPS} steps), samples its actions",
 )
 def _diffusion(task: TaskSpec, config: LearnerConfig) -> Learner:
-    if task.observation_dim is None:
-        raise ValueError("a diffusion policy needs vector observations")
-    policy = DiffusionPolicy(
-        task.observation_dim,
-        task.action,
-        hidden=config.hidden,
-        num_steps=DIFFUSION_STEPS,
-        seed=config.seed,
-    )
+    policy = diffusion_policy(task.observation_dim, task.action, config, sampler="ddpm")
     return Learner(
         policy,
         DiffusionBehaviorCloningLoss(policy, seed=config.seed),
         torch.optim.Adam(policy.parameters(), lr=config.lr),
         exploration=ExplorationType.RANDOM,
     )
+
+
+@register(
+    "diffusion_ddim",
+    actions="continuous",
+    summary=f"diffusion trained as DDPM ({DIFFUSION_STEPS} steps), sampled by DDIM in {DDIM_STEPS}",
+)
+def _diffusion_ddim(task: TaskSpec, config: LearnerConfig) -> Learner:
+    policy = diffusion_policy(task.observation_dim, task.action, config, sampler="ddim")
+    return Learner(
+        policy,
+        DiffusionBehaviorCloningLoss(policy, seed=config.seed),
+        torch.optim.Adam(policy.parameters(), lr=config.lr),
+        exploration=ExplorationType.RANDOM,
+    )
+
+
+@register(
+    "flow",
+    actions="continuous",
+    summary=f"flow matching (rectified flow), {FLOW_STEPS} Euler steps, samples its actions",
+)
+def _flow(task: TaskSpec, config: LearnerConfig) -> Learner:
+    policy = flow_policy(task.observation_dim, task.action, config)
+    return Learner(
+        policy,
+        FlowMatchingLoss(policy, seed=config.seed),
+        torch.optim.Adam(policy.parameters(), lr=config.lr),
+        exploration=ExplorationType.RANDOM,
+        normalizer=policy.normalizer,
+    )
+
+
+def diffusion_policy(
+    observation_dim: int | None, action: Bounded, config: LearnerConfig, *, sampler: str
+) -> DiffusionPolicy:
+    """The registry's diffusion policy over ``action`` (a task's spec, or a tiled chunk spec)."""
+    if observation_dim is None:
+        raise ValueError("a diffusion policy needs vector observations")
+    return DiffusionPolicy(
+        observation_dim,
+        action,
+        hidden=config.hidden,
+        num_steps=DIFFUSION_STEPS,
+        seed=config.seed,
+        sampler=sampler,
+        sample_steps=DDIM_STEPS,
+    )
+
+
+def flow_policy(observation_dim: int | None, action: Bounded, config: LearnerConfig) -> FlowPolicy:
+    """The registry's flow policy over ``action`` (a task's spec, or a tiled chunk spec)."""
+    if observation_dim is None:
+        raise ValueError("a flow policy needs vector observations")
+    return FlowPolicy(
+        observation_dim,
+        action,
+        hidden=config.hidden,
+        num_steps=FLOW_STEPS,
+        normalize=config.normalize,
+        seed=config.seed,
+    )
+
+
+import imitrl.objectives.registry_chunks  # noqa: E402, F401  (registers the *_chunk entries)

@@ -1,0 +1,118 @@
+"""Action-chunk labels from buffer rows: the expert's next H actions within the episode.
+
+A chunked learner predicts ``H`` actions at once (ACT, Zhao et al. 2023; Diffusion
+Policy, Chi et al. 2023). Its label at row ``i`` (episode ``e``, step ``t``) is
+
+    chunk[i, h] = label of the row (e, t + h),   h = 0 .. H-1,
+
+``pad[i, h] = True`` where step ``t + h`` is past the episode's last row; there the
+chunk repeats the episode's last label, as TorchRL's ``ActionChunkTransform`` pads
+(``padding="same"``), and a loss that takes the mask leaves those entries out.
+
+Why not ``ActionChunkTransform`` itself: it windows a time-structured ``[B, T, m]``
+tensor (one trajectory window per row, or cut at ``("next", "done")``), while a
+demonstration buffer holds flat rows of many episodes, in any order, identified by
+``EPISODE`` and ``STEP``. :func:`chunk_labels` is the same windowing keyed by those
+two columns; ``tests/test_chunks.py`` checks that both give the same digits on one
+episode.
+
+DAgger. A relabel round stores, at every state the learner visited, the expert's
+label at that state (``EXPERT_ACTION``), whichever action was executed. The chunk of
+such a row is formed the same way, from the labels of the rows that follow it in its
+episode: entry ``h`` is the expert's action at the state the *behaviour policy*
+reached ``h`` steps later, not the action the expert would have taken there had it
+driven the ``h`` steps itself (that would need the simulator's state at every row).
+Entry 0 is always the expert's label at the row's own state.
+"""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+
+from imitrl import keys
+
+__all__ = [
+    "ACTION_CHUNK",
+    "CHUNK_PAD",
+    "EXPERT_CHUNK",
+    "IS_INIT",
+    "add_chunk_labels",
+    "chunk_labels",
+]
+
+EXPERT_CHUNK = "expert_action_chunk"
+"""``[N, H, *action]`` the expert's labels at steps ``t .. t+H-1`` of the row's episode"""
+CHUNK_PAD = "expert_action_is_pad"
+"""``[N, H]`` bool: the chunk entry lies past the episode's end (a repeated last label)"""
+ACTION_CHUNK = "action_chunk"
+"""``[N, H, *action]`` the actions a chunked learner predicts (written by the learner)"""
+IS_INIT = "is_init"
+"""TorchRL's ``InitTracker`` key: the lane was just reset (a chunked policy replans)"""
+
+
+def chunk_labels(
+    label: torch.Tensor, episode: torch.Tensor, step: torch.Tensor, horizon: int
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``chunk[i, h]`` = ``label`` of the row of episode ``episode[i]`` at step ``step[i] + h``.
+
+    Args:
+        label: ``[N, *action]`` per-row labels.
+        episode: ``[N]`` int episode ids.
+        step: ``[N]`` int step of each row in its episode; each episode's steps must be
+            consecutive integers (rows may come in any order).
+        horizon: ``H >= 1``.
+
+    Returns:
+        ``chunk [N, H, *action]`` (past an episode's end: its last label) and
+        ``pad [N, H]`` bool (True past the end).
+    """
+    if int(horizon) != horizon or horizon < 1:
+        raise ValueError(f"horizon must be a positive integer, got {horizon!r}")
+    n = label.shape[0]
+    if episode.shape != (n,) or step.shape != (n,):
+        raise ValueError(
+            f"need one episode id and step per row: label {tuple(label.shape)}, "
+            f"episode {tuple(episode.shape)}, step {tuple(step.shape)}"
+        )
+    episode, step = episode.long(), step.long()
+    order = torch.argsort(step, stable=True)
+    order = order[torch.argsort(episode[order], stable=True)]  # by (episode, step)
+    e, t = episode[order], step[order]
+    same = e[1:] == e[:-1]
+    if bool((same & (t[1:] != t[:-1] + 1)).any()):
+        raise ValueError("each episode's steps must be consecutive integers (a gap or a repeat)")
+    # last[j]: sorted index of the final row of row j's episode
+    is_last = torch.ones(n, dtype=torch.bool)
+    is_last[:-1] = ~same
+    end = torch.where(is_last, torch.arange(n), n).flip(0)
+    last = torch.cummin(end, 0).values.flip(0)
+    ahead = torch.arange(n)[:, None] + torch.arange(int(horizon))[None, :]  # [N, H]
+    pad_sorted = ahead > last[:, None]
+    source = torch.minimum(ahead, last[:, None])  # past the end: the last row
+    inverse = torch.empty_like(order)
+    inverse[order] = torch.arange(n)
+    chunk = label[order][source][inverse]  # [N, H, *action] in the rows' order
+    return chunk, pad_sorted[inverse]
+
+
+def add_chunk_labels(
+    rows: TensorDictBase, horizon: int, *, label_key=keys.EXPERT_ACTION
+) -> TensorDictBase:
+    """``rows`` (a shallow copy) with :data:`EXPERT_CHUNK` and :data:`CHUNK_PAD` added.
+
+    ``rows`` ``[N]`` need ``label_key``, ``EPISODE`` and ``STEP`` (what
+    :func:`~imitrl.data.rollout_episodes` and a ``DemonstrationBuffer`` hold).
+    """
+    missing = [k for k in (label_key, keys.EPISODE, keys.STEP) if k not in rows.keys()]
+    if missing:
+        raise ValueError(f"chunk labels need {missing} in the rows (keys {list(rows.keys())})")
+    if rows.batch_dims != 1:
+        raise ValueError(f"rows must be [N], got batch_size {tuple(rows.batch_size)}")
+    chunk, pad = chunk_labels(
+        rows.get(label_key), rows.get(keys.EPISODE), rows.get(keys.STEP), horizon
+    )
+    out = TensorDict(dict(rows.items()), batch_size=rows.batch_size)  # new dict, same tensors
+    out.set(EXPERT_CHUNK, chunk)
+    out.set(CHUNK_PAD, pad)
+    return out

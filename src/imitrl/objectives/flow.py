@@ -1,0 +1,191 @@
+"""Flow-matching behaviour cloning: a rectified flow from noise to the expert's action.
+
+Conditional flow matching with the straight (rectified-flow) path of Lipman et al.
+2023 and Liu et al. 2023: for a label ``x_1`` (the action, or a chunk of ``H``
+actions, mapped to ``[-1, 1]``), noise ``x_0 ~ N(0, I)`` and ``t ~ U(0, 1)``,
+
+    x_t = (1 - t) x_0 + t x_1,        loss = E || v_theta(x_t, s, t) - (x_1 - x_0) ||^2,
+
+averaged over the entries of the label that are not padding (a chunk's entries past
+the episode's end, :mod:`imitrl.data.chunks`; they still enter ``x_t`` as the label
+holds them, the episode's last action repeated, but their error carries no weight). The policy samples by integrating
+``dx/dt = v_theta(x, s, t)`` from ``x_0`` at ``t = 0`` to ``t = 1`` with
+``num_steps`` Euler steps (a few suffice: the learned paths are nearly straight).
+Like diffusion, it is generative: it can keep several modes of the expert's action.
+
+Exploration: ``RANDOM`` draws ``x_0`` from the policy's own seeded generator;
+``DETERMINISTIC`` starts from ``x_0 = 0`` (repeatable, not a sample).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import InteractionType, TensorDictModuleBase
+from tensordict.nn.probabilistic import interaction_type
+from tensordict.utils import NestedKey
+from torch import nn
+from torchrl.data import Bounded
+
+from imitrl import keys
+from imitrl.objectives.base import ImitationLoss
+from imitrl.policies.normalization import ObservationNormalizer
+
+__all__ = ["FlowMatchingLoss", "FlowPolicy", "VelocityNetwork"]
+
+
+class VelocityNetwork(nn.Module):
+    """``v_theta(x [..., d], s [..., o], t [..., 1]) -> [..., d]``: an MLP over their concatenation."""
+
+    def __init__(
+        self,
+        action_dim: int,
+        observation_dim: int,
+        hidden: Sequence[int],
+        normalizer: ObservationNormalizer | None,
+    ) -> None:
+        super().__init__()
+        sizes = [action_dim + observation_dim + 1, *hidden]
+        layers: list[nn.Module] = []
+        for a, b in zip(sizes[:-1], sizes[1:]):
+            layers += [nn.Linear(a, b), nn.SiLU()]
+        layers.append(nn.Linear(sizes[-1], action_dim))
+        self.net = nn.Sequential(*layers)
+        self.normalizer = normalizer
+
+    def forward(self, x: torch.Tensor, obs: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+        obs = obs.float() if self.normalizer is None else self.normalizer(obs.float())
+        return self.net(torch.cat([x, obs, t], dim=-1))
+
+
+class FlowPolicy(TensorDictModuleBase):
+    """``OBSERVATION -> ACTION`` by ``num_steps`` Euler steps of a learned flow, in the bounds.
+
+    Args:
+        observation_dim: length of the observation vector ``[..., o]``.
+        action_spec: ``Bounded`` spec ``[d]`` (for chunks the tiled spec ``[H * m]``,
+            :func:`imitrl.policies.chunking.tile_spec`); actions are float32 ``[..., d]``.
+        hidden: hidden layer sizes of the velocity network.
+        num_steps: Euler steps per action (each costs one network call).
+        normalize: normalise observations inside the network (fitted by ``Learner.prepare``).
+        seed: initialisation and sampling seed.
+    """
+
+    def __init__(
+        self,
+        observation_dim: int,
+        action_spec: Bounded,
+        *,
+        hidden: Sequence[int] = (128, 128),
+        num_steps: int = 8,
+        normalize: bool = True,
+        seed: int = 0,
+    ) -> None:
+        super().__init__()
+        if not isinstance(action_spec, Bounded) or len(action_spec.shape) != 1:
+            raise ValueError(f"a flow policy needs a Bounded action spec [d], got {action_spec!r}")
+        if int(num_steps) != num_steps or num_steps < 1:
+            raise ValueError(f"num_steps must be a positive integer, got {num_steps!r}")
+        self.in_keys, self.out_keys = [keys.OBSERVATION], [keys.ACTION]
+        self.num_steps = int(num_steps)
+        self.normalizer = ObservationNormalizer((int(observation_dim),)) if normalize else None
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(seed)
+            dim = int(action_spec.shape[0])
+            self.velocity = VelocityNetwork(dim, int(observation_dim), hidden, self.normalizer)
+        self.register_buffer("low", action_spec.space.low.float().clone())
+        self.register_buffer("high", action_spec.space.high.float().clone())
+        self.generator = torch.Generator().manual_seed(int(seed) + 1)
+
+    def normalize(self, action: torch.Tensor) -> torch.Tensor:
+        """Bounds -> ``[-1, 1]``."""
+        return 2 * (action.float() - self.low) / (self.high - self.low) - 1
+
+    def sample(self, obs: torch.Tensor, x0: torch.Tensor) -> torch.Tensor:
+        """Euler-integrate the flow from ``x0`` ``[..., d]`` at ``t = 0`` to ``t = 1``."""
+        x, dt = x0, 1.0 / self.num_steps
+        for k in range(self.num_steps):
+            t = torch.full((*x.shape[:-1], 1), k * dt)
+            x = x + dt * self.velocity(x, obs, t)
+        return x
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        obs = tensordict.get(keys.OBSERVATION)
+        shape = (*obs.shape[:-1], self.low.shape[0])
+        if interaction_type() == InteractionType.DETERMINISTIC:
+            x0 = torch.zeros(shape)
+        else:
+            x0 = torch.randn(shape, generator=self.generator)
+        x = self.sample(obs, x0).clamp(-1.0, 1.0)
+        tensordict.set(keys.ACTION, self.low + (self.high - self.low) * (x + 1) / 2)
+        return tensordict
+
+
+class FlowMatchingLoss(ImitationLoss):
+    """The conditional flow-matching loss of a :class:`FlowPolicy` (module docstring).
+
+    Args:
+        policy: the flow policy trained.
+        chunked: labels are chunks ``[N, H, m]`` under ``EXPERT_CHUNK`` with the padding
+            mask ``[N, H]`` under ``CHUNK_PAD`` (:func:`imitrl.data.add_chunk_labels`);
+            False: actions ``[N, m]`` under ``EXPERT_ACTION``.
+        seed: seed of the loss's draws (``x_0`` and ``t``).
+
+    Keys (``set_keys``): ``observation``, ``label``, ``pad``. Returns ``loss_flow``.
+    """
+
+    @dataclass
+    class _AcceptedKeys:
+        observation: NestedKey = keys.OBSERVATION
+        label: NestedKey = keys.EXPERT_ACTION
+        pad: NestedKey | None = None
+
+    default_keys = _AcceptedKeys
+    tensor_keys: _AcceptedKeys
+    out_keys = ["loss_flow"]
+
+    def __init__(self, policy: FlowPolicy, *, chunked: bool = False, seed: int = 0) -> None:
+        if not isinstance(policy, FlowPolicy):
+            raise ValueError(f"expected a FlowPolicy, got {type(policy).__name__}")
+        super().__init__()
+        self.policy = policy
+        if chunked:
+            from imitrl.data.chunks import CHUNK_PAD, EXPERT_CHUNK
+
+            self.set_keys(label=EXPERT_CHUNK, pad=CHUNK_PAD)
+        self.generator = torch.Generator().manual_seed(int(seed))
+        self._in_keys = None
+
+    @property
+    def in_keys(self):
+        pad = [] if self.tensor_keys.pad is None else [self.tensor_keys.pad]
+        return [self.tensor_keys.observation, self.tensor_keys.label, *pad]
+
+    @in_keys.setter
+    def in_keys(self, values):
+        self._in_keys = values
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        obs = tensordict.get(self.tensor_keys.observation)
+        label = tensordict.get(self.tensor_keys.label)
+        n, d = label.shape[0], self.policy.low.shape[0]
+        if not label.dtype.is_floating_point or label[0].numel() != d:
+            raise ValueError(
+                f"flow labels under {self.tensor_keys.label!r} must be float with {d} entries "
+                f"per row, got {label.dtype} {tuple(label.shape)}"
+            )
+        x1 = self.policy.normalize(label.reshape(n, d))
+        x0 = torch.randn(n, d, generator=self.generator)
+        t = torch.rand(n, 1, generator=self.generator)
+        v = self.policy.velocity((1 - t) * x0 + t * x1, obs, t)
+        err = (v - (x1 - x0)) ** 2  # [N, d]
+        if self.tensor_keys.pad is None:
+            loss = err.mean()
+        else:  # [N, H] -> [N, H * m]: padded entries of a chunk carry no weight
+            keep = (~tensordict.get(self.tensor_keys.pad)).float()
+            keep = keep.repeat_interleave(d // keep.shape[-1], dim=-1)
+            loss = (err * keep).sum() / keep.sum().clamp_min(1.0)
+        return TensorDict({"loss_flow": loss}, batch_size=[])

@@ -1,0 +1,167 @@
+"""The chunked entries of the loss registry: every continuous loss, predicting H actions.
+
+Each ``*_chunk`` learner predicts the expert's next ``CHUNK_HORIZON`` actions at once
+(a network over the tiled action spec ``[H * m]``) and acts through a
+:class:`~imitrl.policies.chunking.ChunkedPolicy`. Its rows need chunk labels
+(``add_chunk_labels(rows, H)``) and its envs ``is_init`` (``chunk_env(env)``); its
+:class:`~imitrl.objectives.registry.LossEntry` says so with ``horizon``.
+
+====================== ===================================== =========================
+name                   policy and loss                       execution
+====================== ===================================== =========================
+mse_chunk              deterministic, masked MSE             receding horizon (k of H)
+l1_chunk               deterministic, masked L1              receding horizon
+l1_chunk_ensemble      deterministic, masked L1 (ACT's)      temporal ensembling, m
+gaussian_nll_chunk     tanh-normal NLL of the flat chunk     receding horizon
+diffusion_chunk        DDPM over the flat chunk              receding horizon
+diffusion_ddim_chunk   the same, sampled by DDIM             receding horizon
+flow_chunk             flow matching, masked                 receding horizon
+====================== ===================================== =========================
+
+Temporal ensembling averages chunks predicted at different steps; a sampling policy's
+chunks may come from different modes, whose average no demonstrator took, so only a
+deterministic head ensembles here (as ACT ensembles its CVAE's mean, ``z = 0``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+from torchrl.envs.utils import ExplorationType
+
+from imitrl.objectives.bc import BehaviorCloningLoss
+from imitrl.objectives.chunked import FLAT_CHUNK, ChunkRegressionLoss, FlatChunkLoss
+from imitrl.objectives.diffusion import DiffusionBehaviorCloningLoss
+from imitrl.objectives.flow import FlowMatchingLoss
+from imitrl.objectives.registry import (
+    Learner,
+    LearnerConfig,
+    TaskSpec,
+    diffusion_policy,
+    flow_policy,
+    mlp,
+    register,
+)
+from imitrl.policies.chunking import ChunkedPolicy, ChunkExecution, tile_spec
+
+__all__ = ["CHUNK_EXECUTE", "CHUNK_HORIZON", "ENSEMBLE_M"]
+
+CHUNK_HORIZON = 8
+"""``H``: actions predicted per query"""
+CHUNK_EXECUTE = 4
+"""``k``: actions executed per query (receding horizon) before replanning"""
+ENSEMBLE_M = 0.01
+"""``m`` of ACT's temporal-ensembling weights ``exp(-m i)`` (the paper's value)"""
+RECEDING = ChunkExecution(CHUNK_HORIZON, execute=CHUNK_EXECUTE)
+ENSEMBLE = ChunkExecution(CHUNK_HORIZON, ensemble=ENSEMBLE_M)
+
+
+def _spec(task: TaskSpec) -> TaskSpec:
+    """The task with its action tiled to a flat chunk ``[H * m]``."""
+    return TaskSpec(
+        action=tile_spec(task.action, CHUNK_HORIZON), observation_dim=task.observation_dim
+    )
+
+
+def _learner(task, network, loss, opt, execution, *, exploration, normalizer=None) -> Learner:
+    m = int(task.action.shape[0])
+    policy = ChunkedPolicy(network, m, execution)
+    return Learner(policy, loss, opt, exploration=exploration, normalizer=normalizer)
+
+
+def _regression(loss_type: str, execution: ChunkExecution) -> Callable:
+    def build(task: TaskSpec, config: LearnerConfig) -> Learner:
+        ac = mlp(_spec(task), config, head="deterministic")
+        loss = ChunkRegressionLoss(ac.policy, horizon=CHUNK_HORIZON, loss_type=loss_type)
+        det = ExplorationType.DETERMINISTIC
+        return _learner(
+            task, ac.policy, loss, ac.opt_pi, execution, exploration=det, normalizer=ac.normalizer
+        )
+
+    return build
+
+
+_H, _K = CHUNK_HORIZON, CHUNK_EXECUTE
+register(
+    "mse_chunk",
+    actions="continuous",
+    summary=f"MSE on chunks of {_H}, executes {_K} then replans",
+    horizon=_H,
+)(_regression("mse", RECEDING))
+register(
+    "l1_chunk",
+    actions="continuous",
+    summary=f"L1 on chunks of {_H}, executes {_K} then replans",
+    horizon=_H,
+)(_regression("l1", RECEDING))
+register(
+    "l1_chunk_ensemble",
+    actions="continuous",
+    summary=f"L1 on chunks of {_H}, ACT's temporal ensembling (m={ENSEMBLE_M})",
+    horizon=_H,
+)(_regression("l1", ENSEMBLE))
+
+
+@register(
+    "gaussian_nll_chunk",
+    actions="continuous",
+    summary=f"tanh-normal NLL of chunks of {_H} (unmasked), acts with the mean",
+    horizon=_H,
+)
+def _gaussian_nll_chunk(task: TaskSpec, config: LearnerConfig) -> Learner:
+    ac = mlp(_spec(task), config, head="tanh_normal")
+    inner = BehaviorCloningLoss(ac.policy, loss_type="nll")
+    inner.set_keys(label=FLAT_CHUNK)
+    loss = FlatChunkLoss(inner, dim=_H * int(task.action.shape[0]))
+    det = ExplorationType.DETERMINISTIC
+    return _learner(
+        task, ac.policy, loss, ac.opt_pi, RECEDING, exploration=det, normalizer=ac.normalizer
+    )
+
+
+def _diffusion_chunk(sampler: str) -> Callable:
+    def build(task: TaskSpec, config: LearnerConfig) -> Learner:
+        policy = diffusion_policy(task.observation_dim, _spec(task).action, config, sampler=sampler)
+        inner = DiffusionBehaviorCloningLoss(policy, seed=config.seed)
+        inner.set_keys(label=FLAT_CHUNK)
+        loss = FlatChunkLoss(inner, dim=_H * int(task.action.shape[0]))
+        opt = torch.optim.Adam(policy.parameters(), lr=config.lr)
+        return _learner(task, policy, loss, opt, RECEDING, exploration=ExplorationType.RANDOM)
+
+    return build
+
+
+register(
+    "diffusion_chunk",
+    actions="continuous",
+    summary=f"diffusion (DDPM) on chunks of {_H} (unmasked), executes {_K}",
+    horizon=_H,
+)(_diffusion_chunk("ddpm"))
+register(
+    "diffusion_ddim_chunk",
+    actions="continuous",
+    summary=f"diffusion on chunks of {_H}, sampled by DDIM, executes {_K}",
+    horizon=_H,
+)(_diffusion_chunk("ddim"))
+
+
+@register(
+    "flow_chunk",
+    actions="continuous",
+    summary=f"flow matching on chunks of {_H} (masked), executes {_K}",
+    horizon=_H,
+)
+def _flow_chunk(task: TaskSpec, config: LearnerConfig) -> Learner:
+    policy = flow_policy(task.observation_dim, _spec(task).action, config)
+    loss = FlowMatchingLoss(policy, chunked=True, seed=config.seed)
+    opt = torch.optim.Adam(policy.parameters(), lr=config.lr)
+    return _learner(
+        task,
+        policy,
+        loss,
+        opt,
+        RECEDING,
+        exploration=ExplorationType.RANDOM,
+        normalizer=policy.normalizer,
+    )

@@ -1,0 +1,187 @@
+"""Executing action chunks: a learner predicts H actions, a policy acts one step at a time.
+
+:class:`ChunkedPolicy` wraps a network that writes a flat ``ACTION`` ``[*B, H * m]``
+(any continuous head of :mod:`imitrl.policies.heads`, a diffusion or flow policy over
+the tiled action spec) and acts as a TensorDictModule ``OBSERVATION, is_init -> ACTION``
+that rollouts, ``evaluate`` and DAgger's behaviour policy run unchanged:
+
+* **receding horizon** (``ChunkExecution(horizon=H, execute=k)``, Diffusion Policy):
+  query the network, execute the first ``k <= H`` actions of the chunk open loop, then
+  replan. ``k = 1`` replans every step; ``k = H`` executes the whole chunk.
+* **temporal ensembling** (``ChunkExecution(horizon=H, ensemble=m)``, ACT, Zhao et al.
+  2023, Sec. 3.3): query every step; the action at step ``t`` is the weighted mean of
+  every chunk predicted at ``t' in (t - H, t]`` for step ``t``, with weights
+  ``w_i = exp(-m * i)`` where ``i = 0`` is the *oldest* prediction
+  (:func:`ensemble_weights`). ACT uses ``m = 0.01``.
+
+State lives across calls (the current plan, its age, the last ``H`` chunks) per lane
+of a batched env, and is dropped where TorchRL's ``InitTracker`` marks a reset
+(``is_init``): wrap the env with :func:`chunk_env`. A policy without ``is_init`` in its
+input fails loudly rather than run every lane as if it had just been reset.
+
+Why not ``torchrl.modules.MultiStepActorWrapper``: it does the receding horizon
+(``replan_interval``) but not temporal ensembling, and it keeps its cache in the
+tensordict that the env carries from step to step; this module keeps both modes in
+one place with the state in the module (``tests/test_chunks.py`` checks the actions
+both modes execute against hand-computed ones).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from torchrl.data import Bounded
+from torchrl.envs import EnvBase, InitTracker, TransformedEnv
+
+from imitrl import keys
+from imitrl.data.chunks import ACTION_CHUNK, IS_INIT
+
+__all__ = [
+    "ChunkExecution",
+    "ChunkedPolicy",
+    "chunk_env",
+    "ensemble_weights",
+    "tile_spec",
+]
+
+
+@dataclass(frozen=True)
+class ChunkExecution:
+    """How a chunked policy executes its chunks."""
+
+    horizon: int
+    """``H``: actions predicted per query"""
+    execute: int | None = None
+    """receding horizon: actions executed per query, ``1 <= k <= H`` (None: H)"""
+    ensemble: float | None = None
+    """temporal ensembling with weights ``exp(-m * i)`` (oldest ``i = 0``); exclusive
+    with ``execute``"""
+
+    def __post_init__(self) -> None:
+        if int(self.horizon) != self.horizon or self.horizon < 1:
+            raise ValueError(f"horizon must be a positive integer, got {self.horizon!r}")
+        if self.ensemble is not None and self.execute is not None:
+            raise ValueError("give execute (receding horizon) or ensemble (ACT), not both")
+        if self.execute is not None and not 1 <= self.execute <= self.horizon:
+            raise ValueError(f"execute must be in [1, {self.horizon}], got {self.execute}")
+        if self.ensemble is not None and not self.ensemble >= 0:
+            raise ValueError(f"ensemble (m) must be >= 0, got {self.ensemble}")
+
+    @property
+    def replan_every(self) -> int:
+        """Steps between queries: ``k``, or 1 when ensembling."""
+        return 1 if self.ensemble is not None else (self.execute or self.horizon)
+
+
+def ensemble_weights(count: int, m: float) -> torch.Tensor:
+    """``[count]`` ACT's weights ``w_i = exp(-m * i) / sum_j exp(-m * j)``, oldest first."""
+    w = torch.exp(-float(m) * torch.arange(int(count), dtype=torch.float64))
+    return w / w.sum()
+
+
+def tile_spec(spec: Bounded, horizon: int) -> Bounded:
+    """The ``[H * m]`` spec of a flat chunk of ``H`` actions of ``spec`` ``[m]``."""
+    if not isinstance(spec, Bounded) or len(spec.shape) != 1:
+        raise ValueError(f"chunks need a Bounded action spec of shape [m], got {spec!r}")
+    low, high = spec.space.low, spec.space.high
+    return Bounded(low.repeat(horizon), high.repeat(horizon), shape=(horizon * low.numel(),))
+
+
+def chunk_env(env: EnvBase) -> TransformedEnv:
+    """``env`` with TorchRL's ``InitTracker``: it writes ``is_init`` (True after a reset)."""
+    return TransformedEnv(env, InitTracker())
+
+
+class ChunkedPolicy(TensorDictModuleBase):
+    """``OBSERVATION, is_init -> ACTION_CHUNK, ACTION``: execute a network's chunks.
+
+    Args:
+        network: writes a flat ``ACTION`` ``[*B, H * m]`` from the inputs it reads.
+        action_dim: ``m``.
+        execution: the horizon and how chunks are executed.
+
+    Writes ``ACTION_CHUNK`` ``[*B, H, m]`` (the chunk predicted at this step, or the one
+    being executed) and ``ACTION`` ``[*B, m]`` (the executed action).
+    """
+
+    def __init__(
+        self, network: TensorDictModuleBase, action_dim: int, execution: ChunkExecution
+    ) -> None:
+        super().__init__()
+        self.network = network
+        self.action_dim = int(action_dim)
+        self.execution = execution
+        self.in_keys = [*network.in_keys, IS_INIT]
+        self.out_keys = [ACTION_CHUNK, keys.ACTION]
+        self._plan: torch.Tensor | None = None  # [L, H, m] the chunk being executed
+        self._age: torch.Tensor | None = None  # [L] steps since the plan was made
+        self._history: torch.Tensor | None = None  # [L, H, H, m], slot j: made j steps ago
+        self._count: torch.Tensor | None = None  # [L] chunks in the history since the reset
+
+    def predict(self, tensordict: TensorDictBase) -> torch.Tensor:
+        """The network's chunk ``[*B, H, m]`` at ``tensordict``'s inputs (no state)."""
+        td = tensordict.select(*self.network.in_keys, strict=True)
+        flat = self.network(td).get(keys.ACTION)
+        return flat.unflatten(-1, (self.execution.horizon, self.action_dim))
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        init = tensordict.get(IS_INIT, None)
+        if init is None:
+            raise ValueError(
+                f"a chunked policy needs {IS_INIT!r} to know where a lane was reset: "
+                "wrap the env with imitrl.policies.chunking.chunk_env(env) (TorchRL's "
+                "InitTracker), or set it True to plan afresh"
+            )
+        batch = tensordict.batch_size
+        lanes = batch.numel()
+        init = init.reshape(lanes).bool()
+        if self._plan is None or self._plan.shape[0] != lanes:
+            if not bool(init.all()):
+                raise ValueError("a chunked policy's first call must follow a reset of every lane")
+            self._reset_state(lanes)
+        flat_td = tensordict.reshape(lanes) if len(batch) != 1 else tensordict
+        if self.execution.ensemble is not None:
+            chunk, action = self._ensemble_step(flat_td, init)
+        else:
+            chunk, action = self._receding_step(flat_td, init)
+        tensordict.set(ACTION_CHUNK, chunk.reshape(*batch, *chunk.shape[1:]))
+        tensordict.set(keys.ACTION, action.reshape(*batch, self.action_dim))
+        return tensordict
+
+    def _reset_state(self, lanes: int) -> None:
+        H, m = self.execution.horizon, self.action_dim
+        self._plan = torch.zeros(lanes, H, m)
+        self._age = torch.zeros(lanes, dtype=torch.int64)
+        self._history = torch.zeros(lanes, H, H, m)
+        self._count = torch.zeros(lanes, dtype=torch.int64)
+
+    def _receding_step(self, td: TensorDictBase, init: torch.Tensor):
+        replan = init | (self._age >= self.execution.replan_every)
+        if bool(replan.any()):
+            fresh = self.predict(td[replan])
+            self._plan = self._plan.to(fresh.dtype)
+            self._plan[replan] = fresh
+            self._age[replan] = 0
+        action = self._plan[torch.arange(self._plan.shape[0]), self._age]
+        self._age += 1
+        return self._plan.clone(), action
+
+    def _ensemble_step(self, td: TensorDictBase, init: torch.Tensor):
+        H = self.execution.horizon
+        chunk = self.predict(td)  # [L, H, m]
+        history = torch.roll(self._history.to(chunk.dtype), 1, dims=1)
+        history[:, 0] = chunk
+        self._history = history
+        self._count = torch.where(init, 1, (self._count + 1).clamp(max=H))
+        # the prediction for now made j steps ago is chunk_{t-j}[j]; ACT's i counts
+        # from the oldest, i = count - 1 - j: w_j = exp(-m (count - 1 - j)), normalised
+        j = torch.arange(H)
+        preds = history[:, j, j]  # [L, H, m]
+        valid = j[None, :] < self._count[:, None]
+        logw = -self.execution.ensemble * (self._count[:, None] - 1 - j[None, :]).to(chunk.dtype)
+        w = torch.where(valid, torch.exp(logw), 0.0)
+        w = w / w.sum(-1, keepdim=True)
+        return chunk, (w[..., None] * preds).sum(1)
