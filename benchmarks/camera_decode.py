@@ -15,6 +15,12 @@ episode's `from_timestamp` in the episode table. Measured:
   (`RssFile`) resident memory after the load and after one pass reading every frame
   (`/proc/self/status`). File-backed pages are the page cache's, which the kernel reclaims
   under pressure; anonymous memory cannot be.
+* training from the `mem_frames`-frame dataset, in a fresh process: `load_lerobot` with
+  `decode_dir`, the rows into a disk-backed `DemonstrationBuffer(path=...)`, then
+  `train_steps` minibatch `fit_bc` steps (batch `train_batch`) of `ActorCritic.pixels`
+  (the Nature CNN, a categorical head on the recorded actions) reading
+  `("pixels", "cam")`: peak resident set (`VmHWM`) and `RssAnon` / `RssFile` after each
+  stage. Target (issue 14): the process stays under 2 GB resident.
 
     python benchmarks/camera_decode.py            # 20 x 500 frames, 100k frames; refreshes README
     python benchmarks/camera_decode.py --quick    # tiny, into a temporary directory
@@ -37,13 +43,20 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 import torch
+from torchrl.data import Categorical
 
 import _report
+from imitrl import keys
+from imitrl.algorithms import BCConfig, fit_bc
+from imitrl.data import DemonstrationBuffer
 from imitrl.datasets import load_lerobot
+from imitrl.policies import ActorCritic
 
 NAME = "camera_decode"
 CAMERA = "observation.images.cam"
 FPS = 50
+PIXEL_KEY = (keys.PIXELS, "cam")
+"""where ``load_lerobot`` puts ``observation.images.cam``"""
 CODEC_OPTIONS = {"g": "2", "crf": "30", "preset": "12"}
 """lerobot 0.4's `encode_video_frames` defaults for libsvtav1 (`_get_codec_options`)"""
 
@@ -62,9 +75,15 @@ class Config:
     """frames of the memory dataset"""
     repeats: int = 3
     """throughput: best of this many"""
+    train_steps: int = 200
+    """minibatch BC steps of the training phase (on the memory dataset)"""
+    train_batch: int = 64
+    """minibatch of the training phase"""
 
 
-QUICK = Config(episodes=4, length=50, episodes_per_file=2, mem_frames=1_000, repeats=1)
+QUICK = Config(
+    episodes=4, length=50, episodes_per_file=2, mem_frames=1_000, repeats=1, train_steps=3
+)
 
 
 # ------------------------------------------------------------------ the dataset
@@ -232,18 +251,41 @@ def child(root: Path, decode_dir: Path | None) -> None:
     print(json.dumps(report))
 
 
+def train_child(root: Path, scratch: Path, steps: int, batch: int) -> None:
+    """Load with ``decode_dir``, extend a disk buffer, fit a CNN by minibatch BC, in this
+    fresh process; print the memory after each stage and the peak (JSON)."""
+    torch.set_num_threads(1)
+    report = {"imported": status()}
+    loaded = load_lerobot(root, decode_dir=scratch / "frames", videos="decode")
+    report["loaded"] = status()
+    buffer = DemonstrationBuffer(path=scratch / "buffer")
+    buffer.extend(loaded.rows)
+    del loaded  # the rows now live in the buffer's files
+    report["buffered"] = status()
+    frame = tuple(buffer.data.get(PIXEL_KEY).shape[1:])
+    learner = ActorCritic.pixels(frame, Categorical(2), pixel_key=PIXEL_KEY, seed=0)
+    t0 = time.perf_counter()
+    result = fit_bc(learner, buffer, BCConfig(num_steps=steps, batch_size=batch, seed=0))
+    report["train_s"] = time.perf_counter() - t0
+    report["trained"] = status()
+    report["rows"], report["final_loss"] = len(buffer), result.final_loss
+    print(json.dumps(report))
+
+
+def run_child(args: list[str], what: str) -> dict:
+    """Run this script in a fresh process with ``args``; its last stdout line (JSON)."""
+    proc = subprocess.run(
+        [sys.executable, __file__, *args], capture_output=True, text=True, check=False
+    )
+    if proc.returncode != 0:
+        raise RuntimeError(f"{what} child failed:\n{proc.stderr[-3000:]}")
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
 def memory(root: Path, scratch: Path) -> dict:
     out = {}
     for mode, extra in (("decode_dir", ["--decode-dir", str(scratch / "frames")]), ("ram", [])):
-        proc = subprocess.run(
-            [sys.executable, __file__, "--child", str(root), *extra],
-            capture_output=True,
-            text=True,
-            check=False,
-        )
-        if proc.returncode != 0:
-            raise RuntimeError(f"memory child ({mode}) failed:\n{proc.stderr[-3000:]}")
-        out[mode] = json.loads(proc.stdout.strip().splitlines()[-1])
+        out[mode] = run_child(["--child", str(root), *extra], f"memory ({mode})")
     assert out["ram"]["checksum"] == out["decode_dir"]["checksum"], "decode_dir changed frames"
     return out
 
@@ -253,9 +295,14 @@ def main(argv: list[str] | None = None) -> dict:
     p = _report.parser(__doc__)
     p.add_argument("--child", type=Path, default=None, help=argparse.SUPPRESS)
     p.add_argument("--decode-dir", type=Path, default=None, help=argparse.SUPPRESS)
+    p.add_argument("--train-child", type=Path, nargs=2, default=None, help=argparse.SUPPRESS)
+    p.add_argument("--train", type=int, nargs=2, default=(200, 64), help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if args.child is not None:
         child(args.child, args.decode_dir)
+        return {}
+    if args.train_child is not None:
+        train_child(*args.train_child, *args.train)
         return {}
     out_dir = _report.destination(NAME, quick=args.quick, out=args.out)
     cfg = QUICK if args.quick else Config()
@@ -267,6 +314,11 @@ def main(argv: list[str] | None = None) -> dict:
         encode_s = time.perf_counter() - t0
         speed = throughput(small, cfg.episodes * cfg.length, cfg)
         mem = memory(big, Path(scratch))
+        train_args = [str(big), str(Path(scratch) / "train"), str(cfg.train_steps)]
+        train = run_child(
+            ["--train-child", *train_args[:2], "--train", *train_args[2:], str(cfg.train_batch)],
+            "training",
+        )
     mb = 1024
     rows = [
         ["PyAV loop (decode + to_ndarray rgb24)", f"{speed['pyav_fps']:,.0f} frames/s", "1.00"],
@@ -291,6 +343,22 @@ def main(argv: list[str] | None = None) -> dict:
         )
     for r in rows + mem_rows:
         print(" | ".join(r))
+    train_rows = [
+        [
+            stage,
+            f"{train[key]['VmHWM'] / mb:,.0f} MB",
+            f"{train[key]['RssAnon'] / mb:,.0f} MB",
+            f"{train[key]['RssFile'] / mb:,.0f} MB",
+        ]
+        for stage, key in (
+            ("imports", "imported"),
+            ("load_lerobot(decode_dir=...)", "loaded"),
+            ("DemonstrationBuffer(path=...).extend", "buffered"),
+            (f"fit_bc, {cfg.train_steps} steps of {cfg.train_batch}", "trained"),
+        )
+    ]
+    for r in train_rows:
+        print(" | ".join(r))
     frames_mb = cfg.mem_frames * cfg.size * cfg.size * 3 / 1e6
     md = (
         f"One {cfg.size}x{cfg.size} AV1 camera (lerobot's defaults), LeRobot v3.0, "
@@ -305,8 +373,19 @@ def main(argv: list[str] | None = None) -> dict:
             ["load", "peak RSS", "RssAnon", "RssFile", "after one pass", "imports alone"],
             mem_rows,
         )
+        + f"\n\nTraining from the {cfg.mem_frames:,} frames in a fresh process: decoded into "
+        "`decode_dir`, extended into a disk buffer, minibatch `fit_bc` of the Nature CNN "
+        f"({train['train_s']:.0f} s for the fit); peak resident set so far and the memory "
+        "after each stage. Target: under 2 GB resident.\n\n"
+        + _report.table(["stage", "peak RSS", "RssAnon", "RssFile"], train_rows)
     )
-    payload = {"config": asdict(cfg), "encode_s": encode_s, "throughput": speed, "memory": mem}
+    payload = {
+        "config": asdict(cfg),
+        "encode_s": encode_s,
+        "throughput": speed,
+        "memory": mem,
+        "training": train,
+    }
     print("results:", _report.write(NAME, payload, md, out_dir=out_dir))
     return payload
 

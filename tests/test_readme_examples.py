@@ -1,4 +1,4 @@
-"""The README's quick tabular example runs and prints what it promises."""
+"""The README's examples run and print what they promise (tabular pieces, cameras)."""
 
 from __future__ import annotations
 
@@ -9,3 +9,12 @@ def test_pieces_example(tmp_path):
     ns, printed = run("pieces-example", tmp_path)
     assert_prints_what_it_promises("pieces-example", printed)
     assert len(ns["buffer"]) > len(ns["buffer"].data[ns["buffer"].data["round"] == 0])
+
+
+def test_camera_example(tmp_path):
+    """Record pixels to a LeRobot video dataset, load it, BC, privileged-expert DAgger."""
+    ns, printed = run("camera-example", tmp_path)
+    assert_prints_what_it_promises("camera-example", printed)
+    videos = list((tmp_path / "hilltop_demos" / "videos").rglob("*.mp4"))
+    assert [v.parent.parent.name for v in videos] == ["observation.image"]  # one camera, one file
+    assert set(ns["buffer"].rounds()) == {0, 1, 2}  # the demos and two relabelled rounds

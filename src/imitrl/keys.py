@@ -10,9 +10,10 @@ Per-transition keys (root of a rollout / demonstration row):
 ``OBSERVATION``           what the policy sees at step t (env's observation key); in a
                           pixel env, the state (a privileged expert reads it)
 ``PIXELS``                uint8 ``[H, W, C]`` camera image at step t (TorchRL's and
-                          LeRobot's layout; C = 3 per stacked frame). One camera for
-                          now; several cameras as nested ``("pixels", name)`` keys
-                          are not supported yet
+                          LeRobot's layout; C = 3 per stacked frame): one camera as
+                          ``"pixels"``, several as nested keys ``("pixels", name)``
+                          (LeRobot's ``observation.images.<name>``; a pixel learner
+                          reads the one its ``pixel_key`` names)
 ``ACTION``                the action executed in the env at step t
 ``EXPERT_ACTION``         the expert's label for the state at step t (never written
                           by a learner)
@@ -28,6 +29,9 @@ Per-transition keys (root of a rollout / demonstration row):
 ``LOC`` / ``SCALE``       Gaussian policy head outputs
 ``STATE_VALUE``           value head output
 ========================  ==========================================================
+
+A demonstration row carries ``OBSERVATION``, a ``PIXELS`` key, or both (a camera-only
+dataset has no ``OBSERVATION``; :data:`imitrl.data.OBSERVATION_KEYS`).
 
 Keys under ``"next"`` follow TorchRL: ``("next", "reward")``, ``("next", "done")``,
 ``("next", "terminated")``, ``("next", "truncated")``, ``("next", OBSERVATION)``.

@@ -170,19 +170,26 @@ def _dedup(learner: Learner, rows: TensorDictBase, config: BCConfig):
 
 class _Minibatches:
     """Rows without replacement, epoch after epoch (the tail of an epoch is dropped):
-    a ``randperm`` per epoch in memory, a :class:`LazyPermutation` on disk."""
+    a ``randperm`` per epoch in memory, a :class:`LazyPermutation` on disk, where each
+    batch is read through :meth:`DemonstrationBuffer.rows_at` (only the drawn rows, and
+    the pages such reads map are let go regularly)."""
 
-    def __init__(self, rows: TensorDictBase, batch_size: int, seed: int, *, lazy: bool) -> None:
-        self.rows, self.batch_size, self.n = rows, batch_size, rows.shape[0]
-        # plain-tensor views (on disk: of the mapped files; indexing reads the drawn rows)
+    def __init__(
+        self, rows: TensorDictBase | DemonstrationBuffer, reads: list, batch_size: int, seed: int
+    ) -> None:
+        self.batch_size, self.generator = batch_size, torch.Generator().manual_seed(seed)
+        self.lazy: LazyPermutation | None = None
+        if isinstance(rows, DemonstrationBuffer):  # on disk
+            self.n, self.buffer, self.reads = len(rows), rows, reads
+            self.lazy = LazyPermutation(self.n, self.generator)
+            return
+        self.rows, self.n = rows, rows.shape[0]
+        # plain-tensor views: indexing a column is cheaper than indexing the TensorDict
         self.columns = {
             k: rows.get(k).as_subclass(torch.Tensor)
             for k in rows.keys(include_nested=True, leaves_only=True)
         }
-        self.generator = torch.Generator().manual_seed(seed)
-        self.lazy = LazyPermutation(self.n, self.generator) if lazy else None
-        if self.lazy is None:
-            self.perm, self.cursor = torch.randperm(self.n, generator=self.generator), 0
+        self.perm, self.cursor = torch.randperm(self.n, generator=self.generator), 0
 
     def _indices(self) -> torch.Tensor:
         if self.lazy is not None:
@@ -197,28 +204,33 @@ class _Minibatches:
 
     def next(self) -> TensorDictBase:
         idx = self._indices()
+        if self.lazy is not None:
+            return self.buffer.rows_at(idx, *self.reads)
         batch = self.rows.empty(batch_size=[idx.numel()])
         for key, column in self.columns.items():
             batch.set(key, column[idx])
         return batch
 
 
-def _prepare_streaming(learner: Learner, rows: TensorDictBase, seed: int) -> None:
+def _prepare_streaming(
+    learner: Learner, buffer: DemonstrationBuffer, reads: list, seed: int
+) -> None:
     """``learner.prepare`` and ``loss.check_labels`` over rows that stay on disk: the
     normaliser (if not fitted yet) from at most ``CHUNK_BYTES`` of rows (all of them when
     they fit, else a uniform sample with replacement drawn with ``seed``), then both
-    checks over every row, one ``CHUNK_BYTES`` slice at a time."""
-    n = rows.shape[0]
-    row_bytes = sum(v[0].nbytes for v in rows.values(include_nested=True, leaves_only=True))
+    checks over every row, one ``CHUNK_BYTES`` slice at a time (:meth:`~DemonstrationBuffer.chunks`)."""
+    n = len(buffer)
+    first = buffer.rows_at(torch.zeros(1, dtype=torch.long), *reads)
+    row_bytes = sum(v[0].nbytes for v in first.values(include_nested=True, leaves_only=True))
     step = max(1, CHUNK_BYTES // max(1, row_bytes))
     if n <= step:
-        first = rows
+        first = buffer.rows_at(torch.arange(n), *reads)
     else:
         g = torch.Generator().manual_seed(seed)
-        first = rows[torch.randint(n, (step,), generator=g).sort().values]
+        first = buffer.rows_at(torch.randint(n, (step,), generator=g).sort().values, *reads)
     learner.prepare(first)  # fits the normaliser once; later calls only check
-    for start in range(0, n, step):
-        part = rows[start : start + step]
+    del first
+    for part in buffer.chunks(*reads):
         learner.prepare(part)
         learner.loss.check_labels(part)
 
@@ -264,16 +276,22 @@ def fit_bc(
     rows = _rows(data, list(learner.loss.in_keys))
     on_disk = isinstance(data, DemonstrationBuffer) and data.path is not None
     if on_disk:
-        _prepare_streaming(learner, rows, config.seed)
+        # no view of the mapped files is held through the fit: the pages it reads go
+        reads, n = list(rows.keys(include_nested=True, leaves_only=True)), rows.shape[0]
+        del rows
+        _prepare_streaming(learner, data, reads, config.seed)
     else:
         learner.prepare(rows)
         learner.loss.check_labels(rows)  # once, over every row the fit can draw
-    n = rows.shape[0]
+        n = rows.shape[0]
     minibatch = config.batch_size is not None and config.batch_size < n
     weights = None
     if minibatch:
-        batches = _Minibatches(rows, config.batch_size, config.seed, lazy=on_disk)
+        source = data if on_disk else rows
+        batches = _Minibatches(source, reads if on_disk else [], config.batch_size, config.seed)
     else:
+        if on_disk:
+            rows = _rows(data, list(learner.loss.in_keys))  # distinct pairs may be few
         rows, weights = _dedup(learner, rows, config)
         if weights is None:
             _check_full_batch(n, on_disk, config)

@@ -216,11 +216,27 @@ class DemonstrationBuffer:
 
     def chunks(self, *select: Any) -> Iterator[TensorDictBase]:
         """The rows (only the keys ``select``, or all) in consecutive slices of about
-        ``CHUNK_BYTES``: a pass over every row that holds one slice at a time."""
-        rows = self.data if not select else self.data.select(*select)
+        ``CHUNK_BYTES``: a pass over every row that holds one slice at a time (on disk,
+        the pages a pass maps are let go every ``REMAP_BYTES``)."""
+        view = lambda: self.data if not select else self.data.select(*select)  # noqa: E731
+        rows = view()
         step = max(1, CHUNK_BYTES // max(1, _row_bytes(rows)))
         for start in range(0, len(self), step):
-            yield rows[start : start + step]
+            part = rows[start : start + step]
+            yield part
+            if self._layout is not None and self._storage.note_bytes(
+                part.shape[0] * _row_bytes(self.data)
+            ):
+                del part
+                rows = view()  # views on the new mapping: the old one's pages go
+
+    def rows_at(self, index: torch.Tensor, *select: Any) -> TensorDictBase:
+        """The rows at ``index`` (only the keys ``select``, or all), read from the storage
+        (on disk: only those rows, and the pages such reads map are let go regularly)."""
+        batch = self._storage.get(index)
+        if self._layout is not None:
+            self._storage.note_reads(batch.shape[0])
+        return batch.select(*select) if select else batch
 
     # ----------------------------------------------------------------- write
     def extend(self, rows: TensorDictBase) -> torch.Tensor:
@@ -243,7 +259,26 @@ class DemonstrationBuffer:
             num_states=self.num_states,
         )
         n = rows.shape[0]
-        before = len(self)
+        if self._layout is None:
+            index = self._write(rows)
+        else:
+            # on disk, CHUNK_BYTES of rows per write: the storage maps its files again
+            # every REMAP_BYTES written, so the pages one large extend writes (rows
+            # decoded into a memory-mapped file, say) do not all stay in this process's
+            # resident set; the rows are counted only after all of them are written
+            step = max(1, CHUNK_BYTES // max(1, _row_bytes(rows)))
+            index = torch.cat([self._write(rows[s : s + step]) for s in range(0, n, step)])
+        episodes = rows.get(keys.EPISODE)
+        self.schema = schema
+        self.next_episode = max(self.next_episode, int(episodes.max()) + 1)
+        self._num_episodes += int((episodes[1:] != episodes[:-1]).sum()) + 1
+        if self._layout is not None:
+            self._commit()
+        return index
+
+    def _write(self, rows: TensorDictBase) -> torch.Tensor:
+        """Write checked rows into the storage (growing it first); their indices."""
+        n, before = rows.shape[0], len(self)
         grew = self._storage.reserve(n)
         if grew or writer_cursor(self._rb) != before:
             # After a reallocation the round-robin writer must continue at the end,
@@ -252,12 +287,6 @@ class DemonstrationBuffer:
         index = self._rb.extend(rows)
         if len(self) != before + n:  # guard: nothing may have been overwritten
             raise RuntimeError(f"buffer write lost rows: had {before}, wrote {n}, now {len(self)}")
-        episodes = rows.get(keys.EPISODE)
-        self.schema = schema
-        self.next_episode = max(self.next_episode, int(episodes.max()) + 1)
-        self._num_episodes += int((episodes[1:] != episodes[:-1]).sum()) + 1
-        if self._layout is not None:
-            self._commit()
         return index
 
     # ------------------------------------------------------------------ read

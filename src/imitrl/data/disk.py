@@ -81,9 +81,17 @@ class GrowingMemmapStorage(LazyMemmapStorage):
         ``REMAP_BYTES`` (each read of a row maps up to ``FAULT_AROUND_BYTES`` per column:
         the kernel maps the cached neighbours of a faulting page too)."""
         columns = len(list(self._storage.keys(include_nested=True, leaves_only=True)))
-        self._read_bytes += n * columns * FAULT_AROUND_BYTES
+        self.note_bytes(n * columns * FAULT_AROUND_BYTES)
+
+    def note_bytes(self, nbytes: int) -> bool:
+        """Count ``nbytes`` read through the mapping; map the files again (returns True)
+        once ``REMAP_BYTES`` may be mapped: views taken before then keep the old mapping
+        (and its pages) alive, so readers take new views after a remap."""
+        self._read_bytes += int(nbytes)
         if self._read_bytes > REMAP_BYTES:
             self.map(self.max_size)
+            return True
+        return False
 
     def row_bytes(self) -> int:
         return sum(t[0].nbytes for t in self._storage.values(True, True)) if self.initialized else 0

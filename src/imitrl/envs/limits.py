@@ -12,6 +12,8 @@ never ends an episode would hang the rollout, so the rollout asks for ``max_step
 * a TorchRL ``StepCounter(max_steps=N)`` transform (the smallest of all limits along
   a ``TransformedEnv`` chain counts);
 * :class:`~imitrl.envs.TabularEnv`'s ``max_steps``;
+* :class:`~imitrl.envs.pixel_tasks.PixelBalanceEnv`'s ``hill.horizon`` (it truncates
+  there);
 * a ``SerialEnv``/``ParallelEnv`` (e.g. ``make_env(..., parallel=True)``): the
   largest limit of its sub-envs, read from one copy of each built in this process
   (its workers cannot be asked before they start).
@@ -79,6 +81,12 @@ def episode_limit(env: EnvBase) -> int | None:
         return _smallest([*_step_counters(env.transform), episode_limit(env.base_env)])
     if isinstance(env, TabularEnv):
         return env.max_steps
+    # imported here: the pixel tasks import the policies (their experts), which
+    # ``import imitrl.envs`` should not load
+    from imitrl.envs.pixel_tasks import PixelBalanceEnv
+
+    if isinstance(env, PixelBalanceEnv):
+        return env.hill.horizon
     if isinstance(env, GymWrapper):
         limit = _gym_limit(wrapped_gym_env(env))
         # a gymnasium step per action repeat: the TimeLimit ends the repeat loop too

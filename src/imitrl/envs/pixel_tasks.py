@@ -150,7 +150,8 @@ class Hilltop:
     view: float = 1.0
     """the image spans ``[-view, view]^2``; the episode ends when the ball leaves it"""
     horizon: int = 100
-    """the episode is truncated after this many steps"""
+    """the episode is truncated after this many steps (:func:`~imitrl.envs.episode_limit`
+    reads it: rollouts of the env need no ``max_steps=``)"""
 
     def __post_init__(self) -> None:
         for name in ("dt", "instability", "start", "view", "horizon"):
