@@ -23,6 +23,8 @@ import torch
 from imitrl.datasets._common import TORCH_DTYPES, WIDEN, check_finite, exact_cast
 
 __all__ = [
+    "array_shape",
+    "check_schema",
     "column_to_tensor",
     "decode_images",
     "encode_images",
@@ -42,6 +44,16 @@ def read_parquet(
         declared: the columns the file must hold, no more and no fewer (a pandas index
             column aside): a name that differs between a file and its metadata is refused.
     """
+    check_schema(path, columns, declared)
+    try:
+        return pq.read_table(path, columns=columns)
+    except (pa.ArrowException, OSError) as err:
+        raise ValueError(f"{path}: cannot read the parquet data ({err})") from err
+
+
+def check_schema(path: Path, columns: list[str] | None, declared: list[str] | None) -> None:
+    """A parquet file holds ``columns`` and, if given, exactly the ``declared`` ones (a
+    pandas index column aside); ValueError naming the file otherwise."""
     if not path.is_file():
         raise ValueError(f"{path}: file not found")
     try:
@@ -61,10 +73,6 @@ def read_parquet(
     ]
     if extra:
         raise ValueError(f"{path}: column(s) {extra} are not declared in meta/info.json")
-    try:
-        return pq.read_table(path, columns=columns)
-    except (pa.ArrowException, OSError) as err:
-        raise ValueError(f"{path}: cannot read the parquet data ({err})") from err
 
 
 def _storage(arr: pa.Array) -> pa.Array:
@@ -207,19 +215,27 @@ def tensor_to_array(value: torch.Tensor) -> tuple[pa.Array, tuple[int, ...]]:
     nested lists (``datasets.Array2D`` .. ``Array5D``).
     """
     values = value.detach().cpu().contiguous().numpy()
-    trailing = tuple(values.shape[1:])
-    if trailing in ((), (1,)):
+    trailing = array_shape(tuple(values.shape[1:]))
+    if trailing == (1,):
         return pa.array(values.reshape(-1)), (1,)
     if len(trailing) == 1:
         flat = pa.array(values.reshape(-1))
         return pa.FixedSizeListArray.from_arrays(flat, trailing[0]), trailing
-    if len(trailing) > 5:
-        raise ValueError(f"LeRobot features have at most 5 dimensions, got {list(trailing)}")
     arr = pa.array(values.reshape(-1))
     for size in reversed(trailing):
         offsets = pa.array(np.arange(0, len(arr) + 1, size, dtype=np.int32))
         arr = pa.ListArray.from_arrays(offsets, arr)
     return arr, trailing
+
+
+def array_shape(trailing: tuple[int, ...]) -> tuple[int, ...]:
+    """The LeRobot feature shape of per-row values of shape ``trailing`` (``()`` and ``(1,)``:
+    ``(1,)``, a scalar column), as :func:`tensor_to_array` writes them."""
+    if trailing in ((), (1,)):
+        return (1,)
+    if len(trailing) > 5:
+        raise ValueError(f"LeRobot features have at most 5 dimensions, got {list(trailing)}")
+    return trailing
 
 
 def hf_feature(dtype: str, shape: tuple[int, ...]) -> dict:

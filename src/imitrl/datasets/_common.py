@@ -2,7 +2,8 @@
 
 A reader builds a whole TensorDict of rows in memory and validates it before it is
 returned, so a malformed dataset raises before anything reaches a buffer (nothing is
-ever half-loaded). Rows carry the :class:`~imitrl.data.DemonstrationBuffer`'s required
+ever half-loaded); ``load_lerobot(..., into=buffer)`` streams instead, and checks every
+piece before the first reaches the buffer (:mod:`imitrl.datasets.lerobot._stream`). Rows carry the :class:`~imitrl.data.DemonstrationBuffer`'s required
 keys: recorded demonstrations are round 0, executed by the expert (``ACTION`` =
 ``EXPERT_ACTION``, ``EXPERT_EXECUTED`` True) unless the dataset carries imitrl's own
 columns for them.

@@ -50,12 +50,15 @@ warning.
 
 Modules, one idea each: ``_layout`` (format constants, :func:`resolve_lerobot_root`,
 reading ``meta/``), ``_plan`` (feature -> buffer key, and why others are skipped),
-``_read`` (:func:`load_lerobot`), ``_video`` (where each episode's camera frames lie in
+``_read`` (:func:`load_lerobot`), ``_stream`` (``load_lerobot(..., into=buffer)``: a few
+episodes at a time, everything checked before the buffer is extended), ``_video`` (where each episode's camera frames lie in
 which mp4, and decoding them), ``_checks`` (what frames must satisfy: timestamps
 against ``fps``, ``frame_index``, ``task_index``, the checksums :func:`save_lerobot`
 records), ``_write`` (:func:`save_lerobot`: rows -> features, written atomically by
-``imitrl.datasets._publish``), ``_v3_files`` (the files of a v3.0 directory), ``_stats``
-(LeRobot's feature and image statistics).
+``imitrl.datasets._publish``), ``_write_frames`` (the data files and per-episode
+statistics, a slice of whole episodes at a time), ``_v3_files`` (the other files of a
+v3.0 directory), ``_stats`` (LeRobot's feature and image statistics, vectorised over
+episodes).
 """
 
 # the format's constants stay importable from here, as before the split into modules

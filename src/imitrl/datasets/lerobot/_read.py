@@ -20,6 +20,7 @@ import torch
 from torchrl.envs import EnvBase
 
 from imitrl import keys
+from imitrl.data.buffer import DemonstrationBuffer
 from imitrl.datasets._arrow import column_to_tensor, decode_images, read_parquet
 from imitrl.datasets._common import (
     LoadedDemonstrations,
@@ -40,6 +41,7 @@ from imitrl.datasets.lerobot._layout import (
     rows_in,
 )
 from imitrl.datasets.lerobot._plan import plan_features, settle_features
+from imitrl.datasets.lerobot._stream import Settings, locate, stream_into
 from imitrl.datasets.lerobot._video import decode_videos
 
 
@@ -244,6 +246,42 @@ def _timestamps(frames: _Frames, index: torch.Tensor, fps: float) -> torch.Tenso
     return frames.frame_index[index].double() / fps
 
 
+def _names(plan: Mapping[str, NestedKey], cameras: Mapping[str, NestedKey]) -> dict[str, str]:
+    """buffer key name -> the feature it is loaded from"""
+    return {key_name(k): name for name, k in {**plan, **cameras}.items()}
+
+
+def _stream(
+    into: DemonstrationBuffer,
+    root: Path,
+    info: dict,
+    major: int,
+    settings: Settings,
+    tasks: list[str],
+    skipped: dict[str, str],
+    quiet: set[str],
+) -> LoadedDemonstrations:
+    """``load_lerobot(..., into=buffer)``: checked, then streamed into the buffer."""
+    episodes = read_episodes(root, info, major)
+    if not episodes:
+        raise ValueError(f"{root / 'meta'}: the dataset has no episodes (nothing to load)")
+    src = locate(root, info, major, episodes, _data_files(root, episodes, major))
+    rows, notes = stream_into(into, src, settings)
+    warn_skipped(root, skipped, quiet=frozenset(quiet))
+    return LoadedDemonstrations(
+        rows=rows,
+        source=root,
+        format=f"lerobot {info['codebase_version']}",
+        num_episodes=len(episodes),
+        tasks=tasks,
+        fps=info.get("fps"),
+        loaded={v: k for k, v in settings.names.items()},
+        skipped=skipped,
+        notes=notes,
+        metadata=info,
+    )
+
+
 def load_lerobot(
     path_or_repo: str | Path,
     *,
@@ -255,6 +293,7 @@ def load_lerobot(
     first_episode: int = 0,
     revision: str | None = None,
     cache_dir: str | Path | None = None,
+    into: DemonstrationBuffer | None = None,
 ) -> LoadedDemonstrations:
     """Read a local LeRobot dataset (v2.0, v2.1 or v3.0) into demonstration rows.
 
@@ -283,6 +322,13 @@ def load_lerobot(
             the env's time limit is truncated; recorded flags are kept as they are).
         first_episode: added to the episode ids (use ``buffer.next_episode``).
         revision, cache_dir: for resolving a ``repo_id`` (see :func:`resolve_lerobot_root`).
+        into: stream the dataset into this buffer (in memory or on disk,
+            ``DemonstrationBuffer(path=...)``) a few episodes at a time
+            (:mod:`~imitrl.datasets.lerobot._stream`): resident memory does not grow with
+            the dataset's length. Every check runs over the whole dataset before the
+            buffer is extended (the dataset is read twice), so a bad file anywhere leaves
+            the buffer as it was. ``rows`` is then a view of the rows added to the buffer.
+            Not with ``decode_dir`` (the frames go to the buffer).
 
     Returns:
         :class:`LoadedDemonstrations` whose ``rows`` extend a :class:`DemonstrationBuffer`;
@@ -306,6 +352,8 @@ def load_lerobot(
         raise ValueError(f"images must be 'skip' or 'load', got {images!r}")
     if videos not in ("decode", "skip"):
         raise ValueError(f"videos must be 'decode' or 'skip', got {videos!r}")
+    if into is not None and decode_dir is not None:
+        raise ValueError("decode_dir is for a load into memory; with into= frames go to the buffer")
     root = dataset_root(path_or_repo, revision, cache_dir)
     if (root / SIDECAR).is_file():  # written by save_lerobot: every file as it was written
         verify_files(root, read_json(root / SIDECAR))
@@ -318,6 +366,11 @@ def load_lerobot(
     )
     cameras = {k: v for k, v in plan.items() if features[k]["dtype"] == "video"}
     plan = {k: v for k, v in plan.items() if k not in cameras}
+    if into is not None:
+        settings = Settings(
+            plan, cameras, exact_shapes, len(tasks), first_episode, env, _names(plan, cameras)
+        )
+        return _stream(into, root, info, major, settings, tasks, skipped, quiet)
     episodes, frames, index = _checked_frames(root, info, major, plan, len(tasks))
     out, loaded = _columns(root, plan, frames, index, exact_shapes)
     if cameras:

@@ -1,6 +1,6 @@
-"""The files of a LeRobot v3.0 dataset, written from features already checked.
+"""The files of a LeRobot v3.0 dataset, written from rows already checked.
 
-``data/chunk-*/file-*.parquet`` (one row group per episode), the episode table
+``data/chunk-*/file-*.parquet`` (row groups of whole episodes), the episode table
 ``meta/episodes/chunk-000/file-000.parquet`` with each episode's statistics,
 ``meta/tasks.parquet``, ``meta/stats.json``, ``meta/info.json``, the cameras' videos
 (:mod:`~imitrl.datasets.lerobot._video_write`) and imitrl's own ``meta/imitrl.json`` (each
@@ -11,16 +11,14 @@ and the SHA-256 of its own content), laid out as lerobot 0.4 writes them.
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
-import torch
+from tensordict import TensorDictBase
 
-from imitrl.datasets._arrow import hf_feature, hf_schema_metadata
 from imitrl.datasets.lerobot._checks import file_digest, sidecar_digest
 from imitrl.datasets.lerobot._layout import (
     CODEBASE_VERSION,
@@ -30,61 +28,15 @@ from imitrl.datasets.lerobot._layout import (
     SIDECAR,
     SIDECAR_FORMAT,
 )
-from imitrl.datasets.lerobot._stats import (
-    aggregate_stats,
-    feature_stats,
-    image_stats,
-    sample_frames,
-)
-from imitrl.datasets.lerobot._video_write import VIDEO_PATH, VideoFiles, next_file, write_videos
-
-
-@dataclass(frozen=True)
-class Episodes:
-    """The episodes written: contiguous blocks of the ``N`` frames, and their tasks."""
-
-    starts: list[int]
-    """first frame of each episode"""
-    lengths: list[int]
-    """frames of each episode"""
-    task_index: torch.Tensor
-    """``[N]`` each frame's index into ``tasks``"""
-    tasks: list[str]
-    """the task strings"""
-
-
-@dataclass(frozen=True)
-class Features:
-    """What :func:`save_lerobot` writes, feature by feature, in column order."""
-
-    columns: dict[str, pa.Array]
-    """feature -> ``[N]`` arrow column of the data files"""
-    info: dict[str, dict]
-    """feature -> its ``info.json`` entry (dtype, shape, names)"""
-    sidecar: dict[str, dict]
-    """feature -> its ``meta/imitrl.json`` entry (buffer key, exact per-frame shape)"""
-    arrays: dict[str, np.ndarray]
-    """feature -> ``[N, ...]`` values for :func:`feature_stats`"""
-    images: dict[str, np.ndarray]
-    """image and video feature -> ``[N, C, H, W]`` frames for :func:`image_stats`"""
-    videos: dict[str, np.ndarray] = field(default_factory=dict)
-    """video feature -> uint8 ``[N, H, W, 3]`` frames to encode (no column in the data files)"""
-
-    def table(self) -> pa.Table:
-        """The frames as one table, with the Hugging Face ``datasets`` schema metadata (of the
-        columns only: video features live in ``videos/``, as LeRobot's ``get_hf_features``
-        leaves them out)."""
-        hf = {
-            name: hf_feature(self.info[name]["dtype"], tuple(self.info[name]["shape"]))
-            for name in self.columns
-        }
-        return pa.table(self.columns).replace_schema_metadata(hf_schema_metadata(hf))
+from imitrl.datasets.lerobot._stats import aggregate_arrays
+from imitrl.datasets.lerobot._video_write import VIDEO_PATH, VideoFiles, write_videos
+from imitrl.datasets.lerobot._write_frames import Episodes, Plan, write_frames
 
 
 def write_v3(
     root: Path,
-    table: pa.Table,
-    features: Features,
+    rows: TensorDictBase,
+    plan: Plan,
     episodes: Episodes,
     *,
     fps: int,
@@ -95,42 +47,50 @@ def write_v3(
 ) -> None:
     """Every file of a v3.0 dataset under ``root``: data, videos, episode table, tasks,
     stats, ``info.json`` and ``meta/imitrl.json``."""
-    places = _write_data(root, table, episodes, episodes_per_file, chunks_size)
+    written = write_frames(
+        root,
+        rows,
+        plan,
+        episodes,
+        fps=fps,
+        episodes_per_file=episodes_per_file,
+        chunks_size=chunks_size,
+    )
     videos = VideoFiles([{} for _ in episodes.starts], {})
-    if features.videos:
+    if plan.videos:
         videos = write_videos(
             root,
-            features.videos,
+            plan.videos,
             episodes.starts,
             episodes.lengths,
             fps=fps,
             chunks_size=chunks_size,
             file_size_in_mb=video_files_size_in_mb,
         )
-    ep_stats = _episode_stats(features, episodes)
-    ep_rows = _episode_rows(features, episodes, places, videos.episode_columns, ep_stats)
+    ep_stats = written.episode_stats()
+    ep_table = _episode_table(plan, episodes, written.places, videos.episode_columns, ep_stats)
     ep_path = root / EPISODES_PATH.format(chunk_index=0, file_index=0)
     ep_path.parent.mkdir(parents=True, exist_ok=True)
-    pq.write_table(pa.Table.from_pylist(ep_rows), ep_path, compression="snappy")
-    _write_tasks(root, episodes.tasks)
-    _write_stats(root, features, ep_stats)
+    pq.write_table(ep_table, ep_path, compression="snappy")
+    _write_tasks(root, episodes.task_list)
+    _write_stats(root, plan, ep_stats)
     n_eps = len(episodes.starts)
     info = {
         "codebase_version": CODEBASE_VERSION,
         "robot_type": robot_type,
         "total_episodes": n_eps,
         "total_frames": int(sum(episodes.lengths)),
-        "total_tasks": len(episodes.tasks),
+        "total_tasks": len(episodes.task_list),
         "chunks_size": chunks_size,
         "data_files_size_in_mb": DEFAULT_DATA_FILE_SIZE_IN_MB,
         "video_files_size_in_mb": video_files_size_in_mb,
         "fps": fps,
         "splits": {"train": f"0:{n_eps}"},
         "data_path": DATA_PATH,
-        "video_path": VIDEO_PATH if features.videos else None,
+        "video_path": VIDEO_PATH if plan.videos else None,
         "features": {  # a video feature with the info LeRobot probes from its first file
             name: {**ft, "info": videos.info[name]} if name in videos.info else ft
-            for name, ft in features.info.items()
+            for name, ft in plan.info.items()
         },
     }
     (root / "meta" / "info.json").write_text(json.dumps(info, indent=4))
@@ -139,72 +99,53 @@ def write_v3(
         for f in sorted(root.rglob("*"))
         if f.is_file()
     }
-    sidecar = {"format": SIDECAR_FORMAT, "columns": features.sidecar, "files": files}
+    sidecar = {"format": SIDECAR_FORMAT, "columns": plan.sidecar, "files": files}
     sidecar["digest"] = sidecar_digest(sidecar)
     (root / SIDECAR).write_text(json.dumps(sidecar, indent=2))
 
 
-def _write_data(
-    root: Path,
-    table: pa.Table,
-    episodes: Episodes,
-    episodes_per_file: int,
-    chunks_size: int,
-) -> list[tuple[int, int]]:
-    """The data files, ``episodes_per_file`` episodes each, one row group per episode;
-    returns each episode's ``(chunk_index, file_index)``."""
-    places: list[tuple[int, int]] = []
-    chunk, file = 0, 0
-    writer: pq.ParquetWriter | None = None
-    for i, (s, n) in enumerate(zip(episodes.starts, episodes.lengths)):
-        if i and i % episodes_per_file == 0:  # next file (lerobot's update_chunk_file_indices)
-            writer.close()
-            writer = None
-            chunk, file = next_file(chunk, file, chunks_size)
-        if writer is None:
-            data_path = root / DATA_PATH.format(chunk_index=chunk, file_index=file)
-            data_path.parent.mkdir(parents=True, exist_ok=True)
-            writer = pq.ParquetWriter(
-                data_path, table.schema, compression="snappy", use_dictionary=True
-            )
-        writer.write_table(table.slice(s, n))  # one row group per episode, as lerobot writes
-        places.append((chunk, file))
-    assert writer is not None
-    writer.close()
-    return places
-
-
-def _episode_rows(
-    features: Features,
+def _episode_table(
+    plan: Plan,
     episodes: Episodes,
     places: list[tuple[int, int]],
     video_columns: list[dict[str, Any]],
-    ep_stats: list[dict[str, dict[str, np.ndarray]]],
-) -> list[dict[str, Any]]:
-    """One row of the episode table per episode: tasks, length, data file, frame range,
-    each camera's video file and time span, and its ``stats/<feature>/<stat>``, in the
-    order LeRobot's ``save_episode`` writes them."""
-    ep_rows: list[dict[str, Any]] = []
-    for i, (s, n) in enumerate(zip(episodes.starts, episodes.lengths)):
-        chunk, file = places[i]
-        frame_tasks = episodes.task_index[s : s + n].tolist()
-        row: dict[str, Any] = {
-            "episode_index": i,
-            "tasks": sorted({episodes.tasks[t] for t in frame_tasks}),
-            "length": n,
-            "data/chunk_index": chunk,
-            "data/file_index": file,
-            "dataset_from_index": s,
-            "dataset_to_index": s + n,
-            **video_columns[i],
-        }
-        for name in features.info:  # in feature order, as LeRobot writes the columns
-            for stat, v in ep_stats[i].get(name, {}).items():
-                row[f"stats/{name}/{stat}"] = v.tolist()
-        row["meta/episodes/chunk_index"] = 0
-        row["meta/episodes/file_index"] = 0
-        ep_rows.append(row)
-    return ep_rows
+    ep_stats: dict[str, dict[str, np.ndarray]],
+) -> pa.Table:
+    """The episode table, one row per episode: tasks, length, data file, frame range, each
+    camera's video file and time span, and its ``stats/<feature>/<stat>``, in the order
+    LeRobot's ``save_episode`` writes them; built column by column (the types
+    ``pa.Table.from_pylist`` infers from the same values)."""
+    starts = np.asarray(episodes.starts, dtype=np.int64)
+    lengths = np.asarray(episodes.lengths, dtype=np.int64)
+    columns: dict[str, Any] = {
+        "episode_index": np.arange(len(starts)),
+        "tasks": episodes.tasks,
+        "length": lengths,
+        "data/chunk_index": [c for c, _ in places],
+        "data/file_index": [f for _, f in places],
+        "dataset_from_index": starts,
+        "dataset_to_index": starts + lengths,
+    }
+    for name in video_columns[0]:
+        columns[name] = [v[name] for v in video_columns]
+    for name in plan.info:  # in feature order, as LeRobot writes the columns
+        for stat, values in ep_stats.get(name, {}).items():
+            columns[f"stats/{name}/{stat}"] = _list_column(values)
+    columns["meta/episodes/chunk_index"] = np.zeros(len(starts), dtype=np.int64)
+    columns["meta/episodes/file_index"] = np.zeros(len(starts), dtype=np.int64)
+    return pa.table({k: v if isinstance(v, pa.Array) else pa.array(v) for k, v in columns.items()})
+
+
+def _list_column(values: np.ndarray) -> pa.Array:
+    """``[E, *shape]`` -> nested ``list<...>`` column, one entry per episode, of the type
+    ``pa.array(values.tolist())`` infers (float -> double, integer -> int64, bool), built
+    from the flat values without a Python object per number."""
+    kind = {"f": np.float64, "i": np.int64, "u": np.int64, "b": np.bool_}[values.dtype.kind]
+    arr: pa.Array = pa.array(values.reshape(-1).astype(kind))
+    for size in reversed(values.shape[1:]):
+        offsets = pa.array(np.arange(0, len(arr) + 1, size, dtype=np.int32))
+        arr = pa.ListArray.from_arrays(offsets, arr)
+    return arr
 
 
 def _write_tasks(root: Path, task_list: list[str]) -> None:
@@ -218,26 +159,13 @@ def _write_tasks(root: Path, task_list: list[str]) -> None:
     pq.write_table(tasks_table, root / "meta" / "tasks.parquet")
 
 
-def _episode_stats(features: Features, episodes: Episodes) -> list[dict[str, dict]]:
-    """Each episode's statistics of every feature (images and videos: of its sampled
-    frames), as LeRobot's ``compute_episode_stats`` computes them."""
-    out = []
-    for s, n in zip(episodes.starts, episodes.lengths):
-        stats = {name: feature_stats(values[s : s + n]) for name, values in features.arrays.items()}
-        for name, chw in features.images.items():
-            stats[name] = image_stats(sample_frames(chw[s : s + n]))
-        out.append(stats)
-    return out
-
-
-def _write_stats(root: Path, features: Features, ep_stats: list[dict[str, dict]]) -> None:
+def _write_stats(root: Path, plan: Plan, ep_stats: dict[str, dict[str, np.ndarray]]) -> None:
     """``meta/stats.json``: every feature's statistics over the whole dataset, the episodes'
-    aggregated as LeRobot aggregates them (:func:`aggregate_stats`; memory of one episode's
-    frames, not the dataset's)."""
+    aggregated as LeRobot aggregates them (:func:`aggregate_arrays`)."""
     stats = {
-        name: {k: v.tolist() for k, v in aggregate_stats([e[name] for e in ep_stats]).items()}
-        for name in features.info
-        if name in ep_stats[0]
+        name: {k: v.tolist() for k, v in aggregate_arrays(ep_stats[name]).items()}
+        for name in plan.info
+        if name in ep_stats
     }
     (root / "meta" / "stats.json").write_text(json.dumps(stats, indent=4))
 

@@ -1,9 +1,12 @@
 """Write demonstration rows as a LeRobot v3.0 dataset (:func:`save_lerobot`).
 
 Rows are checked first (contiguous episodes whose ``STEP`` runs 0..length-1, tasks,
-dtypes LeRobot can hold), turned into one arrow column per feature (or, with
-``video=True``, one mp4 stream per camera: :mod:`~imitrl.datasets.lerobot._video_write`),
-and written into a temporary directory that becomes ``path`` only once every file is
+dtypes LeRobot can hold, read a slice at a time), then read again a slice of whole
+episodes at a time and turned into arrow columns, one per feature, and per-episode
+statistics (:mod:`~imitrl.datasets.lerobot._write_frames`; or, with ``video=True``, one
+mp4 stream per camera: :mod:`~imitrl.datasets.lerobot._video_write`), so that memory does
+not grow with the number of rows (a disk buffer's rows are read from its files), and
+written into a temporary directory that becomes ``path`` only once every file is
 complete, atomically and with one writer per path
 (:func:`~imitrl.datasets._publish.publishing`).
 """
@@ -16,13 +19,12 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
-import pyarrow as pa
 import torch
 from tensordict import TensorDictBase
 
 from imitrl import keys
 from imitrl.data.buffer import DemonstrationBuffer
-from imitrl.datasets._arrow import encode_images, tensor_to_array
+from imitrl.datasets._arrow import array_shape
 from imitrl.datasets._common import NUMPY_NAMES, key_name
 from imitrl.datasets._publish import publishing
 from imitrl.datasets.lerobot._layout import (
@@ -33,8 +35,9 @@ from imitrl.datasets.lerobot._layout import (
     IMAGE_NAMES,
     feature_name,
 )
-from imitrl.datasets.lerobot._v3_files import Episodes, Features, write_v3
+from imitrl.datasets.lerobot._v3_files import write_v3
 from imitrl.datasets.lerobot._video_write import MIN_SIDE, import_av
+from imitrl.datasets.lerobot._write_frames import Column, Episodes, Plan, pixels_of
 
 
 # -------------------------------------------------------------- features
@@ -73,66 +76,38 @@ def _feature_names(name: str, value: Any, shape: tuple[int, ...]) -> Any:
     return value
 
 
-def _image_feature(
-    value: torch.Tensor, layout: Literal["hwc", "chw"], frame_index: np.ndarray
-) -> tuple[pa.Array, dict, np.ndarray]:
-    """A uint8 image key as LeRobot's image feature: PNG frames, its ``info.json`` entry,
-    and the ``[N, C, H, W]`` frames its per-channel statistics read."""
-    pixels = value.numpy() if layout == "hwc" else value.numpy().transpose(0, 2, 3, 1)
-    column = encode_images(pixels, frame_index)
-    chw = pixels.transpose(0, 3, 1, 2)  # (C, H, W), as LeRobot's stats read them
-    entry = {"dtype": "image", "shape": list(tuple(value.shape[1:])), "names": IMAGE_NAMES[layout]}
-    return column, entry, chw
-
-
-def _video_feature(
-    name: str, value: torch.Tensor, layout: Literal["hwc", "chw"]
-) -> tuple[np.ndarray, dict, np.ndarray]:
-    """A uint8 image key as LeRobot's video feature: the ``[N, H, W, 3]`` frames to encode
-    (a view of ``value``), its ``info.json`` entry (``info`` is added once encoded), and the
-    ``[N, C, H, W]`` frames its per-channel statistics read."""
-    pixels = value.numpy() if layout == "hwc" else value.numpy().transpose(0, 2, 3, 1)
-    if min(pixels.shape[1:3]) < MIN_SIDE:
-        raise ValueError(
-            f"{name!r}: frames of {pixels.shape[1]}x{pixels.shape[2]} (height x width) cannot "
-            f"be encoded as video: SVT-AV1 needs at least {MIN_SIDE}x{MIN_SIDE}; save with "
-            "video=False to store them as images"
-        )
-    entry = {"dtype": "video", "shape": list(pixels.shape[1:]), "names": IMAGE_NAMES["hwc"]}
-    return pixels, entry, pixels.transpose(0, 3, 1, 2)
-
-
-def _array_feature(
-    name: str, value: torch.Tensor, names: Any, n_frames: int
-) -> tuple[pa.Array, dict, np.ndarray]:
-    """A key as a LeRobot array feature: its arrow column, its ``info.json`` entry, and
-    the values its statistics read (``[N]`` for a per-frame scalar)."""
-    column, shape = tensor_to_array(value)
-    values = (
-        value.numpy().reshape(n_frames, *shape)
-        if shape != (1,)
-        else value.numpy().reshape(n_frames)
-    )
-    entry = {
+def _array_entry(name: str, value: torch.Tensor, names: Any) -> dict:
+    """A key's ``info.json`` entry as a LeRobot array feature (``[N]`` and ``[N, 1]``:
+    shape ``(1,)``, LeRobot's layout for a per-frame scalar)."""
+    shape = array_shape(tuple(value.shape[1:]))
+    return {
         "dtype": NUMPY_NAMES[value.dtype],
         "shape": list(shape),
         "names": _feature_names(name, names, shape),
     }
-    return column, entry, values
 
 
-def _features(
-    rows: TensorDictBase,
-    names: Mapping[str, Any],
-    fps: int,
-    episodes: Episodes,
-    video: bool,
-) -> Features:
+def _video_entry(name: str, value: torch.Tensor, layout: Literal["hwc", "chw"]) -> dict:
+    """A uint8 image key's ``info.json`` entry as a LeRobot video feature (``info`` is added
+    once encoded); frames too small for SVT-AV1 are refused."""
+    height, width = value.shape[1:3] if layout == "hwc" else value.shape[2:4]
+    if min(height, width) < MIN_SIDE:
+        raise ValueError(
+            f"{name!r}: frames of {height}x{width} (height x width) cannot "
+            f"be encoded as video: SVT-AV1 needs at least {MIN_SIDE}x{MIN_SIDE}; save with "
+            "video=False to store them as images"
+        )
+    return {"dtype": "video", "shape": [height, width, 3], "names": IMAGE_NAMES["hwc"]}
+
+
+def _plan(rows: TensorDictBase, names: Mapping[str, Any], video: bool) -> Plan:
     """Every leaf key as a feature (``STEP`` and ``"task_index"`` become bookkeeping; image
-    keys become video features if ``video``), then LeRobot's bookkeeping columns."""
-    n_frames = rows.shape[0]
-    frame_index = rows.get(keys.STEP).numpy().astype(np.int64)
-    out = Features({}, {}, {}, {}, {}, {})
+    keys become video features if ``video``), then LeRobot's bookkeeping columns; from the
+    keys' dtypes and shapes alone (no row is read)."""
+    columns: list[Column] = []
+    info: dict[str, dict] = {}
+    sidecar: dict[str, dict] = {}
+    videos: dict[str, np.ndarray] = {}
     for key in rows.keys(include_nested=True, leaves_only=True):
         if key_name(key) in (keys.STEP, "task_index"):
             continue
@@ -142,7 +117,7 @@ def _features(
         name = feature_name(key)
         if name in BOOKKEEPING:
             raise ValueError(f"{key_name(key)!r} would overwrite LeRobot's {name!r} column")
-        out.sidecar[name] = {
+        sidecar[name] = {
             "key": list(key) if isinstance(key, tuple) else key,
             "shape": list(value.shape[1:]),
         }
@@ -150,40 +125,32 @@ def _features(
         if video:
             _check_camera(key, name, value, layout)
         if layout is not None and video:  # LeRobot's video feature: mp4 frames, image stats
-            out.videos[name], entry, out.images[name] = _video_feature(name, value, layout)
-            out.sidecar[name]["shape"] = entry["shape"]  # decoded frames are [H, W, 3]
+            info[name] = _video_entry(name, value, layout)
+            videos[name] = pixels_of(value, layout)
+            sidecar[name]["shape"] = info[name]["shape"]  # decoded frames are [H, W, 3]
+            columns.append(Column(key, name, "video", layout))
         elif layout is not None:  # LeRobot's image feature: PNG frames, per-channel stats
-            out.columns[name], entry, out.images[name] = _image_feature(value, layout, frame_index)
+            shape = list(tuple(value.shape[1:]))
+            info[name] = {"dtype": "image", "shape": shape, "names": IMAGE_NAMES[layout]}
+            columns.append(Column(key, name, "image", layout))
         else:
-            column, entry, values = _array_feature(name, value, names.get(name), n_frames)
-            out.columns[name] = column
-            out.arrays[name] = values
-        out.info[name] = entry
-    if video and not out.videos:
+            info[name] = _array_entry(name, value, names.get(name))
+            columns.append(Column(key, name, "array", None))
+    if video and not videos:
         raise ValueError(
             "video=True but no key is a camera: a uint8 [N, H, W, 3] (or [N, 3, H, W]) key "
             f"{keys.PIXELS!r}, ({keys.PIXELS!r}, <camera>) or one whose feature name holds "
             f"'image'; keys: {[key_name(k) for k in rows.keys(True, True)]}"
         )
-    book = {
-        "timestamp": (frame_index / fps).astype(np.float32),
-        "frame_index": frame_index,
-        "episode_index": np.repeat(
-            np.arange(len(episodes.lengths), dtype=np.int64), episodes.lengths
-        ),
-        "index": np.arange(n_frames, dtype=np.int64),
-        "task_index": episodes.task_index.numpy(),
-    }
-    for name, values in book.items():
-        out.columns[name] = pa.array(values)
-        out.arrays[name] = values
-        out.info[name] = {"dtype": str(values.dtype), "shape": [1], "names": None}
+    for name in BOOKKEEPING:
+        dtype = "float32" if name == "timestamp" else "int64"
+        info[name] = {"dtype": dtype, "shape": [1], "names": None}
     if "task_index" in rows.keys():
-        out.sidecar["task_index"] = {
+        sidecar["task_index"] = {
             "key": "task_index",
             "shape": list(rows.get("task_index").shape[1:]),
         }
-    return out
+    return Plan(columns, info, sidecar, videos)
 
 
 def _check_camera(
@@ -207,7 +174,8 @@ def _rows_to_write(
     episodes_per_file: int | None,
     chunks_size: int,
 ) -> TensorDictBase:
-    """The ``[N]`` rows on the CPU, once they and the writer's settings are valid."""
+    """The ``[N]`` rows (a view: read a slice at a time), once they and the writer's settings
+    are valid."""
     rows = data.data if isinstance(data, DemonstrationBuffer) else data
     if not isinstance(rows, TensorDictBase) or rows.batch_dims != 1 or rows.shape[0] == 0:
         raise ValueError("save_lerobot needs a non-empty buffer or a TensorDict of rows [N]")
@@ -222,49 +190,74 @@ def _rows_to_write(
         raise ValueError(f"episodes_per_file must be >= 1, got {episodes_per_file}")
     if chunks_size < 1:
         raise ValueError(f"chunks_size must be >= 1, got {chunks_size}")
-    return rows.cpu()
+    return rows
 
 
-def _episode_blocks(rows: TensorDictBase) -> tuple[list[int], list[int]]:
-    """First row and length of each episode: contiguous blocks whose ``STEP`` runs
-    0..length-1."""
-    episode = rows.get(keys.EPISODE)
-    step = rows.get(keys.STEP)
-    change = torch.ones(len(episode), dtype=torch.bool)
-    change[1:] = episode[1:] != episode[:-1]
-    starts = torch.nonzero(change).flatten().tolist()
-    ends = [*starts[1:], len(episode)]
-    ids = episode[starts].tolist()
-    if len(set(ids)) != len(ids):
-        raise ValueError(
-            "each episode must be one contiguous block of rows (an id reappears later)"
-        )
-    for s, e in zip(starts, ends):
-        if not torch.equal(step[s:e], torch.arange(e - s)):
-            raise ValueError(
-                f"episode {int(episode[s])}: {keys.STEP!r} must run 0..{e - s - 1} "
-                "(LeRobot's frame_index), got " + str(step[s:e].tolist()[:5]) + "..."
-            )
-    return starts, [e - s for s, e in zip(starts, ends)]
+SCAN_ROWS = 1 << 20
+"""rows of ``EPISODE``, ``STEP`` and ``task_index`` read at once by :func:`_episodes`"""
 
 
-def _task_column(
-    rows: TensorDictBase, tasks: str | Sequence[str]
-) -> tuple[list[str], torch.Tensor]:
-    """The task strings and each frame's ``[N]`` index into them."""
-    n_frames = rows.shape[0]
+def _episodes(rows: TensorDictBase, tasks: str | Sequence[str]) -> Episodes:
+    """Each episode's first row, length and tasks, read :data:`SCAN_ROWS` rows at a time:
+    episodes are contiguous blocks whose ``STEP`` runs 0..length-1, and ``"task_index"``
+    (required with several tasks) indexes ``tasks``. Memory: a few numbers per episode."""
+    n = rows.shape[0]
     task_list = [tasks] if isinstance(tasks, str) else list(tasks)
     if not task_list or len(set(task_list)) != len(task_list):
         raise ValueError(f"tasks must be distinct strings, got {task_list!r}")
-    if "task_index" in rows.keys():
-        task_index = rows.get("task_index").reshape(n_frames).to(torch.int64)
-        if int(task_index.min()) < 0 or int(task_index.max()) >= len(task_list):
-            raise ValueError(f"'task_index' holds indices outside the {len(task_list)} tasks given")
-    else:
-        if len(task_list) != 1:
-            raise ValueError("several tasks given but the rows have no 'task_index' key")
-        task_index = torch.zeros(n_frames, dtype=torch.int64)
-    return task_list, task_index
+    has_tasks = "task_index" in rows.keys()
+    if not has_tasks and len(task_list) != 1:
+        raise ValueError("several tasks given but the rows have no 'task_index' key")
+    starts: list[np.ndarray] = []
+    ids: list[np.ndarray] = []
+    pairs: set[tuple[int, int]] = set()  # (episode number, task index)
+    last_id, run_start = None, 0
+    wrong_step: str | None = None
+    for begin in range(0, n, SCAN_ROWS):
+        end = min(n, begin + SCAN_ROWS)
+        episode = rows.get(keys.EPISODE)[begin:end].cpu().numpy().reshape(-1)
+        step = rows.get(keys.STEP)[begin:end].cpu().numpy().reshape(-1)
+        change = np.ones(end - begin, dtype=bool)
+        change[1:] = episode[1:] != episode[:-1]
+        change[0] = last_id is None or int(episode[0]) != last_id
+        where = np.arange(begin, end)
+        first = np.maximum.accumulate(np.where(change, where, run_start))  # each row's run start
+        bad = np.flatnonzero(step != where - first)
+        if len(bad) and wrong_step is None:  # raised after the contiguity check
+            i = int(bad[0])
+            wrong_step = (
+                f"episode {int(episode[i])}: {keys.STEP!r} must run 0..length-1 (LeRobot's "
+                f"frame_index), got {int(step[i])} at its row {int(where[i] - first[i])}"
+            )
+        number = sum(len(s) for s in starts) + np.cumsum(change) - 1  # each row's episode
+        starts.append(where[change])
+        ids.append(episode[change])
+        if has_tasks:
+            task = rows.get("task_index")[begin:end].cpu().reshape(-1).to(torch.int64).numpy()
+            if int(task.min()) < 0 or int(task.max()) >= len(task_list):
+                raise ValueError(
+                    f"'task_index' holds indices outside the {len(task_list)} tasks given"
+                )
+            both = np.unique(number * len(task_list) + task)
+            pairs.update(zip((both // len(task_list)).tolist(), (both % len(task_list)).tolist()))
+        last_id, run_start = int(episode[-1]), int(first[-1])
+    all_starts = np.concatenate(starts)
+    all_ids = np.concatenate(ids)
+    if len(np.unique(all_ids)) != len(all_ids):
+        raise ValueError(
+            "each episode must be one contiguous block of rows (an id reappears later)"
+        )
+    if wrong_step is not None:
+        raise ValueError(wrong_step)
+    per_episode: list[set[str]] = [set() for _ in all_starts]
+    for e, t in pairs:
+        per_episode[e].add(task_list[t])
+    if not has_tasks:
+        per_episode = [{task_list[0]} for _ in all_starts]
+    lengths = np.diff(np.append(all_starts, n))
+    return Episodes(
+        all_starts.tolist(), lengths.tolist(), [sorted(t) for t in per_episode], task_list
+    )
 
 
 def _replaceable(path: Path) -> None:
@@ -368,22 +361,19 @@ def save_lerobot(
     size = video_files_size_in_mb
     if isinstance(size, bool) or not isinstance(size, int | float) or not size > 0:
         raise ValueError(f"video_files_size_in_mb must be > 0, got {video_files_size_in_mb!r}")
-    starts, lengths = _episode_blocks(rows)
-    task_list, task_index = _task_column(rows, tasks)
-    episodes = Episodes(starts, lengths, task_index, task_list)
-    features = _features(rows, dict(names or {}), fps, episodes, video)
-    if features.videos:
+    episodes = _episodes(rows, tasks)
+    plan = _plan(rows, dict(names or {}), video)
+    if plan.videos:
         import_av()  # before anything is written: a missing PyAV says how to install it
-    table = features.table()
     with publishing(path, overwrite=overwrite, replaceable=_replaceable) as tmp:
         write_v3(
             tmp,
-            table,
-            features,
+            rows,
+            plan,
             episodes,
             fps=int(fps),
             robot_type=robot_type,
-            episodes_per_file=episodes_per_file or len(starts),
+            episodes_per_file=episodes_per_file or len(episodes.starts),
             chunks_size=chunks_size,
             video_files_size_in_mb=video_files_size_in_mb,
         )

@@ -1,0 +1,338 @@
+"""A LeRobot dataset streamed into a buffer, whole episodes at a time
+(``load_lerobot(..., into=buffer)``).
+
+Where each episode's frames lie comes from the metadata alone (v3.0: the episode table's
+``dataset_from_index``/``dataset_to_index`` in the sorted data files, or one pass over the
+``episode_index`` column; v2.x: one file per episode), and is checked before any frame is
+read: the episodes cover every frame once, as many as ``info.json`` declares. The
+episodes are then read in pieces of about :data:`PIECE_ROWS` frames (whole episodes, at
+least one), only the row groups holding them, converted and checked exactly as
+:func:`load_lerobot` checks a whole dataset, and turned into rows.
+
+Nothing half-loaded: the pieces are read twice. The first pass runs every check,
+the buffer's own included (:func:`~imitrl.data.validation.check_rows` with the schema and
+episode ids the buffer would have); only then does the second pass extend the buffer,
+piece by piece. A bad file anywhere leaves the buffer as it was. Resident memory: one
+piece (and a few numbers per episode), whatever the dataset's length.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.envs import EnvBase
+
+from imitrl import keys
+from imitrl.data.buffer import DemonstrationBuffer
+from imitrl.data.validation import check_rows
+from imitrl.datasets._arrow import check_schema, column_to_tensor, decode_images
+from imitrl.datasets._common import NestedKey, conform_to_env, key_name, required_rows
+from imitrl.datasets.lerobot._checks import check_frames
+from imitrl.datasets.lerobot._video import decode_videos
+
+PIECE_ROWS = 1 << 18
+"""frames read, checked and added to the buffer at once (rounded to whole episodes)"""
+
+
+@dataclass(frozen=True)
+class Source:
+    """What a streamed load reads: the data files and where each episode lies in them."""
+
+    root: Path
+    info: dict
+    major: int
+    episodes: list[dict]
+    """the episode table, in episode order"""
+    files: list[Path]
+    """the data files, in order"""
+    bounds: np.ndarray
+    """``[F + 1]`` first frame of each file (and the total) in their concatenation"""
+    spans: np.ndarray
+    """``[E, 2]`` each episode's ``[begin, stop)`` in that concatenation"""
+
+    def file_of(self, frame: int) -> Path:
+        return self.files[int(np.searchsorted(self.bounds, frame, side="right")) - 1]
+
+
+def _footer_rows(path: Path) -> int:
+    try:
+        return pq.read_metadata(path).num_rows
+    except (pa.ArrowException, OSError) as err:
+        raise ValueError(f"{path}: not a readable parquet file ({err})") from err
+
+
+def _runs(files: list[Path], bounds: np.ndarray) -> dict[int, tuple[int, int]]:
+    """episode index -> ``[begin, stop)`` from the ``episode_index`` column, read one file at
+    a time (v3.0 without ``dataset_from_index``); each episode must be one run of frames."""
+    spans: dict[int, tuple[int, int]] = {}
+    last = None
+    for path, first in zip(files, bounds[:-1]):
+        column = _read_columns(path, ["episode_index"], None).column("episode_index")
+        ids = column_to_tensor(column, shape=(1,), dtype="int64", where=f"{path}: 'episode_index'")
+        ids = ids.reshape(-1).numpy()
+        change = np.flatnonzero(np.diff(ids)) + 1
+        for s, e in zip(np.r_[0, change], np.r_[change, len(ids)]):
+            i = int(ids[s])
+            if i == last and i in spans:  # the run goes on from the previous file
+                spans[i] = (spans[i][0], int(first + e))
+            elif i in spans:
+                raise ValueError(f"{path}: the frames of episode {i} are not contiguous")
+            else:
+                spans[i] = (int(first + s), int(first + e))
+        last = int(ids[-1]) if len(ids) else last
+    return spans
+
+
+def locate(root: Path, info: dict, major: int, episodes: list[dict], files: list[Path]) -> Source:
+    """Every episode's frames in the data files, checked against the metadata (lengths, one
+    episode per frame, ``total_frames``) before any frame is read."""
+    counts = [_footer_rows(f) for f in files]
+    bounds = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    total = int(bounds[-1])
+    if major != 3:
+        spans = np.stack([bounds[:-1], bounds[1:]], axis=1)
+    elif all("dataset_from_index" in ep for ep in episodes):
+        spans = np.array(
+            [[int(ep["dataset_from_index"]), int(ep["dataset_to_index"])] for ep in episodes]
+        )
+    else:
+        found = _runs(files, bounds)
+        spans = np.array([found.get(int(ep["episode_index"]), (0, 0)) for ep in episodes])
+    for ep, (begin, stop) in zip(episodes, spans.tolist()):
+        e, length = int(ep["episode_index"]), int(ep["length"])
+        if stop - begin != length or begin < 0 or stop > total:
+            where = root / "meta" / "episodes" if major == 3 else root / ep["file"]
+            raise ValueError(
+                f"{where}: episode {e} spans frames [{begin}, {stop}) with length {length}, "
+                f"the data files hold {total} frames"
+            )
+    order = np.sort(spans[:, 0])
+    ends = np.sort(spans[:, 1])
+    covered = int((spans[:, 1] - spans[:, 0]).sum())
+    if covered == 0:
+        raise ValueError(f"{root}: the dataset holds no frames")
+    if covered != total or (len(order) > 1 and (order[1:] < ends[:-1]).any()):
+        raise ValueError(
+            f"{root / 'data'}: the data files hold {total} frames, the episode table covers "
+            f"{covered} frames of them (overlapping or missing)"
+        )
+    if info.get("total_frames") is not None and info["total_frames"] != total:
+        raise ValueError(
+            f"{root / 'meta' / 'info.json'} declares {info['total_frames']} frames, the data "
+            f"files hold {total}"
+        )
+    return Source(root, info, major, episodes, files, bounds, spans)
+
+
+def _read_columns(path: Path, columns: list[str], declared: list[str] | None) -> pa.Table:
+    check_schema(path, columns, declared)
+    try:
+        return pq.read_table(path, columns=columns)
+    except (pa.ArrowException, OSError) as err:
+        raise ValueError(f"{path}: cannot read the parquet data ({err})") from err
+
+
+def _read_span(src: Source, begin: int, stop: int, names: list[str]) -> list[tuple[Path, pa.Table]]:
+    """Frames ``[begin, stop)`` of the concatenated data files: the row groups holding them,
+    file by file, each with its file (for messages)."""
+    declared = [n for n, ft in src.info["features"].items() if ft["dtype"] != "video"]
+    out = []
+    first = int(np.searchsorted(src.bounds, begin, side="right")) - 1
+    for f in range(first, len(src.files)):
+        lo, hi = int(src.bounds[f]), int(src.bounds[f + 1])
+        if lo >= stop:
+            break
+        path = src.files[f]
+        check_schema(path, names, declared)
+        try:
+            pf = pq.ParquetFile(path)
+            sizes = [pf.metadata.row_group(g).num_rows for g in range(pf.num_row_groups)]
+            starts = lo + np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+            groups = [g for g in range(len(sizes)) if starts[g] < stop and starts[g + 1] > begin]
+            table = pf.read_row_groups(groups, columns=names)
+        except (pa.ArrowException, OSError) as err:
+            raise ValueError(f"{path}: cannot read the parquet data ({err})") from err
+        skip = max(begin, lo) - int(starts[groups[0]]) if groups else 0
+        out.append((path, table.slice(skip, min(stop, hi) - max(begin, lo))))
+    return out
+
+
+@dataclass(frozen=True)
+class Piece:
+    """Some consecutive episodes of the episode table, read and checked."""
+
+    columns: dict[str, torch.Tensor]
+    """planned feature -> ``[n, *shape]``"""
+    book: dict[str, torch.Tensor]
+    """``[n]`` episode_index, frame_index (and timestamp, task_index where declared)"""
+    file_of: Callable[[int], Path]
+    """row -> its data file"""
+
+
+def read_piece(
+    src: Source, first: int, end: int, plan: Mapping[str, NestedKey], n_tasks: int
+) -> Piece:
+    """Episodes ``first .. end - 1`` (episode order), checked as :func:`load_lerobot` checks
+    a whole dataset: values against the declared dtypes and shapes, lengths and indices
+    against the episode table, ``frame_index``, ``timestamp`` and ``task_index``."""
+    features = src.info["features"]
+    book_names = ["episode_index", "frame_index"]
+    book_names += [c for c in ("timestamp", "task_index") if c in features]
+    names = list(dict.fromkeys([*plan, *book_names]))
+    ranges: list[list[int]] = []  # the episodes' spans, merged where they touch
+    for begin, stop in src.spans[first:end].tolist():
+        if ranges and ranges[-1][1] == begin:
+            ranges[-1][1] = stop
+        else:
+            ranges.append([begin, stop])
+    parts: list[tuple[Path, pa.Table]] = []
+    for begin, stop in ranges:
+        parts.extend(_read_span(src, begin, stop, names))
+    columns: dict[str, list[torch.Tensor]] = {n: [] for n in names}
+    rows_file: list[tuple[int, Path]] = []
+    at = 0
+    for path, table in parts:
+        for name in names:
+            where = f"{path}: feature {name!r}" if name in plan else f"{path}: {name!r}"
+            ft = features[name]
+            if name in plan and ft["dtype"] == "image":
+                value = decode_images(
+                    table.column(name), shape=tuple(ft["shape"]), root=src.root, where=where
+                )
+            elif name in plan:
+                value = column_to_tensor(
+                    table.column(name), shape=tuple(ft["shape"]), dtype=ft["dtype"], where=where
+                )
+            else:
+                dtype = "float64" if name == "timestamp" else "int64"
+                value = column_to_tensor(table.column(name), shape=(1,), dtype=dtype, where=where)
+                value = value.reshape(-1)
+            columns[name].append(value)
+        rows_file.append((at, path))
+        at += table.num_rows
+    cat = {n: torch.cat(v) for n, v in columns.items()}
+    starts = [s for s, _ in rows_file]
+
+    def file_of(i: int) -> Path:
+        return rows_file[int(np.searchsorted(starts, i, side="right")) - 1][1]
+
+    step = _check_episodes(src, first, end, cat["episode_index"], file_of)
+    book = {k: cat[k] for k in book_names}
+    check_frames(
+        book["episode_index"],
+        step,
+        {k: v for k, v in book.items() if k != "episode_index"},
+        file_of,
+        src.info["fps"],
+        n_tasks,
+    )
+    return Piece({n: cat[n] for n in plan}, book, file_of)
+
+
+def _check_episodes(
+    src: Source, first: int, end: int, episode: torch.Tensor, file_of: Callable[[int], Path]
+) -> torch.Tensor:
+    """The frames read are the episodes': each block holds its own index only; returns
+    ``[n]`` 0..length-1 in each episode (what ``frame_index`` must read)."""
+    table = src.episodes[first:end]
+    lengths = np.array([int(ep["length"]) for ep in table], dtype=np.int64)
+    ids = np.array([int(ep["episode_index"]) for ep in table], dtype=np.int64)
+    starts = np.concatenate([[0], np.cumsum(lengths)[:-1]])
+    wrong = np.flatnonzero(episode.numpy() != np.repeat(ids, lengths))
+    if len(wrong):
+        k = int(np.searchsorted(starts, wrong[0], side="right")) - 1
+        at, n = int(starts[k]), int(lengths[k])
+        found = episode[at : at + n].unique().tolist()
+        raise ValueError(
+            f"{file_of(at)}: frames [{at}, {at + n}) of this read should hold episode "
+            f"{int(ids[k])}, they hold episode(s) {found}"
+        )
+    return torch.from_numpy(np.arange(int(lengths.sum())) - np.repeat(starts, lengths))
+
+
+def pieces(src: Source) -> list[tuple[int, int]]:
+    """``(first, end)`` episodes of each piece: about :data:`PIECE_ROWS` frames, whole
+    episodes."""
+    out, first, rows = [], 0, 0
+    for e, ep in enumerate(src.episodes):
+        n = int(ep["length"])
+        if rows and rows + n > PIECE_ROWS:
+            out.append((first, e))
+            first, rows = e, 0
+        rows += n
+    out.append((first, len(src.episodes)))
+    return out
+
+
+@dataclass
+class Settings:
+    """How a piece's frames become rows (as :func:`load_lerobot` makes them)."""
+
+    plan: Mapping[str, NestedKey]
+    cameras: Mapping[str, NestedKey]
+    exact_shapes: Mapping[str, tuple[int, ...]]
+    n_tasks: int
+    first_episode: int
+    env: EnvBase | None
+    names: dict[str, str]
+    """buffer key name -> feature, for messages"""
+
+
+def piece_rows(src: Source, first: int, end: int, s: Settings, notes: list[str]) -> TensorDict:
+    """The rows of episodes ``first .. end - 1``, checked, videos decoded, fitted to ``env``."""
+    piece = read_piece(src, first, end, s.plan, s.n_tasks)
+    out: dict[NestedKey, torch.Tensor] = {}
+    for name, key in s.plan.items():
+        value = piece.columns[name]
+        if name in s.exact_shapes:
+            value = value.reshape(value.shape[0], *s.exact_shapes[name])
+        elif key_name(key).startswith(keys.NEXT + ".") and value.ndim == 1:
+            value = value.unsqueeze(-1)  # TorchRL keeps reward/done as [..., 1]
+        out[key] = value
+    frame_index = piece.book["frame_index"]
+    if s.cameras:
+        times = piece.book.get("timestamp")
+        times = frame_index.double() / src.info["fps"] if times is None else times.double()
+        episodes = src.episodes[first:end]
+        out.update(decode_videos(src.root, src.info, src.major, episodes, s.cameras, times, None))
+    episode = out.pop(keys.EPISODE) if keys.EPISODE in out else piece.book["episode_index"]
+    rows = required_rows(out, episode=episode + int(s.first_episode), step=frame_index)
+    if s.env is not None:
+        where = str(src.root / "meta" / "info.json")
+        found: list[str] = []
+        rows = conform_to_env(rows, s.env, where=where, notes=found, names=s.names)
+        notes.extend(n for n in found if n not in notes)
+    return rows
+
+
+def stream_into(
+    buffer: DemonstrationBuffer, src: Source, s: Settings
+) -> tuple[TensorDictBase, list[str]]:
+    """Check every piece (the buffer's checks included), then extend ``buffer`` with them;
+    returns the rows added (a view of the buffer) and the notes of :func:`conform_to_env`."""
+    notes: list[str] = []
+    schema, next_episode = buffer.schema, buffer.next_episode
+    for first, end in pieces(src):  # pass 1: everything checked, nothing written
+        rows = piece_rows(src, first, end, s, notes)
+        try:
+            schema = check_rows(
+                rows,
+                schema=schema,
+                next_episode=next_episode,
+                action_spec=buffer.action_spec,
+                num_states=buffer.num_states,
+            )
+        except ValueError as err:
+            raise ValueError(f"{src.root}: the rows do not fit the buffer: {err}") from None
+        next_episode = max(next_episode, int(rows.get(keys.EPISODE).max()) + 1)
+    before = len(buffer)
+    for first, end in pieces(src):  # pass 2: the same rows, into the buffer
+        buffer.extend(piece_rows(src, first, end, s, []))
+    return buffer.data[before:], notes

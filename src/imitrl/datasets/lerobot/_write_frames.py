@@ -1,0 +1,220 @@
+"""The frames of a v3.0 dataset, written a slice of whole episodes at a time.
+
+:func:`save_lerobot` reads its rows (in memory, or a disk buffer's memory-mapped files)
+in slices of about :data:`SLICE_BYTES` holding whole episodes: each slice becomes one
+arrow table, written to the data files, and its episodes' statistics are computed in one vectorised pass per feature
+(:func:`~imitrl.datasets.lerobot._stats.segment_stats`). A row group holds whole
+episodes: those of one slice that go to one file (lerobot 0.4 writes one row group per
+episode; at about 1 ms per row group, whatever its size, that alone took 5 s for 1M
+CartPole frames; readers, LeRobot's included, do not depend on row groups). What stays in memory
+grows with the number of episodes (their statistics, for the episode table), not with
+the number of frames. Camera frames written as video are read by
+:mod:`~imitrl.datasets.lerobot._video_write` from the rows themselves, one episode at a
+time.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+from tensordict import TensorDictBase
+
+from imitrl import keys
+from imitrl.datasets._arrow import encode_images, hf_feature, hf_schema_metadata, tensor_to_array
+from imitrl.datasets._common import NestedKey
+from imitrl.datasets.lerobot._layout import DATA_PATH
+from imitrl.datasets.lerobot._stats import image_stats, sample_frames, segment_stats
+from imitrl.datasets.lerobot._video_write import next_file
+
+SLICE_BYTES = 8 << 20
+"""bytes of rows read and converted at once (rounded to whole episodes, at least one); a
+row group holds at most one slice, so a streamed load reads at most this much at once"""
+
+
+@dataclass(frozen=True)
+class Episodes:
+    """The episodes written: contiguous blocks of the ``N`` rows, and their tasks."""
+
+    starts: list[int]
+    """first row of each episode"""
+    lengths: list[int]
+    """rows of each episode"""
+    tasks: list[list[str]]
+    """each episode's task strings, sorted (the episode table's ``tasks``)"""
+    task_list: list[str]
+    """every task string, indexed by ``task_index``"""
+
+
+@dataclass(frozen=True)
+class Column:
+    """One key of the rows as a LeRobot feature."""
+
+    key: NestedKey
+    name: str
+    """the feature name"""
+    kind: Literal["array", "image", "video"]
+    layout: Literal["hwc", "chw"] | None
+    """how an image or video key holds its frames"""
+
+
+@dataclass(frozen=True)
+class Plan:
+    """What :func:`save_lerobot` writes, feature by feature, in column order."""
+
+    columns: list[Column]
+    """the rows' keys as features (bookkeeping columns aside)"""
+    info: dict[str, dict]
+    """feature -> its ``info.json`` entry (dtype, shape, names), bookkeeping included"""
+    sidecar: dict[str, dict]
+    """feature -> its ``meta/imitrl.json`` entry (buffer key, exact per-frame shape)"""
+    videos: dict[str, np.ndarray]
+    """video feature -> uint8 ``[N, H, W, 3]`` frames to encode (a view of the rows)"""
+
+
+@dataclass
+class Written:
+    """What :func:`write_frames` leaves for the episode table and ``meta/stats.json``."""
+
+    places: list[tuple[int, int]]
+    """each episode's ``(chunk_index, file_index)``"""
+    stats: dict[str, dict[str, list[np.ndarray]]]
+    """feature -> stat -> ``[E_slice, ...]`` arrays, slice after slice"""
+
+    def episode_stats(self) -> dict[str, dict[str, np.ndarray]]:
+        """feature -> stat -> ``[E, ...]`` over every episode."""
+        return {
+            name: {stat: np.concatenate(parts) for stat, parts in per.items()}
+            for name, per in self.stats.items()
+        }
+
+
+def pixels_of(value: Any, layout: Literal["hwc", "chw"]) -> np.ndarray:
+    """uint8 ``[N, H, W, 3]`` frames of an image key (a view)."""
+    pixels = value.numpy()
+    return pixels if layout == "hwc" else pixels.transpose(0, 2, 3, 1)
+
+
+def slices(episodes: Episodes, row_bytes: int) -> list[tuple[int, int]]:
+    """``(first episode, end episode)`` of each slice: whole episodes, about
+    :data:`SLICE_BYTES` of rows each (one episode at least)."""
+    budget = max(1, SLICE_BYTES // max(1, row_bytes))
+    out, first, rows = [], 0, 0
+    for e, n in enumerate(episodes.lengths):
+        if rows and rows + n > budget:
+            out.append((first, e))
+            first, rows = e, 0
+        rows += n
+    out.append((first, len(episodes.lengths)))
+    return out
+
+
+def _slice_table(
+    plan: Plan, part: TensorDictBase, first_row: int, first_ep: int, lengths: np.ndarray, fps: int
+) -> tuple[pa.Table, dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """One slice of rows as the data files' table, the values each array feature's
+    statistics read, and the ``[n, C, H, W]`` frames of each image and video feature."""
+    n = part.shape[0]
+    frame_index = part.get(keys.STEP).numpy().astype(np.int64)
+    columns: dict[str, pa.Array] = {}
+    arrays: dict[str, np.ndarray] = {}
+    images: dict[str, np.ndarray] = {}
+    for col in plan.columns:
+        value = part.get(col.key)
+        if col.kind == "video":
+            images[col.name] = pixels_of(value, col.layout).transpose(0, 3, 1, 2)
+        elif col.kind == "image":
+            pixels = pixels_of(value, col.layout)
+            columns[col.name] = encode_images(pixels, frame_index)
+            images[col.name] = pixels.transpose(0, 3, 1, 2)  # (C, H, W), as LeRobot reads them
+        else:
+            columns[col.name], shape = tensor_to_array(value)
+            values = value.numpy()
+            arrays[col.name] = values.reshape(n, *shape) if shape != (1,) else values.reshape(n)
+    task = part.get("task_index") if "task_index" in part.keys() else None
+    book = {
+        "timestamp": (frame_index / fps).astype(np.float32),
+        "frame_index": frame_index,
+        "episode_index": np.repeat(np.arange(first_ep, first_ep + len(lengths)), lengths),
+        "index": np.arange(first_row, first_row + n, dtype=np.int64),
+        "task_index": (
+            np.zeros(n, dtype=np.int64)
+            if task is None
+            else task.numpy().reshape(n).astype(np.int64)
+        ),
+    }
+    for name, values in book.items():
+        columns[name] = pa.array(values)
+        arrays[name] = values
+    hf = {
+        name: hf_feature(plan.info[name]["dtype"], tuple(plan.info[name]["shape"]))
+        for name in columns
+    }
+    table = pa.table(columns).replace_schema_metadata(hf_schema_metadata(hf))
+    return table, arrays, images
+
+
+def _slice_stats(
+    arrays: dict[str, np.ndarray], images: dict[str, np.ndarray], lengths: np.ndarray
+) -> dict[str, dict[str, np.ndarray]]:
+    """feature -> stat -> ``[E_slice, ...]``: LeRobot's ``compute_episode_stats`` of every
+    episode of the slice (image features: of their sampled frames, episode by episode)."""
+    out = segment_stats(arrays, lengths)
+    starts = np.concatenate([[0], np.cumsum(lengths)[:-1]])
+    for name, chw in images.items():
+        per = [image_stats(sample_frames(chw[s : s + n])) for s, n in zip(starts, lengths)]
+        out[name] = {stat: np.stack([p[stat] for p in per]) for stat in per[0]}
+    return out
+
+
+def write_frames(
+    root: Path,
+    rows: TensorDictBase,
+    plan: Plan,
+    episodes: Episodes,
+    *,
+    fps: int,
+    episodes_per_file: int,
+    chunks_size: int,
+) -> Written:
+    """The data files under ``root``, ``episodes_per_file`` episodes each (then the next
+    file, ``chunks_size`` files per chunk), row groups of whole episodes, read from ``rows``
+    a slice at a time; and every episode's statistics."""
+    written = Written([], {})
+    row_bytes = sum(v[0].nbytes for v in rows.values(include_nested=True, leaves_only=True))
+    chunk, file = 0, 0
+    writer: pq.ParquetWriter | None = None
+    try:
+        for first, end in slices(episodes, row_bytes):
+            begin = episodes.starts[first]
+            lengths = np.asarray(episodes.lengths[first:end], dtype=np.int64)
+            part = rows[begin : begin + int(lengths.sum())].cpu()
+            table, arrays, images = _slice_table(plan, part, begin, first, lengths, fps)
+            e, offset = first, 0
+            while e < end:  # one row group: the slice's episodes that go to one file
+                if e and e % episodes_per_file == 0:  # lerobot's update_chunk_file_indices
+                    writer.close()
+                    writer = None
+                    chunk, file = next_file(chunk, file, chunks_size)
+                if writer is None:
+                    path = root / DATA_PATH.format(chunk_index=chunk, file_index=file)
+                    path.parent.mkdir(parents=True, exist_ok=True)
+                    writer = pq.ParquetWriter(
+                        path, table.schema, compression="snappy", use_dictionary=True
+                    )
+                stop = min(end, (e // episodes_per_file + 1) * episodes_per_file)
+                n = int(lengths[e - first : stop - first].sum())
+                writer.write_table(table.slice(offset, n), row_group_size=n)
+                written.places.extend([(chunk, file)] * (stop - e))
+                e, offset = stop, offset + n
+            for name, per in _slice_stats(arrays, images, lengths).items():
+                for stat, value in per.items():
+                    written.stats.setdefault(name, {}).setdefault(stat, []).append(value)
+    finally:
+        if writer is not None:
+            writer.close()
+    return written
