@@ -4,6 +4,7 @@ reproducible cells, statistics, CONTRIBUTING's example."""
 from __future__ import annotations
 
 import json
+import os
 import re
 import subprocess
 import sys
@@ -15,6 +16,7 @@ import torch
 from imitrl.objectives import registry
 from imitrl.objectives.registry import TaskSpec
 from imitrl.tabular import success_probability
+from tests.test_benchmarks_smoke import committed
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
@@ -26,22 +28,24 @@ TIMING = {"fit_seconds", "eval_seconds", "cell_seconds"}
 
 
 def test_quick_run_covers_every_loss_on_every_task(tmp_path, lake, expert_table):
+    """The benchmark's own smoke run (test_benchmarks_smoke leaves it to this test):
+    ``--quick`` without ``--out`` writes to a temporary directory, never the committed
+    README or results."""
+    before = committed()
     proc = subprocess.run(
-        [
-            sys.executable,
-            str(ROOT / "benchmarks" / "loss_functions.py"),
-            "--quick",
-            "--out",
-            str(tmp_path),
-        ],
+        [sys.executable, str(ROOT / "benchmarks" / "loss_functions.py"), "--quick"],
+        env={**os.environ, "TMPDIR": str(tmp_path)},  # where --quick writes
         capture_output=True,
         text=True,
         timeout=600,
     )
     assert proc.returncode == 0, proc.stderr[-3000:]
-    data = json.loads((tmp_path / "loss_functions.json").read_text())
+    assert committed() == before, "loss_functions.py --quick rewrote committed results"
+    (result,) = tmp_path.rglob("loss_functions.json")
+    data = json.loads(result.read_text())
     assert data["machine"]["torch"].startswith("2.13")
-    assert (tmp_path / "loss_functions.png").stat().st_size > 10_000
+    (figure,) = tmp_path.rglob("loss_functions.png")
+    assert figure.stat().st_size > 10_000
     cells = {(r["task"], r["loss"], r["algorithm"]) for r in data["rows"]}
     factories = tasks(quick_mode=True)
     for task in TASKS:

@@ -54,6 +54,7 @@ from __future__ import annotations
 import copy
 import os
 import sys
+import tempfile
 import time
 import warnings
 from collections import deque
@@ -91,6 +92,9 @@ def _import_ray():
     return ray
 
 
+_RAY_TEMP_MAX = 24  # longest <tempdir>/ray that leaves room for Ray's session socket paths
+
+
 def init_ray(
     num_cpus: int | None, *, address: str | None = None, runtime_env: dict | None = None
 ) -> bool:
@@ -111,6 +115,13 @@ def init_ray(
     options = {"runtime_env": runtime_env, "logging_level": "warning"}
     if address is None:
         options.update(num_cpus=num_cpus, include_dashboard=False)
+        # Ray puts its AF_UNIX sockets under <tempdir>/ray/session_<time>_<pid>/sockets/,
+        # and a socket path may not exceed 107 bytes: under a long TMPDIR (a test's
+        # tmp_path, say) a local start fails, so Ray's own files go to a short dir then
+        if len(os.path.join(tempfile.gettempdir(), "ray")) > _RAY_TEMP_MAX and os.path.isdir(
+            "/tmp"
+        ):
+            options["_temp_dir"] = "/tmp/ray"
     ray.init(address=address, **options)
     return True
 
