@@ -70,7 +70,7 @@ from imitrl.data.checkpoint import (
     state_json,
     write_checkpoint,
 )
-from imitrl.data.disk import DiskLayout, GrowingMemmapStorage
+from imitrl.data.disk import DiskLayout, GrowingMemmapStorage, release_pages
 from imitrl.data.permutation import LazyPermutation
 from imitrl.data.validation import OBSERVATION_KEYS, REQUIRED_KEYS, check_rows, episode_runs
 
@@ -267,7 +267,12 @@ class DemonstrationBuffer:
             # decoded into a memory-mapped file, say) do not all stay in this process's
             # resident set; the rows are counted only after all of them are written
             step = max(1, CHUNK_BYTES // max(1, _row_bytes(rows)))
-            index = torch.cat([self._write(rows[s : s + step]) for s in range(0, n, step)])
+            parts = []
+            for s in range(0, n, step):
+                part = rows[s : s + step]
+                parts.append(self._write(part))
+                release_pages(part)  # a memory-mapped source's pages, once copied
+            index = torch.cat(parts)
         episodes = rows.get(keys.EPISODE)
         self.schema = schema
         self.next_episode = max(self.next_episode, int(episodes.max()) + 1)

@@ -28,6 +28,7 @@ survive the process, not a power cut.
 
 from __future__ import annotations
 
+import ctypes
 import fcntl
 import json
 import os
@@ -52,6 +53,35 @@ FAULT_AROUND_BYTES = 64 << 10
 """what one page fault may map of a file in the page cache (Linux ``fault_around_bytes``)"""
 
 Schema = dict[str, tuple[str, tuple[int, ...]]]
+
+
+_MADV_PAGEOUT = 21  # Linux >= 5.4: reclaim the range's pages; contents are kept
+_PAGE = os.sysconf("SC_PAGE_SIZE") if hasattr(os, "sysconf") else 4096
+
+
+def release_pages(rows: TensorDict) -> None:
+    """Let the kernel reclaim the pages of ``rows``' memory-mapped leaves from this
+    process (``madvise(MADV_PAGEOUT)``: a hint that never changes a value; clean file
+    pages are dropped and re-read on the next access). An extend that copies a
+    memory-mapped source (frames decoded into a file, say) slice by slice calls it on
+    each slice read, so the source does not stay resident. No-op where unsupported."""
+    libc = _libc()
+    if libc is None:
+        return
+    for leaf in rows.values(include_nested=True, leaves_only=True):
+        if not isinstance(leaf, MemoryMappedTensor) or not leaf.is_contiguous():
+            continue
+        start = leaf.data_ptr() // _PAGE * _PAGE
+        end = leaf.data_ptr() + leaf.numel() * leaf.element_size()
+        if end > start:
+            libc.madvise(ctypes.c_void_p(start), ctypes.c_size_t(end - start), _MADV_PAGEOUT)
+
+
+def _libc():
+    try:
+        return ctypes.CDLL(None, use_errno=True) if os.name == "posix" else None
+    except OSError:
+        return None
 
 
 class GrowingMemmapStorage(LazyMemmapStorage):
