@@ -39,6 +39,8 @@ def main(argv: list[str] | None = None) -> dict:
     # the plain script reproduces sections 1-7 and the exercises: the study's IRL section
     # (8) has no counterpart there, so it is left out of the comparison
     ours = [*extra, "--no-irl"]
+    if args.quick:  # a smoke run of the command lines: small counts (timings not comparable)
+        ours += ["--sweep-datasets", "2", "--eval-episodes", "200", "--chain-samples", "2000"]
     py = sys.executable
     with tempfile.TemporaryDirectory() as tmp:
         commands = {

@@ -252,6 +252,7 @@ def _greedy_returns(learner: ActorCritic) -> torch.Tensor:
     return summary.returns
 
 
+@pytest.mark.slow  # benchmarks/beyond_cloning.py measures GAIL on CartPole
 def test_gail_improves_cartpole_over_its_initial_policy():
     env, buffer, learner = _cartpole(0)
     before = _greedy_returns(learner)

@@ -167,6 +167,7 @@ def test_sampled_dagger_rounds_are_seeded_by_the_source_generator(lake, expert_t
     assert a.shape != c.shape or not (a == c).all()
 
 
+@pytest.mark.slow  # benchmarks/bc_vs_dagger.py measures it on every env
 def test_dagger_beats_bc_from_the_same_demonstrations(lake, expert_table):
     """10 seeds, one demonstration episode each: DAgger's final policy beats BC in exact success.
 

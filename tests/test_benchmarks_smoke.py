@@ -7,6 +7,7 @@ import json
 import os
 import subprocess
 import sys
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import pytest
@@ -35,31 +36,50 @@ def test_every_script_is_covered():
     } <= set(SCRIPTS)
 
 
-# scripts whose --quick run another test already makes (each run is tens of seconds):
-# frozenlake_timing --quick runs frozenlake_plain.py --no-exercises (what its --quick is),
-# and test_loss_functions_benchmark runs loss_functions.py --quick and checks that
-# --quick without --out never writes the committed results
-RUN_ELSEWHERE = {"frozenlake_plain.py", "loss_functions.py"}
+# frozenlake_timing --quick runs frozenlake_plain.py --no-exercises (what its --quick is)
+RUN_ELSEWHERE = {"frozenlake_plain.py"}
+QUICK = [s for s in SCRIPTS if s not in RUN_ELSEWHERE]
+PARALLEL = 3
+"""scripts run at once: each --quick is mostly imports, process start-up and waiting (Ray,
+video encoding), so three share the 2 cores well"""
 
 
-@pytest.mark.parametrize("script", [s for s in SCRIPTS if s not in RUN_ELSEWHERE])
-def test_quick_leaves_the_committed_results_alone(script, tmp_path):
+@pytest.fixture(scope="module")
+def quick_runs(tmp_path_factory) -> tuple[dict, dict, dict, dict]:
+    """Every script's ``--quick`` run, ``PARALLEL`` at a time, each with its own TMPDIR;
+    the committed files before and after all of them."""
     before = committed()
-    proc = subprocess.run(
-        [sys.executable, script, "--quick"],
-        cwd=BENCH,
-        env={**os.environ, "TMPDIR": str(tmp_path)},  # where --quick writes
-        capture_output=True,
-        text=True,
-        timeout=900,
-    )
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    after = committed()
-    assert after.keys() == before.keys(), f"{script} --quick added or removed committed files"
+    dirs = {s: tmp_path_factory.mktemp(Path(s).stem) for s in QUICK}
+
+    def run(script: str) -> subprocess.CompletedProcess:
+        return subprocess.run(
+            [sys.executable, script, "--quick"],
+            cwd=BENCH,
+            env={**os.environ, "TMPDIR": str(dirs[script])},  # where --quick writes
+            capture_output=True,
+            text=True,
+            timeout=900,
+        )
+
+    with ThreadPoolExecutor(PARALLEL) as pool:
+        procs = dict(zip(QUICK, pool.map(run, QUICK)))
+    return procs, dirs, before, committed()
+
+
+def test_quick_never_touches_the_committed_results(quick_runs):
+    _, _, before, after = quick_runs
+    assert after.keys() == before.keys(), "a --quick run added or removed committed files"
     changed = [name for name in before if before[name] != after[name]]
-    assert not changed, f"{script} --quick rewrote {changed}"
-    # what it measured went to a temporary directory instead
+    assert not changed, f"a --quick run rewrote {changed}"
+
+
+@pytest.mark.parametrize("script", QUICK)
+def test_quick_runs_and_writes_to_a_temporary_directory(script, quick_runs):
+    procs, dirs, _, _ = quick_runs
+    proc = procs[script]
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    # what it measured went to its temporary directory
     stem = Path(script).stem
-    (result,) = tmp_path.rglob(f"{stem}.json")
+    (result,) = dirs[script].rglob(f"{stem}.json")
     data = json.loads(result.read_text())
     assert data["machine"]["torch"].startswith("2.13")

@@ -65,7 +65,9 @@ print(hwm() - before, pix.numel())
 """
 
 
-@pytest.mark.parametrize("release", ["on", "off"])
+@pytest.mark.parametrize(
+    "release", ["on", pytest.param("off", marks=pytest.mark.slow)]
+)  # off: the control
 def test_extending_from_a_memory_mapped_source_does_not_keep_it_resident(tmp_path, release):
     """Frames decoded into a file (``load_lerobot(decode_dir=...)``) copied into a disk
     buffer: the source's pages are let go slice by slice, so the peak resident set grows

@@ -276,6 +276,7 @@ def _peak_growth(tmp_path: Path, frames: int) -> tuple[int, int]:
     return raw, grew
 
 
+@pytest.mark.slow  # benchmarks/scale_datasets.py measures memory at 1M and 10M frames
 def test_streamed_load_memory_does_not_grow_with_the_dataset(tmp_path):
     """Peak anonymous memory (RssAnon, sampled every 2 ms; the disk buffer's mapped files are
     page cache) of streamed loads of 40k and 200k frames (pieces of 4096): the 5x longer

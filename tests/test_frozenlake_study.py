@@ -247,7 +247,10 @@ def test_other_maps_and_protocols(tmp_path, extra):
     [
         (("--no-slippery",), None),  # the expert never fails: ratios of failures are undefined
         (("--env-id", "CliffWalking-v1", "--max-steps", "60"), (0, 36)),
-        (("--env-id", "Taxi-v4", "--dagger-rounds", "2"), (0, 1)),  # no grid: state-index plot
+        (
+            ("--env-id", "Taxi-v4", "--dagger-rounds", "2", "--no-irl"),
+            (0, 1),
+        ),  # no grid: state-index plot
     ],
 )
 def test_other_toy_text_envs(tmp_path, extra, probe):

@@ -27,10 +27,10 @@ from _loss_functions.tasks import TASKS, TwoWay, tasks  # noqa: E402
 TIMING = {"fit_seconds", "eval_seconds", "cell_seconds"}
 
 
+@pytest.mark.slow  # test_benchmarks_smoke runs --quick in the default suite; this checks its cells
 def test_quick_run_covers_every_loss_on_every_task(tmp_path, lake, expert_table):
-    """The benchmark's own smoke run (test_benchmarks_smoke leaves it to this test):
-    ``--quick`` without ``--out`` writes to a temporary directory, never the committed
-    README or results."""
+    """``--quick`` without ``--out`` writes to a temporary directory, never the committed
+    README or results, and covers every loss on every task."""
     before = committed()
     proc = subprocess.run(
         [sys.executable, str(ROOT / "benchmarks" / "loss_functions.py"), "--quick"],

@@ -257,6 +257,7 @@ def test_dagger_trains_registry_learners_through_the_fit_hook(lake, expert_table
     assert isinstance(result.learner, Learner)
 
 
+@pytest.mark.slow  # benchmarks/loss_functions.py measures the modes of every loss
 # ------------------------------------------------------------------------ learning
 def test_diffusion_keeps_both_modes_where_mse_averages_them():
     # one observation dimension, labels +-0.5 with equal probability everywhere

@@ -30,6 +30,8 @@ from typing import Any
 
 import numpy as np
 
+from imitrl.datasets.lerobot._video import INSTALL_HINT  # one install hint for PyAV
+
 VIDEO_PATH = "videos/{video_key}/chunk-{chunk_index:03d}/file-{file_index:03d}.mp4"
 """LeRobot v3.0's ``video_path`` template (``DEFAULT_VIDEO_PATH`` in ``lerobot/datasets/utils.py``)"""
 VCODEC = "libsvtav1"
@@ -48,7 +50,7 @@ ENCODER_INFO = {
 MIN_SIDE = 4
 """the smallest frame height and width SVT-AV1 encodes (PyAV 18's wheels: 4x4 and 6x6 are
 accepted, 3x5, 2x64 and 8x2 refused)"""
-INSTALL_HINT = "pip install 'imitrl[datasets]' (or: pip install av)"
+
 _EPISODES_DIR = ".imitrl-video-episodes"
 """staging folder (inside the dataset being written) of the encoded episodes not yet joined"""
 
