@@ -39,9 +39,9 @@ def test_every_script_is_covered():
 # frozenlake_timing --quick runs frozenlake_plain.py --no-exercises (what its --quick is)
 RUN_ELSEWHERE = {"frozenlake_plain.py"}
 QUICK = [s for s in SCRIPTS if s not in RUN_ELSEWHERE]
-PARALLEL = 3
+PARALLEL = 4
 """scripts run at once: each --quick is mostly imports, process start-up and waiting (Ray,
-video encoding), so three share the 2 cores well"""
+video encoding), so four share the 2 cores well"""
 
 
 @pytest.fixture(scope="module")

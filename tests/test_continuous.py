@@ -289,6 +289,7 @@ def _bc_vs_dagger(env_id, expert, *, head, loss, demo_steps, max_steps, rounds, 
     return out
 
 
+@pytest.mark.slow  # benchmarks/bc_vs_dagger.py measures it (CartPole, 5 seeds)
 def test_dagger_beats_bc_discrete_actions():
     # CartPole-v1 from the first 25 steps of one demonstration
     fit = BCConfig(num_steps=500, batch_size=256)
@@ -308,6 +309,7 @@ def test_dagger_beats_bc_discrete_actions():
     assert r["dagger"].mean() > 2 * r["bc"].mean()
 
 
+@pytest.mark.slow  # benchmarks/bc_vs_dagger.py measures it (InvertedPendulum, 5 seeds)
 @needs_mujoco
 def test_dagger_beats_bc_continuous_actions():
     # InvertedPendulum-v5 (200-step episodes) from one demonstration, deterministic head, MSE
