@@ -1,0 +1,185 @@
+"""Launching ``peer_imitation.py``'s children: the expert check, the timed runs, the
+peer's package versions. Every timed run is a whole fresh process; the parent measures
+its wall time from launch to exit, the child reports its phases in a JSON file."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import torch
+from tensordict import TensorDict
+
+from _peer_imitation.imitrl_run import EXPERTS
+from _peer_imitation.tasks import Task
+from imitrl import keys
+
+HERE = Path(__file__).resolve().parent
+IMITRL_RUN, PEER_RUN = HERE / "imitrl_run.py", HERE / "peer_run.py"
+LIBRARIES = ("imitrl", "imitation")
+
+
+def _child_env(library: str) -> dict[str, str]:
+    """The environment of a child: the peer's child sees no PYTHONPATH of ours."""
+    env = dict(os.environ)
+    if library == "imitation":
+        env.pop("PYTHONPATH", None)
+    return env
+
+
+def _call(cmd: list[str], library: str, timeout: float) -> tuple[float, dict]:
+    """Run ``cmd`` (its last argument is the result file it writes); ``(wall s, result)``."""
+    t0 = time.perf_counter()
+    proc = subprocess.run(
+        cmd, capture_output=True, text=True, timeout=timeout, env=_child_env(library)
+    )
+    wall = time.perf_counter() - t0
+    if proc.returncode != 0:
+        raise RuntimeError(
+            f"{library} child failed ({proc.returncode}): {' '.join(cmd[:3])} ...\n"
+            f"{proc.stderr[-3000:]}"
+        )
+    return wall, json.loads(Path(cmd[-1]).read_text())
+
+
+def run_once(
+    task: Task, seed: int, library: str, *, peer_python: str, workdir: Path, timeout: float
+) -> dict:
+    """One (task, library, seed) run as a fresh process: its wall time and its report."""
+    result = workdir / f"{task.name}-{library}-{seed}.json"
+    spec = json.dumps(task.spec(seed))
+    if library == "imitrl":
+        cmd = [sys.executable, str(IMITRL_RUN), spec, str(result)]
+    else:
+        cmd = [peer_python, str(PEER_RUN), "run", spec, str(result)]
+    wall, out = _call(cmd, library, timeout)
+    return {"task": task.name, "library": library, "seed": seed, "wall": wall, **out}
+
+
+def run_all(
+    tasks: list[Task],
+    seeds: int,
+    libraries: tuple[str, ...],
+    *,
+    peer_python: str,
+    timeout: float,
+    concurrent: bool = False,
+    log=print,
+) -> list[dict]:
+    """Every (task, seed) pair, the libraries alternating (imitrl, imitation, imitrl, ...),
+    one process at a time; ``concurrent``: all at once (the smoke run, timings moot)."""
+    order = [(t, s, lib) for t in tasks for s in range(seeds) for lib in libraries]
+    with tempfile.TemporaryDirectory(prefix="peer-imitation-") as tmp:
+
+        def one(job: tuple[Task, int, str]) -> dict:
+            task, seed, library = job
+            r = run_once(
+                task, seed, library, peer_python=peer_python, workdir=Path(tmp), timeout=timeout
+            )
+            phases = ", ".join(f"{k} {v:.2f}" for k, v in r["phases"].items())
+            log(
+                f"{task.name} seed {seed} {library:9s} wall {r['wall']:.2f} s "
+                f"({phases}); returns {r['returns']}"
+            )
+            return r
+
+        if concurrent:
+            with ThreadPoolExecutor(len(order)) as pool:
+                return list(pool.map(one, order))
+        return [one(job) for job in order]
+
+
+# --------------------------------------------------------------- the expert check
+def check_batches(n: int = 2000, seed: int = 0) -> dict[str, torch.Tensor]:
+    """Observations to label: every FrozenLake state; CartPole states spread over the
+    region its episodes visit; Pendulum angles and velocities over the whole circle,
+    with velocities at and around 0 (the swing-up's special case) and angles across
+    the LQR switch (``cos th = 0.9``)."""
+    g = torch.Generator().manual_seed(seed)
+    scale = torch.tensor([2.4, 3.0, 0.21, 3.0])
+    cartpole = (2 * torch.rand(n, 4, generator=g) - 1) * scale
+    th = (2 * torch.rand(n, generator=g) - 1) * math.pi
+    w = (2 * torch.rand(n, generator=g) - 1) * 8.0
+    w[: n // 10] = 0.0
+    w[n // 10 : n // 5] *= 1e-3
+    th[n // 5 : n // 4] = math.acos(0.9) * (1 + 1e-3 * (2 * torch.rand(n // 20, generator=g) - 1))
+    pendulum = torch.stack([th.cos(), th.sin(), w], dim=-1).to(torch.float32)
+    return {"FrozenLake-v1": torch.arange(16), "CartPole-v1": cartpole, "Pendulum-v1": pendulum}
+
+
+def check_experts(peer_python: str, *, timeout: float) -> dict:
+    """imitrl's experts and the peer script's copies on the same batches: discrete labels
+    equal, continuous within 1e-5; raises ``RuntimeError`` naming the first disagreement."""
+    batches = check_batches()
+    with tempfile.TemporaryDirectory(prefix="peer-imitation-check-") as tmp:
+        obs_file = Path(tmp) / "obs.json"
+        obs_file.write_text(json.dumps({k: v.tolist() for k, v in batches.items()}))
+        cmd = [peer_python, str(PEER_RUN), "check", str(obs_file), str(Path(tmp) / "out.json")]
+        _, peer = _call(cmd, "imitation", timeout)
+    report = {}
+    for env_id, obs in batches.items():
+        td = TensorDict({keys.OBSERVATION: obs}, batch_size=[obs.shape[0]])
+        ours = EXPERTS[env_id]()(td).get(keys.EXPERT_ACTION)
+        theirs = torch.tensor(peer[env_id], dtype=ours.dtype).reshape(ours.shape)
+        if ours.dtype.is_floating_point:
+            diff = float((ours - theirs).abs().max())
+            agree = diff <= 1e-5
+        else:
+            diff = int((ours != theirs).sum())
+            agree = diff == 0
+        if not agree:
+            raise RuntimeError(
+                f"the peer's {env_id} expert disagrees with imitrl's on the check batch "
+                f"(max difference / mismatches: {diff}): fix _peer_imitation/peer_run.py"
+            )
+        report[env_id] = {"observations": int(obs.shape[0]), "max_difference": diff}
+    return report
+
+
+def peer_versions(peer_python: str, *, timeout: float = 120) -> dict[str, str]:
+    """``pip list`` of the peer's venv, ``{name: version}``."""
+    proc = subprocess.run(
+        [peer_python, "-m", "pip", "list", "--format=json"],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        env=_child_env("imitation"),
+    )
+    if proc.returncode != 0:
+        raise RuntimeError(f"pip list in the peer's venv failed: {proc.stderr[-2000:]}")
+    return {p["name"]: p["version"] for p in json.loads(proc.stdout)}
+
+
+# ------------------------------------------------------------------ references
+def frozenlake_exact(table: list[int]) -> float:
+    """Exact success probability of a greedy FrozenLake table within the 100-step limit."""
+    from imitrl.tabular import TabularMDP, success_probability
+
+    mdp = TabularMDP.from_gym("FrozenLake-v1", 0.95)
+    return success_probability(mdp, torch.tensor(table))
+
+
+def expert_returns(task: Task, seeds: int) -> list[float]:
+    """The expert's score per seed: FrozenLake its exact success (the same for every
+    seed); elsewhere its greedy mean return on the evaluation episodes of that seed,
+    measured through imitrl (both libraries reset from the same seeds)."""
+    from imitrl.envs import make_env
+    from imitrl.evaluation import evaluate
+
+    expert = EXPERTS[task.env_id]()
+    if task.env_id == "FrozenLake-v1":
+        table = expert(TensorDict({keys.OBSERVATION: torch.arange(16)}, [16]))
+        return [frozenlake_exact(table.get(keys.EXPERT_ACTION).tolist())] * seeds
+    out = []
+    for seed in range(seeds):
+        spec = task.spec(seed)
+        env = make_env(task.env_id, seed=spec["eval_seed"])
+        out.append(evaluate(env, expert, task.eval_episodes, seed=spec["eval_seed"]).mean_return)
+    return out

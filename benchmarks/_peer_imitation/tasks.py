@@ -1,0 +1,75 @@
+"""The three tasks of ``peer_imitation.py``: the same budgets on both sides.
+
+A task travels to each child process as JSON (:meth:`Task.spec`): the imitrl child and
+the peer's child read the same numbers, so the two sides cannot drift apart. Standard
+library only.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, replace
+
+EVAL_SEED = 10_000
+"""evaluation env seed of training seed s: ``EVAL_SEED + s`` (every policy of a run,
+and both libraries, start their evaluation episodes from the same reset seed)"""
+
+
+@dataclass(frozen=True)
+class Task:
+    """One task's demonstrations, DAgger rounds, fits and evaluation (both libraries)."""
+
+    name: str
+    """short name used in tables and results"""
+    env_id: str
+    """gymnasium id (FrozenLake-v1 is slippery 4x4 by default)"""
+    demo_episodes: int
+    """expert episodes demonstrated before BC"""
+    demo_steps: int | None
+    """keep only the first steps of the demonstrations (None: whole episodes)"""
+    rounds: int
+    """DAgger relabel rounds, each followed by a fit on everything collected"""
+    episodes_per_round: int
+    """episodes played by the behaviour policy and labelled by the expert per round"""
+    bc_steps: int
+    """gradient steps of the BC fit on the demonstrations"""
+    round_steps: int
+    """gradient steps of the fit after each relabel round"""
+    batch_size: int
+    """rows per gradient step"""
+    eval_episodes: int
+    """evaluation episodes per evaluated policy (the BC learner and the final one)"""
+    hidden: tuple[int, ...] = (32, 32)
+    """hidden layers of the tanh MLP (imitation's default ``FeedForward32Policy``)"""
+
+    def spec(self, seed: int) -> dict:
+        """What a child process reads: the task, the training seed and the evaluation seed."""
+        return {
+            **asdict(self),
+            "hidden": list(self.hidden),
+            "seed": seed,
+            "eval_seed": EVAL_SEED + seed,
+        }
+
+
+TASKS: dict[str, Task] = {
+    t.name: t
+    for t in (
+        Task("frozenlake", "FrozenLake-v1", 3, None, 4, 3, 1000, 500, 32, 1000),
+        Task("cartpole", "CartPole-v1", 1, 25, 5, 2, 1000, 500, 25, 20),
+        Task("pendulum", "Pendulum-v1", 1, None, 5, 2, 1000, 500, 32, 20),
+    )
+}
+"""imitation's small setups as issue 16 states them (batch 25 on CartPole: imitation's
+BC refuses a batch larger than its 25 demonstrated rows)"""
+
+
+def quick(task: Task) -> Task:
+    """The smoke budget: one relabel round of one episode, tiny fits, two evaluation episodes."""
+    return replace(
+        task,
+        rounds=1,
+        episodes_per_round=1,
+        bc_steps=20,
+        round_steps=10,
+        eval_episodes=2,
+    )

@@ -1,0 +1,151 @@
+"""imitrl side by side with HumanCompatibleAI's imitation 1.0.1 on imitation's own small tasks.
+
+Issue 16's benchmark: the same three tasks, scripted experts and budgets in both
+libraries, each (task, library, seed) run as a whole fresh process, the libraries
+alternating (imitrl, imitation, imitrl, ...), one torch thread each:
+
+* FrozenLake-v1 (slippery 4x4; expert: value iteration, gamma 0.95): 3 demonstration
+  episodes, 4 DAgger rounds x 3 episodes, 1000 evaluation episodes;
+* CartPole-v1 (expert ``a = 1[K . obs > 0]``): the first 25 steps of one episode,
+  5 rounds x 2 episodes, batch 25, 20 evaluation episodes;
+* Pendulum-v1 (expert: energy swing-up + LQR): one episode, 5 rounds x 2 episodes,
+  20 evaluation episodes;
+
+a [32, 32] tanh MLP, BC 1000 steps, then 500 steps after each relabel round, batch 32
+(see ``_peer_imitation/tasks.py``). Each library runs with its own defaults otherwise:
+imitrl refits a fresh learner each round with beta = 0 (``dagger``'s defaults),
+imitation trains one policy on with ``LinearBetaSchedule(15)`` (``SimpleDAggerTrainer``'s);
+what each side does, phase by phase, is in ``_peer_imitation/imitrl_run.py`` and
+``_peer_imitation/peer_run.py``. The experts are the same functions: the peer's copies
+(numpy) must label a batch of observations exactly as imitrl's do, or the run stops.
+
+Recorded: whole-process wall time (launch to exit, measured here) and the child's
+phases (imports, setup, BC, DAgger collection + fits without evaluation, evaluation),
+per-pair ratios imitrl / imitation and their medians, the BC and final returns of both
+(FrozenLake also the exact success of each greedy policy), the peer venv's ``pip list``.
+Not run in CI: it needs the peer's venv. ``--quick`` runs imitrl's side only, on tiny
+budgets, its three processes at once (the smoke test; its timings mean nothing).
+
+The peer's venv, outside the repository (``--peer-python`` points at its python)::
+
+    python3 -m venv /work/peer_venv
+    /work/peer_venv/bin/pip install torch==2.13.0
+    /work/peer_venv/bin/pip install imitation torch==2.13.0
+
+(torch first, then pinned again on imitation's line so that pip keeps the CPU build; it
+resolves to imitation 1.0.1, stable-baselines3 2.2.1, gymnasium 0.29.1.) Then::
+
+    python benchmarks/peer_imitation.py                  # full run, refreshes the README block
+    python benchmarks/peer_imitation.py --out /tmp/peer  # full run elsewhere, README untouched
+    python benchmarks/peer_imitation.py --quick          # imitrl's side, tiny budgets, temp dir
+    python benchmarks/peer_imitation.py --render /tmp/peer/peer_imitation.json --out /tmp/x
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from dataclasses import asdict
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import _report
+from _peer_imitation import runs
+from _peer_imitation.report import NAME, markdown, summarise
+from _peer_imitation.tasks import TASKS, quick
+
+PEER_PYTHON = "/work/peer_venv/bin/python"
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = _report.parser(__doc__)
+    parser.add_argument(
+        "--peer-python",
+        default=PEER_PYTHON,
+        help=f"python of the venv with imitation (default {PEER_PYTHON}; see the docstring)",
+    )
+    parser.add_argument(
+        "--seeds", type=int, default=None, help="seeds per task (default 3; 1 with --quick)"
+    )
+    parser.add_argument("--tasks", nargs="+", default=list(TASKS), choices=list(TASKS))
+    parser.add_argument(
+        "--timeout", type=float, default=3600.0, help="seconds one child process may take"
+    )
+    parser.add_argument(
+        "--render",
+        type=Path,
+        default=None,
+        metavar="JSON",
+        help="print the tables of a results file instead of running (and, without --out, "
+        "refresh the README block from it)",
+    )
+    args = parser.parse_args(argv)
+    if args.render is not None:
+        text = markdown(json.loads(args.render.read_text()))
+        if args.out is None and not args.quick:
+            _report.update_readme(NAME, text)
+        print(text)
+        return
+    out_dir = _report.destination(NAME, quick=args.quick, out=args.out)
+    torch.set_num_threads(1)
+    seeds = args.seeds if args.seeds is not None else (1 if args.quick else 3)
+    tasks = [quick(TASKS[t]) if args.quick else TASKS[t] for t in args.tasks]
+    libraries = ("imitrl",) if args.quick else runs.LIBRARIES
+    t0 = time.perf_counter()
+
+    # -- the peer's venv and its copies of the experts, before anything is timed
+    peer_versions, expert_check = None, None
+    if not args.quick:
+        if not Path(args.peer_python).exists():
+            raise SystemExit(
+                f"no python at {args.peer_python}: build the peer's venv as this script's "
+                "docstring says, or pass --peer-python"
+            )
+        peer_versions = runs.peer_versions(args.peer_python)
+        expert_check = runs.check_experts(args.peer_python, timeout=args.timeout)
+        print(f"experts agree: {expert_check}")
+
+    # -- the timed runs, one fresh process each
+    results = runs.run_all(
+        tasks,
+        seeds,
+        libraries,
+        peer_python=args.peer_python,
+        timeout=args.timeout,
+        concurrent=args.quick,
+    )
+
+    # -- untimed: FrozenLake's exact values, the experts' returns
+    for r in results:
+        if r["greedy_tables"]:
+            r["exact_success"] = {
+                k: runs.frozenlake_exact(v) for k, v in r["greedy_tables"].items()
+            }
+    references = {t.name: runs.expert_returns(t, seeds) for t in tasks}
+    raw = {
+        "config": {
+            "seeds": seeds,
+            "tasks": [asdict(t) for t in tasks],
+            "libraries": list(libraries),
+            "quick": args.quick,
+            "peer_python": None if args.quick else args.peer_python,
+            "command": " ".join(["python benchmarks/peer_imitation.py", *(argv or sys.argv[1:])]),
+        },
+        "imitrl_versions": {k: v for k, v in _report.machine().items() if k != "platform"},
+        "peer_versions": peer_versions,
+        "expert_check": expert_check,
+        "runs": results,
+        "summary": summarise(results, references),
+        "wall_seconds": time.perf_counter() - t0,
+    }
+    text = markdown(raw)
+    path = _report.write(NAME, raw, text, out_dir=out_dir)
+    print(text)
+    print(f"wrote {path}")
+
+
+if __name__ == "__main__":
+    main()
