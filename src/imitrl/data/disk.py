@@ -64,15 +64,22 @@ def release_pages(rows: TensorDict) -> None:
     process (``madvise(MADV_PAGEOUT)``: a hint that never changes a value; clean file
     pages are dropped and re-read on the next access). An extend that copies a
     memory-mapped source (frames decoded into a file, say) slice by slice calls it on
-    each slice read, so the source does not stay resident. No-op where unsupported."""
+    each slice read, so the source does not stay resident. The range is widened by
+    :data:`FAULT_AROUND_BYTES` on each side (within the mapped file): reading a slice's
+    first pages also maps the cached pages just before it, which a pass slice after
+    slice would otherwise leave mapped, tens of kB per slice and column. No-op where
+    unsupported."""
     libc = _libc()
     if libc is None:
         return
     for leaf in rows.values(include_nested=True, leaves_only=True):
         if not isinstance(leaf, MemoryMappedTensor) or not leaf.is_contiguous():
             continue
-        start = leaf.data_ptr() // _PAGE * _PAGE
+        storage = leaf.untyped_storage()
+        lowest, highest = storage.data_ptr(), storage.data_ptr() + storage.nbytes()
+        start = max(lowest, leaf.data_ptr() - FAULT_AROUND_BYTES) // _PAGE * _PAGE
         end = leaf.data_ptr() + leaf.numel() * leaf.element_size()
+        end = min(highest, end + FAULT_AROUND_BYTES)
         if end > start:
             libc.madvise(ctypes.c_void_p(start), ctypes.c_size_t(end - start), _MADV_PAGEOUT)
 

@@ -10,8 +10,10 @@ fails with the file and feature named instead of loading wrong values.
 
 from __future__ import annotations
 
+import ctypes
 import io
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -30,8 +32,35 @@ __all__ = [
     "encode_images",
     "hf_feature",
     "read_parquet",
+    "release_unused_memory",
     "tensor_to_array",
 ]
+
+
+def release_unused_memory() -> None:
+    """Hand back to the system the memory this process's allocators hold but no longer use:
+    pyarrow's pool (mimalloc or jemalloc keeps freed pages for reuse) and, on glibc, the
+    malloc heap torch's and numpy's arrays come from (``malloc_trim(0)``: freed blocks of a
+    few MB are carved from the heap, not mapped apart, once such arrays have been freed).
+
+    A pass that reads or writes a piece at a time, pieces of varying sizes, otherwise
+    sees resident memory creep up piece after piece (measured on a 10M-frame streamed
+    load: +100 MB over its 78 pieces; +45 MB over the 11 row groups of a 50k-episode
+    table read back). Streamed loads and saves call it after each piece. Values are never
+    touched: only memory no array holds is returned."""
+    pa.default_memory_pool().release_unused()
+    if _MALLOC_TRIM is not None:
+        _MALLOC_TRIM(0)
+
+
+def _malloc_trim():
+    try:
+        return ctypes.CDLL(None).malloc_trim if os.name == "posix" else None
+    except (OSError, AttributeError):  # not glibc (musl, macOS): nothing to trim
+        return None
+
+
+_MALLOC_TRIM = _malloc_trim()
 
 
 def read_parquet(

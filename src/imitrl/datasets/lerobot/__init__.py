@@ -56,9 +56,11 @@ which mp4, and decoding them), ``_checks`` (what frames must satisfy: timestamps
 against ``fps``, ``frame_index``, ``task_index``, the checksums :func:`save_lerobot`
 records), ``_write`` (:func:`save_lerobot`: rows -> features, written atomically by
 ``imitrl.datasets._publish``), ``_write_frames`` (the data files and per-episode
-statistics, a slice of whole episodes at a time), ``_v3_files`` (the other files of a
-v3.0 directory), ``_stats`` (LeRobot's feature and image statistics, vectorised over
-episodes).
+statistics, a slice of whole episodes at a time), ``_episode_table`` (the episode table,
+appended a slice at a time), ``_v3_files`` (the other files of a v3.0 directory),
+``_stats`` (LeRobot's feature and image statistics, vectorised over episodes),
+``_stats_totals`` (``meta/stats.json`` from running totals, with the digits of LeRobot's
+aggregation over every episode at once).
 """
 
 # the format's constants stay importable from here, as before the split into modules

@@ -15,11 +15,12 @@ import re
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
 from imitrl import keys
-from imitrl.datasets._arrow import read_parquet
+from imitrl.datasets._arrow import check_schema, read_parquet
 from imitrl.datasets._common import NestedKey, key_name
 
 DEFAULT_KEY_MAP: dict[str, NestedKey] = {
@@ -237,23 +238,47 @@ def read_info(root: Path) -> tuple[dict, int]:
     return info, major
 
 
-def read_episodes(root: Path, info: dict, major: int) -> list[dict]:
-    """The episode table in episode order, each entry with its data ``"file"``, checked
-    against ``info.json``'s ``total_episodes`` and for repeated indices."""
-    episodes = _episodes_v3(root, info) if major == 3 else _episodes_v2(root, info)
+def episode_table(root: Path, info: dict, major: int) -> pa.Table:
+    """The episode table in episode order, only the columns a load reads (never the
+    statistics): ``episode_index``, ``length``; v3.0 ``data/chunk_index``,
+    ``data/file_index``, ``dataset_from_index``/``dataset_to_index`` where a file has them
+    (null where another file lacks them) and each camera's ``videos/...``; v2.x ``chunk``.
+    Checked against ``info.json``'s ``total_episodes`` and for repeated indices. Arrow
+    columns: a few numbers per episode, no Python object per episode."""
+    table = _episodes_v3(root) if major == 3 else _episodes_v2(root, info)
     total = info.get("total_episodes")
-    if total is not None and total != len(episodes):
+    if total is not None and total != table.num_rows:
         raise ValueError(
             f"{root / 'meta' / 'info.json'} declares {total} episodes, the episode metadata lists "
-            f"{len(episodes)}"
+            f"{table.num_rows}"
         )
-    ids = [int(e["episode_index"]) for e in episodes]
-    if len(set(ids)) != len(ids):
-        raise ValueError(f"{root / 'meta'}: episode indices repeat: {ids}")
-    return episodes
+    ids = table.column("episode_index").to_numpy()
+    if len(np.unique(ids)) != len(ids):
+        raise ValueError(f"{root / 'meta'}: episode indices repeat: {ids.tolist()}")
+    return table
 
 
-def _episodes_v3(root: Path, info: dict) -> list[dict]:
+def episode_dicts(table: pa.Table) -> list[dict]:
+    """Rows of :func:`episode_table` as dicts, one per episode, without the entries its
+    file lacked."""
+    return [{k: v for k, v in ep.items() if v is not None} for ep in table.to_pylist()]
+
+
+def data_file(root: Path, info: dict, major: int, ep: dict) -> str:
+    """The data file an episode table entry names (``info.json``'s ``data_path``)."""
+    if major == 3:
+        return fill_template(
+            root,
+            info,
+            "data_path",
+            chunk_index=ep["data/chunk_index"],
+            file_index=ep["data/file_index"],
+        )
+    e = ep["episode_index"]
+    return fill_template(root, info, "data_path", episode_chunk=ep["chunk"], episode_index=e)
+
+
+def _episodes_v3(root: Path) -> pa.Table:
     ep_dir = root / "meta" / "episodes"
     files = sorted(ep_dir.glob("*/*.parquet"))
     if not files:
@@ -261,51 +286,52 @@ def _episodes_v3(root: Path, info: dict) -> list[dict]:
             f"{ep_dir}: no episode metadata files (meta/episodes/chunk-*/file-*.parquet)"
         )
     need = ["episode_index", "length", "data/chunk_index", "data/file_index"]
-    optional = ["dataset_from_index", "dataset_to_index", "tasks"]
-    episodes: list[dict] = []
+    optional = ["dataset_from_index", "dataset_to_index"]
+    tables = []
     for f in files:
-        table = read_parquet(f)
-        missing = [c for c in need if c not in table.column_names]
+        check_schema(f, None, None)
+        names = pq.read_schema(f).names
+        missing = [c for c in need if c not in names]
         if missing:
             raise ValueError(f"{f}: episode metadata lacks column(s) {missing}")
         # where each camera's frames lie: videos/<feature>/{chunk_index, file_index,
         # from_timestamp, to_timestamp} (checked where the videos are read)
-        cameras = [c for c in table.column_names if c.startswith("videos/")]
-        table = table.select(need + [c for c in optional if c in table.column_names] + cameras)
-        nulls = [c for c in table.column_names if c != "tasks" and table.column(c).null_count]
+        cameras = [c for c in names if c.startswith("videos/")]
+        columns = need + [c for c in optional if c in names] + cameras
+        try:  # not pq.read_table: its pre-buffering reads the statistics columns too
+            table = pq.ParquetFile(f, pre_buffer=False).read(columns=columns)
+        except (pa.ArrowException, OSError) as err:
+            raise ValueError(f"{f}: cannot read the parquet data ({err})") from err
+        nulls = [c for c in table.column_names if table.column(c).null_count]
         if nulls:
             raise ValueError(f"{f}: episode metadata column(s) {nulls} hold null entries")
-        episodes.extend(table.to_pylist())
-    episodes.sort(key=lambda e: e["episode_index"])
-    for ep in episodes:
-        ep["file"] = fill_template(
-            root,
-            info,
-            "data_path",
-            chunk_index=ep["data/chunk_index"],
-            file_index=ep["data/file_index"],
-        )
-    return episodes
+        tables.append(table)
+    try:
+        table = pa.concat_tables(tables, promote_options="permissive")
+    except pa.ArrowException as err:
+        raise ValueError(f"{ep_dir}: the episode metadata files disagree ({err})") from err
+    return table.sort_by("episode_index").combine_chunks()
 
 
-def _episodes_v2(root: Path, info: dict) -> list[dict]:
+def _episodes_v2(root: Path, info: dict) -> pa.Table:
     path = root / "meta" / "episodes.jsonl"
     episodes = _read_jsonl(path)
     for ep in episodes:
         for field in ("episode_index", "length"):
             if not isinstance(ep, dict) or not isinstance(ep.get(field), int):
                 raise ValueError(f"{path}: entry {ep!r} has no integer {field!r}")
-    episodes.sort(key=lambda e: e["episode_index"])
     chunks = info.get("chunks_size", DEFAULT_CHUNK_SIZE)
     if isinstance(chunks, bool) or not isinstance(chunks, int) or chunks < 1:
         raise ValueError(f"{root / 'meta' / 'info.json'}: chunks_size must be >= 1, got {chunks!r}")
-    for ep in episodes:
-        e = ep["episode_index"]
-        ep["chunk"] = e // chunks
-        ep["file"] = fill_template(
-            root, info, "data_path", episode_chunk=ep["chunk"], episode_index=e
-        )
-    return episodes
+    ids = np.array([ep["episode_index"] for ep in episodes], dtype=np.int64)
+    table = pa.table(
+        {
+            "episode_index": ids,
+            "length": np.array([ep["length"] for ep in episodes], dtype=np.int64),
+            "chunk": ids // chunks,
+        }
+    )
+    return table.sort_by("episode_index")
 
 
 def fill_template(root: Path, info: dict, field: str, **fields: int | str) -> str:

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
+import pyarrow as pa
 import torch
 from torchrl.envs import EnvBase
 
@@ -33,8 +34,10 @@ from imitrl.datasets._common import (
 from imitrl.datasets.lerobot._checks import check_frames, verify_files
 from imitrl.datasets.lerobot._layout import (
     SIDECAR,
+    data_file,
     dataset_root,
-    read_episodes,
+    episode_dicts,
+    episode_table,
     read_info,
     read_json,
     read_tasks,
@@ -72,19 +75,22 @@ class _Frames:
         return next((p for s, e, p in self.bounds if s <= i < e), self.bounds[-1][2])
 
 
-def _data_files(root: Path, episodes: list[dict], major: int) -> list[Path]:
+def _data_files(root: Path, info: dict, major: int, table: pa.Table) -> list[Path]:
     """The data files to read, in order: v3.0's sorted ``data/*/*.parquet`` (a missing
     file the episode table names is reported when frames are missing), v2.x's one per
-    episode."""
+    episode (``table``: :func:`~imitrl.datasets.lerobot._layout.episode_table`)."""
     if major != 3:
-        return [root / ep["file"] for ep in episodes]
+        return [root / data_file(root, info, major, ep) for ep in episode_dicts(table)]
     files = sorted((root / "data").glob("*/*.parquet"))
-    expected = sum(int(ep["length"]) for ep in episodes)
+    expected = int(table.column("length").to_numpy().sum())
     held = sum(rows_in(f) for f in files)
     if held < expected:
-        absent = [ep["file"] for ep in episodes if not (root / ep["file"]).is_file()]
+        places = table.select(["episode_index", "data/chunk_index", "data/file_index"])
+        episodes = places.to_pylist()
+        named = [data_file(root, info, major, ep) for ep in episodes]
+        absent = [f for f in named if not (root / f).is_file()]
         if absent:
-            eps = [int(ep["episode_index"]) for ep in episodes if ep["file"] == absent[0]]
+            eps = [int(ep["episode_index"]) for ep, f in zip(episodes, named) if f == absent[0]]
             raise ValueError(
                 f"{root / absent[0]}: file not found (the episode table places episode(s) "
                 f"{eps} there; the data files hold {held} of {expected} frames)"
@@ -223,10 +229,11 @@ def _checked_frames(
     """The episode table, the frames, and ``[N]`` the frames' order, once the frames agree
     with the episode table and with LeRobot's bookkeeping (``frame_index``, ``timestamp``,
     ``task_index``: :func:`~imitrl.datasets.lerobot._checks.check_frames`)."""
-    episodes = read_episodes(root, info, major)
-    if not episodes:
+    table = episode_table(root, info, major)
+    if not table.num_rows:
         raise ValueError(f"{root / 'meta'}: the dataset has no episodes (nothing to load)")
-    frames = _read_frames(root, _data_files(root, episodes, major), plan, info["features"])
+    episodes = episode_dicts(table)
+    frames = _read_frames(root, _data_files(root, info, major, table), plan, info["features"])
     index = _frame_order(root, info, episodes, major, frames)
     step = torch.cat([torch.arange(int(ep["length"])) for ep in episodes])
     book = {k: v[index] for k, v in frames.book.items() if k != "episode_index"}
@@ -262,17 +269,17 @@ def _stream(
     quiet: set[str],
 ) -> LoadedDemonstrations:
     """``load_lerobot(..., into=buffer)``: checked, then streamed into the buffer."""
-    episodes = read_episodes(root, info, major)
-    if not episodes:
+    table = episode_table(root, info, major)
+    if not table.num_rows:
         raise ValueError(f"{root / 'meta'}: the dataset has no episodes (nothing to load)")
-    src = locate(root, info, major, episodes, _data_files(root, episodes, major))
+    src = locate(root, info, major, table, _data_files(root, info, major, table))
     rows, notes = stream_into(into, src, settings)
     warn_skipped(root, skipped, quiet=frozenset(quiet))
     return LoadedDemonstrations(
         rows=rows,
         source=root,
         format=f"lerobot {info['codebase_version']}",
-        num_episodes=len(episodes),
+        num_episodes=table.num_rows,
         tasks=tasks,
         fps=info.get("fps"),
         loaded={v: k for k, v in settings.names.items()},

@@ -1,7 +1,8 @@
 """The files of a LeRobot v3.0 dataset, written from rows already checked.
 
 ``data/chunk-*/file-*.parquet`` (row groups of whole episodes), the episode table
-``meta/episodes/chunk-000/file-000.parquet`` with each episode's statistics,
+``meta/episodes/chunk-000/file-000.parquet`` with each episode's statistics
+(:mod:`~imitrl.datasets.lerobot._episode_table`; both a slice of episodes at a time),
 ``meta/tasks.parquet``, ``meta/stats.json``, ``meta/info.json``, the cameras' videos
 (:mod:`~imitrl.datasets.lerobot._video_write`) and imitrl's own ``meta/imitrl.json`` (each
 column's buffer key and exact shape, each other file's size and SHA-256, videos included,
@@ -12,14 +13,13 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Any
 
-import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 from tensordict import TensorDictBase
 
 from imitrl.datasets.lerobot._checks import file_digest, sidecar_digest
+from imitrl.datasets.lerobot._episode_table import EpisodeTable, add_spread
 from imitrl.datasets.lerobot._layout import (
     CODEBASE_VERSION,
     DATA_PATH,
@@ -28,7 +28,7 @@ from imitrl.datasets.lerobot._layout import (
     SIDECAR,
     SIDECAR_FORMAT,
 )
-from imitrl.datasets.lerobot._stats import aggregate_arrays
+from imitrl.datasets.lerobot._stats_totals import DatasetStats
 from imitrl.datasets.lerobot._video_write import VIDEO_PATH, VideoFiles, write_videos
 from imitrl.datasets.lerobot._write_frames import Episodes, Plan, write_frames
 
@@ -45,41 +45,43 @@ def write_v3(
     chunks_size: int,
     video_files_size_in_mb: float,
 ) -> None:
-    """Every file of a v3.0 dataset under ``root``: data, videos, episode table, tasks,
-    stats, ``info.json`` and ``meta/imitrl.json``."""
-    written = write_frames(
-        root,
-        rows,
-        plan,
-        episodes,
-        fps=fps,
-        episodes_per_file=episodes_per_file,
-        chunks_size=chunks_size,
-    )
-    videos = VideoFiles([{} for _ in episodes.starts], {})
+    """Every file of a v3.0 dataset under ``root``: videos (first: the episode table
+    records where each episode's frames lie in them), data and episode table a slice at a
+    time, tasks, stats, ``info.json`` and ``meta/imitrl.json``."""
+    videos = VideoFiles([], {})
     if plan.videos:
         videos = write_videos(
             root,
             plan.videos,
-            episodes.starts,
-            episodes.lengths,
+            episodes.starts.tolist(),
+            episodes.lengths.tolist(),
             fps=fps,
             chunks_size=chunks_size,
             file_size_in_mb=video_files_size_in_mb,
         )
-    ep_stats = written.episode_stats()
-    ep_table = _episode_table(plan, episodes, written.places, videos.episode_columns, ep_stats)
+    totals = DatasetStats(len(episodes.starts))
     ep_path = root / EPISODES_PATH.format(chunk_index=0, file_index=0)
-    ep_path.parent.mkdir(parents=True, exist_ok=True)
-    pq.write_table(ep_table, ep_path, compression="snappy")
+    with EpisodeTable(ep_path, plan, episodes, videos.episode_columns) as table:
+        write_frames(
+            root,
+            rows,
+            plan,
+            episodes,
+            table=table,
+            totals=totals,
+            fps=fps,
+            episodes_per_file=episodes_per_file,
+            chunks_size=chunks_size,
+        )
+    add_spread(ep_path, totals)  # the pooled variance needs the dataset's means first
     _write_tasks(root, episodes.task_list)
-    _write_stats(root, plan, ep_stats)
+    _write_stats(root, totals)
     n_eps = len(episodes.starts)
     info = {
         "codebase_version": CODEBASE_VERSION,
         "robot_type": robot_type,
         "total_episodes": n_eps,
-        "total_frames": int(sum(episodes.lengths)),
+        "total_frames": int(episodes.lengths.sum()),
         "total_tasks": len(episodes.task_list),
         "chunks_size": chunks_size,
         "data_files_size_in_mb": DEFAULT_DATA_FILE_SIZE_IN_MB,
@@ -104,50 +106,6 @@ def write_v3(
     (root / SIDECAR).write_text(json.dumps(sidecar, indent=2))
 
 
-def _episode_table(
-    plan: Plan,
-    episodes: Episodes,
-    places: list[tuple[int, int]],
-    video_columns: list[dict[str, Any]],
-    ep_stats: dict[str, dict[str, np.ndarray]],
-) -> pa.Table:
-    """The episode table, one row per episode: tasks, length, data file, frame range, each
-    camera's video file and time span, and its ``stats/<feature>/<stat>``, in the order
-    LeRobot's ``save_episode`` writes them; built column by column (the types
-    ``pa.Table.from_pylist`` infers from the same values)."""
-    starts = np.asarray(episodes.starts, dtype=np.int64)
-    lengths = np.asarray(episodes.lengths, dtype=np.int64)
-    columns: dict[str, Any] = {
-        "episode_index": np.arange(len(starts)),
-        "tasks": episodes.tasks,
-        "length": lengths,
-        "data/chunk_index": [c for c, _ in places],
-        "data/file_index": [f for _, f in places],
-        "dataset_from_index": starts,
-        "dataset_to_index": starts + lengths,
-    }
-    for name in video_columns[0]:
-        columns[name] = [v[name] for v in video_columns]
-    for name in plan.info:  # in feature order, as LeRobot writes the columns
-        for stat, values in ep_stats.get(name, {}).items():
-            columns[f"stats/{name}/{stat}"] = _list_column(values)
-    columns["meta/episodes/chunk_index"] = np.zeros(len(starts), dtype=np.int64)
-    columns["meta/episodes/file_index"] = np.zeros(len(starts), dtype=np.int64)
-    return pa.table({k: v if isinstance(v, pa.Array) else pa.array(v) for k, v in columns.items()})
-
-
-def _list_column(values: np.ndarray) -> pa.Array:
-    """``[E, *shape]`` -> nested ``list<...>`` column, one entry per episode, of the type
-    ``pa.array(values.tolist())`` infers (float -> double, integer -> int64, bool), built
-    from the flat values without a Python object per number."""
-    kind = {"f": np.float64, "i": np.int64, "u": np.int64, "b": np.bool_}[values.dtype.kind]
-    arr: pa.Array = pa.array(values.reshape(-1).astype(kind))
-    for size in reversed(values.shape[1:]):
-        offsets = pa.array(np.arange(0, len(arr) + 1, size, dtype=np.int32))
-        arr = pa.ListArray.from_arrays(offsets, arr)
-    return arr
-
-
 def _write_tasks(root: Path, task_list: list[str]) -> None:
     """``meta/tasks.parquet``: the task strings as the pandas index, ``task_index`` beside."""
     tasks_table = pa.table(
@@ -159,13 +117,12 @@ def _write_tasks(root: Path, task_list: list[str]) -> None:
     pq.write_table(tasks_table, root / "meta" / "tasks.parquet")
 
 
-def _write_stats(root: Path, plan: Plan, ep_stats: dict[str, dict[str, np.ndarray]]) -> None:
+def _write_stats(root: Path, totals: DatasetStats) -> None:
     """``meta/stats.json``: every feature's statistics over the whole dataset, the episodes'
-    aggregated as LeRobot aggregates them (:func:`aggregate_arrays`)."""
+    aggregated as LeRobot aggregates them (:class:`DatasetStats`), features in
+    ``info.json``'s order."""
     stats = {
-        name: {k: v.tolist() for k, v in aggregate_arrays(ep_stats[name]).items()}
-        for name in plan.info
-        if name in ep_stats
+        name: {k: v.tolist() for k, v in totals.result(name).items()} for name in totals.names()
     }
     (root / "meta" / "stats.json").write_text(json.dumps(stats, indent=4))
 

@@ -24,6 +24,7 @@ from tensordict import TensorDictBase
 
 from imitrl import keys
 from imitrl.data.buffer import DemonstrationBuffer
+from imitrl.data.disk import release_pages
 from imitrl.datasets._arrow import array_shape
 from imitrl.datasets._common import NUMPY_NAMES, key_name
 from imitrl.datasets._publish import publishing
@@ -193,14 +194,15 @@ def _rows_to_write(
     return rows
 
 
-SCAN_ROWS = 1 << 20
+SCAN_ROWS = 1 << 18
 """rows of ``EPISODE``, ``STEP`` and ``task_index`` read at once by :func:`_episodes`"""
 
 
 def _episodes(rows: TensorDictBase, tasks: str | Sequence[str]) -> Episodes:
     """Each episode's first row, length and tasks, read :data:`SCAN_ROWS` rows at a time:
     episodes are contiguous blocks whose ``STEP`` runs 0..length-1, and ``"task_index"``
-    (required with several tasks) indexes ``tasks``. Memory: a few numbers per episode."""
+    (required with several tasks) indexes ``tasks``. Memory: a few integers per episode
+    (a memory-mapped source's pages are let go after each read)."""
     n = rows.shape[0]
     task_list = [tasks] if isinstance(tasks, str) else list(tasks)
     if not task_list or len(set(task_list)) != len(task_list):
@@ -208,15 +210,17 @@ def _episodes(rows: TensorDictBase, tasks: str | Sequence[str]) -> Episodes:
     has_tasks = "task_index" in rows.keys()
     if not has_tasks and len(task_list) != 1:
         raise ValueError("several tasks given but the rows have no 'task_index' key")
+    scanned = rows.select(keys.EPISODE, keys.STEP, *(["task_index"] if has_tasks else []))
     starts: list[np.ndarray] = []
     ids: list[np.ndarray] = []
-    pairs: set[tuple[int, int]] = set()  # (episode number, task index)
-    last_id, run_start = None, 0
+    pairs: list[np.ndarray] = []  # episode number * len(task_list) + task index
+    count, last_id, run_start = 0, None, 0
     wrong_step: str | None = None
     for begin in range(0, n, SCAN_ROWS):
         end = min(n, begin + SCAN_ROWS)
-        episode = rows.get(keys.EPISODE)[begin:end].cpu().numpy().reshape(-1)
-        step = rows.get(keys.STEP)[begin:end].cpu().numpy().reshape(-1)
+        part = scanned[begin:end]
+        episode = part.get(keys.EPISODE).cpu().numpy().reshape(-1)
+        step = part.get(keys.STEP).cpu().numpy().reshape(-1)
         change = np.ones(end - begin, dtype=bool)
         change[1:] = episode[1:] != episode[:-1]
         change[0] = last_id is None or int(episode[0]) != last_id
@@ -229,19 +233,20 @@ def _episodes(rows: TensorDictBase, tasks: str | Sequence[str]) -> Episodes:
                 f"episode {int(episode[i])}: {keys.STEP!r} must run 0..length-1 (LeRobot's "
                 f"frame_index), got {int(step[i])} at its row {int(where[i] - first[i])}"
             )
-        number = sum(len(s) for s in starts) + np.cumsum(change) - 1  # each row's episode
+        number = count + np.cumsum(change) - 1  # each row's episode
+        count += int(change.sum())
         starts.append(where[change])
         ids.append(episode[change])
         if has_tasks:
-            task = rows.get("task_index")[begin:end].cpu().reshape(-1).to(torch.int64).numpy()
+            task = part.get("task_index").cpu().reshape(-1).to(torch.int64).numpy()
             if int(task.min()) < 0 or int(task.max()) >= len(task_list):
                 raise ValueError(
                     f"'task_index' holds indices outside the {len(task_list)} tasks given"
                 )
-            both = np.unique(number * len(task_list) + task)
-            pairs.update(zip((both // len(task_list)).tolist(), (both % len(task_list)).tolist()))
+            pairs.append(np.unique(number * len(task_list) + task))
         last_id, run_start = int(episode[-1]), int(first[-1])
-    all_starts = np.concatenate(starts)
+        release_pages(part)
+    all_starts = np.concatenate(starts).astype(np.int64)
     all_ids = np.concatenate(ids)
     if len(np.unique(all_ids)) != len(all_ids):
         raise ValueError(
@@ -249,15 +254,10 @@ def _episodes(rows: TensorDictBase, tasks: str | Sequence[str]) -> Episodes:
         )
     if wrong_step is not None:
         raise ValueError(wrong_step)
-    per_episode: list[set[str]] = [set() for _ in all_starts]
-    for e, t in pairs:
-        per_episode[e].add(task_list[t])
-    if not has_tasks:
-        per_episode = [{task_list[0]} for _ in all_starts]
-    lengths = np.diff(np.append(all_starts, n))
-    return Episodes(
-        all_starts.tolist(), lengths.tolist(), [sorted(t) for t in per_episode], task_list
-    )
+    both = np.unique(np.concatenate(pairs)) if has_tasks else np.arange(count) * len(task_list)
+    task_pairs = np.stack([both // len(task_list), both % len(task_list)], axis=1)
+    lengths = np.diff(np.append(all_starts, n)).astype(np.int64)
+    return Episodes(all_starts, lengths, task_pairs.astype(np.int64), task_list)
 
 
 def _replaceable(path: Path) -> None:

@@ -2,13 +2,17 @@
 
 :func:`save_lerobot` reads its rows (in memory, or a disk buffer's memory-mapped files)
 in slices of about :data:`SLICE_BYTES` holding whole episodes: each slice becomes one
-arrow table, written to the data files, and its episodes' statistics are computed in one vectorised pass per feature
-(:func:`~imitrl.datasets.lerobot._stats.segment_stats`). A row group holds whole
-episodes: those of one slice that go to one file (lerobot 0.4 writes one row group per
-episode; at about 1 ms per row group, whatever its size, that alone took 5 s for 1M
-CartPole frames; readers, LeRobot's included, do not depend on row groups). What stays in memory
-grows with the number of episodes (their statistics, for the episode table), not with
-the number of frames. Camera frames written as video are read by
+arrow table, written to the data files, and its episodes' statistics are computed in one
+vectorised pass per feature (:func:`~imitrl.datasets.lerobot._stats.segment_stats`),
+appended to the episode table (:class:`~imitrl.datasets.lerobot._episode_table.EpisodeTable`)
+and added to the running totals of ``meta/stats.json``
+(:class:`~imitrl.datasets.lerobot._stats_totals.DatasetStats`); then the slice's pages of
+a memory-mapped source are let go (:func:`~imitrl.data.disk.release_pages`). What stays
+in memory: one slice, and a few integers per episode (:class:`Episodes`), whatever the
+number of frames. A row group holds whole episodes: those of one slice that go to one
+file (lerobot 0.4 writes one row group per episode; at about 1 ms per row group, whatever
+its size, that alone took 5 s for 1M CartPole frames; readers, LeRobot's included, do not
+depend on row groups). Camera frames written as video are read by
 :mod:`~imitrl.datasets.lerobot._video_write` from the rows themselves, one episode at a
 time.
 """
@@ -17,7 +21,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 import pyarrow as pa
@@ -25,11 +29,22 @@ import pyarrow.parquet as pq
 from tensordict import TensorDictBase
 
 from imitrl import keys
-from imitrl.datasets._arrow import encode_images, hf_feature, hf_schema_metadata, tensor_to_array
+from imitrl.data.disk import release_pages
+from imitrl.datasets._arrow import (
+    encode_images,
+    hf_feature,
+    hf_schema_metadata,
+    release_unused_memory,
+    tensor_to_array,
+)
 from imitrl.datasets._common import NestedKey
 from imitrl.datasets.lerobot._layout import DATA_PATH
 from imitrl.datasets.lerobot._stats import image_stats, sample_frames, segment_stats
+from imitrl.datasets.lerobot._stats_totals import DatasetStats
 from imitrl.datasets.lerobot._video_write import next_file
+
+if TYPE_CHECKING:  # _episode_table imports this module's Episodes and Plan
+    from imitrl.datasets.lerobot._episode_table import EpisodeTable
 
 SLICE_BYTES = 8 << 20
 """bytes of rows read and converted at once (rounded to whole episodes, at least one); a
@@ -38,16 +53,26 @@ row group holds at most one slice, so a streamed load reads at most this much at
 
 @dataclass(frozen=True)
 class Episodes:
-    """The episodes written: contiguous blocks of the ``N`` rows, and their tasks."""
+    """The episodes written: contiguous blocks of the ``N`` rows, and their tasks; a few
+    integers per episode."""
 
-    starts: list[int]
-    """first row of each episode"""
-    lengths: list[int]
-    """rows of each episode"""
-    tasks: list[list[str]]
-    """each episode's task strings, sorted (the episode table's ``tasks``)"""
+    starts: np.ndarray
+    """``[E]`` int64: first row of each episode"""
+    lengths: np.ndarray
+    """``[E]`` int64: rows of each episode"""
+    task_pairs: np.ndarray
+    """``[P, 2]`` int64: every distinct ``(episode, task_index)`` of the rows, sorted"""
     task_list: list[str]
     """every task string, indexed by ``task_index``"""
+
+    def tasks(self, first: int, end: int) -> list[list[str]]:
+        """Episodes ``first .. end - 1``'s task strings, each sorted (the episode table's
+        ``tasks``)."""
+        lo, hi = np.searchsorted(self.task_pairs[:, 0], [first, end])
+        out: list[list[str]] = [[] for _ in range(end - first)]
+        for e, t in self.task_pairs[lo:hi].tolist():
+            out[e - first].append(self.task_list[t])
+        return [sorted(t) for t in out]
 
 
 @dataclass(frozen=True)
@@ -76,23 +101,6 @@ class Plan:
     """video feature -> uint8 ``[N, H, W, 3]`` frames to encode (a view of the rows)"""
 
 
-@dataclass
-class Written:
-    """What :func:`write_frames` leaves for the episode table and ``meta/stats.json``."""
-
-    places: list[tuple[int, int]]
-    """each episode's ``(chunk_index, file_index)``"""
-    stats: dict[str, dict[str, list[np.ndarray]]]
-    """feature -> stat -> ``[E_slice, ...]`` arrays, slice after slice"""
-
-    def episode_stats(self) -> dict[str, dict[str, np.ndarray]]:
-        """feature -> stat -> ``[E, ...]`` over every episode."""
-        return {
-            name: {stat: np.concatenate(parts) for stat, parts in per.items()}
-            for name, per in self.stats.items()
-        }
-
-
 def pixels_of(value: Any, layout: Literal["hwc", "chw"]) -> np.ndarray:
     """uint8 ``[N, H, W, 3]`` frames of an image key (a view)."""
     pixels = value.numpy()
@@ -104,7 +112,7 @@ def slices(episodes: Episodes, row_bytes: int) -> list[tuple[int, int]]:
     :data:`SLICE_BYTES` of rows each (one episode at least)."""
     budget = max(1, SLICE_BYTES // max(1, row_bytes))
     out, first, rows = [], 0, 0
-    for e, n in enumerate(episodes.lengths):
+    for e, n in enumerate(episodes.lengths.tolist()):
         if rows and rows + n > budget:
             out.append((first, e))
             first, rows = e, 0
@@ -177,23 +185,26 @@ def write_frames(
     plan: Plan,
     episodes: Episodes,
     *,
+    table: EpisodeTable,
+    totals: DatasetStats,
     fps: int,
     episodes_per_file: int,
     chunks_size: int,
-) -> Written:
+) -> None:
     """The data files under ``root``, ``episodes_per_file`` episodes each (then the next
     file, ``chunks_size`` files per chunk), row groups of whole episodes, read from ``rows``
-    a slice at a time; and every episode's statistics."""
-    written = Written([], {})
+    a slice at a time; each slice's episodes, with their statistics, appended to ``table``
+    and added to ``totals``."""
     row_bytes = sum(v[0].nbytes for v in rows.values(include_nested=True, leaves_only=True))
     chunk, file = 0, 0
     writer: pq.ParquetWriter | None = None
     try:
         for first, end in slices(episodes, row_bytes):
-            begin = episodes.starts[first]
-            lengths = np.asarray(episodes.lengths[first:end], dtype=np.int64)
+            begin = int(episodes.starts[first])
+            lengths = episodes.lengths[first:end]
             part = rows[begin : begin + int(lengths.sum())].cpu()
-            table, arrays, images = _slice_table(plan, part, begin, first, lengths, fps)
+            data, arrays, images = _slice_table(plan, part, begin, first, lengths, fps)
+            places: list[tuple[int, int]] = []
             e, offset = first, 0
             while e < end:  # one row group: the slice's episodes that go to one file
                 if e and e % episodes_per_file == 0:  # lerobot's update_chunk_file_indices
@@ -204,17 +215,19 @@ def write_frames(
                     path = root / DATA_PATH.format(chunk_index=chunk, file_index=file)
                     path.parent.mkdir(parents=True, exist_ok=True)
                     writer = pq.ParquetWriter(
-                        path, table.schema, compression="snappy", use_dictionary=True
+                        path, data.schema, compression="snappy", use_dictionary=True
                     )
                 stop = min(end, (e // episodes_per_file + 1) * episodes_per_file)
                 n = int(lengths[e - first : stop - first].sum())
-                writer.write_table(table.slice(offset, n), row_group_size=n)
-                written.places.extend([(chunk, file)] * (stop - e))
+                writer.write_table(data.slice(offset, n), row_group_size=n)
+                places.extend([(chunk, file)] * (stop - e))
                 e, offset = stop, offset + n
-            for name, per in _slice_stats(arrays, images, lengths).items():
-                for stat, value in per.items():
-                    written.stats.setdefault(name, {}).setdefault(stat, []).append(value)
+            stats = _slice_stats(arrays, images, lengths)
+            table.write(first, end, places, stats)
+            totals.add({n: stats[n] for n in plan.info if n in stats})  # stats.json's order
+            del data, arrays, images
+            release_pages(part)  # a memory-mapped source's pages, once read
+            release_unused_memory()
     finally:
         if writer is not None:
             writer.close()
-    return written

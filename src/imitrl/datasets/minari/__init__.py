@@ -6,31 +6,29 @@ group per episode: :mod:`._hdf5`) and ``arrow`` / ``parquet`` (one folder per ep
 spaces. Every array is checked against its space before it is converted
 (:mod:`._spaces`: no cast that changes a value, Discrete actions in range, no NaN or
 inf) and every episode against its own records (:mod:`._episodes`: lengths, boolean
-flags, one value of reward per step, unique ids). Why not TorchRL's
+flags, one value of reward per step, unique ids). :mod:`._source` lists the episodes and
+reads them one at a time, whatever the storage; :mod:`._stream` streams them into a
+buffer (``load_minari(..., into=buffer)``). Why not TorchRL's
 ``MinariExperienceReplay``: in torchrl 0.14.1 it returns all-zero data for a local
 dataset (see TORCHRL_NOTES.md).
 """
 
 from __future__ import annotations
 
-import json
 import os
 from pathlib import Path
-from typing import Any
 
 from torchrl.envs import EnvBase
 
 from imitrl import keys
+from imitrl.data.buffer import DemonstrationBuffer
 from imitrl.datasets._common import LoadedDemonstrations, conform_to_env, warn_skipped
-from imitrl.datasets.minari._arrow import read_columns
-from imitrl.datasets.minari._episodes import Steps, check_episode, check_ids, episode_rows
-from imitrl.datasets.minari._hdf5 import MAIN_FILE, attrs_metadata, open_hdf5, read_hdf5
-from imitrl.datasets.minari._spaces import parse_space
+from imitrl.datasets.minari._episodes import check_episode, check_steps, episode_rows
+from imitrl.datasets.minari._hdf5 import MAIN_FILE
+from imitrl.datasets.minari._source import METADATA_FILE, open_episodes
+from imitrl.datasets.minari._stream import stream_into
 
 __all__ = ["load_minari", "resolve_minari_root"]
-
-METADATA_FILE = "metadata.json"
-FORMATS = ("hdf5", "arrow", "parquet")
 
 
 def resolve_minari_root(path_or_id: str | Path) -> Path:
@@ -53,51 +51,6 @@ def resolve_minari_root(path_or_id: str | Path) -> Path:
         f"no Minari dataset at {path_or_id!r} (looked for {MAIN_FILE} or {METADATA_FILE} in "
         f"{[str(c) for c in candidates]}); this loader never downloads"
     )
-
-
-def _metadata_json(path: Path) -> dict[str, Any]:
-    try:
-        meta = json.loads(path.read_text())
-    except json.JSONDecodeError as err:
-        raise ValueError(f"{path} is not valid JSON: {err}") from err
-    if not isinstance(meta, dict):
-        raise ValueError(f"{path}: expected a JSON object, got {type(meta).__name__}")
-    return meta
-
-
-def _spaces(meta: dict[str, Any], where: str) -> tuple[dict, dict]:
-    """The observation and action spaces the metadata declares."""
-    fmt = meta.get("data_format", "hdf5")
-    if fmt not in FORMATS:
-        raise ValueError(f"{where}: data_format {fmt!r} is not supported (only {FORMATS})")
-    for field in ("observation_space", "action_space"):
-        if field not in meta:
-            raise ValueError(
-                f"{where}: no {field!r}; datasets that only record an env_spec are not "
-                "supported (the env would have to be built to learn its spaces)"
-            )
-    return (
-        parse_space(meta["observation_space"], f"{where}: observation_space"),
-        parse_space(meta["action_space"], f"{where}: action_space"),
-    )
-
-
-def _read_steps(data_dir: Path, skipped: dict[str, str]) -> tuple[list[Steps], dict, str]:
-    """Every episode's arrays, the metadata, and the file (or folder) messages name."""
-    meta_path = data_dir / METADATA_FILE
-    meta = _metadata_json(meta_path) if meta_path.is_file() else None
-    fmt = (meta or {}).get("data_format", "hdf5")
-    if fmt == "hdf5":
-        where = str(data_dir / MAIN_FILE)
-        with open_hdf5(data_dir / MAIN_FILE) as h5:
-            meta = meta if meta is not None else attrs_metadata(h5, where)
-            spaces = _spaces(meta, str(meta_path) if meta_path.is_file() else where)
-            jpeg = bool(meta.get("jpeg_encoding", False))
-            steps = read_hdf5(h5, spaces, jpeg, skipped, where)
-        return steps, meta, where
-    spaces = _spaces(meta, str(meta_path))  # arrow / parquet: metadata.json named the format
-    jpeg = bool(meta.get("jpeg_encoding", False))
-    return read_columns(data_dir, fmt, spaces, jpeg, skipped), meta, str(data_dir)
 
 
 _LOADED = {
@@ -127,6 +80,7 @@ def load_minari(
     env: EnvBase | None = None,
     first_episode: int = 0,
     next_observation: bool = False,
+    into: DemonstrationBuffer | None = None,
 ) -> LoadedDemonstrations:
     """Read a local Minari dataset (hdf5, arrow or parquet storage) into demonstration rows.
 
@@ -140,6 +94,12 @@ def load_minari(
             buffer with the env's own rollouts.
         first_episode: added to Minari's episode ids (use ``buffer.next_episode``).
         next_observation: also keep ``observations[t + 1]`` as ``("next", OBSERVATION)``.
+        into: stream the dataset into this buffer (in memory or on disk,
+            ``DemonstrationBuffer(path=...)``) episode by episode (:mod:`._stream`):
+            resident memory does not grow with the dataset's length. Every check runs over
+            the whole dataset before the buffer is extended (the dataset is read twice),
+            so a damaged episode anywhere leaves the buffer as it was. ``rows`` is then a
+            view of the rows added to the buffer, the same rows the load into memory gives.
 
     Returns:
         :class:`LoadedDemonstrations`: ``OBSERVATION`` (a tensor, or a nested TensorDict for
@@ -156,23 +116,38 @@ def load_minari(
             than booleans or 0/1), NaN or inf; an episode whose arrays have inconsistent
             lengths or shapes, or rewards of more than one value per step; an episode id
             held twice; episode counts or step totals that contradict the metadata; shapes
-            that contradict ``env``. Nothing is returned half-loaded.
+            that contradict ``env``; with ``into``, rows that do not fit the buffer (its
+            schema, its episode ids). Nothing is returned, or added, half-loaded.
     """
     data_dir = resolve_minari_root(path_or_id)
     skipped: dict[str, str] = {}
-    steps, meta, where = _read_steps(data_dir, skipped)
-    check_ids(steps, meta, where)
-    episodes = [check_episode(s, first_episode, next_observation) for s in steps]
-    rows = episode_rows(episodes, meta, next_observation, where)
     notes: list[str] = []
-    if env is not None:
-        rows = conform_to_env(rows, env, where=where, notes=notes, names=dict(_SOURCES))
+    with open_episodes(data_dir, skipped) as src:
+        meta, where = src.meta, src.where
+        if into is not None:
+            rows, notes = stream_into(
+                into,
+                src,
+                first_episode=first_episode,
+                next_observation=next_observation,
+                env=env,
+                names=dict(_SOURCES),
+            )
+        else:
+            episodes = [
+                check_episode(src.read(e), first_episode, next_observation) for e in range(len(src))
+            ]
+            check_steps(sum(len(ep.step) for ep in episodes), meta, where)
+            rows = episode_rows(episodes, next_observation)
+            if env is not None:
+                rows = conform_to_env(rows, env, where=where, notes=notes, names=dict(_SOURCES))
+        num_episodes = len(src)
     warn_skipped(data_dir, skipped, quiet=frozenset())
     return LoadedDemonstrations(
         rows=rows,
         source=data_dir,
         format=f"minari {meta.get('data_format', 'hdf5')} (minari {meta.get('minari_version', '?')})",
-        num_episodes=len(episodes),
+        num_episodes=num_episodes,
         loaded=dict(_LOADED),
         skipped=skipped,
         notes=notes,

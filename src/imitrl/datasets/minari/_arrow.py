@@ -19,16 +19,17 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import pyarrow as pa
 import pyarrow.compute as pc
 
-from imitrl.datasets.minari._episodes import Steps, as_count
+from imitrl.datasets.minari._episodes import EpisodeList, Steps, as_count, list_episodes
 from imitrl.datasets.minari._spaces import decode, is_image, space_shape
 
-__all__ = ["read_columns"]
+__all__ = ["list_folders", "read_folder"]
 
 _FIELDS = ("observations", "actions", "rewards", "terminations", "truncations")
 
@@ -141,19 +142,34 @@ def _read_folder(
     return Steps(here, ep_id, obs, act, declared_steps=declared, **flags)
 
 
-def read_columns(
-    data_dir: Path, fmt: str, spaces: tuple[dict, dict], jpeg: bool, skipped: dict[str, str]
-) -> list[Steps]:
-    """Every episode folder ``data/<id>/`` in id order (names starting with ``.`` or ``_``
-    are ignored, as Minari's reader ignores them)."""
-    found = []
-    for entry in data_dir.iterdir():
-        if not entry.is_dir() or entry.name.startswith((".", "_")):
-            continue
-        if not (entry.name.isascii() and entry.name.isdigit()):
-            raise ValueError(f"{entry}: unexpected folder (episode folders are named by id)")
-        found.append((int(entry.name), entry))
-    if not found:
+def list_folders(data_dir: Path, fmt: str, meta: dict[str, Any]) -> EpisodeList:
+    """The episode folders ``data/<id>/`` in id order (names starting with ``.`` or ``_``
+    are ignored, as Minari's reader ignores them); only their names are read."""
+
+    def found() -> Iterator[tuple[str, int]]:
+        for entry in data_dir.iterdir():
+            if not entry.is_dir() or entry.name.startswith((".", "_")):
+                continue
+            if not (entry.name.isascii() and entry.name.isdigit()):
+                raise ValueError(f"{entry}: unexpected folder (episode folders are named by id)")
+            yield entry.name, int(entry.name)
+
+    describe = lambda name: f"{data_dir / name}/part-*.{fmt}"  # noqa: E731
+    listing = list_episodes(found(), "{}", meta, str(data_dir), describe)
+    if not len(listing):
         raise ValueError(f"{data_dir}: no episode folders (data/<id>/part-0.{fmt})")
-    found.sort(key=lambda item: item[0])
-    return [_read_folder(folder, ep_id, fmt, spaces, jpeg, skipped) for ep_id, folder in found]
+    return listing
+
+
+def read_folder(
+    data_dir: Path,
+    listing: EpisodeList,
+    e: int,
+    fmt: str,
+    spaces: tuple[dict, dict],
+    jpeg: bool,
+    skipped: dict[str, str],
+) -> Steps:
+    """The ``e``-th episode folder (its part files only)."""
+    folder = data_dir / listing.name(e)
+    return _read_folder(folder, int(listing.ids[e]), fmt, spaces, jpeg, skipped)

@@ -9,6 +9,7 @@ OBSERVATION)`` only with ``next_observation=True``.
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import Any
 
@@ -19,7 +20,16 @@ from tensordict import TensorDict
 from imitrl import keys
 from imitrl.datasets._common import NestedKey, check_finite, exact_cast, required_rows
 
-__all__ = ["Episode", "Steps", "as_count", "check_episode", "check_ids", "episode_rows"]
+__all__ = [
+    "Episode",
+    "EpisodeList",
+    "Steps",
+    "as_count",
+    "check_episode",
+    "check_steps",
+    "episode_rows",
+    "list_episodes",
+]
 
 
 @dataclass(frozen=True)
@@ -134,32 +144,66 @@ def check_episode(steps: Steps, first_episode: int, next_observation: bool) -> E
     )
 
 
-def check_ids(steps: list[Steps], meta: dict[str, Any], where: str) -> None:
-    """Each episode id once; as many episodes and steps as the metadata declares."""
-    seen: dict[int, str] = {}
-    for s in steps:
-        if s.id in seen:
-            raise ValueError(f"{where}: episode id {s.id} is held twice ({seen[s.id]}, {s.name})")
-        seen[s.id] = s.name
+@dataclass(frozen=True)
+class EpisodeList:
+    """The episodes a storage holds, in id order, listed before any is read: one integer
+    per episode (names are kept only where they are not ``canonical``)."""
+
+    ids: np.ndarray
+    """``[E]`` int64, ascending, each once"""
+    odd_names: dict[int, str]
+    """id -> the episode's name where it is not ``canonical.format(id)``"""
+    canonical: str
+    """the usual name of episode ``{}``: ``"episode_{}"`` (hdf5), ``"{}"`` (arrow folders)"""
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    def name(self, e: int) -> str:
+        """The ``e``-th episode's group or folder name."""
+        i = int(self.ids[e])
+        return self.odd_names.get(i, self.canonical.format(i))
+
+
+def list_episodes(
+    found: Iterable[tuple[str, int]],
+    canonical: str,
+    meta: dict[str, Any],
+    where: str,
+    describe: Callable[[str], str],
+) -> EpisodeList:
+    """The ``(name, id)`` pairs a storage lists, in id order (names listed first first
+    among equal ids), once each id is held once and there are as many as the metadata's
+    ``total_episodes``; ``describe(name)`` names an episode in messages."""
+    ids: list[int] = []
+    odd: dict[int, str] = {}  # listing position -> name
+    for name, i in found:
+        if name != canonical.format(i):
+            odd[len(ids)] = name
+        ids.append(i)
+    listed = np.asarray(ids, dtype=np.int64)
+    order = np.argsort(listed, kind="stable")
+    ordered = listed[order]
+    twice = np.flatnonzero(ordered[1:] == ordered[:-1])
+    if len(twice):
+        a, b = (int(order[k]) for k in (twice[0], twice[0] + 1))
+        first, second = (odd.get(p, canonical.format(int(listed[p]))) for p in (a, b))
+        raise ValueError(
+            f"{where}: episode id {int(listed[a])} is held twice ({describe(first)}, "
+            f"{describe(second)})"
+        )
     if meta.get("total_episodes") is not None:
         total = as_count(meta["total_episodes"], "total_episodes", where)
-        if total != len(steps):
+        if total != len(listed):
             raise ValueError(
-                f"{where}: metadata declares {total} episodes, the dataset holds {len(steps)}"
+                f"{where}: metadata declares {total} episodes, the dataset holds {len(listed)}"
             )
+    return EpisodeList(ordered, {int(listed[p]): n for p, n in odd.items()}, canonical)
 
 
-def _cat(parts: list[Any], n: int) -> Any:
-    if isinstance(parts[0], dict):
-        return TensorDict({k: _cat([p[k] for p in parts], n) for k in parts[0]}, batch_size=[n])
-    return torch.cat(parts)
-
-
-def episode_rows(
-    episodes: list[Episode], meta: dict[str, Any], next_observation: bool, where: str
-) -> TensorDict:
-    """The ``[N]`` rows of every episode, back to back, with the buffer's required keys."""
-    frames = sum(len(ep.step) for ep in episodes)
+def check_steps(frames: int, meta: dict[str, Any], where: str) -> None:
+    """The episodes hold ``frames`` steps: as many as the metadata's ``total_steps``, and
+    at least one."""
     if meta.get("total_steps") is not None:
         total = as_count(meta["total_steps"], "total_steps", where)
         if total != frames:
@@ -168,6 +212,18 @@ def episode_rows(
             )
     if frames == 0:
         raise ValueError(f"{where}: the dataset holds no steps")
+
+
+def _cat(parts: list[Any], n: int) -> Any:
+    if isinstance(parts[0], dict):
+        return TensorDict({k: _cat([p[k] for p in parts], n) for k in parts[0]}, batch_size=[n])
+    return torch.cat(parts)
+
+
+def episode_rows(episodes: list[Episode], next_observation: bool) -> TensorDict:
+    """The ``[N]`` rows of the episodes (``N > 0``), back to back, with the buffer's
+    required keys."""
+    frames = sum(len(ep.step) for ep in episodes)
     terminated = torch.cat([ep.terminated for ep in episodes])
     truncated = torch.cat([ep.truncated for ep in episodes])
     columns: dict[NestedKey, Any] = {

@@ -10,15 +10,16 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from imitrl.datasets.minari._episodes import Steps, as_count
+from imitrl.datasets.minari._episodes import EpisodeList, Steps, as_count, list_episodes
 from imitrl.datasets.minari._spaces import decode
 
-__all__ = ["MAIN_FILE", "attrs_metadata", "open_hdf5", "read_hdf5"]
+__all__ = ["MAIN_FILE", "attrs_metadata", "list_groups", "open_hdf5", "read_group"]
 
 MAIN_FILE = "main_data.hdf5"
 _FIELDS = ("observations", "actions", "rewards", "terminations", "truncations")
@@ -65,19 +66,22 @@ def attrs_metadata(h5file, where: str) -> dict[str, Any]:
     return meta
 
 
-def _episode_groups(h5, where: str) -> list[tuple[str, int]]:
-    """The ``episode_<id>`` groups of the file with their ids, in id order."""
-    found = []
-    for name in h5.keys():
-        if not name.startswith("episode_"):
-            continue
-        suffix = name.removeprefix("episode_")
-        if not (suffix.isascii() and suffix.isdigit()):
-            raise ValueError(f"{where}: unexpected group name {name!r} (episode_<id>)")
-        found.append((name, int(suffix)))
-    if not found:
+def list_groups(h5, meta: dict[str, Any], where: str) -> EpisodeList:
+    """The ``episode_<id>`` groups of the file, in id order (only their names are read)."""
+
+    def found() -> Iterator[tuple[str, int]]:
+        for name in h5.keys():
+            if not name.startswith("episode_"):
+                continue
+            suffix = name.removeprefix("episode_")
+            if not (suffix.isascii() and suffix.isdigit()):
+                raise ValueError(f"{where}: unexpected group name {name!r} (episode_<id>)")
+            yield name, int(suffix)
+
+    listing = list_episodes(found(), "episode_{}", meta, where, lambda n: f"{where}: {n}")
+    if not len(listing):
         raise ValueError(f"{where}: no episode groups")
-    return sorted(found, key=lambda item: item[1])
+    return listing
 
 
 def _array(group, field: str, here: str) -> np.ndarray:
@@ -130,14 +134,18 @@ def _read_group(
     )
 
 
-def read_hdf5(
-    h5, spaces: tuple[dict, dict], jpeg: bool, skipped: dict[str, str], where: str
-) -> list[Steps]:
-    """Every episode group of the open file, in id order."""
+def read_group(
+    h5,
+    listing: EpisodeList,
+    e: int,
+    spaces: tuple[dict, dict],
+    jpeg: bool,
+    skipped: dict[str, str],
+    where: str,
+) -> Steps:
+    """The ``e``-th episode group of the open file (one group read: its datasets only)."""
+    name = listing.name(e)
     try:
-        return [
-            _read_group(h5[name], name, ep_id, spaces, jpeg, skipped, where)
-            for name, ep_id in _episode_groups(h5, where)
-        ]
+        return _read_group(h5[name], name, int(listing.ids[e]), spaces, jpeg, skipped, where)
     except (OSError, KeyError, RuntimeError) as err:  # h5py's errors for a damaged file
         raise ValueError(f"{where}: unreadable HDF5 data ({type(err).__name__}: {err})") from err
