@@ -1,12 +1,15 @@
 """BC update throughput against a plain-torch loop, and DAgger rounds per second.
 
-1. MLP minibatch fit (the target: imitrl >= 0.8x the plain loop's samples/s): a
+1. MLP minibatch fit (the target: imitrl >= 0.95x the plain loop's samples/s): a
    categorical MLP on vector observations, Adam, cross-entropy, minibatches drawn
    without replacement. imitrl runs `fit_bc` with `ActorCritic.mlp` (observations
    normalised inside the network, the library's default) through the learner's loss;
    the plain loop is the same network, normalisation included, and optimizer written
    directly.
-2. Tabular full-batch fit of the section's size (96 rows, 200 Adam steps).
+2. Tabular full-batch fit of the section's size (FrozenLake demonstrations, 200 Adam
+   steps; the target: imitrl >= 0.9x the plain loop's steps/s). Both clocks start after
+   the network and its optimizer (the learner) are built; fit_bc's own checks and its
+   distinct-pair weighting are inside its time.
 3. DAgger on slippery FrozenLake (4 rounds, 3 relabelled episodes per round, 200-step
    fits): rounds per second on the batched TabularEnv and on gymnasium's stream.
 
@@ -57,9 +60,13 @@ class Config:
     """DAgger runs timed (4 rounds each)"""
     repeats: int = 3
     """best of this many repeats"""
+    tabular_repeats: int = 15
+    """best of this many repeats of the tabular fits (a fraction of a second each)"""
 
 
-QUICK = Config(rows=2_000, mlp_steps=30, tabular_steps=20, dagger_runs=1, repeats=1)
+QUICK = Config(
+    rows=2_000, mlp_steps=30, tabular_steps=20, dagger_runs=1, repeats=1, tabular_repeats=1
+)
 
 
 def mlp_task(cfg: Config) -> TensorDict:
@@ -138,27 +145,28 @@ def imitrl_mlp_from_buffer(cfg: Config, data: TensorDict) -> float:
     return cfg.mlp_steps * cfg.batch_size / (time.perf_counter() - t0)
 
 
-def tabular_fits(cfg: Config) -> tuple[float, float]:
+def tabular_fits(cfg: Config) -> tuple[float, float, int]:
     mdp, Q = lake()
     env = TabularEnv(mdp, batch_size=(3,), seed=0)
     rows = rollout(
         env, Expert.from_table(greedy(Q)).as_actor(), 3, exploration=DET, max_steps=10_000
     )
     obs, act = rows[keys.OBSERVATION], rows[keys.EXPERT_ACTION]
-    t0 = time.perf_counter()
     policy = nn.Embedding(16, 4)
     nn.init.zeros_(policy.weight)
     opt = torch.optim.Adam(policy.parameters(), lr=0.1)
+    t0 = time.perf_counter()
     for _ in range(cfg.tabular_steps):
         loss = -torch.log_softmax(policy(obs), -1).gather(-1, act[:, None]).mean()
         opt.zero_grad()
         loss.backward()
         opt.step()
     plain = cfg.tabular_steps / (time.perf_counter() - t0)
+    learner = ActorCritic.tabular(16, 4)
     t0 = time.perf_counter()
-    fit_bc(ActorCritic.tabular(16, 4), rows, BCConfig(num_steps=cfg.tabular_steps))
+    fit_bc(learner, rows, BCConfig(num_steps=cfg.tabular_steps))
     lib = cfg.tabular_steps / (time.perf_counter() - t0)
-    return plain, lib
+    return plain, lib, rows.shape[0]
 
 
 def dagger_rounds(cfg: Config, source_kind: str) -> float:
@@ -196,11 +204,11 @@ def main(argv: list[str] | None = None) -> dict:
     torch.set_num_threads(1)
     logging.getLogger("torchrl").setLevel(logging.WARNING)
     data = mlp_task(cfg)
-    plain = max(plain_mlp(cfg, data) for _ in range(cfg.repeats))
-    lib = max(imitrl_mlp(cfg, data) for _ in range(cfg.repeats))
+    mlp = [(plain_mlp(cfg, data), imitrl_mlp(cfg, data)) for _ in range(cfg.repeats)]  # alternated
+    plain, lib = max(m[0] for m in mlp), max(m[1] for m in mlp)
     lib_rb = max(imitrl_mlp_from_buffer(cfg, data) for _ in range(cfg.repeats))
-    tab = [tabular_fits(cfg) for _ in range(cfg.repeats)]
-    tab_plain, tab_lib = max(t[0] for t in tab), max(t[1] for t in tab)
+    tab = [tabular_fits(cfg) for _ in range(cfg.tabular_repeats)]
+    tab_plain, tab_lib, tab_rows = max(t[0] for t in tab), max(t[1] for t in tab), tab[0][2]
     dg_env = max(dagger_rounds(cfg, "tabular_env") for _ in range(cfg.repeats))
     dg_stream = max(dagger_rounds(cfg, "stream") for _ in range(cfg.repeats))
     rows = [
@@ -211,9 +219,13 @@ def main(argv: list[str] | None = None) -> dict:
             f"{lib_rb:,.0f} samples/s",
             f"{lib_rb / plain:.2f}",
         ],
-        ["tabular full-batch fit (96 rows), plain torch", f"{tab_plain:,.0f} steps/s", "1.00"],
         [
-            "tabular full-batch fit (96 rows), imitrl fit_bc",
+            f"tabular full-batch fit ({tab_rows} rows), plain torch",
+            f"{tab_plain:,.0f} steps/s",
+            "1.00",
+        ],
+        [
+            f"tabular full-batch fit ({tab_rows} rows), imitrl fit_bc",
             f"{tab_lib:,.0f} steps/s",
             f"{tab_lib / tab_plain:.2f}",
         ],
@@ -225,8 +237,8 @@ def main(argv: list[str] | None = None) -> dict:
     md = (
         f"MLP {cfg.obs_dim}-{'-'.join(map(str, cfg.hidden))}-{cfg.num_actions} (observations "
         f"normalised), batch {cfg.batch_size}, {cfg.mlp_steps} steps; best of {cfg.repeats}. "
-        "Target: imitrl fit_bc >= 0.8x plain.\n\n"
-        + _report.table(["what", "throughput", "x plain"], rows)
+        f"Tabular: best of {cfg.tabular_repeats}. Targets: imitrl fit_bc >= 0.95x plain "
+        "(MLP), >= 0.9x (tabular).\n\n" + _report.table(["what", "throughput", "x plain"], rows)
     )
     payload = {
         "config": cfg.__dict__,
@@ -236,6 +248,7 @@ def main(argv: list[str] | None = None) -> dict:
         "ratio": lib / plain,
         "tabular_plain_steps_per_s": tab_plain,
         "tabular_imitrl_steps_per_s": tab_lib,
+        "tabular_ratio": tab_lib / tab_plain,
         "dagger_rounds_per_s_tabular_env": dg_env,
         "dagger_rounds_per_s_stream": dg_stream,
     }

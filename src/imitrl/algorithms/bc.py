@@ -36,6 +36,8 @@ that size; distinct pairs are counted slice by slice.
 
 from __future__ import annotations
 
+import functools
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import torch
@@ -208,7 +210,7 @@ class _Minibatches:
             return self.buffer.rows_at(idx, *self.reads)
         batch = self.rows.empty(batch_size=[idx.numel()])
         for key, column in self.columns.items():
-            batch.set(key, column[idx])
+            batch.set(key, column.index_select(0, idx))  # = column[idx], without its parsing
         return batch
 
 
@@ -245,6 +247,22 @@ def _check_full_batch(n: int, on_disk: bool, config: BCConfig) -> None:
             "row and its activations in memory at each step: pass BCConfig(batch_size=...) "
             "(e.g. 256)" + ("" if on_disk else ", or raise full_batch_max_rows")
         )
+
+
+def _zero_grad(opt: torch.optim.Optimizer) -> Callable[[], None]:
+    """``opt.zero_grad(set_to_none=True)`` as a function of no argument. For torch's own
+    ``Optimizer.zero_grad`` (not overridden) it is that method's assignment, ``p.grad =
+    None`` for every parameter, without the profiler range the method opens at each call
+    (a large part of a tabular step)."""
+    if type(opt).zero_grad is not torch.optim.Optimizer.zero_grad:
+        return functools.partial(opt.zero_grad, set_to_none=True)
+    params = [p for group in opt.param_groups for p in group["params"]]
+
+    def zero_grad() -> None:
+        for p in params:
+            p.grad = None
+
+    return zero_grad
 
 
 def fit_bc(
@@ -295,16 +313,19 @@ def fit_bc(
         rows, weights = _dedup(learner, rows, config)
         if weights is None:
             _check_full_batch(n, on_disk, config)
-    objective, opt = learner.loss.objective, learner.opt_pi
-    losses = torch.empty(config.num_steps)
+    objective, opt, zero_grad = learner.loss.objective, learner.opt_pi, _zero_grad(learner.opt_pi)
+    # kept where the parameters are: recording a step's loss never waits for the device
+    device = next((p.device for g in opt.param_groups for p in g["params"]), None)
+    losses = torch.empty(config.num_steps, device=device)
     steps = tqdm(range(config.num_steps), desc="bc fit", disable=not progress, leave=False)
     for step in steps:
         batch = batches.next() if minibatch else rows
         loss = objective(batch) if weights is None else objective(batch, weights)
-        opt.zero_grad(set_to_none=True)
+        zero_grad()
         loss.backward()
         opt.step()
         losses[step] = loss.detach()
+    losses = losses.cpu()
     if logger is not None:
         for step, value in enumerate(losses.tolist()):
             logger.log_scalar(log_name, value, step=log_step + step)

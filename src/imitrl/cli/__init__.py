@@ -21,47 +21,84 @@ frozenlake  ``StudyConfig``          ``experiments.frozenlake.run_study``
 
 Results and report lines go to stdout, progress bars to stderr; bad input is one
 line on stderr and exit status 2.
+
+Import cost: ``imitrl --help`` imports no command; ``imitrl COMMAND ...`` imports that
+command's module alone (:class:`Command`), so ``imitrl --help``, ``imitrl bench`` and
+``eval`` / ``bench`` / ``frozenlake --help`` start without torch (``tests/test_imports.py``).
+The help of ``bc``, ``dagger``, ``gail`` and ``airl`` lists the registered losses and
+experts, whose modules import torch and TorchRL.
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib
 import logging
 import sys
 import textwrap
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Collection, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-import torch
-
 from imitrl.cli.flags import add_config_flags, config_from_args
-from imitrl.experiments.frozenlake import StudyConfig, run_study
-from imitrl.jobs import bc, bench, dagger, evaluate, gail
-from imitrl.jobs.resolve import EXPERTS
-from imitrl.objectives import registry
 
 __all__ = ["COMMANDS", "Command", "build_parser", "main"]
 
 
+def _load(spec: str) -> Any:
+    """``"module:name"`` -> that attribute of the module (imported now)."""
+    module, _, name = spec.partition(":")
+    return getattr(importlib.import_module(module), name)
+
+
 @dataclass(frozen=True)
 class Command:
-    """One subcommand: its config dataclass, the function it runs, what it prints."""
+    """One subcommand: where its config, function and report live, and its help.
 
-    config: type
-    """frozen dataclass; every field is a flag"""
-    run: Callable[[Any], Any]
-    """``run(config) -> results``"""
-    report: Callable[[Any], list[str]] | None
-    """results -> lines for stdout (None: the function prints its own report)"""
+    The three are named ``"module:name"`` and imported on first use (:attr:`config`,
+    :attr:`run`, :attr:`report`), so that ``imitrl --help`` imports no command and
+    ``imitrl COMMAND ...`` imports that command's module alone.
+    """
+
+    config_at: str
+    """``"module:Class"`` of the frozen dataclass; every field is a flag"""
+    run_at: str
+    """``"module:function"``, ``function(config) -> results``"""
+    report_at: str | None
+    """``"module:function"``, results -> lines for stdout (None: the function prints its
+    own report)"""
     help: str
     """one line in ``imitrl --help``"""
     description: str
     """the top of ``imitrl COMMAND --help``"""
+    epilog: Callable[[], str] | None = None
+    """the bottom of ``imitrl COMMAND --help`` (lists of names, its lines kept), built
+    only when this command's flags are"""
+
+    @property
+    def config(self) -> type:
+        """The config dataclass."""
+        return _load(self.config_at)
+
+    @property
+    def run(self) -> Callable[[Any], Any]:
+        """``run(config) -> results``."""
+        return _load(self.run_at)
+
+    @property
+    def report(self) -> Callable[[Any], list[str]] | None:
+        """``report(results) -> lines`` (None: the function prints its own report)."""
+        return None if self.report_at is None else _load(self.report_at)
 
 
 def _names_epilog() -> str:
-    """The built-in experts and the registered losses, for ``bc`` / ``dagger`` --help."""
+    """The built-in experts and the registered losses, for ``bc`` / ``dagger`` --help.
+
+    Imports the loss registry and the experts (torch, TorchRL): the names are the
+    entries registered when those modules load."""
+    from imitrl.jobs.resolve import EXPERTS
+    from imitrl.objectives import registry
+
     losses = "\n".join(f"  {e.name:<22} {e.actions:<10} {e.summary}" for e in registry.entries())
     return (
         f"built-in experts (--expert): {', '.join(EXPERTS)}\n\n"
@@ -69,62 +106,74 @@ def _names_epilog() -> str:
     )
 
 
+def _benchmarks_epilog() -> str:
+    """The benchmark scripts of the checkout, for ``bench`` --help."""
+    from imitrl.jobs.bench import available
+
+    return f"benchmarks: {', '.join(available()) or '(none found)'}"
+
+
 COMMANDS: dict[str, Command] = {
     "bc": Command(
-        bc.BCJob,
-        bc.run_bc,
-        bc.report,
+        "imitrl.jobs.bc:BCJob",
+        "imitrl.jobs.bc:run_bc",
+        "imitrl.jobs.bc:report",
         "behaviour cloning on expert demonstrations or a dataset",
         "Fit a learner to expert demonstrations (--demos episodes of --expert) or to a "
         "LeRobot/Minari --dataset, evaluate it beside the expert, and write results.json, "
         "a checkpoint (config.json + learner.pt), curves.png and logs/ to --out.",
+        _names_epilog,
     ),
     "dagger": Command(
-        dagger.DAggerJob,
-        dagger.run_dagger,
-        dagger.report,
+        "imitrl.jobs.dagger:DAggerJob",
+        "imitrl.jobs.dagger:run_dagger",
+        "imitrl.jobs.dagger:report",
         "DAgger: BC, then roll the learner, relabel with the expert, aggregate, refit",
         "Round 0 is behaviour cloning on the demonstrations; each later round refits on "
         "the buffer grown by --episodes-per-round learner episodes labelled by --expert. "
         "Every round is evaluated; results.json, the last learner's checkpoint, curves.png "
         "and logs/ go to --out.",
+        _names_epilog,
     ),
     "gail": Command(
-        gail.GAILJob,
-        gail.run_gail,
-        gail.report,
+        "imitrl.jobs.gail:GAILJob",
+        "imitrl.jobs.gail:run_gail",
+        "imitrl.jobs.gail:report",
         "GAIL: PPO on a discriminator's reward -log(1 - D(s, a)), from demonstrations",
         "Adversarial imitation (Ho & Ermon 2016) from --demos episodes of --expert or a "
         "LeRobot/Minari --dataset: --total-steps env steps of PPO on the discriminator's "
         "reward; no expert queries after the demonstrations. Writes results.json, a "
         "checkpoint (config.json + learner.pt), curves.png and logs/ to --out.",
+        _names_epilog,
     ),
     "airl": Command(
-        gail.AIRLJob,
-        gail.run_airl,
-        gail.report,
+        "imitrl.jobs.gail:AIRLJob",
+        "imitrl.jobs.gail:run_airl",
+        "imitrl.jobs.gail:report",
         "AIRL: PPO on f(s, a, s') - log pi(a|s), f = g(s) + gamma h(s') - h(s)",
         "Adversarial inverse RL (Fu et al. 2018), state-only reward g, from the same "
         "demonstrations and flags as imitrl gail; outputs as imitrl gail.",
+        _names_epilog,
     ),
     "eval": Command(
-        evaluate.EvalJob,
-        evaluate.run_eval,
-        evaluate.report,
+        "imitrl.jobs.evaluate:EvalJob",
+        "imitrl.jobs.evaluate:run_eval",
+        "imitrl.jobs.evaluate:report",
         "evaluate a saved learner (--checkpoint) or an expert (--expert)",
         "Mean return and its 95% interval over --eval-episodes episodes on the env seeded "
         "--eval-seed (the defaults reproduce the numbers of imitrl bc/dagger).",
     ),
     "bench": Command(
-        bench.BenchJob,
-        bench.run_bench,
+        "imitrl.jobs.bench:BenchJob",
+        "imitrl.jobs.bench:run_bench",
         None,
         "run a benchmark script: imitrl bench NAME [args...]",
         "Run benchmarks/NAME.py of the source checkout with the remaining arguments.",
+        _benchmarks_epilog,
     ),
     "frozenlake": Command(
-        StudyConfig,
-        run_study,
+        "imitrl.experiments.frozenlake.config:StudyConfig",
+        "imitrl.experiments.frozenlake.study:run_study",
         None,
         "reproduce the FrozenLake study (expert, BC, compounding error, DAgger, exercises)",
         "Every experiment of the FrozenLake section on imitrl's pipeline, with the exact value "
@@ -133,41 +182,49 @@ COMMANDS: dict[str, Command] = {
 }
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """The ``imitrl`` argument parser: one subcommand per entry of :data:`COMMANDS`."""
+def build_parser(flags_for: Collection[str] | None = None) -> argparse.ArgumentParser:
+    """The ``imitrl`` argument parser: one subcommand per entry of :data:`COMMANDS`.
+
+    ``flags_for``: the commands that get their flags (and epilog), None = every one;
+    the others keep their name and help line. Adding a command's flags imports its
+    config's module, so :func:`main` asks only for the command on its command line.
+    """
     parser = argparse.ArgumentParser(
         prog="imitrl", description="imitrl: imitation learning on TorchRL"
     )
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    epilogs = {
-        "bc": _names_epilog(),
-        "dagger": _names_epilog(),
-        "gail": _names_epilog(),
-        "airl": _names_epilog(),
-        "bench": f"benchmarks: {', '.join(bench.available()) or '(none found)'}",
-    }
     for name, command in COMMANDS.items():
-        if name in epilogs:  # the lists of names keep their lines
+        if flags_for is not None and name not in flags_for:
+            sub.add_parser(name, help=command.help, description=command.description)
+        elif command.epilog is not None:  # the lists of names keep their lines
             child = sub.add_parser(
                 name,
                 help=command.help,
                 description=textwrap.fill(command.description, 79),
-                epilog=epilogs[name],
+                epilog=command.epilog(),
                 formatter_class=argparse.RawDescriptionHelpFormatter,
             )
+            add_config_flags(child, command.config)
         else:
             child = sub.add_parser(name, help=command.help, description=command.description)
-        add_config_flags(child, command.config)
+            add_config_flags(child, command.config)
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the ``imitrl`` command; returns the exit status (2 on bad input)."""
-    args = build_parser().parse_args(argv)
+    argv = sys.argv[1:] if argv is None else list(argv)
+    # the command is the first word that is not an option (the top level has only -h)
+    first = next((a for a in argv if not a.startswith("-")), None)
+    args = build_parser(flags_for=[first] if first in COMMANDS else []).parse_args(argv)
     command = COMMANDS[args.command]
-    logging.getLogger("torchrl").setLevel(logging.WARNING)  # torchrl's INFO lines go to stdout
-    if args.command == "frozenlake":
-        torch.set_num_threads(1)  # the simulators are bandwidth-bound; threads only contend
+    if args.command != "bench":  # bench starts a script; every other command runs TorchRL
+        import torch
+        import torchrl  # noqa: F401  (its import sets the level of its logger: set ours after)
+
+        logging.getLogger("torchrl").setLevel(logging.WARNING)  # its INFO lines go to stdout
+        if args.command == "frozenlake":
+            torch.set_num_threads(1)  # the simulators are bandwidth-bound; threads only contend
     try:
         results = command.run(config_from_args(command.config, args))
     except (ValueError, ImportError) as err:  # bad flags, unknown names, missing extras

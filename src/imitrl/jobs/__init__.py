@@ -4,12 +4,12 @@
 ``run_bench(BenchJob(...))`` return a dict (what ``results.json`` holds) and raise
 ``ValueError`` on bad input; the CLI (:mod:`imitrl.cli`) builds the config from the
 flags, one flag per field. Tests and benchmarks call the functions directly.
+
+Each name is imported from its module on first use (PEP 562), so that ``imitrl bench``
+and ``imitrl eval --help`` do not import what ``imitrl bc`` needs.
 """
 
-from imitrl.jobs.bc import BCJob, run_bc
-from imitrl.jobs.bench import BenchJob, run_bench
-from imitrl.jobs.dagger import DAggerJob, run_dagger
-from imitrl.jobs.evaluate import EvalJob, run_eval
+from imitrl import _lazy_exports
 
 __all__ = [
     "BCJob",
@@ -21,3 +21,17 @@ __all__ = [
     "run_dagger",
     "run_eval",
 ]
+
+__getattr__, __dir__ = _lazy_exports(
+    __name__,
+    {
+        "BCJob": "imitrl.jobs.bc",
+        "run_bc": "imitrl.jobs.bc",
+        "BenchJob": "imitrl.jobs.bench",
+        "run_bench": "imitrl.jobs.bench",
+        "DAggerJob": "imitrl.jobs.dagger",
+        "run_dagger": "imitrl.jobs.dagger",
+        "EvalJob": "imitrl.jobs.evaluate",
+        "run_eval": "imitrl.jobs.evaluate",
+    },
+)

@@ -21,8 +21,6 @@ import shutil
 from collections.abc import Sequence
 from pathlib import Path
 
-from matplotlib.backends.backend_agg import FigureCanvasAgg
-from matplotlib.figure import Figure
 from torchrl.record.loggers import CSVLogger, Logger
 
 __all__ = ["LOGGERS", "FanOut", "make_logger", "plot_curves", "read_scalars", "scalars_dir"]
@@ -115,6 +113,9 @@ def read_scalars(directory: Path) -> dict[str, tuple[list[int], list[float]]]:
 
 def plot_curves(directory: Path, path: Path, *, title: str) -> Path:
     """Loss vs step and return vs round (interval band, expert line), from the CSV files."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg  # imported when a run plots
+    from matplotlib.figure import Figure
+
     curves = read_scalars(directory)
     fig = Figure(figsize=(10, 3.6), layout="constrained")
     FigureCanvasAgg(fig)

@@ -12,16 +12,11 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import torch
-from tensordict.nn import TensorDictModuleBase
-from torchrl.envs.utils import ExplorationType
-
-from imitrl.envs import make_env
-from imitrl.evaluation import evaluate
-from imitrl.jobs.checkpoint import load_learner, read_config
-from imitrl.jobs.resolve import EXPERT_KINDS, make_expert, time_limit
-from imitrl.policies import as_actor
+if TYPE_CHECKING:  # torch, TorchRL and the rest are imported where used: see imitrl.cli
+    from tensordict.nn import TensorDictModuleBase
+    from torchrl.envs.utils import ExplorationType
 
 __all__ = ["EVAL_LANES", "EvalJob", "evaluate_returns", "format_return", "report", "run_eval"]
 
@@ -43,6 +38,12 @@ def evaluate_returns(
     Returns ``{"mean_return", "return_ci": [lo, hi], "mean_length", "episodes",
     "exploration", "seed"}`` (a NaN interval for one episode).
     """
+    import torch
+
+    from imitrl.envs import make_env
+    from imitrl.evaluation import evaluate
+    from imitrl.jobs.resolve import time_limit
+
     lanes = min(episodes, EVAL_LANES)
     env = make_env(env_id, seed=seed, num_envs=lanes, max_episode_steps=max_episode_steps)
     time_limit(env_id, max_episode_steps)  # an env without a time limit is refused up front
@@ -99,6 +100,8 @@ class EvalJob:
     """also write eval.json into this directory; none = print only"""
 
     def __post_init__(self) -> None:
+        from imitrl.jobs.resolve import EXPERT_KINDS
+
         if (self.checkpoint is None) == (self.expert is None):
             raise ValueError("give exactly one of --checkpoint or --expert")
         if self.expert is not None and self.env is None:
@@ -113,6 +116,13 @@ class EvalJob:
 
 def run_eval(config: EvalJob) -> dict:
     """Evaluate what ``config`` names; returns ``{"policy", "env", "evaluation"}``."""
+    from torchrl.envs.utils import ExplorationType
+
+    from imitrl.envs import make_env
+    from imitrl.jobs.checkpoint import load_learner, read_config
+    from imitrl.jobs.resolve import make_expert
+    from imitrl.policies import as_actor
+
     if config.checkpoint is not None:
         saved = read_config(config.checkpoint)
         env_id = config.env or saved["env"]

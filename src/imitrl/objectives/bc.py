@@ -32,6 +32,7 @@ import torch.nn.functional as F
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModule
 from tensordict.utils import NestedKey
+from torch import nn
 
 from imitrl import keys
 from imitrl.objectives.base import ImitationLoss
@@ -39,6 +40,8 @@ from imitrl.objectives.base import ImitationLoss
 __all__ = ["LOSS_TYPES", "BehaviorCloningLoss"]
 
 LOSS_TYPES = ("nll", "mse", "l1", "smooth_l1")
+_NO_LABEL = torch.iinfo(torch.int64).min
+"""``ignore_index`` of the cross-entropy: a value no label takes"""
 _REGRESSION = {
     "mse": F.mse_loss,
     "l1": F.l1_loss,
@@ -101,11 +104,13 @@ class BehaviorCloningLoss(ImitationLoss):
         self.report_accuracy = report_accuracy
         self.bound_margin = float(bound_margin)
         self._in_keys = None
-        # a plain attribute, not registered: these modules already belong to the actor
+        # plain attributes, not registered: these modules already belong to the actor
+        logits_modules = _categorical_param_modules(actor) if loss_type == "nll" else None
+        object.__setattr__(self, "_logits_modules", logits_modules)
         object.__setattr__(
             self,
-            "_logits_modules",
-            _categorical_param_modules(actor) if loss_type == "nll" else None,
+            "_tensor_steps",
+            _tensor_steps(logits_modules if loss_type == "nll" else [actor]),
         )
 
     @property
@@ -175,16 +180,7 @@ class BehaviorCloningLoss(ImitationLoss):
                 raise ValueError(
                     f"categorical labels under {self.tensor_keys.label!r} must be integers, got {label.dtype}"
                 )
-            logits = self._logits(td)
-            if label.shape != logits.shape[:-1]:
-                raise ValueError(
-                    f"categorical labels under {self.tensor_keys.label!r} need shape "
-                    f"{tuple(logits.shape[:-1])}, got {tuple(label.shape)}"
-                )
-            logp = (
-                torch.log_softmax(logits, dim=-1).gather(-1, label.long().unsqueeze(-1)).squeeze(-1)
-            )
-            return -logp, td
+            return self._categorical_nll(self._logits(td), label), td
         if self.loss_type == "nll":
             dist = self.actor.get_dist(td)
             if isinstance(dist, torch.distributions.Categorical):
@@ -205,23 +201,67 @@ class BehaviorCloningLoss(ImitationLoss):
                 logp = dist.log_prob(label)
             return -logp, td
         out = self.actor(td)
-        pred = out.get(self.tensor_keys.prediction)
+        return self._regression(out.get(self.tensor_keys.prediction), label), out
+
+    def row_losses(self, tensordict: TensorDictBase) -> torch.Tensor:
+        """The per-row losses ``[N]`` of :meth:`per_row`, without its output tensordict.
+
+        When the actor's modules are plain one-input, one-output TensorDictModules (the
+        logits of a categorical actor, a deterministic actor), their networks are called
+        on the row's tensors directly: no TensorDict is built, and the digits are those
+        of :meth:`per_row`.
+        """
+        steps = self._tensor_steps
+        if steps is None:
+            return self.per_row(tensordict)[0]
+        label = tensordict.get(self.tensor_keys.label)
+        if self._logits_modules is not None:
+            if label.dtype.is_floating_point:
+                raise ValueError(
+                    f"categorical labels under {self.tensor_keys.label!r} must be integers, got {label.dtype}"
+                )
+            return self._categorical_nll(_run_steps(steps, tensordict, keys.LOGITS), label)
+        if steps[-1][2] != self.tensor_keys.prediction:  # keys remapped: the actor's own path
+            return self.per_row(tensordict)[0]
+        return self._regression(_run_steps(steps, tensordict, steps[-1][2]), label)
+
+    def _categorical_nll(self, logits: torch.Tensor, label: torch.Tensor) -> torch.Tensor:
+        """``-log softmax(logits)[label]`` per row, ``logits [..., A]``, ``label [...]``.
+
+        ``F.cross_entropy(reduction="none")`` is ``log_softmax`` then ``nll_loss``, whose
+        entry ``-logp[label]`` and gradient ``-g`` at ``label`` are exactly those of
+        ``-log_softmax(logits).gather(label)``, in two autograd nodes instead of four.
+        No label is ignored (``nll_loss`` ignores -100 by default): out of range, it raises.
+        """
+        if label.shape != logits.shape[:-1]:
+            raise ValueError(
+                f"categorical labels under {self.tensor_keys.label!r} need shape "
+                f"{tuple(logits.shape[:-1])}, got {tuple(label.shape)}"
+            )
+        if logits.ndim == 2:
+            return F.cross_entropy(logits, label.long(), reduction="none", ignore_index=_NO_LABEL)
+        flat = F.cross_entropy(
+            logits.reshape(-1, logits.shape[-1]),
+            label.reshape(-1).long(),
+            reduction="none",
+            ignore_index=_NO_LABEL,
+        )
+        return flat.reshape(label.shape)
+
+    def _regression(self, pred: torch.Tensor, label: torch.Tensor) -> torch.Tensor:
+        """The regression error per row, averaged over the action dimensions."""
         if pred.shape != label.shape:
             raise ValueError(
                 f"prediction {tuple(pred.shape)} and label {tuple(label.shape)} shapes differ "
                 f"(label key {self.tensor_keys.label!r})"
             )
         err = _REGRESSION[self.loss_type](pred, label.to(pred.dtype), reduction="none")
-        return err.reshape(err.shape[0], -1).mean(-1), out
+        return err.reshape(err.shape[0], -1).mean(-1)
 
     def _logits(self, td: TensorDictBase) -> torch.Tensor:
         """Run the logits modules; single-key modules are called on their tensor directly."""
         for module in self._logits_modules:
-            if (
-                type(module) in _PLAIN_MODULES
-                and len(module.in_keys) == 1
-                and len(module.out_keys) == 1
-            ):
+            if _is_plain(module):
                 # what TensorDictModule.forward does for one in and one out key, without
                 # its per-call dispatch (most of a small policy's step)
                 td.set(module.out_keys[0], module.module(td.get(module.in_keys[0])))
@@ -247,7 +287,7 @@ class BehaviorCloningLoss(ImitationLoss):
 
         ``weights`` (``[N]``, data) replaces the weight key: ``mean_i w_i l_i``.
         """
-        losses = self.per_row(tensordict)[0]
+        losses = self.row_losses(tensordict)
         if weights is None:
             return self.reduce(losses, tensordict)
         if weights.shape != losses.shape:
@@ -273,6 +313,31 @@ def _plain_modules() -> tuple[type, ...]:
 
 
 _PLAIN_MODULES = _plain_modules()
+
+
+def _is_plain(module: nn.Module) -> bool:
+    """A TensorDictModule (or imitrl's ``Module``) of one input and one output key: its
+    forward writes ``module.module(td[in_key])`` to ``out_key``."""
+    return type(module) in _PLAIN_MODULES and len(module.in_keys) == 1 and len(module.out_keys) == 1
+
+
+def _tensor_steps(
+    modules: list[nn.Module] | None,
+) -> tuple[tuple[nn.Module, NestedKey, NestedKey], ...] | None:
+    """``(network, in_key, out_key)`` for each of ``modules`` when every one is plain
+    (:func:`_is_plain`), else None."""
+    if not modules or not all(_is_plain(m) for m in modules):
+        return None
+    return tuple((m.module, m.in_keys[0], m.out_keys[0]) for m in modules)
+
+
+def _run_steps(steps, tensordict: TensorDictBase, out_key: NestedKey) -> torch.Tensor:
+    """Run plain steps on ``tensordict``'s tensors (each reads an earlier step's output or
+    the row); the tensor written to ``out_key``."""
+    values: dict = {}
+    for network, in_key, key in steps:
+        values[key] = network(values[in_key] if in_key in values else tensordict.get(in_key))
+    return values[out_key]
 
 
 def _distribution_class(actor: TensorDictModule) -> type | None:
