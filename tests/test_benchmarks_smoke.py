@@ -83,3 +83,31 @@ def test_quick_runs_and_writes_to_a_temporary_directory(script, quick_runs):
     (result,) = dirs[script].rglob(f"{stem}.json")
     data = json.loads(result.read_text())
     assert data["machine"]["torch"].startswith("2.13")
+
+
+# what two of the --quick runs measured (the smoke run's own output, not a second run)
+def _quick_json(quick_runs, script: str) -> dict:
+    procs, dirs, _, _ = quick_runs
+    assert procs[script].returncode == 0, procs[script].stderr[-3000:]
+    (result,) = dirs[script].rglob(f"{Path(script).stem}.json")
+    return json.loads(result.read_text())
+
+
+def test_bc_vs_dagger_quick_records_every_task_and_round(quick_runs):
+    saved = _quick_json(quick_runs, "bc_vs_dagger.py")
+    (figure,) = quick_runs[1]["bc_vs_dagger.py"].rglob("bc_vs_dagger.png")
+    assert figure.stat().st_size > 0
+    sys.path.insert(0, str(BENCH))
+    try:
+        import bc_vs_dagger
+    finally:
+        sys.path.remove(str(BENCH))
+    assert set(saved["tasks"]) == {t.env_id for t in bc_vs_dagger.TASKS}
+    for per in saved["tasks"].values():
+        (record,) = per["seeds"]
+        assert len(record["dagger_scores"]) == 2 and record["bc_matched_rows"] == record["rows"][-1]
+
+
+def test_continuous_traps_quick_covers_every_trap(quick_runs):
+    saved = _quick_json(quick_runs, "continuous_traps.py")
+    assert {"float64", "vector_final_obs", "frame_skip", "bang_bang", "startup"} <= set(saved)

