@@ -16,6 +16,13 @@ tensordict`` (overridden)
                                     (``imitrl.data.buffer.GrowingTensorStorage.reserve``)
 ``LazyTensorStorage._storage``,     :func:`replace_storage_contents`
 ``LazyTensorStorage._len``          (``imitrl.data.disk.GrowingMemmapStorage``)
+``TensorDictSequential._select_     :func:`plain_sequence`, :func:`plain_module`,
+before_return``, ``TensorDictModule :func:`plain_sampler` (``imitrl.policies.modules.
+._kwargs``/``_get_kwargs``,          TensorPolicy``, the rollouts' per-step policy call)
+``ProbabilisticTensorDictModule.
+_generator``/``_generator_key``,
+``ProbabilisticTensorDictSequential
+._requires_sample`` (read)
 =================================== ==========================================================
 """
 
@@ -31,6 +38,9 @@ from torchrl.data import LazyTensorStorage, ReplayBuffer
 __all__ = [
     "DirectWriteMixin",
     "grow_tensor_storage",
+    "plain_module",
+    "plain_sampler",
+    "plain_sequence",
     "replace_storage_contents",
     "set_writer_cursor",
     "wrapped_gym_env",
@@ -164,3 +174,49 @@ def replace_storage_contents(
     storage.max_size = int(contents.shape[0])
     storage.initialized = True
     storage._len = int(rows)
+
+
+def plain_sequence(seq) -> bool:
+    """Whether ``seq(td)`` (a ``TensorDictSequential``) runs its modules in order on ``td``
+    itself and returns it, so that its call can be replayed module by module.
+
+    Why: ``imitrl.policies.modules.TensorPolicy`` runs a rollout's policy on a dict of
+    tensors instead of a TensorDict, and must refuse a sequence that selects its outputs
+    (``selected_out_keys``/``select_out_keys``), which tensordict records only in the
+    private ``_select_before_return``. ``tests/test_fast_path.py`` checks that the dict
+    call gives the same digits as the TensorDict call.
+    """
+    # inplace None also returns `td` itself (no out-tensordict is made)
+    return (
+        seq.inplace in (True, None) and not seq.partial_tolerant and not seq._select_before_return
+    )
+
+
+def plain_module(module) -> bool:
+    """Whether ``module(td)`` (a ``TensorDictModule``) is ``module.module(*td[in_keys])``
+    written in place to ``out_keys``: in-keys passed by position, no extra ``get`` options.
+
+    Why: as :func:`plain_sequence`; a dict of in-keys (keyword arguments) and ``get``
+    options are kept only in the private ``_kwargs`` and ``_get_kwargs``.
+    """
+    return module.inplace is True and module._kwargs is None and not module._get_kwargs
+
+
+def plain_sampler(module, sequence=None) -> bool:
+    """Whether a ``ProbabilisticTensorDictModule`` (the last module of ``sequence``, a
+    ``ProbabilisticTensorDictSequential``) only builds its distribution and writes one
+    sample: no log-probability, no ``num_samples``, no generator of its own, and (in the
+    sequence) a sample requested.
+
+    Why: as :func:`plain_sequence`; the generator settings live in the private
+    ``_generator``/``_generator_key``, whether the sequence samples in ``_requires_sample``.
+    """
+    if module.return_log_prob or module.num_samples is not None:
+        return False
+    if module._generator is not None or module._generator_key is not None:
+        return False
+    if sequence is not None and (
+        not sequence._requires_sample or sequence.return_composite or not plain_sequence(sequence)
+    ):
+        return False
+    return True

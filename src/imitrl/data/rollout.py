@@ -16,6 +16,15 @@ since its last reset, and an episode that runs past the bound raises.
 :func:`episode_returns` keeps only per-episode summaries (cheap for 1e5+ episodes).
 Both take an :class:`~imitrl.policies.Expert` (it drives the env through
 ``as_actor()``, its labels cast to the env's action spec) or any policy module.
+
+**Two paths, the same episodes.** On a plain gymnasium env from
+:func:`~imitrl.envs.make_env` and on a :class:`~imitrl.envs.TabularEnv`, each step
+skips TorchRL's TensorDict round trips: the simulator is stepped directly
+(:mod:`imitrl.envs.direct`) and the policy is called on a dict of tensors
+(:class:`~imitrl.policies.modules.TensorPolicy`). Every other env goes through
+``env.step_and_maybe_reset`` and calls the policy on TensorDicts, and so does every env
+with ``fast_path=False``: the reference the direct path is tested against, digit for
+digit (``tests/test_fast_path.py``).
 """
 
 from __future__ import annotations
@@ -31,9 +40,12 @@ from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from imitrl import keys
+from imitrl.envs.direct import DirectSteps, direct_steps
 from imitrl.envs.limits import episode_limit
+from imitrl.envs.toy_text import play_lanes, toy_text_lanes
 from imitrl.policies.action_check import check_action
 from imitrl.policies.experts import Expert
+from imitrl.policies.modules import TensorPolicy
 from imitrl.rng import rng_from
 
 __all__ = ["EpisodeSummary", "episode_returns", "rollout_episodes", "rollout_policy"]
@@ -64,20 +76,21 @@ def _action_spec(env: EnvBase):
     return env.full_action_spec_unbatched[env.action_key]
 
 
-def _check_action(env: EnvBase, td: TensorDictBase) -> None:
-    """The policy's first action must have the env's action dtype and shape.
+def _check_first_step(env: EnvBase, action: torch.Tensor | None, written, labels: bool) -> None:
+    """The policy's first action must have the env's action dtype and shape; with
+    ``labels`` it must also have written the expert's label (``written``: its keys).
 
     Envs do not check: a gymnasium env may silently read the first entry of a longer
-    action, or fail deep inside its own step.
+    action, or fail deep inside its own step. The policy is fixed: checked once.
     """
-    if env.action_key not in td.keys(include_nested=True):
+    if action is None:
         raise ValueError(f"the policy did not write the env's action key {env.action_key!r}")
-    check_action(
-        td.get(env.action_key),
-        _action_spec(env),
-        batch_shape=env.batch_size,
-        name="the policy's action",
-    )
+    check_action(action, _action_spec(env), batch_shape=env.batch_size, name="the policy's action")
+    for k in (keys.EXPERT_ACTION, keys.EXPERT_EXECUTED) if labels else ():
+        if k not in written:
+            raise ValueError(
+                f"the rollout policy must write {k!r} (pass an Expert or a DAgger behaviour policy)"
+            )
 
 
 def rollout_policy(
@@ -125,15 +138,47 @@ def _episode_bound(env: EnvBase, max_steps: int | None, num_episodes: int) -> tu
     return limit, f"the env's own time limit of {limit}"
 
 
-def _overrun(
-    length: torch.Tensor, done: torch.Tensor, needed: torch.Tensor, bound: int, name: str
-) -> None:
-    """Raise when a lane still owed episodes took ``bound`` steps without ending one."""
-    if bool(((length >= bound) & ~done & needed).any()):
-        raise ValueError(
-            f"an episode ran past {name} steps without ending (the bound is per episode); "
-            "pass a larger max_steps= or give the env a time limit"
-        )
+class _Lanes:
+    """Per-lane bookkeeping of a rollout under round-robin quotas (module docstring).
+
+    Each lane counts the steps since its last reset and the episodes it finished; a lane
+    still owed episodes that runs ``bound`` steps without ending one raises.
+    """
+
+    def __init__(self, quota: torch.Tensor, bound: int, bound_name: str) -> None:
+        self.quota = quota.numpy()
+        self.lanes = self.quota.size
+        self.finished = np.zeros(self.lanes, dtype=np.int64)
+        self.start = np.zeros(self.lanes, dtype=np.int64)  # step at which each episode began
+        self.t = 0
+        self.oldest = 0  # the smallest start: no lane is near the bound before t - oldest is
+        self.bound, self.bound_name = bound, bound_name
+        self.owing = bool((self.finished < self.quota).any())
+
+    def step(self, done: np.ndarray) -> np.ndarray | None:
+        """Count one step of every lane (``done`` bool ``[lanes]``); the lanes that ended an
+        episode at it, or None when none did."""
+        self.t += 1
+        if self.t - self.oldest >= self.bound:
+            length = self.t - self.start
+            if bool(((length >= self.bound) & ~done & (self.finished < self.quota)).any()):
+                raise ValueError(
+                    f"an episode ran past {self.bound_name} steps without ending (the bound is "
+                    "per episode); pass a larger max_steps= or give the env a time limit"
+                )
+        return np.flatnonzero(done) if done.any() else None
+
+    def kept(self, ended: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Of the ``ended`` lanes, those still owed episodes: (lanes, episode ids, lengths)."""
+        lanes = ended[self.finished[ended] < self.quota[ended]]
+        return lanes, self.finished[lanes] * self.lanes + lanes, self.t - self.start[lanes]
+
+    def close(self, ended: np.ndarray) -> None:
+        """The ``ended`` lanes start their next episode."""
+        self.finished[ended] += 1
+        self.start[ended] = self.t
+        self.oldest = int(self.start.min())
+        self.owing = bool((self.finished < self.quota).any())
 
 
 def policy_generator(seed: int) -> torch.Generator:
@@ -168,6 +213,7 @@ def rollout_episodes(
     round_index: int = 0,
     first_episode: int = 0,
     generator: torch.Generator | None = None,
+    fast_path: bool = True,
 ) -> TensorDict:
     """Play ``num_episodes`` whole episodes and return their transitions as rows.
 
@@ -190,6 +236,8 @@ def rollout_episodes(
         generator: source of the policy's sampling in ``RANDOM`` mode (torch
             distributions draw from the global RNG; this runs them on ``generator``
             instead and advances it). None: torch's global RNG (or ``seed``'s).
+        fast_path: step a plain gymnasium env or a TabularEnv directly (module
+            docstring); False: through TorchRL (the same rows, slower).
 
     Returns:
         rows ``[R]`` with ``OBSERVATION, ACTION, EXPERT_ACTION, EXPERT_EXECUTED,
@@ -203,35 +251,72 @@ def rollout_episodes(
     bound, bound_name = _episode_bound(env, max_steps, num_episodes)
     actor, exploration = rollout_policy(env, policy, exploration)
     generator = _seeded(env, seed, generator)
-    lanes = _lanes(env)
-    quota = _quota(int(num_episodes), lanes)
+    book = _Lanes(_quota(int(num_episodes), _lanes(env)), bound, bound_name)
+    with torch.no_grad(), set_exploration_type(exploration), rng_from(generator):
+        direct = direct_steps(env) if fast_path else None
+        if direct is None:
+            traj = _torchrl_trajectory(env, actor, book)
+        else:
+            traj = _direct_trajectory(env, direct, actor, book)
+    if traj is None:
+        raise ValueError("num_episodes must be positive to collect rows")
+    return _rows(env, traj, book, round_index, first_episode)
+
+
+def _torchrl_trajectory(env: EnvBase, actor, book: _Lanes) -> TensorDictBase | None:
+    """The steps ``[*batch, T]`` until every lane finished its quota, through TorchRL."""
     steps: list[TensorDictBase] = []
     row_keys = list(ROW_KEYS)
-    finished = torch.zeros(lanes, dtype=torch.int64)
-    length = torch.zeros(lanes, dtype=torch.int64)  # steps since the lane's last reset
-    with torch.no_grad(), set_exploration_type(exploration), rng_from(generator):
-        td = env.reset()
-        while bool((finished < quota).any()):
-            td = actor(td)
-            first = not steps
-            if first:
-                _check_action(env, td)
-                row_keys += [k for k in OPTIONAL_ROW_KEYS if k in td.keys()]
-            out, td = env.step_and_maybe_reset(td)
-            for k in (keys.EXPERT_ACTION, keys.EXPERT_EXECUTED) if first else ():
-                if k not in out.keys():  # the policy is fixed: checked once, not every step
-                    raise ValueError(
-                        f"the rollout policy must write {k!r} (pass an Expert or a DAgger behaviour policy)"
-                    )
-            steps.append(out.select(*row_keys, *[(keys.NEXT, k) for k in NEXT_KEYS]))
-            done = out.get((keys.NEXT, keys.DONE)).reshape(lanes)
-            length += 1
-            _overrun(length, done, finished < quota, bound, bound_name)
-            finished += done
-            length = torch.where(done, 0, length)
-    if not steps:
-        raise ValueError("num_episodes must be positive to collect rows")
-    return _rows(env, steps, quota, round_index, first_episode)
+    td = env.reset()
+    while book.owing:
+        td = actor(td)
+        if not steps:
+            written = td.keys(include_nested=True)
+            _check_first_step(env, td.get(env.action_key, None), written, labels=True)
+            row_keys += [k for k in OPTIONAL_ROW_KEYS if k in td.keys()]
+        out, td = env.step_and_maybe_reset(td)
+        steps.append(out.select(*row_keys, *[(keys.NEXT, k) for k in NEXT_KEYS]))
+        ended = book.step(out.get((keys.NEXT, keys.DONE)).reshape(book.lanes).numpy())
+        if ended is not None:
+            book.close(ended)
+    return torch.stack(steps, dim=len(env.batch_size)).contiguous() if steps else None
+
+
+def _direct_trajectory(
+    env: EnvBase, direct: DirectSteps, actor, book: _Lanes
+) -> TensorDictBase | None:
+    """The same steps as :func:`_torchrl_trajectory`: the env stepped directly, the policy
+    called on a dict of the root's entries (what ``step_and_maybe_reset`` leaves there)."""
+    policy, action_key = TensorPolicy(actor, env.batch_size), env.action_key
+    values = dict(env.reset().items(include_nested=True, leaves_only=True))
+    columns: dict = {k: [] for k in (*ROW_KEYS, *NEXT_KEYS)}
+    while book.owing:
+        policy(values)
+        action = values.get(action_key)
+        if not columns[keys.ACTION]:
+            _check_first_step(env, action, values, labels=True)
+        for k in ROW_KEYS:
+            columns[k].append(values[k])
+        step = direct.step(action)
+        for k, v in zip(NEXT_KEYS, (step.reward, step.done, step.terminated, step.truncated)):
+            columns[k].append(v)
+        ended = book.step(step.done_lanes)
+        if ended is None:
+            values[keys.OBSERVATION] = step.observation
+        else:
+            values[keys.OBSERVATION] = direct.reset_done(step)
+            book.close(ended)
+    if not columns[keys.ACTION]:
+        return None
+    dim = len(env.batch_size)
+    stacked = {k: torch.stack(v, dim=dim) for k, v in columns.items()}
+    return TensorDict(
+        {
+            **{k: stacked[k] for k in ROW_KEYS},
+            keys.NEXT: {k: stacked[k] for k in NEXT_KEYS},
+        },
+        batch_size=stacked[keys.ACTION].shape[: dim + 1],
+    )
 
 
 def _quota(num_episodes: int, lanes: int) -> torch.Tensor:
@@ -242,14 +327,15 @@ def _quota(num_episodes: int, lanes: int) -> torch.Tensor:
 
 def _rows(
     env: EnvBase,
-    steps: list[TensorDictBase],
-    quota: torch.Tensor,
+    traj: TensorDictBase,
+    book: _Lanes,
     round_index: int,
     first_episode: int,
 ) -> TensorDict:
-    """The steps ``[T]`` of every lane as rows of the episodes each lane owes, in id order."""
-    lanes = quota.numel()
-    traj = torch.stack(steps, dim=len(env.batch_size)).contiguous()  # [lanes?, T]
+    """The steps ``traj`` ``[*batch, T]`` of every lane as rows of the episodes each lane
+    owes, in id order."""
+    lanes = book.lanes
+    quota = torch.from_numpy(book.quota)
     if len(env.batch_size) == 0:
         traj = traj.unsqueeze(0)  # [1, T]
     T = traj.shape[1]
@@ -292,6 +378,7 @@ def episode_returns(
     seed: int | None = None,
     success_fn: SuccessFn | None = None,
     generator: torch.Generator | None = None,
+    fast_path: bool = True,
 ) -> EpisodeSummary:
     """Play ``num_episodes`` whole episodes, keeping only returns, lengths and success.
 
@@ -299,43 +386,136 @@ def episode_returns(
         policy: an :class:`~imitrl.policies.Expert` or a module writing ``ACTION``.
         success_fn: maps the step tensordict at an episode's end to a ``[lanes]``
             bool (e.g. "the next observation is a goal state"); None for no success.
+        fast_path: as in :func:`rollout_episodes`; besides, on a gymnasium toy-text env
+            (FrozenLake, Taxi, CliffWalking with a time limit) without ``success_fn``,
+            a policy that is a fixed table of states plays its episodes by the stream
+            player (:mod:`imitrl.envs.toy_text`): the same episodes, no step loop.
         (others as in :func:`rollout_episodes`)
     """
     bound, bound_name = _episode_bound(env, max_steps, num_episodes)
     actor, exploration = rollout_policy(env, policy, exploration)
     generator = _seeded(env, seed, generator)
-    n = int(num_episodes)
-    lanes = _lanes(env)
-    quota = _quota(n, lanes)
-    returns = torch.zeros(n, dtype=torch.float64)
-    lengths = torch.zeros(n, dtype=torch.int64)
-    success = torch.zeros(n, dtype=torch.bool) if success_fn is not None else None
-    running = torch.zeros(lanes, dtype=torch.float64)
-    length = torch.zeros(lanes, dtype=torch.int64)  # steps since the lane's last reset
-    finished = torch.zeros(lanes, dtype=torch.int64)
-    lane_ids = torch.arange(lanes)
+    book = _Lanes(_quota(int(num_episodes), _lanes(env)), bound, bound_name)
+    tally = _Tally(int(num_episodes), book.lanes, success_fn)
     with torch.no_grad(), set_exploration_type(exploration), rng_from(generator):
-        td = env.reset()
-        first = True
-        while bool((finished < quota).any()):
-            td = actor(td)
-            if first:
-                _check_action(env, td)
-                first = False
-            out, td = env.step_and_maybe_reset(td)
-            nxt = out.get(keys.NEXT)
-            running += nxt.get(keys.REWARD).reshape(lanes).double()
-            length += 1
-            done = nxt.get(keys.DONE).reshape(lanes)
-            _overrun(length, done, finished < quota, bound, bound_name)
-            record = done & (finished < quota)
-            if bool(record.any()):
-                idx = finished[record] * lanes + lane_ids[record]
-                returns[idx] = running[record]
-                lengths[idx] = length[record]
-                if success is not None:
-                    success[idx] = success_fn(out).reshape(lanes)[record]
-            finished += done
-            running = torch.where(done, 0.0, running)
-            length = torch.where(done, 0, length)
-    return EpisodeSummary(returns=returns, lengths=lengths, success=success)
+        direct = direct_steps(env) if fast_path else None
+        if direct is None:
+            _torchrl_returns(env, actor, book, tally)
+        elif success_fn is not None or not _toy_text_returns(env, direct, actor, book, tally):
+            _direct_returns(env, direct, actor, book, tally)
+    return tally.summary()
+
+
+class _Tally:
+    """Returns, lengths and success of the episodes kept, by episode id."""
+
+    def __init__(self, n: int, lanes: int, success_fn: SuccessFn | None) -> None:
+        self.returns = np.zeros(n, dtype=np.float64)
+        self.lengths = np.zeros(n, dtype=np.int64)
+        self.success_fn = success_fn
+        self.success = np.zeros(n, dtype=np.bool_) if success_fn is not None else None
+        self.running = np.zeros(lanes, dtype=np.float64)  # each lane's return so far
+
+    def add(self, reward: torch.Tensor) -> None:
+        self.running += reward.numpy().reshape(-1)  # float32 rewards summed in float64
+
+    def end(self, book: _Lanes, ended: np.ndarray, out: Callable[[], TensorDictBase]) -> None:
+        """The ``ended`` lanes' episodes end at this step (``out()``: the step tensordict)."""
+        lanes, ids, lengths = book.kept(ended)
+        if lanes.size:
+            self.returns[ids] = self.running[lanes]
+            self.lengths[ids] = lengths
+            if self.success is not None:
+                self.success[ids] = self.success_fn(out()).reshape(-1).numpy()[lanes]
+        self.running[ended] = 0.0
+
+    def summary(self) -> EpisodeSummary:
+        success = None if self.success is None else torch.from_numpy(self.success)
+        return EpisodeSummary(
+            returns=torch.from_numpy(self.returns),
+            lengths=torch.from_numpy(self.lengths),
+            success=success,
+        )
+
+
+def _torchrl_returns(env: EnvBase, actor, book: _Lanes, tally: _Tally) -> None:
+    td = env.reset()
+    first = True
+    while book.owing:
+        td = actor(td)
+        if first:
+            _check_first_step(env, td.get(env.action_key, None), (), labels=False)
+            first = False
+        out, td = env.step_and_maybe_reset(td)
+        nxt = out.get(keys.NEXT)
+        tally.add(nxt.get(keys.REWARD))
+        ended = book.step(nxt.get(keys.DONE).reshape(book.lanes).numpy())
+        if ended is not None:
+            tally.end(book, ended, lambda out=out: out)
+            book.close(ended)
+
+
+def _direct_returns(env: EnvBase, direct: DirectSteps, actor, book: _Lanes, tally: _Tally) -> None:
+    """:func:`_torchrl_returns` with the env stepped directly (see :func:`_direct_trajectory`)."""
+    policy, action_key = TensorPolicy(actor, env.batch_size), env.action_key
+    values = dict(env.reset().items(include_nested=True, leaves_only=True))
+    first = True
+    while book.owing:
+        policy(values)
+        action = values.get(action_key)
+        if first:
+            _check_first_step(env, action, values, labels=False)
+            first = False
+        step = direct.step(action)
+        tally.add(step.reward)
+        ended = book.step(step.done_lanes)
+        if ended is None:
+            values[keys.OBSERVATION] = step.observation
+            continue
+        tally.end(book, ended, lambda v=values, s=step: _step_tensordict(env, v, s))
+        values[keys.OBSERVATION] = direct.reset_done(step)
+        book.close(ended)
+
+
+def _toy_text_returns(
+    env: EnvBase, direct: DirectSteps, actor, book: _Lanes, tally: _Tally
+) -> bool:
+    """The returns and lengths by the stream player (:mod:`imitrl.envs.toy_text`) when the
+    env is a plain toy-text env and the policy a fixed function of the state; False (and
+    nothing played) otherwise."""
+    envs = toy_text_lanes(direct)
+    if envs is None:
+        return False
+    policy = TensorPolicy(actor, env.batch_size)
+    if policy.opaque or policy.draws or list(actor.in_keys) != [keys.OBSERVATION]:
+        return False
+    # the action in every state, each state at every lane at once: the batch the step
+    # loop calls the policy with, so that the table is its actions to the bit
+    false = torch.zeros((*env.batch_size, 1), dtype=torch.bool)
+    columns = []
+    for s in range(int(envs[0].observation_space.n)):
+        values = {keys.OBSERVATION: torch.full(env.batch_size, s, dtype=torch.int64)}
+        values.update({keys.DONE: false, keys.TERMINATED: false, keys.TRUNCATED: false})
+        policy(values)
+        action = values.get(env.action_key)
+        if not columns:
+            _check_first_step(env, action, values, labels=False)
+        columns.append(action.reshape(book.lanes))
+    tables = torch.stack(columns, dim=1)  # [lanes, S]
+    if bool(((tables < 0) | (tables >= envs[0].action_space.n)).any()):
+        return False  # stepped, gymnasium refuses the action as it would on the other path
+    returns, lengths = play_lanes(envs, tables, book.quota, book.bound, book.bound_name)
+    tally.returns[:], tally.lengths[:] = returns, lengths
+    return True
+
+
+def _step_tensordict(env: EnvBase, values: dict, step) -> TensorDict:
+    """What ``step_and_maybe_reset`` returns first: the root's entries and ``"next"``."""
+    nxt = {
+        keys.OBSERVATION: step.observation,
+        keys.REWARD: step.reward,
+        keys.DONE: step.done,
+        keys.TERMINATED: step.terminated,
+        keys.TRUNCATED: step.truncated,
+    }
+    return TensorDict({**values, keys.NEXT: nxt}, batch_size=env.batch_size)

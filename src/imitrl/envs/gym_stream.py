@@ -18,6 +18,7 @@ batched-tensor speed.
 
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import dataclass
 
@@ -34,7 +35,7 @@ from imitrl.tabular.mdp import TabularMDP
 from imitrl.tabular.policy import policy_probs
 from imitrl.tabular.sampling import OutcomeSampler, play_compacted
 
-__all__ = ["Episodes", "GymnasiumStream", "GymnasiumStreamSource", "play_episodes"]
+__all__ = ["Episodes", "GymnasiumStream", "GymnasiumStreamSource", "StreamWalk", "play_episodes"]
 
 
 class GymnasiumStream:
@@ -54,6 +55,18 @@ class GymnasiumStream:
         self._drawn = torch.empty(0, dtype=torch.float64)  # uniforms drawn so far
         self.position = 1  # the seeded reset's uniform
 
+    @classmethod
+    def following(cls, generator: np.random.Generator) -> GymnasiumStream:
+        """The uniforms ``generator`` will draw next, read from a copy of it (``generator``
+        itself is left as it is): ``position`` 0 is its next draw. Such a stream has no
+        seed, so no ``state_dict``."""
+        stream = cls.__new__(cls)
+        stream.seed = None
+        stream._generator = copy.deepcopy(generator)
+        stream._drawn = torch.empty(0, dtype=torch.float64)
+        stream.position = 0
+        return stream
+
     def window(self, length: int) -> torch.Tensor:
         """The next ``length`` unconsumed uniforms (drawing more as needed)."""
         need = self.position + length - self._drawn.numel()
@@ -69,6 +82,8 @@ class GymnasiumStream:
 
     def state_dict(self) -> dict:
         """``{"seed", "position"}``: the stream is a function of its seed, so that is all."""
+        if self.seed is None:
+            raise ValueError("a stream following a generator (no seed) has no state_dict")
         return {"seed": self.seed, "position": self.position}
 
     def load_state_dict(self, state: dict) -> None:
@@ -359,6 +374,43 @@ def _play_scalar(
         offsets=torch.tensor(starts, dtype=torch.int64) + base,
         transitions=transitions,
     )
+
+
+class StreamWalk:
+    """Episodes of one deterministic table walked step by step on a stream, one per call.
+
+    The scalar path of :func:`play_episodes` (the same float64 comparisons), for a caller
+    that decides episode by episode how many to play: the stream itself is not advanced.
+
+    Args:
+        sampler: the MDP's :class:`OutcomeSampler`; ``lists`` its ``as_lists()``.
+        table: ``[S]`` int64 action of each state.
+        stream: where the first episode's reset draws.
+        max_steps: the time limit.
+    """
+
+    def __init__(
+        self,
+        sampler: OutcomeSampler,
+        lists: dict,
+        table: torch.Tensor,
+        stream: GymnasiumStream,
+        max_steps: int,
+    ) -> None:
+        self._lists = lists
+        self._shape = (sampler.num_actions, sampler.num_outcomes, sampler.num_states)
+        self._act, self._stream, self._T = table.tolist(), stream, int(max_steps)
+        self._buf: list[float] = stream.window(64 * (self._T + 1)).tolist()
+        self._i = 0  # uniforms of the buffer consumed
+
+    def episode(self) -> tuple[float, int]:
+        """The next episode's (return, length)."""
+        if self._i + self._T + 1 >= len(self._buf):
+            self._buf = self._stream.window(2 * len(self._buf) + self._T + 1).tolist()
+        _, ret, length, _, self._i = _scalar_episode(
+            self._lists, self._shape, self._act, self._buf, self._i, self._T, 0, None
+        )
+        return ret, length
 
 
 class GymnasiumStreamSource:

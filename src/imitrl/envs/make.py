@@ -39,6 +39,7 @@ from torchrl.envs import DoubleToFloat, EnvBase, GymWrapper, ParallelEnv, Transf
 from torchrl.record.recorder import PixelRenderTransform
 
 from imitrl import keys
+from imitrl.envs.direct import register_plain_gym
 
 __all__ = ["ResizeFrame", "make_env"]
 
@@ -214,7 +215,9 @@ def make_env(
         ]
         return ParallelEnv(num_envs, makers)
     if num_envs == 1:
-        return _single(env_id, frame_skip, max_episode_steps, seed, pixels)
+        env = _single(env_id, frame_skip, max_episode_steps, seed, pixels)
+        # rollouts step a plain one directly (imitrl.envs.direct): same episodes, less overhead
+        return register_plain_gym(env) if pixels is None and frame_skip == 1 else env
     if pixels is not None:
         raise ValueError("pixels needs num_envs=1 or parallel=True (one renderer per copy)")
     if frame_skip != 1:
@@ -235,4 +238,4 @@ def make_env(
     if double:
         env = TransformedEnv(env, DoubleToFloat())
     env.set_seed(seed)  # SyncVectorEnv seeds copy i with seed + i
-    return env
+    return register_plain_gym(env)

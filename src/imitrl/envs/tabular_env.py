@@ -171,6 +171,27 @@ class TabularEnv(EnvBase):
         lanes = None
         if tensordict is not None and "_reset" in tensordict.keys():
             lanes = tensordict.get("_reset").reshape(self._n)
+        state = self.reset_lanes(lanes)
+        false = torch.zeros((*self.batch_size, 1), dtype=torch.bool)
+        return TensorDict(
+            {
+                keys.OBSERVATION: state.reshape(self.batch_size),
+                keys.DONE: false,
+                keys.TERMINATED: false.clone(),
+                keys.TRUNCATED: false.clone(),
+            },
+            batch_size=self.batch_size,
+        )
+
+    def reset_lanes(self, lanes: torch.Tensor | None) -> torch.Tensor:
+        """Reset the lanes of the bool mask ``lanes`` ``[n]`` (None: every lane).
+
+        What ``reset`` runs, on tensors: the rollouts' direct path
+        (:mod:`imitrl.envs.direct`) calls it instead of ``EnvBase.reset``.
+
+        Returns:
+            ``[n]`` int64 state of every lane after the reset.
+        """
         if self.rng_kind == "gymnasium":
             # Only the lanes being reset draw from their streams, as gymnasium would.
             if lanes is None:
@@ -201,29 +222,10 @@ class TabularEnv(EnvBase):
             if lanes is None
             else self._elapsed.masked_fill(lanes, 0)
         )
-        false = torch.zeros((*self.batch_size, 1), dtype=torch.bool)
-        return TensorDict(
-            {
-                keys.OBSERVATION: self._state.reshape(self.batch_size),
-                keys.DONE: false,
-                keys.TERMINATED: false.clone(),
-                keys.TRUNCATED: false.clone(),
-            },
-            batch_size=self.batch_size,
-        )
+        return state
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        action = tensordict.get(keys.ACTION)
-        action = self._check_action(action)
-        next_state, reward, terminated = self._sampler.step(
-            self._state, action, self._uniforms(None)
-        )
-        self._state = next_state
-        self._elapsed = self._elapsed + 1
-        if self.max_steps is None:
-            truncated = torch.zeros_like(terminated)
-        else:
-            truncated = self._elapsed >= self.max_steps
+        next_state, reward, terminated, truncated = self.step_lanes(tensordict.get(keys.ACTION))
         shape1 = (*self.batch_size, 1)
         return TensorDict(
             {
@@ -235,6 +237,29 @@ class TabularEnv(EnvBase):
             },
             batch_size=self.batch_size,
         )
+
+    def step_lanes(
+        self, action: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """One step of every lane: what ``step`` runs, on tensors (see :meth:`reset_lanes`).
+
+        Args:
+            action: int ``[*batch]`` (checked: integer, one per lane, in range).
+
+        Returns:
+            ``[n]`` next state (int64), reward (float32), terminated and truncated (bool).
+        """
+        action = self._check_action(action)
+        next_state, reward, terminated = self._sampler.step(
+            self._state, action, self._uniforms(None)
+        )
+        self._state = next_state
+        self._elapsed = self._elapsed + 1
+        if self.max_steps is None:
+            truncated = torch.zeros_like(terminated)
+        else:
+            truncated = self._elapsed >= self.max_steps
+        return next_state, reward, terminated, truncated
 
     def _check_action(self, action: torch.Tensor) -> torch.Tensor:
         if action.dtype.is_floating_point or action.dtype == torch.bool or action.is_complex():

@@ -115,6 +115,7 @@ def evaluate(
     success_fn: SuccessFn | None = None,
     confidence: float = 0.95,
     generator: torch.Generator | None = None,
+    fast_path: bool = True,
 ) -> Evaluation:
     """Evaluate ``policy`` over ``num_episodes`` whole episodes.
 
@@ -137,6 +138,10 @@ def evaluate(
         confidence: level of the intervals.
         generator: source of the policy's sampling in ``RANDOM`` mode (seed it for
             reproducible sampled evaluations); None: torch's global RNG (or ``seed``'s).
+        fast_path: step a plain gymnasium env or a TabularEnv directly, and play a
+            gymnasium toy-text env's episodes by the stream player when the policy is a
+            fixed table of states (:func:`~imitrl.data.episode_returns`); False: every
+            step through TorchRL. The same episodes either way.
     """
     if num_episodes < 1:
         raise ValueError(f"num_episodes must be positive, got {num_episodes}")
@@ -157,6 +162,7 @@ def evaluate(
         seed=seed,
         success_fn=success_fn,
         generator=generator,
+        fast_path=fast_path,
     )
     mean, lo, hi = mean_ci(summary.returns, confidence)
     result = {

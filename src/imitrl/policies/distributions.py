@@ -22,10 +22,16 @@ class GreedyCategorical(D.Categorical):
         self._raw_logits = logits
         super().__init__(logits=logits, validate_args=validate_args)
 
+    @staticmethod
+    def greedy(logits: torch.Tensor) -> torch.Tensor:
+        """The greedy action of ``logits`` without building the distribution (rollouts'
+        per-step call, :class:`~imitrl.policies.modules.TensorPolicy`)."""
+        # torch.argmax returns the first maximal index: ties go to the lowest action.
+        return logits.argmax(dim=-1)
+
     @property
     def deterministic_sample(self) -> torch.Tensor:
-        # torch.argmax returns the first maximal index: ties go to the lowest action.
-        return self._raw_logits.argmax(dim=-1)
+        return self.greedy(self._raw_logits)
 
     @property
     def mode(self) -> torch.Tensor:

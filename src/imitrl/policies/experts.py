@@ -81,10 +81,17 @@ class _ExecuteExpert(TensorDictModuleBase):
     in_keys = [keys.EXPERT_ACTION]
     out_keys = [keys.ACTION, keys.EXPERT_EXECUTED]
 
+    @staticmethod
+    def execute(
+        expert_action: torch.Tensor, batch_shape: Sequence[int]
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(ACTION, EXPERT_EXECUTED)`` for the label ``expert_action`` of a ``batch_shape`` batch."""
+        return expert_action.clone(), torch.ones(batch_shape, dtype=torch.bool)
+
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        action = tensordict.get(keys.EXPERT_ACTION)
-        tensordict.set(keys.ACTION, action.clone())
-        tensordict.set(keys.EXPERT_EXECUTED, torch.ones(tensordict.batch_size, dtype=torch.bool))
+        action, executed = self.execute(tensordict.get(keys.EXPERT_ACTION), tensordict.batch_size)
+        tensordict.set(keys.ACTION, action)
+        tensordict.set(keys.EXPERT_EXECUTED, executed)
         return tensordict
 
 
@@ -215,14 +222,17 @@ class Expert(TensorDictModuleBase):
         """The raw label of ``module`` on ``tensordict`` (before the cast)."""
         return self.module(*(tensordict.get(k) for k in self.in_keys))
 
+    def cast_label(self, raw: object, batch_shape: Sequence[int]) -> torch.Tensor:
+        """A raw label of a ``batch_shape`` batch as the ``EXPERT_ACTION`` tensor: cast to
+        ``action_spec`` when bound (see the module docstring), else only made a tensor."""
+        if self.action_spec is not None:
+            return cast_action(raw, self.action_spec, batch_shape=batch_shape)
+        return raw if isinstance(raw, torch.Tensor) else torch.as_tensor(raw)
+
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         with torch.no_grad():
             raw = self.label(tensordict)
-        if self.action_spec is not None:
-            raw = cast_action(raw, self.action_spec, batch_shape=tensordict.batch_size)
-        elif not isinstance(raw, torch.Tensor):
-            raw = torch.as_tensor(raw)
-        tensordict.set(keys.EXPERT_ACTION, raw)
+        tensordict.set(keys.EXPERT_ACTION, self.cast_label(raw, tensordict.batch_size))
         return tensordict
 
     def as_actor(self) -> TensorDictSequential:

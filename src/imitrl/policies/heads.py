@@ -88,8 +88,9 @@ class Chain(nn.Sequential):
     the image and the state); with one input it is ``nn.Sequential`` itself."""
 
     def forward(self, *inputs: torch.Tensor) -> torch.Tensor:
-        x = self[0](*inputs)
-        for module in self[1:]:
+        modules = iter(self)  # not self[1:]: slicing builds a new Sequential at every call
+        x = next(modules)(*inputs)
+        for module in modules:
             x = module(x)
         return x
 

@@ -51,9 +51,22 @@ class BetaMixer(TensorDictModuleBase):
         self._beta.fill_(value)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        expert = tensordict.get(keys.EXPERT_ACTION)
+        learner, action, coin = self.mix(
+            tensordict.get(keys.EXPERT_ACTION),
+            tensordict.get(keys.ACTION, None),
+            tensordict.batch_size,
+        )
+        tensordict.set(keys.LEARNER_ACTION, learner)
+        tensordict.set(keys.ACTION, action)
+        tensordict.set(keys.EXPERT_EXECUTED, coin)
+        return tensordict
+
+    def mix(
+        self, expert: torch.Tensor, learner: torch.Tensor | None, batch: torch.Size
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """One coin per lane of ``batch``: ``(LEARNER_ACTION, ACTION, EXPERT_EXECUTED)``
+        from the expert's label and the learner's proposal (None without a learner)."""
         beta = self.beta
-        learner = tensordict.get(keys.ACTION, None)
         if learner is None:
             if beta < 1.0:
                 raise ValueError(
@@ -66,7 +79,6 @@ class BetaMixer(TensorDictModuleBase):
                 f"expert and learner actions must agree in dtype and shape: expert {expert.dtype} "
                 f"{tuple(expert.shape)}, learner {learner.dtype} {tuple(learner.shape)}"
             )
-        batch = tensordict.batch_size
         if beta >= 1.0:
             coin = torch.ones(batch, dtype=torch.bool)
         elif beta <= 0.0:
@@ -75,10 +87,7 @@ class BetaMixer(TensorDictModuleBase):
             coin = torch.rand(batch, generator=self.generator, dtype=torch.float64) < beta
         # a tuple, not unpacked: an unbatched env has batch_size () and reshape() needs a shape
         mask = coin.reshape((*batch, *([1] * (expert.ndim - len(batch)))))
-        tensordict.set(keys.LEARNER_ACTION, learner)
-        tensordict.set(keys.ACTION, torch.where(mask, expert, learner))
-        tensordict.set(keys.EXPERT_EXECUTED, coin)
-        return tensordict
+        return learner, torch.where(mask, expert, learner), coin
 
 
 def behaviour_policy(

@@ -1,21 +1,64 @@
-"""Thin TensorDictModule variants that skip tensordict's per-call output probing.
+"""Thin TensorDictModule variants, and a policy's per-step call on a dict of tensors.
 
 tensordict 0.14.3 writes every output of a ``TensorDictModule`` through
 ``TensorDict.from_any``, which calls ``importlib.util.find_spec("pandas")`` on each
 call (about 0.1 ms with a few entries on ``sys.path``), even when the output is a
-plain tensor. On a tabular or small-MLP policy that is most of the step. These
-subclasses set tensor outputs directly and defer to tensordict for anything else;
-the override of tensordict's private writer lives in :class:`imitrl.compat.DirectWriteMixin`.
+plain tensor. On a tabular or small-MLP policy that is most of the step. :class:`Module`
+and :class:`Value` set tensor outputs directly and defer to tensordict for anything
+else; the override of tensordict's private writer lives in
+:class:`imitrl.compat.DirectWriteMixin`.
+
+**Per-step calls.** A rollout calls its policy once per env step. Through tensordict's
+modules that call costs several times the network's forward at small batches (issue 16:
+``ProbabilisticActor`` 3.1 s over 5,494 CartPole calls, the numpy expert 0.3 s): the
+``dispatch`` and skip-existing wrappers, the interaction-type context, a distribution
+built to take an argmax, a ``get``/``set`` per key. :class:`TensorPolicy` does what
+``policy(td)`` does to ``td``'s entries, on a plain ``dict`` ``key -> tensor``, for the
+modules imitrl builds:
+
+=================================== ================================================
+module                              replayed as
+=================================== ================================================
+``TensorDictSequential``            its modules in order
+``Module``, ``TensorDictModule``    ``module.module(*in_keys) -> out_keys``
+``ProbabilisticActor`` (greedy)     the network, then the distribution's
+                                    ``deterministic_sample`` (``mode`` under MODE)
+:class:`~imitrl.policies.Expert`    its function of ``in_keys``, cast by ``cast_label``
+``Expert.as_actor``'s executor      ``ACTION <- EXPERT_ACTION``
+:class:`~imitrl.policies.BetaMixer` ``BetaMixer.mix`` (the same coins)
+=================================== ================================================
+
+Any other module, a sampled (``RANDOM``) actor, or a module with hooks runs through its
+own ``forward`` on a TensorDict of the dict's entries. Each replay runs the module's own
+code on the same tensors, so the outputs are the module's to the bit
+(``tests/test_fast_path.py`` checks it for every learner head and the DAgger behaviour
+policy).
 """
 
 from __future__ import annotations
 
-from tensordict.nn import TensorDictModule
-from torchrl.modules import ValueOperator
+from collections.abc import Callable
 
-from imitrl.compat import DirectWriteMixin
+import torch
+from tensordict import TensorDict
+from tensordict.nn import (
+    ProbabilisticTensorDictModule,
+    TensorDictModule,
+    TensorDictModuleBase,
+    TensorDictSequential,
+    skip_existing,
+)
+from torch import nn
+from torchrl.envs.utils import ExplorationType, exploration_type
+from torchrl.modules import ProbabilisticActor, ValueOperator
 
-__all__ = ["Module", "Value"]
+from imitrl import keys
+from imitrl.compat import DirectWriteMixin, plain_module, plain_sampler, plain_sequence
+from imitrl.policies.distributions import GreedyCategorical
+from imitrl.policies.experts import Expert, _ExecuteExpert
+from imitrl.policies.mixture import BetaMixer
+
+__all__ = ["Module", "TensorPolicy", "Value"]
 
 
 class Module(DirectWriteMixin, TensorDictModule):
@@ -24,3 +67,184 @@ class Module(DirectWriteMixin, TensorDictModule):
 
 class Value(DirectWriteMixin, ValueOperator):
     """``ValueOperator`` writing tensor outputs directly (see the module docstring)."""
+
+
+Values = dict
+"""``key -> tensor``: the entries of a rollout's root tensordict (nested keys as tuples)"""
+_Step = Callable[[Values], None]
+
+
+class TensorPolicy:
+    """``policy``'s per-step call on a dict of tensors (see the module docstring).
+
+    Build it inside the rollout's ``set_exploration_type`` (the exploration type is
+    read once, here) and call it under ``torch.no_grad()``; ``call(values)`` updates
+    ``values`` in place as ``policy(td)`` updates ``td``.
+
+    Args:
+        policy: the rollout's policy module.
+        batch_size: the env's batch size.
+
+    Attributes:
+        opaque: some module ran through its own ``forward`` on a TensorDict (it may read
+            or write any entry, not only its ``in_keys``/``out_keys``).
+        draws: some replayed module draws random numbers (a mixer with ``0 < beta < 1``).
+    """
+
+    def __init__(self, policy: TensorDictModuleBase, batch_size: torch.Size) -> None:
+        self.batch_size = torch.Size(batch_size)
+        self.exploration = exploration_type()
+        self.opaque = False
+        self.draws = False
+        # tensordict's global skip-existing mode would skip modules whose outputs exist
+        self._step = self._forward(policy) if skip_existing() else self._compile(policy)
+
+    def __call__(self, values: Values) -> None:
+        self._step(values)
+
+    # ------------------------------------------------------------------ dispatch
+    def _compile(self, node: TensorDictModuleBase) -> _Step:
+        if node._forward_hooks or node._forward_pre_hooks:
+            return self._forward(node)  # e.g. a safe (projecting) actor, selected out-keys
+        kind = type(node)
+        if kind is TensorDictSequential and plain_sequence(node):
+            modules = node.module
+            return self._sequence(
+                list(modules.values() if isinstance(modules, nn.ModuleDict) else modules)
+            )
+        if kind in (Module, TensorDictModule) and plain_module(node):
+            return self._module(node)
+        if kind is ProbabilisticActor and self._greedy_actor(node):
+            return self._actor(node)
+        if isinstance(node, Expert) and type(node).forward is Expert.forward:
+            return self._expert(node)
+        if kind is _ExecuteExpert:
+            return self._execute()
+        if kind is BetaMixer:
+            self.draws = self.draws or 0.0 < node.beta < 1.0
+            return self._mixer(node)
+        return self._forward(node)
+
+    def _forward(self, node: TensorDictModuleBase) -> _Step:
+        """``node``'s own call on a TensorDict of every entry; its entries replace the dict's."""
+        self.opaque = True
+        batch_size = self.batch_size
+
+        def step(values: Values) -> None:
+            out = node(TensorDict(values, batch_size=batch_size))
+            values.clear()
+            values.update(out.items(include_nested=True, leaves_only=True))
+
+        return step
+
+    # -------------------------------------------------------------- the replays
+    def _sequence(self, nodes: list[TensorDictModuleBase]) -> _Step:
+        steps = [self._compile(n) for n in nodes]
+
+        def step(values: Values) -> None:
+            for s in steps:
+                s(values)
+
+        return step
+
+    def _module(self, node: TensorDictModule) -> _Step:
+        fn, in_keys, out_keys = node.module, list(node.in_keys), list(node.out_keys_source)
+        strict, batch_size = node.strict, self.batch_size
+
+        def step(values: Values) -> None:
+            # TensorDictModule.forward: missing inputs are None unless strict
+            out = fn(*(values[k] if strict else values.get(k) for k in in_keys))
+            if isinstance(out, dict) and all(k in out for k in out_keys):
+                out = tuple(out[k] for k in out_keys)
+            if not isinstance(out, tuple):
+                out = (out,)
+            if len(out) != len(out_keys):
+                raise RuntimeError(f"{len(out)} outputs for out_keys {out_keys}")
+            for k, v in zip(out_keys, out):
+                if k == "_":  # tensordict's placeholder for an output to drop
+                    continue
+                if not isinstance(v, torch.Tensor):  # written as tensordict writes it
+                    v = TensorDict(batch_size=batch_size).set(k, TensorDict.from_any(v)).get(k)
+                values[k] = v
+
+        return step
+
+    def _greedy_actor(self, node: ProbabilisticActor) -> bool:
+        """An actor whose last module draws nothing under this exploration type."""
+        if self.exploration not in (ExplorationType.DETERMINISTIC, ExplorationType.MODE):
+            return False  # sampled: its draws are the module's own (run through forward)
+        *det, last = list(node.module)
+        return (
+            isinstance(last, ProbabilisticTensorDictModule)
+            and (
+                self.exploration is ExplorationType.MODE
+                or hasattr(last.distribution_class, "deterministic_sample")  # as _dist_sample
+            )
+            and not (last._forward_hooks or last._forward_pre_hooks)
+            and plain_sampler(last, node)
+            and isinstance(last.distribution_kwargs, dict)
+            and len(last.dist_sample_keys) == 1
+            and all(type(m) in (Module, TensorDictModule) for m in det)
+        )
+
+    def _actor(self, node: ProbabilisticActor) -> _Step:
+        *det, last = list(node.module)
+        params = self._sequence(det)
+        dist_class, dist_kwargs = last.distribution_class, last.distribution_kwargs
+        names = [k[-1] if isinstance(k, tuple) else k for k in last.dist_keys]
+        in_keys, (out_key,) = list(last.in_keys), list(last.dist_sample_keys)
+        mode = self.exploration is ExplorationType.MODE
+        if dist_class is GreedyCategorical and names == ["logits"] and not dist_kwargs:
+            (logits_key,) = in_keys
+
+            def greedy(values: Values) -> None:
+                params(values)
+                # its deterministic_sample (= mode), without building the distribution
+                values[out_key] = GreedyCategorical.greedy(values[logits_key])
+
+            return greedy
+
+        def step(values: Values) -> None:
+            params(values)  # the network: writes the distribution's parameters
+            # ProbabilisticTensorDictModule.get_dist, then _dist_sample
+            dist = dist_class(**{n: values.get(k) for n, k in zip(names, in_keys)}, **dist_kwargs)
+            values[out_key] = dist.mode if mode else dist.deterministic_sample
+
+        return step
+
+    def _expert(self, node: Expert) -> _Step:
+        in_keys, batch_size = list(node.in_keys), self.batch_size
+        own_label = type(node).label is Expert.label
+        fn = node.module
+
+        def step(values: Values) -> None:
+            if own_label:  # Expert.label: the function of the in-keys
+                raw = fn(*(values[k] for k in in_keys))
+            else:  # a subclass's label reads a TensorDict of the in-keys
+                raw = node.label(TensorDict({k: values[k] for k in in_keys}, batch_size))
+            values[keys.EXPERT_ACTION] = node.cast_label(raw, batch_size)
+
+        return step
+
+    def _execute(self) -> _Step:
+        batch_size = self.batch_size
+
+        def step(values: Values) -> None:
+            values[keys.ACTION], values[keys.EXPERT_EXECUTED] = _ExecuteExpert.execute(
+                values[keys.EXPERT_ACTION], batch_size
+            )
+
+        return step
+
+    def _mixer(self, node: BetaMixer) -> _Step:
+        batch_size = self.batch_size
+
+        def step(values: Values) -> None:
+            learner, action, coin = node.mix(
+                values[keys.EXPERT_ACTION], values.get(keys.ACTION), batch_size
+            )
+            values[keys.LEARNER_ACTION] = learner
+            values[keys.ACTION] = action
+            values[keys.EXPERT_EXECUTED] = coin
+
+        return step

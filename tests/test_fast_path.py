@@ -1,0 +1,366 @@
+"""The rollouts' fast paths play the same episodes as TorchRL's path, digit for digit.
+
+Three layers are bypassed on the fast path (``fast_path=True``, the default): the env
+step (``imitrl.envs.direct``: gymnasium or ``TabularEnv`` stepped directly), the policy
+call (``TensorPolicy``: a dict of tensors instead of a TensorDict) and, for evaluations
+of gymnasium's toy-text envs, the step loop itself (``imitrl.envs.toy_text``: the
+stream player). Every test here runs the same calls with ``fast_path=False`` (every
+step through ``env.step_and_maybe_reset`` and ``policy(td)``) and asks for identical
+rows, returns, lengths and flags (values, dtypes, shapes), and for identical later
+episodes: the env's random state must end where TorchRL's path leaves it.
+"""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+from tensordict import TensorDict
+from tensordict.nn import TensorDictModule, TensorDictSequential
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+import imitrl.data.rollout as rollout_module
+from imitrl import keys
+from imitrl.algorithms import BCConfig, DAggerConfig, EnvSource, dagger
+from imitrl.data import DemonstrationBuffer, episode_returns, rollout_episodes
+from imitrl.envs import TabularEnv, make_env
+from imitrl.envs.direct import direct_steps
+from imitrl.evaluation import evaluate
+from imitrl.experts import cartpole_expert, pendulum_expert
+from imitrl.policies import ActorCritic, Expert
+from imitrl.policies.mixture import BetaMixer, behaviour_policy
+from imitrl.policies.modules import TensorPolicy
+from imitrl.tabular import TabularMDP, greedy, value_iteration
+
+DET, RND, MODE = ExplorationType.DETERMINISTIC, ExplorationType.RANDOM, ExplorationType.MODE
+
+
+def assert_same(a, b) -> None:
+    """Identical TensorDicts, tensors or summaries: keys, dtypes, shapes and every value."""
+    if isinstance(a, TensorDict):
+        assert sorted(a.keys(True, True), key=str) == sorted(b.keys(True, True), key=str)
+        assert a.batch_size == b.batch_size
+        for k in a.keys(True, True):
+            assert_same(a.get(k), b.get(k))
+    elif isinstance(a, torch.Tensor):
+        assert a.dtype == b.dtype and a.shape == b.shape
+        assert torch.equal(a, b) or (a.is_floating_point() and torch.equal(a.isnan(), b.isnan()))
+    elif a is None:
+        assert b is None
+    else:
+        for field in ("returns", "lengths", "success"):
+            assert_same(getattr(a, field), getattr(b, field))
+
+
+def _point_mass():
+    """A point mass with float32 observations and a float64 action box."""
+
+    class PointMass(gym.Env):
+        observation_space = gym.spaces.Box(-np.inf, np.inf, (2,), np.float32)
+        action_space = gym.spaces.Box(-1.0, 1.0, (1,), np.float64)
+
+        def reset(self, *, seed=None, options=None):
+            super().reset(seed=seed)
+            self.s = self.np_random.uniform(-1, 1, size=2)
+            return self.s.astype(np.float32), {}
+
+        def step(self, u):
+            x, v = self.s
+            v = v + 0.1 * float(np.clip(u[0], -1, 1))
+            self.s = np.array([x + 0.1 * v, v])
+            return self.s.astype(np.float32), -x * x, bool(abs(x) > 0.9), False, {}
+
+    return PointMass()
+
+
+gym.register("imitrl-test/FastPathF64-v0", entry_point=_point_mass, max_episode_steps=25)
+
+
+def _f64_expert() -> Expert:
+    return Expert.from_callable(lambda obs: -obs[..., 1:2].double())
+
+
+# every env make_env hands to the direct path: float32 and float64 (MuJoCo) observations,
+# float64 actions, discrete and continuous actions, one lane and several
+GYM_CASES = [
+    ("CartPole-v1", cartpole_expert, 40),
+    ("Pendulum-v1", pendulum_expert, 30),
+    ("imitrl-test/FastPathF64-v0", _f64_expert, None),
+]
+
+
+@pytest.fixture(scope="module")
+def lake_q(lake: TabularMDP) -> torch.Tensor:
+    return lake.backup(value_iteration(lake, 300)[-1])
+
+
+def _learner(env, head=None, exploration=DET) -> ActorCritic:
+    learner = ActorCritic.for_env(env, seed=1, hidden=(16, 16), head=head)
+    learner.exploration = exploration
+    return learner
+
+
+def _rollouts_on_both_paths(make, run) -> None:
+    """``run(env, fast_path)`` on two fresh copies of an env, twice each (the second
+    call continues from the random state the first left): identical results."""
+    fast_env, slow_env = make(), make()
+    for _ in range(2):
+        assert_same(run(fast_env, True), run(slow_env, False))
+
+
+# ------------------------------------------------------------------ the env step
+@pytest.mark.parametrize(("env_id", "make_expert", "limit"), GYM_CASES)
+@pytest.mark.parametrize("lanes", [1, 3])
+def test_direct_rows_equal_torchrl_rows(env_id, make_expert, limit, lanes):
+    def make():
+        return make_env(env_id, seed=2, num_envs=lanes, max_episode_steps=limit)
+
+    env = make()
+    assert direct_steps(env) is not None
+    expert = make_expert()
+    learner = _learner(env)
+
+    def run(env, fast_path):
+        mixer = BetaMixer(0.5, generator=torch.Generator().manual_seed(4))
+        behaviour = behaviour_policy(expert, learner.policy, mixer)
+        demos = rollout_episodes(env, expert, 3, fast_path=fast_path)
+        rows = rollout_episodes(
+            env, behaviour, 4, exploration=DET, round_index=1, fast_path=fast_path
+        )
+        return TensorDict({"demos": demos, "rows": rows}, batch_size=[])
+
+    _rollouts_on_both_paths(make, run)
+
+
+def test_float64_observations_take_the_direct_path_and_agree():
+    pytest.importorskip("mujoco")
+    for lanes in (1, 2):
+
+        def make(lanes=lanes):
+            return make_env("InvertedPendulum-v5", seed=0, num_envs=lanes, max_episode_steps=20)
+
+        learner = _learner(make())
+        assert direct_steps(make()) is not None
+        expert = _f64_expert().bind(make().action_spec_unbatched)
+
+        def run(env, fast_path, learner=learner, expert=expert):
+            rows = rollout_episodes(
+                env,
+                behaviour_policy(expert, learner.policy, BetaMixer(0.0)),
+                3,
+                exploration=DET,
+                fast_path=fast_path,
+            )
+            assert rows.get(keys.OBSERVATION).dtype == torch.float32
+            return rows
+
+        _rollouts_on_both_paths(make, run)
+
+
+@pytest.mark.parametrize("rng", ["torch", "gymnasium"])
+@pytest.mark.parametrize("lanes", [(), (4,)])
+def test_tabular_env_direct_path_equals_torchrl(lake, lake_q, rng, lanes):
+    def make():
+        return TabularEnv(lake, batch_size=lanes, seed=3, rng=rng)
+
+    expert = Expert.from_q(lake_q)
+    learner = ActorCritic.tabular(16, 4)
+    learner.exploration = RND
+
+    def run(env, fast_path):
+        mixer = BetaMixer(0.3, generator=torch.Generator().manual_seed(1))
+        rows = rollout_episodes(
+            env,
+            behaviour_policy(expert, learner.policy, mixer),
+            5,
+            exploration=RND,
+            generator=torch.Generator().manual_seed(2),
+            fast_path=fast_path,
+        )
+        ev = evaluate(env, expert, 9, fast_path=fast_path)  # success_fn: the goal states
+        return TensorDict(
+            {"rows": rows, "success": ev.success_rate, "ret": ev.mean_return}, batch_size=[]
+        )
+
+    _rollouts_on_both_paths(make, run)
+
+
+@pytest.mark.parametrize("lanes", [1, 3])
+def test_sampled_and_success_returns_equal_torchrl(lanes):
+    """A sampled learner (run through its own forward, drawing from the seeded generator)
+    and a success criterion (the step tensordict rebuilt where an episode ends)."""
+
+    def make():
+        return make_env("Pendulum-v1", seed=5, num_envs=lanes, max_episode_steps=20)
+
+    learner = _learner(make(), head="normal", exploration=RND)
+
+    def success(out):
+        return out.get((keys.NEXT, keys.OBSERVATION))[..., 0] > 0
+
+    def run(env, fast_path):
+        return episode_returns(
+            env,
+            learner.policy,
+            5,
+            exploration=RND,
+            success_fn=success,
+            generator=torch.Generator().manual_seed(9),
+            fast_path=fast_path,
+        )
+
+    _rollouts_on_both_paths(make, run)
+
+
+def test_dagger_rounds_equal_torchrl():
+    def run(fast_path):
+        env = make_env("CartPole-v1", seed=0, num_envs=2, max_episode_steps=30)
+        expert = cartpole_expert()
+        buffer = DemonstrationBuffer(action_spec=env.action_spec)
+        buffer.extend(rollout_episodes(env, expert, 2, fast_path=fast_path))
+        config = DAggerConfig(
+            rounds=3, episodes_per_round=2, beta=lambda k: 0.5, bc=BCConfig(num_steps=20)
+        )
+        source = EnvSource(env, fast_path=fast_path)
+        result = dagger(source, expert, lambda: _learner(env), buffer, config)
+        return result.buffer.data, result.learner.state_dict()
+
+    (fast, fast_weights), (slow, slow_weights) = run(True), run(False)
+    assert_same(fast, slow)
+    assert all(torch.equal(fast_weights[k], slow_weights[k]) for k in fast_weights)
+
+
+def test_envs_the_direct_path_does_not_take():
+    assert direct_steps(make_env("CartPole-v1", seed=0, frame_skip=2)) is None
+    env = make_env("CartPole-v1", seed=0)
+    assert direct_steps(env.append_transform(_step_counter())) is None
+
+
+def _step_counter():
+    from torchrl.envs import StepCounter
+
+    return StepCounter()
+
+
+def test_errors_are_the_same_on_both_paths():
+    env = make_env("CartPole-v1", seed=0, max_episode_steps=50)
+    for fast_path in (True, False):
+        with pytest.raises(ValueError, match="ran past max_steps=5 steps"):
+            episode_returns(env, cartpole_expert(), 2, max_steps=5, fast_path=fast_path)
+        with pytest.raises(ValueError, match="must write 'expert_action'"):
+            rollout_episodes(env, _learner(env).policy, 1, exploration=DET, fast_path=fast_path)
+        bad = TensorDictModule(
+            lambda o: torch.zeros(2, dtype=torch.int64), ["observation"], ["action"]
+        )
+        with pytest.raises(
+            ValueError, match=r"the policy's action has dtype torch\.int64, shape \(2,\)"
+        ):
+            episode_returns(env, bad, 1, exploration=DET, fast_path=fast_path)
+
+
+# ------------------------------------------------------------------ the policy call
+def _policies():
+    cart, pend = make_env("CartPole-v1", seed=0), make_env("Pendulum-v1", seed=0, num_envs=3)
+    lake_env = make_env("FrozenLake-v1", seed=0, num_envs=2)
+    yield cart, _learner(cart).policy
+    yield lake_env, _learner(lake_env).policy
+    yield lake_env, ActorCritic.tabular(16, 4).policy
+    for head in ("deterministic", "normal", "tanh_normal"):
+        yield pend, _learner(pend, head=head).policy
+    expert = cartpole_expert()
+    expert.bind(cart.action_spec_unbatched)
+    yield cart, expert.as_actor()
+    yield cart, behaviour_policy(expert, _learner(cart).policy, BetaMixer(1.0))
+    yield cart, Expert.from_policy(_learner(cart).policy).as_actor()  # a label of a policy
+
+
+@pytest.mark.parametrize("exploration", [DET, MODE])
+def test_policy_replay_equals_the_tensordict_call(exploration):
+    for env, policy in _policies():
+        td = env.reset()
+        with torch.no_grad(), set_exploration_type(exploration):
+            replay = TensorPolicy(policy, env.batch_size)
+            assert not replay.opaque  # every module replayed, none run through forward
+            values = dict(td.items(True, True))
+            try:
+                out = policy(td.clone())
+            except RuntimeError as err:  # TanhNormal has no mode: the replay says so too
+                with pytest.raises(RuntimeError, match="has not analytical mode"):
+                    replay(values)
+                assert "has not analytical mode" in str(err)
+                continue
+            replay(values)
+        assert_same(TensorDict(values, batch_size=env.batch_size), out)
+
+
+def test_mixer_coins_and_opaque_modules_are_the_modules_own():
+    env = make_env("Pendulum-v1", seed=0, num_envs=4)
+    learner = _learner(env, head="normal")
+    outside = TensorDictSequential(
+        TensorDictModule(lambda o: o * 2, [keys.OBSERVATION], ["twice"]),
+    ).select_out_keys("twice")  # selected out-keys: run through its own forward
+    for sample in (DET, RND):
+        td = env.reset()
+        with torch.no_grad(), set_exploration_type(sample):
+            outputs = []
+            for replayed in (True, False):
+                torch.manual_seed(0)
+                mixer = BetaMixer(0.5, generator=torch.Generator().manual_seed(3))
+                policy = TensorDictSequential(
+                    behaviour_policy(pendulum_expert(), learner.policy, mixer), outside
+                )
+                if replayed:
+                    step = TensorPolicy(policy, env.batch_size)
+                    assert step.opaque and step.draws
+                    values = dict(td.items(True, True))
+                    step(values)
+                    outputs.append(TensorDict(values, batch_size=env.batch_size))
+                else:
+                    outputs.append(policy(td.clone()))
+        assert_same(*outputs)
+
+
+# ------------------------------------------------------- toy-text evaluations by the stream
+TOY_TEXT = [("FrozenLake-v1", None), ("Taxi-v4", 60), ("CliffWalking-v1", 60)]
+
+
+@pytest.mark.parametrize(("env_id", "limit"), TOY_TEXT)
+@pytest.mark.parametrize("lanes", [1, 3])
+def test_toy_text_evaluation_by_the_stream_equals_stepping(env_id, limit, lanes, monkeypatch):
+    mdp = TabularMDP.from_gym(env_id, 0.95)
+    table = greedy(mdp.backup(value_iteration(mdp, 200)[-1]))
+
+    def make():
+        return make_env(env_id, seed=7, num_envs=lanes, max_episode_steps=limit)
+
+    learner = _learner(make())  # an MLP over one-hot states, greedy
+    streamed = []
+    play_lanes = rollout_module.play_lanes
+    monkeypatch.setattr(
+        rollout_module, "play_lanes", lambda *a: streamed.append(1) or play_lanes(*a)
+    )
+
+    def run(env, fast_path):
+        out = [
+            episode_returns(env, Expert.from_table(table), 11, seed=1, fast_path=fast_path),
+            episode_returns(env, learner.policy, 4, exploration=DET, fast_path=fast_path),
+            episode_returns(env, Expert.from_table(table), 5, fast_path=fast_path),
+        ]
+        # the episodes a step-by-step rollout plays next, from the generators left behind
+        rows = rollout_episodes(env, Expert.from_table(table), 2, fast_path=False)
+        return [*out, rows]
+
+    fast_env, slow_env = make(), make()
+    for _ in range(2):
+        for a, b in zip(run(fast_env, True), run(slow_env, False)):
+            assert_same(a, b)
+    assert len(streamed) == 6  # every fast evaluation went through the stream
+
+
+def test_the_stream_is_skipped_where_it_cannot_replace_the_steps(lake_q, monkeypatch):
+    monkeypatch.setattr(rollout_module, "play_lanes", None)  # would fail if called
+    env = make_env("FrozenLake-v1", seed=0)
+    learner = _learner(env, exploration=RND)
+    episode_returns(env, learner.policy, 3, exploration=RND)  # samples: not a table
+    episode_returns(env, Expert.from_q(lake_q), 3, success_fn=lambda out: out["done"])
