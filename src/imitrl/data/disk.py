@@ -117,14 +117,18 @@ class GrowingMemmapStorage(LazyMemmapStorage):
         """Count ``n`` randomly read rows; map the files again once they may have mapped
         ``REMAP_BYTES`` (each read of a row maps up to ``FAULT_AROUND_BYTES`` per column:
         the kernel maps the cached neighbours of a faulting page too)."""
-        columns = len(list(self._storage.keys(include_nested=True, leaves_only=True)))
-        self.note_bytes(n * columns * FAULT_AROUND_BYTES)
+        # a column's reads map at most its whole file
+        files = [t.nbytes for t in self._storage.values(True, True)]
+        self.note_bytes(sum(min(n * FAULT_AROUND_BYTES, size) for size in files))
 
     def note_bytes(self, nbytes: int) -> bool:
         """Count ``nbytes`` read through the mapping; map the files again (returns True)
         once ``REMAP_BYTES`` may be mapped: views taken before then keep the old mapping
         (and its pages) alive, so readers take new views after a remap."""
-        self._read_bytes += int(nbytes)
+        # what is mapped never exceeds the files themselves: files of REMAP_BYTES or
+        # less in all are never mapped again for reads
+        files = sum(t.nbytes for t in self._storage.values(True, True)) if self.initialized else 0
+        self._read_bytes = min(self._read_bytes + int(nbytes), files)
         if self._read_bytes > REMAP_BYTES:
             self.map(self.max_size)
             return True
