@@ -10,12 +10,18 @@ per seed:
 * DAgger: ``rounds - 1`` relabel rounds later (beta = 0, a fresh learner per round,
   same fit), the learner fitted on everything collected.
 
-Tasks: slippery FrozenLake (score: the exact success probability of the learned
-policy in 100 steps, from the MDP, not sampled), CartPole-v1, Pendulum-v1,
-InvertedPendulum-v5 (score: mean return over evaluation episodes on held-out seeds)
-and the two-way obstacle task of :mod:`imitrl.envs.multimodal` (score: success rate;
-plus the fraction of the learner's actions near each of the expert's two modes at
-the decision states, and which side its successful episodes passed).
+Tasks (``_loss_functions/tasks.py``, one registry of task definitions): slippery
+FrozenLake (score: the exact success probability of the learned policy in 100 steps,
+from the MDP, not sampled), CartPole-v1, Pendulum-v1, InvertedPendulum-v5 (score:
+mean return over evaluation episodes on held-out seeds), the two-way obstacle task of
+:mod:`imitrl.envs.multimodal` (score: success rate; plus the fraction of the learner's
+actions near each of the expert's two modes at the decision states, and which side its
+successful episodes passed) and the forking corridor of :mod:`imitrl.envs.corridor`
+(four routes; success rate, the lane reached or the wall hit, mode fractions at both
+forks, turn-backs in the decision windows). ``--task key=value,...`` adds a task from
+outside: an env id (or ``module:Id-v0``, or a TorchRL env class ``module:Class``) with
+an expert ``module:function`` and a budget, or a recorded LeRobot / Minari dataset
+and the env to evaluate in (see ``parse_task`` in ``_loss_functions/tasks.py``).
 
 The expert-normalised score is ``(score - random) / (expert - random)``, with the
 expert's and a uniformly random policy's scores measured by the same protocol on the
@@ -31,6 +37,13 @@ table), ``_loss_functions/run.py`` (the cells), ``_loss_functions/report.py``
     python benchmarks/loss_functions.py --jobs 2             # same results, two processes
     python benchmarks/loss_functions.py --quick              # smoke run, into a temporary dir
     python benchmarks/loss_functions.py --tasks two_way --losses mse diffusion --seeds 3 --out /tmp/x
+    python benchmarks/loss_functions.py --quick --losses mse \
+        --task name=pend,env=Pendulum-v1,expert=imitrl.experts:pendulum_expert,steps=500
+
+The aggregate statistics (IQM, optimality gap, probability of improvement over MSE
+with stratified bootstrap intervals over seeds, performance profiles; Agarwal et al.
+2021, :mod:`imitrl.evaluation.aggregate`) are computed over the tasks every
+continuous loss applies to.
 """
 
 from __future__ import annotations
@@ -48,7 +61,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _report
 from _loss_functions.report import NAME, report
 from _loss_functions.run import run
-from _loss_functions.tasks import TASKS
+from _loss_functions.tasks import TASKS, parse_task
 from imitrl.objectives import registry
 
 
@@ -57,7 +70,23 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument(
         "--seeds", type=int, default=None, help="seeds per cell (default 5; 1 with --quick)"
     )
-    parser.add_argument("--tasks", nargs="+", default=list(TASKS), choices=TASKS)
+    parser.add_argument(
+        "--tasks",
+        nargs="+",
+        default=None,
+        choices=list(TASKS),
+        help="built-in tasks (default: all but inverted_pendulum, none when --task is given)",
+    )
+    parser.add_argument(
+        "--task",
+        dest="external",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE,...",
+        help="a task from outside: name=,env= and expert= (module:function) or dataset= "
+        "(a LeRobot or Minari directory), budget keys demos=,rounds=,episodes=,steps=,"
+        "batch=,hidden=,lr=,eval= (repeatable)",
+    )
     parser.add_argument("--losses", nargs="+", default=None, help="registry names (default: all)")
     parser.add_argument(
         "--import",
@@ -69,6 +98,12 @@ def main(argv: list[str] | None = None) -> None:
     )
     parser.add_argument("--jobs", type=int, default=1, help="worker processes (same results)")
     parser.add_argument(
+        "--reps",
+        type=int,
+        default=None,
+        help="bootstrap replicates of the aggregate intervals (default 2000; 100 with --quick)",
+    )
+    parser.add_argument(
         "--render",
         type=Path,
         default=None,
@@ -78,6 +113,12 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     for module in args.modules:
         importlib.import_module(module)
+    external = [parse_task(text) for text in args.external]
+    default = [n for n, t in TASKS.items() if t.in_default_run]
+    names = args.tasks if args.tasks is not None else ([] if external else default)
+    tasks = [TASKS[n] for n in names] + external
+    if len({t.name for t in tasks}) != len(tasks):
+        raise SystemExit(f"task names must be unique, got {[t.name for t in tasks]}")
     out_dir = _report.destination(NAME, quick=args.quick, out=args.out)
     if args.render is not None:
         report(json.loads(args.render.read_text()), out_dir)
@@ -87,22 +128,24 @@ def main(argv: list[str] | None = None) -> None:
     torch.set_num_threads(1)
     seeds = args.seeds if args.seeds is not None else (1 if args.quick else 5)
     t0 = time.perf_counter()
-    raw = run(
-        tasks=args.tasks, losses=args.losses, seeds=seeds, quick_mode=args.quick, jobs=args.jobs
-    )
+    raw = run(tasks=tasks, losses=args.losses, seeds=seeds, quick_mode=args.quick, jobs=args.jobs)
     raw["wall_seconds"] = time.perf_counter() - t0
     raw["config"] = {
         "seeds": seeds,
-        "tasks": args.tasks,
+        "tasks": [t.name for t in tasks],
         "losses": args.losses,
         "quick": args.quick,
         "jobs": args.jobs,
+        "bootstrap_reps": args.reps if args.reps is not None else (100 if args.quick else 2000),
         "cpu_count": os.cpu_count(),
         "command": " ".join(["python benchmarks/loss_functions.py", *(argv or sys.argv[1:])]),
     }
     raw["losses"] = {
         e.name: {"actions": e.actions, "summary": e.summary} for e in registry.entries()
     }
+    # the raw rows first, so that a failing report can be re-rendered (--render)
+    raw_path = _report.results_dir(out_dir) / f"{NAME}.json"
+    raw_path.write_text(json.dumps(raw, indent=1, default=str) + "\n")
     report(raw, out_dir)
     print(f"wall time {raw['wall_seconds']:.0f} s")
 

@@ -168,13 +168,57 @@ def test_dagger_with_chunks_labels_each_visited_state_and_chunks_the_relabelled_
     want = mm.expert_modes(relabelled.get(keys.OBSERVATION))
     label = relabelled.get(keys.EXPERT_ACTION)[:, 0]
     assert bool(((label == want[:, 0]) | (label == want[:, 1])).all())
-    # the chunk of a relabelled row: the labels of the next rows of its episode
+    # the chunk of a relabelled row: the learner drove (beta = 0), so the label of the next
+    # row answers another question (what the expert does from where the learner went):
+    # entry 0 alone is the expert's, the rest repeat it and are masked
     chunked = add_chunk_labels(relabelled, horizon)
-    ep, st = relabelled.get(keys.EPISODE), relabelled.get(keys.STEP)
-    for i in range(0, relabelled.shape[0], 7):
+    assert bool(chunked.get(CHUNK_PAD)[:, 1:].all()) and not chunked.get(CHUNK_PAD)[:, 0].any()
+    first = chunked.get(EXPERT_CHUNK)[:, 0]
+    assert torch.equal(first, relabelled.get(keys.EXPERT_ACTION))
+    assert torch.equal(
+        chunked.get(EXPERT_CHUNK), first.unsqueeze(1).expand_as(chunked.get(EXPERT_CHUNK))
+    )
+    # the demonstrations (the expert drove) keep whole chunks: the next rows' labels
+    demo = rows[rows.get(keys.ROUND) == 0]
+    chunked = add_chunk_labels(demo, horizon)
+    ep, st = demo.get(keys.EPISODE), demo.get(keys.STEP)
+    for i in range(0, demo.shape[0], 7):
         for h in range(horizon):
             same = (ep == ep[i]) & (st == st[i] + h)
             pad = bool(chunked.get(CHUNK_PAD)[i, h])
             assert pad == (not bool(same.any()))
             if not pad:
-                assert torch.equal(chunked.get(EXPERT_CHUNK)[i, h], label[same].unsqueeze(-1)[0])
+                assert torch.equal(
+                    chunked.get(EXPERT_CHUNK)[i, h], demo.get(keys.EXPERT_ACTION)[same][0]
+                )
+
+
+def test_a_chunk_ends_where_the_executed_action_was_not_the_experts():
+    # one episode of 6 steps; the learner drove at steps 2 and 3 (beta mixing)
+    label = torch.arange(6.0).unsqueeze(-1)
+    executed = torch.tensor([True, True, False, False, True, True])
+    chunk, pad = chunk_labels(
+        label, torch.zeros(6, dtype=torch.long), torch.arange(6), 3, expert_executed=executed
+    )
+    # row 0: steps 0, 1, 2 on the expert's plan (actions 0 and 1 were its own)
+    # row 1: steps 1, 2, then 3 was reached by the learner's action at 2: padded (2 repeated)
+    # rows 2, 3: the learner acted at once: entry 0 only; rows 4, 5: the episode's end
+    assert chunk[..., 0].tolist() == [
+        [0, 1, 2],
+        [1, 2, 2],
+        [2, 2, 2],
+        [3, 3, 3],
+        [4, 5, 5],
+        [5, 5, 5],
+    ]
+    assert pad.tolist() == [
+        [False, False, False],
+        [False, False, True],
+        [False, True, True],
+        [False, True, True],
+        [False, False, True],
+        [False, True, True],
+    ]
+    with pytest.raises(ValueError, match="expert_executed"):
+        chunk_labels(label, torch.zeros(6, dtype=torch.long), torch.arange(6), 3,
+                     expert_executed=executed[:5])  # fmt: skip

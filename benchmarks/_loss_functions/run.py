@@ -15,7 +15,7 @@ from typing import Any
 import torch
 
 from _common import DET, rollout, source
-from _loss_functions.tasks import tasks as task_table
+from _loss_functions.tasks import TaskDef, build
 from imitrl.algorithms import DAggerConfig, dagger, fit_bc
 from imitrl.data import DemonstrationBuffer
 from imitrl.data.chunks import add_chunk_labels
@@ -24,13 +24,13 @@ from imitrl.objectives.registry import Learner
 from imitrl.policies import as_actor
 
 
-def reference_cell(task_name: str, seed: int, quick_mode: bool) -> list[dict]:
+def reference_cell(defn: TaskDef, seed: int, quick_mode: bool) -> list[dict]:
     """The expert's and a uniformly random policy's scores on the task's protocol."""
     torch.set_num_threads(1)
     torch.manual_seed(seed)
-    task = task_table(quick_mode)[task_name]()
+    task = build(defn, quick_mode)
     return [
-        {"task": task_name, "policy": who, "seed": seed, **result}
+        {"task": defn.name, "policy": who, "seed": seed, **result}
         for who, result in (
             ("expert", task.expert_score(seed)),
             ("random", task.random_score(seed)),
@@ -38,26 +38,29 @@ def reference_cell(task_name: str, seed: int, quick_mode: bool) -> list[dict]:
     ]
 
 
-def loss_cell(task_name: str, loss: str, seed: int, quick_mode: bool) -> list[dict]:
-    """Train ``loss`` on ``task_name`` with ``seed``: one row for BC, one for DAgger."""
+def loss_cell(defn: TaskDef, loss: str, seed: int, quick_mode: bool) -> list[dict]:
+    """Train ``loss`` on the task ``defn`` with ``seed``: one row for BC, one for DAgger
+    (BC alone for a task without an expert)."""
     torch.set_num_threads(1)
     torch.manual_seed(seed)  # global draws (TorchRL's samplers) start from the seed too
-    t0 = time.perf_counter()
-    task = task_table(quick_mode)[task_name]()
+    t0, cpu0 = time.perf_counter(), time.process_time()
+    task_name = defn.name
+    task = build(defn, quick_mode)
     proto = task.protocol
     spec = task.spec()
     config = replace(proto.learner, seed=seed)
     bc = replace(proto.bc, seed=seed)
 
-    # 1. demonstrations: the expert drives the env, every row is labelled
+    # 1. demonstrations: a recorded dataset, or the expert drives the env (every row labelled)
     env = task.env(seed=seed, lanes=proto.episodes_per_round)
     expert = task.expert()
     buffer = DemonstrationBuffer(num_states=spec.num_states)
-    buffer.extend(
-        rollout(
+    recorded = task.demonstrations(env)
+    if recorded is None:
+        recorded = rollout(
             env, as_actor(expert), proto.demo_episodes, exploration=DET, max_steps=task.max_steps()
         )
-    )
+    buffer.extend(recorded)
     demo_rows = len(buffer)
 
     # 2. DAgger, whose round 0 is BC; evaluate the first and the last fit
@@ -83,22 +86,31 @@ def loss_cell(task_name: str, loss: str, seed: int, quick_mode: bool) -> list[di
             result["eval_seconds"] = time.perf_counter() - t
             results[k] = result
 
-    out = dagger(
-        source(env, exploration=None, max_steps=task.max_steps()),  # as each learner acts
-        expert,
-        lambda: registry.build(loss, spec, config),
-        buffer,
-        DAggerConfig(
-            rounds=proto.rounds, episodes_per_round=proto.episodes_per_round, bc=bc, seed=seed
-        ),
-        on_fit=on_fit,
-        train=timed_fit,
-    )
+    if expert is None:  # a dataset alone: BC only
+        learner = registry.build(loss, spec, config)
+        fit = timed_fit(learner, buffer)
+        on_fit(0, learner)
+        records = [(learner, len(buffer), fit)]
+    else:
+        out = dagger(
+            source(env, exploration=None, max_steps=task.max_steps()),  # as each learner acts
+            expert,
+            lambda: registry.build(loss, spec, config),
+            buffer,
+            DAggerConfig(
+                rounds=proto.rounds, episodes_per_round=proto.episodes_per_round, bc=bc, seed=seed
+            ),
+            on_fit=on_fit,
+            train=timed_fit,
+        )
+        learner = out.learner
+        records = [(learner, r.rows_trained, r.bc) for r in out.rounds]
     env.close()
-    exploration = str(out.learner.exploration).split(".")[-1].lower()
+    exploration = str(learner.exploration).split(".")[-1].lower()
     rows = []
-    for algorithm, k in (("bc", 0), ("dagger", proto.rounds - 1)):
-        record = out.rounds[k]
+    algorithms = [("bc", 0)] + ([("dagger", proto.rounds - 1)] if proto.rounds > 1 else [])
+    for algorithm, k in algorithms:
+        _, rows_trained, fit = records[k]
         rows.append(
             {
                 "task": task_name,
@@ -106,50 +118,65 @@ def loss_cell(task_name: str, loss: str, seed: int, quick_mode: bool) -> list[di
                 "seed": seed,
                 "algorithm": algorithm,
                 "exploration": exploration,
-                "rows_trained": record.rows_trained,
+                "rows_trained": rows_trained,
                 "demo_rows": demo_rows,
-                "final_loss": record.bc.final_loss,
+                "final_loss": fit.final_loss,
                 "fit_seconds": fit_seconds[k],
                 **results[k],
             }
         )
-    rows[-1]["cell_seconds"] = rows[0]["cell_seconds"] = time.perf_counter() - t0
+    for row in rows:
+        row["cell_seconds"] = time.perf_counter() - t0
+        row["cell_cpu_seconds"] = time.process_time() - cpu0
     return rows
 
 
 def run(
     *,
-    tasks: list[str],
+    tasks: list[TaskDef],
     losses: list[str] | None,
     seeds: int,
     quick_mode: bool,
     jobs: int = 1,
 ) -> dict[str, Any]:
     """Every (loss, task, seed) cell and the expert/random references; returns the raw rows."""
-    factories = task_table(quick_mode)
     cells, refs = [], []
-    for task_name in tasks:
-        spec = factories[task_name]().spec()
+    for defn in tasks:
+        spec = build(defn, quick_mode).spec()
         for seed in range(seeds):
-            refs.append((task_name, seed, quick_mode))
+            refs.append((defn, seed, quick_mode))
             for loss in registry.names(spec):
                 if losses is None or loss in losses:
-                    cells.append((task_name, loss, seed, quick_mode))
+                    cells.append((defn, loss, seed, quick_mode))
+    # the longest cells first (a rough cost), so that the last to finish are short; the
+    # rows come back in the cells' own order
+    schedule = sorted(range(len(cells)), key=lambda i: -_cost(*cells[i][:2]))
     if jobs > 1:
         with ProcessPoolExecutor(jobs) as pool:
             ref_rows = [r for rows in pool.map(reference_cell, *zip(*refs)) for r in rows]
-            rows = [r for rs in pool.map(loss_cell, *zip(*cells)) for r in rs]
+            done = dict(zip(schedule, pool.map(loss_cell, *zip(*[cells[i] for i in schedule]))))
     else:
         ref_rows = [r for args in refs for r in reference_cell(*args)]
-        rows = []
-        for i, args in enumerate(cells):
+        done = {}
+        for n, i in enumerate(schedule):
             t = time.perf_counter()
-            rows += loss_cell(*args)
+            done[i] = cell = loss_cell(*cells[i])
             print(
-                f"[{i + 1}/{len(cells)}] {args[0]} {args[1]} seed {args[2]}: "
-                f"bc {rows[-2]['score']:.3f} dagger {rows[-1]['score']:.3f} "
-                f"({time.perf_counter() - t:.1f} s)",
+                f"[{n + 1}/{len(cells)}] {cells[i][0].name} {cells[i][1]} seed {cells[i][2]}: "
+                + " ".join(f"{r['algorithm']} {r['score']:.3f}" for r in cell)
+                + f" ({time.perf_counter() - t:.1f} s)",
                 flush=True,
             )
-    protocols = {t: asdict(factories[t]().protocol) for t in tasks}
-    return {"rows": rows, "references": ref_rows, "protocols": protocols}
+    rows = [r for i in range(len(cells)) for r in done[i]]
+    protocols = {d.name: asdict(build(d, quick_mode).protocol) for d in tasks}
+    definitions = {d.name: asdict(d) for d in tasks}
+    return {"rows": rows, "references": ref_rows, "protocols": protocols, "tasks": definitions}
+
+
+def _cost(defn: TaskDef, loss: str) -> float:
+    """A rough relative cost of a cell (only the order the cells start in depends on it):
+    its fit steps weighted by batch size; ACT's transformer step costs about ten MLP
+    steps (measured: 45 ms against 4-6 ms at batch 256 on one thread)."""
+    p = defn.protocol
+    per_step = max(p.bc.batch_size or 256, 256) / 256 * (10 if loss == "act" else 1)
+    return p.rounds * p.bc.num_steps * per_step + 10 * p.eval_episodes

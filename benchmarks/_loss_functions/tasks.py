@@ -1,31 +1,47 @@
-"""The tasks of ``loss_functions.py``: each one's spaces, expert, envs, score and budget."""
+"""The tasks of ``loss_functions.py``: one registry of task definitions, built-in or from outside.
+
+A task is a :class:`TaskDef`: an env (a gymnasium id, ``module:Id-v0`` whose import
+registers it, or ``module:Class``, a TorchRL env class), where its demonstrations come
+from (an expert ``module:function``, or a recorded LeRobot / Minari dataset, or both:
+the dataset for round 0, the expert for DAgger's labels), how it is scored and its
+budget (:class:`Protocol`). The built-in tasks are entries of :data:`TASKS` written
+the same way; ``--task key=value,...`` (:func:`parse_task`) adds one from outside::
+
+    --task name=pend,env=Pendulum-v1,expert=imitrl.experts:pendulum_expert,demos=5,steps=2000
+    --task name=mine,env=mypkg.envs:Reach-v0,expert=mypkg.experts:act,expert_kind=callable
+    --task name=rec,env=Pendulum-v1,dataset=/data/pendulum_lerobot,demos=10
+
+:func:`build` turns a definition into a :class:`Task` (its spec, expert, envs, scores).
+"""
 
 from __future__ import annotations
 
+import importlib
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
+from pathlib import Path
 
 import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
-from torchrl.data import Bounded
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from _common import DET, RND, Uniform, lake, returns, rollout
+from _common import DET, RND, Uniform, returns, rollout
 from imitrl import keys
 from imitrl.algorithms import BCConfig
 from imitrl.data.chunks import IS_INIT
 from imitrl.envs import TabularEnv, make_env
-from imitrl.envs import multimodal as mm
 from imitrl.evaluation import exact_values
-from imitrl.experts import cartpole_expert, inverted_pendulum_expert, pendulum_expert
+from imitrl.jobs.resolve import EXPERT_KINDS, load_dataset, make_expert, task_spec
 from imitrl.objectives.registry import Learner, LearnerConfig, TaskSpec
 from imitrl.policies import BetaMixer, Expert, as_actor, behaviour_policy
 from imitrl.policies.chunking import chunk_env
-from imitrl.tabular import greedy, success_probability
+from imitrl.tabular import TabularMDP, greedy, success_probability, value_iteration
 
-TASKS = ("frozenlake", "cartpole", "pendulum", "inverted_pendulum", "two_way")
+SCORES = ("return", "success", "exact")
+"""``return``: mean episode return; ``success``: fraction of episodes with a positive
+return; ``exact``: a tabular gymnasium env's success probability from its MDP"""
 
 
 # --------------------------------------------------------------------- protocol
@@ -34,9 +50,9 @@ class Protocol:
     """One task's data and training budget (the same for every loss)."""
 
     demo_episodes: int
-    """expert episodes in the BC dataset (DAgger's round 0)"""
+    """expert episodes in the BC dataset (DAgger's round 0); a dataset's first episodes"""
     rounds: int
-    """DAgger fits; round 0 is BC, the last is reported as DAgger"""
+    """DAgger fits; round 0 is BC, the last is reported as DAgger (1: BC only)"""
     episodes_per_round: int
     """learner episodes relabelled by the expert per DAgger round"""
     bc: BCConfig
@@ -44,9 +60,9 @@ class Protocol:
     learner: LearnerConfig
     """network size, learning rate, normalisation shared by every loss (seeded per cell)"""
     eval_episodes: int
-    """evaluation episodes per learner (gym and two-way tasks)"""
+    """evaluation episodes per learner (0 for ``exact``)"""
     max_episode_steps: int | None = None
-    """cap on episode length (None: the env's own limit); used by --quick"""
+    """cap on a gymnasium episode's length (None: the env's own limit); used by --quick"""
 
 
 def quick(protocol: Protocol) -> Protocol:
@@ -54,35 +70,252 @@ def quick(protocol: Protocol) -> Protocol:
     return replace(
         protocol,
         demo_episodes=min(protocol.demo_episodes, 2),
-        rounds=2,
+        rounds=min(protocol.rounds, 2),
         episodes_per_round=1,
         bc=replace(protocol.bc, num_steps=5),
-        eval_episodes=2,
+        eval_episodes=min(protocol.eval_episodes, 2),
         max_episode_steps=30,
     )
 
 
-# ------------------------------------------------------------------------ tasks
-class Task:
-    """A task of the benchmark: its spaces, expert, envs and score."""
+# ----------------------------------------------------------------- definitions
+@dataclass(frozen=True)
+class TaskDef:
+    """A task of the benchmark: its env, its demonstrations, its score and its budget."""
 
     name: str
-    score_name: str
+    """row label in the tables"""
+    env: str
+    """a gymnasium id; ``module:Id-v0`` (importing ``module`` registers the id); or
+    ``module:Class``, a TorchRL ``EnvBase`` subclass built as ``Class(batch_size=(n,),
+    seed=s)`` (its observation a vector under ``"observation"``)"""
     protocol: Protocol
+    """data and training budget"""
+    expert: str | None = None
+    """``module:function`` (what it is: ``expert_kind``); None: the dataset alone, BC only"""
+    expert_kind: str = "builder"
+    """``builder`` (``function()`` returns a module writing ``expert_action``) or
+    ``callable`` (a batched ``obs -> action``), as ``imitrl bc --expert-kind``"""
+    dataset: str | None = None
+    """a LeRobot or Minari dataset directory: round 0's demonstrations (its first
+    ``demo_episodes`` episodes) instead of the expert's rollouts"""
+    score: str = "return"
+    """one of :data:`SCORES`"""
+    max_steps: int = 20_000
+    """most steps one episode may take (a safety net; gymnasium ids stop at their limit)"""
+    probe: str | None = None
+    """``module:function``, ``probe(act, seed) -> {name: value}``: ``act(obs [N, d]) ->
+    actions [N, m]`` runs the learner at the task's decision states (mode fractions)"""
+    outcome: str | None = None
+    """``module:function``, ``outcome(rows) -> {name: value}`` of the evaluation
+    episodes' rows (needs an expert: it rides along to label the rows)"""
+    in_default_run: bool = True
+    """run when ``--tasks`` is not given"""
+
+    def __post_init__(self) -> None:
+        if self.score not in SCORES:
+            raise ValueError(f"task {self.name}: score must be one of {SCORES}, got {self.score!r}")
+        if self.expert_kind not in EXPERT_KINDS:
+            raise ValueError(f"task {self.name}: expert_kind must be one of {EXPERT_KINDS}")
+        if self.score == "exact":
+            if self.expert is not None or self.dataset is not None:
+                raise ValueError(
+                    f"task {self.name}: an exact (tabular) task's expert is value iteration's "
+                    "policy: give neither expert nor dataset"
+                )
+        elif self.expert is None and self.dataset is None:
+            raise ValueError(f"task {self.name}: give an expert (module:function) or a dataset")
+        if self.expert is None and self.score != "exact" and self.protocol.rounds > 1:
+            raise ValueError(f"task {self.name}: DAgger (rounds > 1) needs an expert")
+        if self.outcome is not None and self.expert is None:
+            raise ValueError(f"task {self.name}: an outcome function needs an expert to ride along")
+
+
+TASKS: dict[str, TaskDef] = {}
+"""the built-in tasks, by name, in table order"""
+
+
+def register_task(defn: TaskDef) -> TaskDef:
+    """Add a task to :data:`TASKS` (ValueError if the name is taken)."""
+    if defn.name in TASKS:
+        raise ValueError(f"a task named {defn.name!r} is already registered")
+    TASKS[defn.name] = defn
+    return defn
+
+
+# The budgets keep the default full run (5 seeds, every loss, --jobs 2) under 30
+# minutes on 2 CPU cores: one DAgger relabel round (rounds=2) with more episodes instead
+# of three, fewer fit steps on Pendulum; the two-way task trains on batches of 512 (a
+# flow-matching chunk policy needs about 1.5M labels seen to keep both modes cleanly:
+# 3000 x 256 left 6-9% of its chunks between the modes; benchmarks/README.md).
+_WIDE = LearnerConfig(hidden=(128, 128), lr=3e-3)
+register_task(
+    TaskDef(
+        "frozenlake",
+        env="FrozenLake-v1",
+        score="exact",
+        max_steps=100_000,
+        protocol=Protocol(1, 4, 3, BCConfig(num_steps=200), LearnerConfig(lr=0.1), 0),
+    )
+)
+register_task(
+    TaskDef(
+        "cartpole",
+        env="CartPole-v1",
+        expert="imitrl.experts:cartpole_expert",
+        protocol=Protocol(
+            1, 4, 2, BCConfig(num_steps=1000, batch_size=256), LearnerConfig((64, 64), 1e-3), 10
+        ),
+    )
+)
+register_task(
+    TaskDef(
+        "pendulum",
+        env="Pendulum-v1",
+        expert="imitrl.experts:pendulum_expert",
+        protocol=Protocol(5, 2, 4, BCConfig(num_steps=1000, batch_size=256), _WIDE, 10),
+    )
+)
+register_task(
+    TaskDef(
+        "inverted_pendulum",
+        env="InvertedPendulum-v5",
+        expert="imitrl.experts:inverted_pendulum_expert",
+        protocol=Protocol(2, 2, 2, BCConfig(num_steps=1000, batch_size=256), _WIDE, 10),
+        # every loss tied here (BC about 0.01, DAgger 1.00 normalised, 5 seeds, 2000-step
+        # fits): it cannot tell losses apart, so the full run leaves it out (--tasks adds it)
+        in_default_run=False,
+    )
+)
+register_task(
+    TaskDef(
+        "two_way",
+        env="imitrl.envs.multimodal:TwoWayObstacleEnv",
+        expert="imitrl.envs.multimodal:two_way_expert",
+        score="success",
+        max_steps=4_000,
+        probe="imitrl.envs.multimodal:two_way_probe",
+        outcome="imitrl.envs.multimodal:two_way_outcome",
+        protocol=Protocol(50, 2, 40, BCConfig(num_steps=3000, batch_size=512), _WIDE, 100),
+    )
+)
+register_task(
+    TaskDef(
+        "corridor",
+        env="imitrl.envs.corridor:ForkingCorridorEnv",
+        expert="imitrl.envs.corridor:corridor_expert",
+        score="success",
+        max_steps=4_000,
+        probe="imitrl.envs.corridor:corridor_probe",
+        outcome="imitrl.envs.corridor:corridor_outcome",
+        protocol=Protocol(50, 2, 40, BCConfig(num_steps=2000, batch_size=256), _WIDE, 100),
+    )
+)
+
+
+# ------------------------------------------------------------ from the command line
+_PROTOCOL_KEYS = {
+    "demos": "demo_episodes",
+    "rounds": "rounds",
+    "episodes": "episodes_per_round",
+    "eval": "eval_episodes",
+    "max_episode_steps": "max_episode_steps",
+}
+_DEFAULT = Protocol(5, 4, 2, BCConfig(num_steps=2000, batch_size=256), _WIDE, 10)
+
+
+def parse_task(text: str) -> TaskDef:
+    """``--task key=value,...`` -> a :class:`TaskDef`.
+
+    Keys: ``name``, ``env`` (required); ``expert``, ``expert_kind``, ``dataset``,
+    ``score``, ``max_steps``, ``probe``, ``outcome`` (the fields of TaskDef); the budget
+    ``demos``, ``rounds``, ``episodes``, ``eval``, ``max_episode_steps``, ``steps`` (fit
+    steps), ``batch``, ``hidden`` (e.g. ``128x128``), ``lr``. Unset budget entries take
+    ``5`` demos, 4 rounds (1 without an expert), 2 episodes per round, 2000 steps x 256,
+    128x128, lr 3e-3, 10 evaluation episodes.
+    """
+    pairs: dict[str, str] = {}
+    for item in filter(None, text.split(",")):
+        key, sep, value = item.partition("=")
+        if not sep or not key or not value:
+            raise ValueError(f"--task {text!r}: expected key=value pairs separated by commas")
+        pairs[key.strip()] = value.strip()
+    known = {f.name for f in fields(TaskDef)} - {"protocol"}
+    extra = {"steps", "batch", "hidden", "lr", *_PROTOCOL_KEYS}
+    unknown = set(pairs) - known - extra
+    if unknown:
+        raise ValueError(f"--task: unknown keys {sorted(unknown)}; known: {sorted(known | extra)}")
+    if "name" not in pairs or "env" not in pairs:
+        raise ValueError(f"--task {text!r}: name= and env= are required")
+    protocol = _DEFAULT
+    if "expert" not in pairs:
+        protocol = replace(protocol, rounds=1)
+    ints = {k: int(pairs[k]) for k in _PROTOCOL_KEYS if k in pairs}
+    protocol = replace(protocol, **{_PROTOCOL_KEYS[k]: v for k, v in ints.items()})
+    bc, learner = protocol.bc, protocol.learner
+    if "steps" in pairs:
+        bc = replace(bc, num_steps=int(pairs["steps"]))
+    if "batch" in pairs:
+        bc = replace(bc, batch_size=int(pairs["batch"]))
+    if "hidden" in pairs:
+        learner = replace(learner, hidden=tuple(int(h) for h in pairs["hidden"].split("x")))
+    if "lr" in pairs:
+        learner = replace(learner, lr=float(pairs["lr"]))
+    protocol = replace(protocol, bc=bc, learner=learner)
+    own = {k: v for k, v in pairs.items() if k in known}
+    if "max_steps" in own:
+        own["max_steps"] = int(own["max_steps"])
+    return TaskDef(**own, protocol=protocol)
+
+
+def _import(spec: str, what: str) -> object:
+    module, sep, attr = spec.partition(":")
+    if not sep or not module or not attr:
+        raise ValueError(f"{what} {spec!r}: expected module:name")
+    try:
+        return getattr(importlib.import_module(module), attr)
+    except (ImportError, AttributeError) as err:
+        raise ValueError(f"{what} {spec!r}: {err}") from err
+
+
+def _env_class(env: str) -> type[EnvBase] | None:
+    """The TorchRL env class ``env`` names (``module:Class``), or None for a gymnasium id."""
+    module, sep, attr = env.partition(":")
+    if not sep:
+        return None
+    try:
+        obj = getattr(importlib.import_module(module), attr, None)
+    except ImportError as err:
+        raise ValueError(f"env {env!r}: cannot import {module!r} ({err})") from err
+    return obj if isinstance(obj, type) and issubclass(obj, EnvBase) else None
+
+
+# ------------------------------------------------------------------------ tasks
+class Task:
+    """A built :class:`TaskDef`: its spec, expert, envs, demonstrations and scores."""
+
+    def __init__(self, defn: TaskDef, protocol: Protocol) -> None:
+        self.defn, self.name, self.protocol = defn, defn.name, protocol
+        self.score_name = {"return": "return", "success": "success", "exact": "exact success"}[
+            defn.score
+        ]
 
     def spec(self) -> TaskSpec:
         raise NotImplementedError
 
-    def expert(self) -> TensorDictModuleBase:
-        """Writes ``EXPERT_ACTION`` (the queryable expert)."""
+    def expert(self) -> TensorDictModuleBase | None:
+        """Writes ``EXPERT_ACTION`` (the queryable expert); None for a dataset-only task."""
         raise NotImplementedError
 
     def env(self, *, seed: int, lanes: int) -> EnvBase:
         raise NotImplementedError
 
     def max_steps(self) -> int:
-        """Safety bound on steps per lane in one rollout."""
-        raise NotImplementedError
+        return self.defn.max_steps
+
+    def demonstrations(self, env: EnvBase) -> TensorDictBase | None:
+        """Round 0's rows from the dataset, or None (the expert drives instead)."""
+        return None
 
     def score(self, policy: TensorDictModuleBase, exploration: ExplorationType, seed: int) -> dict:
         """``{"score": float, ...}`` of a policy writing ``ACTION``."""
@@ -98,12 +331,14 @@ class Task:
         return {}
 
 
-class FrozenLake(Task):
-    name, score_name = "frozenlake", "exact success"
+class TabularTask(Task):
+    """A tabular gymnasium env (``score="exact"``): exact success from its MDP, the expert
+    value iteration's greedy policy."""
 
-    def __init__(self, protocol: Protocol) -> None:
-        self.protocol = protocol
-        self.mdp, self.Q = lake()  # Q*: [S, A] float64
+    def __init__(self, defn: TaskDef, protocol: Protocol) -> None:
+        super().__init__(defn, protocol)
+        self.mdp = TabularMDP.from_gym(defn.env, 0.95)
+        self.Q = self.mdp.backup(value_iteration(self.mdp, 1000)[-1])  # Q*: [S, A] float64
         self.table = greedy(self.Q)
 
     def advantage(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
@@ -111,16 +346,14 @@ class FrozenLake(Task):
         return (self.Q[obs, action] - self.Q[obs].mean(-1)).float()
 
     def spec(self) -> TaskSpec:
-        return TaskSpec(action=4, num_states=16, advantage=self.advantage)
+        S, A = self.Q.shape
+        return TaskSpec(action=int(A), num_states=int(S), advantage=self.advantage)
 
     def expert(self) -> TensorDictModuleBase:
         return Expert.from_table(self.table)
 
     def env(self, *, seed: int, lanes: int) -> EnvBase:
         return TabularEnv(self.mdp, batch_size=(lanes,), seed=seed)
-
-    def max_steps(self) -> int:
-        return 100_000
 
     def score(self, policy, exploration, seed) -> dict:
         exact = exact_values(self.mdp, policy, exploration, 100)
@@ -130,152 +363,117 @@ class FrozenLake(Task):
         return {"score": success_probability(self.mdp, self.table, 100)}
 
     def random_score(self, seed: int) -> dict:
-        uniform = torch.full((16, 4), 0.25, dtype=torch.float64)
+        S, A = self.Q.shape
+        uniform = torch.full((S, A), 1.0 / A, dtype=torch.float64)
         return {"score": success_probability(self.mdp, uniform, 100)}
 
 
-class Gym(Task):
-    """A gymnasium task with a built-in expert; score = mean return over held-out episodes."""
+class EnvTask(Task):
+    """A gymnasium id or a TorchRL env class; score: mean return or success rate over
+    evaluation episodes from held-out starts; optional probe and outcome diagnostics."""
 
-    score_name = "return"
-
-    def __init__(
-        self, name: str, env_id: str, expert: Callable[[], Expert], protocol: Protocol
-    ) -> None:
-        self.name, self.env_id, self._expert, self.protocol = name, env_id, expert, protocol
-        probe = make_env(env_id, seed=0)
-        self._obs_dim = int(probe.observation_spec[keys.OBSERVATION].shape[-1])
-        spec = probe.action_spec_unbatched
-        self._action = int(spec.n) if not isinstance(spec, Bounded) else spec
+    def __init__(self, defn: TaskDef, protocol: Protocol) -> None:
+        super().__init__(defn, protocol)
+        self._class = _env_class(defn.env)
+        probe = self.env(seed=0, lanes=1)
+        self._spec = task_spec(probe)
         probe.close()
+        self._probe = _import(defn.probe, "probe") if defn.probe else None
+        self._outcome = _import(defn.outcome, "outcome") if defn.outcome else None
 
     def spec(self) -> TaskSpec:
-        return TaskSpec(action=self._action, observation_dim=self._obs_dim)
+        return self._spec
 
-    def expert(self) -> TensorDictModuleBase:
-        return self._expert()
+    def expert(self) -> TensorDictModuleBase | None:
+        if self.defn.expert is None:
+            return None
+        return make_expert(self.defn.expert, self.defn.expert_kind)
 
     def env(self, *, seed: int, lanes: int) -> EnvBase:
-        env = make_env(
-            self.env_id,
-            seed=seed,
-            num_envs=lanes,
-            max_episode_steps=self.protocol.max_episode_steps,
-        )
+        if self._class is not None:
+            env = self._class(batch_size=(lanes,), seed=seed)
+        else:
+            env = make_env(
+                self.defn.env,
+                seed=seed,
+                num_envs=lanes,
+                max_episode_steps=self.protocol.max_episode_steps,
+            )
         return chunk_env(env)  # is_init: where a chunked learner replans
 
-    def max_steps(self) -> int:
-        return 20_000
+    def demonstrations(self, env: EnvBase) -> TensorDictBase | None:
+        if self.defn.dataset is None:
+            return None
+        rows = load_dataset(Path(self.defn.dataset), env)
+        first = torch.unique(rows.get(keys.EPISODE))[: self.protocol.demo_episodes]
+        return rows[torch.isin(rows.get(keys.EPISODE), first)]
 
     def score(self, policy, exploration, seed) -> dict:
         n = self.protocol.eval_episodes
-        env = self.env(seed=10_000 + 100 * seed, lanes=n)  # held-out starts
-        r = returns(env, policy, n, exploration=exploration, max_steps=self.max_steps())
+        env = self.env(seed=10_000 + 100 * seed, lanes=min(n, 100))  # held-out starts
+        out: dict = {}
+        if self._outcome is not None:
+            # the expert rides along (beta = 0) only so that the rows carry its labels
+            behaviour = behaviour_policy(self.expert(), policy, BetaMixer(0.0))
+            rows = rollout(env, behaviour, n, exploration=exploration, max_steps=self.max_steps())
+            r = _episode_returns(rows)
+            out.update(self._outcome(rows))
+        else:
+            r = returns(env, policy, n, exploration=exploration, max_steps=self.max_steps())
         env.close()
-        return {"score": float(r.mean()), "returns": r.tolist()}
+        if self.defn.score == "success":
+            out["score"] = float((r > 0).double().mean())
+        else:
+            out.update(score=float(r.mean()), returns=r.tolist())
+        return out
 
-
-class TwoWay(Task):
-    """:mod:`imitrl.envs.multimodal`: score = success rate; mode fractions at the decision states."""
-
-    name, score_name = "two_way", "success"
-    decision_states = 1000
-
-    def __init__(self, protocol: Protocol | None) -> None:
-        self.protocol = protocol
-        self.geometry = mm.ObstacleGeometry()
-
-    def spec(self) -> TaskSpec:
-        return TaskSpec(action=Bounded(-1.0, 1.0, shape=(1,)), observation_dim=2)
-
-    def expert(self) -> TensorDictModuleBase:
-        return mm.two_way_expert(self.geometry)
-
-    def env(self, *, seed: int, lanes: int) -> EnvBase:
-        env = mm.TwoWayObstacleEnv(batch_size=(lanes,), geometry=self.geometry, seed=seed)
-        return chunk_env(env)  # is_init: where a chunked learner replans
-
-    def max_steps(self) -> int:
-        return 100 * self.geometry.steps
-
-    def score(self, policy, exploration, seed) -> dict:
-        # the expert rides along (beta = 0) only so that the rows carry its labels
-        n = self.protocol.eval_episodes
-        env = self.env(seed=10_000 + 100 * seed, lanes=min(n, 100))
-        behaviour = behaviour_policy(self.expert(), policy, BetaMixer(0.0))
-        rows = rollout(env, behaviour, n, exploration=exploration, max_steps=self.max_steps())
-        success = rows.get((keys.NEXT, keys.REWARD)).reshape(-1) > 0
-        side = mm.passing_side(rows, self.geometry)
-        wins = int(success.sum())
-        above = int(((side > 0) & _episode_success(rows)).sum())
-        return {"score": wins / n, "passed_above": above / wins if wins else None}
+    def expert_score(self, seed: int) -> dict:
+        if self.defn.expert is not None:
+            return super().expert_score(seed)
+        # a dataset-only task: the demonstrator's own episodes are the reference
+        env = self.env(seed=seed, lanes=1)
+        r = _episode_returns(self.demonstrations(env))
+        env.close()
+        return {
+            "score": float((r > 0).double().mean() if self.defn.score == "success" else r.mean())
+        }
 
     def extras(self, learner: Learner, seed: int) -> dict:
-        obs = mm.decision_states(self.decision_states, geometry=self.geometry, seed=seed)
+        """The probe's numbers as the learner acts, greedily and sampled (``modes*``)."""
+        if self._probe is None:
+            return {}
         out = {}
         for exploration, tag in (
             (learner.exploration, "modes"),
             (DET, "modes_det"),
             (RND, "modes_rnd"),
         ):
-            with torch.no_grad(), set_exploration_type(exploration):
-                # is_init: a chunked learner plans afresh at each state, acts its first action
-                init = torch.ones(obs.shape[0], 1, dtype=torch.bool)
-                td = TensorDict({keys.OBSERVATION: obs, IS_INIT: init}, batch_size=[obs.shape[0]])
-                td = learner.policy(td)
-            fractions = mm.mode_fractions(obs, td.get(keys.ACTION), geometry=self.geometry)
-            out.update({f"{tag}_{k}": v for k, v in fractions.items()})
+
+            def act(obs: torch.Tensor, exploration=exploration) -> torch.Tensor:
+                with torch.no_grad(), set_exploration_type(exploration):
+                    # is_init: a chunked learner plans afresh at each state, acts its first action
+                    init = torch.ones(obs.shape[0], 1, dtype=torch.bool)
+                    td = TensorDict({keys.OBSERVATION: obs, IS_INIT: init}, [obs.shape[0]])
+                    return learner.policy(td).get(keys.ACTION)
+
+            out.update({f"{tag}_{k}": v for k, v in self._probe(act, seed).items()})
         return out
 
 
-def _episode_success(rows: TensorDictBase) -> torch.Tensor:
+def _episode_returns(rows: TensorDictBase) -> torch.Tensor:
+    """``[E]`` float64 undiscounted return of each episode in ``rows``, in id order."""
     episode = rows.get(keys.EPISODE)
-    reward = rows.get((keys.NEXT, keys.REWARD)).reshape(-1)
-    ids = torch.unique(episode)
-    return torch.stack([(reward[episode == e] > 0).any() for e in ids])
+    reward = rows.get((keys.NEXT, keys.REWARD)).reshape(-1).double()
+    ids, inverse = torch.unique(episode, return_inverse=True)
+    return torch.zeros(ids.numel(), dtype=torch.float64).index_add_(0, inverse, reward)
 
 
-# ------------------------------------------------------------------- the table
+def build(defn: TaskDef, quick_mode: bool = False) -> Task:
+    """The task of ``defn``, with its full (or, ``quick_mode``, smoke) budget."""
+    protocol = quick(defn.protocol) if quick_mode else defn.protocol
+    return (TabularTask if defn.score == "exact" else EnvTask)(defn, protocol)
+
+
 def tasks(quick_mode: bool) -> dict[str, Callable[[], Task]]:
-    """Each task's constructor by name, with its full (or, ``quick_mode``, smoke) budget."""
-
-    def p(protocol: Protocol) -> Protocol:
-        return quick(protocol) if quick_mode else protocol
-
-    mlp = LearnerConfig(hidden=(64, 64), lr=1e-3)
-    wide = LearnerConfig(hidden=(128, 128), lr=3e-3)
-    return {
-        "frozenlake": lambda: FrozenLake(
-            p(
-                Protocol(
-                    demo_episodes=1,
-                    rounds=4,
-                    episodes_per_round=3,
-                    bc=BCConfig(num_steps=200),
-                    learner=LearnerConfig(lr=0.1),
-                    eval_episodes=0,
-                )
-            )
-        ),
-        "cartpole": lambda: Gym(
-            "cartpole",
-            "CartPole-v1",
-            cartpole_expert,
-            p(Protocol(1, 4, 2, BCConfig(num_steps=1000, batch_size=256), mlp, 10)),
-        ),
-        "pendulum": lambda: Gym(
-            "pendulum",
-            "Pendulum-v1",
-            pendulum_expert,
-            p(Protocol(5, 4, 2, BCConfig(num_steps=2000, batch_size=256), wide, 10)),
-        ),
-        "inverted_pendulum": lambda: Gym(
-            "inverted_pendulum",
-            "InvertedPendulum-v5",
-            inverted_pendulum_expert,
-            p(Protocol(2, 4, 1, BCConfig(num_steps=2000, batch_size=256), wide, 10)),
-        ),
-        "two_way": lambda: TwoWay(
-            p(Protocol(50, 4, 20, BCConfig(num_steps=3000, batch_size=256), wide, 100))
-        ),
-    }
+    """Each built-in task's constructor by name (kept for scripts that name tasks)."""
+    return {name: (lambda d=defn: build(d, quick_mode)) for name, defn in TASKS.items()}

@@ -5,8 +5,9 @@ Policy, Chi et al. 2023). Its label at row ``i`` (episode ``e``, step ``t``) is
 
     chunk[i, h] = label of the row (e, t + h),   h = 0 .. H-1,
 
-``pad[i, h] = True`` where step ``t + h`` is past the episode's last row; there the
-chunk repeats the episode's last label, as TorchRL's ``ActionChunkTransform`` pads
+``pad[i, h] = True`` where step ``t + h`` is past the episode's last row, or past the
+first row from ``t`` on whose executed action was not the expert's (below); there the
+chunk repeats its last valid label, as TorchRL's ``ActionChunkTransform`` pads
 (``padding="same"``), and a loss that takes the mask leaves those entries out.
 
 Why not ``ActionChunkTransform`` itself: it windows a time-structured ``[B, T, m]``
@@ -17,12 +18,18 @@ two columns; ``tests/test_chunks.py`` checks that both give the same digits on o
 episode.
 
 DAgger. A relabel round stores, at every state the learner visited, the expert's
-label at that state (``EXPERT_ACTION``), whichever action was executed. The chunk of
-such a row is formed the same way, from the labels of the rows that follow it in its
-episode: entry ``h`` is the expert's action at the state the *behaviour policy*
-reached ``h`` steps later, not the action the expert would have taken there had it
-driven the ``h`` steps itself (that would need the simulator's state at every row).
-Entry 0 is always the expert's label at the row's own state.
+label at that state (``EXPERT_ACTION``), whichever action was executed. The label of
+the row at ``t + h`` is the expert's plan for ``t + h`` only if the expert's actions
+were executed at ``t .. t + h - 1``: otherwise the state at ``t + h`` is one the
+*behaviour policy* reached, and its label answers a different question (what the
+expert would do from there, not what it would have done next). With an expert whose
+choice is hidden (the two-way task's intent) such a chunk can even mix its modes: up at
+``t`` by the episode's intent, down at ``t + 2`` because the learner went down
+meanwhile. So a chunk extends over the rows that follow only while the executed action
+was the expert's (``EXPERT_EXECUTED``, when the rows have it): a relabelled row of a
+learner-driven round (beta = 0) keeps entry 0, the expert's label at its own state,
+and pads the rest (its last valid label repeated, masked). Demonstrations, where the
+expert drove, keep whole chunks.
 """
 
 from __future__ import annotations
@@ -52,7 +59,12 @@ IS_INIT = "is_init"
 
 
 def chunk_labels(
-    label: torch.Tensor, episode: torch.Tensor, step: torch.Tensor, horizon: int
+    label: torch.Tensor,
+    episode: torch.Tensor,
+    step: torch.Tensor,
+    horizon: int,
+    *,
+    expert_executed: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """``chunk[i, h]`` = ``label`` of the row of episode ``episode[i]`` at step ``step[i] + h``.
 
@@ -62,9 +74,12 @@ def chunk_labels(
         step: ``[N]`` int step of each row in its episode; each episode's steps must be
             consecutive integers (rows may come in any order).
         horizon: ``H >= 1``.
+        expert_executed: ``[N]`` bool, the row's executed action was the expert's; a
+            chunk ends at the first row (from its own on) where it was not (module
+            docstring). None: every row's was.
 
     Returns:
-        ``chunk [N, H, *action]`` (past an episode's end: its last label) and
+        ``chunk [N, H, *action]`` (past the chunk's end: its last valid label) and
         ``pad [N, H]`` bool (True past the end).
     """
     if int(horizon) != horizon or horizon < 1:
@@ -75,6 +90,10 @@ def chunk_labels(
             f"need one episode id and step per row: label {tuple(label.shape)}, "
             f"episode {tuple(episode.shape)}, step {tuple(step.shape)}"
         )
+    if expert_executed is not None and expert_executed.shape != (n,):
+        raise ValueError(
+            f"need one expert_executed flag per row, got {tuple(expert_executed.shape)} for {n} rows"
+        )
     episode, step = episode.long(), step.long()
     order = torch.argsort(step, stable=True)
     order = order[torch.argsort(episode[order], stable=True)]  # by (episode, step)
@@ -82,10 +101,12 @@ def chunk_labels(
     same = e[1:] == e[:-1]
     if bool((same & (t[1:] != t[:-1] + 1)).any()):
         raise ValueError("each episode's steps must be consecutive integers (a gap or a repeat)")
-    # last[j]: sorted index of the final row of row j's episode
     is_last = torch.ones(n, dtype=torch.bool)
     is_last[:-1] = ~same
-    end = torch.where(is_last, torch.arange(n), n).flip(0)
+    # last[j]: the sorted index of the final row of row j's chunk: the episode's last row,
+    # or the first row from j on whose executed action was not the expert's
+    stop = is_last if expert_executed is None else is_last | ~expert_executed[order].bool()
+    end = torch.where(stop, torch.arange(n), n).flip(0)
     last = torch.cummin(end, 0).values.flip(0)
     ahead = torch.arange(n)[:, None] + torch.arange(int(horizon))[None, :]  # [N, H]
     pad_sorted = ahead > last[:, None]
@@ -102,15 +123,22 @@ def add_chunk_labels(
     """``rows`` (a shallow copy) with :data:`EXPERT_CHUNK` and :data:`CHUNK_PAD` added.
 
     ``rows`` ``[N]`` need ``label_key``, ``EPISODE`` and ``STEP`` (what
-    :func:`~imitrl.data.rollout_episodes` and a ``DemonstrationBuffer`` hold).
+    :func:`~imitrl.data.rollout_episodes` and a ``DemonstrationBuffer`` hold); where
+    they have ``EXPERT_EXECUTED``, a chunk ends at the first row whose executed action
+    was not the expert's (module docstring).
     """
     missing = [k for k in (label_key, keys.EPISODE, keys.STEP) if k not in rows.keys()]
     if missing:
         raise ValueError(f"chunk labels need {missing} in the rows (keys {list(rows.keys())})")
     if rows.batch_dims != 1:
         raise ValueError(f"rows must be [N], got batch_size {tuple(rows.batch_size)}")
+    executed = rows.get(keys.EXPERT_EXECUTED, None)
     chunk, pad = chunk_labels(
-        rows.get(label_key), rows.get(keys.EPISODE), rows.get(keys.STEP), horizon
+        rows.get(label_key),
+        rows.get(keys.EPISODE),
+        rows.get(keys.STEP),
+        horizon,
+        expert_executed=executed if executed is None else executed.reshape(rows.shape[0]),
     )
     out = TensorDict(dict(rows.items()), batch_size=rows.batch_size)  # new dict, same tensors
     out.set(EXPERT_CHUNK, chunk)

@@ -38,7 +38,7 @@ float32 ``[*batch, 1]``; ``("next", "reward")`` float32 ``[*batch, 1]``;
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import torch
@@ -53,13 +53,19 @@ from imitrl.policies.experts import Expert
 __all__ = [
     "INTENT",
     "ObstacleGeometry",
+    "SteeringEnv",
     "TwoWayObstacleEnv",
     "decision_states",
     "expert_modes",
     "mode_fractions",
     "passing_side",
     "two_way_expert",
+    "two_way_outcome",
+    "two_way_probe",
 ]
+
+DECISION_STATES = 1000
+"""decision states :func:`two_way_probe` measures a policy at"""
 
 INTENT = "intent"
 """key of the expert's latent intent (+1 pass above, -1 pass below); learners never read it"""
@@ -109,21 +115,33 @@ class ObstacleGeometry:
         return math.ceil(self.goal_x / self.dx - 1e-9)
 
 
-class TwoWayObstacleEnv(EnvBase):
-    """Batched simulator of the two-way obstacle task (torch only, no gymnasium).
+class SteeringEnv(EnvBase):
+    """A point that moves right ``dx`` per step and steers laterally, in torch lanes.
+
+    The mechanics the two-way task and the corridor (:mod:`imitrl.envs.corridor`)
+    share: ``x = t * dx`` (from the step count: no accumulated rounding), ``y += dx * a``
+    with ``a`` clipped to ``[-1, 1]``; at each reset a lane draws ``u ~ U[0, 1)^2`` from
+    the env's generator (one draw per lane, reset or not, so a lane's stream is fixed)
+    and a subclass turns it into the start ``y0`` and the expert's hidden variable
+    (:meth:`_start`); after each step a subclass says which lanes hit a wall, arrived
+    and succeeded (:meth:`_outcome`). Reward 1 on success, else 0; the episode ends on
+    a hit or on arrival.
+
+    Keys: ``"observation"`` float32 ``[*batch, 2]`` = ``(x, y)``; ``hidden_key`` int64
+    ``[*batch]`` (read only by the expert); ``"action"`` float32 ``[*batch, 1]``;
+    ``("next", "reward")`` float32 ``[*batch, 1]``; ``("next", "done"|"terminated"|
+    "truncated")`` bool ``[*batch, 1]``.
 
     Args:
         batch_size: ``()`` for one episode or ``(N,)`` for N independent lanes.
-        geometry: the layout.
-        seed: seed of the env's ``torch.Generator`` (start positions and intents).
+        geometry: the layout (it has ``dx``).
+        seed: seed of the env's ``torch.Generator`` (starts and hidden variables).
     """
 
+    hidden_key: str
+
     def __init__(
-        self,
-        *,
-        batch_size: Sequence[int] | torch.Size = (),
-        geometry: ObstacleGeometry = ObstacleGeometry(),
-        seed: int = 0,
+        self, *, batch_size: Sequence[int] | torch.Size = (), geometry, seed: int = 0
     ) -> None:
         batch_size = torch.Size(batch_size)
         if len(batch_size) > 1:
@@ -134,7 +152,7 @@ class TwoWayObstacleEnv(EnvBase):
         self.observation_spec = Composite(
             {
                 keys.OBSERVATION: Unbounded(shape=(*batch_size, 2), dtype=torch.float32),
-                INTENT: Unbounded(shape=batch_size, dtype=torch.int64),
+                self.hidden_key: Unbounded(shape=batch_size, dtype=torch.int64),
             },
             shape=batch_size,
         )
@@ -149,8 +167,18 @@ class TwoWayObstacleEnv(EnvBase):
         )
         self._pos = torch.zeros(self._n, 2)
         self._t = torch.zeros(self._n, dtype=torch.int64)
-        self._intent = torch.ones(self._n, dtype=torch.int64)
+        self._hidden = torch.ones(self._n, dtype=torch.int64)
         self._generator = torch.Generator().manual_seed(int(seed))
+
+    def _start(self, u: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``u [n, 2]`` float64 uniforms -> start ``y0 [n]`` float32, hidden variable ``[n]`` int64."""
+        raise NotImplementedError
+
+    def _outcome(
+        self, x: torch.Tensor, y: torch.Tensor, t: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``(hit, arrived, success)`` ``[n]`` bool after a step to ``(x, y)`` at step ``t``."""
+        raise NotImplementedError
 
     def _set_seed(self, seed: int | None) -> None:
         self._generator = torch.Generator().manual_seed(0 if seed is None else int(seed))
@@ -159,7 +187,7 @@ class TwoWayObstacleEnv(EnvBase):
         return TensorDict(
             {
                 keys.OBSERVATION: self._pos.reshape(*self.batch_size, 2).clone(),
-                INTENT: self._intent.reshape(self.batch_size).clone(),
+                self.hidden_key: self._hidden.reshape(self.batch_size).clone(),
                 **extra,
             },
             batch_size=self.batch_size,
@@ -171,12 +199,11 @@ class TwoWayObstacleEnv(EnvBase):
             lanes = tensordict.get("_reset").reshape(self._n)
         # one draw of each kind per lane, reset or not, so a lane's stream is fixed
         u = torch.rand(self._n, 2, generator=self._generator, dtype=torch.float64)
-        y0 = ((2 * u[:, 0] - 1) * self.geometry.band).float()
-        intent = torch.where(u[:, 1] < 0.5, 1, -1)
+        y0, hidden = self._start(u)
         start = torch.stack([torch.zeros_like(y0), y0], dim=-1)
         self._pos = torch.where(lanes[:, None], start, self._pos)
         self._t = self._t.masked_fill(lanes, 0)
-        self._intent = torch.where(lanes, intent, self._intent)
+        self._hidden = torch.where(lanes, hidden, self._hidden)
         false = torch.zeros((*self.batch_size, 1), dtype=torch.bool)
         return self._td(
             {keys.DONE: false, keys.TERMINATED: false.clone(), keys.TRUNCATED: false.clone()}
@@ -186,20 +213,17 @@ class TwoWayObstacleEnv(EnvBase):
         action = tensordict.get(keys.ACTION)
         if not action.dtype.is_floating_point or action.numel() != self._n:
             raise ValueError(
-                f"TwoWayObstacleEnv expects float actions of shape {(*self.batch_size, 1)}, "
+                f"{type(self).__name__} expects float actions of shape {(*self.batch_size, 1)}, "
                 f"got {action.dtype} {tuple(action.shape)}"
             )
         if torch.isnan(action).any():
-            raise ValueError("NaN action given to TwoWayObstacleEnv")
-        g = self.geometry
+            raise ValueError(f"NaN action given to {type(self).__name__}")
         a = action.reshape(self._n).float().clamp(-1.0, 1.0)
         self._t = self._t + 1
-        x = self._t.float() * g.dx  # from the step count: no accumulated rounding
-        y = self._pos[:, 1] + g.dx * a
+        x = self._t.float() * self.geometry.dx  # from the step count: no accumulated rounding
+        y = self._pos[:, 1] + self.geometry.dx * a
         self._pos = torch.stack([x, y], dim=-1)
-        hit = (x - g.obstacle_x) ** 2 + y**2 < g.radius**2
-        arrived = (self._t >= g.steps) & ~hit
-        success = arrived & (y.abs() <= g.goal_halfwidth)
+        hit, arrived, success = self._outcome(x, y, self._t)
         terminated = hit | arrived
         shape1 = (*self.batch_size, 1)
         return self._td(
@@ -210,6 +234,40 @@ class TwoWayObstacleEnv(EnvBase):
                 keys.TRUNCATED: torch.zeros(shape1, dtype=torch.bool),
             }
         )
+
+
+class TwoWayObstacleEnv(SteeringEnv):
+    """Batched simulator of the two-way obstacle task (torch only, no gymnasium).
+
+    The hidden variable is the expert's intent under ``"intent"`` (+1 above, -1 below,
+    each with probability 1/2); see :class:`SteeringEnv` for the keys and mechanics.
+
+    Args:
+        batch_size: ``()`` for one episode or ``(N,)`` for N independent lanes.
+        geometry: the layout.
+        seed: seed of the env's ``torch.Generator`` (start positions and intents).
+    """
+
+    hidden_key = INTENT
+
+    def __init__(
+        self,
+        *,
+        batch_size: Sequence[int] | torch.Size = (),
+        geometry: ObstacleGeometry = ObstacleGeometry(),
+        seed: int = 0,
+    ) -> None:
+        super().__init__(batch_size=batch_size, geometry=geometry, seed=seed)
+
+    def _start(self, u: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        y0 = ((2 * u[:, 0] - 1) * self.geometry.band).float()
+        return y0, torch.where(u[:, 1] < 0.5, 1, -1)
+
+    def _outcome(self, x, y, t):
+        g = self.geometry
+        hit = (x - g.obstacle_x) ** 2 + y**2 < g.radius**2
+        arrived = (t >= g.steps) & ~hit
+        return hit, arrived, arrived & (y.abs() <= g.goal_halfwidth)
 
 
 class _TwoWayExpert(nn.Module):
@@ -326,3 +384,21 @@ def passing_side(
         if bool(past.any()):
             side[i] = int(torch.sign(ep[past][0, 1]))
     return side
+
+
+def two_way_probe(act: Callable[[torch.Tensor], torch.Tensor], seed: int) -> dict[str, float]:
+    """:func:`mode_fractions` of ``act(obs [N, 2]) -> actions [N, 1]`` at
+    :data:`DECISION_STATES` decision states drawn with ``seed`` (a benchmark's probe)."""
+    obs = decision_states(DECISION_STATES, seed=seed)
+    return mode_fractions(obs, act(obs))
+
+
+def two_way_outcome(rows: TensorDictBase) -> dict[str, float | None]:
+    """``{"passed_above": fraction of the successful episodes in rows that passed above}``
+    (None without a success; a benchmark's outcome)."""
+    side = passing_side(rows)
+    episode = rows.get(keys.EPISODE)
+    reward = rows.get((keys.NEXT, keys.REWARD)).reshape(-1)
+    won = torch.stack([(reward[episode == e] > 0).any() for e in torch.unique(episode)])
+    wins = int(won.sum())
+    return {"passed_above": int(((side > 0) & won).sum()) / wins if wins else None}

@@ -3,6 +3,9 @@
 The benchmarks live in the source checkout, next to ``src/`` (they are scripts, not
 part of the installed package); each runs as its own process with this Python, so
 its ``import _report`` and its own argument parser work as when it is run directly.
+A few scripts have a short name (:data:`ALIASES`): ``imitrl bench losses --task
+name=...,env=...,expert=module:function`` runs ``loss_functions.py`` on a task from
+outside.
 """
 
 from __future__ import annotations
@@ -14,10 +17,14 @@ from pathlib import Path
 
 import imitrl
 
-__all__ = ["BENCHMARKS_DIR", "BenchJob", "available", "run_bench"]
+__all__ = ["ALIASES", "BENCHMARKS_DIR", "BenchJob", "available", "run_bench"]
 
 BENCHMARKS_DIR = Path(imitrl.__file__).resolve().parents[2] / "benchmarks"
 """``<checkout>/benchmarks`` (``src/imitrl/__init__.py`` is two levels below the checkout)"""
+
+
+ALIASES: dict[str, str] = {"losses": "loss_functions"}
+"""short name -> benchmark script name"""
 
 
 def available(directory: Path = BENCHMARKS_DIR) -> list[str]:
@@ -32,7 +39,7 @@ class BenchJob:
     """One benchmark script and its arguments."""
 
     name: str = field(metadata={"positional": True})
-    """the benchmark: benchmarks/NAME.py (listed below)"""
+    """the benchmark: benchmarks/NAME.py (listed below; "losses" = loss_functions)"""
     args: tuple[str, ...] = field(default=(), metadata={"remainder": True})
     """every argument after NAME, passed on to the script (e.g. --quick --out DIR; NAME
     --help shows the script's own flags)"""
@@ -46,8 +53,12 @@ def run_bench(config: BenchJob) -> dict:
             "source checkout (pip install -e .)"
         )
     names = available(BENCHMARKS_DIR)
-    if config.name not in names:
-        raise ValueError(f"unknown benchmark {config.name!r}; available: {', '.join(names)}")
-    script = BENCHMARKS_DIR / f"{config.name}.py"
+    name = ALIASES.get(config.name, config.name)
+    if name not in names:
+        short = ", ".join(f"{a} ({n})" for a, n in ALIASES.items())
+        raise ValueError(
+            f"unknown benchmark {config.name!r}; available: {', '.join(names)}; short names: {short}"
+        )
+    script = BENCHMARKS_DIR / f"{name}.py"
     proc = subprocess.run([sys.executable, str(script), *config.args], check=False)
-    return {"benchmark": config.name, "returncode": proc.returncode}
+    return {"benchmark": name, "returncode": proc.returncode}
