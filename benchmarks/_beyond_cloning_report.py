@@ -80,7 +80,8 @@ def markdown(results: dict) -> str:
         f"{results['seconds']:.0f} s on {results['machine']['cpu_count']} CPU cores "
         f"({results['jobs']} process(es), `torch.set_num_threads(1)`).",
         "",
-        "GAIL/AIRL budgets (PPO generator, the library's `AdversarialConfig` defaults otherwise):",
+        "GAIL/AIRL budgets (PPO generator, the library's `AdversarialConfig` defaults "
+        "otherwise; the normaliser's warm-up steps count as env steps):",
         "",
         budget_table(results),
         "",
@@ -98,11 +99,14 @@ def markdown(results: dict) -> str:
 def budget_table(results: dict) -> str:
     rows = [
         [_report.env_label(t), results["demonstrations"][t], f"{b['total_steps']:,}",
-         f"{b['rollout_steps']:,}", b["eval_every"], b["lr"], "x".join(map(str, b["hidden"]))]
+         f"{b['rollout_steps']:,}", b["minibatch_size"], b["eval_every"], b["lr"], b["gamma"],
+         "yes" if b["absorbing"] else "no", f"{b['normalizer_warmup']:,}",
+         "x".join(map(str, b["hidden"]))]
         for t, b in results["budgets"].items()
     ]  # fmt: skip
-    header = ["task", "demonstration", "env steps", "steps per round", "eval every (rounds)",
-              "lr", "MLP"]  # fmt: skip
+    header = ["task", "demonstration", "env steps", "steps per round", "PPO minibatch",
+              "eval every (rounds)", "lr", "gamma", "absorbing states",
+              "normaliser warm-up steps", "MLP"]  # fmt: skip
     return _report.table(header, rows)
 
 

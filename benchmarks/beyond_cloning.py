@@ -89,17 +89,38 @@ class Adversarial:
     """environment steps per round"""
     lr: float = 3e-4
     """Adam learning rate of the policy and value heads (PPO)"""
+    gamma: float = 0.99
+    """discount of GAE (and of AIRL's shaping and the absorbing state's value)"""
+    minibatch_size: int = 256
+    """rows per PPO gradient step"""
+    absorbing: bool = False
+    """DAC's absorbing states (for episodes that end at a goal; see the adversarial
+    package's ``absorbing`` module)"""
+    normalizer_warmup: int = 0
+    """env steps of the untrained learner added to the normaliser's statistics (counted)"""
     hidden: tuple[int, ...] = (64, 64)
     """hidden sizes of the learner's policy and value MLPs (and the discriminator's)"""
 
 
 ADVERSARIAL = {
-    LAKE: Adversarial(total_steps=5_120, eval_every=1, rollout_steps=1024),
+    LAKE: Adversarial(total_steps=5_120, eval_every=1, rollout_steps=1024, absorbing=True),
     "CartPole-v1": Adversarial(total_steps=20_480, eval_every=2),
-    "Pendulum-v1": Adversarial(total_steps=102_400, eval_every=5),
-    "InvertedPendulum-v5": Adversarial(total_steps=20_480, eval_every=1),
+    "Pendulum-v1": Adversarial(total_steps=30_720, eval_every=3, lr=1e-3, gamma=0.9),
+    "InvertedPendulum-v5": Adversarial(
+        total_steps=40_960, eval_every=4, minibatch_size=64, normalizer_warmup=2_048
+    ),
 }
-"""the per-task GAIL/AIRL env-step budgets (rounded up to whole rounds)"""
+"""the per-task GAIL/AIRL env-step budgets (rounded up to whole rounds) and generators.
+
+Chosen in trial runs (1-5 seeds) to fit the whole run in about 45 minutes on 2 cores:
+FrozenLake's demonstrations end at the goal, so its learned reward gets absorbing states
+(DAC; the survival tasks keep GAIL's living bonus, which suits them: the adversarial
+package's ``absorbing`` module says why and what it measured). Pendulum's PPO takes
+rl-zoo's Pendulum settings (gamma 0.9, lr 1e-3; at gamma 0.99 PPO learns Pendulum far
+slower). InvertedPendulum's takes the MuJoCo PPO minibatch of 64 (CleanRL, SB3), and its
+normaliser sees 2,048 steps of the untrained learner beside the demonstration: the
+expert holds the pole so still (feature std ~1e-3) that the learner's own states would
+otherwise normalise to hundreds and saturate its tanh networks."""
 
 
 @dataclass(frozen=True)
@@ -140,6 +161,7 @@ def adversarial_budget(task: str, cfg: Config) -> Adversarial:
         budget,
         total_steps=cfg.adversarial_steps,
         rollout_steps=min(budget.rollout_steps, cfg.adversarial_steps),
+        normalizer_warmup=min(budget.normalizer_warmup, cfg.adversarial_steps),
     )
 
 
@@ -148,6 +170,10 @@ def adversarial_config(method: str, budget: Adversarial, cfg: Config, seed: int)
     fields = dict(
         total_steps=budget.total_steps,
         rollout_steps=budget.rollout_steps,
+        gamma=budget.gamma,
+        minibatch_size=budget.minibatch_size,
+        absorbing=budget.absorbing,
+        normalizer_warmup=budget.normalizer_warmup,
         discriminator_hidden=budget.hidden,
         seed=seed,
     )

@@ -23,7 +23,13 @@ from imitrl.algorithms.adversarial import (
     gail_reward,
     shaped_f,
 )
-from imitrl.algorithms.adversarial.keys import ACTION_FEATURES, EXPERT_PROBABILITY, POLICY
+from imitrl.algorithms.adversarial.keys import (
+    ABSORBING,
+    ACTION_FEATURES,
+    EXPERT_PROBABILITY,
+    POLICY,
+    STATE_FEATURES,
+)
 from imitrl.algorithms.adversarial.transitions import expert_transitions
 from imitrl.data import DemonstrationBuffer, rollout_episodes
 from imitrl.data.rollout import episode_returns
@@ -46,6 +52,8 @@ def _transitions(obs, action, next_obs=None, terminated=None) -> TensorDict:
             keys.ACTION: action,
             NEXT_OBS: obs + 0.1 if next_obs is None else next_obs,
             NEXT_TERM: torch.zeros(n, 1, dtype=torch.bool) if terminated is None else terminated,
+            ABSORBING: torch.zeros(n, 1, dtype=torch.bool),
+            (keys.NEXT, ABSORBING): torch.zeros(n, 1, dtype=torch.bool),
         },
         batch_size=[n],
     )
@@ -126,7 +134,7 @@ def test_airl_network_decomposition_shapes_gamma_and_terminal():
     learner = _learner()
     disc = AIRLDiscriminator(learner, gamma=0.9, hidden=(8,), seed=0)
     net = disc.network
-    obs, next_obs = torch.randn(5, 2), torch.randn(5, 2)
+    obs, next_obs = torch.randn(5, 3), torch.randn(5, 3)  # state features: d + 1 = 3
     term = torch.tensor([[False], [True], [False], [True], [False]])
     f, g, h, h_next = net(obs, next_obs, term)
     assert f.shape == g.shape == h.shape == h_next.shape == (5, 1)
@@ -151,12 +159,13 @@ def test_airl_reward_matches_f_minus_log_pi_of_the_learner():
 # -------------------------------------------------------------- contracts
 def test_gail_discriminator_keys_and_expert_side():
     disc = GAILDiscriminator(_learner(), hidden=(16,), seed=0)
-    assert disc.module.in_keys == [keys.OBSERVATION, ACTION_FEATURES]
+    assert disc.module.in_keys == [STATE_FEATURES, ACTION_FEATURES]
     assert EXPERT_PROBABILITY in disc.module.out_keys
-    assert (POLICY, keys.OBSERVATION) in disc.loss.in_keys
+    assert (POLICY, STATE_FEATURES) in disc.loss.in_keys
     expert, policy = _separable()
     batch = disc.batch(expert, policy)
     assert batch[ACTION_FEATURES].shape == (64, 2)  # one-hot discrete actions
+    assert batch[STATE_FEATURES].shape == (64, 3)  # observation and absorbing indicator
     with pytest.raises(ValueError, match="one to one"):
         disc.batch(expert, policy[:10])
 
@@ -236,6 +245,8 @@ def test_configs_and_learners_are_checked():
         GAILConfig(rollout_steps=0)
     with pytest.raises(ValueError, match="gamma"):
         AIRLConfig(gamma=1.5)
+    with pytest.raises(ValueError, match="normalizer_warmup"):
+        GAILConfig(normalizer_warmup=-1)
     env, buffer, _ = _cartpole(0)
     with pytest.raises(ValueError, match="GAILConfig"):
         gail(env, ActorCritic.for_env(env), buffer, AIRLConfig())
@@ -265,15 +276,17 @@ def test_gail_improves_cartpole_over_its_initial_policy():
 
 @pytest.mark.parametrize("method", ["gail", "airl"])
 def test_same_seed_same_numbers(method):
+    extra = dict(grad_penalty=1.0, absorbing=True, normalizer_warmup=32, **TINY)
+
     def run():
         env, buffer, learner = _cartpole(3)
         if method == "gail":
-            result = gail(env, learner, buffer, GAILConfig(grad_penalty=1.0, **TINY))
+            result = gail(env, learner, buffer, GAILConfig(**extra))
         else:
-            result, _ = airl(env, learner, buffer, AIRLConfig(grad_penalty=1.0, **TINY))
-        return result, learner
+            result, _ = airl(env, learner, buffer, AIRLConfig(**extra))
+        return result, learner, buffer
 
-    (a, la), (b, lb) = run(), run()
+    (a, la, buffer), (b, lb, _) = run(), run()
     assert [(r.discriminator, r.generator, r.learned_reward) for r in a.rounds] == [
         (r.discriminator, r.generator, r.learned_reward) for r in b.rounds
     ]
@@ -281,6 +294,12 @@ def test_same_seed_same_numbers(method):
         torch.equal(x, y) for x, y in zip(la.state_dict().values(), lb.state_dict().values())
     )
     assert len(a.rounds) == 2 and a.rounds[-1].discriminator["grad_penalty"] > 0
+    # the random early policy drops the pole: absorbing rows and their reward
+    assert a.rounds[0].terminated > 0 and a.rounds[0].absorbing_reward is not None
+    # the warm-up's 32 steps are counted, and their states join the normaliser's statistics
+    assert a.env_steps == 256 + 32 and a.rounds[0].env_steps == 128 + 32
+    demo_std = buffer.data[keys.OBSERVATION].double().std(0, correction=0).float()
+    assert not torch.allclose(la.normalizer.scale, demo_std, rtol=1e-3)
 
 
 # ------------------------------------------------------------------- jobs

@@ -97,6 +97,12 @@ class GAILJob:
     """GAE's lambda"""
     entropy_coeff: float = 0.0
     """weight of PPO's entropy bonus"""
+    absorbing: bool = False
+    """absorbing states for terminated episodes (DAC), for tasks whose episodes end at a
+    goal; off: a terminal step ends the learned reward (GAIL's reward pays for living)"""
+    normalizer_warmup: int = 0
+    """env steps of the untrained learner whose observations join the demonstrations'
+    in the normaliser's statistics (counted); 0: the demonstrations' alone"""
     eval_episodes: int = 20
     """evaluation episodes of the expert and of the learner"""
     eval_seed: int = 10_000
@@ -129,7 +135,8 @@ class GAILJob:
         names = (
             "total_steps", "rollout_steps", "ppo_epochs", "minibatch_size",
             "discriminator_updates", "discriminator_batch", "discriminator_lr",
-            "grad_penalty", "gamma", "gae_lambda", "entropy_coeff", "seed",
+            "grad_penalty", "gamma", "gae_lambda", "entropy_coeff", "absorbing",
+            "normalizer_warmup", "seed",
         )  # fmt: skip
         return {n: getattr(self, n) for n in names}
 

@@ -5,6 +5,7 @@ module                       holds
 ============================ ===============================================================
 ``keys``                     the keys this package adds (action features, learned reward)
 ``transitions``              ``(s, a, s', terminated)`` from demonstrations and rollouts
+``absorbing``                DAC's absorbing state: terminated episodes vs the living bias
 ``gail_discriminator``       ``D(s, a)`` on TorchRL's ``GAILLoss``; reward ``-log(1 - D)``
 ``airl_discriminator``       ``D = sigmoid(f - log pi)``, ``f = g(s) + gamma h(s') - h(s)``
 ``generator``                PPO (``ClipPPOLoss`` + ``GAE``) on the learner, and why PPO

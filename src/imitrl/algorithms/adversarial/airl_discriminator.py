@@ -11,7 +11,11 @@ with the shaped f of section 5 (the disentangled reward)::
 
 ``g`` is a *state-only* reward (what the paper needs for the recovered reward to transfer
 to other dynamics; we use that variant), ``h`` a shaping potential; at a terminal
-transition there is no next state and ``h(s')`` is zeroed. The generator's reward is::
+transition there is no next state and ``h(s')`` is zeroed. With absorbing states
+(:mod:`~imitrl.algorithms.adversarial.absorbing`) nothing terminates: a terminal
+transition's ``s'`` is the absorbing state, read like any other (``g``, ``h`` read
+:func:`~imitrl.algorithms.adversarial.absorbing.state_features`), and the absorbing
+state's single action has ``pi = 1``, ``log pi = 0``. The generator's reward is::
 
     r(s, a, s') = log D - log(1 - D) = f(s, a, s') - log pi(a|s)
 
@@ -19,7 +23,7 @@ transition there is no next state and ``h(s')`` is zeroed. The generator's rewar
 ``g`` and ``h``, never the policy. The loss is the same binary cross-entropy as GAIL's
 (expert pairs labelled 1, the policy's 0, summed per pair and averaged), written on the
 logit; the optional gradient penalty mirrors ``GAILLoss``'s: ``lambda * mean((|grad f| -
-1)^2)`` at per-row interpolations of the expert and policy ``(s, s')``.
+1)^2)`` at per-row interpolations of the expert and policy ``(s, s')`` state features.
 """
 
 from __future__ import annotations
@@ -31,7 +35,9 @@ from tensordict import TensorDict, TensorDictBase
 from torch import nn
 
 from imitrl import keys
-from imitrl.algorithms.adversarial.transitions import NEXT_OBS, NEXT_TERMINATED
+from imitrl.algorithms.adversarial.absorbing import state_features
+from imitrl.algorithms.adversarial.keys import ABSORBING
+from imitrl.algorithms.adversarial.transitions import NEXT_ABSORBING, NEXT_OBS, NEXT_TERMINATED
 from imitrl.policies.actor_critic import ActorCritic
 from imitrl.policies.heads import mlp
 
@@ -51,22 +57,20 @@ def airl_reward(f: torch.Tensor, log_pi: torch.Tensor) -> torch.Tensor:
 
 
 class ShapedReward(nn.Module):
-    """``g(s)`` and ``h(s)``: two MLPs over normalised observations.
+    """``g(s)`` and ``h(s)``: two MLPs over state features ``[N, k]`` (``k = d + 1``:
+    :func:`~imitrl.algorithms.adversarial.absorbing.state_features`).
 
-    ``forward(obs [N, d], next_obs [N, d], terminated [N, 1] bool) -> f, g, h(s), h(s')``,
+    ``forward(x [N, k], x_next [N, k], terminated [N, 1] bool) -> f, g, h(s), h(s')``,
     each ``[N, 1]``.
     """
 
-    def __init__(
-        self, obs_dim: int, hidden: Sequence[int], normalizer: nn.Module, gamma: float
-    ) -> None:
+    def __init__(self, state_dim: int, hidden: Sequence[int], gamma: float) -> None:
         super().__init__()
-        self.normalizer, self.gamma = normalizer, float(gamma)
-        self.g = mlp([obs_dim, *hidden, 1], nn.Tanh)
-        self.h = mlp([obs_dim, *hidden, 1], nn.Tanh)
+        self.gamma = float(gamma)
+        self.g = mlp([state_dim, *hidden, 1], nn.Tanh)
+        self.h = mlp([state_dim, *hidden, 1], nn.Tanh)
 
-    def forward(self, obs, next_obs, terminated) -> tuple[torch.Tensor, ...]:
-        x, x_next = self.normalizer(obs), self.normalizer(next_obs)
+    def forward(self, x, x_next, terminated) -> tuple[torch.Tensor, ...]:
         g, h, h_next = self.g(x), self.h(x), self.h(x_next)
         return shaped_f(g, h, h_next, terminated, self.gamma), g, h, h_next
 
@@ -103,26 +107,32 @@ class AIRLDiscriminator:
             raise ValueError("AIRL needs log pi(a|s): build the learner with a probabilistic head")
         self.learner, self.grad_penalty = learner, float(grad_penalty)
         (obs_dim,) = learner.observation_shape
-        normalizer = learner.normalizer if learner.normalizer is not None else nn.Identity()
+        self.normalizer = learner.normalizer if learner.normalizer is not None else nn.Identity()
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(seed)
-            self.network = ShapedReward(obs_dim, hidden, normalizer, gamma)
+            self.network = ShapedReward(obs_dim + 1, hidden, gamma)
         self.optimizer = torch.optim.Adam(self.network.parameters(), lr=lr)
 
     def log_pi(self, transitions: TensorDictBase) -> torch.Tensor:
-        """``[N, 1]`` ``log pi(a|s)`` of the current policy, detached."""
+        """``[N, 1]`` ``log pi(a|s)`` of the current policy, detached; 0 at the absorbing
+        state (its single action)."""
         td = TensorDict({keys.OBSERVATION: transitions.get(keys.OBSERVATION)}, transitions.shape)
         with torch.no_grad():
             lp = self.learner.get_dist(td).log_prob(transitions.get(keys.ACTION))
-        return lp.reshape(transitions.shape[0], 1)
+        lp = lp.reshape(transitions.shape[0], 1)
+        return torch.where(transitions.get(ABSORBING), torch.zeros_like(lp), lp)
+
+    def features(self, transitions: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
+        """State features ``[N, d + 1]`` of ``s`` and of ``s'``."""
+        obs, next_obs = transitions.get(keys.OBSERVATION), transitions.get(NEXT_OBS)
+        return (
+            state_features(obs, transitions.get(ABSORBING), self.normalizer),
+            state_features(next_obs, transitions.get(NEXT_ABSORBING), self.normalizer),
+        )
 
     def f(self, transitions: TensorDictBase) -> torch.Tensor:
         """``[N, 1]`` shaped ``f(s, a, s')`` (keeps the graph)."""
-        return self.network(
-            transitions.get(keys.OBSERVATION),
-            transitions.get(NEXT_OBS),
-            transitions.get(NEXT_TERMINATED),
-        )[0]
+        return self.network(*self.features(transitions), transitions.get(NEXT_TERMINATED))[0]
 
     def logits(self, transitions: TensorDictBase) -> torch.Tensor:
         """``[N, 1]`` logit of ``D``: ``f - log pi`` (graph through ``f`` only)."""
@@ -147,15 +157,12 @@ class AIRLDiscriminator:
 
     def _penalty(self, expert: TensorDictBase, policy: TensorDictBase) -> torch.Tensor:
         alpha = torch.rand(expert.shape[0], 1)  # global RNG: the run seeds it
-        mix = {}
-        for key in (keys.OBSERVATION, NEXT_OBS):
-            mix[key] = (alpha * policy.get(key) + (1 - alpha) * expert.get(key)).requires_grad_(
-                True
-            )
-        f = self.network(mix[keys.OBSERVATION], mix[NEXT_OBS], expert.get(NEXT_TERMINATED))[0]
-        grads = torch.autograd.grad(
-            f.sum(), (mix[keys.OBSERVATION], mix[NEXT_OBS]), create_graph=True
-        )
+        mix = [
+            (alpha * p + (1 - alpha) * e).requires_grad_(True)
+            for p, e in zip(self.features(policy), self.features(expert))
+        ]
+        f = self.network(*mix, expert.get(NEXT_TERMINATED))[0]
+        grads = torch.autograd.grad(f.sum(), mix, create_graph=True)
         norm = torch.cat(grads, dim=-1).norm(dim=-1)
         return self.grad_penalty * ((norm - 1) ** 2).mean()
 

@@ -9,15 +9,16 @@ is large on expert-like pairs is (Ho & Ermon's cost ``log D`` with the labels sw
 
     r(s, a) = -log(1 - D(s, a)) = softplus(logit(s, a))            (computed from the logit)
 
-Its gradient penalty (``use_grad_penalty``, weight ``gp_lambda``) is
-``lambda * mean((|grad_x D(x_mix)| - 1)^2)`` at random per-entry interpolations ``x_mix``
-of the expert and policy (observation, action) pairs; actions enter as float
+The network reads ``(STATE_FEATURES, ACTION_FEATURES)``: the observation through the
+learner's own :class:`~imitrl.policies.normalization.ObservationNormalizer` (the same
+module, fitted to the demonstrations; it has no parameters, so nothing the discriminator
+learns moves it) with the absorbing indicator appended
+(:func:`~imitrl.algorithms.adversarial.absorbing.state_features`), and the action as float
 :func:`~imitrl.algorithms.adversarial.transitions.action_features` (one-hot for discrete
-actions) so that they can be interpolated.
-
-The network reads raw observations through the learner's own
-:class:`~imitrl.policies.normalization.ObservationNormalizer` (the same module, fitted to
-the demonstrations; it has no parameters, so nothing the discriminator learns moves it).
+actions; zeros at the absorbing state). Its gradient penalty (``use_grad_penalty``,
+weight ``gp_lambda``) is ``lambda * mean((|grad_x D(x_mix)| - 1)^2)`` at random
+per-entry interpolations ``x_mix`` of the expert and policy feature pairs (so in
+normalised coordinates; float features are what it can interpolate).
 """
 
 from __future__ import annotations
@@ -30,11 +31,14 @@ from torch import nn
 from torchrl.objectives import GAILLoss
 
 from imitrl import keys
+from imitrl.algorithms.adversarial.absorbing import state_features
 from imitrl.algorithms.adversarial.keys import (
+    ABSORBING,
     ACTION_FEATURES,
     DISCRIMINATOR_LOGIT,
     EXPERT_PROBABILITY,
     POLICY,
+    STATE_FEATURES,
 )
 from imitrl.algorithms.adversarial.transitions import action_features
 from imitrl.policies.actor_critic import ActorCritic
@@ -50,18 +54,15 @@ def gail_reward(logit: torch.Tensor) -> torch.Tensor:
 
 
 class PairNetwork(nn.Module):
-    """``(obs [N, d], features [N, k]) -> (logit [N, 1], sigmoid(logit) [N, 1])``: an MLP over
-    ``[normalize(obs), features]``."""
+    """``(state [N, d + 1], action [N, k]) features -> (logit [N, 1], sigmoid(logit) [N, 1])``:
+    an MLP over their concatenation."""
 
-    def __init__(
-        self, obs_dim: int, feature_dim: int, hidden: Sequence[int], normalizer: nn.Module
-    ) -> None:
+    def __init__(self, state_dim: int, action_dim: int, hidden: Sequence[int]) -> None:
         super().__init__()
-        self.normalizer = normalizer
-        self.body = mlp([obs_dim + feature_dim, *hidden, 1], nn.Tanh)
+        self.body = mlp([state_dim + action_dim, *hidden, 1], nn.Tanh)
 
-    def forward(self, obs: torch.Tensor, features: torch.Tensor) -> tuple[torch.Tensor, ...]:
-        logit = self.body(torch.cat([self.normalizer(obs), features], dim=-1))
+    def forward(self, state: torch.Tensor, action: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        logit = self.body(torch.cat([state, action], dim=-1))
         return logit, torch.sigmoid(logit)
 
 
@@ -91,31 +92,35 @@ class GAILDiscriminator:
         self.space = learner.action_space
         features = action_features(_probe_action(self.space), self.space).shape[-1]
         (obs_dim,) = learner.observation_shape
-        normalizer = learner.normalizer if learner.normalizer is not None else nn.Identity()
+        self.normalizer = learner.normalizer if learner.normalizer is not None else nn.Identity()
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(seed)
-            net = PairNetwork(obs_dim, features, hidden, normalizer)
+            net = PairNetwork(obs_dim + 1, features, hidden)
         self.module = Module(
             net,
-            in_keys=[keys.OBSERVATION, ACTION_FEATURES],
+            in_keys=[STATE_FEATURES, ACTION_FEATURES],
             out_keys=[DISCRIMINATOR_LOGIT, EXPERT_PROBABILITY],
         )
         self.loss = GAILLoss(self.module, use_grad_penalty=grad_penalty > 0, gp_lambda=grad_penalty)
         self.loss.set_keys(
-            expert_observation=keys.OBSERVATION,
+            expert_observation=STATE_FEATURES,
             expert_action=ACTION_FEATURES,
-            collector_observation=(POLICY, keys.OBSERVATION),
+            collector_observation=(POLICY, STATE_FEATURES),
             collector_action=(POLICY, ACTION_FEATURES),
             discriminator_pred=EXPERT_PROBABILITY,
         )
         self.optimizer = torch.optim.Adam(self.loss.parameters(), lr=lr)
 
     def pairs(self, transitions: TensorDictBase) -> TensorDict:
-        """``OBSERVATION`` and ``ACTION_FEATURES`` ``[N]`` of transitions ``[N]``."""
+        """``STATE_FEATURES`` and ``ACTION_FEATURES`` ``[N]`` of transitions ``[N]``."""
+        absorbing = transitions.get(ABSORBING)
+        act = action_features(transitions.get(keys.ACTION), self.space)
         return TensorDict(
             {
-                keys.OBSERVATION: transitions.get(keys.OBSERVATION),
-                ACTION_FEATURES: action_features(transitions.get(keys.ACTION), self.space),
+                STATE_FEATURES: state_features(
+                    transitions.get(keys.OBSERVATION), absorbing, self.normalizer
+                ),
+                ACTION_FEATURES: torch.where(absorbing, torch.zeros_like(act), act),
             },
             batch_size=transitions.shape,
         )

@@ -19,6 +19,13 @@ One update (:meth:`PPOGenerator.update`) on a collector batch ``[*B, T]`` carryi
    head, then minibatches of ``minibatch_size`` rows in an order drawn from ``generator``;
    each step minimises ``loss_objective + loss_entropy + loss_critic`` with the learner's
    own ``opt_pi`` and ``opt_v``, gradients clipped to ``max_grad_norm``.
+
+Episode ends: TorchRL's GAE reads the env's ``("next", "terminated")`` and ``("next",
+"done")`` (``torchrl.objectives.value.functional.generalized_advantage_estimate``:
+``delta = r + gamma * (1 - terminated) * V(s') - V(s)``, trace ``lambda * gamma * (1 -
+done)``): a terminated step is not bootstrapped (with absorbing states its reward
+carries the absorbing state's value instead), a truncated one (done, not terminated)
+bootstraps the critic's ``V(s')`` of the final observation, and the trace stops at both.
 """
 
 from __future__ import annotations

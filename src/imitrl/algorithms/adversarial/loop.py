@@ -11,10 +11,19 @@ Round after round, until ``total_steps`` environment steps:
    the generator (:class:`~imitrl.algorithms.adversarial.generator.PPOGenerator`) takes
    its PPO epochs on the batch.
 
+With ``config.absorbing`` (off by default) both sides' transitions carry DAC's absorbing
+state and a terminated step's reward carries its value
+(:mod:`~imitrl.algorithms.adversarial.absorbing`: why, and what changes); truncated
+steps are bootstrapped by GAE either way.
+
 Before the first round the learner fits its observation normaliser to the
 demonstrations (``learner.prepare``, as behaviour cloning does; a learner already fitted
-keeps its statistics); both discriminators read observations through it. Expert queries
-are the demonstration rows only: neither method asks the expert anything afterwards.
+keeps its statistics); both discriminators read observations through it. With
+``normalizer_warmup`` steps, the untrained learner first plays that many steps and their
+observations join the demonstrations' in the statistics (the steps are counted): for
+demonstrations that barely move, which would scale the learner's own states up by
+orders of magnitude. Expert queries are the demonstration rows only: neither method asks
+the expert anything afterwards.
 
 Every random draw comes from ``config.seed``: the torch global RNG (the policy's samples,
 GAILLoss's penalty interpolations) is seeded with it inside ``fork_rng`` (the caller's
@@ -32,14 +41,16 @@ import torch
 from tensordict import TensorDictBase
 from torchrl.collectors import Collector
 from torchrl.envs import EnvBase
-from torchrl.envs.utils import ExplorationType
+from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.record.loggers import Logger
 from tqdm.auto import tqdm
 
 from imitrl import keys
+from imitrl.algorithms.adversarial.absorbing import absorbing_rows, absorbing_tail, with_absorbing
 from imitrl.algorithms.adversarial.generator import PPOGenerator
 from imitrl.algorithms.adversarial.keys import LEARNED_REWARD
 from imitrl.algorithms.adversarial.transitions import (
+    NEXT_ABSORBING,
     expert_transitions,
     policy_transitions,
     sample_rows,
@@ -82,7 +93,7 @@ class AdversarialConfig:
     grad_penalty: float = 0.0
     """weight of the discriminator's gradient penalty (GAILLoss's gp_lambda); 0 = none"""
     gamma: float = 0.99
-    """discount of GAE (and of AIRL's shaping)"""
+    """discount of GAE (and of AIRL's shaping, and of the absorbing state's value)"""
     gae_lambda: float = 0.95
     """GAE's lambda"""
     clip_epsilon: float = 0.2
@@ -91,6 +102,15 @@ class AdversarialConfig:
     """weight of PPO's entropy bonus"""
     max_grad_norm: float = 0.5
     """gradient-norm clip of each PPO step"""
+    absorbing: bool = False
+    """absorbing-state handling (DAC) of terminated episodes, for tasks whose episodes end
+    at a goal; False: a terminal step ends the learned reward, and GAIL's ``-log(1 - D) >
+    0`` pays for living (a prior that suits tasks whose only end is failure: see
+    :mod:`~imitrl.algorithms.adversarial.absorbing`)"""
+    normalizer_warmup: int = 0
+    """environment steps of the untrained learner whose observations join the
+    demonstrations' in the normaliser's statistics (counted as env steps); 0: the
+    demonstrations' alone. Ignored when the normaliser is already fitted or absent"""
     seed: int = 0
     """seeds the policy's samples, the discriminator's initialisation and every minibatch"""
 
@@ -116,6 +136,15 @@ class AdversarialConfig:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
         if self.grad_penalty < 0 or self.entropy_coeff < 0:
             raise ValueError("grad_penalty and entropy_coeff must be >= 0")
+        if int(self.normalizer_warmup) != self.normalizer_warmup or self.normalizer_warmup < 0:
+            raise ValueError(
+                f"normalizer_warmup must be an integer >= 0, got {self.normalizer_warmup!r}"
+            )
+        if self.absorbing and self.gamma >= 1.0:
+            raise ValueError(
+                "absorbing states need gamma < 1 (the absorbing state's value is "
+                "r_abs / (1 - gamma)); set absorbing=False for gamma = 1"
+            )
 
 
 class Discriminator(Protocol):
@@ -138,7 +167,11 @@ class RoundRecord:
     generator: dict[str, float]
     """the round's last PPO epoch: mean ``loss_objective``, ``loss_critic`` (, entropy)"""
     learned_reward: float
-    """mean learned reward of the round's transitions"""
+    """mean learned reward of the round's transitions (the absorbing tail not included)"""
+    absorbing_reward: float | None = None
+    """the learned reward ``r_abs`` of the absorbing state (None: ``absorbing`` off)"""
+    terminated: int = 0
+    """the round's terminated steps (each adds an absorbing row on the policy side)"""
     info: dict | None = None
     """what ``on_round`` returned (e.g. an evaluation)"""
 
@@ -151,11 +184,12 @@ class AdversarialResult:
     """the trained learner (the one passed in)"""
     rounds: list[RoundRecord] = field(repr=False)
     env_steps: int = 0
-    """environment steps taken by the generator"""
+    """environment steps taken by the generator (the normaliser's warm-up included)"""
     expert_queries: int = 0
     """expert actions used: the demonstration rows, none after them"""
     expert_transitions: int = 0
-    """demonstration rows with a known next state (the discriminator's expert data)"""
+    """demonstration rows with a known next state (the discriminator's expert data,
+    absorbing rows not counted)"""
 
 
 def _check(env: EnvBase, learner: ActorCritic, buffer: DemonstrationBuffer) -> None:
@@ -199,14 +233,16 @@ def train_adversarial(
     """
     _check(env, learner, demonstrations)
     rows = demonstrations.data
-    learner.prepare(rows)
     expert = expert_transitions(rows)
+    n_expert = expert.shape[0]
+    if config.absorbing:
+        expert = with_absorbing(expert)
     records: list[RoundRecord] = []
-    steps = 0
     bar = tqdm(total=config.total_steps, desc=name, disable=not progress, leave=False)
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(config.seed)
         draws = torch.Generator().manual_seed(config.seed)
+        steps = _fit_normalizer(env, learner, rows, config.normalizer_warmup)
         generator = PPOGenerator(
             learner, gamma=config.gamma, gae_lambda=config.gae_lambda,
             clip_epsilon=config.clip_epsilon, entropy_coeff=config.entropy_coeff,
@@ -237,25 +273,51 @@ def train_adversarial(
             bar.close()
     return AdversarialResult(
         learner=learner, rounds=records, env_steps=steps,
-        expert_queries=len(demonstrations), expert_transitions=expert.shape[0],
+        expert_queries=len(demonstrations), expert_transitions=n_expert,
     )  # fmt: skip
+
+
+def _fit_normalizer(env: EnvBase, learner: ActorCritic, rows: TensorDictBase, warmup: int) -> int:
+    """``learner.prepare(rows)``, the normaliser fitted first to the demonstrations' and
+    ``warmup`` steps of the learner's observations (module docstring) when it has one not
+    yet fitted; returns the env steps taken (all lanes of a batched env)."""
+    norm = learner.normalizer
+    if warmup == 0 or norm is None or norm.is_fitted:
+        learner.prepare(rows)
+        return 0
+    lanes = max(1, env.batch_size.numel())
+    with set_exploration_type(ExplorationType.RANDOM), torch.no_grad():
+        played = env.rollout(-(-warmup // lanes), learner.policy, break_when_any_done=False)
+    obs = [rows.get(keys.OBSERVATION), played.get(keys.OBSERVATION)]
+    norm.fit(torch.cat([o.reshape(-1, *norm.shape).to(torch.float64) for o in obs]))
+    learner.prepare(rows)  # validates the rows; the statistics stay
+    return played.numel()
 
 
 def _round(k, steps, batch, expert, discriminator, generator, config, draws) -> RoundRecord:
     """Discriminator steps, then the learned reward, then PPO, on one collector batch."""
+    n = batch.numel()
     policy = policy_transitions(batch)
+    if config.absorbing:
+        policy = with_absorbing(policy)  # the n rows in the batch's order, then absorbing ones
     metrics: dict[str, float] = {}
     for _ in range(config.discriminator_updates):
         metrics = discriminator.update(
             sample_rows(expert, config.discriminator_batch, draws),
             sample_rows(policy, config.discriminator_batch, draws),
         )
-    reward = discriminator.reward(policy)  # [N, 1], rows in the batch's order
+    reward = discriminator.reward(policy[:n])  # [n, 1], rows in the batch's order
+    learned, r_abs = reward, None
+    if config.absorbing:
+        r_abs = discriminator.reward(absorbing_rows(policy, 1))  # [1, 1]
+        reward = absorbing_tail(reward, policy[:n].get(NEXT_ABSORBING), r_abs, config.gamma)
     batch.set((keys.NEXT, LEARNED_REWARD), reward.reshape(*batch.shape, 1))
     ppo = generator.update(batch, draws)
     return RoundRecord(
         round=k, env_steps=steps, discriminator=metrics, generator=ppo,
-        learned_reward=float(reward.mean()),
+        learned_reward=float(learned.mean()),
+        absorbing_reward=None if r_abs is None else float(r_abs),
+        terminated=int(batch.get((keys.NEXT, keys.TERMINATED)).sum()),
     )  # fmt: skip
 
 
@@ -265,5 +327,7 @@ def _log(logger: Logger | None, name: str, record: RoundRecord) -> None:
     values = {f"{name}/discriminator_{k}": v for k, v in record.discriminator.items()}
     values.update({f"{name}/{k}": v for k, v in record.generator.items()})
     values[f"{name}/learned_reward"] = record.learned_reward
+    if record.absorbing_reward is not None:
+        values[f"{name}/absorbing_reward"] = record.absorbing_reward
     for key, value in values.items():
         logger.log_scalar(key, value, step=record.env_steps)

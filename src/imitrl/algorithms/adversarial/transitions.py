@@ -4,8 +4,9 @@
   LeRobot or Minari dataset loaded into one). Rows hold no ``("next", OBSERVATION)``
   (see :mod:`imitrl.data.rollout`): ``s'`` of a row is the observation of the next row
   of its episode (``STEP + 1``). An episode's last row has no successor: kept when it
-  terminated (AIRL zeroes ``h(s')`` there, so ``s'`` is never read; it is set to
-  ``s``), dropped when the episode was cut by a time limit or the data says nothing.
+  terminated (its ``s'`` is the end: the absorbing state, or zeroed in AIRL's
+  ``h(s')``; never read, it is set to ``s``), dropped when the episode was cut by a
+  time limit or the data says nothing.
   Every row must have executed the expert's action (``EXPERT_EXECUTED``): adversarial
   imitation matches the expert's state-action occupancy, which only its own
   trajectories sample.
@@ -13,7 +14,10 @@
 * :func:`action_features`: the float ``[N, k]`` action a discriminator network reads.
 
 Every returned TensorDict holds ``OBSERVATION [N, d]``, ``ACTION [N, ...]``,
-``("next", OBSERVATION) [N, d]`` and ``("next", TERMINATED) [N, 1]`` bool.
+``("next", OBSERVATION) [N, d]``, ``("next", TERMINATED) [N, 1]`` bool (the env's
+``terminated``: a time limit's ``truncated`` is not an end), and ``ABSORBING`` /
+``("next", ABSORBING) [N, 1]`` bool, all False: no state is the absorbing one until
+:func:`~imitrl.algorithms.adversarial.absorbing.with_absorbing` adds it.
 """
 
 from __future__ import annotations
@@ -22,12 +26,14 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 
 from imitrl import keys
+from imitrl.algorithms.adversarial.keys import ABSORBING
 from imitrl.policies.specs import ActionSpace
 
 __all__ = ["action_features", "expert_transitions", "policy_transitions", "sample_rows"]
 
 NEXT_OBS = (keys.NEXT, keys.OBSERVATION)
 NEXT_TERMINATED = (keys.NEXT, keys.TERMINATED)
+NEXT_ABSORBING = (keys.NEXT, ABSORBING)
 
 
 def _terminated(rows: TensorDictBase) -> torch.Tensor:
@@ -63,33 +69,40 @@ def expert_transitions(rows: TensorDictBase) -> TensorDict:
     terminated = _terminated(rows)
     has_next = torch.zeros_like(terminated)
     has_next[:-1] = (episode[1:] == episode[:-1]) & (step[1:] == step[:-1] + 1)
-    next_obs = obs.clone()  # terminal rows keep s' = s: h(s') is zeroed there, never read
+    next_obs = obs.clone()  # terminal rows keep s' = s, never read (module docstring)
     next_obs[:-1][has_next[:-1]] = obs[1:][has_next[:-1]]
     keep = has_next | terminated
     if not bool(keep.any()):
         raise ValueError("no demonstration row has a known next observation")
-    return TensorDict(
-        {
-            keys.OBSERVATION: obs[keep],
-            keys.ACTION: rows.get(keys.ACTION)[keep],
-            NEXT_OBS: next_obs[keep],
-            NEXT_TERMINATED: terminated[keep].unsqueeze(-1),
-        },
-        batch_size=[int(keep.sum())],
+    return _transitions(
+        obs[keep], rows.get(keys.ACTION)[keep], next_obs[keep], terminated[keep].unsqueeze(-1)
     )
 
 
 def policy_transitions(batch: TensorDictBase) -> TensorDict:
     """A collector batch ``[*B, T]`` -> transitions ``[N]``, ``N = prod(B) * T``, same order."""
     flat = batch.reshape(-1)
+    return _transitions(
+        flat.get(keys.OBSERVATION),
+        flat.get(keys.ACTION),
+        flat.get(NEXT_OBS),
+        flat.get(NEXT_TERMINATED).reshape(flat.shape[0], 1),
+    )
+
+
+def _transitions(obs, action, next_obs, terminated) -> TensorDict:
+    """The transition keys (module docstring), no absorbing state."""
+    n = obs.shape[0]
     return TensorDict(
         {
-            keys.OBSERVATION: flat.get(keys.OBSERVATION),
-            keys.ACTION: flat.get(keys.ACTION),
-            NEXT_OBS: flat.get(NEXT_OBS),
-            NEXT_TERMINATED: flat.get(NEXT_TERMINATED).reshape(flat.shape[0], 1),
+            keys.OBSERVATION: obs,
+            keys.ACTION: action,
+            NEXT_OBS: next_obs,
+            NEXT_TERMINATED: terminated,
+            ABSORBING: torch.zeros(n, 1, dtype=torch.bool),
+            NEXT_ABSORBING: torch.zeros(n, 1, dtype=torch.bool),
         },
-        batch_size=flat.shape,
+        batch_size=[n],
     )
 
 
