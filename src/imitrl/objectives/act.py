@@ -178,15 +178,6 @@ class ACTChunkLoss(ImitationLoss):
         self.inner = ACTLoss(actor, kl_weight=kl_weight)
         self.inner.set_keys(action_chunk="action_chunk")
         self.generator = torch.Generator().manual_seed(int(seed))
-        self._in_keys = None
-
-    @property
-    def in_keys(self):
-        return [self.tensor_keys.observation, self.tensor_keys.label]
-
-    @in_keys.setter
-    def in_keys(self, values):
-        self._in_keys = values
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         label = tensordict.get(self.tensor_keys.label)

@@ -50,13 +50,8 @@ class AdvantageWeightedLoss(InnerBCLoss):
         self.bc = BehaviorCloningLoss(actor, loss_type="nll", weighted=True)
         self.advantage = advantage
 
-    @property
-    def in_keys(self):
+    def read_keys(self) -> list:
         return [k for k in self.bc.in_keys if k != self.bc.tensor_keys.weight]
-
-    @in_keys.setter
-    def in_keys(self, values):
-        pass
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         label_key = self.bc.tensor_keys.label

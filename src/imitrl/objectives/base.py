@@ -50,6 +50,26 @@ class ImitationLoss(LossModule):
         """The key of the expert's label in a row."""
         return self.tensor_keys.label
 
+    @property
+    def in_keys(self) -> list[NestedKey]:
+        """Every key of a row the loss reads: always derived (:meth:`read_keys`), so that
+        ``set_keys`` is reflected at once."""
+        return self.read_keys()
+
+    @in_keys.setter
+    def in_keys(self, values) -> None:
+        pass  # TorchRL's LossModule assigns in_keys; imitrl's are derived, never stored
+
+    def read_keys(self) -> list[NestedKey]:
+        """The keys of ``in_keys``; by default ``tensor_keys``' observation, label and pad
+        (where the loss has one and it is set)."""
+        pad = getattr(self.tensor_keys, "pad", None)
+        return [
+            self.tensor_keys.observation,
+            self.tensor_keys.label,
+            *([] if pad is None else [pad]),
+        ]
+
     def check_labels(self, rows: TensorDictBase) -> None:
         """Raise ``ValueError`` unless the labels of ``rows`` are present and finite."""
         key = self.label_key
@@ -90,13 +110,8 @@ class SummedLoss(ImitationLoss):
     def label_key(self) -> NestedKey:
         return self._label_key
 
-    @property
-    def in_keys(self):
+    def read_keys(self) -> list[NestedKey]:
         return list(self.inner.in_keys)
-
-    @in_keys.setter
-    def in_keys(self, values):
-        pass
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         return self.inner(tensordict)
@@ -108,13 +123,8 @@ class InnerBCLoss(ImitationLoss):
 
     bc: ImitationLoss
 
-    @property
-    def in_keys(self):
+    def read_keys(self) -> list[NestedKey]:
         return list(self.bc.in_keys)
-
-    @in_keys.setter
-    def in_keys(self, values):
-        pass
 
     @property
     def label_key(self) -> NestedKey:

@@ -103,7 +103,6 @@ class BehaviorCloningLoss(ImitationLoss):
         self.weighted = weighted
         self.report_accuracy = report_accuracy
         self.bound_margin = float(bound_margin)
-        self._in_keys = None
         # plain attributes, not registered: these modules already belong to the actor
         logits_modules = _categorical_param_modules(actor) if loss_type == "nll" else None
         object.__setattr__(self, "_logits_modules", logits_modules)
@@ -113,14 +112,9 @@ class BehaviorCloningLoss(ImitationLoss):
             _tensor_steps(logits_modules if loss_type == "nll" else [actor]),
         )
 
-    @property
-    def in_keys(self):
+    def read_keys(self) -> list[NestedKey]:
         extra = [self.tensor_keys.label] + ([self.tensor_keys.weight] if self.weighted else [])
         return [*self.actor.in_keys, *extra]
-
-    @in_keys.setter
-    def in_keys(self, values):
-        self._in_keys = values
 
     @property
     def num_actions(self) -> int | None:

@@ -63,19 +63,13 @@ class ChunkRegressionLoss(ImitationLoss):
         self.network = network
         self.horizon = int(horizon)
         self.loss_type = loss_type
-        self._in_keys = None
 
     @property
     def label_key(self) -> NestedKey:
         return EXPERT_CHUNK
 
-    @property
-    def in_keys(self):
+    def read_keys(self) -> list[NestedKey]:
         return [*self.network.in_keys, EXPERT_CHUNK, CHUNK_PAD]
-
-    @in_keys.setter
-    def in_keys(self, values):
-        self._in_keys = values
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         pred = self.network(tensordict.select(*self.network.in_keys)).get(keys.ACTION)
@@ -104,19 +98,13 @@ class FlatChunkLoss(ImitationLoss):
         super().__init__()
         self.inner = inner
         self.dim = int(dim)
-        self._in_keys = None
 
     @property
     def label_key(self) -> NestedKey:
         return EXPERT_CHUNK
 
-    @property
-    def in_keys(self):
+    def read_keys(self) -> list[NestedKey]:
         return [*(k for k in self.inner.in_keys if k != FLAT_CHUNK), EXPERT_CHUNK]
-
-    @in_keys.setter
-    def in_keys(self, values):
-        self._in_keys = values
 
     def _flat(self, tensordict: TensorDictBase) -> TensorDictBase:
         td = tensordict.select(*(k for k in self.inner.in_keys if k != FLAT_CHUNK))

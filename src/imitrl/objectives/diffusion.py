@@ -237,15 +237,6 @@ class DiffusionBehaviorCloningLoss(ImitationLoss):
         self.inner = DiffusionBCLoss(policy.actor)
         self.inner.set_keys(action=_NORMALIZED, observation=keys.OBSERVATION)
         self.generator = torch.Generator().manual_seed(int(seed))
-        self._in_keys = None
-
-    @property
-    def in_keys(self):
-        return [self.tensor_keys.observation, self.tensor_keys.label]
-
-    @in_keys.setter
-    def in_keys(self, values):
-        self._in_keys = values
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         label = tensordict.get(self.tensor_keys.label)

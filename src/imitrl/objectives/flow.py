@@ -157,16 +157,6 @@ class FlowMatchingLoss(ImitationLoss):
 
             self.set_keys(label=EXPERT_CHUNK, pad=CHUNK_PAD)
         self.generator = torch.Generator().manual_seed(int(seed))
-        self._in_keys = None
-
-    @property
-    def in_keys(self):
-        pad = [] if self.tensor_keys.pad is None else [self.tensor_keys.pad]
-        return [self.tensor_keys.observation, self.tensor_keys.label, *pad]
-
-    @in_keys.setter
-    def in_keys(self, values):
-        self._in_keys = values
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         obs = tensordict.get(self.tensor_keys.observation)

@@ -9,10 +9,9 @@ episodes are then read in pieces of about :data:`PIECE_ROWS` frames (whole episo
 least one), only the row groups holding them, converted and checked exactly as
 :func:`load_lerobot` checks a whole dataset, and turned into rows.
 
-Nothing half-loaded: the pieces are read twice. The first pass runs every check,
-the buffer's own included (:func:`~imitrl.data.validation.check_rows` with the schema and
-episode ids the buffer would have); only then does the second pass extend the buffer,
-piece by piece. A bad file anywhere leaves the buffer as it was. Resident memory: one
+Nothing half-loaded (:mod:`imitrl.datasets._streaming`): the pieces are read twice. The
+first pass runs every check, the buffer's own included; only then does the second pass
+extend the buffer, piece by piece. A bad file anywhere leaves the buffer as it was. Resident memory: one
 piece (the allocators' unused memory is handed back after each:
 :func:`~imitrl.datasets._arrow.release_unused_memory`) and a few integers per episode (the
 episode table's columns, never its statistics: :class:`Source`), whatever the dataset's
@@ -34,14 +33,9 @@ from torchrl.envs import EnvBase
 
 from imitrl import keys
 from imitrl.data.buffer import DemonstrationBuffer
-from imitrl.data.validation import check_rows
-from imitrl.datasets._arrow import (
-    check_schema,
-    column_to_tensor,
-    decode_images,
-    release_unused_memory,
-)
+from imitrl.datasets._arrow import check_schema, column_to_tensor, decode_images
 from imitrl.datasets._common import NestedKey, conform_to_env, key_name, required_rows
+from imitrl.datasets._streaming import check_pieces, extend_pieces
 from imitrl.datasets.lerobot._checks import check_frames
 from imitrl.datasets.lerobot._layout import data_file, episode_dicts
 from imitrl.datasets.lerobot._video import decode_videos
@@ -344,24 +338,6 @@ def stream_into(
     """Check every piece (the buffer's checks included), then extend ``buffer`` with them;
     returns the rows added (a view of the buffer) and the notes of :func:`conform_to_env`."""
     notes: list[str] = []
-    schema, next_episode = buffer.schema, buffer.next_episode
-    for first, end in pieces(src):  # pass 1: everything checked, nothing written
-        rows = piece_rows(src, first, end, s, notes)
-        try:
-            schema = check_rows(
-                rows,
-                schema=schema,
-                next_episode=next_episode,
-                action_spec=buffer.action_spec,
-                num_states=buffer.num_states,
-            )
-        except ValueError as err:
-            raise ValueError(f"{src.root}: the rows do not fit the buffer: {err}") from None
-        next_episode = max(next_episode, int(rows.get(keys.EPISODE).max()) + 1)
-        del rows
-        release_unused_memory()
-    before = len(buffer)
-    for first, end in pieces(src):  # pass 2: the same rows, into the buffer
-        buffer.extend(piece_rows(src, first, end, s, []))
-        release_unused_memory()
-    return buffer.data[before:], notes
+    check_pieces(buffer, (piece_rows(src, f, e, s, notes) for f, e in pieces(src)), src.root)
+    view = extend_pieces(buffer, (piece_rows(src, f, e, s, []) for f, e in pieces(src)))
+    return view, notes

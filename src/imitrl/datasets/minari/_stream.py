@@ -5,12 +5,10 @@ Episodes are read one at a time (one HDF5 group's datasets, or one arrow / parqu
 folder), checked exactly as :func:`load_minari` checks them, and gathered into pieces of
 about :data:`PIECE_ROWS` steps (whole episodes, at least one) that become rows.
 
-Nothing half-loaded, as LeRobot's streamed load (:mod:`imitrl.datasets.lerobot._stream`):
-the episodes are read twice. The first pass runs every check, the dataset's records
-(``total_steps``; ids held once and ``total_episodes`` are checked when the episodes are
-listed) and the buffer's own (:func:`~imitrl.data.validation.check_rows` with the schema
-and episode ids the buffer would have); only then does the second pass extend the
-buffer, piece by piece. A damaged episode anywhere, the last one included, leaves the
+Nothing half-loaded (:mod:`imitrl.datasets._streaming`): the episodes are read twice. The
+first pass runs every check, the dataset's records (``total_steps``; ids held once and
+``total_episodes`` are checked when the episodes are listed) and the buffer's own; only
+then does the second pass extend the buffer, piece by piece. A damaged episode anywhere, the last one included, leaves the
 buffer as it was. Resident memory: one piece and one integer per episode (its id),
 whatever the dataset's length.
 """
@@ -22,11 +20,9 @@ from collections.abc import Iterator
 from tensordict import TensorDict, TensorDictBase
 from torchrl.envs import EnvBase
 
-from imitrl import keys
 from imitrl.data.buffer import DemonstrationBuffer
-from imitrl.data.validation import check_rows
-from imitrl.datasets._arrow import release_unused_memory
 from imitrl.datasets._common import conform_to_env
+from imitrl.datasets._streaming import check_pieces, extend_pieces
 from imitrl.datasets.minari._episodes import Episode, check_episode, check_steps, episode_rows
 from imitrl.datasets.minari._source import EpisodeSource
 
@@ -62,7 +58,6 @@ def _pieces(
                     notes.extend(n for n in found if n not in notes)
                 yield rows
             piece, steps = [], 0
-            release_unused_memory()
 
 
 def stream_into(
@@ -78,23 +73,9 @@ def stream_into(
     included), then extend ``buffer`` with them; returns the rows added (a view of the
     buffer) and the notes of :func:`conform_to_env`."""
     notes: list[str] = []
-    schema, next_episode = buffer.schema, buffer.next_episode
-    frames = 0
-    for rows in _pieces(src, first_episode, next_observation, env, names, notes):  # pass 1
-        try:
-            schema = check_rows(
-                rows,
-                schema=schema,
-                next_episode=next_episode,
-                action_spec=buffer.action_spec,
-                num_states=buffer.num_states,
-            )
-        except ValueError as err:
-            raise ValueError(f"{src.where}: the rows do not fit the buffer: {err}") from None
-        next_episode = max(next_episode, int(rows.get(keys.EPISODE).max()) + 1)
-        frames += rows.shape[0]
+    frames = check_pieces(
+        buffer, _pieces(src, first_episode, next_observation, env, names, notes), src.where
+    )
     check_steps(frames, src.meta, src.where)
-    before = len(buffer)
-    for rows in _pieces(src, first_episode, next_observation, env, names, []):  # pass 2
-        buffer.extend(rows)
-    return buffer.data[before:], notes
+    view = extend_pieces(buffer, _pieces(src, first_episode, next_observation, env, names, []))
+    return view, notes
