@@ -97,7 +97,7 @@ def plain_mlp(cfg: Config, data: TensorDict) -> float:
         if i < len(sizes) - 2:
             layers.append(nn.Tanh())
     net = nn.Sequential(*layers)
-    opt = torch.optim.Adam(net.parameters(), lr=1e-3)
+    opt = torch.optim.Adam(net.parameters(), lr=1e-3, foreach=True)  # as ActorCritic's
     obs, act = data[keys.OBSERVATION], data[keys.EXPERT_ACTION]
     n, g = obs.shape[0], torch.Generator().manual_seed(0)
     perm, cursor = torch.randperm(n, generator=g), 0
