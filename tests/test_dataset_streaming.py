@@ -4,9 +4,6 @@ few episodes at a time, with the same rows, checks and files as the in-memory pa
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
-import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +20,7 @@ from imitrl.datasets.lerobot import _stream, _write_frames
 from imitrl.datasets.lerobot._stats import feature_stats, segment_stats
 
 from ._lerobot_files import episodes_data, write_v21, write_v30
+from ._peak import streamed_load_peak
 
 LENGTHS = [5, 3, 7, 4, 6, 2]
 
@@ -214,36 +212,6 @@ def test_vectorised_episode_stats_match_lerobots_per_episode_stats():
                     np.testing.assert_array_equal(mine, value)
 
 
-PEAK = r"""
-import sys, threading, time, torch
-sys.path[:0] = sys.argv[3:]
-torch.set_num_threads(1)
-from imitrl.data import DemonstrationBuffer
-from imitrl.datasets import load_lerobot
-from imitrl.datasets.lerobot import _stream
-_stream.PIECE_ROWS = 4096
-
-def anon():  # the process's own memory; the buffer's mapped files are page cache
-    fields = dict(line.split(":", 1) for line in open("/proc/self/status"))
-    return int(fields["RssAnon"].split()[0]) << 10
-
-peak, done = [0], threading.Event()
-def sample():
-    while not done.is_set():
-        peak[0] = max(peak[0], anon())
-        time.sleep(0.002)
-
-buf = DemonstrationBuffer(path=sys.argv[2])
-before = anon()
-sampler = threading.Thread(target=sample)
-sampler.start()
-load_lerobot(sys.argv[1], into=buf)
-done.set()
-sampler.join()
-print(len(buf), max(peak[0], anon()) - before)
-"""
-
-
 def _peak_growth(tmp_path: Path, frames: int) -> tuple[int, int]:
     """(rows' bytes, peak RssAnon growth) of a streamed load of ``frames`` frames into a disk
     buffer, in a fresh process."""
@@ -263,15 +231,7 @@ def _peak_growth(tmp_path: Path, frames: int) -> tuple[int, int]:
     root = save_lerobot(rows, tmp_path / f"ds{frames}", fps=50, episodes_per_file=250)
     raw = sum(v.nbytes for v in rows.values(True, True))
     del rows
-    src = next(p for p in sys.path if (Path(p) / "imitrl").is_dir())
-    buf = tmp_path / f"buf{frames}"
-    done = subprocess.run(
-        [sys.executable, "-c", textwrap.dedent(PEAK), str(root), str(buf), src],
-        capture_output=True,
-        text=True,
-        check=True,
-    )
-    count, grew = map(int, done.stdout.split()[-2:])
+    count, grew = streamed_load_peak("lerobot", root, tmp_path / f"buf{frames}")
     assert count == frames
     return raw, grew
 

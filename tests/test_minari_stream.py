@@ -5,9 +5,6 @@ any episode is bad."""
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
-import textwrap
 from pathlib import Path
 
 import h5py
@@ -22,6 +19,7 @@ from imitrl.data import DemonstrationBuffer
 from imitrl.datasets import load_minari
 from imitrl.datasets.minari import _stream
 
+from ._peak import streamed_load_peak
 from .test_minari import _episode, _write
 
 LENGTHS = [3, 5, 2, 4, 7, 6, 1, 3, 5, 2, 4, 3]
@@ -144,36 +142,6 @@ def test_rows_that_fail_the_buffers_own_checks_are_refused_before_any_is_added(
     assert len(taken) == sum(LENGTHS)
 
 
-PEAK = r"""
-import sys, threading, time, torch
-sys.path[:0] = sys.argv[3:]
-torch.set_num_threads(1)
-from imitrl.data import DemonstrationBuffer
-from imitrl.datasets import load_minari
-from imitrl.datasets.minari import _stream
-_stream.PIECE_ROWS = 4096
-
-def anon():  # the process's own memory; the buffer's mapped files are page cache
-    fields = dict(line.split(":", 1) for line in open("/proc/self/status"))
-    return int(fields["RssAnon"].split()[0]) << 10
-
-peak, done = [0], threading.Event()
-def sample():
-    while not done.is_set():
-        peak[0] = max(peak[0], anon())
-        time.sleep(0.002)
-
-buf = DemonstrationBuffer(path=sys.argv[2])
-before = anon()
-sampler = threading.Thread(target=sample)
-sampler.start()
-load_minari(sys.argv[1], into=buf)
-done.set()
-sampler.join()
-print(len(buf), max(peak[0], anon()) - before)
-"""
-
-
 def _peak_growth(tmp_path: Path, steps: int) -> tuple[int, int]:
     """(observations' bytes, peak RssAnon growth) of a streamed load of ``steps`` steps
     (episodes of 200) into a disk buffer, in a fresh process."""
@@ -188,15 +156,7 @@ def _peak_growth(tmp_path: Path, steps: int) -> tuple[int, int]:
     root = _write(tmp_path / f"ds{steps}", episodes, obs_space=box, jpeg_encoding=False)
     raw = sum(ep["observations"].nbytes for ep in episodes)
     del episodes
-    src = next(p for p in sys.path if (Path(p) / "imitrl").is_dir())
-    buf = tmp_path / f"buf{steps}"
-    done = subprocess.run(
-        [sys.executable, "-c", textwrap.dedent(PEAK), str(root), str(buf), src],
-        capture_output=True,
-        text=True,
-        check=True,
-    )
-    count, grew = map(int, done.stdout.split()[-2:])
+    count, grew = streamed_load_peak("minari", root, tmp_path / f"buf{steps}")
     assert count == steps
     return raw, grew
 
