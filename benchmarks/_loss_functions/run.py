@@ -7,8 +7,9 @@ wherever (``--jobs``) it runs.
 
 from __future__ import annotations
 
+import sys
 import time
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import asdict, replace
 from typing import Any
 
@@ -148,25 +149,39 @@ def run(
             for loss in registry.names(spec):
                 if losses is None or loss in losses:
                     cells.append((defn, loss, seed, quick_mode))
+    if not cells:
+        raise ValueError(
+            f"none of the losses {losses} applies to the tasks {[d.name for d in tasks]} "
+            "(each loss applies to some action spaces: imitrl.objectives.registry)"
+        )
     # the longest cells first (a rough cost), so that the last to finish are short; the
     # rows come back in the cells' own order
     schedule = sorted(range(len(cells)), key=lambda i: -_cost(*cells[i][:2]))
+    t_start = time.perf_counter()
+
+    def report(n: int, i: int, cell: list[dict]) -> None:
+        print(
+            f"[{n}/{len(cells)}] {cells[i][0].name} {cells[i][1]} seed {cells[i][2]}: "
+            + " ".join(f"{r['algorithm']} {r['score']:.3f}" for r in cell)
+            + f" (total {time.perf_counter() - t_start:.0f} s)",
+            file=sys.stderr,
+            flush=True,
+        )
+
+    done: dict[int, list[dict]] = {}
     if jobs > 1:
         with ProcessPoolExecutor(jobs) as pool:
             ref_rows = [r for rows in pool.map(reference_cell, *zip(*refs)) for r in rows]
-            done = dict(zip(schedule, pool.map(loss_cell, *zip(*[cells[i] for i in schedule]))))
+            futures = {pool.submit(loss_cell, *cells[i]): i for i in schedule}
+            for future in as_completed(futures):
+                i = futures[future]
+                done[i] = future.result()
+                report(len(done), i, done[i])
     else:
         ref_rows = [r for args in refs for r in reference_cell(*args)]
-        done = {}
-        for n, i in enumerate(schedule):
-            t = time.perf_counter()
-            done[i] = cell = loss_cell(*cells[i])
-            print(
-                f"[{n + 1}/{len(cells)}] {cells[i][0].name} {cells[i][1]} seed {cells[i][2]}: "
-                + " ".join(f"{r['algorithm']} {r['score']:.3f}" for r in cell)
-                + f" ({time.perf_counter() - t:.1f} s)",
-                flush=True,
-            )
+        for i in schedule:
+            done[i] = loss_cell(*cells[i])
+            report(len(done), i, done[i])
     rows = [r for i in range(len(cells)) for r in done[i]]
     protocols = {d.name: asdict(build(d, quick_mode).protocol) for d in tasks}
     definitions = {d.name: asdict(d) for d in tasks}
