@@ -78,6 +78,24 @@ from imitrl.policies.mixture import BetaMixer, behaviour_policy
 
 __all__ = ["RAY_INSTALL_HINT", "RaySource", "RoundTiming", "init_ray", "slot_seeds"]
 
+WEIGHT_SYNC_TIMEOUT_S = 600
+"""how long the driver waits for the workers to join the weight-sync process group"""
+
+
+def _patient_weight_sync() -> None:
+    """TorchRL's Ray weight sync (``torchrl.weight_update._ray``) waits a fixed 60 s
+    (``_DIST_TIMEOUT``, no argument sets it) for every worker to join its process group;
+    on a loaded 2-core machine a worker can take longer to start, and the round fails
+    with ``DistStoreError: wait timeout``. The constant is read when the group is built,
+    so the driver's wait is raised here, once, in the one place imitrl builds Ray
+    collectors."""
+    from datetime import timedelta
+
+    import torchrl.weight_update._ray as ray_sync
+
+    ray_sync._DIST_TIMEOUT = max(ray_sync._DIST_TIMEOUT, timedelta(seconds=WEIGHT_SYNC_TIMEOUT_S))
+
+
 RAY_INSTALL_HINT = "pip install 'imitrl[distributed]'"
 COLLECT, EVALUATE = 0, 1
 """the seed streams of :func:`slot_seeds`"""
@@ -393,6 +411,7 @@ class RaySource:
         """``ray.init`` (unless running) and one ``_EpisodeCollector`` actor per worker."""
         from torchrl.collectors.distributed import RayCollector
 
+        _patient_weight_sync()
         start = time.perf_counter()
         self._owns_ray = init_ray(self.workers, address=self.address, runtime_env=self.runtime_env)
         self.startup["ray_init"] = time.perf_counter() - start
