@@ -224,3 +224,12 @@ def test_aggregate_takes_the_tasks_mse_ran_on_and_seeds_as_runs():
     # per task, flow beats mse in 6 of 9 seed pairs (s_flow >= s_mse), ties none: 6/9
     assert flow["p_improve"][0] == pytest.approx(6 / 9)
     assert "p_improve" not in next(e for e in agg["entries"] if e["loss"] == "mse")
+
+
+def test_no_applicable_loss_is_a_clear_error():
+    """A discrete task with only continuous losses chosen has no cell: the run says so
+    before any work (it used to fail later, drawing an empty figure)."""
+    with pytest.raises(
+        ValueError, match=r"none of the losses \['mse'\] applies to the tasks \['cartpole'\]"
+    ):
+        run(tasks=[TASKS["cartpole"]], losses=["mse"], seeds=1, quick_mode=True)
