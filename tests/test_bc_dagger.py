@@ -245,3 +245,31 @@ def test_warm_start_keeps_one_learner_and_scratch_refits(lake, expert_table):
     warm, scratch = learners(True), learners(False)
     assert len({id(m) for m, _ in warm}) == 1 and [s for _, s in warm] == [20, 40, 60]
     assert len({id(m) for m, _ in scratch}) == 3 and [s for _, s in scratch] == [20, 20, 20]
+
+
+def test_cosine_schedule_decays_each_fit_from_the_optimizers_rate_and_restores_it():
+    g = torch.Generator().manual_seed(0)
+    rows = TensorDict(
+        {
+            keys.OBSERVATION: torch.randn(64, 3, generator=g),
+            keys.EXPERT_ACTION: torch.randint(0, 2, (64,), generator=g),
+        },
+        [64],
+    )
+    ac = ActorCritic.mlp(3, 2, hidden=(8,), lr=0.01)
+    seen: list[float] = []
+    step = ac.opt_pi.step
+
+    def record(*args, **kwargs):
+        seen.append(ac.opt_pi.param_groups[0]["lr"])
+        return step(*args, **kwargs)
+
+    ac.opt_pi.step = record
+    fit_bc(ac, rows, BCConfig(num_steps=4, batch_size=16, lr_schedule="cosine"))
+    # lr * (1 + cos(pi k / 4)) / 2 at steps k = 0..3, then the optimizer's own rate again
+    assert seen == pytest.approx([0.01, 0.01 * 0.853553390593, 0.005, 0.01 * 0.146446609407])
+    assert ac.opt_pi.param_groups[0]["lr"] == 0.01
+    fit_bc(ac, rows, BCConfig(num_steps=2, batch_size=16))
+    assert seen[4:] == [0.01, 0.01]  # constant: untouched
+    with pytest.raises(ValueError, match="lr_schedule must be one of"):
+        BCConfig(lr_schedule="linear")

@@ -364,3 +364,29 @@ def test_the_stream_is_skipped_where_it_cannot_replace_the_steps(lake_q, monkeyp
     learner = _learner(env, exploration=RND)
     episode_returns(env, learner.policy, 3, exploration=RND)  # samples: not a table
     episode_returns(env, Expert.from_q(lake_q), 3, success_fn=lambda out: out["done"])
+
+
+def test_direct_call_is_the_modules_call_to_the_bit_and_keeps_hooks():
+    from imitrl.policies.heads import Chain
+    from imitrl.policies.modules import direct_call
+    from imitrl.policies.normalization import ObservationNormalizer
+
+    torch.manual_seed(0)
+    norm = ObservationNormalizer((3,))
+    norm.fit(torch.randn(50, 3) * 4 + 1)
+    net = Chain(norm, torch.nn.Linear(3, 16), torch.nn.Tanh(), torch.nn.Linear(16, 2))
+    x = torch.randn(7, 3)
+    fast = direct_call(net)
+    assert fast is not net and torch.equal(fast(x), net(x))
+    seq = torch.nn.Sequential(torch.nn.Linear(3, 4), torch.nn.ReLU())
+    assert torch.equal(direct_call(seq)(x), seq(x))
+    # a hook anywhere inside: the hooked module keeps its own call, so the hook runs
+    calls = []
+    net[2].register_forward_hook(lambda m, i, o: calls.append(1))
+    assert torch.equal(direct_call(net)(x), net(x)) and len(calls) == 2
+    # a global hook: nothing is bypassed
+    handle = torch.nn.modules.module.register_module_forward_hook(lambda m, i, o: None)
+    try:
+        assert direct_call(net) is net
+    finally:
+        handle.remove()

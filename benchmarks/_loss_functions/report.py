@@ -13,6 +13,7 @@ from _loss_functions import aggregate
 from imitrl.envs import corridor, multimodal
 from imitrl.evaluation import t_interval
 from imitrl.objectives import registry
+from imitrl.objectives.registry_chunks import ACT_BATCH, ACT_LR
 
 NAME = "loss_functions"
 UNIT_SCORES = ("frozenlake", "two_way")
@@ -128,7 +129,9 @@ def markdown(summary: dict, raw: dict, figures: dict[str, str]) -> str:
         lines += ["", corridor_table(summary)]
     lines += [
         "",
-        "Budget per task (identical for every loss; one learner per seed and round):",
+        "Budget per task (identical for every loss but ACT, which trains at batch "
+        f"{ACT_BATCH} and lr {ACT_LR}, its own recipe; a relabel round's fit continues the "
+        "last learner for the round steps, or refits a fresh one where there are none):",
         "",
         budget_table(protocols),
     ]
@@ -262,6 +265,7 @@ def budget_table(protocols: dict[str, dict]) -> str:
         "demo episodes",
         "DAgger rounds x episodes",
         "fit steps x batch",
+        "round steps",
         "network",
         "lr",
         "eval",
@@ -275,6 +279,7 @@ def budget_table(protocols: dict[str, dict]) -> str:
                 p["demo_episodes"],
                 f"{p['rounds'] - 1} x {p['episodes_per_round']}",
                 f"{bc['num_steps']} x {bc['batch_size'] or 'full'}",
+                p.get("round_steps") or "refit",
                 "table" if task == "frozenlake" else "x".join(map(str, p["learner"]["hidden"])),
                 p["learner"]["lr"],
                 "exact" if task == "frozenlake" else f"{p['eval_episodes']} episodes",

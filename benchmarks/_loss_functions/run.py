@@ -50,7 +50,11 @@ def loss_cell(defn: TaskDef, loss: str, seed: int, quick_mode: bool) -> list[dic
     proto = task.protocol
     spec = task.spec()
     config = replace(proto.learner, seed=seed)
+    entry = registry.get(loss)
     bc = replace(proto.bc, seed=seed)
+    if entry.batch_size is not None and bc.batch_size is not None:
+        bc = replace(bc, batch_size=entry.batch_size)  # the loss's own recipe (ACT)
+    warm = proto.round_steps is not None
 
     # 1. demonstrations: a recorded dataset, or the expert drives the env (every row labelled)
     env = task.env(seed=seed, lanes=proto.episodes_per_round)
@@ -68,14 +72,16 @@ def loss_cell(defn: TaskDef, loss: str, seed: int, quick_mode: bool) -> list[dic
     results: dict[int, dict] = {}
     fit_seconds: list[float] = []
 
-    horizon = registry.get(loss).horizon
+    horizon = entry.horizon
 
     def timed_fit(learner: Learner, buf: DemonstrationBuffer):
         t = time.perf_counter()
         # a chunked learner: every row's label chunk, from the (relabelled) rows of its
         # episode (imitrl.data.chunks); otherwise what dagger does without train=, timed
         rows = buf if horizon is None else add_chunk_labels(buf.data, horizon)
-        out = fit_bc(learner, rows, bc)
+        out = fit_bc(
+            learner, rows, replace(bc, num_steps=proto.round_steps) if warm and fit_seconds else bc
+        )
         fit_seconds.append(time.perf_counter() - t)
         return out
 
@@ -99,7 +105,11 @@ def loss_cell(defn: TaskDef, loss: str, seed: int, quick_mode: bool) -> list[dic
             lambda: registry.build(loss, spec, config),
             buffer,
             DAggerConfig(
-                rounds=proto.rounds, episodes_per_round=proto.episodes_per_round, bc=bc, seed=seed
+                rounds=proto.rounds,
+                episodes_per_round=proto.episodes_per_round,
+                warm_start=warm,
+                bc=bc,
+                seed=seed,
             ),
             on_fit=on_fit,
             train=timed_fit,
@@ -190,8 +200,11 @@ def run(
 
 def _cost(defn: TaskDef, loss: str) -> float:
     """A rough relative cost of a cell (only the order the cells start in depends on it):
-    its fit steps weighted by batch size; ACT's transformer step costs about ten MLP
-    steps (measured: 45 ms against 4-6 ms at batch 256 on one thread)."""
+    its fit steps weighted by batch size; ACT's transformer step costs about seven MLP
+    steps (measured: 25 ms at batch 128 against 3-4 ms at batch 256 on one thread)."""
     p = defn.protocol
-    per_step = max(p.bc.batch_size or 256, 256) / 256 * (10 if loss == "act" else 1)
-    return p.rounds * p.bc.num_steps * per_step + 10 * p.eval_episodes
+    per_step = max(p.bc.batch_size or 256, 256) / 256 * (7 if loss == "act" else 1)
+    rounds = p.bc.num_steps * p.rounds
+    if p.round_steps is not None:
+        rounds = p.bc.num_steps + (p.rounds - 1) * p.round_steps
+    return rounds * per_step + 10 * p.eval_episodes

@@ -63,6 +63,10 @@ class Protocol:
     """evaluation episodes per learner (0 for ``exact``)"""
     max_episode_steps: int | None = None
     """cap on a gymnasium episode's length (None: the env's own limit); used by --quick"""
+    round_steps: int | None = None
+    """gradient steps of each relabel round's fit, continuing the previous round's
+    learner (DAgger's warm start, as imitation's DAgger trains one policy throughout);
+    None: every round refits a fresh learner for ``bc.num_steps``"""
 
 
 def quick(protocol: Protocol) -> Protocol:
@@ -73,6 +77,7 @@ def quick(protocol: Protocol) -> Protocol:
         rounds=min(protocol.rounds, 2),
         episodes_per_round=1,
         bc=replace(protocol.bc, num_steps=5),
+        round_steps=None if protocol.round_steps is None else 3,
         eval_episodes=min(protocol.eval_episodes, 2),
         max_episode_steps=30,
     )
@@ -144,11 +149,14 @@ def register_task(defn: TaskDef) -> TaskDef:
 
 
 # The budgets keep the default full run (5 seeds, every loss, --jobs 2) under 30
-# minutes on 2 CPU cores: one DAgger relabel round (rounds=2) with more episodes instead
-# of three, fewer fit steps on Pendulum; the two-way task trains on batches of 512 (a
-# flow-matching chunk policy needs about 1.5M labels seen to keep both modes cleanly:
-# 3000 x 256 left 6-9% of its chunks between the modes; benchmarks/README.md).
+# minutes on 2 CPU cores. A DAgger relabel round continues the previous round's learner
+# for `round_steps` steps (warm start) instead of refitting from scratch; Pendulum and
+# the multimodal tasks run one relabel round with more episodes. The multimodal tasks
+# train at lr 1e-2: at 3e-3 a flow-matching chunk policy was still underfitted after
+# 2000 x 256 steps (two-way success 0.87 against 0.93 at 1e-2, 5 seeds; 1200 steps:
+# 0.70-0.79; benchmarks/README.md).
 _WIDE = LearnerConfig(hidden=(128, 128), lr=3e-3)
+_FAST = LearnerConfig(hidden=(128, 128), lr=1e-2)
 register_task(
     TaskDef(
         "frozenlake",
@@ -164,7 +172,13 @@ register_task(
         env="CartPole-v1",
         expert="imitrl.experts:cartpole_expert",
         protocol=Protocol(
-            1, 4, 2, BCConfig(num_steps=1000, batch_size=256), LearnerConfig((64, 64), 1e-3), 10
+            1,
+            4,
+            2,
+            BCConfig(num_steps=1000, batch_size=256),
+            LearnerConfig((64, 64), 1e-3),
+            10,
+            round_steps=300,
         ),
     )
 )
@@ -173,7 +187,9 @@ register_task(
         "pendulum",
         env="Pendulum-v1",
         expert="imitrl.experts:pendulum_expert",
-        protocol=Protocol(5, 2, 4, BCConfig(num_steps=1000, batch_size=256), _WIDE, 10),
+        protocol=Protocol(
+            5, 2, 4, BCConfig(num_steps=1000, batch_size=256), _WIDE, 10, round_steps=500
+        ),
     )
 )
 register_task(
@@ -196,7 +212,9 @@ register_task(
         max_steps=4_000,
         probe="imitrl.envs.multimodal:two_way_probe",
         outcome="imitrl.envs.multimodal:two_way_outcome",
-        protocol=Protocol(50, 2, 40, BCConfig(num_steps=3000, batch_size=512), _WIDE, 100),
+        protocol=Protocol(
+            50, 2, 40, BCConfig(num_steps=2000, batch_size=256), _FAST, 100, round_steps=500
+        ),
     )
 )
 register_task(
@@ -208,7 +226,9 @@ register_task(
         max_steps=4_000,
         probe="imitrl.envs.corridor:corridor_probe",
         outcome="imitrl.envs.corridor:corridor_outcome",
-        protocol=Protocol(50, 2, 40, BCConfig(num_steps=2000, batch_size=256), _WIDE, 100),
+        protocol=Protocol(
+            50, 2, 40, BCConfig(num_steps=1000, batch_size=256), _FAST, 100, round_steps=300
+        ),
     )
 )
 

@@ -37,6 +37,7 @@ that size; distinct pairs are counted slice by slice.
 from __future__ import annotations
 
 import functools
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -51,6 +52,10 @@ from imitrl.data.permutation import LazyPermutation
 from imitrl.policies.learner import Learner
 
 __all__ = ["BCConfig", "BCResult", "distinct_pairs", "fit_bc"]
+
+
+LR_SCHEDULES = ("constant", "cosine")
+"""the learning-rate schedules of a fit (:attr:`BCConfig.lr_schedule`)"""
 
 
 @dataclass(frozen=True)
@@ -68,6 +73,12 @@ class BCConfig:
     (observation, label) pairs weighted by their counts, the same objective at a cost
     that does not grow with the rows; None = whenever it applies"""
 
+    lr_schedule: str = "constant"
+    """``"constant"``: the optimizer's learning rate every step; ``"cosine"``: decayed from
+    it to 0 over the fit, ``lr * (1 + cos(pi * step / num_steps)) / 2`` (the closed form
+    of ``torch.optim.lr_scheduler.CosineAnnealingLR``); every fit starts again from the
+    optimizer's own rate, which the fit restores when it ends"""
+
     full_batch_max_rows: int | None = 1 << 20
     """the most rows a full-batch fit (``batch_size=None``) runs on before it is refused
     (activations for every row every step; distinct pairs are not limited); None = no
@@ -78,6 +89,8 @@ class BCConfig:
             raise ValueError(f"num_steps must be an integer >= 0, got {self.num_steps!r}")
         if self.batch_size is not None and self.batch_size < 1:
             raise ValueError(f"batch_size must be positive or None, got {self.batch_size}")
+        if self.lr_schedule not in LR_SCHEDULES:
+            raise ValueError(f"lr_schedule must be one of {LR_SCHEDULES}, got {self.lr_schedule!r}")
         if self.full_batch_max_rows is not None and self.full_batch_max_rows < 1:
             raise ValueError(
                 f"full_batch_max_rows must be positive or None, got {self.full_batch_max_rows}"
@@ -265,6 +278,23 @@ def _zero_grad(opt: torch.optim.Optimizer) -> Callable[[], None]:
     return zero_grad
 
 
+class _Cosine:
+    """The cosine decay of one fit over ``opt``'s own learning rates (BCConfig.lr_schedule)."""
+
+    def __init__(self, opt: torch.optim.Optimizer, num_steps: int) -> None:
+        self.opt, self.num_steps = opt, max(int(num_steps), 1)
+        self.base = [group["lr"] for group in opt.param_groups]
+
+    def at(self, step: int) -> None:
+        scale = 0.5 * (1.0 + math.cos(math.pi * step / self.num_steps))
+        for group, lr in zip(self.opt.param_groups, self.base):
+            group["lr"] = lr * scale
+
+    def restore(self) -> None:
+        for group, lr in zip(self.opt.param_groups, self.base):
+            group["lr"] = lr
+
+
 def fit_bc(
     learner: Learner,
     data: DemonstrationBuffer | TensorDictBase,
@@ -318,13 +348,20 @@ def fit_bc(
     device = next((p.device for g in opt.param_groups for p in g["params"]), None)
     losses = torch.empty(config.num_steps, device=device)
     steps = tqdm(range(config.num_steps), desc="bc fit", disable=not progress, leave=False)
-    for step in steps:
-        batch = batches.next() if minibatch else rows
-        loss = objective(batch) if weights is None else objective(batch, weights)
-        zero_grad()
-        loss.backward()
-        opt.step()
-        losses[step] = loss.detach()
+    schedule = _Cosine(opt, config.num_steps) if config.lr_schedule == "cosine" else None
+    try:
+        for step in steps:
+            batch = batches.next() if minibatch else rows
+            loss = objective(batch) if weights is None else objective(batch, weights)
+            zero_grad()
+            loss.backward()
+            if schedule is not None:
+                schedule.at(step)
+            opt.step()
+            losses[step] = loss.detach()
+    finally:
+        if schedule is not None:
+            schedule.restore()
     losses = losses.cpu()
     if logger is not None:
         for step, value in enumerate(losses.tolist()):

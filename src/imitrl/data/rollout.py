@@ -40,7 +40,7 @@ from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from imitrl import keys
-from imitrl.envs.direct import DirectSteps, direct_steps
+from imitrl.envs.direct import DirectSteps, RawStep, direct_steps
 from imitrl.envs.limits import episode_limit
 from imitrl.envs.toy_text import play_lanes, toy_text_lanes
 from imitrl.policies.action_check import check_action
@@ -289,7 +289,8 @@ def _direct_trajectory(
     called on a dict of the root's entries (what ``step_and_maybe_reset`` leaves there)."""
     policy, action_key = TensorPolicy(actor, env.batch_size), env.action_key
     values = dict(env.reset().items(include_nested=True, leaves_only=True))
-    columns: dict = {k: [] for k in (*ROW_KEYS, *NEXT_KEYS)}
+    columns: dict = {k: [] for k in ROW_KEYS}
+    raw_steps = []  # the next entries are made tensors once, at the end
     while book.owing:
         policy(values)
         action = values.get(action_key)
@@ -297,14 +298,13 @@ def _direct_trajectory(
             _check_first_step(env, action, values, labels=True)
         for k in ROW_KEYS:
             columns[k].append(values[k])
-        step = direct.step(action)
-        for k, v in zip(NEXT_KEYS, (step.reward, step.done, step.terminated, step.truncated)):
-            columns[k].append(v)
-        ended = book.step(step.done_lanes)
+        step = direct.step_raw(action)
+        raw_steps.append(step)
+        ended = book.step(step.done)
         if ended is None:
             values[keys.OBSERVATION] = step.observation
         else:
-            values[keys.OBSERVATION] = direct.reset_done(step)
+            values[keys.OBSERVATION] = direct.reset_lanes(step.done)
             book.close(ended)
     if not columns[keys.ACTION]:
         return None
@@ -313,7 +313,7 @@ def _direct_trajectory(
     return TensorDict(
         {
             **{k: stacked[k] for k in ROW_KEYS},
-            keys.NEXT: {k: stacked[k] for k in NEXT_KEYS},
+            keys.NEXT: dict(zip(NEXT_KEYS, direct.next_tensors(*raw_steps))),
         },
         batch_size=stacked[keys.ACTION].shape[: dim + 1],
     )
@@ -419,6 +419,10 @@ class _Tally:
     def add(self, reward: torch.Tensor) -> None:
         self.running += reward.numpy().reshape(-1)  # float32 rewards summed in float64
 
+    def add_raw(self, reward: np.ndarray) -> None:
+        """:meth:`add` of a direct step's float32 ``[lanes]`` rewards."""
+        self.running += reward
+
     def end(self, book: _Lanes, ended: np.ndarray, out: Callable[[], TensorDictBase]) -> None:
         """The ``ended`` lanes' episodes end at this step (``out()``: the step tensordict)."""
         lanes, ids, lengths = book.kept(ended)
@@ -466,14 +470,14 @@ def _direct_returns(env: EnvBase, direct: DirectSteps, actor, book: _Lanes, tall
         if first:
             _check_first_step(env, action, values, labels=False)
             first = False
-        step = direct.step(action)
-        tally.add(step.reward)
-        ended = book.step(step.done_lanes)
+        step = direct.step_raw(action)
+        tally.add_raw(step.reward)
+        ended = book.step(step.done)
         if ended is None:
             values[keys.OBSERVATION] = step.observation
             continue
-        tally.end(book, ended, lambda v=values, s=step: _step_tensordict(env, v, s))
-        values[keys.OBSERVATION] = direct.reset_done(step)
+        tally.end(book, ended, lambda v=values, s=step: _step_tensordict(env, direct, v, s))
+        values[keys.OBSERVATION] = direct.reset_lanes(step.done)
         book.close(ended)
 
 
@@ -509,13 +513,7 @@ def _toy_text_returns(
     return True
 
 
-def _step_tensordict(env: EnvBase, values: dict, step) -> TensorDict:
+def _step_tensordict(env: EnvBase, direct: DirectSteps, values: dict, step: RawStep) -> TensorDict:
     """What ``step_and_maybe_reset`` returns first: the root's entries and ``"next"``."""
-    nxt = {
-        keys.OBSERVATION: step.observation,
-        keys.REWARD: step.reward,
-        keys.DONE: step.done,
-        keys.TERMINATED: step.terminated,
-        keys.TRUNCATED: step.truncated,
-    }
+    nxt = {keys.OBSERVATION: step.observation, **dict(zip(NEXT_KEYS, direct.next_tensors(step)))}
     return TensorDict({**values, keys.NEXT: nxt}, batch_size=env.batch_size)

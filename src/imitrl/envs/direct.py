@@ -38,7 +38,14 @@ from imitrl import keys
 from imitrl.compat import wrapped_gym_env
 from imitrl.envs.tabular_env import TabularEnv
 
-__all__ = ["DirectSteps", "GymSteps", "Transition", "direct_steps", "register_plain_gym"]
+__all__ = [
+    "DirectSteps",
+    "GymSteps",
+    "RawStep",
+    "Transition",
+    "direct_steps",
+    "register_plain_gym",
+]
 
 _PLAIN_GYM: weakref.WeakSet[EnvBase] = weakref.WeakSet()
 """the envs ``make_env`` built as a GymWrapper (+ DoubleToFloat) in this process"""
@@ -67,6 +74,22 @@ class Transition(NamedTuple):
     done_lanes: np.ndarray
 
 
+class RawStep(NamedTuple):
+    """One step of every lane with the scalars left as numpy ``[lanes]`` arrays: what a
+    loop that only adds up returns, or stacks a whole trajectory's flags at its end, needs
+    (a torch tensor per value and step costs more than gymnasium's own step on small envs).
+
+    ``reward`` float32 (the values TorchRL's float32 reward spec holds), ``terminated``,
+    ``truncated``, ``done`` bool; ``observation`` as in :class:`Transition`.
+    """
+
+    observation: torch.Tensor
+    reward: np.ndarray
+    terminated: np.ndarray
+    truncated: np.ndarray
+    done: np.ndarray
+
+
 class DirectSteps(ABC):
     """Steps an env's simulator directly (see the module docstring)."""
 
@@ -74,37 +97,67 @@ class DirectSteps(ABC):
     """the TorchRL env's batch size (``[]`` or ``[lanes]``)"""
 
     @abstractmethod
-    def step(self, action: torch.Tensor) -> Transition:
+    def step_raw(self, action: torch.Tensor) -> RawStep:
         """Step every lane with ``action`` (the env's action spec, ``[*batch, ...]``)."""
 
     @abstractmethod
-    def reset_done(self, step: Transition) -> torch.Tensor:
-        """Reset the lanes ``step`` ended (some must have); the observation of every lane
-        after it, ``[*batch, *obs]`` (what ``step_and_maybe_reset`` puts at the root)."""
+    def reset_lanes(self, done: np.ndarray) -> torch.Tensor:
+        """Reset the lanes of the bool mask ``done`` ``[lanes]`` (some must be set); the
+        observation of every lane after it, ``[*batch, *obs]`` (what
+        ``step_and_maybe_reset`` puts at the root)."""
+
+    def step(self, action: torch.Tensor) -> Transition:
+        """:meth:`step_raw` with TorchRL's ``("next", ...)`` tensors."""
+        raw = self.step_raw(action)
+        return Transition(raw.observation, *self.next_tensors(raw), raw.done)
+
+    def reset_done(self, step: Transition | RawStep) -> torch.Tensor:
+        """Reset the lanes ``step`` ended (:meth:`reset_lanes`)."""
+        return self.reset_lanes(step.done_lanes if isinstance(step, Transition) else step.done)
+
+    def next_tensors(self, *steps: RawStep) -> tuple[torch.Tensor, ...]:
+        """``reward, done, terminated, truncated`` of ``steps`` (one or a trajectory's, in
+        order), each ``[*batch, T, 1]`` (``[*batch, 1]`` for one step): the values,
+        dtypes and shapes of TorchRL's entries, stacked as a rollout stacks them."""
+        one = len(steps) == 1
+        out = []
+        for field in ("reward", "done", "terminated", "truncated"):
+            column = np.stack([getattr(s, field) for s in steps], axis=-1)  # [lanes, T]
+            value = torch.from_numpy(column)
+            shape = (*self.batch_size, 1) if one else (*self.batch_size, len(steps), 1)
+            out.append(value.reshape(shape))
+        return tuple(out)
 
 
 class _TabularSteps(DirectSteps):
     def __init__(self, env: TabularEnv) -> None:
         self.env = env
         self.batch_size = env.batch_size
-        self._shape1 = (*env.batch_size, 1)
 
-    def step(self, action: torch.Tensor) -> Transition:
+    def step_raw(self, action: torch.Tensor) -> RawStep:
         state, reward, terminated, truncated = self.env.step_lanes(action)
-        done = terminated | truncated  # as TabularEnv._step writes it
-        return Transition(
+        terminated, truncated = terminated.numpy(), truncated.numpy()
+        return RawStep(
             state.reshape(self.batch_size),
-            reward.reshape(self._shape1),
-            done.reshape(self._shape1),
-            terminated.reshape(self._shape1),
-            truncated.reshape(self._shape1),
-            done.numpy(),
+            reward.numpy(),
+            terminated,
+            truncated,
+            terminated | truncated,  # as TabularEnv._step writes it
         )
 
-    def reset_done(self, step: Transition) -> torch.Tensor:
+    def reset_lanes(self, done: np.ndarray) -> torch.Tensor:
         # TorchRL resets with "_reset" = the done flags: the same lanes, the same draws
-        lanes = torch.from_numpy(step.done_lanes)
-        return self.env.reset_lanes(lanes).reshape(self.batch_size)
+        return self.env.reset_lanes(torch.from_numpy(done)).reshape(self.batch_size)
+
+
+_NUMPY_DTYPES = {
+    torch.float32: np.float32,
+    torch.float64: np.float64,
+    torch.int64: np.int64,
+    torch.int32: np.int32,
+    torch.uint8: np.uint8,
+    torch.bool: np.bool_,
+}
 
 
 class GymSteps(DirectSteps):
@@ -116,6 +169,7 @@ class GymSteps(DirectSteps):
         self._lanes = int(env.batch_size.numel()) if vector else 1
         obs_spec = base.observation_spec[keys.OBSERVATION]
         self._obs_dtype, self._obs_shape = obs_spec.dtype, obs_spec.shape
+        self._obs_numpy = _NUMPY_DTYPES.get(obs_spec.dtype)
         # DoubleToFloat: observations read as float64 are cast to the outer spec's float32
         outer = env.observation_spec[keys.OBSERVATION].dtype
         self._obs_cast = outer if outer != self._obs_dtype else None
@@ -124,7 +178,6 @@ class GymSteps(DirectSteps):
         self._action_cast = base_action if base_action != env.action_spec.dtype else None
         # GymWrapper.read_action: one env's categorical action is passed as a Python int
         self._int_action = not vector and isinstance(base.action_spec, Categorical)
-        self._shape1 = (*self.batch_size, 1)
 
     def lane_envs(self) -> list[gymnasium.Env]:
         """The gymnasium env of each lane (the vector env's copies, or the one env)."""
@@ -132,6 +185,15 @@ class GymSteps(DirectSteps):
 
     def _observation(self, obs) -> torch.Tensor:
         # TensorSpec._encode_eager, then DoubleToFloat._apply_transform
+        if (
+            type(obs) is np.ndarray
+            and obs.dtype == self._obs_numpy
+            and obs.shape == self._obs_shape
+            and obs.flags.c_contiguous
+        ):
+            # torch.as_tensor of an array of the spec's dtype shares its memory, as this does
+            value = torch.from_numpy(obs)
+            return value if self._obs_cast is None else value.to(self._obs_cast)
         if isinstance(obs, list):
             obs = obs[0] if len(obs) == 1 else np.array(obs)
         if isinstance(obs, np.ndarray) and not all(s > 0 for s in obs.strides):
@@ -141,48 +203,41 @@ class GymSteps(DirectSteps):
             value = value.reshape(self._obs_shape)
         return value if self._obs_cast is None else value.to(self._obs_cast)
 
-    def _reward(self, reward) -> torch.Tensor:
-        # GymLikeEnv._step sums 0 + reward; _read_reward_eager encodes it (float32)
+    def _reward(self, reward) -> np.ndarray:
+        # GymLikeEnv._step sums 0 + reward; _read_reward_eager encodes it as float32 (the
+        # rounding of np.float32 is torch's: to nearest)
         reward = 0 if reward is None else 0 + reward
-        if isinstance(reward, int) and reward == 0:
-            return torch.zeros(self._shape1, dtype=torch.float32)  # reward_spec.zero()
-        if isinstance(reward, np.ndarray) and not all(s > 0 for s in reward.strides):
-            reward = reward.copy()
-        value = torch.as_tensor(reward, dtype=torch.float32)
-        return value if value.shape == self._shape1 else value.reshape(self._shape1)
+        return np.asarray(reward, dtype=np.float32).reshape(self._lanes)
 
-    def step(self, action: torch.Tensor) -> Transition:
+    def _flag(self, flag) -> np.ndarray:
+        # GymLikeEnv.read_done, then the bool done spec (a flag gymnasium gives as bool,
+        # numpy bool or an array of them)
+        return np.asarray(flag, dtype=np.bool_).reshape(self._lanes)
+
+    def step_raw(self, action: torch.Tensor) -> RawStep:
         if self._action_cast is not None:
             action = action.to(self._action_cast)  # DoubleToFloat's inverse
-        a = action.detach().cpu().numpy()  # TensorSpec.to_numpy(safe=False)
+        if action.requires_grad or action.device.type != "cpu":
+            action = action.detach().cpu()
+        a = action.numpy()  # TensorSpec.to_numpy(safe=False)
         if self._int_action:
             a = int(a)
         obs, reward, terminated, truncated, _ = self._gym.step(a)
-        done = terminated | truncated  # GymWrapper._output_transform (gymnasium)
-        return Transition(
-            self._observation(obs), self._reward(reward), *self._flags(done, terminated, truncated)
+        terminated, truncated = self._flag(terminated), self._flag(truncated)
+        # GymWrapper._output_transform (gymnasium): done = terminated | truncated
+        return RawStep(
+            self._observation(obs),
+            self._reward(reward),
+            terminated,
+            truncated,
+            terminated | truncated,
         )
 
-    def _flags(self, *flags) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, np.ndarray]:
-        """done, terminated, truncated ``[*batch, 1]`` and done ``[lanes]`` (numpy)."""
-        if all(type(f) is bool for f in flags) or all(
-            isinstance(f, np.ndarray) and f.dtype == np.bool_ for f in flags
-        ):
-            # one tensor for the three: the values and dtype (bool) of TorchRL's three
-            stacked = torch.as_tensor(np.array(flags)).reshape(3, *self._shape1)
-            done, terminated, truncated = stacked.unbind(0)
-        else:
-            if isinstance(flags[0], bool):  # GymLikeEnv.read_done
-                flags = tuple([f] for f in flags)
-            # torch.as_tensor as read_done, reshaped to [*batch, 1] as EnvBase._complete_done
-            done, terminated, truncated = (torch.as_tensor(f).reshape(self._shape1) for f in flags)
-        return done, terminated, truncated, done.view(-1).numpy()
-
-    def reset_done(self, step: Transition) -> torch.Tensor:
+    def reset_lanes(self, done: np.ndarray) -> torch.Tensor:
         if self._vector:
             # GymWrapper._replace_reset: reset only the finished lanes; the others
             # keep (and the vector env returns) their observation of this step
-            obs, _ = self._gym.reset(options={"reset_mask": step.done_lanes.astype(np.bool_)})
+            obs, _ = self._gym.reset(options={"reset_mask": done.astype(np.bool_)})
         else:
             obs, _ = self._gym.reset()
         return self._observation(obs)

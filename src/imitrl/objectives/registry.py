@@ -141,6 +141,9 @@ class LossEntry:
     horizon: int | None = None
     """``H`` of a chunked learner: its rows need ``add_chunk_labels(rows, H)`` and its envs
     ``chunk_env(env)``; None: one action per step"""
+    batch_size: int | None = None
+    """the minibatch the loss's recipe trains on, in place of a benchmark protocol's
+    (ACT's transformer: small batches, as its paper); None: the protocol's"""
 
     def applies_to(self, task: TaskSpec) -> bool:
         """Whether this objective can train a policy for ``task``."""
@@ -160,9 +163,11 @@ def register(
     summary: str,
     requires: Sequence[str] = (),
     horizon: int | None = None,
+    batch_size: int | None = None,
 ) -> Callable[[Callable[[TaskSpec, LearnerConfig], Learner]], Callable]:
     """Decorator: register ``build(task, config) -> Learner`` under ``name``
-    (``horizon``: the chunk length of a chunked learner, see :class:`LossEntry`).
+    (``horizon``: the chunk length of a chunked learner; ``batch_size``: the minibatch of
+    its recipe; see :class:`LossEntry`).
 
     Raises:
         ValueError: the name is taken, ``actions`` is not one of :data:`ACTION_KINDS`,
@@ -177,11 +182,15 @@ def register(
         raise ValueError(f"a loss needs a non-empty string name, got {name!r}")
     if horizon is not None and (int(horizon) != horizon or horizon < 1):
         raise ValueError(f"horizon must be a positive integer or None, got {horizon!r}")
+    if batch_size is not None and (int(batch_size) != batch_size or batch_size < 1):
+        raise ValueError(f"batch_size must be a positive integer or None, got {batch_size!r}")
 
     def decorator(fn: Callable[[TaskSpec, LearnerConfig], Learner]) -> Callable:
         if name in _REGISTRY:
             raise ValueError(f"a loss named {name!r} is already registered")
-        _REGISTRY[name] = LossEntry(name, actions, fn, summary, tuple(requires), horizon)
+        _REGISTRY[name] = LossEntry(
+            name, actions, fn, summary, tuple(requires), horizon, batch_size
+        )
         return fn
 
     return decorator

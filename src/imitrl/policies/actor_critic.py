@@ -69,13 +69,13 @@ def _loss(policy: TensorDictModule, head: str, loss: str | ImitationLoss | None)
     return BehaviorCloningLoss(policy, loss_type=loss_type)
 
 
-
 def _adam(module: nn.Module, lr: float) -> torch.optim.Adam:
     """Adam on ``module``'s parameters; with more than two tensors its multi-tensor update
     (``foreach``: the same arithmetic and bits on CPU, ~15% of a small MLP's step), else
     the per-tensor loop (faster for a table: measured 12% on one tensor)."""
     params = list(module.parameters())
     return torch.optim.Adam(params, lr=lr, foreach=len(params) > 2)
+
 
 class ActorCritic(Learner):
     """A policy and a value function, each with its own Adam optimizer, and the policy's loss.
