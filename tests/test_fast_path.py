@@ -390,3 +390,18 @@ def test_direct_call_is_the_modules_call_to_the_bit_and_keeps_hooks():
         assert direct_call(net) is net
     finally:
         handle.remove()
+
+
+@pytest.mark.parametrize("lanes", [1, 3])
+def test_a_one_step_trajectory_keeps_its_time_dimension_on_both_paths(lanes):
+    def make():
+        return make_env("CartPole-v1", seed=5, num_envs=lanes, max_episode_steps=1)
+
+    expert = cartpole_expert()
+
+    def run(env, fast_path):
+        return rollout_episodes(env, expert, lanes, fast_path=fast_path)
+
+    rows = run(make(), True)
+    assert rows.shape == (lanes,) and rows[keys.NEXT, keys.REWARD].shape == (lanes, 1)
+    _rollouts_on_both_paths(make, run)

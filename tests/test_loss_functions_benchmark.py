@@ -22,7 +22,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from _loss_functions.run import loss_cell, run  # noqa: E402
-from _loss_functions.tasks import TASKS, build, parse_task  # noqa: E402
+from _loss_functions.tasks import TASKS, build, parse_task, quick  # noqa: E402
 
 TIMING = {"fit_seconds", "eval_seconds", "cell_seconds", "cell_cpu_seconds"}
 
@@ -233,3 +233,16 @@ def test_no_applicable_loss_is_a_clear_error():
         ValueError, match=r"none of the losses \['mse'\] applies to the tasks \['cartpole'\]"
     ):
         run(tasks=[TASKS["cartpole"]], losses=["mse"], seeds=1, quick_mode=True)
+
+
+def test_relabel_rounds_warm_start_for_the_round_steps_and_act_keeps_its_batch():
+    from imitrl.objectives.registry_chunks import ACT_BATCH
+
+    proto = quick(TASKS["two_way"].protocol)  # 5 BC steps, then 3 per relabel round
+    assert TASKS["two_way"].protocol.round_steps is not None
+    mse = {r["algorithm"]: r for r in loss_cell(TASKS["two_way"], "mse", 0, True)}
+    assert mse["bc"]["fit_steps"] == proto.bc.num_steps
+    assert mse["dagger"]["fit_steps"] == proto.bc.num_steps + (proto.rounds - 1) * 3
+    assert mse["bc"]["fit_batch"] == proto.bc.batch_size
+    act = loss_cell(TASKS["two_way"], "act", 0, True)
+    assert {r["fit_batch"] for r in act} == {ACT_BATCH}

@@ -117,6 +117,9 @@ def test_register_rejects_duplicates_and_unknown_requirements():
         registry.register("x", actions="both", summary="")
     with pytest.raises(ValueError, match="unknown TaskSpec fields"):
         registry.register("x", actions="discrete", summary="", requires=("q_table",))
+    with pytest.raises(ValueError, match="batch_size must be a positive integer"):
+        registry.register("x", actions="continuous", summary="", batch_size=0)
+    assert registry.get("act").batch_size is not None and registry.get("mse").batch_size is None
 
     @registry.register("test_bad_return", actions="discrete", summary="returns the wrong type")
     def _(task, config):

@@ -37,7 +37,7 @@ def _unit(task: str, definitions: dict) -> bool:
 def summarize(rows: list[dict], references: list[dict]) -> dict[str, Any]:
     """Per (task, loss, algorithm): mean and interval of the score and the normalised score."""
     ref = {}
-    for task in {r["task"] for r in references}:
+    for task in dict.fromkeys(r["task"] for r in references):  # in run order, not hash order
         e = t_interval(
             [r["score"] for r in references if r["task"] == task and r["policy"] == "expert"]
         )
@@ -306,10 +306,11 @@ def figure(summary: dict, path: Path) -> None:
         ax.set_visible(False)
     for ax, task in zip(axes, tasks):
         _score_panel(ax, groups, task)
-    axes[0].legend(loc="lower right")
+    # one legend for the score panels, in a strip of its own above them (never over a bar)
+    fig.legend(*axes[0].get_legend_handles_labels(), loc="upper center", ncol=2)
     for ax, panel in zip(axes[len(tasks) :], extra):
         panel(ax, groups)
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0, 1, 1 - 0.35 / (4.4 * rows)))
     fig.savefig(path, dpi=100)
     plt.close(fig)
 

@@ -71,6 +71,7 @@ def loss_cell(defn: TaskDef, loss: str, seed: int, quick_mode: bool) -> list[dic
     # 2. DAgger, whose round 0 is BC; evaluate the first and the last fit
     results: dict[int, dict] = {}
     fit_seconds: list[float] = []
+    fit_configs: list = []  # each fit's steps and batch size
 
     horizon = entry.horizon
 
@@ -79,10 +80,10 @@ def loss_cell(defn: TaskDef, loss: str, seed: int, quick_mode: bool) -> list[dic
         # a chunked learner: every row's label chunk, from the (relabelled) rows of its
         # episode (imitrl.data.chunks); otherwise what dagger does without train=, timed
         rows = buf if horizon is None else add_chunk_labels(buf.data, horizon)
-        out = fit_bc(
-            learner, rows, replace(bc, num_steps=proto.round_steps) if warm and fit_seconds else bc
-        )
+        config = replace(bc, num_steps=proto.round_steps) if warm and fit_seconds else bc
+        out = fit_bc(learner, rows, config)
         fit_seconds.append(time.perf_counter() - t)
+        fit_configs.append(config)
         return out
 
     def on_fit(k: int, learner: Learner) -> None:
@@ -133,6 +134,11 @@ def loss_cell(defn: TaskDef, loss: str, seed: int, quick_mode: bool) -> list[dic
                 "demo_rows": demo_rows,
                 "final_loss": fit.final_loss,
                 "fit_seconds": fit_seconds[k],
+                # the gradient steps the reported learner took (warm: every fit so far)
+                "fit_steps": sum(c.num_steps for c in fit_configs[: k + 1])
+                if warm
+                else fit_configs[k].num_steps,
+                "fit_batch": fit_configs[k].batch_size,
                 **results[k],
             }
         )

@@ -313,7 +313,7 @@ def _direct_trajectory(
     return TensorDict(
         {
             **{k: stacked[k] for k in ROW_KEYS},
-            keys.NEXT: dict(zip(NEXT_KEYS, direct.next_tensors(*raw_steps))),
+            keys.NEXT: dict(zip(NEXT_KEYS, direct.next_tensors(raw_steps))),
         },
         batch_size=stacked[keys.ACTION].shape[: dim + 1],
     )
@@ -515,5 +515,5 @@ def _toy_text_returns(
 
 def _step_tensordict(env: EnvBase, direct: DirectSteps, values: dict, step: RawStep) -> TensorDict:
     """What ``step_and_maybe_reset`` returns first: the root's entries and ``"next"``."""
-    nxt = {keys.OBSERVATION: step.observation, **dict(zip(NEXT_KEYS, direct.next_tensors(step)))}
+    nxt = {keys.OBSERVATION: step.observation, **dict(zip(NEXT_KEYS, direct.step_tensors(step)))}
     return TensorDict({**values, keys.NEXT: nxt}, batch_size=env.batch_size)

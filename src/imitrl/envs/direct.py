@@ -13,6 +13,11 @@ returns a stepper that steps the simulator underneath and converts the values it
 * a :class:`~imitrl.envs.TabularEnv` (its own :meth:`~TabularEnv.step_lanes` and
   :meth:`~TabularEnv.reset_lanes`, the code its ``_step``/``_reset`` run).
 
+A step leaves the reward and the flags as numpy values (:class:`RawStep`): a return
+needs no tensor, and a trajectory's ``("next", ...)`` tensors are built once, at its end
+(:meth:`DirectSteps.next_tensors`), with TorchRL's values, dtypes and shapes; on
+CartPole a tensor per value and step cost more than gymnasium's own step.
+
 Anything else (``ParallelEnv``, pixel envs, other transforms, your own ``EnvBase``)
 gets None and is stepped through TorchRL. Each conversion below names the TorchRL code
 it mirrors, so the values, dtypes and shapes are TorchRL's: rollouts on either path play
@@ -26,6 +31,7 @@ from __future__ import annotations
 
 import weakref
 from abc import ABC, abstractmethod
+from collections.abc import Sequence
 from typing import NamedTuple
 
 import gymnasium
@@ -42,7 +48,6 @@ __all__ = [
     "DirectSteps",
     "GymSteps",
     "RawStep",
-    "Transition",
     "direct_steps",
     "register_plain_gym",
 ]
@@ -58,29 +63,13 @@ def register_plain_gym(env: EnvBase) -> EnvBase:
     return env
 
 
-class Transition(NamedTuple):
-    """One step of every lane, as TorchRL's ``("next", ...)`` entries.
-
-    Shapes: ``observation [*batch, *obs]`` (before any reset), ``reward`` float32
-    ``[*batch, 1]``, ``done``/``terminated``/``truncated`` bool ``[*batch, 1]``;
-    ``done_lanes`` numpy bool ``[lanes]`` (``done`` for the loop's bookkeeping).
-    """
-
-    observation: torch.Tensor
-    reward: torch.Tensor
-    done: torch.Tensor
-    terminated: torch.Tensor
-    truncated: torch.Tensor
-    done_lanes: np.ndarray
-
-
 class RawStep(NamedTuple):
     """One step of every lane with the scalars left as numpy ``[lanes]`` arrays: what a
     loop that only adds up returns, or stacks a whole trajectory's flags at its end, needs
     (a torch tensor per value and step costs more than gymnasium's own step on small envs).
 
     ``reward`` float32 (the values TorchRL's float32 reward spec holds), ``terminated``,
-    ``truncated``, ``done`` bool; ``observation`` as in :class:`Transition`.
+    ``truncated``, ``done`` bool; ``observation`` ``[*batch, *obs]``, before any reset.
     """
 
     observation: torch.Tensor
@@ -106,27 +95,24 @@ class DirectSteps(ABC):
         observation of every lane after it, ``[*batch, *obs]`` (what
         ``step_and_maybe_reset`` puts at the root)."""
 
-    def step(self, action: torch.Tensor) -> Transition:
-        """:meth:`step_raw` with TorchRL's ``("next", ...)`` tensors."""
-        raw = self.step_raw(action)
-        return Transition(raw.observation, *self.next_tensors(raw), raw.done)
+    def next_tensors(self, steps: Sequence[RawStep]) -> tuple[torch.Tensor, ...]:
+        """``reward, done, terminated, truncated`` of a trajectory's ``steps`` (in order),
+        each ``[*batch, T, 1]``: the values, dtypes and shapes of TorchRL's entries,
+        stacked as a rollout stacks them."""
+        return self._tensors(steps, (*self.batch_size, len(steps), 1))
 
-    def reset_done(self, step: Transition | RawStep) -> torch.Tensor:
-        """Reset the lanes ``step`` ended (:meth:`reset_lanes`)."""
-        return self.reset_lanes(step.done_lanes if isinstance(step, Transition) else step.done)
+    def step_tensors(self, step: RawStep) -> tuple[torch.Tensor, ...]:
+        """:meth:`next_tensors` of one step, each ``[*batch, 1]``."""
+        return self._tensors([step], (*self.batch_size, 1))
 
-    def next_tensors(self, *steps: RawStep) -> tuple[torch.Tensor, ...]:
-        """``reward, done, terminated, truncated`` of ``steps`` (one or a trajectory's, in
-        order), each ``[*batch, T, 1]`` (``[*batch, 1]`` for one step): the values,
-        dtypes and shapes of TorchRL's entries, stacked as a rollout stacks them."""
-        one = len(steps) == 1
-        out = []
-        for field in ("reward", "done", "terminated", "truncated"):
-            column = np.stack([getattr(s, field) for s in steps], axis=-1)  # [lanes, T]
-            value = torch.from_numpy(column)
-            shape = (*self.batch_size, 1) if one else (*self.batch_size, len(steps), 1)
-            out.append(value.reshape(shape))
-        return tuple(out)
+    @staticmethod
+    def _tensors(steps: Sequence[RawStep], shape: tuple[int, ...]) -> tuple[torch.Tensor, ...]:
+        fields = ("reward", "done", "terminated", "truncated")
+        # [lanes, T] per field: lanes first, as TorchRL stacks a batched env's steps
+        return tuple(
+            torch.from_numpy(np.stack([getattr(s, f) for s in steps], axis=-1)).reshape(shape)
+            for f in fields
+        )
 
 
 class _TabularSteps(DirectSteps):

@@ -79,12 +79,11 @@ class BetaMixer(TensorDictModuleBase):
                 f"expert and learner actions must agree in dtype and shape: expert {expert.dtype} "
                 f"{tuple(expert.shape)}, learner {learner.dtype} {tuple(learner.shape)}"
             )
-        if beta >= 1.0:
-            coin = torch.ones(batch, dtype=torch.bool)
-        elif beta <= 0.0:
-            coin = torch.zeros(batch, dtype=torch.bool)
-        else:
-            coin = torch.rand(batch, generator=self.generator, dtype=torch.float64) < beta
+        if beta >= 1.0:  # every coin executes the expert: torch.where would return its values
+            return learner, expert, torch.ones(batch, dtype=torch.bool)
+        if beta <= 0.0:  # ... or the learner's
+            return learner, learner, torch.zeros(batch, dtype=torch.bool)
+        coin = torch.rand(batch, generator=self.generator, dtype=torch.float64) < beta
         # a tuple, not unpacked: an unbatched env has batch_size () and reshape() needs a shape
         mask = coin.reshape((*batch, *([1] * (expert.ndim - len(batch)))))
         return learner, torch.where(mask, expert, learner), coin
