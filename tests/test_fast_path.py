@@ -22,7 +22,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 import imitrl.data.rollout as rollout_module
 from imitrl import keys
-from imitrl.algorithms import BCConfig, DAggerConfig, EnvSource, dagger
+from imitrl.algorithms import BCConfig, DAggerConfig, EnvSource, dagger, fit_bc
 from imitrl.data import DemonstrationBuffer, episode_returns, rollout_episodes
 from imitrl.envs import TabularEnv, make_env
 from imitrl.envs.direct import direct_steps
@@ -405,3 +405,43 @@ def test_a_one_step_trajectory_keeps_its_time_dimension_on_both_paths(lanes):
     rows = run(make(), True)
     assert rows.shape == (lanes,) and rows[keys.NEXT, keys.REWARD].shape == (lanes, 1)
     _rollouts_on_both_paths(make, run)
+
+
+def test_an_evaluation_in_inference_mode_leaves_the_learner_trainable_and_stateful_modules_alone():
+    env = make_env("Pendulum-v1", seed=3)
+    learner = _learner(env)
+    buffer = DemonstrationBuffer(action_spec=env.action_spec)
+    buffer.extend(rollout_episodes(env, pendulum_expert(), 1))
+
+    def returns():
+        return episode_returns(env, learner.policy, 2, exploration=DET, seed=7).returns
+
+    before = returns()
+    fit_bc(learner, buffer, BCConfig(num_steps=3, batch_size=16))  # after the evaluation
+    assert not any(p.is_inference() for p in learner.policy.parameters())
+    assert not torch.equal(returns(), before)
+
+    # an opaque module keeping a tensor it updates in place between calls keeps no_grad
+    from tensordict.nn import TensorDictModuleBase
+
+    class Counter(TensorDictModuleBase):
+        in_keys, out_keys = [keys.OBSERVATION], [keys.ACTION]
+
+        def __init__(self) -> None:
+            super().__init__()
+            self.count = None
+
+        def forward(self, td):
+            if self.count is None:
+                self.count = torch.zeros(1)
+            self.count += 1  # in place: refused on an inference tensor outside the mode
+            return td.set(keys.ACTION, torch.zeros(1))
+
+    counter = Counter()
+    with set_exploration_type(DET):
+        assert TensorPolicy(counter, env.batch_size).opaque
+    n = episode_returns(env, counter, 1, exploration=DET).lengths.sum()
+    assert not counter.count.is_inference()
+    with torch.no_grad():
+        counter(TensorDict({keys.OBSERVATION: torch.zeros(3)}))  # outside inference mode
+    assert int(counter.count) == int(n) + 1

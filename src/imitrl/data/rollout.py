@@ -460,10 +460,26 @@ def _torchrl_returns(env: EnvBase, actor, book: _Lanes, tally: _Tally) -> None:
 
 
 def _direct_returns(env: EnvBase, direct: DirectSteps, actor, book: _Lanes, tally: _Tally) -> None:
-    """:func:`_torchrl_returns` with the env stepped directly (see :func:`_direct_trajectory`)."""
-    policy, action_key = TensorPolicy(actor, env.batch_size), env.action_key
+    """:func:`_torchrl_returns` with the env stepped directly (see :func:`_direct_trajectory`).
+
+    A policy replayed module by module (not ``opaque``) runs under ``torch.inference_mode``
+    (a fifth of a small network's call at batch 1): only returns leave the loop. An opaque
+    module may keep tensors between calls (a chunked policy's plan, updated in place) that
+    a later rollout outside inference mode could not update, so it keeps ``no_grad``.
+    """
+    policy = TensorPolicy(actor, env.batch_size)
     values = dict(env.reset().items(include_nested=True, leaves_only=True))
-    first = True
+    if policy.opaque:
+        _direct_returns_loop(env, direct, policy, values, book, tally)
+        return
+    with torch.inference_mode():
+        _direct_returns_loop(env, direct, policy, values, book, tally)
+
+
+def _direct_returns_loop(
+    env: EnvBase, direct: DirectSteps, policy: TensorPolicy, values: dict, book: _Lanes, tally
+) -> None:
+    action_key, first = env.action_key, True
     while book.owing:
         policy(values)
         action = values.get(action_key)

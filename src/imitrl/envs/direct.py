@@ -136,6 +136,9 @@ class _TabularSteps(DirectSteps):
         return self.env.reset_lanes(torch.from_numpy(done)).reshape(self.batch_size)
 
 
+_TRUE, _FALSE = np.ones(1, dtype=np.bool_), np.zeros(1, dtype=np.bool_)
+_TRUE.flags.writeable = _FALSE.flags.writeable = False  # shared by every step: read-only
+
 _NUMPY_DTYPES = {
     torch.float32: np.float32,
     torch.float64: np.float64,
@@ -197,7 +200,9 @@ class GymSteps(DirectSteps):
 
     def _flag(self, flag) -> np.ndarray:
         # GymLikeEnv.read_done, then the bool done spec (a flag gymnasium gives as bool,
-        # numpy bool or an array of them)
+        # numpy bool or an array of them); one env's Python bool: a shared read-only array
+        if flag is True or flag is False:
+            return _TRUE if flag else _FALSE
         return np.asarray(flag, dtype=np.bool_).reshape(self._lanes)
 
     def step_raw(self, action: torch.Tensor) -> RawStep:
@@ -211,13 +216,8 @@ class GymSteps(DirectSteps):
         obs, reward, terminated, truncated, _ = self._gym.step(a)
         terminated, truncated = self._flag(terminated), self._flag(truncated)
         # GymWrapper._output_transform (gymnasium): done = terminated | truncated
-        return RawStep(
-            self._observation(obs),
-            self._reward(reward),
-            terminated,
-            truncated,
-            terminated | truncated,
-        )
+        done = _FALSE if terminated is _FALSE and truncated is _FALSE else terminated | truncated
+        return RawStep(self._observation(obs), self._reward(reward), terminated, truncated, done)
 
     def reset_lanes(self, done: np.ndarray) -> torch.Tensor:
         if self._vector:

@@ -54,9 +54,11 @@ def cartpole_expert(*, observation_key=keys.OBSERVATION, gains=CARTPOLE_GAINS) -
     """
     K = torch.tensor(gains, dtype=torch.float32)
 
+    zero = torch.zeros((), dtype=torch.float32)  # a tensor operand: cheaper than 0 per step
+
     def act(obs: torch.Tensor) -> torch.Tensor:
         _check_dim(obs, 4, "CartPole")
-        return ((obs.to(torch.float32) * K).sum(-1) > 0).long()
+        return ((obs.to(torch.float32) * K).sum(-1) > zero).long()
 
     return Expert.from_callable(act, observation_key=observation_key)
 
@@ -132,24 +134,35 @@ class PendulumSwingUp(nn.Module):
         self.register_buffer("gain", K[0])  # [2]
         self.a = 3 * PENDULUM["g"] / (2 * PENDULUM["l"])
         self.u_max = PENDULUM["max_torque"]
+        values = {
+            "one": 1.0,
+            "two": 2.0,
+            "a": self.a,
+            "-energy_gain": -self.energy_gain,
+            "u_max": self.u_max,
+            "rest": 1e-3,
+            "lqr_cos": self.lqr_cos,
+        }
+        self._constants = {n: torch.tensor(v, dtype=torch.float64) for n, v in values.items()}
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
         _check_dim(obs, 3, "Pendulum")
-        # float64 throughout; written with few torch calls (a rollout labels one state per
-        # step, where each call costs more than its arithmetic): the gains as Python
-        # floats and scalar arguments of ``where`` give the same values as their tensors
+        # float64 throughout. A rollout labels one state per step, where each torch call
+        # costs more than its arithmetic and one with a Python number about twice one
+        # with a tensor: the constants are float64 0-d tensors of the same values
+        k = self._constants
         c, s, w = obs.to(torch.float64).unbind(-1)
-        g_th, g_w = self.gain.tolist()
+        g_th, g_w = self.gain.unbind()
         th = torch.atan2(s, c)
         u_lqr = -(g_th * th + g_w * w)
-        energy = w * w / 2 - self.a * (1 - c)
+        energy = w * w / k["two"] - k["a"] * (k["one"] - c)
         if self.swing_up == "energy":
-            u_swing = -self.energy_gain * w * energy
+            u_swing = k["-energy_gain"] * w * energy
         else:
-            u_swing = self.u_max * torch.sign(-w * energy)
+            u_swing = k["u_max"] * torch.sign(-w * energy)
         # at rest (w = 0) neither law moves the pendulum: push to start the swing
-        u_swing = torch.where(w.abs() < 1e-3, self.u_max, u_swing)
-        u = torch.where(c > self.lqr_cos, u_lqr, u_swing)
+        u_swing = torch.where(w.abs() < k["rest"], k["u_max"], u_swing)
+        u = torch.where(c > k["lqr_cos"], u_lqr, u_swing)
         return u.clamp(-self.u_max, self.u_max).to(torch.float32).unsqueeze(-1)
 
 

@@ -52,6 +52,8 @@ from tensordict.nn import (
     skip_existing,
 )
 from torch import nn
+from torch.nn import functional as F
+from torch.nn.utils import parametrize
 from torchrl.envs.utils import ExplorationType, exploration_type
 from torchrl.modules import ProbabilisticActor, ValueOperator
 
@@ -130,6 +132,12 @@ def direct_call(module: nn.Module) -> Callable[..., torch.Tensor]:
             return x
 
         return sequential
+    if type(module) is nn.Linear and not parametrize.is_parametrized(module):
+        # Linear.forward is F.linear(x, self.weight, self.bias): the same call with the
+        # parameters bound (the optimizer updates them in place; a rollout builds its
+        # calls afresh, so a parameter replaced between rollouts is seen)
+        weight, bias = module.weight, module.bias
+        return lambda x: F.linear(x, weight, bias)
     return module.forward
 
 
