@@ -32,7 +32,7 @@ from imitrl.algorithms.adversarial.keys import (
 )
 from imitrl.algorithms.adversarial.transitions import expert_transitions
 from imitrl.data import DemonstrationBuffer, rollout_episodes
-from imitrl.data.rollout import episode_returns
+from imitrl.data.returns import episode_returns
 from imitrl.envs import make_env
 from imitrl.experts import cartpole_expert
 from imitrl.jobs.checkpoint import load_learner

@@ -20,7 +20,7 @@ from tensordict import TensorDict
 from tensordict.nn import TensorDictModule, TensorDictSequential
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-import imitrl.data.rollout as rollout_module
+import imitrl.data.returns as returns_module
 from imitrl import keys
 from imitrl.algorithms import BCConfig, DAggerConfig, EnvSource, dagger, fit_bc
 from imitrl.data import DemonstrationBuffer, episode_returns, rollout_episodes
@@ -336,9 +336,9 @@ def test_toy_text_evaluation_by_the_stream_equals_stepping(env_id, limit, lanes,
 
     learner = _learner(make())  # an MLP over one-hot states, greedy
     streamed = []
-    play_lanes = rollout_module.play_lanes
+    play_lanes = returns_module.play_lanes
     monkeypatch.setattr(
-        rollout_module, "play_lanes", lambda *a: streamed.append(1) or play_lanes(*a)
+        returns_module, "play_lanes", lambda *a: streamed.append(1) or play_lanes(*a)
     )
 
     def run(env, fast_path):
@@ -359,7 +359,7 @@ def test_toy_text_evaluation_by_the_stream_equals_stepping(env_id, limit, lanes,
 
 
 def test_the_stream_is_skipped_where_it_cannot_replace_the_steps(lake_q, monkeypatch):
-    monkeypatch.setattr(rollout_module, "play_lanes", None)  # would fail if called
+    monkeypatch.setattr(returns_module, "play_lanes", None)  # would fail if called
     env = make_env("FrozenLake-v1", seed=0)
     learner = _learner(env, exploration=RND)
     episode_returns(env, learner.policy, 3, exploration=RND)  # samples: not a table

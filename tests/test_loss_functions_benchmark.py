@@ -156,7 +156,7 @@ def test_a_task_from_outside_runs_end_to_end(tmp_path, monkeypatch):
 def test_parse_task_reads_every_key_and_rejects_bad_ones():
     t = parse_task(
         "name=a,env=mypkg:Reach-v0,expert=mypkg:act,expert_kind=callable,demos=3,rounds=2,"
-        "episodes=4,steps=100,batch=64,hidden=32x16,lr=0.01,eval=7,score=success"
+        "episodes=4,steps=100,batch=64,hidden=32x16,lr=0.01,eval=7,score=success,round_steps=20"
     )
     assert (t.name, t.env, t.expert, t.expert_kind, t.score) == (
         "a",
@@ -167,6 +167,9 @@ def test_parse_task_reads_every_key_and_rejects_bad_ones():
     )
     p = t.protocol
     assert (p.demo_episodes, p.rounds, p.episodes_per_round, p.eval_episodes) == (3, 2, 4, 7)
+    assert (
+        p.round_steps == 20 and parse_task("name=b,env=X,expert=m:f").protocol.round_steps is None
+    )
     assert (p.bc.num_steps, p.bc.batch_size, p.learner.hidden, p.learner.lr) == (
         100,
         64,

@@ -240,6 +240,7 @@ _PROTOCOL_KEYS = {
     "episodes": "episodes_per_round",
     "eval": "eval_episodes",
     "max_episode_steps": "max_episode_steps",
+    "round_steps": "round_steps",
 }
 _DEFAULT = Protocol(5, 4, 2, BCConfig(num_steps=2000, batch_size=256), _WIDE, 10)
 
@@ -250,9 +251,10 @@ def parse_task(text: str) -> TaskDef:
     Keys: ``name``, ``env`` (required); ``expert``, ``expert_kind``, ``dataset``,
     ``score``, ``max_steps``, ``probe``, ``outcome`` (the fields of TaskDef); the budget
     ``demos``, ``rounds``, ``episodes``, ``eval``, ``max_episode_steps``, ``steps`` (fit
-    steps), ``batch``, ``hidden`` (e.g. ``128x128``), ``lr``. Unset budget entries take
-    ``5`` demos, 4 rounds (1 without an expert), 2 episodes per round, 2000 steps x 256,
-    128x128, lr 3e-3, 10 evaluation episodes.
+    steps), ``round_steps`` (warm-started relabel rounds, :attr:`Protocol.round_steps`),
+    ``batch``, ``hidden`` (e.g. ``128x128``), ``lr``. Unset budget entries take ``5``
+    demos, 4 rounds (1 without an expert), 2 episodes per round, 2000 steps x 256 (each
+    round refits), 128x128, lr 3e-3, 10 evaluation episodes.
     """
     pairs: dict[str, str] = {}
     for item in filter(None, text.split(",")):

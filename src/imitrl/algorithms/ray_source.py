@@ -70,7 +70,8 @@ from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, exploration_type
 
 from imitrl import keys
-from imitrl.data.rollout import NEXT_KEYS, OPTIONAL_ROW_KEYS, ROW_KEYS, EpisodeSummary
+from imitrl.data.returns import EpisodeSummary
+from imitrl.data.rollout import NEXT_KEYS, OPTIONAL_ROW_KEYS, ROW_KEYS
 from imitrl.envs.limits import episode_limit
 from imitrl.policies.experts import Expert
 from imitrl.policies.learner import Learner

@@ -6,7 +6,8 @@ from imitrl.data.buffer import (
     DemonstrationBuffer,
     GrowingTensorStorage,
 )
-from imitrl.data.rollout import EpisodeSummary, episode_returns, rollout_episodes
+from imitrl.data.returns import EpisodeSummary, episode_returns
+from imitrl.data.rollout import rollout_episodes
 
 __all__ = [
     "OBSERVATION_KEYS",

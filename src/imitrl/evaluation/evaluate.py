@@ -17,7 +17,8 @@ from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType
 
 from imitrl import keys
-from imitrl.data.rollout import SuccessFn, episode_returns, rollout_policy
+from imitrl.data.returns import SuccessFn, episode_returns
+from imitrl.data.rollout import rollout_policy
 from imitrl.envs.tabular_env import TabularEnv
 from imitrl.evaluation.statistics import t_interval
 from imitrl.evaluation.tabular import exact_values
