@@ -206,17 +206,20 @@ def test_same_seed_same_numbers(lake, expert_table):
     assert a[0].shape != c[0].shape or not (a[0] == c[0]).all()
 
 
-def test_minibatch_fit_is_seeded():
+def _random_rows(n: int, obs_dim: int) -> TensorDict:
+    """``n`` rows of Gaussian observations and labels in {0, 1}, from seed 0."""
     g = torch.Generator().manual_seed(0)
-    from tensordict import TensorDict
-
-    rows = TensorDict(
+    return TensorDict(
         {
-            keys.OBSERVATION: torch.randn(300, 4, generator=g),
-            keys.EXPERT_ACTION: torch.randint(0, 2, (300,), generator=g),
+            keys.OBSERVATION: torch.randn(n, obs_dim, generator=g),
+            keys.EXPERT_ACTION: torch.randint(0, 2, (n,), generator=g),
         },
-        [300],
+        [n],
     )
+
+
+def test_minibatch_fit_is_seeded():
+    rows = _random_rows(300, 4)
 
     def run(seed):
         ac = ActorCritic.mlp(4, 2, hidden=(16,))
@@ -248,14 +251,7 @@ def test_warm_start_keeps_one_learner_and_scratch_refits(lake, expert_table):
 
 
 def test_cosine_schedule_decays_each_fit_from_the_optimizers_rate_and_restores_it():
-    g = torch.Generator().manual_seed(0)
-    rows = TensorDict(
-        {
-            keys.OBSERVATION: torch.randn(64, 3, generator=g),
-            keys.EXPERT_ACTION: torch.randint(0, 2, (64,), generator=g),
-        },
-        [64],
-    )
+    rows = _random_rows(64, 3)
     ac = ActorCritic.mlp(3, 2, hidden=(8,), lr=0.01)
     seen: list[float] = []
     step = ac.opt_pi.step
