@@ -196,14 +196,15 @@ class GymSteps(DirectSteps):
         # GymLikeEnv._step sums 0 + reward; _read_reward_eager encodes it as float32 (the
         # rounding of np.float32 is torch's: to nearest)
         reward = 0 if reward is None else 0 + reward
-        return np.asarray(reward, dtype=np.float32).reshape(self._lanes)
+        # a copy: a trajectory keeps every step's values until its end
+        return np.array(reward, dtype=np.float32).reshape(self._lanes)
 
     def _flag(self, flag) -> np.ndarray:
         # GymLikeEnv.read_done, then the bool done spec (a flag gymnasium gives as bool,
         # numpy bool or an array of them); one env's Python bool: a shared read-only array
         if flag is True or flag is False:
             return _TRUE if flag else _FALSE
-        return np.asarray(flag, dtype=np.bool_).reshape(self._lanes)
+        return np.array(flag, dtype=np.bool_).reshape(self._lanes)  # a copy, as the reward
 
     def step_raw(self, action: torch.Tensor) -> RawStep:
         if self._action_cast is not None:
