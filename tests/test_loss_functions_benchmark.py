@@ -186,6 +186,7 @@ def test_parse_task_reads_every_key_and_rejects_bad_ones():
         ("name=a,env=X,dataset=/d,rounds=3", "needs an expert"),
         ("name=a,env=X,expert=m:f,score=median", "score must be"),
         ("name=a,env=X,expert", "key=value"),
+        ("name=a,env=X,expert=m:f,round_steps=0", "round_steps must be a positive"),
     ):
         with pytest.raises(ValueError, match=match):
             parse_task(bad)

@@ -210,7 +210,7 @@ def _cost(defn: TaskDef, loss: str) -> float:
     steps (measured: 25 ms at batch 128 against 3-4 ms at batch 256 on one thread)."""
     p = defn.protocol
     per_step = max(p.bc.batch_size or 256, 256) / 256 * (7 if loss == "act" else 1)
-    rounds = p.bc.num_steps * p.rounds
+    steps = p.bc.num_steps * p.rounds
     if p.round_steps is not None:
-        rounds = p.bc.num_steps + (p.rounds - 1) * p.round_steps
-    return rounds * per_step + 10 * p.eval_episodes
+        steps = p.bc.num_steps + (p.rounds - 1) * p.round_steps
+    return steps * per_step + 10 * p.eval_episodes

@@ -68,6 +68,12 @@ class Protocol:
     learner (DAgger's warm start, as imitation's DAgger trains one policy throughout);
     None: every round refits a fresh learner for ``bc.num_steps``"""
 
+    def __post_init__(self) -> None:
+        if self.round_steps is not None and self.round_steps < 1:
+            raise ValueError(
+                f"round_steps must be a positive number of steps or None, got {self.round_steps}"
+            )
+
 
 def quick(protocol: Protocol) -> Protocol:
     """A smoke-test budget: tiny fits, two rounds, two short evaluation episodes."""

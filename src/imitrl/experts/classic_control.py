@@ -134,7 +134,7 @@ class PendulumSwingUp(nn.Module):
         self.register_buffer("gain", K[0])  # [2]
         self.a = 3 * PENDULUM["g"] / (2 * PENDULUM["l"])
         self.u_max = PENDULUM["max_torque"]
-        values = {
+        self._values = {
             "one": 1.0,
             "two": 2.0,
             "a": self.a,
@@ -143,14 +143,23 @@ class PendulumSwingUp(nn.Module):
             "rest": 1e-3,
             "lqr_cos": self.lqr_cos,
         }
-        self._constants = {n: torch.tensor(v, dtype=torch.float64) for n, v in values.items()}
+        self._constants: dict[torch.device, dict[str, torch.Tensor]] = {}
+
+    def _constants_on(self, device: torch.device) -> dict[str, torch.Tensor]:
+        """The constants as float64 0-d tensors on ``device`` (made once per device)."""
+        if device not in self._constants:
+            self._constants[device] = {
+                n: torch.tensor(v, dtype=torch.float64, device=device)
+                for n, v in self._values.items()
+            }
+        return self._constants[device]
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
         _check_dim(obs, 3, "Pendulum")
         # float64 throughout. A rollout labels one state per step, where each torch call
         # costs more than its arithmetic and one with a Python number about twice one
         # with a tensor: the constants are float64 0-d tensors of the same values
-        k = self._constants
+        k = self._constants_on(obs.device)
         c, s, w = obs.to(torch.float64).unbind(-1)
         g_th, g_w = self.gain.unbind()
         th = torch.atan2(s, c)

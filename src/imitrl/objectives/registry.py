@@ -117,7 +117,7 @@ class LearnerConfig:
     hidden: tuple[int, ...] = (64, 64)
     """hidden layers of MLP policies (and of the diffusion score network)"""
     lr: float = 1e-3
-    """Adam learning rate of the policy"""
+    """Adam learning rate of the policy (ACT keeps its recipe's, ``registry_chunks.ACT_LR``)"""
     seed: int = 0
     """initialisation seed (and the seed of any sampling the learner does)"""
     normalize: bool = True

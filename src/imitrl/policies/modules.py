@@ -32,8 +32,8 @@ The networks inside run by :func:`direct_call`: an ``nn.Sequential`` (or
 :class:`~imitrl.policies.heads.Chain`) of hookless modules calls each child's
 ``forward`` without ``nn.Module.__call__``'s hook bookkeeping (about a fifth of a small
 MLP's call at batch 1). Any other module, a sampled (``RANDOM``) actor, or a module with
-hooks runs through its own ``forward`` on a TensorDict of the dict's entries. Each replay runs the module's own
-code on the same tensors, so the outputs are the module's to the bit
+hooks runs through its own ``forward`` on a TensorDict of the dict's entries. Each
+replay runs the module's own code on the same tensors, so the outputs are the module's to the bit
 (``tests/test_fast_path.py`` checks it for every learner head and the DAgger behaviour
 policy).
 """
@@ -116,22 +116,14 @@ def direct_call(module: nn.Module) -> Callable[..., torch.Tensor]:
         if not children:
             return module
         first, rest = children[0], children[1:]
-        if forward is Chain.forward:
 
-            def chain(*inputs: torch.Tensor) -> torch.Tensor:
-                x = first(*inputs)
-                for child in rest:
-                    x = child(x)
-                return x
-
-            return chain
-
-        def sequential(x: torch.Tensor) -> torch.Tensor:
-            for child in children:
+        def chain(*inputs: torch.Tensor) -> torch.Tensor:  # Sequential: one input
+            x = first(*inputs)
+            for child in rest:
                 x = child(x)
             return x
 
-        return sequential
+        return chain
     if type(module) is nn.Linear and not parametrize.is_parametrized(module):
         # Linear.forward is F.linear(x, self.weight, self.bias): the same call with the
         # parameters bound (the optimizer updates them in place; a rollout builds its
