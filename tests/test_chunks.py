@@ -136,6 +136,59 @@ def test_temporal_ensembling_averages_every_live_prediction_with_acts_weights():
     assert _step(policy, True).item() == 500  # a reset forgets the old chunks
 
 
+class _Echo(TensorDictModuleBase):
+    """Writes the starting noise it was given (``POLICY_NOISE``) tiled over the chunk, or
+    NaN without one; ``draw_noise`` counts its draws: 1, 2, 3, ..."""
+
+    in_keys, out_keys = [keys.OBSERVATION], [keys.ACTION]
+
+    def __init__(self, horizon: int) -> None:
+        super().__init__()
+        self.horizon, self.draws = horizon, 0
+
+    def draw_noise(self, n: int) -> torch.Tensor:
+        out = torch.arange(self.draws + 1, self.draws + n + 1, dtype=torch.float32)[:, None]
+        self.draws += n
+        return out
+
+    def forward(self, td):
+        noise = td.get(keys.POLICY_NOISE, torch.full((*td.batch_size, 1), float("nan")))
+        td.set(keys.ACTION, noise.expand(*td.batch_size, self.horizon).clone())
+        return td
+
+
+@pytest.mark.parametrize("execution", [{"execute": 2}, {"ensemble": 0.1}])
+def test_held_noise_is_drawn_once_per_episode_and_lane_and_passed_to_every_query(execution):
+    policy = ChunkedPolicy(_Echo(4), 1, ChunkExecution(4, hold_noise=True, **execution))
+
+    def step(init: list[bool]) -> list[float]:
+        td = TensorDict(
+            {
+                keys.OBSERVATION: torch.zeros(len(init), 2),
+                IS_INIT: torch.tensor(init)[:, None],
+            },
+            batch_size=[len(init)],
+        )
+        return pytest.approx(policy(td).get(keys.ACTION)[:, 0].tolist(), rel=1e-6)
+
+    assert step([True, True, True]) == [1.0, 2.0, 3.0]  # one draw per lane
+    for _ in range(6):  # replans (every 2 steps, or every step) reuse the episode's draw
+        assert step([False, False, False]) == [1.0, 2.0, 3.0]
+    assert step([False, True, False]) == [1.0, 4.0, 3.0]  # lane 1's reset draws again
+    assert step([False, False, False]) == [1.0, 4.0, 3.0]
+    # without hold_noise the network draws for itself (here: no noise passed at all)
+    plain = ChunkedPolicy(_Echo(4), 1, ChunkExecution(4, execute=2))
+    td = TensorDict(
+        {keys.OBSERVATION: torch.zeros(1, 2), IS_INIT: torch.ones(1, 1, dtype=torch.bool)}, [1]
+    )
+    assert math.isnan(plain(td).get(keys.ACTION).item())
+
+
+def test_held_noise_needs_a_network_that_draws_noise():
+    with pytest.raises(ValueError, match="draw_noise"):
+        ChunkedPolicy(_Counter(2), 1, ChunkExecution(2, hold_noise=True))
+
+
 def test_a_chunked_policy_without_is_init_fails_loudly():
     policy = ChunkedPolicy(_Counter(2), 1, ChunkExecution(2))
     with pytest.raises(ValueError, match="chunk_env"):

@@ -113,3 +113,30 @@ def test_chunk_losses_fit_the_unpadded_entries_and_ignore_the_padding(name, tol)
 def _predict_sampled(learner, obs: torch.Tensor) -> torch.Tensor:
     with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
         return learner.policy.predict(TensorDict({keys.OBSERVATION: obs}, batch_size=[200]))
+
+
+def test_a_flow_policy_samples_from_the_noise_it_is_given():
+    learner = registry.build("flow", TASK, CONFIG)
+    fit_bc(learner, _toy(bimodal=True), BCConfig(num_steps=200, batch_size=128))
+    policy = learner.policy
+    obs = torch.rand(6, 2)
+    noise = torch.randn(6, 1, generator=torch.Generator().manual_seed(3))
+    td = TensorDict({keys.OBSERVATION: obs, keys.POLICY_NOISE: noise}, batch_size=[6])
+    with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
+        a = policy(td.clone()).get(keys.ACTION)
+        b = policy(td.clone()).get(keys.ACTION)
+        x = policy.sample(obs, noise).clamp(-1, 1)
+        fresh = policy(TensorDict({keys.OBSERVATION: obs}, batch_size=[6])).get(keys.ACTION)
+    assert torch.equal(a, b)  # the same noise, the same actions
+    assert torch.equal(a, policy.low + (policy.high - policy.low) * (x + 1) / 2)
+    assert not torch.equal(a, fresh)  # without it the policy draws its own
+    with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+        greedy = policy(td.clone()).get(keys.ACTION)  # greedy starts from 0, noise or not
+        zero = policy(TensorDict({keys.OBSERVATION: obs}, batch_size=[6])).get(keys.ACTION)
+    assert torch.equal(greedy, zero)
+    bad = TensorDict({keys.OBSERVATION: obs, keys.POLICY_NOISE: noise[:, :0]}, batch_size=[6])
+    with (
+        pytest.raises(ValueError, match="policy_noise"),
+        set_exploration_type(ExplorationType.RANDOM),
+    ):
+        policy(bad)

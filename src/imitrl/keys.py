@@ -28,6 +28,9 @@ Per-transition keys (root of a rollout / demonstration row):
 ``LOGITS``                categorical policy head output
 ``LOC`` / ``SCALE``       Gaussian policy head outputs
 ``STATE_VALUE``           value head output
+``POLICY_NOISE``          float ``[*B, d]``: the starting noise a generative policy
+                          (flow) samples from, when its caller holds it (a chunked
+                          policy holding one draw per episode); absent: drawn afresh
 ========================  ==========================================================
 
 A demonstration row carries ``OBSERVATION``, a ``PIXELS`` key, or both (a camera-only
@@ -53,6 +56,7 @@ LOGITS = "logits"
 LOC = "loc"
 SCALE = "scale"
 STATE_VALUE = "state_value"
+POLICY_NOISE = "policy_noise"
 
 NEXT = "next"
 REWARD = "reward"
@@ -72,6 +76,7 @@ __all__ = [
     "NEXT",
     "OBSERVATION",
     "PIXELS",
+    "POLICY_NOISE",
     "REWARD",
     "ROUND",
     "SCALE",

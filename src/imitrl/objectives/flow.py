@@ -13,8 +13,12 @@ holds them, the episode's last action repeated, but their error carries no weigh
 ``num_steps`` Euler steps (a few suffice: the learned paths are nearly straight).
 Like diffusion, it is generative: it can keep several modes of the expert's action.
 
-Exploration: ``RANDOM`` draws ``x_0`` from the policy's own seeded generator;
-``DETERMINISTIC`` starts from ``x_0 = 0`` (repeatable, not a sample).
+Exploration: ``RANDOM`` draws ``x_0`` from the policy's own seeded generator, or takes
+it from ``POLICY_NOISE`` when the input carries it (a chunked policy that holds one
+draw per episode, :class:`~imitrl.policies.chunking.ChunkExecution`'s ``hold_noise``:
+the learned map from noise to action is deterministic, so the same ``x_0`` keeps
+choosing the same mode at every replan); ``DETERMINISTIC`` starts from ``x_0 = 0``
+(repeatable, not a sample).
 """
 
 from __future__ import annotations
@@ -104,6 +108,10 @@ class FlowPolicy(TensorDictModuleBase):
         """Bounds -> ``[-1, 1]``."""
         return 2 * (action.float() - self.low) / (self.high - self.low) - 1
 
+    def draw_noise(self, n: int) -> torch.Tensor:
+        """``[n, d]`` starting noise from the policy's generator (what ``RANDOM`` draws)."""
+        return torch.randn(int(n), self.low.shape[0], generator=self.generator)
+
     def sample(self, obs: torch.Tensor, x0: torch.Tensor) -> torch.Tensor:
         """Euler-integrate the flow from ``x0`` ``[..., d]`` at ``t = 0`` to ``t = 1``."""
         x, dt = x0, 1.0 / self.num_steps
@@ -115,8 +123,17 @@ class FlowPolicy(TensorDictModuleBase):
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         obs = tensordict.get(keys.OBSERVATION)
         shape = (*obs.shape[:-1], self.low.shape[0])
+        held = tensordict.get(keys.POLICY_NOISE, None)
         if interaction_type() == InteractionType.DETERMINISTIC:
             x0 = torch.zeros(shape)
+        elif held is not None:
+            if tuple(held.shape) != shape or not held.dtype.is_floating_point:
+                raise ValueError(
+                    f"{keys.POLICY_NOISE!r} must be float {list(shape)} (the observation's "
+                    f"batch, then the action's {shape[-1]} entries), got {held.dtype} "
+                    f"{list(held.shape)}"
+                )
+            x0 = held.float()
         else:
             x0 = torch.randn(shape, generator=self.generator)
         x = self.sample(obs, x0).clamp(-1.0, 1.0)

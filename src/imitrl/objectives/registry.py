@@ -404,15 +404,22 @@ def diffusion_policy(
     )
 
 
-def flow_policy(observation_dim: int | None, action: Bounded, config: LearnerConfig) -> FlowPolicy:
-    """The registry's flow policy over ``action`` (a task's spec, or a tiled chunk spec)."""
+def flow_policy(
+    observation_dim: int | None,
+    action: Bounded,
+    config: LearnerConfig,
+    *,
+    num_steps: int = FLOW_STEPS,
+) -> FlowPolicy:
+    """The registry's flow policy over ``action`` (a task's spec, or a tiled chunk spec),
+    sampled with ``num_steps`` Euler steps."""
     if observation_dim is None:
         raise ValueError("a flow policy needs vector observations")
     return FlowPolicy(
         observation_dim,
         action,
         hidden=config.hidden,
-        num_steps=FLOW_STEPS,
+        num_steps=num_steps,
         normalize=config.normalize,
         seed=config.seed,
     )
