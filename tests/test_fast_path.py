@@ -366,8 +366,14 @@ def test_the_stream_is_skipped_where_it_cannot_replace_the_steps(lake_q, monkeyp
     episode_returns(env, Expert.from_q(lake_q), 3, success_fn=lambda out: out["done"])
 
 
+def module_width(module) -> int:
+    """The input width a test module takes (2: Squash's bounds, 3: the normaliser's)."""
+    shape = getattr(module, "shape", None) or getattr(module, "low", torch.zeros(5)).shape
+    return int(shape[0])
+
+
 def test_direct_call_is_the_modules_call_to_the_bit_and_keeps_hooks():
-    from imitrl.policies.heads import Chain
+    from imitrl.policies.heads import Chain, Squash
     from imitrl.policies.modules import direct_call
     from imitrl.policies.normalization import ObservationNormalizer
 
@@ -380,6 +386,25 @@ def test_direct_call_is_the_modules_call_to_the_bit_and_keeps_hooks():
     assert fast is not net and torch.equal(fast(x), net(x))
     seq = torch.nn.Sequential(torch.nn.Linear(3, 4), torch.nn.ReLU())
     assert torch.equal(direct_call(seq)(x), seq(x))
+    # bound forwards (Squash's span, the normaliser's statistics, Tanh): the same bits,
+    # at batch 1 and unbatched as a rollout calls them
+    squash = Squash(torch.tensor([-2.0, 0.5]), torch.tensor([2.0, 3.0]))
+    for module in (squash, norm, torch.nn.Tanh()):
+        fast = direct_call(module)
+        assert fast is not module
+        for y in (torch.randn(64, module_width(module)), torch.randn(module_width(module))):
+            assert torch.equal(fast(y), module(y))
+
+    class Shifted(Squash):  # overrides forward alone: its own forward is called
+        def forward(self, x):
+            return super().forward(x) + 1
+
+    shifted = Shifted(torch.tensor([-1.0]), torch.tensor([1.0]))
+    assert torch.equal(direct_call(shifted)(x[:, :1]), shifted(x[:, :1]))
+    bound = direct_call(norm)
+    before = bound(x)
+    norm.fit(torch.randn(50, 3))  # statistics refitted in place: the bound call sees them
+    assert torch.equal(bound(x), norm(x)) and not torch.equal(bound(x), before)
     # a hook anywhere inside: the hooked module keeps its own call, so the hook runs
     calls = []
     net[2].register_forward_hook(lambda m, i, o: calls.append(1))

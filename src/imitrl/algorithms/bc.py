@@ -47,6 +47,7 @@ from torchrl.record.loggers import Logger
 from tqdm.auto import tqdm
 
 from imitrl import keys
+from imitrl.algorithms.optim_step import optimizer_step
 from imitrl.data.buffer import CHUNK_BYTES, DemonstrationBuffer
 from imitrl.data.permutation import LazyPermutation
 from imitrl.policies.learner import Learner
@@ -344,6 +345,7 @@ def fit_bc(
         if weights is None:
             _check_full_batch(n, on_disk, config)
     objective, opt, zero_grad = learner.loss.objective, learner.opt_pi, _zero_grad(learner.opt_pi)
+    opt_step = optimizer_step(opt)  # Adam's update without its per-call wrapper
     # kept where the parameters are: recording a step's loss never waits for the device
     device = next((p.device for g in opt.param_groups for p in g["params"]), None)
     losses = torch.empty(config.num_steps, device=device)
@@ -357,7 +359,7 @@ def fit_bc(
             loss.backward()
             if schedule is not None:
                 schedule.at(step)
-            opt.step()
+            opt_step()
             losses[step] = loss.detach()
     finally:
         if schedule is not None:

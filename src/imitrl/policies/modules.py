@@ -102,8 +102,10 @@ def direct_call(module: nn.Module) -> Callable[..., torch.Tensor]:
 
     A module without hooks (none of its own, none global) is called as ``module.forward``;
     an ``nn.Sequential`` of such modules, or a ``Chain`` (its first child may take several
-    inputs), as its children's direct calls in order: the same code on the same tensors,
-    so the same bits. Anything with a hook is called as ``module`` itself. Decided when
+    inputs), as its children's direct calls in order; ``nn.Linear`` as ``F.linear`` with its
+    parameters, ``nn.Tanh`` as ``torch.tanh``, and a module with a ``bound_forward()``
+    method as the callable it returns (its forward with its buffers read once): the same
+    code on the same tensors, so the same bits. Anything with a hook is called as ``module`` itself. Decided when
     called: hooks registered afterwards are not seen (build it per rollout).
     """
     from imitrl.policies.heads import Chain
@@ -124,6 +126,13 @@ def direct_call(module: nn.Module) -> Callable[..., torch.Tensor]:
             return x
 
         return chain
+    if type(module) is nn.Tanh:
+        return torch.tanh  # nn.Tanh.forward is torch.tanh(input)
+    owner = next(c for c in type(module).__mro__ if "forward" in vars(c))
+    if "bound_forward" in vars(owner):  # not a subclass that overrides forward alone
+        # the module's forward with its buffers read once (Squash, ObservationNormalizer):
+        # the same operations on the same values
+        return module.bound_forward()
     if type(module) is nn.Linear and not parametrize.is_parametrized(module):
         # Linear.forward is F.linear(x, self.weight, self.bias): the same call with the
         # parameters bound (the optimizer updates them in place; a rollout builds its
@@ -219,9 +228,8 @@ class TensorPolicy:
         )
         strict, batch_size = node.strict, self.batch_size
 
-        def step(values: Values) -> None:
-            # TensorDictModule.forward: missing inputs are None unless strict
-            out = fn(*(values[k] if strict else values.get(k) for k in in_keys))
+        def write(values: Values, out) -> None:
+            # TensorDictModule.forward: the outputs, in the order of out_keys
             if isinstance(out, dict) and all(k in out for k in out_keys):
                 out = tuple(out[k] for k in out_keys)
             if not isinstance(out, tuple):
@@ -234,6 +242,22 @@ class TensorPolicy:
                 if not isinstance(v, torch.Tensor):  # written as tensordict writes it
                     v = TensorDict(batch_size=batch_size).set(k, TensorDict.from_any(v)).get(k)
                 values[k] = v
+
+        if len(in_keys) == 1 and len(out_keys) == 1 and out_keys[0] != "_":
+            (key_in,), (key_out,) = in_keys, out_keys
+
+            def one(values: Values) -> None:  # one tensor in, one out: the common case
+                out = fn(values[key_in] if strict else values.get(key_in))
+                if isinstance(out, torch.Tensor):
+                    values[key_out] = out
+                else:
+                    write(values, out)
+
+            return one
+
+        def step(values: Values) -> None:
+            # missing inputs are None unless strict
+            write(values, fn(*(values[k] if strict else values.get(k) for k in in_keys)))
 
         return step
 
