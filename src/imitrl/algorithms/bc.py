@@ -352,15 +352,16 @@ def fit_bc(
     steps = tqdm(range(config.num_steps), desc="bc fit", disable=not progress, leave=False)
     schedule = _Cosine(opt, config.num_steps) if config.lr_schedule == "cosine" else None
     try:
-        for step in steps:
-            batch = batches.next() if minibatch else rows
-            loss = objective(batch) if weights is None else objective(batch, weights)
-            zero_grad()
-            loss.backward()
-            if schedule is not None:
-                schedule.at(step)
-            opt_step()
-            losses[step] = loss.detach()
+        with learner.loss.fitting():  # e.g. its networks without nn.Module.__call__
+            for step in steps:
+                batch = batches.next() if minibatch else rows
+                loss = objective(batch) if weights is None else objective(batch, weights)
+                zero_grad()
+                loss.backward()
+                if schedule is not None:
+                    schedule.at(step)
+                opt_step()
+                losses[step] = loss.detach()
     finally:
         if schedule is not None:
             schedule.restore()

@@ -16,6 +16,7 @@ objective is the sum of its ``loss_*`` outputs.
 
 from __future__ import annotations
 
+import contextlib
 from typing import ClassVar
 
 import torch
@@ -78,6 +79,11 @@ class ImitationLoss(LossModule):
         label = rows.get(key)
         if label.dtype.is_floating_point and not torch.isfinite(label).all():
             raise ValueError(f"labels under {key!r} contain NaN or inf")
+
+    def fitting(self) -> contextlib.AbstractContextManager:
+        """A context a fit's steps run in (``fit_bc``): here nothing; a loss may run its
+        networks through :func:`imitrl.policies.modules.direct_call` inside it."""
+        return contextlib.nullcontext()
 
     def objective(self, batch: TensorDictBase, weights: torch.Tensor | None = None) -> torch.Tensor:
         """The scalar a training step differentiates: the sum of the ``loss_*`` outputs."""

@@ -25,6 +25,8 @@ expert label and a learner's action cannot live under different keys.
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import torch
@@ -111,6 +113,25 @@ class BehaviorCloningLoss(ImitationLoss):
             "_tensor_steps",
             _tensor_steps(logits_modules if loss_type == "nll" else [actor]),
         )
+
+    @contextlib.contextmanager
+    def fitting(self) -> Iterator[None]:
+        """Within: :meth:`row_losses` calls its networks through ``direct_call`` (built
+        on entry: no ``nn.Module.__call__`` per layer, the same operations, so the same
+        bits and gradients; hooks registered inside the context are not seen)."""
+        steps = self._tensor_steps
+        if steps is None:
+            yield
+            return
+        from imitrl.policies.modules import direct_call
+
+        object.__setattr__(
+            self, "_tensor_steps", tuple((direct_call(n), i, o) for n, i, o in steps)
+        )
+        try:
+            yield
+        finally:
+            object.__setattr__(self, "_tensor_steps", steps)
 
     def read_keys(self) -> list[NestedKey]:
         extra = [self.tensor_keys.label] + ([self.tensor_keys.weight] if self.weighted else [])
