@@ -74,6 +74,9 @@ def test_other_optimizers_hooks_and_groups_keep_their_own_step():
         [{"params": net[0].parameters()}, {"params": net[2].parameters(), "lr": 0.5}], lr=0.1
     )
     assert optimizer_step(groups) == groups.step
+    patched = torch.optim.Adam(net.parameters(), lr=0.1)
+    patched.step = lambda: None  # an instance's own step (a test's recorder, say) runs
+    assert optimizer_step(patched) is patched.step
     # a hook registered after the step was made: the step sees it and calls Adam's own
     adam = torch.optim.Adam(net.parameters(), lr=0.1)
     step, calls = optimizer_step(adam), []

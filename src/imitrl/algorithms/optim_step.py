@@ -8,9 +8,10 @@ MLP with one torch thread. :func:`optimizer_step` returns a step that calls that
 with the optimizer's own state tensors and its group's settings (read every step, so a
 learning-rate schedule is seen): the same kernels on the same tensors, so the same bits
 (``tests/test_optim_step.py`` trains side by side). It falls back to ``opt.step()``
-wherever that would do anything else: another optimizer class, hooks, several parameter
-groups, fused/capturable/differentiable updates, a gradient missing or sparse, or state
-not yet made (the first step of a fresh optimizer makes it).
+wherever that would do anything else: another optimizer class, a step patched on the
+instance, hooks, several parameter groups, fused/capturable/differentiable updates, a
+gradient missing or sparse, or state not yet made (the first step of a fresh optimizer
+makes it).
 """
 
 from __future__ import annotations
@@ -35,7 +36,12 @@ def _hooked(opt: torch.optim.Optimizer) -> bool:
 
 def optimizer_step(opt: torch.optim.Optimizer) -> Callable[[], None]:
     """``opt.step`` for a fit's loop (module docstring): decided once, call it per step."""
-    if type(opt) is not torch.optim.Adam or len(opt.param_groups) != 1 or _hooked(opt):
+    if (
+        type(opt) is not torch.optim.Adam
+        or "step" in vars(opt)  # a step patched on the instance: it is what must run
+        or len(opt.param_groups) != 1
+        or _hooked(opt)
+    ):
         return opt.step
     group = opt.param_groups[0]
     if group["fused"] or group["capturable"] or group["differentiable"]:
