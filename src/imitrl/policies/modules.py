@@ -102,13 +102,15 @@ def direct_call(module: nn.Module) -> Callable[..., torch.Tensor]:
 
     A module without hooks (none of its own, none global) is called as ``module.forward``;
     an ``nn.Sequential`` of such modules, or a ``Chain`` (its first child may take several
-    inputs), as its children's direct calls in order; ``nn.Linear`` as ``F.linear`` with its
-    parameters, ``nn.Tanh`` as ``torch.tanh``, and a module with a ``bound_forward()``
-    method as the callable it returns (its forward with its buffers read once): the same
-    code on the same tensors, so the same bits. Anything with a hook is called as ``module`` itself. Decided when
-    called: hooks registered afterwards are not seen (build it per rollout).
+    inputs), as its children's direct calls in order; ``nn.Linear`` as ``F.linear`` with
+    its parameters, ``nn.Tanh`` as ``torch.tanh``, a ``Squash`` or an
+    ``ObservationNormalizer`` (exactly those classes) as its ``bound_forward()``, its
+    forward with its buffers read once. The same code on the same tensors, so the same
+    bits. Anything with a hook is called as ``module`` itself. Decided when called: hooks
+    registered afterwards are not seen (build it per rollout, or per fit).
     """
-    from imitrl.policies.heads import Chain
+    from imitrl.policies.heads import Chain, Squash
+    from imitrl.policies.normalization import ObservationNormalizer
 
     if not isinstance(module, nn.Module) or _global_hooks() or not _hookless(module):
         return module
@@ -128,11 +130,8 @@ def direct_call(module: nn.Module) -> Callable[..., torch.Tensor]:
         return chain
     if type(module) is nn.Tanh:
         return torch.tanh  # nn.Tanh.forward is torch.tanh(input)
-    owner = next(c for c in type(module).__mro__ if "forward" in vars(c))
-    if "bound_forward" in vars(owner):  # not a subclass that overrides forward alone
-        # the module's forward with its buffers read once (Squash, ObservationNormalizer):
-        # the same operations on the same values
-        return module.bound_forward()
+    if type(module) in (Squash, ObservationNormalizer):  # exactly: not a subclass's forward
+        return module.bound_forward()  # its forward with its buffers read once
     if type(module) is nn.Linear and not parametrize.is_parametrized(module):
         # Linear.forward is F.linear(x, self.weight, self.bias): the same call with the
         # parameters bound (the optimizer updates them in place; a rollout builds its
