@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
 
@@ -21,8 +22,12 @@ def _t_cdf(t: float, df: int) -> float:
     return 0.5 + float((w * pdf).sum()) * (t / n) / 3
 
 
+@functools.lru_cache(maxsize=256)
 def student_t_quantile(p: float, df: int) -> float:
-    """The ``p`` quantile (``0.5 <= p < 1``) of Student's t with ``df`` degrees of freedom."""
+    """The ``p`` quantile (``0.5 <= p < 1``) of Student's t with ``df`` degrees of freedom.
+
+    Cached: a bisection over 4000-panel integrals costs about 13 ms, and an evaluation
+    loop asks again for the same level and episode count."""
     if not 0.5 <= p < 1.0 or df < 1:
         raise ValueError(f"need 0.5 <= p < 1 and df >= 1, got p={p}, df={df}")
     lo, hi = 0.0, 1.0
