@@ -106,7 +106,12 @@ class _Tally:
 
     def add_raw(self, reward: np.ndarray) -> None:
         """:meth:`add` of a direct step's float32 ``[lanes]`` rewards."""
-        self.running += reward
+        if reward.shape == (1,):
+            # one lane: the float32 reward as a Python float, the same float64 sum, without
+            # numpy's mixed-dtype in-place add (a few microseconds a step)
+            self.running[0] += reward.item()
+        else:
+            self.running += reward
 
     def end(self, book: _Lanes, ended: np.ndarray, out: Callable[[], TensorDictBase]) -> None:
         """The ``ended`` lanes' episodes end at this step (``out()``: the step tensordict)."""

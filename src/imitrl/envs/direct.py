@@ -209,7 +209,7 @@ class GymSteps(DirectSteps):
     def step_raw(self, action: torch.Tensor) -> RawStep:
         if self._action_cast is not None:
             action = action.to(self._action_cast)  # DoubleToFloat's inverse
-        if action.requires_grad or action.device.type != "cpu":
+        if action.requires_grad or not action.is_cpu:
             action = action.detach().cpu()
         a = action.numpy()  # TensorSpec.to_numpy(safe=False)
         if self._int_action:
