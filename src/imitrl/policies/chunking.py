@@ -20,9 +20,9 @@ that rollouts, ``evaluate`` and DAgger's behaviour policy run unchanged:
   every query of that episode. The network's map from noise to chunk is
   deterministic, so the episode keeps the mode its draw chose instead of drawing it
   again at every replan; across episodes the draws still cover every mode. Measured on
-  the two-way task (``flow_chunk``, BC, 6 seeds x 500 episodes): success 0.90 with a
-  fresh draw per replan, 0.93 held; with 16 Euler steps 0.92 fresh, 0.96 held
-  (``benchmarks/README.md``).
+  the two-way task (``flow_chunk``, BC, 6 seeds x 500 episodes): with 8 Euler steps,
+  success 0.90 with a fresh draw per replan and 0.93 held; with 32 steps 0.92 fresh and
+  0.96 held (0.96 held at 16 steps too; ``benchmarks/README.md``).
 
 State lives across calls (the current plan, its age, the last ``H`` chunks) per lane
 of a batched env, and is dropped where TorchRL's ``InitTracker`` marks a reset
