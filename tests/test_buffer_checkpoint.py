@@ -11,6 +11,7 @@ import hashlib
 import json
 import os
 import signal
+import warnings
 from pathlib import Path
 
 import pytest
@@ -21,7 +22,7 @@ from torchrl.data import Categorical
 from imitrl import keys
 from imitrl.algorithms import BCConfig, fit_bc
 from imitrl.data import DemonstrationBuffer
-from imitrl.data import checkpoint as ckpt
+from imitrl.fs import publish
 from imitrl.policies import ActorCritic
 
 
@@ -235,14 +236,18 @@ def test_save_replaces_only_a_checkpoint_or_an_empty_directory(tmp_path, monkeyp
     afile = tmp_path / "afile"
     afile.write_text("x")
     before = checkpoint_tree(user)
+    with pytest.raises(ValueError, match="exists; pass overwrite=True"):
+        buf.save(user)
     for target, match in ((user, "not a readable checkpoint"), (afile, "not a directory")):
         with pytest.raises(ValueError, match=match):
-            buf.save(target)
+            buf.save(target, overwrite=True)
     assert checkpoint_tree(user) == before and afile.read_text() == "x"
     ck = buf.save(tmp_path / "ck")
+    with pytest.raises(ValueError, match="exists; pass overwrite=True"):
+        buf.save(ck)  # a checkpoint is replaced only when asked
     (ck / "notes.txt").write_text("mine")  # a checkpoint holding a user's file is kept
     with pytest.raises(ValueError, match="does not list"):
-        buf.save(ck)
+        buf.save(ck, overwrite=True)
     (ck / "notes.txt").unlink()
     monkeypatch.chdir(ck)  # the working directory is never replaced
     with pytest.raises(ValueError, match="working directory"):
@@ -257,7 +262,7 @@ def test_save_over_a_checkpoint_replaces_it_whole(tmp_path):
     first.extend(demo_rows(10))
     second.extend(demo_rows(25, seed=1))
     path = first.save(tmp_path / "ck", state={"n": 1})
-    second.save(path, state={"n": 2})
+    second.save(path, state={"n": 2}, overwrite=True)
     again, state = DemonstrationBuffer.load(path)
     assert same_buffer(again, second) and state == {"n": 2}
     assert sorted(os.listdir(tmp_path)) == ["ck"]  # no temporary or old copy left
@@ -272,7 +277,7 @@ def test_an_error_at_any_point_of_a_save_leaves_the_previous_checkpoint(
     new.extend(demo_rows(30, seed=3))
     path = old.save(tmp_path / "ck")
     if not exchange:
-        monkeypatch.setattr(ckpt, "_exchange", lambda a, b: False)
+        monkeypatch.setattr(publish, "exchange", lambda a, b: False)
     points = _count_fsyncs(lambda: new.save(tmp_path / "probe"), monkeypatch)
     real_fsync = os.fsync
     for k in range(1, points + 1):
@@ -286,13 +291,13 @@ def test_an_error_at_any_point_of_a_save_leaves_the_previous_checkpoint(
 
         monkeypatch.setattr(os, "fsync", failing)
         with pytest.raises(OSError, match="injected"):
-            new.save(path)
+            new.save(path, overwrite=True)
         monkeypatch.setattr(os, "fsync", real_fsync)
         loaded = DemonstrationBuffer.load(path)[0]
         # the last fsync is the parent's, after the swap: by then the new one is in place
         assert same_buffer(loaded, new if k == points else old), k
         assert sorted(os.listdir(tmp_path)) == ["ck", "probe"], k
-        old.save(path)
+        old.save(path, overwrite=True)
 
 
 def _count_fsyncs(save, monkeypatch) -> int:
@@ -320,8 +325,8 @@ def _killed_save(buf: DemonstrationBuffer, path: Path, kill_at: int, *, exchange
 
             os.fsync = dying
             if not exchange:
-                ckpt._exchange = lambda a, b: False
-            buf.save(path)
+                publish.exchange = lambda a, b: False
+            buf.save(path, overwrite=True)
         finally:
             os._exit(0)
     _, status = os.waitpid(pid, 0)
@@ -338,7 +343,9 @@ def test_kill_9_at_every_fsync_of_a_save_leaves_a_whole_checkpoint(tmp_path, mon
         _killed_save(new, path, k, exchange=True)
         loaded = DemonstrationBuffer.load(path)[0]
         assert same_buffer(loaded, new if k == points else old), k
-        old.save(path)  # and the next save clears what the killed one left
+        with warnings.catch_warnings():  # the killed save's leftovers are named
+            warnings.simplefilter("ignore")
+            old.save(path, overwrite=True)  # and the next save clears what the killed one left
         assert sorted(os.listdir(tmp_path)) == ["ck", "probe"], k
 
 
@@ -355,17 +362,17 @@ def test_kill_9_between_the_fallback_renames_names_the_previous_checkpoint(tmp_p
 
             def rename(a, b):
                 seen.append(b)
-                if len(seen) == 3:  # 1: tmp -> ck (refused), 2: ck -> .old, 3: tmp -> ck
+                if len(seen) == 2:  # 1: ck -> .ck.imitrl-old-*, 2: tmp -> ck
                     os.kill(os.getpid(), signal.SIGKILL)
                 real_rename(a, b)
 
             os.rename = rename
-            ckpt._exchange = lambda a, b: False
-            new.save(path)
+            publish.exchange = lambda a, b: False
+            new.save(path, overwrite=True)
         finally:
             os._exit(0)
     os.waitpid(pid, 0)
-    err = refused(path, r"an interrupted save left the previous checkpoint at .*\.ck\.old-")
+    err = refused(path, r"an interrupted save left the previous checkpoint at .*\.ck\.imitrl-old-")
     aside = Path(str(err).split(" at ")[1].split(" (rename")[0])
     os.rename(aside, path)  # what the message says to do
     assert same_buffer(DemonstrationBuffer.load(path)[0], old)

@@ -189,7 +189,9 @@ def test_an_error_while_writing_leaves_the_old_dataset(tmp_path, monkeypatch):
 
 
 def test_a_failed_swap_puts_the_old_dataset_back(tmp_path, monkeypatch):
-    from imitrl.datasets import _publish
+    """Where the atomic exchange is missing (two renames), a failing second rename puts
+    the old dataset back."""
+    from imitrl.fs import publish
 
     path = save_lerobot(_rows(0), tmp_path / "ds", fps=10)
     real, calls = os.rename, []
@@ -200,7 +202,8 @@ def test_a_failed_swap_puts_the_old_dataset_back(tmp_path, monkeypatch):
             raise OSError("rename refused")
         real(src, dst)
 
-    monkeypatch.setattr(_publish.os, "rename", second_rename_fails)
+    monkeypatch.setattr(publish, "exchange", lambda a, b: False)
+    monkeypatch.setattr(publish.os, "rename", second_rename_fails)
     with pytest.raises(OSError, match="rename refused"):
         save_lerobot(_rows(1), path, fps=10, overwrite=True)
     monkeypatch.undo()
@@ -226,13 +229,17 @@ def test_a_second_writer_is_refused_while_the_first_holds_the_path(tmp_path):
 # ------------------------------------------------------------- kill points
 def _kill_at(point: str, path: str) -> None:
     """In a child process: overwrite ``path``, SIGKILL-like exit (no cleanup) at ``point``."""
-    import imitrl.datasets._publish as publish
+    import imitrl.fs.publish as publish
     from imitrl.datasets.lerobot import _v3_files
 
     def die(*args, **kwargs):
         os._exit(9)
 
-    real_rename, renames = os.rename, []
+    real_exchange, real_rename, renames = publish.exchange, os.rename, []
+
+    def exchange_then_die(a, b):
+        assert real_exchange(a, b)
+        os._exit(9)
 
     def rename(src, dst):
         real_rename(src, dst)
@@ -246,19 +253,31 @@ def _kill_at(point: str, path: str) -> None:
         os._exit(9)
 
     patches = {
-        "mid write": (_v3_files, "_write_stats", die),
-        "written, not moved": (publish, "_swap_in", die),
-        "old moved aside": (publish.os, "rename", rename),
-        "new moved in": (publish.os, "rename", rename),
-        "old half removed": (publish.shutil, "rmtree", rmtree_partly),
+        "mid write": [(_v3_files, "_write_stats", die)],
+        "written, not moved": [(publish, "_swap_in", die)],
+        "exchanged, old not removed": [(publish, "exchange", exchange_then_die)],
+        "old half removed": [(publish.shutil, "rmtree", rmtree_partly)],
+        # where renameat2 is missing: two renames
+        "old moved aside": [
+            (publish, "exchange", lambda a, b: False),
+            (publish.os, "rename", rename),
+        ],
+        "new moved in": [(publish, "exchange", lambda a, b: False), (publish.os, "rename", rename)],
     }
-    module, name, fn = patches[point]
-    setattr(module, name, fn)
+    for module, name, fn in patches[point]:
+        setattr(module, name, fn)
     save_lerobot(_rows(1), path, fps=10, overwrite=True)
     os._exit(0)
 
 
-KILL_POINTS = ["mid write", "written, not moved", "old moved aside", "new moved in"]
+KILL_POINTS = [
+    "mid write",
+    "written, not moved",
+    "exchanged, old not removed",
+    "old moved aside",
+    "new moved in",
+]
+NEW_IN_PLACE = ("exchanged, old not removed", "new moved in", "old half removed")
 
 
 @pytest.mark.parametrize("point", [*KILL_POINTS, "old half removed"])
@@ -272,11 +291,12 @@ def test_a_killed_writer_leaves_a_whole_dataset_and_the_next_call_sorts_it_out(t
     if point == "old moved aside":  # the reader names where the previous dataset is
         with pytest.raises(ValueError, match=r"killed save_lerobot left the previous one"):
             load_lerobot(path)
+    else:  # a reader at this instant finds a whole dataset, old or new
+        assert _same(_load(path), _rows(1) if point in NEW_IN_PLACE else _rows(0))
     with pytest.warns(UserWarning, match="killed writer's leftovers"):
         with pytest.raises(ValueError, match="exists"):
             save_lerobot(_rows(2), path, fps=10)  # recovers first, then refuses to overwrite
-    new = point in ("new moved in", "old half removed")
-    assert _same(_load(path), _rows(1) if new else _rows(0))
+    assert _same(_load(path), _rows(1) if point in NEW_IN_PLACE else _rows(0))
     assert _leftovers(tmp_path) == []
 
 
@@ -288,8 +308,6 @@ def test_a_write_killed_before_the_rename_leaves_no_dataset(tmp_path):
     child.start()
     child.join(timeout=60)
     assert child.exitcode == 9 and not target.exists() and _leftovers(tmp_path)
-    with pytest.warns(
-        UserWarning, match=r"removed \.fresh\.imitrl-tmp-\w+ \(an unfinished write\)"
-    ):
+    with pytest.warns(UserWarning, match=r"removed \.fresh\.imitrl-tmp-\w+ \(an unfinished write"):
         save_lerobot(_rows(2), target, fps=10)
     assert _same(_load(target), _rows(2)) and _leftovers(tmp_path) == []

@@ -40,6 +40,7 @@ from imitrl.data.buffer import DemonstrationBuffer
 from imitrl.data.rollout import rollout_episodes
 from imitrl.envs.limits import episode_limit
 from imitrl.envs.random_state import env_random_state, set_env_random_state
+from imitrl.fs.lock import exclusive
 from imitrl.policies.experts import Expert
 from imitrl.policies.learner import Learner
 from imitrl.policies.mixture import BetaMixer, behaviour_policy
@@ -295,18 +296,36 @@ def dagger(
             across rounds), rows and expert queries (``dagger/*``, step = round).
         checkpoint_dir: save everything the next round depends on there after every
             round (:mod:`imitrl.algorithms.dagger_checkpoint`); a directory that already
-            holds a run is refused unless ``resume``.
+            holds a run is refused unless ``resume``. The run holds the directory's lock
+            (:func:`imitrl.fs.exclusive`) until it returns: a second run (or any writer)
+            of the same directory is refused at once instead of replacing its rounds.
         resume: continue the run saved in ``checkpoint_dir`` (a fresh start when it holds
             none): ``buffer`` must hold the run's demonstrations; the result is identical
             to the bit to an uninterrupted run.
     """
     _check_inputs(buffer, expert, checkpoint_dir, resume)
+    if checkpoint_dir is None:
+        return _run(source, expert, make_learner, buffer, config, on_fit, train, progress, logger)
+    # the folder is this run's until it returns: a second run of it is refused at once
+    with exclusive(checkpoint_dir, what="used by a DAgger run"):
+        _check_run(checkpoint_dir, resume)
+        return _run(
+            source, expert, make_learner, buffer, config, on_fit, train, progress, logger,
+            checkpoint_dir=Path(checkpoint_dir), resume=resume,
+        )  # fmt: skip
+
+
+def _run(
+    source, expert, make_learner, buffer, config, on_fit, train, progress, logger,
+    *, checkpoint_dir: Path | None = None, resume: bool = False,
+) -> DAggerResult:  # fmt: skip
+    """The rounds of :func:`dagger` (its arguments, checked)."""
     coins = torch.Generator().manual_seed(config.seed)
     mixer = BetaMixer(0.0, generator=coins)
     run = RunState(next_round=0, records=[], bc_step=0, learner=None)
     if resume and _holds_run(checkpoint_dir):
         run = load_run(
-            Path(checkpoint_dir), buffer, make_learner, config=config,
+            checkpoint_dir, buffer, make_learner, config=config,
             record_cls=RoundRecord, mixer_generator=coins, source=source,
         )  # fmt: skip
     learner = run.learner
@@ -323,7 +342,7 @@ def dagger(
             _collect(k, learner, expert, mixer, source, buffer, config, record)
         if checkpoint_dir is not None:
             save_run(
-                Path(checkpoint_dir), buffer, learner, next_round=k + 1, config=config,
+                checkpoint_dir, buffer, learner, next_round=k + 1, config=config,
                 records=run.records, bc_step=run.bc_step, mixer_generator=coins, source=source,
             )  # fmt: skip
     assert learner is not None
@@ -340,7 +359,10 @@ def _check_inputs(buffer, expert, checkpoint_dir, resume: bool) -> None:
         )
     if resume and checkpoint_dir is None:
         raise ValueError("resume=True needs the checkpoint_dir of the run to continue")
-    if checkpoint_dir is not None and not resume and _holds_run(checkpoint_dir):
+
+
+def _check_run(checkpoint_dir, resume: bool) -> None:
+    if not resume and _holds_run(checkpoint_dir):
         raise ValueError(
             f"{checkpoint_dir} holds a saved DAgger run: pass resume=True to continue it, "
             "or give another checkpoint_dir"

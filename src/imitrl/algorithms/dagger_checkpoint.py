@@ -105,7 +105,7 @@ def save_run(
         "source": source.state_dict(),
         "torch": torch.get_rng_state().tolist(),
     }
-    buffer.save(path, learner=learner, state=state)
+    buffer.save(path, learner=learner, state=state, overwrite=True)  # this run's own, locked
 
 
 def load_run(

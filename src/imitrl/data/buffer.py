@@ -326,6 +326,7 @@ class DemonstrationBuffer:
         *,
         learner: torch.nn.Module | None = None,
         state: dict[str, Any] | None = None,
+        overwrite: bool = False,
     ) -> Path:
         """Save the rows, optionally a learner (weights and optimizers) and a JSON state.
 
@@ -339,13 +340,18 @@ class DemonstrationBuffer:
             opt_pi.pt ...        each optimizer ``learner.optimizers()`` declares
             state.json           ``state`` (e.g. ``{"round": 3, "beta": 0.5}``)
 
-        The write is atomic: ``path`` afterwards holds this checkpoint or, after a crash
-        or ``kill -9``, the previous one, whole. An existing ``path`` is replaced only if
-        it is empty or a checkpoint of this format. Returns the absolute path.
+        The write is atomic and exclusive: ``path`` afterwards holds this checkpoint or,
+        after a crash or ``kill -9``, the previous one, whole; while one process saves to
+        ``path`` every other saver of it is refused. An existing, non-empty ``path`` is
+        replaced only with ``overwrite=True``, and only if it is a checkpoint of this
+        format, so of several processes saving to one new path exactly one succeeds and
+        the others are told why. Returns the absolute path.
 
         Raises:
-            ValueError: the buffer is empty; ``state`` is not plain JSON; ``path`` holds
-                something other than a buffer checkpoint (left untouched).
+            ValueError: the buffer is empty; ``state`` is not plain JSON; ``path`` exists
+                (without ``overwrite``) or holds something other than a buffer checkpoint
+                (left untouched); another process is saving to it.
+            imitrl.fs.DiskFullError: the disk filled up (``path`` keeps what it held).
         """
         if len(self) == 0:
             raise ValueError("refusing to save an empty demonstration buffer")
@@ -371,7 +377,7 @@ class DemonstrationBuffer:
             "learner": learner_files,
             "state": "state.json",
         }
-        return write_checkpoint(path, files, content, fmt=_FORMAT)
+        return write_checkpoint(path, files, content, fmt=_FORMAT, overwrite=overwrite)
 
     @classmethod
     def load(

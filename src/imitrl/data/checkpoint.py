@@ -12,15 +12,17 @@ What the files hold: one raw file per key of the rows (:func:`encode_rows` /
 and its optimizers' state dicts (:func:`learner_components`, :func:`restore_learner`),
 and a JSON state (:func:`state_json`). The rest of this module knows nothing of that.
 
-Writing (:func:`write_checkpoint`) is atomic: the files go to a hidden temporary
-sibling ``.<name>.tmp-<pid>-<hex>``, each is fsynced, then the directory is moved into
-place. An existing ``path`` is replaced only when it is empty or a checkpoint of the
-same format holding nothing but its listed files; the swap is one
+Writing (:func:`write_checkpoint`) goes through :func:`imitrl.fs.publish.publishing`:
+the files go to a hidden temporary sibling ``.<name>.imitrl-tmp-<hex>``, each is
+fsynced, then the directory is moved into place under the path's exclusive lock (of
+several savers of one path, one writes and the others are refused). An existing
+``path`` is replaced only with ``overwrite=True``, and only when it is a checkpoint of
+the same format holding nothing but its listed files (or empty); the swap is one
 ``renameat2(RENAME_EXCHANGE)`` on Linux, so ``path`` always holds the old or the new
 checkpoint, whole, even under ``kill -9``. (Where the exchange is unsupported the old
-checkpoint is moved aside to ``.<name>.old-<pid>-<hex>`` for the instant between two
-renames; a load that finds ``path`` missing names that folder.) Leftover temporary
-siblings of killed saves are removed by the next save to the same path.
+checkpoint is moved aside to ``.<name>.imitrl-old-<hex>`` for the instant between two
+renames; a load that finds ``path`` missing names that folder.) Leftovers of killed
+saves are sorted out by the next save to the same path.
 
 Reading (:func:`read_checkpoint`) checks everything before interpreting any byte:
 the manifest's format and its own checksum, that the directory holds exactly the
@@ -31,22 +33,21 @@ the file. Reading opens files read-only and writes nothing.
 from __future__ import annotations
 
 import copy
-import ctypes
-import errno
 import hashlib
 import io
 import json
 import os
 import re
-import shutil
 import stat
 import sys
-import uuid
 from pathlib import Path
 from typing import Any
 
 import torch
 from tensordict import TensorDict, TensorDictBase
+
+from imitrl.fs.lock import absolute
+from imitrl.fs.publish import OLD, publishing
 
 __all__ = [
     "MANIFEST",
@@ -61,7 +62,6 @@ __all__ = [
 
 MANIFEST = "manifest.json"
 _NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,127}$")  # flat names, no path parts
-_LEFTOVER = re.compile(r"^\.(?P<name>.+)\.(?P<kind>tmp|old)-(?P<pid>\d+)-[0-9a-f]{32}$")
 _MAX_MANIFEST_BYTES = 16 << 20
 
 
@@ -185,38 +185,47 @@ def _canonical(content: dict[str, Any]) -> bytes:
 
 # ------------------------------------------------------------------------ write
 def write_checkpoint(
-    path: str | Path, files: dict[str, bytes | memoryview], content: dict[str, Any], *, fmt: str
+    path: str | Path,
+    files: dict[str, bytes | memoryview],
+    content: dict[str, Any],
+    *,
+    fmt: str,
+    overwrite: bool = False,
 ) -> Path:
     """Write ``files`` and a manifest (``fmt``, ``content`` plus every file's size and
-    SHA-256) as the checkpoint directory ``path``, atomically; returns the resolved path.
+    SHA-256) as the checkpoint directory ``path``, atomically and exclusively
+    (:func:`imitrl.fs.publish.publishing`: one writer per path, an atomic exchange with
+    the previous checkpoint); returns the absolute path.
+
+    Args:
+        overwrite: replace a checkpoint of format ``fmt`` already at ``path`` (holding
+            nothing but its listed files); without it an existing, non-empty ``path`` is
+            refused, so of several savers started together exactly one succeeds.
 
     Raises:
-        ValueError: ``path`` is a file, the working directory or one of its parents, or a
-            directory that is not a checkpoint of format ``fmt`` (it is left untouched);
-            a file name is not a plain name.
+        ValueError: ``path`` exists (without ``overwrite``), is a file, the working
+            directory or one of its parents, or a directory that is not a checkpoint of
+            format ``fmt`` (it is left untouched); another process is writing it; a file
+            name is not a plain name.
+        imitrl.fs.DiskFullError: the disk filled up (``path`` keeps what it held).
     """
-    target = Path(path).expanduser().absolute()
-    if target.name in ("", ".", ".."):
-        target = target.resolve()
     for name in files:
         if not _NAME.match(name) or name == MANIFEST:
             raise ValueError(f"checkpoint file name {name!r} must be a plain file name")
-    _check_replaceable(target, fmt)
-    target.parent.mkdir(parents=True, exist_ok=True)
-    _remove_leftovers(target)
-    tmp = target.parent / f".{target.name}.tmp-{os.getpid()}-{uuid.uuid4().hex}"
-    tmp.mkdir()
-    try:
+    target = absolute(path)
+
+    def replaceable(found: Path) -> None:
+        _check_replaceable(found, fmt)
+
+    what = f"a checkpoint ({fmt})"
+    with publishing(
+        target, overwrite=overwrite, replaceable=replaceable, what=what, empty_ok=True
+    ) as tmp:
         listed = {name: _write_file(tmp / name, data) for name, data in files.items()}
         body = {**content, "files": listed}
         manifest = {"format": fmt, "content": body, "content_sha256": _sha256(_canonical(body))}
         text = json.dumps(manifest, indent=1, sort_keys=True, allow_nan=False) + "\n"
         _write_file(tmp / MANIFEST, text.encode())
-        _fsync_dir(tmp)
-        _swap_into_place(tmp, target, fmt)
-    finally:
-        if tmp.exists():  # an error before the swap, or the old checkpoint after an exchange
-            shutil.rmtree(tmp, ignore_errors=True)
     return target
 
 
@@ -232,27 +241,9 @@ def _sha256(data: bytes | memoryview) -> str:
     return hashlib.sha256(data).hexdigest()
 
 
-def _fsync_dir(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
 def _check_replaceable(target: Path, fmt: str) -> None:
-    """Refuse (ValueError) to replace anything at ``target`` but an empty directory or a
-    checkpoint of format ``fmt`` holding only its own files."""
-    if not os.path.lexists(target):
-        return
-    if target.is_symlink() or not target.is_dir():
-        raise ValueError(f"{target} is a link or not a directory: refusing to replace it")
-    cwd = Path.cwd().resolve()
-    if target.resolve() == cwd or target.resolve() in cwd.parents:
-        raise ValueError(f"{target} is the working directory or holds it: refusing to replace it")
-    entries = sorted(os.listdir(target))
-    if not entries:
-        return
+    """Refuse (ValueError) to replace anything at ``target`` but a checkpoint of format
+    ``fmt`` holding only its own files."""
     try:
         content = _read_manifest(target, fmt)
     except ValueError as err:
@@ -260,74 +251,12 @@ def _check_replaceable(target: Path, fmt: str) -> None:
             f"{target} exists and is not a readable checkpoint of format {fmt!r}: refusing "
             f"to replace it ({err})"
         ) from None
-    unlisted = sorted(set(entries) - set(content["files"]) - {MANIFEST})
+    unlisted = sorted(set(os.listdir(target)) - set(content["files"]) - {MANIFEST})
     if unlisted:
         raise ValueError(
             f"{target} holds files its manifest does not list ({unlisted[:5]}): refusing to "
             "replace it"
         )
-
-
-def _swap_into_place(tmp: Path, target: Path, fmt: str) -> None:
-    try:
-        os.rename(tmp, target)  # no checkpoint there yet (or an empty directory)
-    except OSError as err:
-        if err.errno not in (errno.ENOTEMPTY, errno.EEXIST):
-            raise
-        _check_replaceable(target, fmt)  # again: it may have changed since the first check
-        if not _exchange(tmp, target):  # tmp now holds the old checkpoint, removed by the caller
-            old = target.parent / f".{target.name}.old-{os.getpid()}-{uuid.uuid4().hex}"
-            os.rename(target, old)
-            try:
-                os.rename(tmp, target)
-            except BaseException:
-                os.rename(old, target)
-                raise
-            shutil.rmtree(old)
-    _fsync_dir(target.parent)
-
-
-def _exchange(a: Path, b: Path) -> bool:
-    """Swap two directory entries atomically (Linux ``renameat2(RENAME_EXCHANGE)``);
-    False where the platform or file system does not offer it."""
-    try:
-        libc = ctypes.CDLL(None, use_errno=True)
-        renameat2 = libc.renameat2
-    except (OSError, AttributeError):
-        return False
-    at_fdcwd, rename_exchange = -100, 2
-    if renameat2(at_fdcwd, os.fsencode(a), at_fdcwd, os.fsencode(b), rename_exchange) == 0:
-        return True
-    code = ctypes.get_errno()
-    if code in (errno.ENOSYS, errno.EINVAL, errno.ENOTSUP, errno.EOPNOTSUPP):
-        return False
-    raise OSError(code, os.strerror(code), str(b))
-
-
-def _remove_leftovers(target: Path) -> None:
-    """Remove the temporary siblings that killed saves to ``target`` left behind (their
-    process is gone); an ``.old-`` sibling is kept unless ``target`` holds a checkpoint."""
-    if not target.parent.is_dir():
-        return
-    for entry in os.listdir(target.parent):
-        m = _LEFTOVER.match(entry)
-        if m is None or m["name"] != target.name or _alive(int(m["pid"])):  # a live save
-            continue
-        if m["kind"] == "old" and not (target / MANIFEST).exists():
-            continue  # the only copy of the previous checkpoint: load() names it
-        shutil.rmtree(target.parent / entry, ignore_errors=True)
-
-
-def _alive(pid: int) -> bool:
-    if pid == os.getpid():  # this process saves one checkpoint at a time: ours are stale
-        return False
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
 
 
 # ------------------------------------------------------------------------- read
@@ -373,7 +302,7 @@ def read_checkpoint(
 def _missing_message(path: Path) -> str:
     hint = ""
     if path.parent.is_dir():
-        aside = [e for e in os.listdir(path.parent) if e.startswith(f".{path.name}.old-")]
+        aside = [e for e in os.listdir(path.parent) if e.startswith(f".{path.name}{OLD}")]
         if aside and not path.exists():
             hint = (
                 f"; an interrupted save left the previous checkpoint at {path.parent / aside[0]}"

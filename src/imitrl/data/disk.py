@@ -29,6 +29,7 @@ survive the process, not a power cut.
 from __future__ import annotations
 
 import ctypes
+import errno
 import fcntl
 import json
 import os
@@ -40,6 +41,7 @@ from tensordict import MemoryMappedTensor, TensorDict
 from torchrl.data.replay_buffers import LazyMemmapStorage
 
 from imitrl.compat import replace_storage_contents
+from imitrl.fs.disk_full import DiskFullError, is_disk_full, reporting_disk_full
 
 __all__ = ["LAYOUT", "DiskLayout", "GrowingMemmapStorage"]
 
@@ -101,17 +103,54 @@ class GrowingMemmapStorage(LazyMemmapStorage):
         super().__init__(int(capacity), scratch_dir=scratch_dir, existsok=False, auto_cleanup=False)
         self._unmapped_rows = 0  # rows written since the files were last mapped
         self._read_bytes = 0  # what random reads may have mapped since then
+        self._pending = 0  # rows the next write brings (their disk space is allocated first)
 
     def reserve(self, n: int) -> bool:
-        """Make room for ``n`` more rows; returns True if the storage grew."""
+        """Make room for ``n`` more rows, their disk space allocated (:meth:`allocate`);
+        returns True if the storage grew."""
         need = len(self) + int(n)
-        if need > self.max_size:
+        grew = need > self.max_size
+        if grew:
             self.map(max(2 * self.max_size, need))
-            return True
-        if self.initialized and self._unmapped_rows * self.row_bytes() > REMAP_BYTES:
+        elif self.initialized and self._unmapped_rows * self.row_bytes() > REMAP_BYTES:
             self.map(self.max_size)
-        self._unmapped_rows += int(n)
-        return False
+        self._unmapped_rows += 0 if grew else int(n)
+        self._pending = int(n)
+        if self.initialized:
+            self.allocate(len(self), self._pending)
+        return grew
+
+    def _init(self, data) -> None:
+        # LazyMemmapStorage creates its files at the first write, then writes through
+        # the mapping at once: the rows' disk space is allocated in between, so that a
+        # full disk is an error here instead of a SIGBUS at the write (torchrl 0.14.1's
+        # private hook; the files are TorchRL's, created sparse)
+        super()._init(data)
+        self.allocate(0, self._pending)
+
+    def allocate(self, first: int, n: int) -> None:
+        """Allocate the disk blocks of rows ``[first, first + n)`` in every file
+        (``posix_fallocate``): a row written through the mapping into a sparse file on a
+        full disk would kill the process with SIGBUS, where this raises
+        :class:`imitrl.fs.DiskFullError` naming the buffer, its rows untouched."""
+        if n <= 0 or not hasattr(os, "posix_fallocate"):
+            return
+        for tensor in self._storage.values(True, True):
+            row = tensor[0].nbytes
+            fd = os.open(tensor.filename, os.O_RDWR)
+            try:
+                os.posix_fallocate(fd, first * row, n * row)
+            except OSError as err:
+                if not is_disk_full(err):
+                    if err.errno in (errno.EOPNOTSUPP, errno.EINVAL, errno.ENOSYS):
+                        return  # a file system without it: writes fail as they would
+                    raise
+                where = Path(self.scratch_dir).parent
+                raise DiskFullError(
+                    where, f"{n} rows of a disk buffer", f"the buffer keeps its {first} rows"
+                ) from err
+            finally:
+                os.close(fd)
 
     def note_reads(self, n: int) -> None:
         """Count ``n`` randomly read rows; map the files again once they may have mapped
@@ -249,7 +288,13 @@ class DiskLayout:
         if body["schema"] is not None:
             body["schema"] = {k: [d, list(s)] for k, (d, s) in body["schema"].items()}
         tmp = self.path / f".{LAYOUT}.tmp-{os.getpid()}"
-        tmp.write_text(json.dumps(body, indent=1, sort_keys=True) + "\n")
+        left = f"{LAYOUT} keeps the previous count of rows"
+        with reporting_disk_full(self.path, what=f"a disk buffer's {LAYOUT}", left=left):
+            try:
+                tmp.write_text(json.dumps(body, indent=1, sort_keys=True) + "\n")
+            except BaseException:
+                tmp.unlink(missing_ok=True)
+                raise
         os.replace(tmp, self.path / LAYOUT)
 
 

@@ -23,6 +23,7 @@ import pyarrow.parquet as pq
 import torch
 
 from imitrl.datasets._common import TORCH_DTYPES, WIDEN, check_finite, exact_cast
+from imitrl.fs.contained import inside
 
 __all__ = [
     "array_shape",
@@ -198,9 +199,13 @@ def decode_images(
             if blob is not None:
                 img = Image.open(io.BytesIO(blob))
             elif paths is not None and paths[i]:
-                img = Image.open(root / paths[i])
+                img = Image.open(inside(root, paths[i], named_by=f"{where}, row {i}"))
             else:
                 raise ValueError("no bytes and no path")
+            if (img.height, img.width) not in ((shape[0], shape[1]), (shape[1], shape[2])):
+                raise ValueError(  # from the header: a huge declared image is never decoded
+                    f"{img.height}x{img.width} (height x width), declared {list(shape)}"
+                )
             pixels = np.asarray(img.convert("RGB") if img.mode not in ("L", "RGB") else img)
         except Exception as err:  # PIL raises assorted errors for broken images
             raise ValueError(f"{where}: frame {i} is not a decodable image ({err})") from err

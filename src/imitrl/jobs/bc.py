@@ -31,6 +31,7 @@ from torchrl.record.loggers import Logger
 from imitrl.algorithms import BCConfig, fit_bc
 from imitrl.data import DemonstrationBuffer, rollout_episodes
 from imitrl.envs import make_env
+from imitrl.fs.lock import exclusive
 from imitrl.jobs.checkpoint import save_run
 from imitrl.jobs.curves import LOGGERS, make_logger, plot_curves, scalars_dir
 from imitrl.jobs.evaluate import evaluate_returns, format_return
@@ -233,7 +234,15 @@ def finish(config: BCJob, name: str, learner: Learner, results: dict, setup: Set
 
 
 def run_bc(config: BCJob) -> dict:
-    """Behaviour cloning as ``config`` says (module docstring); returns what results.json holds."""
+    """Behaviour cloning as ``config`` says (module docstring); returns what results.json holds.
+
+    The run holds ``--out``'s lock (:func:`imitrl.fs.exclusive`): a second run writing the
+    same ``--out`` is refused at once."""
+    with exclusive(config.out, what="written by another imitrl run"):
+        return _run_bc(config)
+
+
+def _run_bc(config: BCJob) -> dict:
     start = time.perf_counter()
     setup = prepare(config, "bc")
     buffer = demonstrations(config, setup)

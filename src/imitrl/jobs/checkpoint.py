@@ -23,6 +23,7 @@ __all__ = [
     "CONFIG_FILE",
     "RESULTS_FILE",
     "WEIGHTS_FILE",
+    "checkpoint_env",
     "load_learner",
     "read_config",
     "save_run",
@@ -54,8 +55,14 @@ def save_run(out: Path, command: str, config: Any, learner: Learner, results: di
     (out / RESULTS_FILE).write_text(json.dumps(to_json(results), indent=2) + "\n")
 
 
+MAX_WIDTH = 1 << 16
+"""widest hidden layer a checkpoint's config may ask for (a downloaded config is hostile:
+it never makes ``imitrl eval`` allocate what it likes)"""
+
+
 def read_config(checkpoint: Path) -> dict:
-    """The saved job config (a dict of the ``bc`` / ``dagger`` flags)."""
+    """The saved job config (a dict of the ``bc`` / ``dagger`` flags), its fields checked
+    (a downloaded checkpoint is hostile until checked: :func:`_check_fields`)."""
     path = Path(checkpoint) / CONFIG_FILE
     if not path.is_file() or not (Path(checkpoint) / WEIGHTS_FILE).is_file():
         raise ValueError(
@@ -63,9 +70,54 @@ def read_config(checkpoint: Path) -> dict:
             "(the --out directory of imitrl bc or imitrl dagger)"
         )
     try:
-        return json.loads(path.read_text())["config"]
-    except (json.JSONDecodeError, KeyError) as err:
+        config = json.loads(path.read_text())["config"]
+    except (json.JSONDecodeError, KeyError, TypeError) as err:
         raise ValueError(f"{path}: not a config written by imitrl bc/dagger ({err})") from err
+    _check_fields(path, config)
+    return config
+
+
+def _check_fields(path: Path, config: Any) -> None:
+    """The fields ``imitrl eval`` rebuilds a learner from: what imitrl bc/dagger write."""
+    if not isinstance(config, dict):
+        raise ValueError(f"{path}: 'config' must be an object, got {type(config).__name__}")
+
+    def bad(field: str, expected: str) -> ValueError:
+        return ValueError(f"{path}: {field} must be {expected}, got {config.get(field)!r}")
+
+    for field in ("env", "loss"):
+        if not isinstance(config.get(field), str) or not config[field]:
+            raise bad(field, "a name")
+    hidden = config.get("hidden")
+    if not isinstance(hidden, list) or not all(
+        type(h) is int and 1 <= h <= MAX_WIDTH for h in hidden
+    ):
+        raise bad("hidden", f"a list of layer widths in [1, {MAX_WIDTH}]")
+    if type(config.get("seed")) is not int:
+        raise bad("seed", "an integer")
+    lr = config.get("lr")
+    if isinstance(lr, bool) or not isinstance(lr, int | float) or not 0 < lr < float("inf"):
+        raise bad("lr", "a positive number")
+    steps = config.get("max_episode_steps")
+    if steps is not None and (type(steps) is not int or steps < 1):
+        raise bad("max_episode_steps", "a positive integer or null")
+
+
+def checkpoint_env(checkpoint: Path, config: dict) -> str:
+    """The env id a checkpoint was trained on, when it names no code to import.
+
+    An id of the form ``module:Env-v0`` imports ``module`` to register the env; a
+    checkpoint is data, and loading it never runs code the user did not name, so such an
+    id must come from the command line (``--env``) instead (ValueError saying so)."""
+    env = config["env"]
+    if ":" in env:
+        module = env.split(":", 1)[0]
+        raise ValueError(
+            f"{Path(checkpoint) / CONFIG_FILE} names env {env!r}, which would import the "
+            f"module {module!r}; imitrl never imports code a checkpoint names. If you trust "
+            f"that module, name it yourself: --env {env}"
+        )
+    return env
 
 
 def load_learner(checkpoint: Path, env: EnvBase) -> Learner:

@@ -31,6 +31,7 @@ import torch
 from imitrl.algorithms import Constant, DAggerConfig, EnvSource, dagger
 from imitrl.algorithms.ray_source import RaySource
 from imitrl.envs import make_env
+from imitrl.fs.lock import exclusive
 from imitrl.jobs.bc import (
     BCJob,
     Setup,
@@ -89,7 +90,15 @@ class DAggerJob(BCJob):
 
 
 def run_dagger(config: DAggerJob) -> dict:
-    """DAgger as ``config`` says (module docstring); returns what results.json holds."""
+    """DAgger as ``config`` says (module docstring); returns what results.json holds.
+
+    The run holds ``--out``'s lock (:func:`imitrl.fs.exclusive`): a second run writing the
+    same ``--out`` is refused at once."""
+    with exclusive(config.out, what="written by another imitrl run"):
+        return _run_dagger(config)
+
+
+def _run_dagger(config: DAggerJob) -> dict:
     start = time.perf_counter()
     checkpoint = config.out / "run"
     if (checkpoint / "manifest.json").exists() and not config.resume:

@@ -89,7 +89,8 @@ class EvalJob:
     """what the function of --expert module:function is: builder (returns an expert
     module writing expert_action) or callable (a batched obs -> action function)"""
     env: str | None = None
-    """gymnasium id or module:Env-v0; none = the checkpoint's env"""
+    """gymnasium id or module:Env-v0; none = the checkpoint's env (a checkpoint naming
+    module:Env-v0 is refused: imitrl imports only the modules you name here)"""
     max_episode_steps: int | None = None
     """override the env's time limit; none = the checkpoint's (or the env's own limit)"""
     eval_episodes: int = 10
@@ -119,13 +120,13 @@ def run_eval(config: EvalJob) -> dict:
     from torchrl.envs.utils import ExplorationType
 
     from imitrl.envs import make_env
-    from imitrl.jobs.checkpoint import load_learner, read_config
+    from imitrl.jobs.checkpoint import checkpoint_env, load_learner, read_config
     from imitrl.jobs.resolve import make_expert
     from imitrl.policies import as_actor
 
     if config.checkpoint is not None:
         saved = read_config(config.checkpoint)
-        env_id = config.env or saved["env"]
+        env_id = config.env or checkpoint_env(config.checkpoint, saved)
         steps = config.max_episode_steps or saved["max_episode_steps"]
         specs = make_env(env_id, seed=0, max_episode_steps=steps)  # the learner's shapes
         learner = load_learner(config.checkpoint, specs)

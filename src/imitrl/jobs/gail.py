@@ -30,6 +30,7 @@ from imitrl.algorithms.adversarial import (
     airl,
     gail,
 )
+from imitrl.fs.lock import exclusive
 from imitrl.jobs.bc import (
     BCJob,
     Setup,
@@ -177,6 +178,11 @@ def _learner(config: GAILJob, setup: Setup, loss: str) -> ActorCritic:
 
 
 def _run(config: GAILJob, name: str) -> dict:
+    with exclusive(config.out, what="written by another imitrl run"):  # one run per --out
+        return _train(config, name)
+
+
+def _train(config: GAILJob, name: str) -> dict:
     start = time.perf_counter()
     setup = prepare(config.bc_view(config.loss), name)
     loss = _loss(config, setup)

@@ -55,7 +55,7 @@ episodes at a time, everything checked before the buffer is extended), ``_video`
 which mp4, and decoding them), ``_checks`` (what frames must satisfy: timestamps
 against ``fps``, ``frame_index``, ``task_index``, the checksums :func:`save_lerobot`
 records), ``_write`` (:func:`save_lerobot`: rows -> features, written atomically by
-``imitrl.datasets._publish``), ``_write_frames`` (the data files and per-episode
+``imitrl.fs.publish``), ``_write_frames`` (the data files and per-episode
 statistics, a slice of whole episodes at a time), ``_episode_table`` (the episode table,
 appended a slice at a time), ``_v3_files`` (the other files of a v3.0 directory),
 ``_stats`` (LeRobot's feature and image statistics, vectorised over episodes),

@@ -21,6 +21,7 @@ from typing import Any
 import torch
 
 from imitrl.datasets.lerobot._layout import SIDECAR
+from imitrl.fs.contained import inside
 
 TOLERANCE_S = 1e-4
 """LeRobot's timestamp tolerance (``LeRobotDataset``'s ``tolerance_s`` default)"""
@@ -60,9 +61,7 @@ def verify_files(root: Path, sidecar: dict) -> None:
     if not isinstance(files, dict):
         raise ValueError(f"{where}: 'files' must map file names to sizes and checksums")
     for name, recorded in files.items():
-        if ".." in Path(name).parts or Path(name).is_absolute():
-            raise ValueError(f"{where}: {name!r} is not a file of the dataset")
-        path = root / name
+        path = inside(root, name, named_by=str(where))
         if not path.is_file():
             raise ValueError(f"{path}: file not found (listed in {where})")
         if file_digest(path) != recorded:

@@ -22,6 +22,7 @@ import pyarrow.parquet as pq
 from imitrl import keys
 from imitrl.datasets._arrow import check_schema, read_parquet
 from imitrl.datasets._common import NestedKey, key_name
+from imitrl.fs.contained import inside, links_stay_inside
 
 DEFAULT_KEY_MAP: dict[str, NestedKey] = {
     "observation.state": keys.OBSERVATION,
@@ -162,14 +163,24 @@ def _hub_snapshot(repo_dir: Path, revision: str | None) -> Path | None:
 def dataset_root(
     path_or_repo: str | Path, revision: str | None, cache_dir: str | Path | None
 ) -> Path:
-    """The dataset directory: ``path_or_repo`` itself, or a ``repo_id`` resolved locally."""
-    path = Path(path_or_repo)
+    """The dataset directory: ``path_or_repo`` itself, or a ``repo_id`` resolved locally;
+    refused when a symbolic link in it points outside it
+    (:func:`imitrl.fs.contained.links_stay_inside`)."""
+    root = _find_root(path_or_repo, revision, cache_dir)
+    links_stay_inside(root, what="dataset")
+    return root
+
+
+def _find_root(
+    path_or_repo: str | Path, revision: str | None, cache_dir: str | Path | None
+) -> Path:
+    path = Path(path_or_repo).expanduser()
     if path.is_dir():
         return path
     if isinstance(path_or_repo, str) and re.fullmatch(r"[\w.-]+/[\w.-]+", path_or_repo):
         return resolve_lerobot_root(path_or_repo, revision=revision, cache_dir=cache_dir)
     aside = sorted(path.parent.glob(f".{path.name}.imitrl-old-*")) if path.name else []
-    if aside:  # a save_lerobot killed between its two renames (imitrl.datasets._publish)
+    if aside:  # a save_lerobot killed between its two renames (imitrl.fs.publish)
         raise ValueError(
             f"{path}: no such dataset directory; a killed save_lerobot left the previous one "
             f"beside it as {aside[0].name}: the next save_lerobot to {path.name} moves it back"
@@ -226,6 +237,7 @@ def read_info(root: Path) -> tuple[dict, int]:
     if not isinstance(info["features"], dict):
         raise ValueError(f"{path}: 'features' must map feature names to descriptions")
     for name, ft in info["features"].items():
+        _check_feature_name(path, name)
         if not isinstance(ft, dict) or not isinstance(ft.get("dtype"), str):
             raise ValueError(f"{path}: feature {name!r} needs a dtype and a shape, got {ft!r}")
         shape = ft.get("shape")
@@ -238,24 +250,81 @@ def read_info(root: Path) -> tuple[dict, int]:
     return info, major
 
 
+def _check_feature_name(path: Path, name: str) -> None:
+    """A feature name is a dotted name: LeRobot joins it with ``/`` into the episode
+    table's columns (``videos/<feature>/...``, ``stats/<feature>/...``), so ``/`` can be
+    none of its characters; nor ``\\``, a NUL or a control character, and it is never
+    ``.`` or ``..``: a camera's name becomes a file name (``decode_dir``)."""
+    if (
+        not name
+        or name in (".", "..")
+        or any(c in name for c in "/\\")
+        or any(ord(c) < 32 for c in name)
+    ):
+        raise ValueError(
+            f"{path}: feature name {name!r} is not a LeRobot feature name (a dotted name "
+            "without '/', '\\' or control characters)"
+        )
+
+
 def episode_table(root: Path, info: dict, major: int) -> pa.Table:
     """The episode table in episode order, only the columns a load reads (never the
     statistics): ``episode_index``, ``length``; v3.0 ``data/chunk_index``,
     ``data/file_index``, ``dataset_from_index``/``dataset_to_index`` where a file has them
     (null where another file lacks them) and each camera's ``videos/...``; v2.x ``chunk``.
-    Checked against ``info.json``'s ``total_episodes`` and for repeated indices. Arrow
-    columns: a few numbers per episode, no Python object per episode."""
-    table = _episodes_v3(root) if major == 3 else _episodes_v2(root, info)
+    Arrow columns: a few numbers per episode, no Python object per episode.
+
+    Checked before anything per episode is built, so that a table declaring more
+    episodes than the data holds is refused in a moment: the number of episodes against
+    the frames the data files hold (read from their footers; v2.x: against its episode
+    files) before the table is read, then every length >= 1 (LeRobot refuses to save an
+    empty episode), ``info.json``'s ``total_episodes``, repeated indices. So the episodes,
+    and what is built per episode afterwards, never outnumber the frames on disk.
+    """
+    held = _frames_held(root, major)
+    if major == 3:
+        table = _episodes_v3(root, held)
+    else:
+        table = _episodes_v2(root, info, held)
     total = info.get("total_episodes")
     if total is not None and total != table.num_rows:
         raise ValueError(
             f"{root / 'meta' / 'info.json'} declares {total} episodes, the episode metadata lists "
             f"{table.num_rows}"
         )
+    lengths = table.column("length").to_numpy()
+    short = np.flatnonzero(lengths < 1)
+    if len(short):
+        e = int(table.column("episode_index")[int(short[0])].as_py())
+        raise ValueError(
+            f"{root / 'meta'}: episode {e} has length {int(lengths[short[0]])} ({len(short)} "
+            "episode(s) below 1 frame); every LeRobot episode holds at least one frame"
+        )
     ids = table.column("episode_index").to_numpy()
-    if len(np.unique(ids)) != len(ids):
-        raise ValueError(f"{root / 'meta'}: episode indices repeat: {ids.tolist()}")
+    unique, counts = np.unique(ids, return_counts=True)
+    if len(unique) != len(ids):
+        again = unique[counts > 1][:10].tolist()
+        raise ValueError(f"{root / 'meta'}: episode indices repeat (first: {again})")
     return table
+
+
+def _frames_held(root: Path, major: int) -> int | None:
+    """v3.0: the frames in ``data/*/*.parquet``, from the files' footers; v2.x: the
+    number of parquet files under ``data/``, one per episode; None if ``data/`` is
+    absent (reported where the data is read)."""
+    if not (root / "data").is_dir():
+        return None
+    if major != 3:
+        return sum(1 for _ in (root / "data").rglob("*.parquet"))
+    return sum(rows_in(f) for f in sorted((root / "data").glob("*/*.parquet")))
+
+
+def _too_many(root: Path, where: Path, declared: int, held: int | None, of: str) -> None:
+    if held is not None and declared > held:
+        raise ValueError(
+            f"{where}: lists {declared} episodes, the data holds {held} {of}; every episode "
+            "holds at least one frame (refused before the table is read)"
+        )
 
 
 def episode_dicts(table: pa.Table) -> list[dict]:
@@ -278,13 +347,14 @@ def data_file(root: Path, info: dict, major: int, ep: dict) -> str:
     return fill_template(root, info, "data_path", episode_chunk=ep["chunk"], episode_index=e)
 
 
-def _episodes_v3(root: Path) -> pa.Table:
+def _episodes_v3(root: Path, held: int | None) -> pa.Table:
     ep_dir = root / "meta" / "episodes"
     files = sorted(ep_dir.glob("*/*.parquet"))
     if not files:
         raise ValueError(
             f"{ep_dir}: no episode metadata files (meta/episodes/chunk-*/file-*.parquet)"
         )
+    _too_many(root, ep_dir, sum(rows_in(f) for f in files), held, "frames")
     need = ["episode_index", "length", "data/chunk_index", "data/file_index"]
     optional = ["dataset_from_index", "dataset_to_index"]
     tables = []
@@ -313,8 +383,12 @@ def _episodes_v3(root: Path) -> pa.Table:
     return table.sort_by("episode_index").combine_chunks()
 
 
-def _episodes_v2(root: Path, info: dict) -> pa.Table:
+def _episodes_v2(root: Path, info: dict, held: int | None) -> pa.Table:
     path = root / "meta" / "episodes.jsonl"
+    if path.is_file():
+        with open(path, "rb") as f:
+            lines = sum(1 for line in f if line.strip())
+        _too_many(root, path, lines, held, "episode files")
     episodes = _read_jsonl(path)
     for ep in episodes:
         for field in ("episode_index", "length"):
@@ -336,19 +410,22 @@ def _episodes_v2(root: Path, info: dict) -> pa.Table:
 
 def fill_template(root: Path, info: dict, field: str, **fields: int | str) -> str:
     """``info.json``'s path template ``field`` (``data_path``, ``video_path``) filled in,
-    naming the template when it breaks."""
+    naming the template when it breaks; a path out of the dataset folder (absolute,
+    ``..``, a link out) is refused (:func:`imitrl.fs.contained.inside`)."""
     template = info.get(field)
     if not isinstance(template, str):
         raise ValueError(
             f"{root / 'meta' / 'info.json'}: {field} must be a path template, got {template!r}"
         )
     try:
-        return template.format(**fields)
+        filled = template.format(**fields)
     except (KeyError, IndexError, ValueError, AttributeError, TypeError) as err:
         raise ValueError(
             f"{root / 'meta' / 'info.json'}: {field} {template!r} cannot be filled "
             f"with {sorted(fields)} ({type(err).__name__}: {err})"
         ) from err
+    inside(root, filled, named_by=f"meta/info.json's {field} {template!r}")
+    return filled
 
 
 def read_tasks(root: Path, major: int) -> list[str]:

@@ -24,7 +24,8 @@ from __future__ import annotations
 
 import math
 import os
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -35,6 +36,8 @@ import torch
 from imitrl.datasets._common import NestedKey
 from imitrl.datasets.lerobot._checks import TOLERANCE_S
 from imitrl.datasets.lerobot._layout import IMAGE_NAMES, fill_template
+from imitrl.fs.contained import plain_name
+from imitrl.fs.disk_full import reporting_disk_full
 
 INSTALL_HINT = "pip install 'imitrl[datasets]' (or: pip install av)"
 
@@ -176,7 +179,6 @@ def _decode_file(
 ) -> None:
     """Decode ``path`` front to back into the frames' rows (uint8 ``[N, H, W, 3]``), each
     wanted timestamp taking the frame within :data:`TOLERANCE_S` of it."""
-    av = import_av()
     if not path.is_file():
         raise ValueError(
             f"{path}: file not found (video feature {name!r} of episode(s) {wanted.episodes})"
@@ -190,33 +192,24 @@ def _decode_file(
     owners = [torch.full((len(r),), e) for r, e in zip(wanted.rows, wanted.episodes)]
     owner = torch.cat(owners)[order].tolist()
     j, last, after = 0, None, None
-    try:
-        with av.open(str(path)) as container:
-            if not container.streams.video:
-                raise ValueError(f"{path}: holds no video stream (video feature {name!r})")
-            stream = container.streams.video[0]
-            _check_size(path, name, (stream.height, stream.width), size)
-            time_base = float(stream.time_base)
-            for frame in container.decode(stream):
-                if frame.pts is None:
-                    continue
-                t = frame.pts * time_base
-                if want[j] < t - TOLERANCE_S:
-                    after = t  # frames are in time order: want[j] has none
-                    break
-                if want[j] <= t + TOLERANCE_S:
-                    image = np.ascontiguousarray(frame.to_ndarray(format="rgb24"))
-                    _check_size(path, name, image.shape[:2], size)
-                    while j < len(want) and want[j] <= t + TOLERANCE_S:
-                        out.put(dest[j], image)
-                        j += 1
-                    if j == len(want):
-                        return
-                last = t
-    except av.error.FFmpegError as err:
-        raise ValueError(
-            f"{path}: not a readable video (video feature {name!r}; {type(err).__name__}: {err})"
-        ) from err
+    with _stream(path, name, size) as (container, stream):
+        time_base = float(stream.time_base)
+        for frame in container.decode(stream):
+            if frame.pts is None:
+                continue
+            t = frame.pts * time_base
+            if want[j] < t - TOLERANCE_S:
+                after = t  # frames are in time order: want[j] has none
+                break
+            if want[j] <= t + TOLERANCE_S:
+                image = np.ascontiguousarray(frame.to_ndarray(format="rgb24"))
+                _check_size(path, name, image.shape[:2], size)
+                while j < len(want) and want[j] <= t + TOLERANCE_S:
+                    out.put(dest[j], image)
+                    j += 1
+                if j == len(want):
+                    return
+            last = t
     if after is not None:
         before = "none" if last is None else f"{last:.6g} s"
         found = f"its frames nearest to it are at {before} and {after:.6g} s"
@@ -227,6 +220,34 @@ def _decode_file(
         f"(within {TOLERANCE_S} s, LeRobot's tolerance); {found}: the video is shorter than "
         "the episode's timestamps, or they disagree"
     )
+
+
+@contextmanager
+def _stream(path: Path, name: str, size: tuple[int, int]) -> Iterator[tuple[Any, Any]]:
+    """``(container, its first video stream)`` of ``path``, open, the stream's frame size
+    checked against ``size`` from its header; PyAV's errors become ValueErrors naming it."""
+    av = import_av()
+    try:
+        with av.open(str(path)) as container:
+            if not container.streams.video:
+                raise ValueError(f"{path}: holds no video stream (video feature {name!r})")
+            stream = container.streams.video[0]
+            _check_size(path, name, (stream.height, stream.width), size)
+            yield container, stream
+    except av.error.FFmpegError as err:
+        raise ValueError(
+            f"{path}: not a readable video (video feature {name!r}; {type(err).__name__}: {err})"
+        ) from err
+
+
+def _probe(path: Path, name: str, size: tuple[int, int], episodes: list[int]) -> None:
+    """The first video stream of ``path`` has frames of ``size`` (read from its header)."""
+    if not path.is_file():
+        raise ValueError(
+            f"{path}: file not found (video feature {name!r} of episode(s) {episodes})"
+        )
+    with _stream(path, name, size):
+        pass
 
 
 def _check_size(path: Path, name: str, got: tuple[int, int], size: tuple[int, int]) -> None:
@@ -263,12 +284,23 @@ def decode_videos(
     done: list[_Frames] = []
     for name, key in cameras.items():
         size = frame_size(root, name, info["features"][name])
-        where = None if decode_dir is None else Path(decode_dir) / f"{name}.uint8"
+        where = None
+        if decode_dir is not None:  # the feature's name, never a path the dataset picks
+            where = Path(decode_dir) / plain_name(
+                f"{name}.uint8", what="decoded frames of feature", where=str(root)
+            )
+        located = _locate(root, info, major, name, episodes, times)
+        if located:  # the declared size, checked on a file before any memory is taken
+            first, wanted = next(iter(located.items()))
+            _probe(first, name, size, wanted.episodes)
         frames = _Frames((len(times), *size, 3), where)
         done.append(frames)
         try:
-            for path, wanted in _locate(root, info, major, name, episodes, times).items():
-                _decode_file(path, name, wanted, frames, size)
+            with reporting_disk_full(
+                where or Path("."), what="decoded frames", left="the partial file is removed"
+            ):
+                for path, wanted in located.items():
+                    _decode_file(path, name, wanted, frames, size)
         except BaseException:
             for failed in done:  # nothing is left half-loaded, on disk either
                 failed.close(remove=True)

@@ -8,7 +8,7 @@ mp4 stream per camera: :mod:`~imitrl.datasets.lerobot._video_write`), so that me
 not grow with the number of rows (a disk buffer's rows are read from its files), and
 written into a temporary directory that becomes ``path`` only once every file is
 complete, atomically and with one writer per path
-(:func:`~imitrl.datasets._publish.publishing`).
+(:func:`~imitrl.fs.publish.publishing`).
 """
 
 from __future__ import annotations
@@ -27,7 +27,6 @@ from imitrl.data.buffer import DemonstrationBuffer
 from imitrl.data.disk import release_pages
 from imitrl.datasets._arrow import array_shape
 from imitrl.datasets._common import NUMPY_NAMES, key_name
-from imitrl.datasets._publish import publishing
 from imitrl.datasets.lerobot._layout import (
     BOOKKEEPING,
     DATASET_ENTRIES,
@@ -39,6 +38,7 @@ from imitrl.datasets.lerobot._layout import (
 from imitrl.datasets.lerobot._v3_files import write_v3
 from imitrl.datasets.lerobot._video_write import MIN_SIDE, import_av
 from imitrl.datasets.lerobot._write_frames import Column, Episodes, Plan, pixels_of
+from imitrl.fs.publish import publishing
 
 
 # -------------------------------------------------------------- features
@@ -377,4 +377,4 @@ def save_lerobot(
             chunks_size=chunks_size,
             video_files_size_in_mb=video_files_size_in_mb,
         )
-    return Path(path)
+    return Path(path).expanduser()

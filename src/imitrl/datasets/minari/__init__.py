@@ -27,6 +27,7 @@ from imitrl.datasets.minari._episodes import check_episode, check_steps, episode
 from imitrl.datasets.minari._hdf5 import MAIN_FILE
 from imitrl.datasets.minari._source import METADATA_FILE, open_episodes
 from imitrl.datasets.minari._stream import stream_into
+from imitrl.fs.contained import links_stay_inside
 
 __all__ = ["load_minari", "resolve_minari_root"]
 
@@ -37,7 +38,7 @@ def resolve_minari_root(path_or_id: str | Path) -> Path:
 
     Raises:
         ValueError: nothing holding ``main_data.hdf5`` or ``metadata.json`` found (the
-            message lists where it looked).
+            message lists where it looked); a symbolic link in the dataset points outside it.
     """
     path = Path(path_or_id)
     candidates = [path, path / "data"]
@@ -46,6 +47,8 @@ def resolve_minari_root(path_or_id: str | Path) -> Path:
         candidates += [base / path / "data"]
     for c in candidates:
         if (c / MAIN_FILE).is_file() or (c / METADATA_FILE).is_file():
+            # every file it reads lies inside the dataset (a link out is refused)
+            links_stay_inside(c, what="dataset")
             return c
     raise ValueError(
         f"no Minari dataset at {path_or_id!r} (looked for {MAIN_FILE} or {METADATA_FILE} in "

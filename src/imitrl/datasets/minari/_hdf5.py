@@ -6,6 +6,11 @@
                                     rewards [T], terminations [T], truncations [T], infos/...
 
 (Minari < 0.5 kept the dataset's metadata in the file's root attributes: read too.)
+
+Everything is reached through hard links (:func:`node`): HDF5 can also name data in
+other files (external links, virtual datasets, external raw storage), which would make
+a downloaded file read outside its folder, and Minari writes none of them: each is
+refused by name.
 """
 
 from __future__ import annotations
@@ -25,17 +30,41 @@ MAIN_FILE = "main_data.hdf5"
 _FIELDS = ("observations", "actions", "rewards", "terminations", "truncations")
 
 
+def node(group: Any, name: str, where: str) -> Any:
+    """``group[name]``, reached through a hard link, and when it is a dataset, one whose
+    values are stored in this file; ValueError naming it otherwise (see the module
+    docstring)."""
+    import h5py
+
+    link = group.get(name, getlink=True)
+    if link is None:
+        raise ValueError(f"{where} is missing")
+    if not isinstance(link, h5py.HardLink):
+        kind = type(link).__name__
+        raise ValueError(
+            f"{where} is an HDF5 {kind} (to {getattr(link, 'filename', '')}"
+            f"{getattr(link, 'path', '')}); a Minari file holds its data itself, and a "
+            "downloaded file never makes this loader read another"
+        )
+    found = group[name]
+    if isinstance(found, h5py.Dataset) and (found.is_virtual or found.external):
+        raise ValueError(
+            f"{where} is a dataset stored in other files (virtual or external storage); a "
+            "Minari file holds its data itself, and a downloaded file never makes this "
+            "loader read another"
+        )
+    return found
+
+
 class _Groups:
     """A space's values in HDF5: a group per Dict key / Tuple entry, a dataset per leaf."""
 
-    def child(self, node: Any, name: str, kind: str, where: str) -> Any:
+    def child(self, parent: Any, name: str, kind: str, where: str) -> Any:
         import h5py
 
-        if not isinstance(node, h5py.Group):
+        if not isinstance(parent, h5py.Group):
             raise ValueError(f"{where.rsplit('/', 1)[0]} should be a group for a {kind} space")
-        if name not in node:
-            raise ValueError(f"{where} is missing")
-        return node[name]
+        return node(parent, name, where)
 
     def leaf(self, node: Any, space: dict, jpeg: bool, where: str) -> Any:
         import h5py
@@ -87,19 +116,24 @@ def list_groups(h5, meta: dict[str, Any], where: str) -> EpisodeList:
 def _array(group, field: str, here: str) -> np.ndarray:
     import h5py
 
-    node = group[field]
-    if not isinstance(node, h5py.Dataset):
+    found = node(group, field, f"{here}/{field}")
+    if not isinstance(found, h5py.Dataset):
         raise ValueError(f"{here}/{field} should be a dataset")
-    return np.asarray(node[()])
+    return np.asarray(found[()])
 
 
-def _infos(node, path: str) -> list[str]:
-    """Paths of the datasets under ``node`` (itself, when it is one: infos stored whole)."""
+def _infos(group, path: str, here: str) -> list[str]:
+    """Paths of the datasets under ``group`` (itself, when it is one: infos stored whole);
+    only names are read."""
     import h5py
 
-    if not isinstance(node, h5py.Group):
+    if not isinstance(group, h5py.Group):
         return [path]
-    return [leaf for name, sub in node.items() for leaf in _infos(sub, f"{path}/{name}")]
+    return [
+        leaf
+        for name in group.keys()
+        for leaf in _infos(node(group, name, f"{here}/{path}/{name}"), f"{path}/{name}", here)
+    ]
 
 
 def _read_group(
@@ -115,12 +149,14 @@ def _read_group(
         raise ValueError(f"{here}: attrs id={int(recorded)} contradicts the group's name")
     declared = group.attrs.get("total_steps")
     common = {"storage": _Groups(), "jpeg": jpeg, "skipped": skipped, "where": here}
-    obs = decode(group["observations"], spaces[0], "observations", **common)
-    act = decode(group["actions"], spaces[1], "actions", **common)
+    obs = decode(
+        node(group, "observations", f"{here}/observations"), spaces[0], "observations", **common
+    )
+    act = decode(node(group, "actions", f"{here}/actions"), spaces[1], "actions", **common)
     if obs is None or act is None:
         raise ValueError(f"{here}: observations and actions must be numeric")
     if "infos" in group:
-        for leaf in _infos(group["infos"], "infos"):
+        for leaf in _infos(node(group, "infos", f"{here}/infos"), "infos", here):
             skipped[leaf] = "per-step infos are not loaded"
     return Steps(
         name=here,
@@ -146,6 +182,7 @@ def read_group(
     """The ``e``-th episode group of the open file (one group read: its datasets only)."""
     name = listing.name(e)
     try:
-        return _read_group(h5[name], name, int(listing.ids[e]), spaces, jpeg, skipped, where)
+        group = node(h5, name, f"{where}: {name}")
+        return _read_group(group, name, int(listing.ids[e]), spaces, jpeg, skipped, where)
     except (OSError, KeyError, RuntimeError) as err:  # h5py's errors for a damaged file
         raise ValueError(f"{where}: unreadable HDF5 data ({type(err).__name__}: {err})") from err

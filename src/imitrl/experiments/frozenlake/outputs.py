@@ -1,28 +1,29 @@
 """Where the study writes: a staging folder beside ``--out``, moved into place when the run completes.
 
-A run writes into ``.<name>.partial-<pid>-<token>`` next to ``--out`` and renames
-it to ``--out`` only once report.txt, results.json and every figure are written, so
-an interrupted run (an exception, Ctrl-C, a kill) leaves the previous results whole
-and nothing at ``--out`` that looks finished. A previous run at ``--out`` is first
-renamed aside to ``.<name>.previous-<pid>-<token>``, then removed once the new
-results are in place.
+A run writes into a fresh folder beside ``--out`` and swaps it in only once report.txt,
+results.json and every figure are written (:func:`staged`, on
+:func:`imitrl.fs.publish.publishing`: the path's lock for the whole run, an atomic
+exchange with the previous results), so an interrupted run (an exception, Ctrl-C, a
+kill) leaves the previous results whole and nothing at ``--out`` that looks finished,
+and a second run given the same ``--out`` while one runs is refused at once.
 
 Only a folder the study wrote (its file names, a ``results.json`` with the study's
 config) or an empty one is ever replaced; anything else at ``--out`` is refused.
-The next run removes the staging folders of runs no longer alive, and puts back
-a previous run that a kill between the two renames left aside.
+The next run removes what a killed run left beside ``--out`` (with a warning).
 """
 
 from __future__ import annotations
 
 import json
 import os
-import secrets
-import shutil
-import sys
+import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
-__all__ = ["FIGURES", "OUTPUT_FILES", "discard", "install", "is_study_output", "prepare"]
+from imitrl.fs.publish import publishing
+
+__all__ = ["FIGURES", "OUTPUT_FILES", "is_study_output", "staged"]
 
 FIGURES = (
     "chain",
@@ -39,8 +40,6 @@ FIGURES = (
 """The figures a run may draw, each ``<name>.png``."""
 OUTPUT_FILES = frozenset({"report.txt", "results.json", *(f"{f}.png" for f in FIGURES)})
 """Every file name a run writes into ``--out``."""
-
-_PARTIAL, _PREVIOUS = "partial", "previous"
 
 
 def _refusal(out: Path) -> str | None:
@@ -75,49 +74,21 @@ def is_study_output(out: Path) -> bool:
     return Path(out).is_dir() and _refusal(Path(out)) is None
 
 
-def _sibling(out: Path, kind: str) -> Path:
-    return out.parent / f".{out.name}.{kind}-{os.getpid()}-{secrets.token_hex(4)}"
+def _replaceable(out: Path) -> None:
+    reason = _refusal(out)  # checked again: the folder may have changed during the run
+    if reason is not None:
+        raise ValueError(reason)
 
 
-def _owner_alive(path: Path) -> bool:
-    """Whether the run that named ``path`` (``...-<pid>-<token>``) may still be running."""
-    try:
-        pid = int(path.name.rsplit("-", 2)[-2])
-    except (IndexError, ValueError):
-        return True  # not one of ours: leave it
-    if pid == os.getpid() or os.name != "posix":
-        return True
-    try:
-        os.kill(pid, 0)  # signal 0: existence check only
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
-
-
-def _tidy(out: Path) -> None:
-    """Remove the staging folders of dead runs; put back a previous run one left aside."""
-    pattern = f".{out.name}.{{}}-*"
-    for path in sorted(out.parent.glob(pattern.format(_PARTIAL))):
-        if path.is_dir() and not _owner_alive(path):
-            shutil.rmtree(path, ignore_errors=True)
-            print(f"removed {path}, the unfinished output of an interrupted run", file=sys.stderr)
-    aside = [p for p in out.parent.glob(pattern.format(_PREVIOUS)) if not _owner_alive(p)]
-    for path in sorted(aside, key=lambda p: p.stat().st_mtime, reverse=True):
-        if not out.exists() and not out.is_symlink():
-            path.rename(out)
-            print(f"put back {out}, left aside by a run killed while replacing it", file=sys.stderr)
-        else:
-            shutil.rmtree(path, ignore_errors=True)
-
-
-def prepare(out: Path) -> Path:
-    """Check ``out`` can take the results, tidy leftovers, create the staging folder.
+@contextmanager
+def staged(out: Path) -> Iterator[Path]:
+    """Check ``out`` can take the results; yield the staging folder, swapped in for
+    ``out`` when the block ends without error (removed otherwise).
 
     Raises:
         ValueError: ``out`` is a file, a link, a folder the study did not write, the
-            working directory (or holds it), or no folder can be created beside it.
+            working directory (or holds it), no folder can be created beside it, or
+            another run is writing it.
     """
     out = Path(out)
     if out.resolve() in (Path.cwd(), *Path.cwd().parents):
@@ -128,38 +99,15 @@ def prepare(out: Path) -> Path:
     above = next(p for p in out.absolute().parents if p.exists())
     if not above.is_dir():
         raise ValueError(f"--out {out} is under {above}, a file: give a folder")
-    staging = _sibling(out, _PARTIAL)
-    try:
+    try:  # a folder can be made beside it (the staging folder will be)
         out.parent.mkdir(parents=True, exist_ok=True)
-        _tidy(out)
-        staging.mkdir()
+        os.rmdir(tempfile.mkdtemp(prefix=f".{out.name}.probe-", dir=out.parent))
     except OSError as err:
         raise ValueError(
             f"--out {out}: cannot create the output folder beside it "
-            f"({err.strerror or err}: {err.filename or staging})"
+            f"({err.strerror or err}: {err.filename or out.parent})"
         ) from err
-    return staging
-
-
-def install(staging: Path, out: Path) -> None:
-    """Move the finished ``staging`` folder to ``out``, replacing a previous run there."""
-    out = Path(out)
-    reason = _refusal(out)  # checked again: the folder may have changed during the run
-    if reason is not None:
-        raise ValueError(reason)
-    if not out.exists():
-        staging.rename(out)
-        return
-    aside = _sibling(out, _PREVIOUS)
-    out.rename(aside)
-    try:
-        staging.rename(out)
-    except OSError:
-        aside.rename(out)  # put the previous results back before reporting the failure
-        raise
-    shutil.rmtree(aside, ignore_errors=True)
-
-
-def discard(staging: Path) -> None:
-    """Remove an unfinished staging folder."""
-    shutil.rmtree(staging, ignore_errors=True)
+    with publishing(
+        out, overwrite=True, replaceable=_replaceable, what="the study's results", empty_ok=True
+    ) as staging:
+        yield staging

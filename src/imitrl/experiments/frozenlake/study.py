@@ -157,8 +157,7 @@ def run_study(config: StudyConfig, *, echo: bool = True) -> dict:
     """
     t0 = time.perf_counter()
     mdp = _mdp(config)
-    staging = outputs.prepare(config.out)
-    try:
+    with outputs.staged(config.out) as staging:  # Ctrl-C included: nothing half-written lands
         ctx = _context(config, mdp, staging, echo)
         _header(ctx)
         timing: dict[str, float] = {}
@@ -168,8 +167,4 @@ def run_study(config: StudyConfig, *, echo: bool = True) -> dict:
             timing[name] = time.perf_counter() - ts
         timing["total"] = time.perf_counter() - t0
         _write_outputs(ctx.report, timing, config.out)
-        outputs.install(staging, config.out)
-    except BaseException:  # Ctrl-C included: nothing half-written reaches config.out
-        outputs.discard(staging)
-        raise
     return ctx.report.results
