@@ -121,6 +121,8 @@ def figure(results: dict, cfg, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from imitrl.plotting import save_figure
+
     tasks = list(results["tasks"].items())
     fig, axes = plt.subplots(1, len(tasks), figsize=(4 * len(tasks), 3.4), squeeze=False)
     rounds = list(range(cfg.relabel_rounds + 1))
@@ -149,5 +151,5 @@ def figure(results: dict, cfg, path: Path) -> None:
     axes[0][0].set_ylabel("normalised return")
     axes[0][0].legend(fontsize=7, loc="lower right")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path, dpi=110)  # every label on the canvas
     plt.close(fig)

@@ -196,6 +196,8 @@ def figure(results: dict, path: Path) -> None:
     import matplotlib.pyplot as plt
     from matplotlib.ticker import FuncFormatter, NullFormatter
 
+    from imitrl.plotting import save_figure
+
     data = curves(results)
     thr = results["config"]["threshold"]
     fig, axes = plt.subplots(2, len(data), figsize=(4 * len(data), 6.6), squeeze=False)
@@ -237,5 +239,5 @@ def figure(results: dict, path: Path) -> None:
             handles.setdefault(lab, h)
     fig.legend(handles.values(), handles.keys(), loc="lower center", ncol=len(handles), fontsize=8)
     fig.tight_layout(rect=(0, 0.05, 1, 1))
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path, dpi=110)  # every label on the canvas
     plt.close(fig)

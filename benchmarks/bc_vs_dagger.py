@@ -230,8 +230,17 @@ def run_seed(task: Task, seed: int, cfg: Config) -> dict:
         eval_env.set_seed(eval_seed)
         return float(returns(eval_env, policy, n, exploration=DET, max_steps=limit).mean())
 
+    gap = expert_return - random_return
+    if gap == 0:  # nothing to normalise by: say so instead of printing nan
+        print(
+            f"{task.env_id} seed {seed}: the expert and the random policy both return "
+            f"{expert_return:.4g} over {n} episodes of at most {limit} steps, so normalised "
+            "scores are undefined (nan); the episodes are too short for the expert to differ "
+            "(give a larger --max-episode-steps)",
+            file=sys.stderr,
+        )
+
     def normalise(r: float) -> float:
-        gap = expert_return - random_return
         return (r - random_return) / gap if gap != 0 else float("nan")
 
     # -- DAgger; its round 0 is BC on the demonstration

@@ -347,6 +347,8 @@ def figure(results: dict, cfg: Config, path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from imitrl.plotting import save_figure
+
     fig, ax = plt.subplots(figsize=(5, 3.2))
     for r in results["study"]["seeds"]:
         last = len(r["dagger_scores"]) - 1
@@ -359,7 +361,7 @@ def figure(results: dict, cfg: Config, path) -> None:
     ax.set_title("Hilltop from pixels, privileged state expert", fontsize=10)
     ax.legend(fontsize=7, loc="lower right")
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    save_figure(fig, path, dpi=120)  # every label on the canvas
     plt.close(fig)
 
 

@@ -217,7 +217,7 @@ for ax, (eps, T_max) in zip(axes, [(0.05, 10), (0.01, 64)]):
     print(
         f"lost return at T={T_max}: cloned {gap_bc[-1]:.2f} (eps T^2/2 = {eps * T_max**2 / 2:.2f}), recovering {gap_rec[-1]:.2f} (eps T = {eps * T_max:.2f}); exact {exact_bc[-1]:.3f}"
     )
-fig.savefig(args.out / "chain.png")
+fig.savefig(args.out / "chain.png", bbox_inches="tight")  # no label cut off
 plt.close(fig)
 
 d_exp, d_clo = distributions(pi_star, 20), distributions(clone_table, 20)
@@ -236,7 +236,7 @@ for ax, occ, tab, title in zip(
             dx, dy = {0: (-1, 0), 1: (0, 1), 2: (1, 0), 3: (0, -1)}[int(tab[s])]
             ax.arrow(s % 4, s // 4, 0.3 * dx, 0.3 * dy, head_width=0.15)
     ax.set_title(f"{title} occupancy")
-fig.savefig(args.out / "occupancy.png")
+fig.savefig(args.out / "occupancy.png", bbox_inches="tight")  # no label cut off
 plt.close(fig)
 
 env.reset(seed=4)
@@ -255,7 +255,7 @@ dagger(demo_s, demo_a, on_fit=on_fit)
 fig, ax = plt.subplots()
 ax.plot(dagger_rates, "o-")
 ax.set(xlabel="DAgger round", ylabel="success rate")
-fig.savefig(args.out / "dagger.png")
+fig.savefig(args.out / "dagger.png", bbox_inches="tight")  # no label cut off
 plt.close(fig)
 
 if not args.no_exercises:
@@ -281,7 +281,7 @@ if not args.no_exercises:
     errors /= 50
     fig, ax = plt.subplots()
     ax.semilogx(np.maximum(expert_states, 1e-4), errors, "o")
-    fig.savefig(args.out / "ex_state_errors.png")
+    fig.savefig(args.out / "ex_state_errors.png", bbox_inches="tight")  # no label cut off
     plt.close(fig)
     print("per-state error:", np.round(errors, 2).tolist())
     # Exercise 4: equal query budget

@@ -1,4 +1,10 @@
-"""Run the README's code blocks as tests: extract, exec, compare printed numbers."""
+"""Run the README's code blocks as tests: extract, exec, compare what they print.
+
+:func:`run` runs a block twice in one folder, as a user who runs it again would: first
+in a fresh interpreter, whose whole standard output (C libraries' included) must be
+exactly the block's documented output, the ``# ...`` comment lines after each
+``print``; then in this process, returning its namespace for further checks.
+"""
 
 from __future__ import annotations
 
@@ -7,6 +13,8 @@ import io
 import logging
 import os
 import re
+import subprocess
+import sys
 from pathlib import Path
 
 README = Path(__file__).resolve().parents[1] / "README.md"
@@ -22,13 +30,58 @@ def block(name: str) -> str:
     return code.group(1)
 
 
+def documented_output(code: str) -> list[str]:
+    """The lines the block says it prints: the ``# ...`` comment lines right after a line
+    that calls ``print``."""
+    out, after_print = [], False
+    for line in code.splitlines():
+        text = line.strip()
+        if after_print and text.startswith("# "):
+            out.append(text[2:])
+            continue
+        after_print = "print(" in text
+    return out
+
+
+def _same_line(printed: str, documented: str) -> bool:
+    """A documented line may annotate its number (``500.0 (the expert's return)``)."""
+    number = re.match(r"-?[0-9.]+(?=\s|$)", documented)
+    if number and documented != printed:
+        try:
+            return float(printed) == float(number.group(0))
+        except ValueError:
+            return False
+    return printed == documented
+
+
+def run_fresh(name: str, cwd: Path) -> list[str]:
+    """Run the block in a new interpreter in ``cwd``; its stdout lines, checked against
+    the documented output (nothing printed before, after or between)."""
+    src = next(p for p in sys.path if (Path(p) / "imitrl").is_dir())
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([src, os.environ.get("PYTHONPATH", "")])}
+    code = "import torch; torch.set_num_threads(1)\n" + block(name)
+    done = subprocess.run(
+        [sys.executable, "-c", code], cwd=cwd, capture_output=True, text=True, env=env,
+        timeout=900,
+    )  # fmt: skip
+    assert done.returncode == 0, f"{name}: {done.stderr[-3000:]}"
+    printed = done.stdout.splitlines()
+    documented = documented_output(block(name))
+    assert len(printed) == len(documented) and all(
+        _same_line(p, d) for p, d in zip(printed, documented)
+    ), f"{name} printed {printed}, the README documents {documented}"
+    return printed
+
+
 def expected_numbers(code: str) -> list[float]:
     """The numbers the block promises, one ``# <number>`` comment line after each print."""
     return [float(m.group(1)) for m in re.finditer(r"^# (-?[0-9.]+)", code, flags=re.M)]
 
 
 def run(name: str, cwd: Path) -> tuple[dict, list[str]]:
-    """Exec the block in ``cwd``; returns its namespace and printed lines."""
+    """Run the block in a fresh interpreter (:func:`run_fresh`), then exec it again in
+    ``cwd`` in this process; returns the second run's namespace and printed words."""
+    run_fresh(name, cwd)
     code = block(name)
     namespace: dict = {"__name__": f"readme_{name}"}
     out = io.StringIO()

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import warnings
 
 import pytest
 import torch
@@ -36,6 +37,7 @@ from imitrl.data.returns import episode_returns
 from imitrl.envs import make_env
 from imitrl.experts import cartpole_expert
 from imitrl.jobs.checkpoint import load_learner
+from imitrl.jobs.curves import read_scalars, scalars_dir
 from imitrl.jobs.gail import AIRLJob, GAILJob, run_airl, run_gail
 from imitrl.policies import ActorCritic
 
@@ -327,10 +329,40 @@ def _retrained(config) -> ActorCritic:
     return learner
 
 
-def test_job_flags_are_checked():
+def test_job_flags_are_checked(tmp_path):
     with pytest.raises(ValueError, match="demos"):
         GAILJob(demos=0)
     with pytest.raises(ValueError, match="total_steps"):
         AIRLJob(total_steps=0)
     with pytest.raises(ValueError, match="log pi"):
-        run_gail(GAILJob(env="Pendulum-v1", expert="pendulum", loss="mse", progress=False))
+        run_gail(
+            GAILJob(env="Pendulum-v1", expert="pendulum", loss="mse", progress=False, out=tmp_path)
+        )
+
+
+@pytest.mark.parametrize(("job", "run"), [(GAILJob, run_gail), (AIRLJob, run_airl)])
+def test_jobs_evaluate_during_training_and_log_their_losses(tmp_path, job, run):
+    """eval/return at env step 0 and after every --eval-every rounds (and the last), the
+    discriminator's and PPO's losses in the CSV scalars curves.png is drawn from."""
+    config = job(max_episode_steps=50, eval_episodes=2, out=tmp_path, progress=False,
+                 **{**TINY, "total_steps": 512, "eval_every": 2})  # fmt: skip
+    with warnings.catch_warnings():
+        warnings.filterwarnings("error", message=".*not exactly divisible")
+        results = run(config)
+    name = run.__name__.removeprefix("run_")
+    evaluated = [r["env_steps"] for r in results["rounds"] if r["info"] is not None]
+    assert evaluated == [256, 512]  # rounds 2 and 4 of 128 steps
+    assert results["rounds"][-1]["info"]["evaluation"] == results["learner"]
+    curves = read_scalars(scalars_dir(tmp_path, name))
+    assert curves["eval/return"][0] == [0, 256, 512]
+    assert curves["eval/return"][1][0] == results["initial_learner"]["mean_return"]
+    for loss in ("discriminator_loss", "loss_objective", "loss_critic"):
+        assert curves[f"{name}/{loss}"][0] == [128, 256, 384, 512]
+
+
+def test_default_budget_is_whole_rounds():
+    """TorchRL's collector warns "not exactly divisible" unless the budget is whole rounds."""
+    for job in (GAILJob(), AIRLJob()):
+        assert job.total_steps % job.rollout_steps == 0
+    with pytest.raises(ValueError, match="eval-every"):
+        GAILJob(eval_every=-1)

@@ -278,7 +278,7 @@ def test_bench_runs_the_script_with_the_remaining_args(tmp_path, monkeypatch, ca
         (["bc", "--loss", "nope"], "unknown loss 'nope'"),
         (["bc", "--loss", "mse"], "loss 'mse' does not apply"),
         (["bc", "--dataset", "/no/such/dir"], "--dataset /no/such/dir: no such directory"),
-        (["bc", "--env", "Pendulum-v1"], "CartPole observations have 4 entries"),
+        (["bc", "--env", "Pendulum-v1", "--expert", "cartpole"], "use --expert pendulum"),
         (["bc", "--logger", "paper"], "--logger must be one of csv, tensorboard, wandb"),
         (["dagger", "--expert", "none", "--dataset", "x"], "dagger needs --expert"),
         (["eval"], "give exactly one of --checkpoint or --expert"),

@@ -36,7 +36,7 @@ from imitrl.experts import (
 )
 from imitrl.policies import ActorCritic
 
-from ._readme import block as readme_block
+from ._readme import run as run_readme
 from ._stats import welch_t
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -328,9 +328,8 @@ def test_dagger_beats_bc_continuous_actions():
 
 
 # ------------------------------------------------------------------ README example
-def test_readme_continuous_example_runs():
-    namespace: dict = {"__name__": "readme_example"}
-    exec(compile(readme_block("continuous-example"), "README.md", "exec"), namespace)
+def test_readme_continuous_example_runs(tmp_path):
+    namespace, _ = run_readme("continuous-example", tmp_path)
     expert, learner = namespace["expert_eval"], namespace["learner_eval"]
     # the example's DAgger learner is within 10% of its expert's (negative) return
     assert learner.mean_return >= 1.1 * expert.mean_return

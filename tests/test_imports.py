@@ -1,9 +1,9 @@
 """Import cost: ``import imitrl`` and the command line's help start without torch.
 
 Each check runs a fresh interpreter with ``-X importtime`` and reads from its stderr
-every module the command imported. ``imitrl bc/dagger/gail/airl --help`` are not
-checked: their help lists the registered losses and experts, whose modules import
-torch and TorchRL.
+every module the command imported. The help of ``bc``/``dagger``/``gail``/``airl`` lists
+the registered losses and experts from :mod:`imitrl.jobs.names`, which a test here holds
+equal to the registry and the experts themselves.
 """
 
 from __future__ import annotations
@@ -47,7 +47,9 @@ def test_import_imitrl_imports_nothing_heavy():
 
 
 @pytest.mark.parametrize(
-    "argv", [[], ["eval"], ["bench"], ["frozenlake"]], ids=["top", "eval", "bench", "frozenlake"]
+    "argv",
+    [[], ["eval"], ["bench"], ["frozenlake"], ["bc"], ["dagger"], ["gail"], ["airl"]],
+    ids=["top", "eval", "bench", "frozenlake", "bc", "dagger", "gail", "airl"],
 )
 def test_help_imports_no_torch(argv):
     proc, modules = imported("-m", "imitrl", *argv, "--help")
@@ -63,12 +65,13 @@ def test_bench_runs_a_script_without_importing_torch():
     assert heavy(modules) == []
 
 
-def test_bc_help_imports_torch_for_its_lists_of_names():
-    """The one heavy help, and why (so that the checks above can fail)."""
-    proc, modules = imported("-m", "imitrl", "bc", "--help")
+def test_running_bc_imports_torch_so_the_checks_above_can_fail():
+    """What the help avoids: the job's own module imports torch and TorchRL."""
+    proc, modules = imported("-c", "import imitrl.jobs.bc")
     assert proc.returncode == 0, proc.stderr[-2000:]
-    assert "cross_entropy" in proc.stdout
     assert {"torch", "torchrl", "tensordict"} <= set(heavy(modules))
+    help_proc, _ = imported("-m", "imitrl", "bc", "--help")
+    assert "cross_entropy" in help_proc.stdout and "acrobot (Acrobot-v1)" in help_proc.stdout
 
 
 def test_submodules_are_attributes_on_first_access():
@@ -116,3 +119,19 @@ def test_lazy_names_are_the_defining_modules_objects():
     assert frozenlake.StudyConfig is config.StudyConfig and frozenlake.run_study is study.run_study
     with pytest.raises(AttributeError, match="no attribute 'nope'"):
         _ = jobs.nope
+
+
+def test_the_names_help_lists_are_the_registrys_and_the_experts():
+    from imitrl.jobs import names, resolve
+    from imitrl.objectives import registry
+
+    assert names.LOSSES == tuple((e.name, e.actions, e.summary) for e in registry.entries())
+    assert list(names.EXPERT_ENVS) == list(resolve.EXPERTS)
+    for name, env_id in names.EXPERT_ENVS.items():  # each built-in expert acts in its env
+        if env_id.startswith(("Inverted",)):
+            continue  # MuJoCo: covered by tests/test_experts.py
+        from imitrl.envs import make_env
+
+        env = make_env(env_id, seed=0)
+        resolve.check_expert_fits(resolve.EXPERTS[name](), name, env_id, env)
+        env.close()

@@ -295,6 +295,8 @@ def figure(summary: dict, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from imitrl.plotting import save_figure
+
     groups = summary["groups"]
     tasks = _tasks(summary)
     extra = [p for p, t in ((_modes_panel, "two_way"), (_corridor_panel, "corridor")) if t in tasks]
@@ -311,7 +313,7 @@ def figure(summary: dict, path: Path) -> None:
     for ax, panel in zip(axes[len(tasks) :], extra):
         panel(ax, groups)
     fig.tight_layout(rect=(0, 0, 1, 1 - 0.35 / (4.4 * rows)))
-    fig.savefig(path, dpi=100)
+    save_figure(fig, path, dpi=100)  # every label on the canvas
     plt.close(fig)
 
 

@@ -28,7 +28,9 @@ _generator``/``_generator_key``,
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence
+import logging
+from collections.abc import Iterable, Iterator, Sequence
+from contextlib import contextmanager
 
 import torch
 from tensordict import TensorDictBase
@@ -41,6 +43,7 @@ __all__ = [
     "plain_module",
     "plain_sampler",
     "plain_sequence",
+    "quiet_torchrl_info",
     "replace_storage_contents",
     "set_writer_cursor",
     "wrapped_gym_env",
@@ -220,3 +223,24 @@ def plain_sampler(module, sequence=None) -> bool:
     ):
         return False
     return True
+
+
+@contextmanager
+def quiet_torchrl_info() -> Iterator[None]:
+    """TorchRL's INFO lines off for the block (its public ``"torchrl"`` logger).
+
+    Why: torchrl 0.14.1 logs "Initialized LazyTensorStorage ..." at INFO, coloured, on
+    stdout (its own handler), the first time a storage is written; a library call must
+    not print before its caller's first line. Only the buffer's first write is wrapped:
+    anything else TorchRL logs is left as the user set it.
+    """
+    log = logging.getLogger("torchrl")
+    level = log.level
+    if level > logging.INFO or log.disabled:
+        yield
+        return
+    log.setLevel(logging.WARNING)
+    try:
+        yield
+    finally:
+        log.setLevel(level)

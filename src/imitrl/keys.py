@@ -14,6 +14,8 @@ Per-transition keys (root of a rollout / demonstration row):
                           ``"pixels"``, several as nested keys ``("pixels", name)``
                           (LeRobot's ``observation.images.<name>``; a pixel learner
                           reads the one its ``pixel_key`` names)
+``ENVIRONMENT_STATE``     a robot env's ``environment_state`` at step t (float32; what
+                          LeRobot records as ``observation.environment_state``)
 ``ACTION``                the action executed in the env at step t
 ``EXPERT_ACTION``         the expert's label for the state at step t (never written
                           by a learner)
@@ -44,6 +46,7 @@ from __future__ import annotations
 
 OBSERVATION = "observation"
 PIXELS = "pixels"
+ENVIRONMENT_STATE = "environment_state"
 ACTION = "action"
 EXPERT_ACTION = "expert_action"
 LEARNER_ACTION = "learner_action"
@@ -67,6 +70,7 @@ TRUNCATED = "truncated"
 __all__ = [
     "ACTION",
     "DONE",
+    "ENVIRONMENT_STATE",
     "EPISODE",
     "EXPERT_ACTION",
     "EXPERT_EXECUTED",

@@ -46,7 +46,7 @@ from tensordict import TensorDictBase
 from torchrl.record.loggers import Logger
 from tqdm.auto import tqdm
 
-from imitrl import keys
+from imitrl import checks, keys
 from imitrl.algorithms.optim_step import optimizer_step
 from imitrl.data.buffer import CHUNK_BYTES, DemonstrationBuffer
 from imitrl.data.permutation import LazyPermutation
@@ -86,16 +86,15 @@ class BCConfig:
     limit. A disk buffer always needs a ``batch_size``"""
 
     def __post_init__(self) -> None:
-        if int(self.num_steps) != self.num_steps or self.num_steps < 0:
-            raise ValueError(f"num_steps must be an integer >= 0, got {self.num_steps!r}")
-        if self.batch_size is not None and self.batch_size < 1:
-            raise ValueError(f"batch_size must be positive or None, got {self.batch_size}")
+        checks.integer(self.num_steps, "BCConfig.num_steps", minimum=0)
+        checks.integer(self.batch_size, "BCConfig.batch_size", minimum=1, none_ok=True)
+        checks.integer(self.seed, "BCConfig.seed")
+        checks.boolean(self.deduplicate, "BCConfig.deduplicate", none_ok=True)
         if self.lr_schedule not in LR_SCHEDULES:
             raise ValueError(f"lr_schedule must be one of {LR_SCHEDULES}, got {self.lr_schedule!r}")
-        if self.full_batch_max_rows is not None and self.full_batch_max_rows < 1:
-            raise ValueError(
-                f"full_batch_max_rows must be positive or None, got {self.full_batch_max_rows}"
-            )
+        checks.integer(
+            self.full_batch_max_rows, "BCConfig.full_batch_max_rows", minimum=1, none_ok=True
+        )
 
 
 @dataclass

@@ -27,7 +27,7 @@ from torchrl.envs.utils import ExplorationType, exploration_type, set_exploratio
 from torchrl.record.loggers import Logger
 from tqdm.auto import tqdm
 
-from imitrl import keys
+from imitrl import checks, keys
 from imitrl.algorithms.bc import BCConfig, BCResult, fit_bc
 from imitrl.algorithms.dagger_checkpoint import (
     RunState,
@@ -225,10 +225,17 @@ class DAggerConfig:
     """seed of the mixture's coin flips"""
 
     def __post_init__(self) -> None:
-        if self.rounds < 1:
-            raise ValueError(f"rounds must be >= 1, got {self.rounds}")
-        if self.episodes_per_round < 1:
-            raise ValueError(f"episodes_per_round must be >= 1, got {self.episodes_per_round}")
+        checks.integer(self.rounds, "DAggerConfig.rounds", minimum=1)
+        checks.integer(self.episodes_per_round, "DAggerConfig.episodes_per_round", minimum=1)
+        checks.boolean(self.warm_start, "DAggerConfig.warm_start")
+        checks.integer(self.seed, "DAggerConfig.seed")
+        if not callable(self.beta):
+            raise ValueError(
+                f"DAggerConfig.beta must be a schedule, round -> probability (Constant(0.5), "
+                f"Linear(...)), got {self.beta!r}"
+            )
+        if not isinstance(self.bc, BCConfig):
+            raise ValueError(f"DAggerConfig.bc must be a BCConfig, got {type(self.bc).__name__}")
 
 
 @dataclass
@@ -394,6 +401,11 @@ def _fit(k, learner, buffer, config, train, logger, bc_step) -> RoundRecord:
         result = fit_bc(learner, buffer, config.bc, logger=logger, log_step=bc_step)
     else:
         result = train(learner, buffer)
+        if not isinstance(result, BCResult):
+            raise ValueError(
+                f"dagger's train callback must return the fit's BCResult (what fit_bc returns), "
+                f"got {type(result).__name__} in round {k}: end it with `return fit_bc(...)`"
+            )
     if logger is not None:
         logger.log_scalar("dagger/rows", float(len(buffer)), step=k)
         logger.log_scalar("dagger/final_loss", result.final_loss, step=k)

@@ -10,10 +10,10 @@ docstring (:mod:`imitrl.cli.flags`). Tuples are comma-separated (``--hidden 64,6
 =========== ======================= =========================================
 command     config                  function
 =========== ======================= =========================================
-bc          ``jobs.bc.BCJob``        ``jobs.bc.run_bc``
-dagger      ``jobs.dagger.DAggerJob`` ``jobs.dagger.run_dagger``
-gail        ``jobs.gail.GAILJob``    ``jobs.gail.run_gail``
-airl        ``jobs.gail.AIRLJob``    ``jobs.gail.run_airl``
+bc          ``jobs.configs.BCJob``   ``jobs.bc.run_bc``
+dagger      ``jobs.configs.DAggerJob`` ``jobs.dagger.run_dagger``
+gail        ``jobs.configs.GAILJob`` ``jobs.gail.run_gail``
+airl        ``jobs.configs.AIRLJob`` ``jobs.gail.run_airl``
 eval        ``jobs.evaluate.EvalJob`` ``jobs.evaluate.run_eval``
 bench       ``jobs.bench.BenchJob``  ``jobs.bench.run_bench``
 frozenlake  ``StudyConfig``          ``experiments.frozenlake.run_study``
@@ -24,9 +24,9 @@ line on stderr and exit status 2.
 
 Import cost: ``imitrl --help`` imports no command; ``imitrl COMMAND ...`` imports that
 command's module alone (:class:`Command`), so ``imitrl --help``, ``imitrl bench`` and
-``eval`` / ``bench`` / ``frozenlake --help`` start without torch (``tests/test_imports.py``).
-The help of ``bc``, ``dagger``, ``gail`` and ``airl`` lists the registered losses and
-experts, whose modules import torch and TorchRL.
+every command's ``--help`` start without torch (``tests/test_imports.py``): the configs
+live in :mod:`imitrl.jobs.configs`, the lists of losses and experts in
+:mod:`imitrl.jobs.names`.
 """
 
 from __future__ import annotations
@@ -92,16 +92,14 @@ class Command:
 
 
 def _names_epilog() -> str:
-    """The built-in experts and the registered losses, for ``bc`` / ``dagger`` --help.
+    """The built-in experts and the registered losses, for ``bc`` / ``dagger`` --help,
+    from :mod:`imitrl.jobs.names` (no torch; a test holds it equal to the registry)."""
+    from imitrl.jobs.names import EXPERT_ENVS, LOSSES
 
-    Imports the loss registry and the experts (torch, TorchRL): the names are the
-    entries registered when those modules load."""
-    from imitrl.jobs.resolve import EXPERTS
-    from imitrl.objectives import registry
-
-    losses = "\n".join(f"  {e.name:<22} {e.actions:<10} {e.summary}" for e in registry.entries())
+    losses = "\n".join(f"  {name:<22} {actions:<10} {summary}" for name, actions, summary in LOSSES)
+    experts = ", ".join(f"{name} ({env})" for name, env in EXPERT_ENVS.items())
     return (
-        f"built-in experts (--expert): {', '.join(EXPERTS)}\n\n"
+        f"built-in experts (--expert; auto = the one for --env): {experts}\n\n"
         f"losses (--loss): default, or one of\n{losses}"
     )
 
@@ -115,7 +113,7 @@ def _benchmarks_epilog() -> str:
 
 COMMANDS: dict[str, Command] = {
     "bc": Command(
-        "imitrl.jobs.bc:BCJob",
+        "imitrl.jobs.configs:BCJob",
         "imitrl.jobs.bc:run_bc",
         "imitrl.jobs.bc:report",
         "behaviour cloning on expert demonstrations or a dataset",
@@ -125,7 +123,7 @@ COMMANDS: dict[str, Command] = {
         _names_epilog,
     ),
     "dagger": Command(
-        "imitrl.jobs.dagger:DAggerJob",
+        "imitrl.jobs.configs:DAggerJob",
         "imitrl.jobs.dagger:run_dagger",
         "imitrl.jobs.dagger:report",
         "DAgger: BC, then roll the learner, relabel with the expert, aggregate, refit",
@@ -136,7 +134,7 @@ COMMANDS: dict[str, Command] = {
         _names_epilog,
     ),
     "gail": Command(
-        "imitrl.jobs.gail:GAILJob",
+        "imitrl.jobs.configs:GAILJob",
         "imitrl.jobs.gail:run_gail",
         "imitrl.jobs.gail:report",
         "GAIL: PPO on a discriminator's reward -log(1 - D(s, a)), from demonstrations",
@@ -147,7 +145,7 @@ COMMANDS: dict[str, Command] = {
         _names_epilog,
     ),
     "airl": Command(
-        "imitrl.jobs.gail:AIRLJob",
+        "imitrl.jobs.configs:AIRLJob",
         "imitrl.jobs.gail:run_airl",
         "imitrl.jobs.gail:report",
         "AIRL: PPO on f(s, a, s') - log pi(a|s), f = g(s) + gamma h(s') - h(s)",

@@ -12,7 +12,10 @@ underscores) with the field's docstring and default as help text. Types:
 Two field metadata switches serve commands that wrap another program
 (``imitrl bench NAME [args...]``): ``{"positional": True}`` makes the field a
 positional argument, ``{"remainder": True}`` collects every argument after the
-positionals (``tuple[str, ...]``).
+positionals (``tuple[str, ...]``). ``{"aliases": ("--other-name",)}`` adds flag names
+(one name for one idea across commands: ``--max-episode-steps`` everywhere).
+
+Defaults are shown in the help as they are typed: ``64,64``, ``0.05:10``, ``none``.
 """
 
 from __future__ import annotations
@@ -81,6 +84,15 @@ def _parser_for(tp) -> typing.Callable[[str], object]:
     return tp
 
 
+def shown(value: object) -> str:
+    """A default as it is typed on the command line (``(64, 64)`` -> ``64,64``)."""
+    if value is None:
+        return "none"
+    if isinstance(value, tuple):
+        return ",".join(":".join(map(str, v)) if isinstance(v, tuple) else str(v) for v in value)
+    return str(value)
+
+
 def add_config_flags(parser: argparse.ArgumentParser, cls: type) -> None:
     """Add one flag (or positional) per field of the dataclass ``cls`` to ``parser``."""
     docs = field_docs(cls)
@@ -95,12 +107,12 @@ def add_config_flags(parser: argparse.ArgumentParser, cls: type) -> None:
         if f.metadata.get("remainder"):
             parser.add_argument(f.name, nargs=argparse.REMAINDER, metavar=f.name.upper(), help=doc)
             continue
-        flag = "--" + f.name.replace("_", "-")
+        flags = ["--" + f.name.replace("_", "-"), *f.metadata.get("aliases", ())]
         default = f.default
-        help_text = f"{doc} (default: {default})"
+        help_text = f"{doc} (default: {shown(default)})"
         if hints[f.name] in (bool, bool | None):
             parser.add_argument(
-                flag,
+                *flags,
                 dest=f.name,
                 action=argparse.BooleanOptionalAction,
                 default=default,
@@ -108,7 +120,7 @@ def add_config_flags(parser: argparse.ArgumentParser, cls: type) -> None:
             )
         else:
             parser.add_argument(
-                flag,
+                *flags,
                 dest=f.name,
                 type=_parser_for(hints[f.name]),
                 default=default,

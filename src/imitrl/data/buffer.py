@@ -59,7 +59,12 @@ from torchrl.data import ReplayBuffer, TensorSpec
 from torchrl.data.replay_buffers import LazyTensorStorage, SamplerWithoutReplacement
 
 from imitrl import keys
-from imitrl.compat import grow_tensor_storage, set_writer_cursor, writer_cursor
+from imitrl.compat import (
+    grow_tensor_storage,
+    quiet_torchrl_info,
+    set_writer_cursor,
+    writer_cursor,
+)
 from imitrl.data.checkpoint import (
     MANIFEST,
     decode_rows,
@@ -289,7 +294,11 @@ class DemonstrationBuffer:
             # After a reallocation the round-robin writer must continue at the end,
             # not at its wrapped cursor (torchrl's writer computes cursor % max_size).
             set_writer_cursor(self._rb, before)
-        index = self._rb.extend(rows)
+        if self._storage.initialized:
+            index = self._rb.extend(rows)
+        else:
+            with quiet_torchrl_info():  # its first write logs on stdout
+                index = self._rb.extend(rows)
         if len(self) != before + n:  # guard: nothing may have been overwritten
             raise RuntimeError(f"buffer write lost rows: had {before}, wrote {n}, now {len(self)}")
         return index

@@ -18,6 +18,7 @@ from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
+from tqdm.auto import tqdm
 
 from imitrl import keys
 from imitrl.data.rollout import (
@@ -64,6 +65,7 @@ def episode_returns(
     success_fn: SuccessFn | None = None,
     generator: torch.Generator | None = None,
     fast_path: bool = True,
+    progress: bool = False,
 ) -> EpisodeSummary:
     """Play ``num_episodes`` whole episodes, keeping only returns, lengths and success.
 
@@ -75,6 +77,7 @@ def episode_returns(
             (FrozenLake, Taxi, CliffWalking with a time limit) without ``success_fn``,
             a policy that is a fixed table of states plays its episodes by the stream
             player (:mod:`imitrl.envs.toy_text`): the same episodes, no step loop.
+        progress: a progress bar on stderr, one tick per finished episode.
         (others as in :func:`rollout_episodes`)
     """
     bound, bound_name = _episode_bound(env, max_steps, num_episodes)
@@ -82,12 +85,17 @@ def episode_returns(
     generator = _seeded(env, seed, generator)
     book = _Lanes(_quota(int(num_episodes), _lanes(env)), bound, bound_name)
     tally = _Tally(int(num_episodes), book.lanes, success_fn)
-    with torch.no_grad(), set_exploration_type(exploration), rng_from(generator):
+    bar = tqdm(
+        total=int(num_episodes), desc="evaluate", unit="episode", disable=not progress, leave=False
+    )
+    tally.on_end = bar.update
+    with torch.no_grad(), set_exploration_type(exploration), rng_from(generator), bar:
         direct = direct_steps(env) if fast_path else None
         if direct is None:
             _torchrl_returns(env, actor, book, tally)
         elif success_fn is not None or not _toy_text_returns(env, direct, actor, book, tally):
             _direct_returns(env, direct, actor, book, tally)
+        bar.update(bar.total - bar.n)  # episodes played without the step loop
     return tally.summary()
 
 
@@ -100,6 +108,7 @@ class _Tally:
         self.success_fn = success_fn
         self.success = np.zeros(n, dtype=np.bool_) if success_fn is not None else None
         self.running = np.zeros(lanes, dtype=np.float64)  # each lane's return so far
+        self.on_end: Callable[[int], object] | None = None  # told how many episodes ended
 
     def add(self, reward: torch.Tensor) -> None:
         self.running += reward.numpy().reshape(-1)  # float32 rewards summed in float64
@@ -121,6 +130,8 @@ class _Tally:
             self.lengths[ids] = lengths
             if self.success is not None:
                 self.success[ids] = self.success_fn(out()).reshape(-1).numpy()[lanes]
+            if self.on_end is not None:
+                self.on_end(int(lanes.size))
         self.running[ended] = 0.0
 
     def summary(self) -> EpisodeSummary:

@@ -30,10 +30,14 @@ digit (``tests/test_fast_path.py``).
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
+
 import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
+from torchrl.data import Bounded, TensorSpec
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
@@ -252,13 +256,62 @@ def rollout_episodes(
     book = _Lanes(_quota(int(num_episodes), _lanes(env)), bound, bound_name)
     with torch.no_grad(), set_exploration_type(exploration), rng_from(generator):
         direct = direct_steps(env) if fast_path else None
-        if direct is None:
-            traj = _torchrl_trajectory(env, actor, book)
-        else:
-            traj = _direct_trajectory(env, direct, actor, book)
+        with policy_errors_named(env, actor):
+            if direct is None:
+                traj = _torchrl_trajectory(env, actor, book)
+            else:
+                traj = _direct_trajectory(env, direct, actor, book)
     if traj is None:
         raise ValueError("num_episodes must be positive to collect rows")
-    return _rows(env, traj, book, round_index, first_episode)
+    rows = _rows(env, traj, book, round_index, first_episode)
+    check_labels(rows, _action_spec(env))
+    return rows
+
+
+def check_labels(rows: TensorDictBase, spec: TensorSpec) -> None:
+    """The expert's labels (``EXPERT_ACTION``) are finite and inside the action spec;
+    ValueError naming the first bad row's episode and step otherwise (a recorded label
+    outside the bounds would train every learner towards an action the env clips)."""
+    labels = rows.get(keys.EXPERT_ACTION, None)
+    if labels is None or labels.numel() == 0:
+        return
+    flat = labels.reshape(labels.shape[0], -1)
+    bad = ~torch.isfinite(flat).all(-1) if flat.is_floating_point() else None
+    what, hint = "NaN or inf", "the expert must return finite actions"
+    if (bad is None or not bad.any()) and isinstance(spec, Bounded):
+        low = spec.space.low.reshape(-1).to(flat.dtype)
+        high = spec.space.high.reshape(-1).to(flat.dtype)
+        bad = ((flat < low) | (flat > high)).any(-1)
+        what = f"outside the action bounds [{low.tolist()}, {high.tolist()}]"
+        hint = "fix the expert, or clip its labels on purpose (Expert.from_callable(fn, clip=True))"
+    if bad is None or not bad.any():
+        return
+    i = int(bad.nonzero()[0])
+    episode, step = int(rows.get(keys.EPISODE)[i]), int(rows.get(keys.STEP)[i])
+    raise ValueError(
+        f"the expert labelled episode {episode}, step {step} with {flat[i].tolist()}, {what} "
+        f"({int(bad.sum())} of {len(bad)} rows): {hint}"
+    )
+
+
+@contextmanager
+def policy_errors_named(env: EnvBase, policy: TensorDictModuleBase) -> Iterator[None]:
+    """A policy module that cannot act on ``env``'s observations (a network of another
+    width, a missing key) fails with a ValueError naming both, not a bare RuntimeError."""
+    try:
+        yield
+    except (RuntimeError, KeyError) as err:
+        obs = env.observation_spec_unbatched
+        shapes = {
+            str(k): (tuple(v.shape), str(v.dtype).removeprefix("torch."))
+            for k, v in obs.items(include_nested=True, leaves_only=True)
+        }
+        name = type(policy).__name__
+        raise ValueError(
+            f"the policy ({name}, reading {list(getattr(policy, 'in_keys', []))}) failed on the "
+            f"env's observations {shapes}: {type(err).__name__}: {err}; was it built for "
+            "another env?"
+        ) from err
 
 
 def _torchrl_trajectory(env: EnvBase, actor, book: _Lanes) -> TensorDictBase | None:

@@ -3,26 +3,31 @@
 Readers return :class:`LoadedDemonstrations` whose ``rows`` extend a
 :class:`~imitrl.data.DemonstrationBuffer`; :func:`save_lerobot` writes a buffer
 (every DAgger round included) as a LeRobot v3.0 dataset. Needs the ``datasets``
-extra (pyarrow; h5py for Minari); never uses the network.
+extra (pyarrow; h5py for Minari). The network is used only to download a LeRobot
+``repo_id`` no local cache holds (:func:`download_lerobot`, the ``hub`` extra; not with
+``HF_HUB_OFFLINE=1``).
 """
 
 from imitrl.datasets._common import LoadedDemonstrations
 from imitrl.datasets.lerobot import (
     DEFAULT_KEY_MAP,
     IMITRL_COLUMNS,
+    download_lerobot,
     load_lerobot,
     resolve_lerobot_root,
     save_lerobot,
 )
-from imitrl.datasets.minari import load_minari, resolve_minari_root
+from imitrl.datasets.minari import load_minari, resolve_minari_root, save_minari
 
 __all__ = [
     "DEFAULT_KEY_MAP",
     "IMITRL_COLUMNS",
     "LoadedDemonstrations",
+    "download_lerobot",
     "load_lerobot",
     "load_minari",
     "resolve_lerobot_root",
     "resolve_minari_root",
     "save_lerobot",
+    "save_minari",
 ]

@@ -21,6 +21,11 @@ policies and experts use), whatever the id:
   :class:`ResizeFrame` (torchvision, which TorchRL's ``Resize`` needs, is not a
   dependency; ``ToTensorImage`` would store float CHW, 4x larger: the learner scales
   and permutes inside its network instead);
+* a ``Dict`` observation space (robot envs: gym-pusht's ``pixels_agent_pos``) is renamed
+  onto the key vocabulary as LeRobot names its entries (:mod:`imitrl.envs.dict_obs`):
+  ``agent_pos`` -> ``"observation"`` (float32), ``pixels`` -> ``"pixels"`` (uint8
+  ``[H, W, 3]``; a Dict of cameras -> ``("pixels", cam)``), ``environment_state`` ->
+  ``"environment_state"``; any other entry is refused, naming it;
 * ``parallel=True`` runs each copy in its own process (``torchrl.envs.ParallelEnv``).
   Starting the processes costs seconds (measured in ``benchmarks/continuous_traps.py``):
   it pays only when one env step costs far more than the inter-process round trip.
@@ -38,7 +43,9 @@ import torch
 from torchrl.envs import DoubleToFloat, EnvBase, GymWrapper, ParallelEnv, TransformedEnv
 from torchrl.record.recorder import PixelRenderTransform
 
-from imitrl import keys
+from imitrl import checks, keys
+from imitrl.compat import wrapped_gym_env
+from imitrl.envs.dict_obs import DictObservation
 from imitrl.envs.direct import register_plain_gym
 
 __all__ = ["ResizeFrame", "make_env"]
@@ -65,7 +72,8 @@ def _spec(env_id: str) -> gymnasium.envs.registration.EnvSpec:
 
 
 def _gym(env_id: str, max_episode_steps: int | None, render: bool = False) -> gymnasium.Env:
-    """``gymnasium.make`` (rendering ``rgb_array`` frames when ``render``)."""
+    """``gymnasium.make`` (rendering ``rgb_array`` frames when ``render``), a ``Dict``
+    observation renamed onto imitrl's keys (:class:`DictObservation`)."""
     extra = {"render_mode": "rgb_array"} if render else {}
     try:
         env = gymnasium.make(env_id, max_episode_steps=max_episode_steps, **extra)
@@ -81,27 +89,44 @@ def _gym(env_id: str, max_episode_steps: int | None, render: bool = False) -> gy
             f"{env_id} does not render rgb_array frames (render modes {modes}): it cannot "
             "be a pixel env"
         )
+    if isinstance(env.observation_space, gymnasium.spaces.Dict):
+        try:
+            env = DictObservation(env, env_id)
+        except ValueError:
+            env.close()
+            raise
+        if render and keys.PIXELS in env.observation_space.spaces:
+            env.close()
+            raise ValueError(
+                f"{env_id}: its Dict observation already holds 'pixels'; pixels=(H, W) "
+                "would render a second image under the same key (leave pixels=None)"
+            )
     return env
 
 
 def _check_spaces(env: gymnasium.Env, env_id: str) -> tuple[bool, bool]:
-    """(discrete action, float64 observation or action); ValueError for spaces the library cannot use."""
+    """(discrete action, float64 observation or action); ValueError for spaces the library
+    cannot use (a Dict observation was checked and renamed by :class:`DictObservation`)."""
     obs, act = env.observation_space, env.action_space
-    if not isinstance(obs, (gymnasium.spaces.Box, gymnasium.spaces.Discrete)):
-        raise ValueError(
-            f"{env_id}: observations must be a Box or Discrete space, got {type(obs).__name__}"
-        )
     if not isinstance(act, (gymnasium.spaces.Box, gymnasium.spaces.Discrete)):
         raise ValueError(
             f"{env_id}: actions must be a Box or Discrete space, got {type(act).__name__}"
+        )
+    discrete = isinstance(act, gymnasium.spaces.Discrete)
+    double_action = not discrete and act.dtype == np.float64
+    if isinstance(env, DictObservation):
+        return discrete, double_action  # its state entries are float32 already
+    if not isinstance(obs, (gymnasium.spaces.Box, gymnasium.spaces.Discrete)):
+        raise ValueError(
+            f"{env_id}: observations must be a Box or Discrete space (or a Dict of "
+            f"imitrl.envs.dict_obs's entries), got {type(obs).__name__}"
         )
     if isinstance(obs, gymnasium.spaces.Box) and len(obs.shape) != 1:
         raise ValueError(
             f"{env_id}: Box observations must be vectors [d], got shape {obs.shape} "
             "(flatten them, e.g. with gymnasium.wrappers.FlattenObservation)"
         )
-    discrete = isinstance(act, gymnasium.spaces.Discrete)
-    return discrete, obs.dtype == np.float64 or (not discrete and act.dtype == np.float64)
+    return discrete, obs.dtype == np.float64 or double_action
 
 
 class ResizeFrame:
@@ -153,6 +178,13 @@ def _single(
     return env
 
 
+def _observes_dict(env: EnvBase) -> bool:
+    """``env`` (built by :func:`_single`) observes a renamed ``Dict``: the direct path
+    (:mod:`imitrl.envs.direct`), which converts one array per step, cannot step it."""
+    base = env.base_env if isinstance(env, TransformedEnv) else env
+    return isinstance(wrapped_gym_env(base), DictObservation)
+
+
 def make_env(
     env_id: str,
     *,
@@ -190,13 +222,19 @@ def make_env(
     Returns:
         a TorchRL env: ``"observation"`` float32 ``[*batch, d]`` (int64 ``[*batch]``
         for a Discrete space), ``"action"`` int64 ``[*batch]`` (discrete) or float32
-        ``[*batch, m]`` bounded by the spec (continuous).
+        ``[*batch, m]`` bounded by the spec (continuous). A ``Dict`` observation gives
+        its entries under LeRobot's keys (:mod:`imitrl.envs.dict_obs`): ``"observation"``
+        (``agent_pos``, float32 ``[*batch, d]``; absent when the Dict has none),
+        ``"pixels"`` or ``("pixels", cam)`` (uint8 ``[*batch, H, W, 3]``),
+        ``"environment_state"`` (float32 ``[*batch, d]``).
 
     Raises:
-        ValueError: unknown id, missing optional dependency, unsupported spaces, bad
-            counts.
+        ValueError: unknown id, missing optional dependency, unsupported spaces (a Dict
+            entry other than ``agent_pos``, ``pixels``, ``environment_state``, named),
+            ``pixels=(H, W)`` for a Dict that holds ``pixels``, bad counts.
     """
     _spec(env_id)
+    checks.integer(seed, "seed")  # every copy's seed derives from it: None is a mistake here
     if int(num_envs) != num_envs or num_envs < 1:
         raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
     if int(frame_skip) != frame_skip or frame_skip < 1:
@@ -217,7 +255,8 @@ def make_env(
     if num_envs == 1:
         env = _single(env_id, frame_skip, max_episode_steps, seed, pixels)
         # rollouts step a plain one directly (imitrl.envs.direct): same episodes, less overhead
-        return register_plain_gym(env) if pixels is None and frame_skip == 1 else env
+        plain = pixels is None and frame_skip == 1 and not _observes_dict(env)
+        return register_plain_gym(env) if plain else env
     if pixels is not None:
         raise ValueError("pixels needs num_envs=1 or parallel=True (one renderer per copy)")
     if frame_skip != 1:
@@ -229,6 +268,7 @@ def make_env(
         )
     probe = _gym(env_id, max_episode_steps)
     discrete, double = _check_spaces(probe, env_id)
+    observes_dict = isinstance(probe, DictObservation)
     probe.close()
     vec = gymnasium.vector.SyncVectorEnv(
         [partial(_gym, env_id, max_episode_steps) for _ in range(num_envs)],
@@ -238,4 +278,4 @@ def make_env(
     if double:
         env = TransformedEnv(env, DoubleToFloat())
     env.set_seed(seed)  # SyncVectorEnv seeds copy i with seed + i
-    return register_plain_gym(env)
+    return env if observes_dict else register_plain_gym(env)

@@ -18,7 +18,7 @@ from torchrl.envs.utils import ExplorationType
 
 from imitrl import keys
 from imitrl.data.returns import SuccessFn, episode_returns
-from imitrl.data.rollout import rollout_policy
+from imitrl.data.rollout import policy_errors_named, rollout_policy
 from imitrl.envs.tabular_env import TabularEnv
 from imitrl.evaluation.statistics import t_interval
 from imitrl.evaluation.tabular import exact_values
@@ -117,6 +117,7 @@ def evaluate(
     confidence: float = 0.95,
     generator: torch.Generator | None = None,
     fast_path: bool = True,
+    progress: bool = False,
 ) -> Evaluation:
     """Evaluate ``policy`` over ``num_episodes`` whole episodes.
 
@@ -143,6 +144,7 @@ def evaluate(
             gymnasium toy-text env's episodes by the stream player when the policy is a
             fixed table of states (:func:`~imitrl.data.episode_returns`); False: every
             step through TorchRL. The same episodes either way.
+        progress: a progress bar over the episodes on stderr.
     """
     if num_episodes < 1:
         raise ValueError(f"num_episodes must be positive, got {num_episodes}")
@@ -154,17 +156,19 @@ def evaluate(
     tabular = isinstance(env, TabularEnv)
     if success_fn is None and tabular:
         success_fn = _tabular_success(env)
-    summary = episode_returns(
-        env,
-        actor,
-        num_episodes,
-        exploration=exploration,
-        max_steps=max_steps,
-        seed=seed,
-        success_fn=success_fn,
-        generator=generator,
-        fast_path=fast_path,
-    )
+    with policy_errors_named(env, actor):
+        summary = episode_returns(
+            env,
+            actor,
+            num_episodes,
+            exploration=exploration,
+            max_steps=max_steps,
+            seed=seed,
+            success_fn=success_fn,
+            generator=generator,
+            fast_path=fast_path,
+            progress=progress,
+        )
     mean, lo, hi = mean_ci(summary.returns, confidence)
     result = {
         "num_episodes": int(num_episodes),

@@ -25,11 +25,11 @@ __all__ = [
 __getattr__, __dir__ = _lazy_exports(
     __name__,
     {
-        "BCJob": "imitrl.jobs.bc",
+        "BCJob": "imitrl.jobs.configs",
         "run_bc": "imitrl.jobs.bc",
         "BenchJob": "imitrl.jobs.bench",
         "run_bench": "imitrl.jobs.bench",
-        "DAggerJob": "imitrl.jobs.dagger",
+        "DAggerJob": "imitrl.jobs.configs",
         "run_dagger": "imitrl.jobs.dagger",
         "EvalJob": "imitrl.jobs.evaluate",
         "run_eval": "imitrl.jobs.evaluate",

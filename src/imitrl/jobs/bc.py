@@ -18,6 +18,7 @@ are shared with ``imitrl dagger``.
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -31,16 +32,19 @@ from torchrl.record.loggers import Logger
 from imitrl.algorithms import BCConfig, fit_bc
 from imitrl.data import DemonstrationBuffer, rollout_episodes
 from imitrl.envs import make_env
-from imitrl.fs.lock import exclusive
 from imitrl.jobs.checkpoint import save_run
-from imitrl.jobs.curves import LOGGERS, make_logger, plot_curves, scalars_dir
+from imitrl.jobs.configs import BCJob
+from imitrl.jobs.curves import make_logger, plot_curves, scalars_dir
 from imitrl.jobs.evaluate import evaluate_returns, format_return
+from imitrl.jobs.output import claimed
 from imitrl.jobs.resolve import (
-    EXPERT_KINDS,
+    check_expert_fits,
     dataset_format,
+    expert_for_env,
     learner_factory,
     load_dataset,
     make_expert,
+    no_expert_message,
     time_limit,
 )
 from imitrl.policies import Learner, as_actor
@@ -60,72 +64,6 @@ __all__ = [
 ]
 
 DETERMINISTIC = ExplorationType.DETERMINISTIC
-
-
-@dataclass(frozen=True)
-class BCJob:
-    """Behaviour cloning, evaluated against the expert on the same initial states."""
-
-    env: str = "CartPole-v1"
-    """gymnasium id, or module:Env-v0 (importing module registers Env-v0)"""
-    num_envs: int = 1
-    """env copies stepped together (lanes) when collecting episodes"""
-    max_episode_steps: int | None = None
-    """override the env's time limit; none = its registered limit"""
-    expert: str | None = "cartpole"
-    """a built-in expert (listed below) or module:function; none = no expert (needs
-    --dataset, and nothing is compared with the learner)"""
-    expert_kind: str = "builder"
-    """what the function of --expert module:function is: builder (function() returns
-    an expert module writing expert_action) or callable (function(obs [N, d]) ->
-    action, batched, wrapped with Expert.from_callable)"""
-    dataset: Path | None = None
-    """LeRobot (meta/info.json) or Minari (main_data.hdf5) directory of demonstrations;
-    none = play --demos expert episodes"""
-    demos: int = 5
-    """greedy expert demonstration episodes (when no --dataset)"""
-    loss: str = "default"
-    """default (ActorCritic.for_env: categorical head for discrete actions,
-    deterministic MSE head for continuous ones) or a loss-registry name (listed below)"""
-    hidden: tuple[int, ...] = (64, 64)
-    """hidden layer sizes of the learner's network"""
-    lr: float = 1e-3
-    """Adam learning rate of the learner"""
-    steps: int = 1000
-    """gradient steps of the behaviour-cloning fit (of every round's fit for dagger)"""
-    batch_size: int | None = 256
-    """rows per gradient step; none = the full batch every step"""
-    eval_episodes: int = 10
-    """evaluation episodes of the expert and of the learner"""
-    eval_seed: int = 10_000
-    """seed of the evaluation env: the expert and every learner play the same initial states"""
-    seed: int = 0
-    """seeds the env that plays the demonstrations, the learner's initialisation and
-    the minibatch order"""
-    out: Path = Path("results/bc")
-    """output directory: results.json, config.json + learner.pt (the checkpoint that
-    imitrl eval --checkpoint reads), curves.png, logs/"""
-    logger: str = "csv"
-    """where the curves are logged: csv, tensorboard or wandb (the CSV files that
-    curves.png is drawn from are written in every case)"""
-    progress: bool = True
-    """progress bars on stderr"""
-
-    def __post_init__(self) -> None:
-        if not self.env:
-            raise ValueError("--env must name a gymnasium env")
-        if self.num_envs < 1 or self.eval_episodes < 1 or self.steps < 0:
-            raise ValueError("--num-envs and --eval-episodes must be >= 1, --steps >= 0")
-        if self.dataset is None and (self.expert is None or self.demos < 1):
-            raise ValueError("without --dataset, --expert must play --demos >= 1 episodes")
-        if self.expert_kind not in EXPERT_KINDS:
-            raise ValueError(
-                f"--expert-kind must be one of {EXPERT_KINDS}, got {self.expert_kind!r}"
-            )
-        if self.logger not in LOGGERS:
-            raise ValueError(f"--logger must be one of {', '.join(LOGGERS)}, got {self.logger!r}")
-        if self.batch_size is not None and self.batch_size < 1:
-            raise ValueError(f"--batch-size must be >= 1 or none, got {self.batch_size}")
 
 
 @dataclass
@@ -157,9 +95,12 @@ def prepare(config: BCJob, name: str, *, keep_logs: bool = False) -> Setup:
     )
     limit = time_limit(config.env, config.max_episode_steps)
     expert = None
-    if config.expert is not None:
-        expert = make_expert(config.expert, config.expert_kind)
-        expert(env.fake_tensordict().select(*expert.in_keys))  # observations it can read
+    expert_name = expert_for_env(config.expert, config.env)
+    if expert_name is None and config.expert is not None and config.dataset is None:
+        raise ValueError(no_expert_message(config.env))
+    if expert_name is not None:
+        expert = make_expert(expert_name, config.expert_kind)
+        check_expert_fits(expert, expert_name, config.env, env)  # observations it can read
     make_learner = learner_factory(
         config.loss, env, hidden=config.hidden, lr=config.lr, seed=config.seed
     )
@@ -194,6 +135,7 @@ def evaluate_learner(config: BCJob, learner: Learner) -> dict:
         episodes=config.eval_episodes,
         seed=config.eval_seed,
         max_episode_steps=config.max_episode_steps,
+        progress=config.progress,
     )
 
 
@@ -208,14 +150,16 @@ def evaluate_expert(config: BCJob, setup: Setup) -> dict | None:
         episodes=config.eval_episodes,
         seed=config.eval_seed,
         max_episode_steps=config.max_episode_steps,
+        progress=config.progress,
     )
 
 
 def log_evaluation(logger: Logger, round_index: int, ev: dict, expert: dict | None) -> None:
     """``eval/return`` (and its interval) at step ``round_index``; the expert's at step 0."""
     logger.log_scalar("eval/return", ev["mean_return"], step=round_index)
-    logger.log_scalar("eval/return_lo", ev["return_ci"][0], step=round_index)
-    logger.log_scalar("eval/return_hi", ev["return_ci"][1], step=round_index)
+    lo, hi = (math.nan if x is None else x for x in ev["return_ci"])  # None: one episode
+    logger.log_scalar("eval/return_lo", lo, step=round_index)
+    logger.log_scalar("eval/return_hi", hi, step=round_index)
     if expert is not None:
         logger.log_scalar("eval/expert_return", expert["mean_return"], step=0)
 
@@ -236,9 +180,9 @@ def finish(config: BCJob, name: str, learner: Learner, results: dict, setup: Set
 def run_bc(config: BCJob) -> dict:
     """Behaviour cloning as ``config`` says (module docstring); returns what results.json holds.
 
-    The run holds ``--out``'s lock (:func:`imitrl.fs.exclusive`): a second run writing the
-    same ``--out`` is refused at once."""
-    with exclusive(config.out, what="written by another imitrl run"):
+    ``--out`` follows :mod:`imitrl.jobs.output`'s rule: a previous run there is refused
+    unless ``--overwrite``, and a second run writing it meanwhile is refused at once."""
+    with claimed(config.out, overwrite=config.overwrite):
         return _run_bc(config)
 
 

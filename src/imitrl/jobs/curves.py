@@ -4,8 +4,14 @@ Every run logs through a ``torchrl.record.loggers`` logger:
 
 * ``bc/loss`` at every gradient step (``fit_bc``; DAgger counts steps across rounds),
 * ``eval/return``, ``eval/return_lo``, ``eval/return_hi`` (mean and interval of the
-  evaluation) at each round (BC has one, round 0), ``eval/expert_return`` at round 0,
-* ``dagger/rows`` and ``dagger/final_loss`` per round (``dagger``).
+  evaluation) at each round (BC has one, round 0), ``eval/expert_return`` at step 0,
+* ``dagger/rows`` and ``dagger/final_loss`` per round (``dagger``),
+* GAIL/AIRL: ``<gail|airl>/discriminator_loss`` (and ``_grad_penalty``, ``_accuracy``s),
+  ``loss_objective``, ``loss_critic`` (, ``loss_entropy``) of PPO and ``learned_reward``
+  per round at step = env steps, and ``eval/return`` (with its interval) at env step 0
+  (the untrained learner) and at each ``--eval-every`` round's env steps.
+
+``curves.png`` draws each command's loss panels (:data:`LAYOUTS`) and the evaluations.
 
 The CSV files (``--out/logs/csv/<command>/scalars/<name>.csv``, one ``step,value`` line
 each) are always written, and ``curves.png`` is drawn from them; ``--logger
@@ -19,14 +25,24 @@ import importlib.util
 import math
 import shutil
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 from torchrl.record.loggers import CSVLogger, Logger
 
-__all__ = ["LOGGERS", "FanOut", "make_logger", "plot_curves", "read_scalars", "scalars_dir"]
+from imitrl.jobs.names import LOGGERS  # one list, also read by --help
 
-LOGGERS = ("csv", "tensorboard", "wandb")
-"""values of ``--logger``"""
+__all__ = [
+    "LAYOUTS",
+    "LOGGERS",
+    "FanOut",
+    "Layout",
+    "Panel",
+    "make_logger",
+    "plot_curves",
+    "read_scalars",
+    "scalars_dir",
+]
 
 
 class FanOut(Logger):
@@ -111,36 +127,113 @@ def read_scalars(directory: Path) -> dict[str, tuple[list[int], list[float]]]:
     return curves
 
 
-def plot_curves(directory: Path, path: Path, *, title: str) -> Path:
-    """Loss vs step and return vs round (interval band, expert line), from the CSV files."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg  # imported when a run plots
-    from matplotlib.figure import Figure
+@dataclass(frozen=True)
+class Panel:
+    """One loss panel of ``curves.png``: the scalars it draws against one x axis."""
 
-    curves = read_scalars(directory)
-    fig = Figure(figsize=(10, 3.6), layout="constrained")
-    FigureCanvasAgg(fig)
-    loss_ax, ret_ax = fig.subplots(1, 2)
-    if "bc/loss" in curves:
-        steps, loss = curves["bc/loss"]
-        loss_ax.plot(steps, loss, lw=0.8, color="tab:blue")
-        if loss and min(loss) > 0:
-            loss_ax.set_yscale("log")
-    loss_ax.set(xlabel="gradient step", ylabel="training loss", title="loss per step")
+    title: str
+    series: tuple[str, ...]
+    """scalar names, each drawn as one line (labelled by its name without the prefix)"""
+    xlabel: str
+    ylabel: str
+
+
+@dataclass(frozen=True)
+class Layout:
+    """What a command logs: its loss panels, and what the evaluation's step counts."""
+
+    panels: tuple[Panel, ...]
+    eval_x: str
+    """x label of the evaluation panel: "round" (BC, DAgger) or "env step" (GAIL, AIRL)"""
+
+
+def _adversarial(name: str) -> Layout:
+    """GAIL's and AIRL's scalars (:func:`imitrl.algorithms.adversarial.loop._log`)."""
+    return Layout(
+        panels=(
+            Panel("discriminator", (f"{name}/discriminator_loss", f"{name}/discriminator_grad_penalty"),
+                  "env step", "loss (last step of each round)"),
+            Panel("generator (PPO policy)", (f"{name}/loss_objective", f"{name}/loss_entropy"),
+                  "env step", "loss (mean of the round's last epoch)"),
+            Panel("generator (PPO value)", (f"{name}/loss_critic",),
+                  "env step", "loss (mean of the round's last epoch)"),
+        ),
+        eval_x="env step",
+    )  # fmt: skip
+
+
+_BC = Layout(
+    panels=(Panel("loss per step", ("bc/loss",), "gradient step", "training loss"),),
+    eval_x="round",
+)
+LAYOUTS = {"bc": _BC, "dagger": _BC, "gail": _adversarial("gail"), "airl": _adversarial("airl")}
+"""what each command's ``curves.png`` draws, by command (the run folder's name)"""
+
+
+def _loss_panel(ax, panel: Panel, curves: dict) -> None:
+    """The panel's logged scalars, one line each (one that is 0 throughout, such as the
+    gradient penalty when it is off, left out); log scale over a decade or more."""
+    drawn = [n for n in panel.series if n in curves and any(v != 0 for v in curves[n][1])]
+    values = [v for name in drawn for v in curves[name][1]]
+    for i, name in enumerate(drawn):
+        steps, value = curves[name]
+        style = {"marker": "o", "ms": 3} if len(steps) < 30 else {}
+        ax.plot(steps, value, lw=0.8, color=f"C{i}", label=name.split("/", 1)[-1], **style)
+    if values and min(values) > 0 and max(values) >= 10 * min(values):
+        ax.set_yscale("log")
+    if len(drawn) > 1:
+        ax.legend(loc="best", fontsize=7)
+    ax.set(xlabel=panel.xlabel, ylabel=panel.ylabel, title=panel.title)
+
+
+def _eval_panel(ax, curves: dict, xlabel: str) -> None:
+    """Mean return at each evaluation (interval bars), the expert's as a dashed line."""
     if "eval/return" in curves:
-        rounds, mean = curves["eval/return"]
+        steps, mean = curves["eval/return"]
         lo, hi = curves["eval/return_lo"][1], curves["eval/return_hi"][1]
         # one episode has no interval (NaN bounds): draw the point without a bar
         err = [
             [0.0 if math.isnan(a) else m - a for m, a in zip(mean, lo)],
             [0.0 if math.isnan(b) else b - m for m, b in zip(mean, hi)],
         ]
-        ret_ax.errorbar(rounds, mean, yerr=err, marker="o", capsize=3, label="learner")
-        ret_ax.set_xticks(rounds)
+        ax.errorbar(steps, mean, yerr=err, marker="o", capsize=3, label="learner", zorder=3)
+        if xlabel == "round":
+            ax.set_xticks(steps)
     if "eval/expert_return" in curves:
         expert = curves["eval/expert_return"][1][0]
-        ret_ax.axhline(expert, color="tab:orange", ls="--", label=f"expert ({expert:.1f})")
-    ret_ax.set(xlabel="round", ylabel="mean return", title="evaluation per round")
-    ret_ax.legend(loc="best", fontsize=8)
+        ax.axhline(expert, color="tab:orange", ls="--", label=f"expert ({expert:.1f})")
+    ax.set(xlabel=xlabel, ylabel="mean return", title=f"evaluation per {xlabel}")
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(loc="best", fontsize=8)
+
+
+def plot_curves(directory: Path, path: Path, *, title: str, command: str | None = None) -> Path:
+    """Losses vs step and return at each evaluation (interval bars, expert line), from the
+    CSV files under ``directory``.
+
+    ``command`` picks the panels (:data:`LAYOUTS`); None: the run folder's name, as
+    :func:`scalars_dir` lays it out (``out/logs/csv/<command>/scalars``). A command
+    without a layout draws every ``*loss*`` scalar against its step.
+    """
+    from matplotlib.figure import Figure  # imported when a run plots
+
+    from imitrl.plotting import save_figure
+
+    curves = read_scalars(directory)
+    command = Path(directory).parent.name if command is None else command
+    layout = LAYOUTS.get(command) or Layout(
+        panels=(Panel("losses", tuple(n for n in curves if "loss" in n), "step", "loss"),),
+        eval_x="step",
+    )
+    n = len(layout.panels) + 1
+    cols = 2 if n > 2 else n
+    rows = -(-n // cols)
+    fig = Figure(figsize=(5.0 * cols, 3.6 * rows + 0.3))
+    axes = fig.subplots(rows, cols, squeeze=False).ravel()
+    for ax, panel in zip(axes, layout.panels):
+        _loss_panel(ax, panel, curves)
+    _eval_panel(axes[len(layout.panels)], curves, layout.eval_x)
+    for ax in axes[n:]:
+        ax.set_visible(False)
     fig.suptitle(title)
-    fig.savefig(path, dpi=120)
-    return Path(path)
+    return save_figure(fig, path, dpi=120)

@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import functools
 import time
-from dataclasses import dataclass
 from pathlib import Path
 
 import torch
@@ -31,9 +30,7 @@ import torch
 from imitrl.algorithms import Constant, DAggerConfig, EnvSource, dagger
 from imitrl.algorithms.ray_source import RaySource
 from imitrl.envs import make_env
-from imitrl.fs.lock import exclusive
 from imitrl.jobs.bc import (
-    BCJob,
     Setup,
     bc_config,
     demonstrations,
@@ -43,70 +40,31 @@ from imitrl.jobs.bc import (
     log_evaluation,
     prepare,
 )
+from imitrl.jobs.configs import DAggerJob
 from imitrl.jobs.evaluate import format_return
+from imitrl.jobs.output import claimed
+from imitrl.jobs.resolve import no_expert_message
 from imitrl.policies import Learner
 
 __all__ = ["DAggerJob", "report", "run_dagger"]
 
 
-@dataclass(frozen=True)
-class DAggerJob(BCJob):
-    """DAgger: every flag of imitrl bc, plus the rounds."""
-
-    out: Path = Path("results/dagger")
-    """output directory: results.json, config.json + learner.pt (the last round's
-    learner, read by imitrl eval --checkpoint), curves.png, logs/"""
-    rounds: int = 4
-    """fits: round 0 is BC on the demonstrations, each later one refits on the
-    aggregated buffer"""
-    episodes_per_round: int = 3
-    """learner episodes rolled out and labelled by the expert after each fit but the last"""
-    beta: float = 0.0
-    """probability of executing the expert's action in the relabel rounds (constant)"""
-    warm_start: bool = False
-    """keep training one learner across rounds instead of fitting a fresh one each round"""
-    resume: bool = False
-    """continue the run saved in OUT/run by an interrupted imitrl dagger with the same
-    flags (bit-identical to an uninterrupted run); without it an OUT holding a run is refused"""
-    workers: int | None = None
-    """Ray workers that play the relabel rounds, one env and the expert each (needs
-    imitrl[distributed]); none = the rounds run in this process"""
-    address: str | None = None
-    """the Ray cluster for --workers (auto, or ray://HOST:10001); none = a local Ray
-    instance with --workers CPUs"""
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        if self.expert is None:
-            raise ValueError("dagger needs --expert to label the learner's states")
-        if self.rounds < 1 or self.episodes_per_round < 1:
-            raise ValueError("--rounds and --episodes-per-round must be >= 1")
-        if not 0.0 <= self.beta <= 1.0:
-            raise ValueError(f"--beta must be in [0, 1], got {self.beta}")
-        if self.workers is not None and self.workers < 1:
-            raise ValueError(f"--workers must be >= 1 or none, got {self.workers}")
-        if self.address is not None and self.workers is None:
-            raise ValueError("--address names the Ray cluster for --workers: give --workers too")
-
-
 def run_dagger(config: DAggerJob) -> dict:
     """DAgger as ``config`` says (module docstring); returns what results.json holds.
 
-    The run holds ``--out``'s lock (:func:`imitrl.fs.exclusive`): a second run writing the
-    same ``--out`` is refused at once."""
-    with exclusive(config.out, what="written by another imitrl run"):
+    ``--out`` follows :mod:`imitrl.jobs.output`'s rule: a previous run there is refused
+    unless ``--overwrite`` or ``--resume``, and a second run writing it meanwhile is
+    refused at once."""
+    with claimed(config.out, overwrite=config.overwrite, resume=config.resume):
         return _run_dagger(config)
 
 
 def _run_dagger(config: DAggerJob) -> dict:
     start = time.perf_counter()
     checkpoint = config.out / "run"
-    if (checkpoint / "manifest.json").exists() and not config.resume:
-        raise ValueError(
-            f"{config.out} holds a saved DAgger run: add --resume to continue it, or give "
-            "another --out"
-        )
     setup = prepare(config, "dagger", keep_logs=config.resume)
+    if setup.expert is None:  # --expert auto with a --dataset, on an env without one
+        raise ValueError(no_expert_message(config.env))
     buffer = demonstrations(config, setup)
     demo_rows, demo_episodes = len(buffer), buffer.num_episodes
     expert_ev = evaluate_expert(config, setup)

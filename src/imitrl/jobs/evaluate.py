@@ -10,6 +10,7 @@ play the same initial states and give the same digits.
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -32,11 +33,12 @@ def evaluate_returns(
     episodes: int,
     seed: int,
     max_episode_steps: int | None,
+    progress: bool = False,
 ) -> dict:
     """Mean return of ``policy`` (writes ``action``) over ``episodes`` episodes, 95% interval.
 
     Returns ``{"mean_return", "return_ci": [lo, hi], "mean_length", "episodes",
-    "exploration", "seed"}`` (a NaN interval for one episode).
+    "exploration", "seed"}`` (``[None, None]`` for one episode: no interval).
     """
     import torch
 
@@ -54,12 +56,14 @@ def evaluate_returns(
             episodes,
             exploration=exploration,
             generator=torch.Generator().manual_seed(seed),  # sampled policies, reproducibly
+            progress=progress,
         )
     finally:
         env.close()
     return {
         "mean_return": ev.mean_return,
-        "return_ci": list(ev.return_ci),
+        # one episode has no interval: None (JSON null), not NaN (no JSON value)
+        "return_ci": [None if math.isnan(x) else x for x in ev.return_ci],
         "mean_length": ev.mean_length,
         "episodes": episodes,
         "exploration": ev.exploration,
@@ -70,8 +74,9 @@ def evaluate_returns(
 def format_return(name: str, ev: dict) -> str:
     """One report line: ``name: return m [lo, hi] over n episodes (exploration)``."""
     lo, hi = ev["return_ci"]
+    interval = "[no interval]" if lo is None else f"[{lo:.2f}, {hi:.2f}]"
     return (
-        f"{name}: return {ev['mean_return']:.2f} [{lo:.2f}, {hi:.2f}] over "
+        f"{name}: return {ev['mean_return']:.2f} {interval} over "
         f"{ev['episodes']} episodes ({ev['exploration']}), mean length {ev['mean_length']:.1f}"
     )
 
@@ -99,6 +104,10 @@ class EvalJob:
     """seed of the evaluation env (the default of bc/dagger)"""
     out: Path | None = None
     """also write eval.json into this directory; none = print only"""
+    overwrite: bool = False
+    """replace an eval.json already in --out (without it, one there is refused)"""
+    progress: bool = True
+    """a progress bar over the evaluation episodes on stderr"""
 
     def __post_init__(self) -> None:
         from imitrl.jobs.resolve import EXPERT_KINDS
@@ -113,6 +122,11 @@ class EvalJob:
             )
         if self.eval_episodes < 1:
             raise ValueError(f"--eval-episodes must be >= 1, got {self.eval_episodes}")
+        if self.out is not None and (Path(self.out) / "eval.json").exists() and not self.overwrite:
+            raise ValueError(
+                f"--out {self.out} holds an eval.json: pass --overwrite to replace it, or "
+                "give another --out"
+            )
 
 
 def run_eval(config: EvalJob) -> dict:
@@ -144,6 +158,7 @@ def run_eval(config: EvalJob) -> dict:
         episodes=config.eval_episodes,
         seed=config.eval_seed,
         max_episode_steps=steps,
+        progress=config.progress,
     )
     results = {"policy": name, "env": env_id, "evaluation": ev}
     if config.out is not None:

@@ -10,27 +10,28 @@
    the same learner;
 2. demonstrations: ``--demos`` greedy expert episodes, or the rows of ``--dataset``;
 3. evaluate the expert and the untrained learner on the ``--eval-seed`` initial states;
-4. :func:`~imitrl.algorithms.adversarial.gail` / ``airl`` for ``--total-steps`` env steps;
-5. evaluate the learner; write ``results.json`` (env steps, expert queries = the
-   demonstration rows, the evaluations, one line per round), the checkpoint and
-   ``curves.png`` into ``--out``.
+4. :func:`~imitrl.algorithms.adversarial.gail` / ``airl`` for ``--total-steps`` env steps,
+   evaluating the learner after every ``--eval-every`` rounds and after the last one
+   (``eval/return`` at each point's env steps, the untrained learner's at step 0);
+5. write ``results.json`` (env steps, expert queries = the demonstration rows, the
+   evaluations, one line per round), the checkpoint and ``curves.png`` (discriminator
+   and PPO losses, return per env step) into ``--out``.
+
+The default budget is 50 rounds of 2048 steps: ``--total-steps`` a multiple of
+``--rollout-steps``, else TorchRL's collector warns that it is "not exactly divisible"
+and rounds the budget up to whole rounds.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import time
-from dataclasses import dataclass
 from pathlib import Path
 
 from imitrl.algorithms.adversarial import (
-    AdversarialConfig,
-    AIRLConfig,
-    GAILConfig,
     airl,
     gail,
 )
-from imitrl.fs.lock import exclusive
 from imitrl.jobs.bc import (
     BCJob,
     Setup,
@@ -41,121 +42,14 @@ from imitrl.jobs.bc import (
     log_evaluation,
     prepare,
 )
+from imitrl.jobs.configs import AIRLJob, GAILJob
 from imitrl.jobs.evaluate import format_return
-from imitrl.jobs.resolve import EXPERT_KINDS, learner_factory
+from imitrl.jobs.output import claimed
+from imitrl.jobs.resolve import learner_factory
 from imitrl.policies import ActorCritic
 from imitrl.policies.specs import action_space
 
 __all__ = ["AIRLJob", "GAILJob", "report", "run_airl", "run_gail"]
-
-_SHARED = ("env", "max_episode_steps", "expert", "expert_kind", "dataset", "demos", "hidden",
-           "lr", "eval_episodes", "eval_seed", "seed", "out", "logger", "progress")  # fmt: skip
-
-
-@dataclass(frozen=True)
-class GAILJob:
-    """GAIL from expert demonstrations or a dataset, evaluated against the expert."""
-
-    env: str = "CartPole-v1"
-    """gymnasium id, or module:Env-v0 (importing module registers Env-v0)"""
-    max_episode_steps: int | None = None
-    """override the env's time limit; none = its registered limit"""
-    expert: str | None = "cartpole"
-    """a built-in expert or module:function that plays the demonstrations; none = no
-    expert (needs --dataset; nothing is compared with the learner)"""
-    expert_kind: str = "builder"
-    """what the function of --expert module:function is: builder or callable (as imitrl bc)"""
-    dataset: Path | None = None
-    """LeRobot or Minari directory of demonstrations; none = play --demos expert episodes"""
-    demos: int = 1
-    """greedy expert demonstration episodes (when no --dataset)"""
-    loss: str = "default"
-    """the learner: default (categorical head for discrete actions, gaussian_nll for
-    continuous ones) or a loss-registry name whose head is probabilistic"""
-    hidden: tuple[int, ...] = (64, 64)
-    """hidden layer sizes of the learner's policy and value networks"""
-    lr: float = 3e-4
-    """Adam learning rate of the learner (PPO's policy and value steps)"""
-    total_steps: int = 100_000
-    """environment steps of the generator (the budget)"""
-    rollout_steps: int = 2048
-    """environment steps per round"""
-    ppo_epochs: int = 10
-    """PPO passes over each round's batch"""
-    minibatch_size: int = 256
-    """rows per PPO step"""
-    discriminator_updates: int = 10
-    """discriminator steps per round"""
-    discriminator_batch: int = 256
-    """expert (and as many policy) transitions per discriminator step"""
-    discriminator_lr: float = 3e-4
-    """Adam learning rate of the discriminator"""
-    grad_penalty: float = 0.0
-    """weight of the discriminator's gradient penalty; 0 = none"""
-    gamma: float = 0.99
-    """discount (GAE's, and AIRL's shaping)"""
-    gae_lambda: float = 0.95
-    """GAE's lambda"""
-    entropy_coeff: float = 0.0
-    """weight of PPO's entropy bonus"""
-    absorbing: bool = False
-    """absorbing states for terminated episodes (DAC), for tasks whose episodes end at a
-    goal; off: a terminal step ends the learned reward (GAIL's reward pays for living)"""
-    normalizer_warmup: int = 0
-    """env steps of the untrained learner whose observations join the demonstrations'
-    in the normaliser's statistics (counted); 0: the demonstrations' alone"""
-    eval_episodes: int = 20
-    """evaluation episodes of the expert and of the learner"""
-    eval_seed: int = 10_000
-    """seed of the evaluation env: expert and learner play the same initial states"""
-    seed: int = 0
-    """seeds the env, the learner's initialisation and every draw of the run"""
-    out: Path = Path("results/gail")
-    """output directory: results.json, config.json + learner.pt, curves.png, logs/"""
-    logger: str = "csv"
-    """csv, tensorboard or wandb (the CSV files are written in every case)"""
-    progress: bool = True
-    """progress bar on stderr"""
-
-    def __post_init__(self) -> None:
-        if self.dataset is None and (self.expert is None or self.demos < 1):
-            raise ValueError("without --dataset, --expert must play --demos >= 1 episodes")
-        if self.expert_kind not in EXPERT_KINDS:
-            raise ValueError(
-                f"--expert-kind must be one of {EXPERT_KINDS}, got {self.expert_kind!r}"
-            )
-        if self.eval_episodes < 1:
-            raise ValueError(f"--eval-episodes must be >= 1, got {self.eval_episodes}")
-        self.algorithm_config()  # the training flags fail here, naming the field
-
-    def algorithm_config(self) -> AdversarialConfig:
-        """The :class:`GAILConfig` the flags describe."""
-        return GAILConfig(**self._training())
-
-    def _training(self) -> dict:
-        names = (
-            "total_steps", "rollout_steps", "ppo_epochs", "minibatch_size",
-            "discriminator_updates", "discriminator_batch", "discriminator_lr",
-            "grad_penalty", "gamma", "gae_lambda", "entropy_coeff", "absorbing",
-            "normalizer_warmup", "seed",
-        )  # fmt: skip
-        return {n: getattr(self, n) for n in names}
-
-    def bc_view(self, loss: str) -> BCJob:
-        """The shared flags as a ``BCJob`` (what :func:`imitrl.jobs.bc.prepare` reads)."""
-        return BCJob(loss=loss, steps=0, **{n: getattr(self, n) for n in _SHARED})
-
-
-@dataclass(frozen=True)
-class AIRLJob(GAILJob):
-    """AIRL (state-only reward g, shaping h): every flag of imitrl gail."""
-
-    out: Path = Path("results/airl")
-    """output directory: results.json, config.json + learner.pt, curves.png, logs/"""
-
-    def algorithm_config(self) -> AdversarialConfig:
-        """The :class:`AIRLConfig` the flags describe."""
-        return AIRLConfig(**self._training())
 
 
 def _loss(config: GAILJob, setup: Setup) -> str:
@@ -177,8 +71,24 @@ def _learner(config: GAILJob, setup: Setup, loss: str) -> ActorCritic:
     return learner
 
 
+def _evaluator(config: GAILJob, bc_view: BCJob, setup: Setup, evaluations: list):
+    """The loop's ``on_round``: after every ``eval_every`` rounds, evaluate the learner,
+    log ``eval/return`` at the round's env steps, append ``(env_steps, evaluation)`` to
+    ``evaluations`` and return the evaluation (the round's ``info`` in results.json)."""
+
+    def on_round(k: int, learner: ActorCritic, env_steps: int) -> dict | None:
+        if config.eval_every == 0 or (k + 1) % config.eval_every:
+            return None
+        ev = evaluate_learner(bc_view, learner)
+        log_evaluation(setup.logger, env_steps, ev, None)
+        evaluations.append((env_steps, ev))
+        return {"evaluation": ev}
+
+    return on_round
+
+
 def _run(config: GAILJob, name: str) -> dict:
-    with exclusive(config.out, what="written by another imitrl run"):  # one run per --out
+    with claimed(config.out, overwrite=config.overwrite):  # imitrl.jobs.output's rule
         return _train(config, name)
 
 
@@ -191,13 +101,21 @@ def _train(config: GAILJob, name: str) -> dict:
     buffer = demonstrations(bc_view, setup)
     expert_ev = evaluate_expert(bc_view, setup)
     initial_ev = evaluate_learner(bc_view, learner)
+    log_evaluation(setup.logger, 0, initial_ev, expert_ev)  # env step 0
+    evaluations: list[tuple[int, dict]] = []  # (env steps, evaluation)
+    on_round = _evaluator(config, bc_view, setup, evaluations)
     training, progress, logger = config.algorithm_config(), config.progress, setup.logger
     if name == "gail":
-        result = gail(setup.env, learner, buffer, training, progress=progress, logger=logger)
+        result = gail(setup.env, learner, buffer, training, progress=progress, logger=logger,
+                      on_round=on_round)  # fmt: skip
     else:
-        result, _ = airl(setup.env, learner, buffer, training, progress=progress, logger=logger)
-    learner_ev = evaluate_learner(bc_view, learner)
-    log_evaluation(setup.logger, 0, learner_ev, expert_ev)
+        result, _ = airl(setup.env, learner, buffer, training, progress=progress,
+                         logger=logger, on_round=on_round)  # fmt: skip
+    if not evaluations or evaluations[-1][0] != result.env_steps:  # the last round's
+        ev = evaluate_learner(bc_view, learner)
+        log_evaluation(setup.logger, result.env_steps, ev, None)
+        evaluations.append((result.env_steps, ev))
+    learner_ev = evaluations[-1][1]
     results = {
         "command": name,
         "env": config.env,

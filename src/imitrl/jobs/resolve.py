@@ -21,6 +21,8 @@ exit status 2.
 from __future__ import annotations
 
 import importlib
+import inspect
+import re
 from collections.abc import Callable
 from pathlib import Path
 
@@ -32,14 +34,19 @@ from torchrl.envs import EnvBase
 
 from imitrl import experts, keys
 from imitrl.data.buffer import OBSERVATION_KEYS, REQUIRED_KEYS
+from imitrl.jobs.names import EXPERT_ENVS, EXPERT_KINDS
 from imitrl.objectives import registry
 from imitrl.objectives.registry import LearnerConfig, TaskSpec
 from imitrl.policies import ActorCritic, Expert, Learner
 
 __all__ = [
+    "AUTO",
     "EXPERTS",
+    "EXPERT_ENVS",
     "EXPERT_KINDS",
+    "check_expert_fits",
     "dataset_format",
+    "expert_for_env",
     "learner_factory",
     "load_dataset",
     "make_expert",
@@ -58,8 +65,10 @@ EXPERTS: dict[str, Callable[[], TensorDictModuleBase]] = {
 """built-in expert name -> builder (CartPole-v1, MountainCar-v0, Acrobot-v1, Pendulum-v1,
 InvertedPendulum-v5, InvertedDoublePendulum-v5; the MuJoCo ones need the mujoco extra)"""
 
-EXPERT_KINDS = ("builder", "callable")
-"""what the ``function`` of ``--expert module:function`` is (see the module docstring)"""
+
+AUTO = "auto"
+"""``--expert auto``: the built-in expert of ``--env`` (:func:`expert_for_env`)"""
+
 
 # the keys a rollout writes (imitrl.data.rollout_episodes): loaded rows keep only these,
 # so that DAgger's rollouts can extend the same buffer
@@ -84,6 +93,39 @@ def _import(spec: str) -> object:
     return getattr(module, attr)
 
 
+def expert_for_env(spec: str | None, env_id: str) -> str | None:
+    """``--expert`` as given, or for ``auto`` the built-in expert that acts in ``env_id``
+    (None when there is none: a job that needs an expert then says what to pass)."""
+    if spec != AUTO:
+        return spec
+    plain = env_id.split(":", 1)[-1]
+    return next((name for name, env in EXPERT_ENVS.items() if env == plain), None)
+
+
+def no_expert_message(env_id: str) -> str:
+    """What to pass when ``--env`` has no built-in expert."""
+    return (
+        f"--env {env_id} has no built-in expert (built-in: "
+        + ", ".join(f"{n} for {e}" for n, e in EXPERT_ENVS.items())
+        + "); pass --expert module:function (with --expert-kind callable for a batched "
+        "obs -> action function) or --dataset DIR"
+    )
+
+
+def check_expert_fits(expert: TensorDictModuleBase, spec: str, env_id: str, env: EnvBase) -> None:
+    """``expert`` labels ``env``'s observations; a ValueError naming ``--expert`` (and the
+    built-in expert of ``env_id``, if any) otherwise."""
+    try:
+        expert(env.fake_tensordict().select(*expert.in_keys))
+    except (ValueError, RuntimeError, KeyError, TypeError, IndexError) as err:
+        mine = expert_for_env(AUTO, env_id)
+        hint = f"--expert {mine}" if mine else no_expert_message(env_id).split("; ", 1)[1]
+        raise ValueError(
+            f"--expert {spec} cannot label {env_id}'s observations ({type(err).__name__}: "
+            f"{err}); use {hint}"
+        ) from err
+
+
 def make_expert(spec: str, kind: str = "builder") -> TensorDictModuleBase:
     """The expert named by ``spec`` (a built-in name or ``module:function``), built.
 
@@ -91,6 +133,8 @@ def make_expert(spec: str, kind: str = "builder") -> TensorDictModuleBase:
     """
     if kind not in EXPERT_KINDS:
         raise ValueError(f"--expert-kind must be one of {EXPERT_KINDS}, got {kind!r}")
+    if spec == AUTO:
+        raise ValueError("--expert auto is resolved against --env first (expert_for_env)")
     if ":" not in spec:
         if spec not in EXPERTS:
             raise ValueError(
@@ -103,7 +147,20 @@ def make_expert(spec: str, kind: str = "builder") -> TensorDictModuleBase:
         raise ValueError(f"--expert {spec!r} is a {type(fn).__name__}, not a function")
     if kind == "callable":
         return Expert.from_callable(fn)
-    expert = fn()
+    needs = _required_arguments(fn)
+    if needs:
+        raise ValueError(
+            f"--expert {spec} takes argument(s) {needs}: it looks like a batched function "
+            "obs -> action; pass --expert-kind callable (the default, builder, calls it "
+            "with no arguments to build an expert module)"
+        )
+    try:
+        expert = fn()
+    except TypeError as err:
+        raise ValueError(
+            f"--expert {spec}: calling it with no arguments failed ({err}); for a batched "
+            "function obs -> action pass --expert-kind callable"
+        ) from err
     if not isinstance(expert, TensorDictModuleBase) or keys.EXPERT_ACTION not in expert.out_keys:
         raise ValueError(
             f"--expert {spec!r}: the builder returned a {type(expert).__name__}, expected a "
@@ -111,6 +168,16 @@ def make_expert(spec: str, kind: str = "builder") -> TensorDictModuleBase:
             "obs -> action, pass --expert-kind callable)"
         )
     return expert
+
+
+def _required_arguments(fn: Callable) -> list[str]:
+    """The parameters ``fn`` cannot be called without (none when its signature is unknown)."""
+    try:
+        params = inspect.signature(fn).parameters.values()
+    except (TypeError, ValueError):
+        return []
+    kinds = (inspect.Parameter.POSITIONAL_ONLY, inspect.Parameter.POSITIONAL_OR_KEYWORD)
+    return [p.name for p in params if p.kind in kinds and p.default is inspect.Parameter.empty]
 
 
 def time_limit(env_id: str, override: int | None) -> int:
@@ -170,9 +237,16 @@ def learner_factory(
 
 
 def dataset_format(path: Path) -> str:
-    """``"lerobot"`` or ``"minari"``, read off the files in ``path``."""
+    """``"lerobot"`` or ``"minari"``, read off the files in ``path``; a ``path`` that is
+    no folder but a Hub ``repo_id`` (``<org>/<name>``) names a LeRobot dataset, which
+    :func:`load_dataset` finds in the local caches or downloads (``imitrl[hub]``)."""
     if not path.is_dir():
-        raise ValueError(f"--dataset {path}: no such directory")
+        if not path.exists() and re.fullmatch(r"[\w.-]+/[\w.-]+", str(path)):
+            return "lerobot"
+        raise ValueError(
+            f"--dataset {path}: no such directory (nor a Hub repo_id <org>/<name> of a "
+            "LeRobot dataset)"
+        )
     if (path / "meta" / "info.json").is_file():
         return "lerobot"
     for folder in (path, path / "data"):
@@ -187,12 +261,16 @@ def dataset_format(path: Path) -> str:
 def load_dataset(path: Path, env: EnvBase) -> TensorDictBase:
     """Demonstration rows ``[N]`` of the dataset at ``path``, conformed to ``env``'s specs.
 
+    ``path`` is a folder or a LeRobot dataset's Hub ``repo_id`` (:func:`dataset_format`).
     Only the keys a rollout writes are kept (:data:`ROW_KEYS`), so DAgger's rounds
     can extend the same buffer.
     """
     from imitrl.datasets import load_lerobot, load_minari  # needs the datasets extra
 
     fmt = dataset_format(path)
-    loaded = (load_lerobot if fmt == "lerobot" else load_minari)(path, env=env)
+    if fmt == "lerobot":  # a repo_id goes as a str: resolved locally or downloaded
+        loaded = load_lerobot(path if path.is_dir() else str(path), env=env)
+    else:
+        loaded = load_minari(path, env=env)
     present = set(loaded.rows.keys(include_nested=True))
     return loaded.rows.select(*[k for k in ROW_KEYS if k in present])

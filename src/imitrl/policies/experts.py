@@ -30,7 +30,7 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase, TensorDictSequential
 from tensordict.utils import NestedKey
 from torch import nn
-from torchrl.data import TensorSpec
+from torchrl.data import Bounded, TensorSpec
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from imitrl import keys
@@ -116,12 +116,16 @@ class Expert(TensorDictModuleBase):
         *,
         in_keys: Sequence[NestedKey] = (keys.OBSERVATION,),
         action_spec: TensorSpec | None = None,
+        clip: bool = False,
     ) -> None:
         super().__init__()
+        if not isinstance(clip, bool):
+            raise ValueError(f"clip must be True or False, got {clip!r}")
         self.module = module if isinstance(module, nn.Module) else _Call(module)
         self.in_keys = list(in_keys)
         self.out_keys = [keys.EXPERT_ACTION]
         self.action_spec = None
+        self.clip = clip
         if action_spec is not None:
             self.bind(action_spec)
 
@@ -165,6 +169,7 @@ class Expert(TensorDictModuleBase):
         *,
         action_spec: TensorSpec | None = None,
         observation_key: NestedKey = keys.OBSERVATION,
+        clip: bool = False,
     ) -> Expert:
         """Expert from a batched function ``obs [*B, d] -> action`` (torch or numpy).
 
@@ -172,8 +177,12 @@ class Expert(TensorDictModuleBase):
         may return a tensor, a numpy array or a python number. Its output is cast to
         ``action_spec`` (one lane's spec; None: the env's, at the first rollout) when
         the cast is exact, and refused with a ``ValueError`` otherwise.
+
+        ``clip``: clip every label into a ``Bounded`` spec's bounds (for experts whose
+        actions the env itself clips, such as Meta-World's scripted policies); without
+        it a label outside the bounds is refused where it is recorded.
         """
-        return cls(_Call(fn), in_keys=[observation_key], action_spec=action_spec)
+        return cls(_Call(fn), in_keys=[observation_key], action_spec=action_spec, clip=clip)
 
     @classmethod
     def from_policy(
@@ -226,7 +235,11 @@ class Expert(TensorDictModuleBase):
         """A raw label of a ``batch_shape`` batch as the ``EXPERT_ACTION`` tensor: cast to
         ``action_spec`` when bound (see the module docstring), else only made a tensor."""
         if self.action_spec is not None:
-            return cast_action(raw, self.action_spec, batch_shape=batch_shape)
+            label = cast_action(raw, self.action_spec, batch_shape=batch_shape)
+            if self.clip and isinstance(self.action_spec, Bounded):
+                low, high = self.action_spec.space.low, self.action_spec.space.high
+                label = torch.minimum(torch.maximum(label, low.to(label)), high.to(label))
+            return label
         return raw if isinstance(raw, torch.Tensor) else torch.as_tensor(raw)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:

@@ -48,13 +48,14 @@ frames in memory-mapped files instead of memory. A dataset whose only observatio
 camera gives rows with ``PIXELS`` and no ``OBSERVATION``. Nothing is dropped without a
 warning.
 
-Modules, one idea each: ``_layout`` (format constants, :func:`resolve_lerobot_root`,
-reading ``meta/``), ``_plan`` (feature -> buffer key, and why others are skipped),
+Modules, one idea each: ``_layout`` (format constants, reading ``meta/``), ``_locate``
+(:func:`resolve_lerobot_root`: lerobot's folder and the hub caches, offline), ``_hub`` (a folder, a local cache or the Hub: :func:`download_lerobot`,
+with huggingface_hub, into ``$HF_LEROBOT_HOME/hub`` as lerobot 0.6 does), ``_plan`` (feature -> buffer key, and why others are skipped),
 ``_read`` (:func:`load_lerobot`), ``_stream`` (``load_lerobot(..., into=buffer)``: a few
 episodes at a time, everything checked before the buffer is extended), ``_video`` (where each episode's camera frames lie in
 which mp4, and decoding them), ``_checks`` (what frames must satisfy: timestamps
 against ``fps``, ``frame_index``, ``task_index``, the checksums :func:`save_lerobot`
-records), ``_write`` (:func:`save_lerobot`: rows -> features, written atomically by
+records, and the edits LeRobot makes in place despite them), ``_write`` (:func:`save_lerobot`: rows -> features, written atomically by
 ``imitrl.fs.publish``), ``_write_frames`` (the data files and per-episode
 statistics, a slice of whole episodes at a time), ``_episode_table`` (the episode table,
 appended a slice at a time), ``_v3_files`` (the other files of a v3.0 directory),
@@ -62,6 +63,8 @@ appended a slice at a time), ``_v3_files`` (the other files of a v3.0 directory)
 ``_stats_totals`` (``meta/stats.json`` from running totals, with the digits of LeRobot's
 aggregation over every episode at once).
 """
+
+from imitrl.datasets.lerobot._hub import download_lerobot
 
 # the format's constants stay importable from here, as before the split into modules
 from imitrl.datasets.lerobot._layout import (  # noqa: F401
@@ -80,14 +83,15 @@ from imitrl.datasets.lerobot._layout import (  # noqa: F401
     READ_VERSIONS,
     SIDECAR,
     SIDECAR_FORMAT,
-    resolve_lerobot_root,
 )
+from imitrl.datasets.lerobot._locate import resolve_lerobot_root
 from imitrl.datasets.lerobot._read import load_lerobot
 from imitrl.datasets.lerobot._write import save_lerobot
 
 __all__ = [
     "DEFAULT_KEY_MAP",
     "IMITRL_COLUMNS",
+    "download_lerobot",
     "load_lerobot",
     "resolve_lerobot_root",
     "save_lerobot",

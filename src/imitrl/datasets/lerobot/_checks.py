@@ -8,19 +8,23 @@ positive number and consecutive timestamps of an episode lie ``1 / fps`` apart w
 :func:`save_lerobot` wrote also carry each file's size and SHA-256 in
 ``meta/imitrl.json``: a file changed since (a flipped byte, a truncation) is refused
 by name, since a parquet file has no checksum of its own and a changed value would
-otherwise load as data.
+otherwise load as data. LeRobot's own edits in place (it resumes recording into the
+dataset, or recomputes its statistics, and leaves ``meta/imitrl.json`` behind) are told
+apart from that: they rewrite only ``meta/info.json`` (its totals), ``meta/stats.json``
+and ``meta/tasks.parquet`` and add new files (:func:`verify_files`).
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+import warnings
 from pathlib import Path
 from typing import Any
 
 import torch
 
-from imitrl.datasets.lerobot._layout import SIDECAR
+from imitrl.datasets.lerobot._layout import IMITRL_COLUMNS, SIDECAR
 from imitrl.fs.contained import inside
 
 TOLERANCE_S = 1e-4
@@ -43,15 +47,40 @@ def sidecar_digest(sidecar: dict) -> str:
     return hashlib.sha256(json.dumps(content, sort_keys=True).encode()).hexdigest()
 
 
-def verify_files(root: Path, sidecar: dict) -> None:
-    """``meta/imitrl.json`` is as written (its ``"digest"``) and every file it lists is
-    there, with its recorded size and SHA-256.
+LEROBOT_REWRITES = ("meta/info.json", "meta/stats.json", "meta/tasks.parquet")
+"""the files LeRobot rewrites in place: all three when it resumes recording
+(``LeRobotDataset.resume``: totals, statistics, a new task), ``meta/stats.json`` when it
+recomputes statistics (``lerobot-edit-dataset --operation.type recompute_stats``)"""
 
-    A sidecar with neither ``"files"`` nor ``"digest"`` (imitrl before checksums) is not
-    verified."""
+LEROBOT_ADDS = ("data", "meta/episodes", "videos", "images")
+"""where LeRobot puts the files of the episodes it adds: always new files (lerobot 0.4 and
+0.6 move to the next ``file-*`` when they resume), never into a file already written"""
+
+INFO_TOTALS = ("total_episodes", "total_frames", "total_tasks", "splits")
+"""the entries of ``meta/info.json`` LeRobot changes in place (``save_episode``); every
+other entry (``features``, ``fps``, the path templates, ...) it keeps"""
+
+
+def verify_files(root: Path, sidecar: dict) -> list[str]:
+    """``meta/imitrl.json`` is as written (its ``"digest"``) and every file it lists is
+    there with its recorded size and SHA-256, but for LeRobot's own edits in place.
+
+    LeRobot leaves ``meta/imitrl.json`` behind when it edits a dataset: it rewrites the
+    files of :data:`LEROBOT_REWRITES` and adds files under :data:`LEROBOT_ADDS`. Such a
+    dataset is still a LeRobot dataset: the rewritten files lose their checksums, and
+    ``meta/info.json`` must keep every entry but :data:`INFO_TOTALS` as recorded (sidecars
+    with an ``"info"`` record) and a rewritten ``meta/stats.json`` must be LeRobot's
+    statistics; the rest is checked as for any LeRobot dataset. Any other change (a byte
+    of a data file, an episode table, a video; the sidecar itself) is refused by name.
+
+    Returns:
+        the files LeRobot rewrote or added since :func:`save_lerobot` wrote the dataset
+        (``[]``: as written). A sidecar with neither ``"files"`` nor ``"digest"`` (imitrl
+        before checksums) is not verified.
+    """
     where = root / SIDECAR
     if not isinstance(sidecar, dict) or ("files" not in sidecar and "digest" not in sidecar):
-        return  # a sidecar that is not an object is refused where it is read
+        return []  # a sidecar that is not an object is refused where it is read
     if sidecar.get("digest") != sidecar_digest(sidecar):
         raise ValueError(
             f"{where}: changed since save_lerobot wrote it (its content does not match its "
@@ -60,15 +89,79 @@ def verify_files(root: Path, sidecar: dict) -> None:
     files = sidecar.get("files")
     if not isinstance(files, dict):
         raise ValueError(f"{where}: 'files' must map file names to sizes and checksums")
+    rewritten = []
     for name, recorded in files.items():
         path = inside(root, name, named_by=str(where))
         if not path.is_file():
             raise ValueError(f"{path}: file not found (listed in {where})")
-        if file_digest(path) != recorded:
+        if file_digest(path) == recorded:
+            continue
+        if name not in LEROBOT_REWRITES:
             raise ValueError(
                 f"{path}: changed since save_lerobot wrote it (its size or SHA-256 differs from "
-                f"{where}); refusing to load altered data"
+                f"{where}; LeRobot adds episodes in new files and never rewrites this one); "
+                "refusing to load altered data"
             )
+        rewritten.append(name)
+    added = [
+        p.relative_to(root).as_posix()
+        for folder in LEROBOT_ADDS
+        if (root / folder).is_dir()
+        for p in sorted((root / folder).rglob("*"))
+        if p.is_file() and p.relative_to(root).as_posix() not in files
+    ]
+    if "meta/info.json" in rewritten:
+        _check_info_kept(root, sidecar.get("info"))
+    if "meta/stats.json" in rewritten:
+        _check_stats(root / "meta" / "stats.json")
+    return rewritten + added
+
+
+def _check_info_kept(root: Path, recorded: object) -> None:
+    """A rewritten ``meta/info.json`` keeps every entry :func:`save_lerobot` recorded but
+    :data:`INFO_TOTALS`, as LeRobot keeps them."""
+    if not isinstance(recorded, dict):
+        return  # a sidecar from before the record: the columns are checked against it on load
+    path = root / "meta" / "info.json"
+    info = json.loads(path.read_text()) if path.is_file() else None
+    if not isinstance(info, dict):
+        return  # refused by name where it is read
+    for field, was in recorded.items():
+        now = info.get(field)
+        if field in INFO_TOTALS or now == was:
+            continue
+        what = repr(field)
+        if field == "features" and isinstance(now, dict) and isinstance(was, dict):
+            name = next((n for n in dict.fromkeys([*was, *now]) if now.get(n) != was.get(n)), None)
+            what, now, was = f"feature {name!r}", now.get(name), was.get(name)
+        raise ValueError(
+            f"{path}: {what} is {now!r}, save_lerobot wrote {was!r} (recorded in "
+            f"{root / SIDECAR}); LeRobot changes only {list(INFO_TOTALS)} of an existing "
+            "dataset, so this is not its edit: refusing altered data (delete meta/imitrl.json "
+            "to read the folder as any LeRobot dataset)"
+        )
+
+
+def _check_stats(path: Path) -> None:
+    """``meta/stats.json`` as LeRobot writes it (``write_stats``): feature -> statistic ->
+    a number (or boolean) or a nested list of them."""
+    try:
+        stats = json.loads(path.read_text())
+    except json.JSONDecodeError as err:
+        raise ValueError(f"{path} is not valid JSON: {err}") from err
+
+    def numbers(value: object) -> bool:
+        if isinstance(value, list):
+            return all(numbers(v) for v in value)
+        return isinstance(value, int | float)  # bool too: a flag's min and max
+
+    if not isinstance(stats, dict) or not all(
+        isinstance(s, dict) and all(numbers(v) for v in s.values()) for s in stats.values()
+    ):
+        raise ValueError(
+            f"{path}: expected LeRobot's statistics (feature -> statistic -> numbers); "
+            "refusing altered data"
+        )
 
 
 def check_frames(
@@ -117,3 +210,30 @@ def check_frames(
                 f"{file_of(i)}: episode {int(episode[i])}: task_index {int(ti[i])} is outside "
                 f"the task table ({n_tasks} task(s))"
             )
+
+
+def warn_edited(root: Path, edits: list[str], features: dict[str, dict]) -> None:
+    """One warning saying what of ``meta/imitrl.json``'s record no longer applies to a
+    dataset LeRobot edited in place (``edits``: :func:`verify_files`)."""
+    if not edits:
+        return
+    rewritten = [e for e in edits if e in LEROBOT_REWRITES]
+    added = [e for e in edits if e not in LEROBOT_REWRITES]
+    done = [f"rewrote {rewritten}"] if rewritten else []
+    if added:
+        more = f" and {len(added) - 3} more" if len(added) > 3 else ""
+        done.append(f"added {added[:3]}{more}")
+    message = (
+        f"{root}: LeRobot edited this dataset since save_lerobot wrote it ({'; '.join(done)}): "
+        f"{SIDECAR}'s checksums no longer cover those files, which were checked as any "
+        "LeRobot dataset is (fps and timestamps, frame_index, task_index, lengths, dtypes, "
+        "NaN/inf)"
+    )
+    ours = [name for name in IMITRL_COLUMNS if name in features]
+    if added and ours:
+        message += (
+            f"; in the episodes added since, imitrl's own columns {ours} hold what LeRobot's "
+            "recorder was given, not imitrl's record of DAgger rounds, expert flags, executed "
+            "actions and episode ids"
+        )
+    warnings.warn(message, UserWarning, stacklevel=3)

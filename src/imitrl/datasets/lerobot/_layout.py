@@ -1,17 +1,15 @@
-"""Where a LeRobot dataset lives and what its ``meta/`` directory says.
+"""What a LeRobot dataset's ``meta/`` directory says.
 
-The format's constants (versions, path templates, the column <-> key maps), finding a
-dataset on disk (:func:`resolve_lerobot_root`), and reading ``meta/info.json``, the
-episode table (v3.0 parquet or v2.x ``episodes.jsonl``) and the task table, each
-validated where it is read.
+The format's constants (versions, path templates, the column <-> key maps), and reading
+``meta/info.json``, the episode table (v3.0 parquet or v2.x ``episodes.jsonl``) and the
+task table, each validated where it is read. (Finding a dataset on disk:
+:mod:`~imitrl.datasets.lerobot._locate`.)
 """
 
 from __future__ import annotations
 
 import json
 import math
-import os
-import re
 from pathlib import Path
 from typing import Any
 
@@ -22,7 +20,7 @@ import pyarrow.parquet as pq
 from imitrl import keys
 from imitrl.datasets._arrow import check_schema, read_parquet
 from imitrl.datasets._common import NestedKey, key_name
-from imitrl.fs.contained import inside, links_stay_inside
+from imitrl.fs.contained import inside
 
 DEFAULT_KEY_MAP: dict[str, NestedKey] = {
     "observation.state": keys.OBSERVATION,
@@ -31,6 +29,7 @@ DEFAULT_KEY_MAP: dict[str, NestedKey] = {
     "next.done": (keys.NEXT, keys.DONE),
     "next.terminated": (keys.NEXT, keys.TERMINATED),
     "next.truncated": (keys.NEXT, keys.TRUNCATED),
+    "observation.environment_state": keys.ENVIRONMENT_STATE,
 }
 """dataset feature -> buffer key, applied unless ``key_map`` overrides an entry (``task_index``
 is loaded as ``"task_index"`` when the dataset has more than one task)"""
@@ -93,6 +92,7 @@ def feature_name(key: NestedKey) -> str:
         **{key_name(v): k for k, v in IMITRL_COLUMNS.items()},
         "task_index": "task_index",
         keys.PIXELS: "observation.image",
+        keys.ENVIRONMENT_STATE: "observation.environment_state",
     }
     name = special.get(key_name(key), key_name(key))
     if isinstance(key, tuple) and len(key) > 1 and key[0] == keys.PIXELS:
@@ -100,92 +100,6 @@ def feature_name(key: NestedKey) -> str:
     if "/" in name:
         raise ValueError(f"LeRobot feature names cannot contain '/': {name!r}")
     return name
-
-
-# ------------------------------------------------------------------ locate
-def resolve_lerobot_root(
-    repo_id: str, *, revision: str | None = None, cache_dir: str | Path | None = None
-) -> Path:
-    """Find a LeRobot dataset already on disk for ``repo_id``, without any network access.
-
-    Looks, in order, in ``$HF_LEROBOT_HOME/<repo_id>`` (LeRobot's default ``root``,
-    ``$HF_HOME/lerobot``), then the Hugging Face hub cache
-    (``cache_dir`` or ``$HF_HUB_CACHE`` or ``$HF_HOME/hub``):
-    ``datasets--<org>--<name>/snapshots/<commit>/`` with ``revision`` (or ``v3.0``,
-    ``v2.1``, ``main``) resolved through ``refs/``, else the newest snapshot holding
-    ``meta/info.json``.
-
-    Raises:
-        ValueError: nothing found (the message lists where it looked).
-    """
-    hf_home = Path(os.environ.get("HF_HOME", Path.home() / ".cache" / "huggingface"))
-    looked: list[str] = []
-    if cache_dir is None:
-        lerobot_home = Path(os.environ.get("HF_LEROBOT_HOME", hf_home / "lerobot"))
-        candidate = lerobot_home / repo_id
-        looked.append(str(candidate))
-        if (candidate / "meta" / "info.json").is_file():
-            return candidate
-    hub = Path(cache_dir or os.environ.get("HF_HUB_CACHE", hf_home / "hub"))
-    repo_dir = hub / ("datasets--" + repo_id.replace("/", "--"))
-    looked.append(str(repo_dir))
-    found = _hub_snapshot(repo_dir, revision)
-    if found is not None:
-        return found
-    raise ValueError(
-        f"no local copy of LeRobot dataset {repo_id!r}"
-        + (f" at revision {revision!r}" if revision else "")
-        + f" (looked in {looked}); download it first, this loader never uses the network"
-    )
-
-
-def _hub_snapshot(repo_dir: Path, revision: str | None) -> Path | None:
-    """The snapshot of a hub cache's ``datasets--<org>--<name>`` that holds the dataset:
-    ``revision`` (or ``v3.0``, ``v2.1``, ``main``) through ``refs/``, else (no revision
-    asked for) the newest one holding ``meta/info.json``; None if there is none."""
-    snapshots = repo_dir / "snapshots"
-    if not snapshots.is_dir():
-        return None
-    refs = [revision] if revision is not None else ["v3.0", "v2.1", "main"]
-    for ref in refs:
-        ref_file = repo_dir / "refs" / ref
-        commit = ref_file.read_text().strip() if ref_file.is_file() else ref
-        candidate = snapshots / commit
-        if (candidate / "meta" / "info.json").is_file():
-            return candidate
-    if revision is None:
-        found = [p for p in snapshots.iterdir() if (p / "meta" / "info.json").is_file()]
-        if found:
-            return max(found, key=lambda p: (p / "meta" / "info.json").stat().st_mtime)
-    return None
-
-
-def dataset_root(
-    path_or_repo: str | Path, revision: str | None, cache_dir: str | Path | None
-) -> Path:
-    """The dataset directory: ``path_or_repo`` itself, or a ``repo_id`` resolved locally;
-    refused when a symbolic link in it points outside it
-    (:func:`imitrl.fs.contained.links_stay_inside`)."""
-    root = _find_root(path_or_repo, revision, cache_dir)
-    links_stay_inside(root, what="dataset")
-    return root
-
-
-def _find_root(
-    path_or_repo: str | Path, revision: str | None, cache_dir: str | Path | None
-) -> Path:
-    path = Path(path_or_repo).expanduser()
-    if path.is_dir():
-        return path
-    if isinstance(path_or_repo, str) and re.fullmatch(r"[\w.-]+/[\w.-]+", path_or_repo):
-        return resolve_lerobot_root(path_or_repo, revision=revision, cache_dir=cache_dir)
-    aside = sorted(path.parent.glob(f".{path.name}.imitrl-old-*")) if path.name else []
-    if aside:  # a save_lerobot killed between its two renames (imitrl.fs.publish)
-        raise ValueError(
-            f"{path}: no such dataset directory; a killed save_lerobot left the previous one "
-            f"beside it as {aside[0].name}: the next save_lerobot to {path.name} moves it back"
-        )
-    raise ValueError(f"{path}: no such dataset directory")
 
 
 # -------------------------------------------------------------------- meta

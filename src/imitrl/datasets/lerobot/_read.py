@@ -31,11 +31,11 @@ from imitrl.datasets._common import (
     required_rows,
     warn_skipped,
 )
-from imitrl.datasets.lerobot._checks import check_frames, verify_files
+from imitrl.datasets.lerobot._checks import check_frames, verify_files, warn_edited
+from imitrl.datasets.lerobot._hub import dataset_root
 from imitrl.datasets.lerobot._layout import (
     SIDECAR,
     data_file,
-    dataset_root,
     episode_dicts,
     episode_table,
     read_info,
@@ -305,8 +305,11 @@ def load_lerobot(
     """Read a local LeRobot dataset (v2.0, v2.1 or v3.0) into demonstration rows.
 
     Args:
-        path_or_repo: the dataset directory, or a ``repo_id`` found in a local Hugging
-            Face cache (:func:`resolve_lerobot_root`; never downloads).
+        path_or_repo: the dataset directory, or a ``repo_id`` (``<org>/<name>``) found in
+            the local caches (:func:`resolve_lerobot_root`) or, when none holds it and
+            ``HF_HUB_OFFLINE`` is not set, downloaded from the Hub into
+            ``$HF_LEROBOT_HOME/hub`` as lerobot 0.6 does (:func:`download_lerobot`; needs
+            ``pip install 'imitrl[hub]'``).
         key_map: dataset feature -> buffer key (a str or a nested tuple), merged over
             :data:`DEFAULT_KEY_MAP`; map a feature to None to leave it out on purpose.
         images: ``"load"`` decodes image features into uint8 tensors in the declared
@@ -328,7 +331,8 @@ def load_lerobot(
             ``terminated``/``truncated`` is derived from ``done`` (an episode that ends at
             the env's time limit is truncated; recorded flags are kept as they are).
         first_episode: added to the episode ids (use ``buffer.next_episode``).
-        revision, cache_dir: for resolving a ``repo_id`` (see :func:`resolve_lerobot_root`).
+        revision, cache_dir: for resolving or downloading a ``repo_id`` (see
+            :func:`resolve_lerobot_root` and :func:`download_lerobot`).
         into: stream the dataset into this buffer (in memory or on disk,
             ``DemonstrationBuffer(path=...)``) a few episodes at a time
             (:mod:`~imitrl.datasets.lerobot._stream`): resident memory does not grow with
@@ -345,7 +349,11 @@ def load_lerobot(
     Raises:
         ValueError: missing ``meta/info.json``; no episodes; a declared feature absent
             from a data file; a truncated or unreadable parquet file; a file changed since
-            :func:`save_lerobot` wrote it; episode lengths or indices that contradict the
+            :func:`save_lerobot` wrote it other than by LeRobot's own edits in place (it
+            rewrites ``meta/info.json``'s totals, ``meta/stats.json``,
+            ``meta/tasks.parquet`` and adds files when it resumes recording or recomputes
+            statistics: such a dataset loads with a warning saying what of
+            ``meta/imitrl.json`` no longer applies); episode lengths or indices that contradict the
             metadata; ``frame_index`` not 0..length-1; timestamps not ``1 / fps`` apart
             (LeRobot's tolerance, 1e-4 s); a ``task_index`` outside the task table; values
             that contradict a declared shape or dtype (no value is ever changed by a cast);
@@ -353,7 +361,8 @@ def load_lerobot(
             (truncated, corrupt), of another size than declared, or without a frame at one
             of its episodes' timestamps. The message names the file and the problem, and
             nothing is returned half-loaded.
-        ImportError: a video to decode and no PyAV (``pip install 'imitrl[datasets]'``).
+        ImportError: a video to decode and no PyAV (``pip install 'imitrl[datasets]'``); a
+            ``repo_id`` to download and no huggingface_hub (``pip install 'imitrl[hub]'``).
     """
     if images not in ("skip", "load"):
         raise ValueError(f"images must be 'skip' or 'load', got {images!r}")
@@ -362,8 +371,9 @@ def load_lerobot(
     if into is not None and decode_dir is not None:
         raise ValueError("decode_dir is for a load into memory; with into= frames go to the buffer")
     root = dataset_root(path_or_repo, revision, cache_dir)
-    if (root / SIDECAR).is_file():  # written by save_lerobot: every file as it was written
-        verify_files(root, read_json(root / SIDECAR))
+    edits: list[str] = []
+    if (root / SIDECAR).is_file():  # written by save_lerobot: every file as it was written,
+        edits = verify_files(root, read_json(root / SIDECAR))  # but for LeRobot's own edits
     info, major = read_info(root)
     features: dict[str, dict] = info["features"]
     plan, exact_shapes = plan_features(root, info, key_map, images, videos)
@@ -377,7 +387,9 @@ def load_lerobot(
         settings = Settings(
             plan, cameras, exact_shapes, len(tasks), first_episode, env, _names(plan, cameras)
         )
-        return _stream(into, root, info, major, settings, tasks, skipped, quiet)
+        streamed = _stream(into, root, info, major, settings, tasks, skipped, quiet)
+        warn_edited(root, edits, features)
+        return streamed
     episodes, frames, index = _checked_frames(root, info, major, plan, len(tasks))
     out, loaded = _columns(root, plan, frames, index, exact_shapes)
     if cameras:
@@ -393,6 +405,7 @@ def load_lerobot(
         where = str(root / "meta" / "info.json")
         rows = conform_to_env(rows, env, where=where, notes=notes, names=names)
     warn_skipped(root, skipped, quiet=frozenset(quiet))
+    warn_edited(root, edits, features)
     return LoadedDemonstrations(
         rows=rows,
         source=root,

@@ -6,7 +6,8 @@
 ``meta/tasks.parquet``, ``meta/stats.json``, ``meta/info.json``, the cameras' videos
 (:mod:`~imitrl.datasets.lerobot._video_write`) and imitrl's own ``meta/imitrl.json`` (each
 column's buffer key and exact shape, each other file's size and SHA-256, videos included,
-and the SHA-256 of its own content), laid out as lerobot 0.4 writes them.
+the entries of ``info.json`` LeRobot keeps when it edits the dataset, and the SHA-256 of its
+own content), laid out as lerobot 0.4 writes them.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 from tensordict import TensorDictBase
 
-from imitrl.datasets.lerobot._checks import file_digest, sidecar_digest
+from imitrl.datasets.lerobot._checks import INFO_TOTALS, file_digest, sidecar_digest
 from imitrl.datasets.lerobot._episode_table import EpisodeTable, add_spread
 from imitrl.datasets.lerobot._layout import (
     CODEBASE_VERSION,
@@ -101,7 +102,8 @@ def write_v3(
         for f in sorted(root.rglob("*"))
         if f.is_file()
     }
-    sidecar = {"format": SIDECAR_FORMAT, "columns": plan.sidecar, "files": files}
+    kept = {k: v for k, v in info.items() if k not in INFO_TOTALS}  # what LeRobot keeps
+    sidecar = {"format": SIDECAR_FORMAT, "columns": plan.sidecar, "files": files, "info": kept}
     sidecar["digest"] = sidecar_digest(sidecar)
     (root / SIDECAR).write_text(json.dumps(sidecar, indent=2))
 

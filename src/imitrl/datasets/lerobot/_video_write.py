@@ -23,6 +23,7 @@ directory until they are joined.
 
 from __future__ import annotations
 
+import os
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
@@ -70,6 +71,9 @@ def import_av() -> Any:
             f"this PyAV build has no {VCODEC!r} encoder, which LeRobot's videos use; the "
             f"PyAV wheels bundle it: {INSTALL_HINT}"
         )
+    # SVT-AV1 prints its settings (about 50 "Svt[info]" lines per stream) on stdout
+    # unless told otherwise; a library call prints nothing the caller did not ask for
+    os.environ.setdefault("SVT_LOG", "1")  # 1: errors only
     return av
 
 

@@ -180,9 +180,15 @@ def _rows_to_write(
     rows = data.data if isinstance(data, DemonstrationBuffer) else data
     if not isinstance(rows, TensorDictBase) or rows.batch_dims != 1 or rows.shape[0] == 0:
         raise ValueError("save_lerobot needs a non-empty buffer or a TensorDict of rows [N]")
-    for k in (keys.OBSERVATION, keys.EPISODE, keys.STEP):
+    for k in (keys.EPISODE, keys.STEP):
         if k not in rows.keys():
             raise ValueError(f"rows need {k!r} to be written as a LeRobot dataset")
+    if keys.OBSERVATION not in rows.keys() and keys.PIXELS not in rows.keys():
+        raise ValueError(
+            f"rows need {keys.OBSERVATION!r} or a camera {keys.PIXELS!r} (what load_lerobot "
+            "gives for a camera-only dataset) to be written as a LeRobot dataset; keys: "
+            f"{[key_name(k) for k in rows.keys(True, True)]}"
+        )
     if keys.EXPERT_ACTION not in rows.keys() and keys.ACTION not in rows.keys():
         raise ValueError(f"rows need {keys.EXPERT_ACTION!r} (or {keys.ACTION!r})")
     if int(fps) != fps or fps <= 0:
@@ -316,7 +322,9 @@ def save_lerobot(
 
     Args:
         data: a buffer or ``[N]`` rows; each episode one contiguous block whose ``STEP``
-            runs 0..length-1 (as :func:`~imitrl.data.rollout_episodes` produces).
+            runs 0..length-1 (as :func:`~imitrl.data.rollout_episodes` produces); with
+            ``OBSERVATION``, or only a camera ``PIXELS`` (what :func:`load_lerobot` gives
+            for a camera-only dataset).
         path: the dataset directory (must not exist unless ``overwrite``; never the working
             directory or one holding it).
         fps: frames per second (``timestamp = frame_index / fps``).

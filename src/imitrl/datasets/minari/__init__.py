@@ -8,7 +8,8 @@ spaces. Every array is checked against its space before it is converted
 inf) and every episode against its own records (:mod:`._episodes`: lengths, boolean
 flags, one value of reward per step, unique ids). :mod:`._source` lists the episodes and
 reads them one at a time, whatever the storage; :mod:`._stream` streams them into a
-buffer (``load_minari(..., into=buffer)``). Why not TorchRL's
+buffer (``load_minari(..., into=buffer)``); :mod:`._write` writes rows back as an
+``hdf5`` dataset (:func:`save_minari`, checked by :mod:`._write_spaces`). Why not TorchRL's
 ``MinariExperienceReplay``: in torchrl 0.14.1 it returns all-zero data for a local
 dataset (see TORCHRL_NOTES.md).
 """
@@ -27,9 +28,10 @@ from imitrl.datasets.minari._episodes import check_episode, check_steps, episode
 from imitrl.datasets.minari._hdf5 import MAIN_FILE
 from imitrl.datasets.minari._source import METADATA_FILE, open_episodes
 from imitrl.datasets.minari._stream import stream_into
+from imitrl.datasets.minari._write import save_minari
 from imitrl.fs.contained import links_stay_inside
 
-__all__ = ["load_minari", "resolve_minari_root"]
+__all__ = ["load_minari", "resolve_minari_root", "save_minari"]
 
 
 def resolve_minari_root(path_or_id: str | Path) -> Path:

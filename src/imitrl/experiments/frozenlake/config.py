@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -113,9 +113,10 @@ class StudyConfig:
     """custom map rows, e.g. SFFF,FHFH,FFFH,HFFG (overrides map_name)"""
     slippery: bool | None = None
     """is_slippery passed to gym.make; None = the env's own default (FrozenLake: slippery)"""
-    max_steps: int | None = None
-    """episode time limit; None = the env's registered limit (100 for FrozenLake 4x4);
-    needed for envs registered without one, such as CliffWalking-v1"""
+    max_steps: int | None = field(default=None, metadata={"aliases": ("--max-episode-steps",)})
+    """episode time limit (--max-episode-steps, as in every other command, or
+    --max-steps); None = the env's registered limit (100 for FrozenLake 4x4); needed for
+    envs registered without one, such as CliffWalking-v1"""
     gamma: float = 0.95
     """discount of the expert's value iteration"""
     vi_iters: int = 1000

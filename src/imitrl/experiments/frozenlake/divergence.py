@@ -41,4 +41,7 @@ def divergence(ctx: StudyContext) -> None:
         [ctx.expert_table.numpy(), ctx.clone_table.numpy()],
         ["expert occupancy", "clone occupancy"],
         ctx.figure("occupancy"),
+        shape=None
+        if mdp.desc is not None
+        else figures.grid_shape(cfg.env_id, cfg.make_kwargs, ctx.S),
     )

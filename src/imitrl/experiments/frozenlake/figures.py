@@ -6,10 +6,12 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
-from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
+from imitrl.plotting import save_figure
+
 __all__ = [
+    "grid_shape",
     "plot_budget",
     "plot_chain",
     "plot_corruption",
@@ -24,14 +26,24 @@ __all__ = [
 _ARROWS = {0: (-1.0, 0.0), 1: (0.0, 1.0), 2: (1.0, 0.0), 3: (0.0, -1.0)}
 
 
-def _save(fig: Figure, path: Path, **margins: float) -> Path:
-    # fixed margins: tight_layout would draw every figure twice to measure it
-    layout = {"left": 0.1, "right": 0.97, "bottom": 0.13, "top": 0.92, "wspace": 0.28}
-    layout.update(margins)
-    FigureCanvasAgg(fig)
-    fig.subplots_adjust(**layout)
-    fig.savefig(path, dpi=110)
-    return path
+def _save(fig: Figure, path: Path) -> Path:
+    """:func:`imitrl.plotting.save_figure`: constrained layout, every label on the canvas."""
+    return save_figure(fig, path, dpi=110)
+
+
+def grid_shape(env_id: str, make_kwargs: dict, num_states: int) -> tuple[int, int] | None:
+    """``(rows, cols)`` of a grid world without a letter map whose states are its cells in
+    row-major order (CliffWalking's ``unwrapped.shape``, 4 x 12); None for any other env."""
+    from imitrl.tabular.gym_model import make_env
+
+    env = make_env(env_id, make_kwargs)
+    try:
+        shape = getattr(env.unwrapped, "shape", None)
+    finally:
+        env.close()
+    if shape is None or len(shape) != 2 or int(np.prod(shape)) != num_states:
+        return None
+    return int(shape[0]), int(shape[1])
 
 
 def _nothing(path: Path, title: str, why: str) -> Path:
@@ -94,39 +106,74 @@ def _grid(ax, desc: np.ndarray, values: np.ndarray, policy: np.ndarray, title: s
     return im
 
 
+def _occupancy_curves(occupancies, titles, path: Path) -> Path:
+    """Occupancy against the state index, the first policy (the expert) drawn on top."""
+    fig = Figure(figsize=(7.0, 4.0))
+    ax = fig.add_subplot(1, 1, 1)
+    states = np.arange(len(occupancies[0]))
+    styles = [{"ls": "-", "lw": 2.5, "alpha": 0.6}, {"ls": "--", "marker": ".", "ms": 4}]
+    for i, (occ, title) in reversed(list(enumerate(zip(occupancies, titles)))):
+        style = styles[min(i, 1)] if i < 2 else {"ls": ":"}
+        # the expert last and above: where the curves coincide, both stay visible
+        ax.step(states, occ, where="mid", color=f"C{i}", label=title, zorder=3 - min(i, 2),
+                **style)  # fmt: skip
+    ax.set_xlabel("state")
+    ax.set_ylabel("average state occupancy")
+    ax.set_title("state occupancy (no grid map for this env)")
+    handles, labels = ax.get_legend_handles_labels()
+    ax.legend(handles[::-1], labels[::-1], fontsize=8, loc="upper center",
+              bbox_to_anchor=(0.5, -0.15), ncol=len(labels))  # fmt: skip
+    return _save(fig, path)
+
+
 def plot_occupancy(
     desc: np.ndarray | None,
     occupancies: Sequence[np.ndarray],
     policies: Sequence[np.ndarray],
     titles: Sequence[str],
     path: Path,
+    *,
+    shape: tuple[int, int] | None = None,
 ) -> Path:
     """Occupancy maps side by side, with each policy's greedy arrows on the frozen cells.
 
-    Without a grid (``desc`` None: Taxi, raw arrays) the occupancies are drawn against
-    the state index instead, one curve per policy.
+    Without a letter map (``desc`` None) but with a grid ``shape`` (CliffWalking's 4 x 12,
+    :func:`grid_shape`), the maps are drawn on that grid without letters or arrows (the
+    arrows follow FrozenLake's action encoding). Without either (Taxi, raw arrays) the
+    occupancies are drawn against the state index, one curve per policy.
     """
-    if desc is None:
-        fig = Figure(figsize=(7.0, 4.0))
-        ax = fig.add_subplot(1, 1, 1)
-        states = np.arange(len(occupancies[0]))
-        for i, (occ, title) in enumerate(zip(occupancies, titles)):
-            ax.step(states, occ, where="mid", color=f"C{i}", label=title)
-        ax.set_xlabel("state")
-        ax.set_ylabel("average state occupancy")
-        ax.set_title("state occupancy (no grid map for this env)")
-        ax.legend(fontsize=8)
-        return _save(fig, path)
-    fig = Figure(figsize=(4.2 * len(occupancies) + 0.8, 4.0))
+    if desc is None and shape is None:
+        return _occupancy_curves(occupancies, titles, path)
+    rows, cols = desc.shape if desc is not None else shape
+    n = len(occupancies)
+    wide = cols > 1.5 * rows  # CliffWalking's 4 x 12: the maps one above the other
+    grid = (n, 1) if wide else (1, n)
+    size = (0.6 * cols + 1.8, (0.6 * rows + 0.9) * n) if wide else (4.2 * n + 0.8, 4.0)
+    fig = Figure(figsize=size)
     vmax = float(max(o.max() for o in occupancies))
     im = None
     for i, (occ, pol, title) in enumerate(zip(occupancies, policies, titles)):
-        ax = fig.add_subplot(1, len(occupancies), i + 1)
-        im = _grid(ax, desc, occ, pol, title, vmax)
+        ax = fig.add_subplot(*grid, i + 1)
+        if desc is not None:
+            im = _grid(ax, desc, occ, pol, title, vmax)
+        else:
+            im = _plain_grid(ax, (rows, cols), occ, title, vmax)
     fig.colorbar(im, ax=fig.axes, label="average state occupancy", shrink=0.8)
-    FigureCanvasAgg(fig)
-    fig.savefig(path, dpi=120)
-    return path
+    return save_figure(fig, path, dpi=120)
+
+
+def _plain_grid(ax, shape: tuple[int, int], values: np.ndarray, title: str, vmax: float):
+    """``values`` on a ``rows x cols`` grid (row-major states), no letters, no arrows."""
+    rows, cols = shape
+    im = ax.imshow(values.reshape(rows, cols), cmap="Blues", vmin=0.0, vmax=vmax)
+    for s in np.flatnonzero(values > 0.005):
+        r, c = divmod(int(s), cols)
+        ax.text(c, r, f"{values[s]:.2f}", fontsize=5, ha="center", va="center")
+    ax.set_xticks(range(cols))
+    ax.set_yticks(range(rows))
+    ax.tick_params(labelsize=7)
+    ax.set_title(f"{title} ({rows} x {cols} grid)")
+    return im
 
 
 def plot_sweep(
@@ -236,7 +283,8 @@ def plot_budget(
     ax.axhline(expert, ls="--", color="gray", label="expert")
     ax.set_xlabel("expert labels used")
     ax.set_ylabel("exact success")
-    ax.legend(fontsize=8)
+    # below the axes: points sit at the expert's line and anywhere under it
+    ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.17), ncol=2)
     return _save(fig, path)
 
 
@@ -254,5 +302,5 @@ def plot_corruption(
         ax.plot(np.full(corrupted.shape[1], i + 0.2), corrupted[i], "k.", alpha=0.5)
     ax.set_xticks(x, labels)
     ax.set_ylabel("exact success")
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=8, loc="lower center", bbox_to_anchor=(0.5, 1.0), ncol=2)  # not on a bar
     return _save(fig, path)

@@ -42,9 +42,9 @@ def plot_reward(desc: np.ndarray | None, theta: np.ndarray, policy: np.ndarray, 
                 ax.arrow(c - 0.2 * dx, r - 0.2 * dy, 0.3 * dx, 0.3 * dy, head_width=0.15)
     ax.set_xticks(range(cols))
     ax.set_yticks(range(rows))
-    ax.set_title("reward for entering each cell; arrows: greedy plan")
+    ax.set_title("reward for entering each cell\narrows: greedy plan")
     fig.colorbar(im, ax=ax, shrink=0.85, label="recovered reward theta[s']")
-    return _save(fig, path, left=0.06, right=0.9, bottom=0.06)
+    return _save(fig, path)
 
 
 def plot_irl_sweep(

@@ -1,0 +1,253 @@
+"""The config of every training command, one frozen dataclass each, without torch.
+
+Every field is a flag of the command (:mod:`imitrl.cli.flags`) whose help is the
+field's docstring; the classes live here, apart from the functions that run them
+(:mod:`imitrl.jobs.bc`, :mod:`~imitrl.jobs.dagger`, :mod:`~imitrl.jobs.gail`), so that
+``imitrl bc --help`` builds its flags without importing torch, TorchRL or the loss
+registry (``tests/test_imports.py``). Each ``__post_init__`` checks what can be checked
+without them; the rest fails when the job starts, naming the flag.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from imitrl.jobs.names import EXPERT_KINDS, LOGGERS
+
+if TYPE_CHECKING:
+    from imitrl.algorithms.adversarial import AdversarialConfig
+
+__all__ = ["AIRLJob", "BCJob", "DAggerJob", "GAILJob"]
+
+_SHARED = ("env", "max_episode_steps", "expert", "expert_kind", "dataset", "demos", "hidden",
+           "lr", "eval_episodes", "eval_seed", "seed", "out", "logger", "progress")  # fmt: skip
+"""the GAIL/AIRL flags that ``imitrl bc``'s preparation reads (:meth:`GAILJob.bc_view`)"""
+
+
+@dataclass(frozen=True)
+class BCJob:
+    """Behaviour cloning, evaluated against the expert on the same initial states."""
+
+    env: str = "CartPole-v1"
+    """gymnasium id, or module:Env-v0 (importing module registers Env-v0)"""
+    num_envs: int = 1
+    """env copies stepped together (lanes) when collecting episodes"""
+    max_episode_steps: int | None = None
+    """override the env's time limit; none = its registered limit"""
+    expert: str | None = "auto"
+    """auto = the built-in expert of --env (listed below); a built-in name; or
+    module:function; none = no expert (needs --dataset, and nothing is compared with
+    the learner)"""
+    expert_kind: str = "builder"
+    """what the function of --expert module:function is: builder (function() returns
+    an expert module writing expert_action) or callable (function(obs [N, d]) ->
+    action, batched, wrapped with Expert.from_callable)"""
+    dataset: Path | None = None
+    """LeRobot (meta/info.json) or Minari (main_data.hdf5) directory of demonstrations;
+    none = play --demos expert episodes"""
+    demos: int = 5
+    """greedy expert demonstration episodes (when no --dataset)"""
+    loss: str = "default"
+    """default (ActorCritic.for_env: categorical head for discrete actions,
+    deterministic MSE head for continuous ones) or a loss-registry name (listed below)"""
+    hidden: tuple[int, ...] = (64, 64)
+    """hidden layer sizes of the learner's network"""
+    lr: float = 1e-3
+    """Adam learning rate of the learner"""
+    steps: int = 1000
+    """gradient steps of the behaviour-cloning fit (of every round's fit for dagger)"""
+    batch_size: int | None = 256
+    """rows per gradient step; none = the full batch every step"""
+    eval_episodes: int = 10
+    """evaluation episodes of the expert and of the learner"""
+    eval_seed: int = 10_000
+    """seed of the evaluation env: the expert and every learner play the same initial states"""
+    seed: int = 0
+    """seeds the env that plays the demonstrations, the learner's initialisation and
+    the minibatch order"""
+    out: Path = Path("results/bc")
+    """output directory: results.json, config.json + learner.pt (the checkpoint that
+    imitrl eval --checkpoint reads), curves.png, logs/"""
+    overwrite: bool = False
+    """replace a previous run in --out (without it, an --out holding one is refused)"""
+    logger: str = "csv"
+    """where the curves are logged: csv, tensorboard or wandb (the CSV files that
+    curves.png is drawn from are written in every case)"""
+    progress: bool = True
+    """progress bars on stderr"""
+
+    def __post_init__(self) -> None:
+        if not self.env:
+            raise ValueError("--env must name a gymnasium env")
+        if self.num_envs < 1 or self.eval_episodes < 1 or self.steps < 0:
+            raise ValueError("--num-envs and --eval-episodes must be >= 1, --steps >= 0")
+        if self.dataset is None and (self.expert is None or self.demos < 1):
+            raise ValueError("without --dataset, --expert must play --demos >= 1 episodes")
+        if self.expert_kind not in EXPERT_KINDS:
+            raise ValueError(
+                f"--expert-kind must be one of {EXPERT_KINDS}, got {self.expert_kind!r}"
+            )
+        if self.logger not in LOGGERS:
+            raise ValueError(f"--logger must be one of {', '.join(LOGGERS)}, got {self.logger!r}")
+        if self.batch_size is not None and self.batch_size < 1:
+            raise ValueError(f"--batch-size must be >= 1 or none, got {self.batch_size}")
+
+
+@dataclass(frozen=True)
+class DAggerJob(BCJob):
+    """DAgger: every flag of imitrl bc, plus the rounds."""
+
+    out: Path = Path("results/dagger")
+    """output directory: results.json, config.json + learner.pt (the last round's
+    learner, read by imitrl eval --checkpoint), curves.png, logs/"""
+    rounds: int = 4
+    """fits: round 0 is BC on the demonstrations, each later one refits on the
+    aggregated buffer"""
+    episodes_per_round: int = 3
+    """learner episodes rolled out and labelled by the expert after each fit but the last"""
+    beta: float = 0.0
+    """probability of executing the expert's action in the relabel rounds (constant)"""
+    warm_start: bool = False
+    """keep training one learner across rounds instead of fitting a fresh one each round"""
+    resume: bool = False
+    """continue the run saved in OUT/run by an interrupted imitrl dagger with the same
+    flags (bit-identical to an uninterrupted run); without it an OUT holding a run is refused"""
+    workers: int | None = None
+    """Ray workers that play the relabel rounds, one env and the expert each (needs
+    imitrl[distributed]); none = the rounds run in this process"""
+    address: str | None = None
+    """the Ray cluster for --workers (auto, or ray://HOST:10001); none = a local Ray
+    instance with --workers CPUs"""
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.expert is None:
+            raise ValueError("dagger needs --expert to label the learner's states")
+        if self.rounds < 1 or self.episodes_per_round < 1:
+            raise ValueError("--rounds and --episodes-per-round must be >= 1")
+        if not 0.0 <= self.beta <= 1.0:
+            raise ValueError(f"--beta must be in [0, 1], got {self.beta}")
+        if self.workers is not None and self.workers < 1:
+            raise ValueError(f"--workers must be >= 1 or none, got {self.workers}")
+        if self.address is not None and self.workers is None:
+            raise ValueError("--address names the Ray cluster for --workers: give --workers too")
+
+
+@dataclass(frozen=True)
+class GAILJob:
+    """GAIL from expert demonstrations or a dataset, evaluated against the expert."""
+
+    env: str = "CartPole-v1"
+    """gymnasium id, or module:Env-v0 (importing module registers Env-v0)"""
+    max_episode_steps: int | None = None
+    """override the env's time limit; none = its registered limit"""
+    expert: str | None = "auto"
+    """auto = the built-in expert of --env; a built-in expert or module:function that
+    plays the demonstrations; none = no expert (needs --dataset; nothing is compared
+    with the learner)"""
+    expert_kind: str = "builder"
+    """what the function of --expert module:function is: builder or callable (as imitrl bc)"""
+    dataset: Path | None = None
+    """LeRobot or Minari directory of demonstrations; none = play --demos expert episodes"""
+    demos: int = 1
+    """greedy expert demonstration episodes (when no --dataset)"""
+    loss: str = "default"
+    """the learner: default (categorical head for discrete actions, gaussian_nll for
+    continuous ones) or a loss-registry name whose head is probabilistic"""
+    hidden: tuple[int, ...] = (64, 64)
+    """hidden layer sizes of the learner's policy and value networks"""
+    lr: float = 3e-4
+    """Adam learning rate of the learner (PPO's policy and value steps)"""
+    total_steps: int = 102_400
+    """environment steps of the generator (the budget; whole rounds: 50 x 2048)"""
+    rollout_steps: int = 2048
+    """environment steps per round"""
+    ppo_epochs: int = 10
+    """PPO passes over each round's batch"""
+    minibatch_size: int = 256
+    """rows per PPO step"""
+    discriminator_updates: int = 10
+    """discriminator steps per round"""
+    discriminator_batch: int = 256
+    """expert (and as many policy) transitions per discriminator step"""
+    discriminator_lr: float = 3e-4
+    """Adam learning rate of the discriminator"""
+    grad_penalty: float = 0.0
+    """weight of the discriminator's gradient penalty; 0 = none"""
+    gamma: float = 0.99
+    """discount (GAE's, and AIRL's shaping)"""
+    gae_lambda: float = 0.95
+    """GAE's lambda"""
+    entropy_coeff: float = 0.0
+    """weight of PPO's entropy bonus"""
+    absorbing: bool = False
+    """absorbing states for terminated episodes (DAC), for tasks whose episodes end at a
+    goal; off: a terminal step ends the learned reward (GAIL's reward pays for living)"""
+    normalizer_warmup: int = 0
+    """env steps of the untrained learner whose observations join the demonstrations'
+    in the normaliser's statistics (counted); 0: the demonstrations' alone"""
+    eval_episodes: int = 20
+    """evaluation episodes of the expert and of the learner"""
+    eval_seed: int = 10_000
+    """seed of the evaluation env: expert and learner play the same initial states"""
+    eval_every: int = 10
+    """evaluate the learner after every this many rounds (and after the last); 0 =
+    after the last only"""
+    seed: int = 0
+    """seeds the env, the learner's initialisation and every draw of the run"""
+    out: Path = Path("results/gail")
+    """output directory: results.json, config.json + learner.pt, curves.png, logs/"""
+    overwrite: bool = False
+    """replace a previous run in --out (without it, an --out holding one is refused)"""
+    logger: str = "csv"
+    """csv, tensorboard or wandb (the CSV files are written in every case)"""
+    progress: bool = True
+    """progress bar on stderr"""
+
+    def __post_init__(self) -> None:
+        if self.dataset is None and (self.expert is None or self.demos < 1):
+            raise ValueError("without --dataset, --expert must play --demos >= 1 episodes")
+        if self.expert_kind not in EXPERT_KINDS:
+            raise ValueError(
+                f"--expert-kind must be one of {EXPERT_KINDS}, got {self.expert_kind!r}"
+            )
+        if self.eval_episodes < 1:
+            raise ValueError(f"--eval-episodes must be >= 1, got {self.eval_episodes}")
+        if int(self.eval_every) != self.eval_every or self.eval_every < 0:
+            raise ValueError(f"--eval-every must be an integer >= 0, got {self.eval_every!r}")
+        self.algorithm_config()  # the training flags fail here, naming the field
+
+    def algorithm_config(self) -> AdversarialConfig:
+        """The :class:`GAILConfig` the flags describe."""
+        from imitrl.algorithms.adversarial import GAILConfig  # torch: not for --help
+
+        return GAILConfig(**self._training())
+
+    def _training(self) -> dict:
+        names = (
+            "total_steps", "rollout_steps", "ppo_epochs", "minibatch_size",
+            "discriminator_updates", "discriminator_batch", "discriminator_lr",
+            "grad_penalty", "gamma", "gae_lambda", "entropy_coeff", "absorbing",
+            "normalizer_warmup", "seed",
+        )  # fmt: skip
+        return {n: getattr(self, n) for n in names}
+
+    def bc_view(self, loss: str) -> BCJob:
+        """The shared flags as a ``BCJob`` (what :func:`imitrl.jobs.bc.prepare` reads)."""
+        return BCJob(loss=loss, steps=0, **{n: getattr(self, n) for n in _SHARED})
+
+
+@dataclass(frozen=True)
+class AIRLJob(GAILJob):
+    """AIRL (state-only reward g, shaping h): every flag of imitrl gail."""
+
+    out: Path = Path("results/airl")
+    """output directory: results.json, config.json + learner.pt, curves.png, logs/"""
+
+    def algorithm_config(self) -> AdversarialConfig:
+        """The :class:`AIRLConfig` the flags describe."""
+        from imitrl.algorithms.adversarial import AIRLConfig  # torch: not for --help
+
+        return AIRLConfig(**self._training())

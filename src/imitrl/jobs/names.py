@@ -1,0 +1,66 @@
+"""Names the command line lists, without importing torch: experts, losses, loggers.
+
+``imitrl bc --help`` prints these lists; importing the loss registry or the experts to
+read them would import torch and TorchRL (seconds). ``tests/test_imports.py`` checks
+that each table here equals what the registry and :data:`imitrl.jobs.resolve.EXPERTS`
+build, so a loss or expert added there and not here fails a test.
+"""
+
+from __future__ import annotations
+
+__all__ = ["EXPERT_ENVS", "EXPERT_KINDS", "LOGGERS", "LOSSES"]
+
+EXPERT_KINDS = ("builder", "callable")
+"""what the ``function`` of ``--expert module:function`` is (:mod:`imitrl.jobs.resolve`)"""
+
+LOGGERS = ("csv", "tensorboard", "wandb")
+"""where a run's curves are logged (``--logger``)"""
+
+EXPERT_ENVS: dict[str, str] = {
+    "cartpole": "CartPole-v1",
+    "mountaincar": "MountainCar-v0",
+    "acrobot": "Acrobot-v1",
+    "pendulum": "Pendulum-v1",
+    "inverted_pendulum": "InvertedPendulum-v5",
+    "inverted_double_pendulum": "InvertedDoublePendulum-v5",
+}
+"""built-in expert name -> the gymnasium id it acts in (``--expert auto`` picks by it)"""
+
+LOSSES: tuple[tuple[str, str, str], ...] = (
+    ("cross_entropy", "discrete", "cross-entropy (categorical NLL)"),
+    ("cross_entropy_entropy", "discrete", "cross-entropy - 0.01 x policy entropy"),
+    (
+        "advantage_weighted",
+        "discrete",
+        "advantage-weighted cross-entropy (policy_step's objective)",
+    ),
+    ("gaussian_nll", "continuous", "tanh-normal NLL, acts with tanh(mean)"),
+    ("mse", "continuous", "mean squared error"),
+    ("l1", "continuous", "mean absolute error"),
+    ("smooth_l1", "continuous", "Huber loss (delta 1)"),
+    ("mse_l2", "continuous", "MSE + 0.0001 x squared L2 norm of weights"),
+    ("diffusion", "continuous", "diffusion policy (DDPM, 50 steps), samples its actions"),
+    ("diffusion_ddim", "continuous", "diffusion trained as DDPM (50 steps), sampled by DDIM in 8"),
+    ("flow", "continuous", "flow matching (rectified flow), 8 Euler steps, samples its actions"),
+    ("mse_chunk", "continuous", "MSE on chunks of 8, executes 4 then replans"),
+    ("l1_chunk", "continuous", "L1 on chunks of 8, executes 4 then replans"),
+    ("l1_chunk_ensemble", "continuous", "L1 on chunks of 8, ACT's temporal ensembling (m=0.01)"),
+    (
+        "gaussian_nll_chunk",
+        "continuous",
+        "tanh-normal NLL of chunks of 8 (unmasked), acts with the mean",
+    ),
+    ("diffusion_chunk", "continuous", "diffusion (DDPM) on chunks of 8 (unmasked), executes 4"),
+    ("diffusion_ddim_chunk", "continuous", "diffusion on chunks of 8, sampled by DDIM, executes 4"),
+    (
+        "flow_chunk",
+        "continuous",
+        "flow matching on chunks of 8 (masked, 16 Euler steps), executes 4, noise held per episode",
+    ),
+    (
+        "act",
+        "continuous",
+        "ACT (TorchRL ACTModel/ACTLoss, d=32, 1+1 layers) on chunks of 8, temporal ensembling (m=0.01); its own batch 128 and lr 0.003",
+    ),
+)
+"""(name, actions, summary) of every loss of :mod:`imitrl.objectives.registry`"""
