@@ -69,6 +69,17 @@ def claimed(out: Path, *, overwrite: bool, resume: bool = False) -> Iterator[Pat
             ``overwrite`` or ``resume``) or foreign files, or another run holds it.
     """
     out = Path(out).expanduser()
-    with exclusive(out, what="written by another imitrl run"):
-        _check(out, overwrite, resume)
-        yield out
+    made = [p for p in (out, *out.absolute().parents) if not p.exists()]  # deepest first
+    try:
+        with exclusive(out, what="written by another imitrl run"):
+            _check(out, overwrite, resume)
+            yield out
+    except BaseException:
+        for folder in made:  # a run refused or failed before writing leaves no folders
+            if not folder.is_dir():
+                continue
+            try:
+                folder.rmdir()
+            except OSError:
+                break  # not empty: the run wrote there, and what it wrote stays
+        raise
