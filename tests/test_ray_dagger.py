@@ -23,10 +23,16 @@ from imitrl.algorithms import BCConfig, Constant, DAggerConfig, dagger
 from imitrl.data import DemonstrationBuffer, rollout_episodes
 from imitrl.envs import make_env
 from imitrl.experts import cartpole_expert
-from imitrl.policies import ActorCritic
+from imitrl.policies import ActorCritic, BetaMixer, behaviour_policy
+from imitrl.runtime import OnDevice
 
 ray = pytest.importorskip("ray")
-from imitrl.algorithms.ray_source import RaySource, init_ray  # noqa: E402
+from imitrl.algorithms.ray_source import (  # noqa: E402
+    WORKER_THREADS,
+    RaySource,
+    init_ray,
+    worker_policy,
+)
 from imitrl.cli import build_parser  # noqa: E402
 from imitrl.cli.flags import config_from_args  # noqa: E402
 from imitrl.jobs.dagger import DAggerJob  # noqa: E402
@@ -137,6 +143,41 @@ def test_evaluation_runs_on_the_workers(source, clean_rows):
     assert first.returns.shape == (3,) and bool((first.lengths > 0).all())
     assert torch.equal(first.returns, first.lengths.double())  # CartPole: 1 per step
     assert torch.equal(first.returns, again.returns)
+
+
+def test_workers_act_on_the_cpu_with_one_torch_thread(source, clean_rows):
+    """After DAgger's rounds (weights broadcast twice), every worker's process runs one
+    torch thread and holds its policy's parameters on the CPU."""
+    actors = source._collector.remote_collectors
+    refs = [
+        actors[a].__ray_call__.remote(
+            lambda collector: (
+                torch.get_num_threads(),
+                {p.device.type for p in collector.policy.parameters()},
+            )
+        )
+        for a in range(WORKERS)
+    ]
+    assert ray.get(refs) == [(1, {"cpu"})] * WORKERS and WORKER_THREADS == 1
+
+
+def test_the_workers_copy_of_the_policy_is_on_the_cpu_with_the_drivers_keys():
+    """What lets a learner on CUDA drive CPU workers, checked without CUDA: an
+    ``OnDevice`` wrapper that says another device (``meta`` stands for ``cuda``)."""
+    from tensordict import TensorDict
+
+    env = make_env("CartPole-v1", seed=0)
+    wrapped = OnDevice(_learner(env).policy, torch.device("meta"))
+    mixer = BetaMixer(0.5, generator=torch.Generator().manual_seed(0))
+    behaviour = behaviour_policy(cartpole_expert(), wrapped, mixer)
+    copy = worker_policy(behaviour)
+    (on,) = [m for m in copy.modules() if isinstance(m, OnDevice)]
+    assert on.device == torch.device("cpu") and wrapped.device == torch.device("meta")
+    assert {p.device.type for p in copy.parameters()} == {"cpu"}
+    (copied_mixer,) = [m for m in copy.modules() if isinstance(m, BetaMixer)]
+    assert copied_mixer.generator is None and mixer.generator is not None
+    keys_of = lambda m: set(TensorDict.from_module(m).keys(True, True))  # noqa: E731
+    assert keys_of(copy) == keys_of(behaviour)  # the driver's weights load as they are
 
 
 def test_a_worker_dying_mid_round_replays_its_slot(source, clean_rows, fault_files):

@@ -4,6 +4,13 @@ Samplers inside torch distributions (``rsample``, ``sample``) and some TorchRL
 modules draw from the global generator. ``rng_from(generator)`` runs such a block on
 an explicit ``torch.Generator`` instead (and advances it), so that randomness flows
 from one seed and the global state is left untouched.
+
+On a CUDA device, a draw uses the device's own global generator. Once CUDA is in use,
+``rng_from`` also runs the block's CUDA draws from a CUDA stream that belongs to
+``generator`` (seeded with its ``initial_seed()`` the first time, advanced by every
+block after), so a sampled policy on a GPU draws the same numbers for the same seed,
+run after run. The CPU generator is never drawn from for it: CPU digits are the same
+whether or not a GPU is present.
 """
 
 from __future__ import annotations
@@ -15,6 +22,18 @@ import torch
 
 __all__ = ["rng_from"]
 
+_CUDA_STREAMS: dict[tuple[int, int], tuple[torch.Generator, torch.Generator]] = {}
+"""(id of a CPU generator, CUDA device index) -> (that generator, its CUDA stream)"""
+
+
+def _cuda_stream(generator: torch.Generator, index: int) -> torch.Generator:
+    entry = _CUDA_STREAMS.get((id(generator), index))
+    if entry is None or entry[0] is not generator:  # a new generator (or a reused id)
+        stream = torch.Generator(device=f"cuda:{index}")
+        stream.manual_seed(generator.initial_seed())
+        entry = _CUDA_STREAMS[(id(generator), index)] = (generator, stream)
+    return entry[1]
+
 
 @contextlib.contextmanager
 def rng_from(generator: torch.Generator | None) -> Iterator[None]:
@@ -22,7 +41,14 @@ def rng_from(generator: torch.Generator | None) -> Iterator[None]:
     if generator is None:
         yield
         return
-    with torch.random.fork_rng(devices=[]):
+    cuda = torch.cuda.is_available() and torch.cuda.is_initialized()
+    index = torch.cuda.current_device() if cuda else None
+    with torch.random.fork_rng(devices=[] if index is None else [index]):
         torch.set_rng_state(generator.get_state())
+        if index is not None:
+            stream = _cuda_stream(generator, index)
+            torch.cuda.set_rng_state(stream.get_state(), index)
         yield
         generator.set_state(torch.get_rng_state())
+        if index is not None:
+            stream.set_state(torch.cuda.get_rng_state(index))

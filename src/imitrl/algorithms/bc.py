@@ -51,6 +51,7 @@ from imitrl.algorithms.optim_step import optimizer_step
 from imitrl.data.buffer import CHUNK_BYTES, DemonstrationBuffer
 from imitrl.data.permutation import LazyPermutation
 from imitrl.policies.learner import Learner
+from imitrl.runtime.device import to_device
 
 __all__ = ["BCConfig", "BCResult", "distinct_pairs", "fit_bc"]
 
@@ -205,6 +206,9 @@ class _Minibatches:
             for k in rows.keys(include_nested=True, leaves_only=True)
         }
         self.perm, self.cursor = torch.randperm(self.n, generator=self.generator), 0
+        # drawn on the CPU (one seed, one order, on every device); rows kept on another
+        # device are indexed there
+        self.index_device = next(iter(self.columns.values())).device
 
     def _indices(self) -> torch.Tensor:
         if self.lazy is not None:
@@ -222,6 +226,8 @@ class _Minibatches:
         if self.lazy is not None:
             return self.buffer.rows_at(idx, *self.reads)
         batch = self.rows.empty(batch_size=[idx.numel()])
+        if self.index_device.type != "cpu":
+            idx = idx.to(self.index_device)
         for key, column in self.columns.items():
             batch.set(key, column.index_select(0, idx))  # = column[idx], without its parsing
         return batch
@@ -347,6 +353,10 @@ def fit_bc(
     opt_step = optimizer_step(opt)  # Adam's update without its per-call wrapper
     # kept where the parameters are: recording a step's loss never waits for the device
     device = next((p.device for g in opt.param_groups for p in g["params"]), None)
+    cross = device is not None and device.type != "cpu"  # rows stay on the CPU (or disk)
+    if cross and not minibatch:  # the full batch crosses to the learner's device once
+        rows = to_device(rows, device)
+        weights = None if weights is None else to_device(weights, device)
     losses = torch.empty(config.num_steps, device=device)
     steps = tqdm(range(config.num_steps), desc="bc fit", disable=not progress, leave=False)
     schedule = _Cosine(opt, config.num_steps) if config.lr_schedule == "cosine" else None
@@ -354,6 +364,8 @@ def fit_bc(
         with learner.loss.fitting():  # e.g. its networks without nn.Module.__call__
             for step in steps:
                 batch = batches.next() if minibatch else rows
+                if cross and minibatch:  # pinned, without blocking: runtime.device
+                    batch = to_device(batch, device)
                 loss = objective(batch) if weights is None else objective(batch, weights)
                 zero_grad()
                 loss.backward()

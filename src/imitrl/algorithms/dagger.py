@@ -44,6 +44,7 @@ from imitrl.fs.lock import exclusive
 from imitrl.policies.experts import Expert
 from imitrl.policies.learner import Learner
 from imitrl.policies.mixture import BetaMixer, behaviour_policy
+from imitrl.runtime.device import acting
 
 __all__ = [
     "Constant",
@@ -415,7 +416,8 @@ def _fit(k, learner, buffer, config, train, logger, bc_step) -> RoundRecord:
 def _collect(k, learner, expert, mixer, source, buffer, config, record) -> None:
     """Relabel round ``k + 1``: the behaviour policy's episodes, labelled, into the buffer."""
     mixer.beta = config.beta(k + 1)
-    behaviour = behaviour_policy(expert, learner.policy, mixer)
+    # envs and experts stay on the CPU; a learner elsewhere acts through OnDevice
+    behaviour = behaviour_policy(expert, acting(learner.policy, "cpu"), mixer)
     with set_exploration_type(learner.exploration):  # what EnvSource(exploration=None) uses
         rows = source.collect(
             behaviour,

@@ -42,6 +42,10 @@ requires when given a buffer) would add a hop and could not keep the
 (round, worker, episode) order nor refuse a dead worker's partial episodes. A round's
 rows are small next to the refit (a few thousand rows per round in the benchmarks).
 
+**Devices and threads.** Workers act on the CPU with one Ray CPU and one torch thread
+each (:data:`WORKER_THREADS`); the learner trains wherever it lives: the workers' policy
+(:func:`worker_policy`) and each round's weights are CPU copies of the driver's.
+
 Ray is an optional dependency (``pip install 'imitrl[distributed]'``), imported when a
 source starts. A source not given an ``address`` starts a local Ray instance with
 ``num_cpus=workers`` (and shuts it down in :meth:`RaySource.close`) unless Ray is
@@ -52,9 +56,6 @@ already running in this process; workers import imitrl and the user's modules th
 from __future__ import annotations
 
 import copy
-import os
-import sys
-import tempfile
 import time
 import warnings
 from collections import deque
@@ -70,79 +71,35 @@ from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, exploration_type
 
 from imitrl import keys
+from imitrl.algorithms.ray_setup import (
+    RAY_INSTALL_HINT,
+    WORKER_THREADS,
+    import_ray,
+    init_ray,
+    patient_weight_sync,
+)
 from imitrl.data.returns import EpisodeSummary
 from imitrl.data.rollout import NEXT_KEYS, OPTIONAL_ROW_KEYS, ROW_KEYS
 from imitrl.envs.limits import episode_limit
 from imitrl.policies.experts import Expert
 from imitrl.policies.learner import Learner
 from imitrl.policies.mixture import BetaMixer, behaviour_policy
+from imitrl.runtime.device import OnDevice
+from imitrl.runtime.threads import set_threads
 
-__all__ = ["RAY_INSTALL_HINT", "RaySource", "RoundTiming", "init_ray", "slot_seeds"]
+__all__ = [
+    "RAY_INSTALL_HINT",
+    "WORKER_THREADS",
+    "RaySource",
+    "RoundTiming",
+    "init_ray",
+    "slot_seeds",
+    "worker_policy",
+]
 
-WEIGHT_SYNC_TIMEOUT_S = 600
-"""how long the driver waits for the workers to join the weight-sync process group"""
-
-
-def _patient_weight_sync() -> None:
-    """TorchRL's Ray weight sync (``torchrl.weight_update._ray``) waits a fixed 60 s
-    (``_DIST_TIMEOUT``, no argument sets it) for every worker to join its process group;
-    on a loaded 2-core machine a worker can take longer to start, and the round fails
-    with ``DistStoreError: wait timeout``. The constant is read when the group is built,
-    so the driver's wait is raised here, once, in the one place imitrl builds Ray
-    collectors."""
-    from datetime import timedelta
-
-    import torchrl.weight_update._ray as ray_sync
-
-    ray_sync._DIST_TIMEOUT = max(ray_sync._DIST_TIMEOUT, timedelta(seconds=WEIGHT_SYNC_TIMEOUT_S))
-
-
-RAY_INSTALL_HINT = "pip install 'imitrl[distributed]'"
 COLLECT, EVALUATE = 0, 1
 """the seed streams of :func:`slot_seeds`"""
 _KEEP = (*ROW_KEYS, *[(keys.NEXT, k) for k in NEXT_KEYS])
-
-
-def _import_ray():
-    try:
-        import ray
-    except ImportError as err:
-        raise ImportError(f"running DAgger on Ray workers needs ray: {RAY_INSTALL_HINT}") from err
-    return ray
-
-
-_RAY_TEMP_MAX = 24  # longest <tempdir>/ray that leaves room for Ray's session socket paths
-
-
-def init_ray(
-    num_cpus: int | None, *, address: str | None = None, runtime_env: dict | None = None
-) -> bool:
-    """Start a local Ray instance (``address`` None) or connect to a cluster, unless Ray runs.
-
-    Local: ``num_cpus`` logical CPUs, no dashboard. ``runtime_env`` None: workers get
-    ``PYTHONPATH`` = this process's ``sys.path``, so they import imitrl and the user's
-    modules (on a cluster, give a ``runtime_env`` with a ``working_dir`` instead, or
-    install them on the nodes). Returns True when this call started or connected Ray
-    (the caller then shuts it down), False when Ray was already initialised.
-    """
-    ray = _import_ray()
-    if ray.is_initialized():
-        return False
-    if runtime_env is None:
-        paths = [os.path.abspath(p or os.curdir) for p in sys.path]
-        runtime_env = {"env_vars": {"PYTHONPATH": os.pathsep.join(dict.fromkeys(paths))}}
-    options = {"runtime_env": runtime_env, "logging_level": "warning"}
-    if address is None:
-        options.update(num_cpus=num_cpus, include_dashboard=False)
-        # Ray puts its AF_UNIX sockets under <tempdir>/ray/session_<time>_<pid>/sockets/,
-        # and a socket path may not exceed 107 bytes: under a long TMPDIR (a test's
-        # tmp_path, say) a local start fails, so Ray's own files go to a short dir then
-        if len(os.path.join(tempfile.gettempdir(), "ray")) > _RAY_TEMP_MAX and os.path.isdir(
-            "/tmp"
-        ):
-            options["_temp_dir"] = "/tmp/ray"
-    ray.init(address=address, **options)
-    return True
 
 
 def slot_seeds(seed: int, stream: int, index: int, slot: int) -> tuple[int, int]:
@@ -161,7 +118,12 @@ class _EpisodeCollector(Collector):
 
     Built by ``RayCollector`` with ``trajs_per_batch=1, traj_format="cat"``: each
     ``next()`` is one whole episode (the inner collector holds unfinished ones back).
+    Its process runs :data:`WORKER_THREADS` torch threads, set before the collector is.
     """
+
+    def __init__(self, *args, **kwargs) -> None:  # Collector's own, as RayCollector passes them
+        set_threads(WORKER_THREADS)  # this actor's process, before its first torch op
+        super().__init__(*args, **kwargs)
 
     def play_episodes(
         self, env_seed: int, torch_seed: int, num_episodes: int, exploration: ExplorationType
@@ -243,7 +205,7 @@ class RaySource:
             )
         if not callable(self.make_env):
             raise ValueError(f"make_env must be a callable () -> EnvBase, got {self.make_env!r}")
-        _import_ray()  # fail before any work without the extra
+        import_ray()  # fail before any work without the extra
         self._env = self.make_env()
         if self.max_steps is None and episode_limit(self._env) is None:
             self._env.close()
@@ -361,7 +323,7 @@ class RaySource:
     def _play(self, tasks, exploration) -> tuple[dict[int, TensorDict], float]:
         """Each task ``(slot, env_seed, torch_seed, n)`` on a free live worker; a dead one's
         slot goes back to the queue. Returns the slots' episodes and the slowest slot's time."""
-        ray = _import_ray()
+        ray = import_ray()
         actors = self._collector.remote_collectors
         queue, free, pending = deque(tasks), list(self._alive), {}
         slots, slowest = {}, 0.0
@@ -396,7 +358,7 @@ class RaySource:
     def _broadcast(self, behaviour: TensorDictModuleBase) -> float:
         """Send ``behaviour``'s weights to every live worker; returns the seconds it took."""
         start = time.perf_counter()
-        weights = TensorDict.from_module(behaviour).data
+        weights = TensorDict.from_module(behaviour).data.cpu()  # the workers' copy is on the CPU
         if set(weights.keys(True, True)) != self._weight_keys:
             raise ValueError(
                 "the behaviour policy's parameters differ from those the workers were built "
@@ -412,14 +374,11 @@ class RaySource:
         """``ray.init`` (unless running) and one ``_EpisodeCollector`` actor per worker."""
         from torchrl.collectors.distributed import RayCollector
 
-        _patient_weight_sync()
+        patient_weight_sync()
         start = time.perf_counter()
         self._owns_ray = init_ray(self.workers, address=self.address, runtime_env=self.runtime_env)
         self.startup["ray_init"] = time.perf_counter() - start
-        policy = copy.deepcopy(behaviour)  # the caller's module is left as it is
-        for module in policy.modules():
-            if isinstance(module, BetaMixer):
-                module.generator = None  # coins from the worker's seeded torch RNG
+        policy = worker_policy(behaviour)
         start = time.perf_counter()
         self._collector = RayCollector(
             self.make_env,
@@ -433,7 +392,7 @@ class RaySource:
             trust_policy=True,
             trajs_per_batch=1,
             collector_kwargs={"traj_format": "cat", "auto_register_policy_transforms": False},
-            remote_configs={"num_cpus": 1, "num_gpus": 0},
+            remote_configs={"num_cpus": WORKER_THREADS, "num_gpus": 0},
             sync=False,
         )
         self._alive = list(range(self.workers))
@@ -442,7 +401,7 @@ class RaySource:
 
     def _drop_dead(self) -> None:
         """Forget workers that died since the last round (one ping each, in parallel)."""
-        ray = _import_ray()
+        ray = import_ray()
         actors = self._collector.remote_collectors
         pings = {a: actors[a].__ray_ready__.remote() for a in self._alive}
         for actor, ref in pings.items():
@@ -459,7 +418,7 @@ class RaySource:
             self._collector.shutdown()
             self._collector = None
         if self._owns_ray:
-            _import_ray().shutdown()
+            import_ray().shutdown()
             self._owns_ray = False
         self._env.close()
 
@@ -468,6 +427,23 @@ class RaySource:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+def worker_policy(behaviour: TensorDictModuleBase) -> TensorDictModuleBase:
+    """The copy of ``behaviour`` the workers are built with: on the CPU, same weight keys.
+
+    Parameters and buffers are moved to the CPU and every :class:`OnDevice` wrapper (a
+    learner on CUDA acting in a CPU env) is told its module is there now, so the
+    driver's broadcast weights load as they are; a ``BetaMixer`` draws its coins from the
+    worker's seeded torch RNG. The caller's module is left as it is.
+    """
+    policy = copy.deepcopy(behaviour).cpu()
+    for module in policy.modules():
+        if isinstance(module, OnDevice):
+            module.device = torch.device("cpu")
+        elif isinstance(module, BetaMixer):
+            module.generator = None
+    return policy
 
 
 def _quota(num_episodes: int, slots: int) -> list[int]:

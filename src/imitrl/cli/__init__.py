@@ -19,6 +19,13 @@ bench       ``jobs.bench.BenchJob``  ``jobs.bench.run_bench``
 frozenlake  ``StudyConfig``          ``experiments.frozenlake.run_study``
 =========== ======================= =========================================
 
+Every command also takes ``--threads N``: torch's CPU threads while it runs (default
+:data:`~imitrl.runtime.threads.DEFAULT_THREADS` = 1, measured in
+``benchmarks/threads.py``), set with :func:`~imitrl.runtime.threads.set_threads` before
+the command's function starts; ``bench`` hands it to the script's process as
+``OMP_NUM_THREADS`` (torch's starting thread count there; a benchmark that sets its own
+keeps its own).
+
 Results and report lines go to stdout, progress bars to stderr; bad input is one
 line on stderr and exit status 2.
 
@@ -32,15 +39,18 @@ live in :mod:`imitrl.jobs.configs`, the lists of losses and experts in
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import logging
+import os
 import sys
 import textwrap
-from collections.abc import Callable, Collection, Sequence
+from collections.abc import Callable, Collection, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
 from imitrl.cli.flags import add_config_flags, config_from_args
+from imitrl.runtime.threads import DEFAULT_THREADS, set_threads
 
 __all__ = ["COMMANDS", "Command", "build_parser", "main"]
 
@@ -180,12 +190,43 @@ COMMANDS: dict[str, Command] = {
 }
 
 
+def add_threads_flag(parser: argparse.ArgumentParser) -> None:
+    """``--threads N`` (every command): torch's CPU threads while the command runs."""
+    parser.add_argument(
+        "--threads",
+        type=int,
+        default=DEFAULT_THREADS,
+        metavar="N",
+        help="torch's CPU threads while the command runs (bench: the script's starting "
+        "count, as OMP_NUM_THREADS); more threads than free cores slow a fit down "
+        f"several times: benchmarks/README.md, threads (default: {DEFAULT_THREADS})",
+    )
+
+
+@contextlib.contextmanager
+def _script_threads(threads: int) -> Iterator[None]:
+    """``OMP_NUM_THREADS=threads`` for the processes started inside (``bench``'s script:
+    torch there starts with that many threads), then this process's value back."""
+    if isinstance(threads, bool) or threads < 1:
+        raise ValueError(f"--threads must be an integer >= 1, got {threads!r}")
+    before = os.environ.get("OMP_NUM_THREADS")
+    os.environ["OMP_NUM_THREADS"] = str(threads)
+    try:
+        yield
+    finally:
+        if before is None:
+            del os.environ["OMP_NUM_THREADS"]
+        else:
+            os.environ["OMP_NUM_THREADS"] = before
+
+
 def build_parser(flags_for: Collection[str] | None = None) -> argparse.ArgumentParser:
     """The ``imitrl`` argument parser: one subcommand per entry of :data:`COMMANDS`.
 
     ``flags_for``: the commands that get their flags (and epilog), None = every one;
     the others keep their name and help line. Adding a command's flags imports its
     config's module, so :func:`main` asks only for the command on its command line.
+    Every command with its flags also gets ``--threads`` (:func:`add_threads_flag`).
     """
     parser = argparse.ArgumentParser(
         prog="imitrl", description="imitrl: imitation learning on TorchRL"
@@ -203,10 +244,23 @@ def build_parser(flags_for: Collection[str] | None = None) -> argparse.ArgumentP
                 formatter_class=argparse.RawDescriptionHelpFormatter,
             )
             add_config_flags(child, command.config)
+            add_threads_flag(child)
         else:
             child = sub.add_parser(name, help=command.help, description=command.description)
             add_config_flags(child, command.config)
+            add_threads_flag(child)
     return parser
+
+
+def _start_torch(threads: int) -> None:
+    """Before a command that runs TorchRL: torch's threads (``--threads``), TorchRL's logger."""
+    try:
+        set_threads(threads)
+    except ValueError as err:
+        raise ValueError(f"--{err}") from None  # "--threads must be an integer >= 1, ..."
+    import torchrl  # noqa: F401  (its import sets the level of its logger: set ours after)
+
+    logging.getLogger("torchrl").setLevel(logging.WARNING)  # its INFO lines go to stdout
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -216,15 +270,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     first = next((a for a in argv if not a.startswith("-")), None)
     args = build_parser(flags_for=[first] if first in COMMANDS else []).parse_args(argv)
     command = COMMANDS[args.command]
-    if args.command != "bench":  # bench starts a script; every other command runs TorchRL
-        import torch
-        import torchrl  # noqa: F401  (its import sets the level of its logger: set ours after)
-
-        logging.getLogger("torchrl").setLevel(logging.WARNING)  # its INFO lines go to stdout
-        if args.command == "frozenlake":
-            torch.set_num_threads(1)  # the simulators are bandwidth-bound; threads only contend
     try:
-        results = command.run(config_from_args(command.config, args))
+        if args.command == "bench":  # bench starts a script: its threads, and no torch here
+            with _script_threads(args.threads):
+                results = command.run(config_from_args(command.config, args))
+        else:
+            _start_torch(args.threads)
+            results = command.run(config_from_args(command.config, args))
     except (ValueError, ImportError) as err:  # bad flags, unknown names, missing extras
         print(f"imitrl {args.command}: {err}", file=sys.stderr)
         return 2

@@ -150,7 +150,8 @@ def restore_learner(
     files: dict[str, torch.Tensor],
     path: Path,
 ) -> None:
-    """Load the saved weights and optimizers into ``learner``; all or nothing."""
+    """Load the saved weights and optimizers into ``learner``, on whatever device it lives
+    (the checkpoint may come from another); all or nothing."""
     components = learner_components(learner)
     if saved is None:
         raise ValueError(f"{path}: cannot load the learner: the checkpoint was saved without one")
@@ -162,8 +163,10 @@ def restore_learner(
     states = {}
     for component, name in saved.items():
         try:
+            # read onto the CPU whatever device saved it; load_state_dict then copies each
+            # tensor to where the learner lives (a GPU checkpoint loads on a CPU machine)
             states[component] = torch.load(
-                io.BytesIO(bytes(files[name].numpy())), weights_only=True
+                io.BytesIO(bytes(files[name].numpy())), weights_only=True, map_location="cpu"
             )
         except Exception as err:  # torch.load raises assorted errors on a bad archive
             raise ValueError(f"{path / name}: cannot load {component} ({err})") from None

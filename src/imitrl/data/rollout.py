@@ -48,6 +48,7 @@ from imitrl.policies.action_check import check_action
 from imitrl.policies.experts import Expert
 from imitrl.policies.modules import TensorPolicy
 from imitrl.rng import rng_from
+from imitrl.runtime.device import acting
 
 __all__ = ["rollout_episodes", "rollout_policy"]
 
@@ -102,7 +103,8 @@ def rollout_policy(
     An :class:`Expert` is bound to the env's action spec (:meth:`Expert.bind`: its
     labels are cast to it) and drives the env through ``as_actor()``; it acts
     deterministically, so ``exploration`` None means ``DETERMINISTIC``. Any other
-    module runs as given and ``exploration`` must be stated.
+    module runs as given (on another device than the env's: through
+    :class:`~imitrl.runtime.device.OnDevice`) and ``exploration`` must be stated.
     """
     if isinstance(policy, Expert):
         policy.bind(_action_spec(env))
@@ -116,7 +118,9 @@ def rollout_policy(
             "exploration is required for a policy module (DETERMINISTIC: greedy, "
             "RANDOM: sampled); only an Expert may leave it out"
         )
-    return policy, exploration
+    # a learner on another device than the env (a GPU): its inputs cross there and its
+    # actions back, once per step (imitrl.runtime.device); on the CPU the module itself
+    return acting(policy, env.device), exploration
 
 
 def _episode_bound(env: EnvBase, max_steps: int | None, num_episodes: int) -> tuple[int, str]:

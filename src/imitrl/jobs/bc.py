@@ -102,8 +102,9 @@ def prepare(config: BCJob, name: str, *, keep_logs: bool = False) -> Setup:
         expert = make_expert(expert_name, config.expert_kind)
         check_expert_fits(expert, expert_name, config.env, env)  # observations it can read
     make_learner = learner_factory(
-        config.loss, env, hidden=config.hidden, lr=config.lr, seed=config.seed
-    )
+        config.loss, env, hidden=config.hidden, lr=config.lr, seed=config.seed,
+        device=config.device,
+    )  # fmt: skip
     if config.dataset is not None:
         dataset_format(config.dataset)
     logger = make_logger(config.logger, config.out, name, fresh=not keep_logs)

@@ -120,8 +120,9 @@ def checkpoint_env(checkpoint: Path, config: dict) -> str:
     return env
 
 
-def load_learner(checkpoint: Path, env: EnvBase) -> Learner:
-    """The learner saved in ``checkpoint``, rebuilt for ``env`` and loaded with its weights."""
+def load_learner(checkpoint: Path, env: EnvBase, *, device: str | None = None) -> Learner:
+    """The learner saved in ``checkpoint``, rebuilt for ``env`` on ``device`` (None: the
+    CPU; the checkpoint may have been saved on another device) and loaded with its weights."""
     config = read_config(checkpoint)
     make = learner_factory(
         config["loss"],
@@ -129,13 +130,20 @@ def load_learner(checkpoint: Path, env: EnvBase) -> Learner:
         hidden=tuple(config["hidden"]),
         lr=config["lr"],
         seed=config["seed"],
+        device=device,
     )
     learner = make()
-    state = torch.load(Path(checkpoint) / WEIGHTS_FILE, weights_only=True)
+    where = Path(checkpoint) / WEIGHTS_FILE
+    try:  # onto the CPU first: a GPU checkpoint loads on a machine without one
+        state = torch.load(where, weights_only=True, map_location="cpu")
+    except Exception as err:  # torch.load raises assorted errors on a bad archive
+        raise ValueError(
+            f"{where}: not a learner's weights ({type(err).__name__}: {err})"
+        ) from None
     try:
         learner.load_state_dict(state)
     except RuntimeError as err:  # shapes or names that do not match the rebuilt learner
         raise ValueError(
-            f"{checkpoint}: the weights do not fit the rebuilt learner ({err})"
+            f"{checkpoint}: the weights do not fit the rebuilt learner on {learner.device} ({err})"
         ) from err
     return learner

@@ -21,8 +21,20 @@ if TYPE_CHECKING:
 
 __all__ = ["AIRLJob", "BCJob", "DAggerJob", "GAILJob"]
 
+
+def _check_device(device: str) -> None:
+    """``--device`` names a device this machine has (one line naming both otherwise); torch
+    is imported here, when a job is configured, never for ``--help``."""
+    from imitrl.runtime.device import resolve_device
+
+    try:
+        resolve_device(device)
+    except ValueError as err:
+        raise ValueError(f"--device: {err}") from None
+
+
 _SHARED = ("env", "max_episode_steps", "expert", "expert_kind", "dataset", "demos", "hidden",
-           "lr", "eval_episodes", "eval_seed", "seed", "out", "logger", "progress")  # fmt: skip
+           "lr", "eval_episodes", "eval_seed", "seed", "device", "out", "logger", "progress")  # fmt: skip
 """the GAIL/AIRL flags that ``imitrl bc``'s preparation reads (:meth:`GAILJob.bc_view`)"""
 
 
@@ -67,6 +79,9 @@ class BCJob:
     seed: int = 0
     """seeds the env that plays the demonstrations, the learner's initialisation and
     the minibatch order"""
+    device: str = "auto"
+    """where the learner computes: auto (CUDA when available, else the CPU), cpu, cuda
+    or cuda:N; the env and the expert stay on the CPU"""
     out: Path = Path("results/bc")
     """output directory: results.json, config.json + learner.pt (the checkpoint that
     imitrl eval --checkpoint reads), curves.png, logs/"""
@@ -93,6 +108,7 @@ class BCJob:
             raise ValueError(f"--logger must be one of {', '.join(LOGGERS)}, got {self.logger!r}")
         if self.batch_size is not None and self.batch_size < 1:
             raise ValueError(f"--batch-size must be >= 1 or none, got {self.batch_size}")
+        _check_device(self.device)
 
 
 @dataclass(frozen=True)
@@ -197,6 +213,9 @@ class GAILJob:
     after the last only"""
     seed: int = 0
     """seeds the env, the learner's initialisation and every draw of the run"""
+    device: str = "auto"
+    """where the learner computes: auto (CUDA when available, else the CPU), cpu, cuda
+    or cuda:N; the env and the expert stay on the CPU"""
     out: Path = Path("results/gail")
     """output directory: results.json, config.json + learner.pt, curves.png, logs/"""
     overwrite: bool = False
@@ -213,6 +232,7 @@ class GAILJob:
             raise ValueError(
                 f"--expert-kind must be one of {EXPERT_KINDS}, got {self.expert_kind!r}"
             )
+        _check_device(self.device)
         if self.eval_episodes < 1:
             raise ValueError(f"--eval-episodes must be >= 1, got {self.eval_episodes}")
         if int(self.eval_every) != self.eval_every or self.eval_every < 0:

@@ -108,6 +108,9 @@ class EvalJob:
     """replace an eval.json already in --out (without it, one there is refused)"""
     progress: bool = True
     """a progress bar over the evaluation episodes on stderr"""
+    device: str = "auto"
+    """where the saved learner computes: auto, cpu, cuda or cuda:N (a checkpoint saved
+    on any device loads on any other)"""
 
     def __post_init__(self) -> None:
         from imitrl.jobs.resolve import EXPERT_KINDS
@@ -122,6 +125,9 @@ class EvalJob:
             )
         if self.eval_episodes < 1:
             raise ValueError(f"--eval-episodes must be >= 1, got {self.eval_episodes}")
+        from imitrl.jobs.configs import _check_device
+
+        _check_device(self.device)
         if self.out is not None and (Path(self.out) / "eval.json").exists() and not self.overwrite:
             raise ValueError(
                 f"--out {self.out} holds an eval.json: pass --overwrite to replace it, or "
@@ -143,7 +149,7 @@ def run_eval(config: EvalJob) -> dict:
         env_id = config.env or checkpoint_env(config.checkpoint, saved)
         steps = config.max_episode_steps or saved["max_episode_steps"]
         specs = make_env(env_id, seed=0, max_episode_steps=steps)  # the learner's shapes
-        learner = load_learner(config.checkpoint, specs)
+        learner = load_learner(config.checkpoint, specs, device=config.device)
         specs.close()
         policy, exploration, name = learner.policy, learner.exploration, "learner"
     else:

@@ -61,7 +61,10 @@ def _loss(config: GAILJob, setup: Setup) -> str:
 
 
 def _learner(config: GAILJob, setup: Setup, loss: str) -> ActorCritic:
-    make = learner_factory(loss, setup.env, hidden=config.hidden, lr=config.lr, seed=config.seed)
+    make = learner_factory(
+        loss, setup.env, hidden=config.hidden, lr=config.lr, seed=config.seed,
+        device=config.device,
+    )  # fmt: skip
     learner = make()
     if not isinstance(learner, ActorCritic) or learner.head == "deterministic":
         raise ValueError(

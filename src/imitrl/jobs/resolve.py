@@ -210,7 +210,13 @@ def task_spec(env: EnvBase) -> TaskSpec:
 
 
 def learner_factory(
-    loss: str, env: EnvBase, *, hidden: tuple[int, ...], lr: float, seed: int
+    loss: str,
+    env: EnvBase,
+    *,
+    hidden: tuple[int, ...],
+    lr: float,
+    seed: int,
+    device: str | None = None,
 ) -> Callable[[], Learner]:
     """``() -> Learner``: a fresh learner for ``env`` trained by ``loss``, same init each call.
 
@@ -220,14 +226,15 @@ def learner_factory(
     if loss == "default":
 
         def make() -> Learner:
-            return ActorCritic.for_env(env, hidden=hidden, lr=lr, seed=seed)
+            return ActorCritic.for_env(env, hidden=hidden, lr=lr, seed=seed, device=device)
 
     else:
         if loss not in registry.names():
             raise ValueError(
                 f"unknown loss {loss!r}; choose default or one of: {', '.join(registry.names())}"
             )
-        task, config = task_spec(env), LearnerConfig(hidden=tuple(hidden), lr=lr, seed=seed)
+        task = task_spec(env)
+        config = LearnerConfig(hidden=tuple(hidden), lr=lr, seed=seed, device=device)
 
         def make() -> Learner:
             return registry.build(loss, task, config)

@@ -107,11 +107,12 @@ def ddim_sample(
     index); ``alphas_cumprod`` ``[T]``. Returns ``x0`` ``[..., d]`` (module docstring).
     """
     T = alphas_cumprod.shape[0]
+    alphas_cumprod = alphas_cumprod.to(x.device)
     taus = torch.linspace(T - 1, 0, int(sample_steps)).round().long().unique_consecutive()
     for i, tau in enumerate(taus.tolist()):
         abar = alphas_cumprod[tau]
         abar_prev = alphas_cumprod[taus[i + 1]] if i + 1 < len(taus) else torch.tensor(1.0)
-        t = torch.full((*x.shape[:-1], 1), float(tau))
+        t = torch.full((*x.shape[:-1], 1), float(tau), device=x.device)
         eps = score(torch.cat([x, obs.to(x.dtype), t], dim=-1))
         x0 = ((x - (1 - abar).sqrt() * eps) / abar.sqrt()).clamp(-1.0, 1.0)
         x = abar_prev.sqrt() * x0 + (1 - abar_prev).sqrt() * eps
@@ -195,9 +196,9 @@ class DiffusionPolicy(TensorDictModuleBase):
             obs = tensordict.get(keys.OBSERVATION)
             shape = (*obs.shape[:-1], self.low.shape[0])
             if interaction_type() == InteractionType.DETERMINISTIC:
-                x = torch.zeros(shape)  # as TorchRL's chain starts in this mode
+                x = torch.zeros(shape, device=obs.device)  # as TorchRL's chain starts here
             else:
-                x = torch.randn(shape, generator=self.generator)
+                x = torch.randn(shape, generator=self.generator).to(obs.device)
             x = ddim_sample(self._score, obs, x, self._alphas_cumprod, self.sample_steps)
             tensordict.set(_NORMALIZED, x)
         else:

@@ -110,13 +110,14 @@ class FlowPolicy(TensorDictModuleBase):
 
     def draw_noise(self, n: int) -> torch.Tensor:
         """``[n, d]`` starting noise from the policy's generator (what ``RANDOM`` draws)."""
-        return torch.randn(int(n), self.low.shape[0], generator=self.generator)
+        # drawn on the CPU from the seeded generator, then moved: one seed, one draw, any device
+        return torch.randn(int(n), self.low.shape[0], generator=self.generator).to(self.low.device)
 
     def sample(self, obs: torch.Tensor, x0: torch.Tensor) -> torch.Tensor:
         """Euler-integrate the flow from ``x0`` ``[..., d]`` at ``t = 0`` to ``t = 1``."""
         x, dt = x0, 1.0 / self.num_steps
         for k in range(self.num_steps):
-            t = torch.full((*x.shape[:-1], 1), k * dt)
+            t = torch.full((*x.shape[:-1], 1), k * dt, device=x.device)
             x = x + dt * self.velocity(x, obs, t)
         return x
 
@@ -125,7 +126,7 @@ class FlowPolicy(TensorDictModuleBase):
         shape = (*obs.shape[:-1], self.low.shape[0])
         held = tensordict.get(keys.POLICY_NOISE, None)
         if interaction_type() == InteractionType.DETERMINISTIC:
-            x0 = torch.zeros(shape)
+            x0 = torch.zeros(shape, device=obs.device)
         elif held is not None:
             if tuple(held.shape) != shape or not held.dtype.is_floating_point:
                 raise ValueError(
@@ -133,9 +134,9 @@ class FlowPolicy(TensorDictModuleBase):
                     f"batch, then the action's {shape[-1]} entries), got {held.dtype} "
                     f"{list(held.shape)}"
                 )
-            x0 = held.float()
+            x0 = held.float().to(obs.device)
         else:
-            x0 = torch.randn(shape, generator=self.generator)
+            x0 = torch.randn(shape, generator=self.generator).to(obs.device)
         x = self.sample(obs, x0).clamp(-1.0, 1.0)
         tensordict.set(keys.ACTION, self.low + (self.high - self.low) * (x + 1) / 2)
         return tensordict
@@ -185,8 +186,8 @@ class FlowMatchingLoss(ImitationLoss):
                 f"per row, got {label.dtype} {tuple(label.shape)}"
             )
         x1 = self.policy.normalize(label.reshape(n, d))
-        x0 = torch.randn(n, d, generator=self.generator)
-        t = torch.rand(n, 1, generator=self.generator)
+        x0 = torch.randn(n, d, generator=self.generator).to(x1.device)  # CPU draws: any device
+        t = torch.rand(n, 1, generator=self.generator).to(x1.device)
         v = self.policy.velocity((1 - t) * x0 + t * x1, obs, t)
         err = (v - (x1 - x0)) ** 2  # [N, d]
         if self.tensor_keys.pad is None:

@@ -122,6 +122,10 @@ class LearnerConfig:
     """initialisation seed (and the seed of any sampling the learner does)"""
     normalize: bool = True
     """MLP learners: normalise observations by the demonstrations' statistics"""
+    device: str | None = None
+    """where the learner computes: None (the CPU), ``"auto"``, ``"cpu"``, ``"cuda:N"``
+    (:func:`~imitrl.runtime.device.resolve_device`); every entry is built on the CPU with
+    its seed, then moved, so every device starts from the same weights"""
 
 
 @dataclass(frozen=True)
@@ -229,7 +233,7 @@ def build(name: str, task: TaskSpec, config: LearnerConfig = LearnerConfig()) ->
     learner = entry.build(task, config)
     if not isinstance(learner, Learner):
         raise ValueError(f"loss {name!r} built a {type(learner).__name__}, expected a Learner")
-    return learner
+    return learner.placed(config.device)
 
 
 # ----------------------------------------------------------------- policy heads

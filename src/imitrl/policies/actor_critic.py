@@ -53,6 +53,7 @@ from imitrl.policies.specs import (
     observation_space,
 )
 from imitrl.rng import rng_from
+from imitrl.runtime.device import to_device
 
 __all__ = ["HEADS", "HEAD_LOSSES", "ActorCritic"]
 
@@ -133,11 +134,19 @@ class ActorCritic(Learner):
 
     # ------------------------------------------------------------ constructors
     @classmethod
-    def tabular(cls, num_states: int, num_actions: int, *, lr: float = 0.1) -> ActorCritic:
+    def tabular(
+        cls,
+        num_states: int,
+        num_actions: int,
+        *,
+        lr: float = 0.1,
+        device: str | torch.device | None = None,
+    ) -> ActorCritic:
         """One preference ``theta[s, a]`` per pair: zero-initialised embedding tables.
 
         At initialisation the policy is exactly uniform and every value is 0; the loss
-        is the cross-entropy.
+        is the cross-entropy. ``device``: where it computes (None: the CPU; see
+        :meth:`~imitrl.policies.Learner.placed`).
         """
         if num_states < 1 or num_actions < 1:
             raise ValueError(
@@ -164,7 +173,7 @@ class ActorCritic(Learner):
             lr=lr,
             num_states=num_states,
             action=action_space(num_actions),
-        )
+        ).placed(device)
 
     @classmethod
     def mlp(
@@ -179,6 +188,7 @@ class ActorCritic(Learner):
         lr: float = 1e-3,
         seed: int = 0,
         normalize: bool = True,
+        device: str | torch.device | None = None,
     ) -> ActorCritic:
         """MLP policy and value over any observation and action spec.
 
@@ -198,6 +208,9 @@ class ActorCritic(Learner):
             seed: initialisation seed (the global RNG is left untouched).
             normalize: normalise vector observations by the demonstrations' mean and
                 standard deviation (fitted at the first ``fit_bc``).
+            device: where the learner computes (None: the CPU; ``"auto"``, ``"cuda:N"``:
+                :func:`~imitrl.runtime.device.resolve_device`); initialised on the CPU
+                with ``seed`` first, so every device starts from the same weights.
         """
         obs, space = observation_space(observation), action_space(action)
         head = check_head(space, head)
@@ -228,7 +241,7 @@ class ActorCritic(Learner):
             observation_shape=shape,
             normalizer=normalizer,
             action=space,
-        )
+        ).placed(device)
 
     @classmethod
     def pixels(
@@ -249,6 +262,7 @@ class ActorCritic(Learner):
         seed: int = 0,
         normalize: bool = True,
         pixel_key: NestedKey = keys.PIXELS,
+        device: str | torch.device | None = None,
     ) -> ActorCritic:
         """CNN policy and value over uint8 images ``[H, W, C * frames]`` under ``pixel_key``,
         any head (:mod:`imitrl.policies.encoders`: layout, scaling, conv defaults).
@@ -260,7 +274,7 @@ class ActorCritic(Learner):
         ``normalize``, concatenated to the CNN features), None: the image alone;
         ``frames``: frames stacked on the channel axis; ``channels``/``kernels``/
         ``strides``: the conv layers; ``hidden``: the MLP after them; ``activation``
-        follows every layer; the rest as in :meth:`mlp`.
+        follows every layer; the rest (``device`` too) as in :meth:`mlp`.
         """
         net = pixel_networks(
             pixels, action, pixel_key=pixel_key, state=state, frames=frames, head=head,
@@ -270,7 +284,7 @@ class ActorCritic(Learner):
         return cls(
             net.policy, net.value, head=net.head, loss=loss, lr=lr, normalizer=net.normalizer,
             action=net.space, observation_shape=net.inputs.state_shape, pixel_inputs=net.inputs,
-        )  # fmt: skip
+        ).placed(device)  # fmt: skip
 
     @classmethod
     def for_env(
@@ -287,11 +301,13 @@ class ActorCritic(Learner):
         state: bool = False,
         channels: Sequence[int] = (32, 64, 64),
         pixel_key: NestedKey | None = None,
+        device: str | torch.device | None = None,
     ) -> ActorCritic:
         """:meth:`mlp` with the observation and action specs read off ``env`` (batched or not);
         :meth:`pixels` when the env has a ``PIXELS`` observation or ``pixel_key`` names
         one (reading the state beside it only when ``state``: by default the state is the
-        privileged expert's). ``hidden``/``activation`` None: each builder's default."""
+        privileged expert's). ``hidden``/``activation`` None: each builder's default;
+        ``device``: where the learner computes (the env stays where it is)."""
         spec = env.observation_spec_unbatched
         if pixel_key is not None or keys.PIXELS in spec.keys():
             pixels, state_spec, pixel_key = env_pixel_specs(env, pixel_key, state=state)
@@ -299,7 +315,7 @@ class ActorCritic(Learner):
                 pixels, env.action_spec_unbatched, head=head, loss=loss, state=state_spec,
                 channels=channels, hidden=(256,) if hidden is None else hidden,
                 activation=activation or nn.ReLU, lr=lr, seed=seed, normalize=normalize,
-                pixel_key=pixel_key,
+                pixel_key=pixel_key, device=device,
             )  # fmt: skip
         if keys.OBSERVATION not in spec.keys():
             raise ValueError(
@@ -315,6 +331,7 @@ class ActorCritic(Learner):
             lr=lr,
             seed=seed,
             normalize=normalize,
+            device=device,
         )
 
     def check_env(self, env: EnvBase) -> None:
@@ -390,9 +407,11 @@ class ActorCritic(Learner):
         return obs.shape if self.num_states is not None else obs.shape[:-1]
 
     def _td(self, obs: torch.Tensor | TensorDict) -> TensorDict:
-        if isinstance(obs, TensorDict):  # a pixel learner's inputs (PixelInputs.read)
-            return obs
-        return TensorDict({keys.OBSERVATION: obs}, batch_size=self._batch_shape(obs))
+        """The policy's input on the learner's device (outputs come back through
+        :meth:`_out`, on the CPU for numpy and scalars, on the learner's device as tensors)."""
+        if not isinstance(obs, TensorDict):
+            obs = TensorDict({keys.OBSERVATION: obs}, batch_size=self._batch_shape(obs))
+        return to_device(obs, self.device)
 
     @staticmethod
     def _out(x: torch.Tensor, kind: str) -> Any:

@@ -165,12 +165,14 @@ class ChunkedPolicy(TensorDictModuleBase):
         if self._plan is None or self._plan.shape[0] != lanes:
             if not bool(init.all()):
                 raise ValueError("a chunked policy's first call must follow a reset of every lane")
-            self._reset_state(lanes)
+            self._reset_state(lanes, init.device)
         if self.execution.hold_noise and bool(init.any()):
             draw = self.network.draw_noise(int(init.sum()))
             if self._noise is None or self._noise.shape != (lanes, draw.shape[-1]):
-                self._noise = torch.zeros(lanes, draw.shape[-1], dtype=draw.dtype)
-            self._noise[init] = draw
+                self._noise = torch.zeros(
+                    lanes, draw.shape[-1], dtype=draw.dtype, device=draw.device
+                )
+            self._noise[init.to(draw.device)] = draw
         flat_td = tensordict.reshape(lanes) if len(batch) != 1 else tensordict
         if self.execution.ensemble is not None:
             chunk, action = self._ensemble_step(flat_td, init)
@@ -180,12 +182,14 @@ class ChunkedPolicy(TensorDictModuleBase):
         tensordict.set(keys.ACTION, action.reshape(*batch, self.action_dim))
         return tensordict
 
-    def _reset_state(self, lanes: int) -> None:
+    def _reset_state(self, lanes: int, device: torch.device) -> None:
+        """Each lane's plan on ``device``: where the lanes' tensordicts are (the env's, or
+        the learner's when :class:`~imitrl.runtime.device.OnDevice` moved them)."""
         H, m = self.execution.horizon, self.action_dim
-        self._plan = torch.zeros(lanes, H, m)
-        self._age = torch.zeros(lanes, dtype=torch.int64)
-        self._history = torch.zeros(lanes, H, H, m)
-        self._count = torch.zeros(lanes, dtype=torch.int64)
+        self._plan = torch.zeros(lanes, H, m, device=device)
+        self._age = torch.zeros(lanes, dtype=torch.int64, device=device)
+        self._history = torch.zeros(lanes, H, H, m, device=device)
+        self._count = torch.zeros(lanes, dtype=torch.int64, device=device)
         self._noise = None
 
     def _receding_step(self, td: TensorDictBase, init: torch.Tensor):
@@ -195,7 +199,7 @@ class ChunkedPolicy(TensorDictModuleBase):
             self._plan = self._plan.to(fresh.dtype)
             self._plan[replan] = fresh
             self._age[replan] = 0
-        action = self._plan[torch.arange(self._plan.shape[0]), self._age]
+        action = self._plan[torch.arange(self._plan.shape[0], device=self._age.device), self._age]
         self._age += 1
         return self._plan.clone(), action
 
@@ -208,7 +212,7 @@ class ChunkedPolicy(TensorDictModuleBase):
         self._count = torch.where(init, 1, (self._count + 1).clamp(max=H))
         # the prediction for now made j steps ago is chunk_{t-j}[j]; ACT's i counts
         # from the oldest, i = count - 1 - j: w_j = exp(-m (count - 1 - j)), normalised
-        j = torch.arange(H)
+        j = torch.arange(H, device=chunk.device)
         preds = history[:, j, j]  # [L, H, m]
         valid = j[None, :] < self._count[:, None]
         logw = -self.execution.ensemble * (self._count[:, None] - 1 - j[None, :]).to(chunk.dtype)

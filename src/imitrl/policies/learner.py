@@ -27,6 +27,7 @@ from torchrl.envs.utils import ExplorationType
 from imitrl import keys
 from imitrl.objectives.base import ImitationLoss
 from imitrl.policies.normalization import ObservationNormalizer
+from imitrl.runtime.device import module_device, resolve_device
 
 __all__ = ["Learner"]
 
@@ -73,6 +74,23 @@ class Learner(nn.Module):
     def optimizers(self) -> dict[str, torch.optim.Optimizer]:
         """Every optimizer of the learner by name (saved and restored with it)."""
         return {"opt_pi": self.opt_pi}
+
+    @property
+    def device(self) -> torch.device:
+        """Where the learner computes: its parameters' device (:mod:`imitrl.runtime.device`)."""
+        return module_device(self)
+
+    def placed(self, device: str | torch.device | None) -> Learner:
+        """The learner moved to ``device`` (``"auto"``, ``"cpu"``, ``"cuda:N"``: see
+        :func:`~imitrl.runtime.device.resolve_device`; None: left where it is); returns
+        ``self``. Its optimizers keep their parameters (moved in place), so call it
+        before the first step, as the builders' ``device=`` does."""
+        if device is None:
+            return self
+        target = resolve_device(device)
+        if target != self.device:
+            self.to(target)
+        return self
 
     def check_observations(self, obs: torch.Tensor) -> None:
         """Raise ``ValueError`` unless ``obs`` is finite (subclasses check shapes too)."""

@@ -55,7 +55,7 @@ def absorbing_rows(template: TensorDictBase, n: int) -> TensorDict:
     True, ``("next", TERMINATED)`` False (the absorbing state never ends)."""
     rows = TensorDict(
         {
-            key: torch.zeros((n, *value.shape[1:]), dtype=value.dtype)
+            key: torch.zeros((n, *value.shape[1:]), dtype=value.dtype, device=value.device)
             for key, value in template.items(include_nested=True, leaves_only=True)
         },
         batch_size=[n],

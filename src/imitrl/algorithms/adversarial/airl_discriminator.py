@@ -111,6 +111,7 @@ class AIRLDiscriminator:
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(seed)
             self.network = ShapedReward(obs_dim + 1, hidden, gamma)
+        self.network.to(learner.device)  # initialised on the CPU: the same weights anywhere
         self.optimizer = torch.optim.Adam(self.network.parameters(), lr=lr)
 
     def log_pi(self, transitions: TensorDictBase) -> torch.Tensor:
@@ -156,7 +157,7 @@ class AIRLDiscriminator:
         return {"loss": loss + gp, "grad_penalty": gp.detach()}
 
     def _penalty(self, expert: TensorDictBase, policy: TensorDictBase) -> torch.Tensor:
-        alpha = torch.rand(expert.shape[0], 1)  # global RNG: the run seeds it
+        alpha = torch.rand(expert.shape[0], 1).to(expert.device)  # global CPU RNG: seeded
         mix = [
             (alpha * p + (1 - alpha) * e).requires_grad_(True)
             for p, e in zip(self.features(policy), self.features(expert))

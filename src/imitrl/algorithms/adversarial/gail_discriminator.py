@@ -96,6 +96,7 @@ class GAILDiscriminator:
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(seed)
             net = PairNetwork(obs_dim + 1, features, hidden)
+        net.to(learner.device)  # initialised on the CPU: the same weights on every device
         self.module = Module(
             net,
             in_keys=[STATE_FEATURES, ACTION_FEATURES],

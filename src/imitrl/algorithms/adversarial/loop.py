@@ -57,6 +57,7 @@ from imitrl.algorithms.adversarial.transitions import (
 )
 from imitrl.data.buffer import DemonstrationBuffer
 from imitrl.policies.actor_critic import ActorCritic
+from imitrl.runtime.device import acting
 
 __all__ = [
     "AdversarialConfig",
@@ -233,7 +234,8 @@ def train_adversarial(
     """
     _check(env, learner, demonstrations)
     rows = demonstrations.data
-    expert = expert_transitions(rows)
+    device = learner.device  # discriminator and PPO train there; the env stays where it is
+    expert = expert_transitions(rows).to(device)
     n_expert = expert.shape[0]
     if config.absorbing:
         expert = with_absorbing(expert)
@@ -249,6 +251,11 @@ def train_adversarial(
             epochs=config.ppo_epochs, minibatch_size=config.minibatch_size,
             max_grad_norm=config.max_grad_norm,
         )  # fmt: skip
+        # a learner off the CPU: TorchRL's collector moves each step's observations to it
+        # and its actions back to the env, and stores the batch where the learner trains
+        devices = {} if device.type == "cpu" else {
+            "policy_device": device, "env_device": env.device, "storing_device": device,
+        }  # fmt: skip
         collector = Collector(
             env,
             learner.policy,
@@ -256,6 +263,7 @@ def train_adversarial(
             total_frames=config.total_steps,
             exploration_type=ExplorationType.RANDOM,
             auto_register_policy_transforms=False,
+            **devices,
         )
         try:
             for k, batch in enumerate(collector):
@@ -287,7 +295,8 @@ def _fit_normalizer(env: EnvBase, learner: ActorCritic, rows: TensorDictBase, wa
         return 0
     lanes = max(1, env.batch_size.numel())
     with set_exploration_type(ExplorationType.RANDOM), torch.no_grad():
-        played = env.rollout(-(-warmup // lanes), learner.policy, break_when_any_done=False)
+        policy = acting(learner.policy, env.device)  # a learner on a GPU crosses per step
+        played = env.rollout(-(-warmup // lanes), policy, break_when_any_done=False)
     obs = [rows.get(keys.OBSERVATION), played.get(keys.OBSERVATION)]
     norm.fit(torch.cat([o.reshape(-1, *norm.shape).to(torch.float64) for o in obs]))
     learner.prepare(rows)  # validates the rows; the statistics stay

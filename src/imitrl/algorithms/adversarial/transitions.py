@@ -40,7 +40,7 @@ def _terminated(rows: TensorDictBase) -> torch.Tensor:
     """``[N]`` bool: the row's episode terminated there (False where the data says nothing)."""
     if NEXT_TERMINATED in rows.keys(include_nested=True):
         return rows.get(NEXT_TERMINATED).reshape(rows.shape[0], -1).any(-1)
-    return torch.zeros(rows.shape[0], dtype=torch.bool)
+    return torch.zeros(rows.shape[0], dtype=torch.bool, device=rows.device)
 
 
 def expert_transitions(rows: TensorDictBase) -> TensorDict:
@@ -99,8 +99,8 @@ def _transitions(obs, action, next_obs, terminated) -> TensorDict:
             keys.ACTION: action,
             NEXT_OBS: next_obs,
             NEXT_TERMINATED: terminated,
-            ABSORBING: torch.zeros(n, 1, dtype=torch.bool),
-            NEXT_ABSORBING: torch.zeros(n, 1, dtype=torch.bool),
+            ABSORBING: torch.zeros(n, 1, dtype=torch.bool, device=obs.device),
+            NEXT_ABSORBING: torch.zeros(n, 1, dtype=torch.bool, device=obs.device),
         },
         batch_size=[n],
     )

@@ -1,0 +1,79 @@
+"""Starting Ray for DAgger's workers: a local instance or a cluster (:func:`init_ray`),
+the workers' share of the machine (:data:`WORKER_THREADS`), and TorchRL's weight-sync
+wait raised for slow-starting workers (:func:`patient_weight_sync`).
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import tempfile
+
+__all__ = ["RAY_INSTALL_HINT", "WEIGHT_SYNC_TIMEOUT_S", "WORKER_THREADS", "import_ray", "init_ray",
+           "patient_weight_sync"]  # fmt: skip
+
+WORKER_THREADS = 1
+"""torch threads (and Ray CPUs, ``num_cpus``) of each worker: workers run side by side,
+so more than one each would oversubscribe the cores (``benchmarks/threads.py``)"""
+
+WEIGHT_SYNC_TIMEOUT_S = 600
+"""how long the driver waits for the workers to join the weight-sync process group"""
+
+
+def patient_weight_sync() -> None:
+    """TorchRL's Ray weight sync (``torchrl.weight_update._ray``) waits a fixed 60 s
+    (``_DIST_TIMEOUT``, no argument sets it) for every worker to join its process group;
+    on a loaded 2-core machine a worker can take longer to start, and the round fails
+    with ``DistStoreError: wait timeout``. The constant is read when the group is built,
+    so the driver's wait is raised here, once, in the one place imitrl builds Ray
+    collectors."""
+    from datetime import timedelta
+
+    import torchrl.weight_update._ray as ray_sync
+
+    ray_sync._DIST_TIMEOUT = max(ray_sync._DIST_TIMEOUT, timedelta(seconds=WEIGHT_SYNC_TIMEOUT_S))
+
+
+RAY_INSTALL_HINT = "pip install 'imitrl[distributed]'"
+
+
+def import_ray():
+    try:
+        import ray
+    except ImportError as err:
+        raise ImportError(f"running DAgger on Ray workers needs ray: {RAY_INSTALL_HINT}") from err
+    return ray
+
+
+_RAY_TEMP_MAX = 24  # longest <tempdir>/ray that leaves room for Ray's session socket paths
+
+
+def init_ray(
+    num_cpus: int | None, *, address: str | None = None, runtime_env: dict | None = None
+) -> bool:
+    """Start a local Ray instance (``address`` None) or connect to a cluster, unless Ray runs.
+
+    Local: ``num_cpus`` logical CPUs, no dashboard. ``runtime_env`` None: workers get
+    ``PYTHONPATH`` = this process's ``sys.path``, so they import imitrl and the user's
+    modules (on a cluster, give a ``runtime_env`` with a ``working_dir`` instead, or
+    install them on the nodes). Returns True when this call started or connected Ray
+    (the caller then shuts it down), False when Ray was already initialised.
+    """
+    ray = import_ray()
+    if ray.is_initialized():
+        return False
+    if runtime_env is None:
+        paths = [os.path.abspath(p or os.curdir) for p in sys.path]
+        runtime_env = {"env_vars": {"PYTHONPATH": os.pathsep.join(dict.fromkeys(paths))}}
+    options = {"runtime_env": runtime_env, "logging_level": "warning"}
+    if address is None:
+        options.update(num_cpus=num_cpus, include_dashboard=False)
+        # Ray puts its AF_UNIX sockets under <tempdir>/ray/session_<time>_<pid>/sockets/,
+        # and a socket path may not exceed 107 bytes: under a long TMPDIR (a test's
+        # tmp_path, say) a local start fails, so Ray's own files go to a short dir then
+        if len(os.path.join(tempfile.gettempdir(), "ray")) > _RAY_TEMP_MAX and os.path.isdir(
+            "/tmp"
+        ):
+            options["_temp_dir"] = "/tmp/ray"
+    ray.init(address=address, **options)
+    return True

@@ -1,0 +1,228 @@
+"""One device setting, end to end (issue 28): the learner where ``device=`` puts it, envs
+and experts on the CPU, checkpoints that load on any device, clear errors.
+
+Every test runs on each available device: the CPU always, CUDA where the machine has
+it (CPU-only CI runs the CPU half; a GPU machine runs both). On the CPU, ``device="cpu"``
+must give the digits of no ``device=`` at all, to the bit.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+
+import pytest
+import torch
+from tensordict import TensorDict
+from torchrl.envs.utils import ExplorationType
+
+from imitrl import keys
+from imitrl.algorithms import BCConfig, DAggerConfig, EnvSource, dagger, fit_bc
+from imitrl.data import DemonstrationBuffer, rollout_episodes
+from imitrl.data.chunks import add_chunk_labels
+from imitrl.envs import make_env
+from imitrl.envs.pixel_tasks import PixelBalanceEnv, balance_expert
+from imitrl.evaluation import evaluate
+from imitrl.experts import cartpole_expert, pendulum_expert
+from imitrl.objectives import registry
+from imitrl.objectives.registry import LearnerConfig
+from imitrl.policies import ActorCritic
+from imitrl.runtime.device import OnDevice, acting, resolve_device
+
+from .test_loss_registry import TASKS, _cases, _rows
+
+DEVICES = ["cpu", *(["cuda"] if torch.cuda.is_available() else [])]
+
+
+# ----------------------------------------------------------------- naming a device
+def test_device_names_resolve_and_bad_ones_are_named():
+    assert resolve_device("cpu") == torch.device("cpu")
+    assert resolve_device(torch.device("cpu")) == torch.device("cpu")
+    auto = resolve_device("auto")
+    assert auto.type == ("cuda" if torch.cuda.is_available() else "cpu")
+    for bad in ("gpu", "cuda:x", "cpu:1", "", 3):
+        with pytest.raises(ValueError, match="auto, cpu, cuda or cuda:N"):
+            resolve_device(bad)
+    if not torch.cuda.is_available():
+        for asked in ("cuda", "cuda:0", "cuda:3"):
+            with pytest.raises(ValueError, match=rf"device '{asked}' asked for, but this machine"):
+                resolve_device(asked)
+    else:
+        with pytest.raises(ValueError, match="cuda:99"):
+            resolve_device("cuda:99")
+
+
+def test_every_command_refuses_a_device_it_cannot_use_in_one_line(capsys):
+    from imitrl.cli import main
+
+    assert main(["bc", "--device", "tpu"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--device: unknown device 'tpu'" in err
+
+
+# ------------------------------------------------------------- fits on the device
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize(("name", "tname"), list(_cases()))
+def test_every_registry_loss_fits_on_the_device(name, tname, device):
+    task = TASKS[tname]
+    config = LearnerConfig(hidden=(16, 16), lr=1e-2, seed=0, device=device)
+    learner = registry.build(name, task, config)
+    assert learner.device.type == device
+    horizon = registry.get(name).horizon
+    rows = _rows(task) if horizon is None else add_chunk_labels(_rows(task), horizon)
+    result = fit_bc(learner, rows, BCConfig(num_steps=5, batch_size=16, seed=0))  # rows on CPU
+    assert torch.isfinite(result.losses).all()
+    if device == "cpu":  # the same digits as a learner built without device=
+        plain = registry.build(name, task, LearnerConfig(hidden=(16, 16), lr=1e-2, seed=0))
+        again = fit_bc(plain, rows, BCConfig(num_steps=5, batch_size=16, seed=0))
+        assert torch.equal(result.losses, again.losses)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_a_pixel_learner_fits_and_acts_on_the_device(device):
+    env = PixelBalanceEnv(pixels=(16, 16), batch_size=(2,), seed=0)
+    rows = rollout_episodes(env, balance_expert(), 2)
+    learner = ActorCritic.for_env(env, channels=(4,), hidden=(16,), seed=0, device=device)
+    fit_bc(learner, rows, BCConfig(num_steps=3, batch_size=32))  # CPU rows, batches moved
+    ev = evaluate(env, learner, 2, seed=1)  # CPU env, the policy on the device
+    assert ev.num_episodes == 2 and ev.mean_return == ev.mean_return  # played, finite
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_a_dagger_round_and_evaluate_with_the_learner_on_the_device(device):
+    env = make_env("CartPole-v1", seed=0, max_episode_steps=30)
+    expert = cartpole_expert()
+    buffer = DemonstrationBuffer(action_spec=env.action_spec_unbatched)
+    buffer.extend(rollout_episodes(env, expert, 1))
+
+    def make():
+        return ActorCritic.for_env(env, hidden=(16,), seed=0, device=device)
+
+    config = DAggerConfig(rounds=2, episodes_per_round=1, bc=BCConfig(num_steps=10, batch_size=16))
+    result = dagger(EnvSource(env), expert, make, buffer, config)
+    assert result.learner.device.type == device
+    assert set(buffer.rounds()) == {0, 1}
+    assert buffer.data.device in (None, torch.device("cpu"))  # rows stay on the CPU
+    ev = evaluate(env, result.learner, 3, seed=5)
+    assert ev.num_episodes == 3 and 1 <= ev.mean_length <= 30
+    if device == "cpu":  # a CPU learner is not wrapped: same calls, same digits
+        assert acting(result.learner.policy, "cpu") is result.learner.policy
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("algorithm", ["gail", "airl"])
+def test_gail_and_airl_steps_with_the_learner_on_the_device(device, algorithm):
+    from imitrl.algorithms.adversarial import AIRLConfig, GAILConfig, airl, gail
+
+    env = make_env("Pendulum-v1", seed=0, max_episode_steps=20)
+    buffer = DemonstrationBuffer(action_spec=env.action_spec_unbatched)
+    buffer.extend(rollout_episodes(env, pendulum_expert(), 2))
+    learner = ActorCritic.for_env(env, head="tanh_normal", hidden=(16,), seed=0, device=device)
+    small = dict(total_steps=64, rollout_steps=32, ppo_epochs=1, minibatch_size=16,
+                 discriminator_updates=1, discriminator_batch=16, normalizer_warmup=0)  # fmt: skip
+    if algorithm == "gail":
+        result = gail(env, learner, buffer, GAILConfig(**small))
+    else:
+        result, _ = airl(env, learner, buffer, AIRLConfig(**small))
+    assert result.env_steps == 64 and learner.device.type == device
+
+
+# ------------------------------------------------------- crossing the device once
+def test_on_device_reads_its_keys_there_and_writes_its_outputs_back():
+    policy = ActorCritic.mlp(3, 2, hidden=(8,), seed=0).policy
+    wrapped = OnDevice(policy, torch.device("cpu"))
+    td = TensorDict({keys.OBSERVATION: torch.randn(4, 3), "other": torch.zeros(4)}, [4])
+    out = wrapped(td.clone())
+    assert torch.equal(out[keys.ACTION], policy(td.clone())[keys.ACTION])
+    assert torch.equal(out["other"], td["other"])  # what it does not write is left alone
+
+
+# --------------------------------------------------- checkpoints on any device
+def _as_if_saved_on_cuda(obj, save=torch.save) -> bytes:
+    """``torch.save(obj)`` with every storage recorded as ``cuda:0`` (what a GPU run
+    writes), made on a CPU-only machine: torch records each storage's device through
+    ``torch.serialization.location_tag``."""
+    import torch.serialization as ser
+
+    real = ser.location_tag
+    ser.location_tag = lambda storage: "cuda:0"
+    try:
+        buf = io.BytesIO()
+        save(obj, buf)
+    finally:
+        ser.location_tag = real
+    return buf.getvalue()
+
+
+def test_a_checkpoint_saved_on_a_gpu_loads_on_this_machine(tmp_path):
+    from imitrl.jobs.checkpoint import load_learner
+
+    env = make_env("CartPole-v1", seed=0)
+    learner = ActorCritic.for_env(env, hidden=(8,), seed=3)
+    learner.prepare(rollout_episodes(env, cartpole_expert(), 1))
+    raw = _as_if_saved_on_cuda(learner.state_dict())
+    if not torch.cuda.is_available():  # what a plain torch.load of it does here
+        with pytest.raises(RuntimeError, match="CUDA"):
+            torch.load(io.BytesIO(raw), weights_only=True)
+    ckpt = tmp_path / "run"
+    ckpt.mkdir()
+    (ckpt / "learner.pt").write_bytes(raw)
+    config = {"env": "CartPole-v1", "loss": "default", "hidden": [8], "lr": 1e-3, "seed": 0,
+              "max_episode_steps": None}  # fmt: skip
+    (ckpt / "config.json").write_text(json.dumps({"command": "bc", "config": config}))
+    for device in DEVICES:
+        loaded = load_learner(ckpt, env, device=device)
+        assert loaded.device.type == device
+        for k, v in learner.state_dict().items():
+            assert torch.equal(loaded.state_dict()[k].cpu(), v), k
+
+
+def test_a_buffer_checkpoint_with_a_gpu_learner_loads_its_weights_on_the_cpu(tmp_path):
+    from imitrl.data import checkpoint as ckpt
+
+    env = make_env("CartPole-v1", seed=0)
+    learner = ActorCritic.for_env(env, hidden=(8,), seed=3)
+    buffer = DemonstrationBuffer(action_spec=env.action_spec_unbatched)
+    buffer.extend(rollout_episodes(env, cartpole_expert(), 1))
+    fit_bc(learner, buffer, BCConfig(num_steps=3, batch_size=8))  # optimizer state too
+    real = torch.save
+
+    def save_as_gpu(obj, f, *args, **kwargs):
+        f.write(_as_if_saved_on_cuda(obj, save=real))
+
+    torch.save = save_as_gpu
+    try:
+        path = buffer.save(tmp_path / "ck", learner=learner)
+    finally:
+        torch.save = real
+    fresh = ActorCritic.for_env(env, hidden=(8,), seed=99)
+    DemonstrationBuffer.load(path, learner=fresh)
+    for k, v in learner.state_dict().items():
+        assert torch.equal(fresh.state_dict()[k], v), k
+    assert set(ckpt.learner_components(fresh)) == {"learner", "opt_pi", "opt_v"}
+
+
+def test_weights_that_cannot_be_read_are_named_in_one_line(tmp_path):
+    from imitrl.jobs.checkpoint import load_learner
+
+    ckpt = tmp_path / "run"
+    ckpt.mkdir()
+    (ckpt / "learner.pt").write_bytes(b"not a torch archive")
+    config = {"env": "CartPole-v1", "loss": "default", "hidden": [8], "lr": 1e-3, "seed": 0,
+              "max_episode_steps": None}  # fmt: skip
+    (ckpt / "config.json").write_text(json.dumps({"command": "bc", "config": config}))
+    with pytest.raises(ValueError, match=r"learner.pt: not a learner's weights"):
+        load_learner(ckpt, make_env("CartPole-v1", seed=0))
+
+
+def test_the_evaluation_of_a_cpu_learner_is_unchanged_by_the_device_layer():
+    env = make_env("CartPole-v1", seed=0, max_episode_steps=50)
+    learner = ActorCritic.for_env(env, hidden=(8,), seed=1)
+    placed = ActorCritic.for_env(env, hidden=(8,), seed=1, device="cpu")
+    a = evaluate(env, learner, 4, seed=3, exploration=ExplorationType.RANDOM)
+    b = evaluate(env, placed, 4, seed=3, exploration=ExplorationType.RANDOM)
+    assert (a.mean_return, a.return_ci, a.mean_length) == (
+        b.mean_return,
+        b.return_ci,
+        b.mean_length,
+    )
