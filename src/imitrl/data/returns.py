@@ -85,17 +85,20 @@ def episode_returns(
     generator = _seeded(env, seed, generator)
     book = _Lanes(_quota(int(num_episodes), _lanes(env)), bound, bound_name)
     tally = _Tally(int(num_episodes), book.lanes, success_fn)
-    bar = tqdm(
-        total=int(num_episodes), desc="evaluate", unit="episode", disable=not progress, leave=False
-    )
-    tally.on_end = bar.update
-    with torch.no_grad(), set_exploration_type(exploration), rng_from(generator), bar:
+    # a bar only when asked: a tqdm, even disabled, starts a monitor thread
+    bar = None
+    if progress:
+        bar = tqdm(total=int(num_episodes), desc="evaluate", unit="episode", leave=False)
+        tally.on_end = bar.update
+    with torch.no_grad(), set_exploration_type(exploration), rng_from(generator):
         direct = direct_steps(env) if fast_path else None
         if direct is None:
             _torchrl_returns(env, actor, book, tally)
         elif success_fn is not None or not _toy_text_returns(env, direct, actor, book, tally):
             _direct_returns(env, direct, actor, book, tally)
+    if bar is not None:
         bar.update(bar.total - bar.n)  # episodes played without the step loop
+        bar.close()
     return tally.summary()
 
 
