@@ -226,3 +226,41 @@ def test_the_evaluation_of_a_cpu_learner_is_unchanged_by_the_device_layer():
         b.return_ci,
         b.mean_length,
     )
+
+
+# ------------------------------------------------------ a fit's arithmetic options
+def _mlp_rows(n: int = 128) -> TensorDict:
+    g = torch.Generator().manual_seed(0)
+    obs = torch.randn(n, 4, generator=g)
+    return TensorDict({keys.OBSERVATION: obs, keys.EXPERT_ACTION: obs[:, :1].tanh()}, [n])
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_a_bf16_fit_keeps_float32_weights_and_learns_as_fp32_does(device):
+    from torchrl.data import Bounded
+
+    spec = Bounded(-1.0, 1.0, shape=(1,))
+    runs = {}
+    for precision in ("fp32", "bf16"):
+        learner = ActorCritic.mlp(4, spec, hidden=(32,), seed=0, device=device)
+        config = BCConfig(num_steps=150, batch_size=32, seed=0, precision=precision)
+        runs[precision] = fit_bc(learner, _mlp_rows(), config)
+        assert all(p.dtype == torch.float32 for p in learner.parameters())
+    fp32, bf16 = runs["fp32"].losses, runs["bf16"].losses
+    assert not torch.equal(fp32, bf16)  # bfloat16 did change the arithmetic
+    assert bf16[-20:].mean() < 0.5 * bf16[:20].mean()  # and it learns
+    assert abs(bf16[-20:].mean() - fp32[-20:].mean()) < 0.1 * fp32[:20].mean()
+    with pytest.raises(ValueError, match="precision must be one of"):
+        BCConfig(precision="fp16")
+
+
+def test_a_compiled_fit_gives_the_eager_fits_losses():
+    from torchrl.data import Bounded
+
+    spec = Bounded(-1.0, 1.0, shape=(1,))
+    out = []
+    for compile_ in (False, True):
+        learner = ActorCritic.mlp(4, spec, hidden=(16,), seed=0)
+        config = BCConfig(num_steps=20, batch_size=32, seed=0, compile=compile_)
+        out.append(fit_bc(learner, _mlp_rows(), config).losses)
+    torch.testing.assert_close(out[1], out[0], rtol=1e-4, atol=1e-6)
