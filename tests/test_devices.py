@@ -107,6 +107,9 @@ def test_a_dagger_round_and_evaluate_with_the_learner_on_the_device(device):
     assert ev.num_episodes == 3 and 1 <= ev.mean_length <= 30
     if device == "cpu":  # a CPU learner is not wrapped: same calls, same digits
         assert acting(result.learner.policy, "cpu") is result.learner.policy
+        assert not result.learner.opt_pi.param_groups[0]["fused"]
+    else:  # on a GPU the device's own fused Adam takes each step
+        assert result.learner.opt_pi.param_groups[0]["fused"]
 
 
 @pytest.mark.parametrize("device", DEVICES)

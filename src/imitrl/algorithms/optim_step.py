@@ -47,8 +47,8 @@ def optimizer_step(opt: torch.optim.Optimizer) -> Callable[[], None]:
     if group["fused"] or group["capturable"] or group["differentiable"]:
         return opt.step
     params: list[torch.Tensor] = list(group["params"])
-    if any(torch.is_complex(p) for p in params):
-        return opt.step
+    if any(torch.is_complex(p) or not p.is_cpu for p in params):
+        return opt.step  # off the CPU the per-call wrapper is not the cost: the device's own step
     lists: list[list[torch.Tensor]] = []  # exp_avg, exp_avg_sq, max_exp_avg_sq, step
 
     def state_lists() -> bool:
