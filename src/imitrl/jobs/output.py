@@ -22,7 +22,8 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-from imitrl.fs.lock import exclusive
+from imitrl.fs.lock import LOCK_SUFFIX, exclusive
+from imitrl.fs.publish import OLD, TMP
 
 __all__ = ["RUN_FILES", "claimed"]
 
@@ -31,7 +32,11 @@ RUN_FILES = frozenset(
 )
 """what ``imitrl bc/dagger/gail/airl`` write into ``--out`` (``run/``: DAgger's checkpoint)"""
 
-_LEFTOVER = re.compile(r"\.[^/]+\.imitrl-(lock|tmp-\w+|old-\w+)")
+_LEFTOVER = re.compile(
+    r"\.[^/]+("
+    + "|".join([re.escape(LOCK_SUFFIX), re.escape(TMP) + r"\w+", re.escape(OLD) + r"\w+"])
+    + ")"
+)
 """what a killed writer of a run file leaves beside it (:mod:`imitrl.fs`): imitrl's own"""
 
 

@@ -41,6 +41,7 @@ from imitrl.datasets.lerobot._locate import (
     resolve_lerobot_root,
 )
 from imitrl.fs.contained import inside, links_stay_inside
+from imitrl.fs.publish import OLD
 
 REVISIONS = ("v3.0", "v2.1", "v2.0")
 """the version tags a LeRobot dataset's revision defaults to, best first (lerobot asks for
@@ -80,7 +81,7 @@ def _find_root(
                     f"{missing}; HF_HUB_OFFLINE is set, so it is not downloaded"
                 ) from None
             return download_lerobot(text, revision=revision, cache_dir=cache_dir)
-    aside = sorted(path.parent.glob(f".{path.name}.imitrl-old-*")) if path.name else []
+    aside = sorted(path.parent.glob(f".{path.name}{OLD}*")) if path.name else []
     if aside:  # a save_lerobot killed between its two renames (imitrl.fs.publish)
         raise ValueError(
             f"{path}: no such dataset directory; a killed save_lerobot left the previous one "
