@@ -1,16 +1,25 @@
-"""The rollouts' fast paths play the same episodes as TorchRL's path, digit for digit.
+"""The seam (:mod:`imitrl.runtime.paths`): its accelerated paths give the reference's digits.
 
-Three layers are bypassed on the fast path (``fast_path=True``, the default): the env
-step (``imitrl.envs.direct``: gymnasium or ``TabularEnv`` stepped directly), the policy
-call (``TensorPolicy``: a dict of tensors instead of a TensorDict) and, for evaluations
-of gymnasium's toy-text envs, the step loop itself (``imitrl.envs.toy_text``: the
-stream player). Every test here runs the same calls with ``fast_path=False`` (every
-step through ``env.step_and_maybe_reset`` and ``policy(td)``) and asks for identical
-rows, returns, lengths and flags (values, dtypes, shapes), and for identical later
-episodes: the env's random state must end where TorchRL's path leaves it.
+Every accelerated piece lives in :mod:`imitrl.runtime.fast` and is reached only through
+the seam; each has a reference on public TorchRL/torch. The tests here run the same
+calls both ways and ask for identical results (values, dtypes, shapes):
+
+* rollouts and evaluations: the accelerated stepper (the simulator stepped directly,
+  ``imitrl.runtime.fast.env_steps``; the policy called on a dict of tensors,
+  ``TensorPolicy``) and, for evaluations of gymnasium's toy-text envs, the stream player,
+  against ``fast_path=False`` (every step through ``env.step_and_maybe_reset`` and
+  ``policy(td)``), including the episodes played next: the env's random state must end
+  where TorchRL's path leaves it;
+* fits: every registry loss (discrete, continuous, chunked, pixel) fitted with the
+  accelerated loss form and optimizer step against a fit inside ``paths.reference()``;
+* the seam itself: no module outside it imports the accelerated internals, and one
+  rollout loop plays every episode.
 """
 
 from __future__ import annotations
+
+import ast
+from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
@@ -20,18 +29,25 @@ from tensordict import TensorDict
 from tensordict.nn import TensorDictModule, TensorDictSequential
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-import imitrl.data.returns as returns_module
+import imitrl.runtime.fast.toy_text as toy_text_module
 from imitrl import keys
 from imitrl.algorithms import BCConfig, DAggerConfig, EnvSource, dagger, fit_bc
 from imitrl.data import DemonstrationBuffer, episode_returns, rollout_episodes
+from imitrl.data.chunks import add_chunk_labels
 from imitrl.envs import TabularEnv, make_env
-from imitrl.envs.direct import direct_steps
+from imitrl.envs.pixel_tasks import PixelBalanceEnv, balance_expert
 from imitrl.evaluation import evaluate
 from imitrl.experts import cartpole_expert, pendulum_expert
+from imitrl.objectives import registry
+from imitrl.objectives.registry import LearnerConfig
 from imitrl.policies import ActorCritic, Expert
 from imitrl.policies.mixture import BetaMixer, behaviour_policy
-from imitrl.policies.modules import TensorPolicy
+from imitrl.runtime import paths
+from imitrl.runtime.fast.env_steps import direct_steps
+from imitrl.runtime.fast.policy_call import TensorPolicy, direct_call
 from imitrl.tabular import TabularMDP, greedy, value_iteration
+
+from .test_loss_registry import TASKS, _cases, _rows
 
 DET, RND, MODE = ExplorationType.DETERMINISTIC, ExplorationType.RANDOM, ExplorationType.MODE
 
@@ -336,9 +352,9 @@ def test_toy_text_evaluation_by_the_stream_equals_stepping(env_id, limit, lanes,
 
     learner = _learner(make())  # an MLP over one-hot states, greedy
     streamed = []
-    play_lanes = returns_module.play_lanes
+    play_lanes = toy_text_module.play_lanes
     monkeypatch.setattr(
-        returns_module, "play_lanes", lambda *a: streamed.append(1) or play_lanes(*a)
+        toy_text_module, "play_lanes", lambda *a: streamed.append(1) or play_lanes(*a)
     )
 
     def run(env, fast_path):
@@ -359,7 +375,7 @@ def test_toy_text_evaluation_by_the_stream_equals_stepping(env_id, limit, lanes,
 
 
 def test_the_stream_is_skipped_where_it_cannot_replace_the_steps(lake_q, monkeypatch):
-    monkeypatch.setattr(returns_module, "play_lanes", None)  # would fail if called
+    monkeypatch.setattr(toy_text_module, "play_lanes", None)  # would fail if called
     env = make_env("FrozenLake-v1", seed=0)
     learner = _learner(env, exploration=RND)
     episode_returns(env, learner.policy, 3, exploration=RND)  # samples: not a table
@@ -374,7 +390,6 @@ def module_width(module) -> int:
 
 def test_direct_call_is_the_modules_call_to_the_bit_and_keeps_hooks():
     from imitrl.policies.heads import Chain, Squash
-    from imitrl.policies.modules import direct_call
     from imitrl.policies.normalization import ObservationNormalizer
 
     torch.manual_seed(0)
@@ -470,3 +485,122 @@ def test_an_evaluation_in_inference_mode_leaves_the_learner_trainable_and_statef
     with torch.no_grad():
         counter(TensorDict({keys.OBSERVATION: torch.zeros(3)}))  # outside inference mode
     assert int(counter.count) == int(n) + 1
+
+
+# ------------------------------------------------------------------------- the seam
+SRC = Path(__file__).resolve().parents[1] / "src" / "imitrl"
+
+
+def _imports(path: Path) -> set[str]:
+    """The modules ``path`` imports (``from a import b`` gives ``a`` and ``a.b``)."""
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            found.update(a.name for a in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.module:
+            found.add(node.module)
+            found.update(f"{node.module}.{a.name}" for a in node.names)
+    return found
+
+
+def test_only_the_seam_imports_the_accelerated_internals():
+    inside = {SRC / "runtime" / "paths.py", *(SRC / "runtime" / "fast").rglob("*.py")}
+    outside = [
+        str(path.relative_to(SRC))
+        for path in SRC.rglob("*.py")
+        if path not in inside
+        and any(
+            m == "imitrl.runtime.fast" or m.startswith("imitrl.runtime.fast.")
+            for m in _imports(path)
+        )
+    ]
+    assert outside == []
+    # and the seam does import each of them (the grep above could pass on a renamed package)
+    seam = _imports(SRC / "runtime" / "paths.py")
+    for module in ("env_steps", "stepper", "toy_text", "policy_call", "tensor_chain", "adam_step"):
+        assert f"imitrl.runtime.fast.{module}" in seam
+
+
+def test_one_rollout_loop_steps_every_env():
+    """TorchRL's step call appears once, in the reference stepper; the direct step once, in
+    the accelerated one; and only the loop calls a stepper's step."""
+    calls: dict[str, list[str]] = {"step_and_maybe_reset": [], "step_raw": [], ".step()": []}
+    for path in SRC.rglob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute):
+                name = node.func.attr
+                if name in ("step_and_maybe_reset", "step_raw"):
+                    calls[name].append(str(path.relative_to(SRC)))
+                if name == "step" and getattr(node.func.value, "id", None) == "stepper":
+                    calls[".step()"].append(str(path.relative_to(SRC)))
+    assert calls == {
+        "step_and_maybe_reset": ["runtime/reference.py"],
+        "step_raw": ["runtime/fast/stepper.py"],
+        ".step()": ["runtime/loop.py"],
+    }
+
+
+def test_the_reference_context_takes_every_reference_path():
+    env = make_env("CartPole-v1", seed=0)
+    policy = cartpole_expert().as_actor()
+    with set_exploration_type(DET):
+        assert type(paths.stepper(env, policy, record=False)).__name__ == "DirectStepper"
+        assert type(paths.stepper(env, policy, record=False, fast_path=False)).__name__ == (
+            "TorchRLStepper"
+        )
+        with paths.reference():
+            assert not paths.fast_enabled()
+            assert type(paths.stepper(env, policy, record=False)).__name__ == "TorchRLStepper"
+            net = torch.nn.Linear(2, 2)
+            assert paths.network(net) is net
+            opt = torch.optim.Adam(net.parameters())
+            assert paths.optimizer_step(opt) == opt.step
+        assert paths.fast_enabled()
+        assert paths.network(net) is not net
+
+
+def test_rollouts_inside_the_reference_context_equal_the_fast_ones():
+    def run():
+        env = make_env("CartPole-v1", seed=0, num_envs=2)
+        rows = rollout_episodes(env, cartpole_expert(), 3, seed=4)
+        return rows, episode_returns(env, cartpole_expert(), 5, seed=5)
+
+    fast = run()
+    with paths.reference():
+        slow = run()
+    for a, b in zip(fast, slow):
+        assert_same(a, b)
+
+
+@pytest.mark.parametrize(("name", "tname"), list(_cases()))
+def test_every_registry_loss_fits_to_the_bit_on_both_paths(name, tname):
+    task = TASKS[tname]
+    horizon = registry.get(name).horizon
+    rows = _rows(task) if horizon is None else add_chunk_labels(_rows(task), horizon)
+
+    def fit() -> tuple[torch.Tensor, list[torch.Tensor]]:
+        learner = registry.build(name, task, LearnerConfig(hidden=(16, 16), lr=1e-2, seed=0))
+        result = fit_bc(learner, rows, BCConfig(num_steps=6, batch_size=16, seed=0))
+        return result.losses, [p.detach().clone() for p in learner.policy.parameters()]
+
+    fast_losses, fast_params = fit()
+    with paths.reference():
+        slow_losses, slow_params = fit()
+    assert torch.equal(fast_losses, slow_losses)
+    assert all(torch.equal(a, b) for a, b in zip(fast_params, slow_params))
+
+
+def test_a_pixel_fit_is_the_same_on_both_paths():
+    env = PixelBalanceEnv(pixels=(16, 16), batch_size=(2,), seed=0)
+    rows = rollout_episodes(env, balance_expert(), 2)
+
+    def fit():
+        learner = ActorCritic.for_env(env, channels=(4,), hidden=(16,), seed=0)
+        losses = fit_bc(learner, rows, BCConfig(num_steps=3, batch_size=32, seed=0)).losses
+        return losses, episode_returns(env, learner.policy, 2, exploration=DET, seed=1).returns
+
+    fast = fit()
+    with paths.reference():
+        slow = fit()
+    for a, b in zip(fast, slow):
+        assert torch.equal(a, b)

@@ -17,12 +17,14 @@ tensordict`` (overridden)
 ``LazyTensorStorage._storage``,     :func:`replace_storage_contents`
 ``LazyTensorStorage._len``          (``imitrl.data.disk.GrowingMemmapStorage``)
 ``TensorDictSequential._select_     :func:`plain_sequence`, :func:`plain_module`,
-before_return``, ``TensorDictModule :func:`plain_sampler` (``imitrl.policies.modules.
-._kwargs``/``_get_kwargs``,          TensorPolicy``, the rollouts' per-step policy call)
+before_return``, ``TensorDictModule :func:`plain_sampler` (``imitrl.runtime.fast.
+._kwargs``/``_get_kwargs``,          policy_call.TensorPolicy``, a rollout's policy call)
 ``ProbabilisticTensorDictModule.
 _generator``/``_generator_key``,
 ``ProbabilisticTensorDictSequential
 ._requires_sample`` (read)
+``torchrl.weight_update._ray.       :func:`raise_ray_weight_sync_wait`
+_DIST_TIMEOUT``                     (``imitrl.algorithms.ray_source.RaySource``)
 =================================== ==========================================================
 """
 
@@ -44,6 +46,7 @@ __all__ = [
     "plain_sampler",
     "plain_sequence",
     "quiet_torchrl_info",
+    "raise_ray_weight_sync_wait",
     "replace_storage_contents",
     "set_writer_cursor",
     "wrapped_gym_env",
@@ -183,7 +186,7 @@ def plain_sequence(seq) -> bool:
     """Whether ``seq(td)`` (a ``TensorDictSequential``) runs its modules in order on ``td``
     itself and returns it, so that its call can be replayed module by module.
 
-    Why: ``imitrl.policies.modules.TensorPolicy`` runs a rollout's policy on a dict of
+    Why: ``imitrl.runtime.fast.policy_call.TensorPolicy`` runs a rollout's policy on a dict of
     tensors instead of a TensorDict, and must refuse a sequence that selects its outputs
     (``selected_out_keys``/``select_out_keys``), which tensordict records only in the
     private ``_select_before_return``. ``tests/test_fast_path.py`` checks that the dict
@@ -244,3 +247,19 @@ def quiet_torchrl_info() -> Iterator[None]:
         yield
     finally:
         log.setLevel(level)
+
+
+def raise_ray_weight_sync_wait(seconds: float) -> None:
+    """Let the driver wait at least ``seconds`` for Ray workers to join the weight sync.
+
+    Why: TorchRL's Ray weight sync (``torchrl.weight_update._ray``) waits a fixed 60 s
+    (its module constant ``_DIST_TIMEOUT``, no argument sets it) for every worker to join
+    its process group; on a loaded 2-core machine a worker can take longer to start, and
+    the round fails with ``DistStoreError: wait timeout``. The constant is read when the
+    group is built, so raising it before the collectors start is enough.
+    """
+    from datetime import timedelta
+
+    import torchrl.weight_update._ray as ray_sync
+
+    ray_sync._DIST_TIMEOUT = max(ray_sync._DIST_TIMEOUT, timedelta(seconds=seconds))

@@ -47,10 +47,10 @@ from torchrl.record.loggers import Logger
 from tqdm.auto import tqdm
 
 from imitrl import checks, keys
-from imitrl.algorithms.optim_step import optimizer_step
 from imitrl.data.buffer import CHUNK_BYTES, DemonstrationBuffer
 from imitrl.data.permutation import LazyPermutation
 from imitrl.policies.learner import Learner
+from imitrl.runtime import paths
 from imitrl.runtime.device import to_device
 
 __all__ = ["PRECISIONS", "BCConfig", "BCResult", "distinct_pairs", "fit_bc"]
@@ -381,7 +381,7 @@ def fit_bc(
     objective, opt, zero_grad = learner.loss.objective, learner.opt_pi, _zero_grad(learner.opt_pi)
     if config.compile:
         objective = torch.compile(objective)
-    opt_step = optimizer_step(opt)  # Adam's update without its per-call wrapper
+    opt_step = paths.optimizer_step(opt)  # on the CPU: Adam's update without its wrapper
     device, cross = _placement(opt)
     if cross and not minibatch:  # the full batch crosses to the learner's device once
         rows = to_device(rows, device)

@@ -21,17 +21,13 @@ WEIGHT_SYNC_TIMEOUT_S = 600
 
 
 def patient_weight_sync() -> None:
-    """TorchRL's Ray weight sync (``torchrl.weight_update._ray``) waits a fixed 60 s
-    (``_DIST_TIMEOUT``, no argument sets it) for every worker to join its process group;
-    on a loaded 2-core machine a worker can take longer to start, and the round fails
-    with ``DistStoreError: wait timeout``. The constant is read when the group is built,
-    so the driver's wait is raised here, once, in the one place imitrl builds Ray
-    collectors."""
-    from datetime import timedelta
+    """Raise TorchRL's fixed 60 s wait for Ray workers to join the weight sync to
+    :data:`WEIGHT_SYNC_TIMEOUT_S` (a worker on a loaded machine starts slowly), once, in
+    the one place imitrl builds Ray collectors (the private constant is set in
+    :func:`imitrl.compat.raise_ray_weight_sync_wait`)."""
+    from imitrl.compat import raise_ray_weight_sync_wait
 
-    import torchrl.weight_update._ray as ray_sync
-
-    ray_sync._DIST_TIMEOUT = max(ray_sync._DIST_TIMEOUT, timedelta(seconds=WEIGHT_SYNC_TIMEOUT_S))
+    raise_ray_weight_sync_wait(WEIGHT_SYNC_TIMEOUT_S)
 
 
 RAY_INSTALL_HINT = "pip install 'imitrl[distributed]'"

@@ -46,7 +46,7 @@ from torchrl.record.recorder import PixelRenderTransform
 from imitrl import checks, keys
 from imitrl.compat import wrapped_gym_env
 from imitrl.envs.dict_obs import DictObservation
-from imitrl.envs.direct import register_plain_gym
+from imitrl.runtime.paths import mark_plain_gym
 
 __all__ = ["ResizeFrame", "make_env"]
 
@@ -180,7 +180,7 @@ def _single(
 
 def _observes_dict(env: EnvBase) -> bool:
     """``env`` (built by :func:`_single`) observes a renamed ``Dict``: the direct path
-    (:mod:`imitrl.envs.direct`), which converts one array per step, cannot step it."""
+    (:mod:`imitrl.runtime.fast.env_steps`), which converts one array per step, cannot step it."""
     base = env.base_env if isinstance(env, TransformedEnv) else env
     return isinstance(wrapped_gym_env(base), DictObservation)
 
@@ -254,9 +254,9 @@ def make_env(
         return ParallelEnv(num_envs, makers)
     if num_envs == 1:
         env = _single(env_id, frame_skip, max_episode_steps, seed, pixels)
-        # rollouts step a plain one directly (imitrl.envs.direct): same episodes, less overhead
+        # rollouts step a plain one directly (imitrl.runtime.paths.stepper): same episodes
         plain = pixels is None and frame_skip == 1 and not _observes_dict(env)
-        return register_plain_gym(env) if plain else env
+        return mark_plain_gym(env) if plain else env
     if pixels is not None:
         raise ValueError("pixels needs num_envs=1 or parallel=True (one renderer per copy)")
     if frame_skip != 1:
@@ -278,4 +278,4 @@ def make_env(
     if double:
         env = TransformedEnv(env, DoubleToFloat())
     env.set_seed(seed)  # SyncVectorEnv seeds copy i with seed + i
-    return env if observes_dict else register_plain_gym(env)
+    return env if observes_dict else mark_plain_gym(env)

@@ -187,7 +187,7 @@ class TabularEnv(EnvBase):
         """Reset the lanes of the bool mask ``lanes`` ``[n]`` (None: every lane).
 
         What ``reset`` runs, on tensors: the rollouts' direct path
-        (:mod:`imitrl.envs.direct`) calls it instead of ``EnvBase.reset``.
+        (:mod:`imitrl.runtime.fast.env_steps`) calls it instead of ``EnvBase.reset``.
 
         Returns:
             ``[n]`` int64 state of every lane after the reset.

@@ -82,7 +82,7 @@ class ImitationLoss(LossModule):
 
     def fitting(self) -> contextlib.AbstractContextManager:
         """A context a fit's steps run in (``fit_bc``): here nothing; a loss may run its
-        networks through :func:`imitrl.policies.modules.direct_call` inside it."""
+        networks through :func:`imitrl.runtime.paths.network` inside it."""
         return contextlib.nullcontext()
 
     def objective(self, batch: TensorDictBase, weights: torch.Tensor | None = None) -> torch.Tensor:

@@ -34,10 +34,10 @@ import torch.nn.functional as F
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModule
 from tensordict.utils import NestedKey
-from torch import nn
 
 from imitrl import keys
 from imitrl.objectives.base import ImitationLoss
+from imitrl.runtime import paths
 
 __all__ = ["LOSS_TYPES", "BehaviorCloningLoss"]
 
@@ -108,30 +108,20 @@ class BehaviorCloningLoss(ImitationLoss):
         # plain attributes, not registered: these modules already belong to the actor
         logits_modules = _categorical_param_modules(actor) if loss_type == "nll" else None
         object.__setattr__(self, "_logits_modules", logits_modules)
-        object.__setattr__(
-            self,
-            "_tensor_steps",
-            _tensor_steps(logits_modules if loss_type == "nll" else [actor]),
-        )
+        # the loss's fast form (the seam's): the networks on the batch's tensors
+        chain = paths.loss_chain(logits_modules if loss_type == "nll" else [actor])
+        object.__setattr__(self, "_chain", chain)
 
     @contextlib.contextmanager
     def fitting(self) -> Iterator[None]:
-        """Within: :meth:`row_losses` calls its networks through ``direct_call`` (built
-        on entry: no ``nn.Module.__call__`` per layer, the same operations, so the same
-        bits and gradients; hooks registered inside the context are not seen)."""
-        steps = self._tensor_steps
-        if steps is None:
+        """Within: :meth:`row_losses` calls its networks without ``nn.Module.__call__``
+        per layer where the seam's fast paths run (built on entry; the same operations,
+        so the same bits and gradients; hooks registered inside are not seen)."""
+        if self._chain is None or not paths.fast_enabled():
             yield
             return
-        from imitrl.policies.modules import direct_call
-
-        object.__setattr__(
-            self, "_tensor_steps", tuple((direct_call(n), i, o) for n, i, o in steps)
-        )
-        try:
+        with self._chain.direct():
             yield
-        finally:
-            object.__setattr__(self, "_tensor_steps", steps)
 
     def read_keys(self) -> list[NestedKey]:
         extra = [self.tensor_keys.label] + ([self.tensor_keys.weight] if self.weighted else [])
@@ -221,13 +211,14 @@ class BehaviorCloningLoss(ImitationLoss):
     def row_losses(self, tensordict: TensorDictBase) -> torch.Tensor:
         """The per-row losses ``[N]`` of :meth:`per_row`, without its output tensordict.
 
-        When the actor's modules are plain one-input, one-output TensorDictModules (the
-        logits of a categorical actor, a deterministic actor), their networks are called
-        on the row's tensors directly: no TensorDict is built, and the digits are those
-        of :meth:`per_row`.
+        The fast form (:func:`imitrl.runtime.paths.loss_chain`): when the actor's modules
+        are plain one-input, one-output TensorDictModules (the logits of a categorical
+        actor, a deterministic actor), their networks are called on the row's tensors
+        directly: no TensorDict is built, and the digits are those of :meth:`per_row`,
+        the reference (what runs otherwise, and inside ``paths.reference()``).
         """
-        steps = self._tensor_steps
-        if steps is None:
+        chain = self._chain if paths.fast_enabled() else None
+        if chain is None:
             return self.per_row(tensordict)[0]
         label = tensordict.get(self.tensor_keys.label)
         if self._logits_modules is not None:
@@ -235,10 +226,10 @@ class BehaviorCloningLoss(ImitationLoss):
                 raise ValueError(
                     f"categorical labels under {self.tensor_keys.label!r} must be integers, got {label.dtype}"
                 )
-            return self._categorical_nll(_run_steps(steps, tensordict, keys.LOGITS), label)
-        if steps[-1][2] != self.tensor_keys.prediction:  # keys remapped: the actor's own path
+            return self._categorical_nll(chain.run(tensordict, keys.LOGITS), label)
+        if chain.out_key != self.tensor_keys.prediction:  # keys remapped: the actor's own path
             return self.per_row(tensordict)[0]
-        return self._regression(_run_steps(steps, tensordict, steps[-1][2]), label)
+        return self._regression(chain.run(tensordict, chain.out_key), label)
 
     def _categorical_nll(self, logits: torch.Tensor, label: torch.Tensor) -> torch.Tensor:
         """``-log softmax(logits)[label]`` per row, ``logits [..., A]``, ``label [...]``.
@@ -274,14 +265,9 @@ class BehaviorCloningLoss(ImitationLoss):
         return err.reshape(err.shape[0], -1).mean(-1)
 
     def _logits(self, td: TensorDictBase) -> torch.Tensor:
-        """Run the logits modules; single-key modules are called on their tensor directly."""
+        """Run the logits modules on ``td`` (their own calls)."""
         for module in self._logits_modules:
-            if _is_plain(module):
-                # what TensorDictModule.forward does for one in and one out key, without
-                # its per-call dispatch (most of a small policy's step)
-                td.set(module.out_keys[0], module.module(td.get(module.in_keys[0])))
-            else:
-                td = module(td)
+            td = module(td)
         return td.get(keys.LOGITS)
 
     def reduce(self, losses: torch.Tensor, tensordict: TensorDictBase) -> torch.Tensor:
@@ -319,40 +305,6 @@ class BehaviorCloningLoss(ImitationLoss):
             label = tensordict.get(self.tensor_keys.label)
             metrics["accuracy"] = (out.get(keys.LOGITS).argmax(-1) == label).float().mean().detach()
         return TensorDict(metrics, batch_size=[])
-
-
-def _plain_modules() -> tuple[type, ...]:
-    from imitrl.policies.modules import Module
-
-    return (TensorDictModule, Module)
-
-
-_PLAIN_MODULES = _plain_modules()
-
-
-def _is_plain(module: nn.Module) -> bool:
-    """A TensorDictModule (or imitrl's ``Module``) of one input and one output key: its
-    forward writes ``module.module(td[in_key])`` to ``out_key``."""
-    return type(module) in _PLAIN_MODULES and len(module.in_keys) == 1 and len(module.out_keys) == 1
-
-
-def _tensor_steps(
-    modules: list[nn.Module] | None,
-) -> tuple[tuple[nn.Module, NestedKey, NestedKey], ...] | None:
-    """``(network, in_key, out_key)`` for each of ``modules`` when every one is plain
-    (:func:`_is_plain`), else None."""
-    if not modules or not all(_is_plain(m) for m in modules):
-        return None
-    return tuple((m.module, m.in_keys[0], m.out_keys[0]) for m in modules)
-
-
-def _run_steps(steps, tensordict: TensorDictBase, out_key: NestedKey) -> torch.Tensor:
-    """Run plain steps on ``tensordict``'s tensors (each reads an earlier step's output or
-    the row); the tensor written to ``out_key``."""
-    values: dict = {}
-    for network, in_key, key in steps:
-        values[key] = network(values[in_key] if in_key in values else tensordict.get(in_key))
-    return values[out_key]
 
 
 def _distribution_class(actor: TensorDictModule) -> type | None:

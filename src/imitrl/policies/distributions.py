@@ -25,7 +25,7 @@ class GreedyCategorical(D.Categorical):
     @staticmethod
     def greedy(logits: torch.Tensor) -> torch.Tensor:
         """The greedy action of ``logits`` without building the distribution (rollouts'
-        per-step call, :class:`~imitrl.policies.modules.TensorPolicy`)."""
+        per-step call, ``TensorPolicy`` in :mod:`imitrl.runtime.fast.policy_call`)."""
         # torch.argmax returns the first maximal index: ties go to the lowest action.
         return logits.argmax(dim=-1)
 

@@ -77,7 +77,7 @@ class Squash(nn.Module):
 
     def bound_forward(self) -> Callable[[torch.Tensor], torch.Tensor]:
         """:meth:`forward` with the bounds and their span read now (a rollout's policy
-        call, :func:`imitrl.policies.modules.direct_call`): the same operations on the
+        call, :func:`imitrl.runtime.paths.network`): the same operations on the
         same values, one fewer per call; bounds changed afterwards are not seen."""
         low, span = self.low, self.high - self.low
         return lambda x: low + span * (torch.tanh(x) + _ONE) / _TWO

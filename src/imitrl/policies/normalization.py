@@ -67,7 +67,7 @@ class ObservationNormalizer(nn.Module):
 
     def bound_forward(self) -> Callable[[torch.Tensor], torch.Tensor]:
         """:meth:`forward` with the statistics read now (a rollout's policy call,
-        :func:`imitrl.policies.modules.direct_call`); they are updated in place, so a
+        :func:`imitrl.runtime.paths.network`); they are updated in place, so a
         refit during the rollout is still seen."""
         loc, scale = self.loc, self.scale
         return lambda x: (x - loc) / scale

@@ -1,4 +1,4 @@
-"""Where a learner computes and how many CPU threads it uses.
+"""One runtime on any device: where a learner computes, its threads, the rollout loop.
 
 * :mod:`imitrl.runtime.device`: ``device=`` / ``--device`` (:func:`resolve_device`), the
   learner's device (:func:`module_device`), batches moved to it (:func:`to_device`), a
@@ -6,6 +6,12 @@
 * :mod:`imitrl.runtime.threads`: torch's intra-op threads (:func:`set_threads`, default
   :data:`DEFAULT_THREADS` = 1, measured in ``benchmarks/threads.py``) and each worker's
   share when several run at once (:func:`worker_threads`).
+* :mod:`imitrl.runtime.loop`: the one rollout loop (:func:`~imitrl.runtime.loop.play`)
+  that collection, relabelling and evaluation share, over a ``Stepper``.
+* :mod:`imitrl.runtime.reference`: the reference stepper, on public TorchRL alone.
+* :mod:`imitrl.runtime.paths`: the seam that chooses between each reference and its
+  accelerated form in :mod:`imitrl.runtime.fast` (the only module that imports it);
+  ``with paths.reference():`` runs everything on the reference paths.
 
 Each name is imported from its module on first use (PEP 562): the command line reads
 :data:`DEFAULT_THREADS` for its ``--help`` without importing torch.

@@ -1,5 +1,7 @@
 """Returns of gymnasium toy-text episodes played by the stream player, not step by step.
 
+Accelerated internals of :mod:`imitrl.runtime.paths` (import them from there, nowhere else).
+
 gymnasium's FrozenLake, Taxi and CliffWalking draw one uniform from the env's numpy
 generator per reset and one per step (:mod:`imitrl.envs.gym_stream`). So when a rollout
 keeps only returns (:func:`~imitrl.data.episode_returns`, hence ``evaluate``), its policy
@@ -22,13 +24,18 @@ import gymnasium
 import numpy as np
 import torch
 from gymnasium.wrappers import OrderEnforcing, PassiveEnvChecker, TimeLimit
+from tensordict.nn import TensorDictModuleBase
+from torchrl.envs import EnvBase
 
-from imitrl.envs.direct import DirectSteps, GymSteps
+from imitrl import keys
 from imitrl.envs.gym_stream import GymnasiumStream, StreamWalk
+from imitrl.runtime.fast.env_steps import DirectSteps, GymSteps, direct_steps
+from imitrl.runtime.fast.policy_call import TensorPolicy
+from imitrl.runtime.loop import Lanes, check_first_step
 from imitrl.tabular.mdp import TabularMDP
 from imitrl.tabular.sampling import OutcomeSampler
 
-__all__ = ["play_lanes", "toy_text_lanes"]
+__all__ = ["play_lanes", "table_returns", "toy_text_lanes"]
 
 _WRAPPERS = (TimeLimit, OrderEnforcing, PassiveEnvChecker)
 """what ``gymnasium.make`` wraps them in: none of these draws or changes an outcome"""
@@ -110,3 +117,32 @@ def play_lanes(
             ended += steps <= G
         generators[i].random(1 + G + ended)  # the uniforms the step-by-step loop draws
     return returns, lengths
+
+
+def table_returns(
+    env: EnvBase, policy: TensorDictModuleBase, book: Lanes
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """Returns and lengths of ``book``'s episodes by the stream player when ``env`` is a
+    plain toy-text env and ``policy`` a fixed function of the state; None (and nothing
+    played) otherwise. Call it inside the rollout's exploration type and ``no_grad``."""
+    envs = toy_text_lanes(direct_steps(env))
+    if envs is None:
+        return None
+    call = TensorPolicy(policy, env.batch_size)
+    if call.opaque or call.draws or list(policy.in_keys) != [keys.OBSERVATION]:
+        return None
+    # the action in every state, each state at every lane at once: the batch the step
+    # loop calls the policy with, so that the table is its actions to the bit
+    false = torch.zeros((*env.batch_size, 1), dtype=torch.bool)
+    columns = []
+    for s in range(int(envs[0].observation_space.n)):
+        values = {keys.OBSERVATION: torch.full(env.batch_size, s, dtype=torch.int64)}
+        values.update({keys.DONE: false, keys.TERMINATED: false, keys.TRUNCATED: false})
+        call(values)
+        if not columns:
+            check_first_step(env, values, labels=False)
+        columns.append(values.get(env.action_key).reshape(book.lanes))
+    tables = torch.stack(columns, dim=1)  # [lanes, S]
+    if bool(((tables < 0) | (tables >= envs[0].action_space.n)).any()):
+        return None  # stepped, gymnasium refuses the action as it would on the other path
+    return play_lanes(envs, tables, book.quota, book.bound, book.bound_name)

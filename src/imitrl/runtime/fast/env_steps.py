@@ -1,5 +1,7 @@
 """Direct steps: a rollout's env step without TorchRL's per-step TensorDict round trips.
 
+Accelerated internals of :mod:`imitrl.runtime.paths` (import them from there, nowhere else).
+
 ``env.step_and_maybe_reset(td)`` on a ``GymWrapper`` costs several times gymnasium's own
 step (issue 16's profile of CartPole: 5.2 s over 6,494 steps, of which ``CartPole.step``
 1.1 s): spec encodes, done completion, ``step_mdp``, the reset merge, each through
@@ -24,7 +26,8 @@ it mirrors, so the values, dtypes and shapes are TorchRL's: rollouts on either p
 the same episodes digit for digit (``tests/test_fast_path.py`` runs both side by side).
 The rollout's first reset still goes through TorchRL's ``env.reset()``; a ``set_seed``
 too. Do not use the direct path on an env you compiled (``env.compile()``) or gave
-post-step hooks: it does not see them (pass ``fast_path=False`` to the rollout).
+post-step hooks: it does not see them (pass ``fast_path=False`` to the rollout, or run
+it inside :func:`imitrl.runtime.paths.reference`).
 """
 
 from __future__ import annotations

@@ -1,0 +1,146 @@
+"""The seam: where imitrl chooses between its reference code and its accelerated paths.
+
+Every accelerated piece is reached through a function of this module, and nothing else
+in imitrl imports :mod:`imitrl.runtime.fast` (``tests/test_fast_path.py`` greps for it).
+Each piece has a reference on public TorchRL/torch that gives the same digits:
+
+================== ========================================= ==========================================
+piece              reference (public API)                    accelerated (:mod:`imitrl.runtime.fast`)
+================== ========================================= ==========================================
+:func:`stepper`    ``policy(td)``, ``env.step_and_maybe_reset`` ``DirectSteps`` + ``TensorPolicy``
+                   (:mod:`imitrl.runtime.reference`)         (plain gymnasium envs, ``TabularEnv``)
+:func:`table_      the step loop                             the toy-text stream player: the episodes
+returns`                                                     of a fixed state table, without steps
+:func:`network`    ``module(x)``                             ``direct_call``: no hook bookkeeping
+:func:`loss_chain` the actor on a TensorDict                 its plain modules' networks on tensors
+:func:`optimizer_  ``opt.step``                              Adam's functional form on the CPU (its
+step`                                                        wrapper costs as much as a small update)
+================== ========================================= ==========================================
+
+On a GPU the CPU tricks step aside for the device's own fast forms: ``optimizer_step``
+returns ``opt.step`` for parameters off the CPU, and a learner placed on CUDA runs fused
+Adam (:meth:`imitrl.policies.Learner.placed`); the policy call crosses devices through
+:class:`~imitrl.runtime.device.OnDevice`, which both steppers run as any module.
+
+The one rollout loop (:func:`imitrl.runtime.loop.play`) runs either stepper.
+
+**Choosing.** Accelerated paths run by default. Inside :func:`reference` (a context
+manager, per thread and task) every piece takes its reference path: to check a result
+against public TorchRL, or to rule the fast paths out when something looks wrong. A
+rollout's ``fast_path=False`` does the same for that rollout's stepper.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Callable, Iterator
+from contextvars import ContextVar
+from typing import TYPE_CHECKING
+
+import numpy as np
+import torch
+from tensordict.nn import TensorDictModuleBase
+from torch import nn
+from torchrl.envs import EnvBase
+
+if TYPE_CHECKING:  # imported when used: envs and objectives import this module
+    from imitrl.runtime.loop import Lanes, Stepper
+
+__all__ = [
+    "fast_enabled",
+    "loss_chain",
+    "mark_plain_gym",
+    "network",
+    "optimizer_step",
+    "reference",
+    "stepper",
+    "table_returns",
+]
+
+_FAST: ContextVar[bool] = ContextVar("imitrl_fast_paths", default=True)
+
+
+def fast_enabled() -> bool:
+    """Whether accelerated paths run here (False inside :func:`reference`)."""
+    return _FAST.get()
+
+
+@contextlib.contextmanager
+def reference() -> Iterator[None]:
+    """Within: every piece of this seam takes its reference path (module docstring)."""
+    token = _FAST.set(False)
+    try:
+        yield
+    finally:
+        _FAST.reset(token)
+
+
+def mark_plain_gym(env: EnvBase) -> EnvBase:
+    """Mark ``env`` (``make_env``'s in-process GymWrapper, maybe in ``DoubleToFloat``) as
+    one the accelerated stepper may step directly; returns ``env``."""
+    from imitrl.runtime.fast.env_steps import register_plain_gym
+
+    return register_plain_gym(env)
+
+
+def stepper(
+    env: EnvBase, policy: TensorDictModuleBase, *, record: bool, fast_path: bool = True
+) -> Stepper:
+    """The stepper of ``env`` driven by ``policy`` for :func:`~imitrl.runtime.loop.play`:
+    the accelerated one where it knows the env and ``fast_path`` and :func:`fast_enabled`
+    allow, else the reference one. Build it inside the rollout's exploration type."""
+    if fast_path and fast_enabled():
+        from imitrl.runtime.fast.env_steps import direct_steps
+
+        direct = direct_steps(env)
+        if direct is not None:
+            from imitrl.runtime.fast.stepper import DirectStepper
+
+            return DirectStepper(env, direct, policy, record)
+    from imitrl.runtime.reference import TorchRLStepper
+
+    return TorchRLStepper(env, policy, record)
+
+
+def table_returns(
+    env: EnvBase, policy: TensorDictModuleBase, book: Lanes, *, fast_path: bool = True
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """Returns and lengths ``[n]`` of ``book``'s episodes by the toy-text stream player
+    (:mod:`imitrl.runtime.fast.toy_text`) when ``env`` is a plain gymnasium toy-text env
+    with a time limit and ``policy`` a fixed table of states; None (nothing played)
+    otherwise, or on the reference path: then the step loop plays them."""
+    if not (fast_path and fast_enabled()):
+        return None
+    from imitrl.runtime.fast.toy_text import table_returns as played
+
+    return played(env, policy, book)
+
+
+def network(module: nn.Module) -> Callable[..., torch.Tensor]:
+    """``module``'s call: without ``nn.Module.__call__``'s hook bookkeeping where it has
+    no hooks (the same bits), or ``module`` itself on the reference path."""
+    if not fast_enabled():
+        return module
+    from imitrl.runtime.fast.policy_call import direct_call
+
+    return direct_call(module)
+
+
+def loss_chain(modules: list[nn.Module] | None):
+    """A :class:`~imitrl.runtime.fast.tensor_chain.TensorChain` of ``modules`` (their
+    networks run on a batch's tensors), or None where they are not all plain one-key
+    modules. A loss asks for it once and uses it while :func:`fast_enabled`."""
+    from imitrl.runtime.fast.tensor_chain import TensorChain
+
+    return TensorChain.of(modules)
+
+
+def optimizer_step(opt: torch.optim.Optimizer) -> Callable[[], None]:
+    """``opt.step`` for a fit's loop: Adam's functional form with the optimizer's own
+    state on the CPU (the same kernels, so the same bits), ``opt.step`` everywhere else
+    and on the reference path."""
+    if not fast_enabled():
+        return opt.step
+    from imitrl.runtime.fast.adam_step import optimizer_step as fast_step
+
+    return fast_step(opt)

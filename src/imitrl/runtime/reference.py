@@ -1,0 +1,67 @@
+"""The reference stepper: a rollout's step on public TorchRL alone.
+
+Each step is ``td = policy(td)`` then ``out, td = env.step_and_maybe_reset(td)``, exactly
+as TorchRL's own ``env.rollout`` steps: any env (batched, parallel, transformed, pixels,
+your own ``EnvBase``) and any policy module. The accelerated stepper
+(:mod:`imitrl.runtime.fast.stepper`) is tested against this one, digit for digit; it is
+what runs on every env the accelerated one does not know, with ``fast_path=False``, and
+inside :func:`imitrl.runtime.paths.reference`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from torchrl.envs import EnvBase
+
+from imitrl import keys
+from imitrl.runtime.loop import NEXT_KEYS, OPTIONAL_ROW_KEYS, ROW_KEYS, Stepper
+
+__all__ = ["TorchRLStepper"]
+
+
+class TorchRLStepper(Stepper):
+    """``policy(td)`` and ``env.step_and_maybe_reset(td)`` per step (module docstring).
+
+    Args:
+        env: any TorchRL env with zero or one batch dimension.
+        policy: the module that drives it.
+        record: keep each step's row entries for :meth:`trajectory`.
+    """
+
+    def __init__(self, env: EnvBase, policy: TensorDictModuleBase, record: bool) -> None:
+        self.env, self.policy, self._record = env, policy, record
+        self._steps: list[TensorDictBase] = []
+        self._row_keys: list | None = None
+        self._td = self._out = self._next = None
+
+    def reset(self) -> None:
+        self._td = self.env.reset()
+
+    def act(self) -> TensorDictBase:
+        self._td = self.policy(self._td)
+        return self._td
+
+    def step(self) -> tuple[np.ndarray, np.ndarray]:
+        if self._record and self._row_keys is None:  # the row keys this env gives
+            present = [k for k in OPTIONAL_ROW_KEYS if k in self._td.keys()]
+            self._row_keys = [*ROW_KEYS, *present, *[(keys.NEXT, k) for k in NEXT_KEYS]]
+        self._out, self._next = self.env.step_and_maybe_reset(self._td)
+        if self._record:
+            self._steps.append(self._out.select(*self._row_keys))
+        nxt = self._out.get(keys.NEXT)
+        reward = nxt.get(keys.REWARD).reshape(-1).cpu().numpy()
+        return reward, nxt.get(keys.DONE).reshape(-1).cpu().numpy()
+
+    def advance(self, done: np.ndarray | None) -> None:
+        self._td = self._next  # step_and_maybe_reset has reset the finished lanes
+
+    def step_tensordict(self) -> TensorDictBase:
+        return self._out
+
+    def trajectory(self) -> TensorDictBase | None:
+        if not self._steps:
+            return None
+        return torch.stack(self._steps, dim=len(self.env.batch_size)).contiguous()
