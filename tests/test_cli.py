@@ -82,6 +82,7 @@ def test_every_config_field_is_a_documented_flag(name, capsys):
         flag = (
             f.name.upper() if f.metadata.get("positional") or f.metadata.get("remainder") else None
         )
+        flag = flag or f.metadata.get("repeat")  # a repeatable flag: its own name
         assert (flag or "--" + f.name.replace("_", "-")) in flat
         assert "".join(docs[f.name].split()) in flat, f"{name} --help lacks {f.name}'s doc"
 

@@ -14,6 +14,10 @@ Two field metadata switches serve commands that wrap another program
 positional argument, ``{"remainder": True}`` collects every argument after the
 positionals (``tuple[str, ...]``). ``{"aliases": ("--other-name",)}`` adds flag names
 (one name for one idea across commands: ``--max-episode-steps`` everywhere).
+``{"repeat": "--env-kwarg"}`` makes a ``tuple[tuple[str, object], ...]`` field a
+repeatable flag of ``name=value`` pairs (``--env-kwarg obs_type=pixels_agent_pos
+--env-kwarg terminate_on_success=False``): the value is a Python literal where it reads
+as one (``False``, ``3``, ``0.5``, ``(84, 84)``), else the string.
 
 Defaults are shown in the help as they are typed: ``64,64``, ``0.05:10``, ``none``.
 """
@@ -84,6 +88,17 @@ def _parser_for(tp) -> typing.Callable[[str], object]:
     return tp
 
 
+def _name_value(text: str) -> tuple[str, object]:
+    """``"name=value"`` -> ``(name, value)``, the value a Python literal where it is one."""
+    name, sep, value = text.partition("=")
+    if not sep or not name.isidentifier():
+        raise argparse.ArgumentTypeError(f"expected name=value with a keyword name, got {text!r}")
+    try:
+        return name, ast.literal_eval(value)
+    except (ValueError, SyntaxError):
+        return name, value
+
+
 def shown(value: object) -> str:
     """A default as it is typed on the command line (``(64, 64)`` -> ``64,64``)."""
     if value is None:
@@ -106,6 +121,17 @@ def add_config_flags(parser: argparse.ArgumentParser, cls: type) -> None:
             continue
         if f.metadata.get("remainder"):
             parser.add_argument(f.name, nargs=argparse.REMAINDER, metavar=f.name.upper(), help=doc)
+            continue
+        if f.metadata.get("repeat"):
+            parser.add_argument(
+                f.metadata["repeat"],
+                dest=f.name,
+                type=_name_value,
+                action="append",
+                default=[],
+                help=f"{doc} (repeat the flag for several)",
+                metavar="NAME=VALUE",
+            )
             continue
         flags = ["--" + f.name.replace("_", "-"), *f.metadata.get("aliases", ())]
         default = f.default
@@ -133,6 +159,6 @@ def config_from_args(cls: type, args: argparse.Namespace):
     """The ``cls`` instance the parsed flags describe (its ``__post_init__`` validates it)."""
     values = {f.name: getattr(args, f.name) for f in dataclasses.fields(cls)}
     for f in dataclasses.fields(cls):
-        if f.metadata.get("remainder"):
+        if f.metadata.get("remainder") or f.metadata.get("repeat"):
             values[f.name] = tuple(values[f.name])
     return cls(**values)

@@ -16,6 +16,7 @@ from imitrl.datasets.lerobot import (
     load_lerobot,
     resolve_lerobot_root,
     save_lerobot,
+    save_metaworld_lerobot,
 )
 from imitrl.datasets.minari import load_minari, resolve_minari_root, save_minari
 
@@ -29,5 +30,6 @@ __all__ = [
     "resolve_lerobot_root",
     "resolve_minari_root",
     "save_lerobot",
+    "save_metaworld_lerobot",
     "save_minari",
 ]

@@ -46,14 +46,22 @@ from torchrl.record.recorder import PixelRenderTransform
 from imitrl import checks, keys
 from imitrl.compat import wrapped_gym_env
 from imitrl.envs.dict_obs import DictObservation
+from imitrl.envs.success import SuccessInfo, reads_success, success_reader
 from imitrl.runtime.paths import mark_plain_gym
 
 __all__ = ["ResizeFrame", "make_env"]
+
+METAWORLD_PREFIX = "metaworld/"
+"""the ids :mod:`imitrl.envs.metaworld` registers (imported on first use)"""
 
 
 def _spec(env_id: str) -> gymnasium.envs.registration.EnvSpec:
     if not isinstance(env_id, str):
         raise ValueError(f"env_id must be a gymnasium id string, got {type(env_id).__name__}")
+    if env_id.startswith(METAWORLD_PREFIX):  # registered by imitrl.envs.metaworld
+        from imitrl.envs import metaworld
+
+        metaworld.task_of(env_id)  # an unknown task named with the list of tasks
     if ":" in env_id:  # "module:Env-v0": importing the module registers the env (gymnasium.make)
         module, env_id = env_id.split(":", 1)
         try:
@@ -71,12 +79,23 @@ def _spec(env_id: str) -> gymnasium.envs.registration.EnvSpec:
         ) from err
 
 
-def _gym(env_id: str, max_episode_steps: int | None, render: bool = False) -> gymnasium.Env:
-    """``gymnasium.make`` (rendering ``rgb_array`` frames when ``render``), a ``Dict``
-    observation renamed onto imitrl's keys (:class:`DictObservation`)."""
+def _gym(
+    env_id: str,
+    max_episode_steps: int | None,
+    render: bool = False,
+    env_kwargs: dict | None = None,
+    success: bool = False,
+) -> gymnasium.Env:
+    """``gymnasium.make`` with ``env_kwargs`` (rendering ``rgb_array`` frames when
+    ``render``), a ``Dict`` observation renamed onto imitrl's keys
+    (:class:`DictObservation`), ``info["success"]`` read as a flag when ``success``."""
     extra = {"render_mode": "rgb_array"} if render else {}
     try:
-        env = gymnasium.make(env_id, max_episode_steps=max_episode_steps, **extra)
+        env = gymnasium.make(
+            env_id, max_episode_steps=max_episode_steps, **{**(env_kwargs or {}), **extra}
+        )
+    except TypeError as err:  # a keyword the env's constructor does not take
+        raise ValueError(f"{env_id} refused env_kwargs {env_kwargs}: {err}") from err
     except gymnasium.error.DependencyNotInstalled as err:
         raise ValueError(
             f"{env_id} needs an optional dependency ({err}); for MuJoCo envs install "
@@ -89,6 +108,8 @@ def _gym(env_id: str, max_episode_steps: int | None, render: bool = False) -> gy
             f"{env_id} does not render rgb_array frames (render modes {modes}): it cannot "
             "be a pixel env"
         )
+    if success and not reads_success(env):
+        env = SuccessInfo(env)
     if isinstance(env.observation_space, gymnasium.spaces.Dict):
         try:
             env = DictObservation(env, env_id)
@@ -164,11 +185,15 @@ def _single(
     max_episode_steps: int | None,
     seed: int,
     pixels: tuple[int, int] | None = None,
+    env_kwargs: dict | None = None,
+    success: bool = False,
 ) -> EnvBase:
     """One seeded TorchRL env (module-level so ``ParallelEnv`` workers can unpickle it)."""
-    gym_env = _gym(env_id, max_episode_steps, render=pixels is not None)
+    gym_env = _gym(env_id, max_episode_steps, pixels is not None, env_kwargs, success)
     discrete, double = _check_spaces(gym_env, env_id)
     env = GymWrapper(gym_env, categorical_action_encoding=discrete, frame_skip=frame_skip)
+    if reads_success(gym_env):
+        env.set_info_dict_reader(success_reader())
     if double:
         env = TransformedEnv(env, DoubleToFloat())
     if pixels is not None:
@@ -194,6 +219,8 @@ def make_env(
     frame_skip: int = 1,
     max_episode_steps: int | None = None,
     pixels: tuple[int, int] | None = None,
+    env_kwargs: dict | None = None,
+    success: bool | None = None,
 ) -> EnvBase:
     """A seeded TorchRL env for a registered gymnasium id.
 
@@ -218,6 +245,13 @@ def make_env(
         pixels: ``(H, W)``: also give the rendered frame as ``"pixels"``, uint8
             ``[*batch, H, W, 3]`` (the env must render ``rgb_array``); needs
             ``num_envs=1`` or ``parallel=True``.
+        env_kwargs: keyword arguments of the env's constructor (``gymnasium.make(env_id,
+            **env_kwargs)``), e.g. ``{"obs_type": "pixels_agent_pos"}`` for Meta-World.
+        success: read the env's ``info["success"]`` into ``("next", "success")``, a bool
+            set from the episode's first success on (:mod:`imitrl.envs.success`), which
+            ``evaluate`` reports. None: on for the ``metaworld/`` ids
+            (:mod:`imitrl.envs.metaworld`, which end episodes at their first success), off
+            for the others.
 
     Returns:
         a TorchRL env: ``"observation"`` float32 ``[*batch, d]`` (int64 ``[*batch]``
@@ -234,6 +268,8 @@ def make_env(
             ``pixels=(H, W)`` for a Dict that holds ``pixels``, bad counts.
     """
     _spec(env_id)
+    env_kwargs = _check_kwargs(env_kwargs)
+    success = env_id.startswith(METAWORLD_PREFIX) if success is None else bool(success)
     checks.integer(seed, "seed")  # every copy's seed derives from it: None is a mistake here
     if int(num_envs) != num_envs or num_envs < 1:
         raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
@@ -248,14 +284,23 @@ def make_env(
         # switch changes where the copies run, not the episodes they play.
         # (ParallelEnv.set_seed would derive the workers' seeds by hashing instead.)
         makers = [
-            partial(_single, env_id, frame_skip, max_episode_steps, seed + i, pixels)
+            partial(
+                _single,
+                env_id,
+                frame_skip,
+                max_episode_steps,
+                seed + i,
+                pixels,
+                env_kwargs,
+                success,
+            )
             for i in range(num_envs)
         ]
         return ParallelEnv(num_envs, makers)
     if num_envs == 1:
-        env = _single(env_id, frame_skip, max_episode_steps, seed, pixels)
+        env = _single(env_id, frame_skip, max_episode_steps, seed, pixels, env_kwargs, success)
         # rollouts step a plain one directly (imitrl.runtime.paths.stepper): same episodes
-        plain = pixels is None and frame_skip == 1 and not _observes_dict(env)
+        plain = pixels is None and frame_skip == 1 and not (_observes_dict(env) or success)
         return mark_plain_gym(env) if plain else env
     if pixels is not None:
         raise ValueError("pixels needs num_envs=1 or parallel=True (one renderer per copy)")
@@ -266,16 +311,39 @@ def make_env(
             "frame_skip > 1 needs num_envs=1 or parallel=True (the in-process "
             "vectorised env would stop every lane's repeat when one lane ends)"
         )
-    probe = _gym(env_id, max_episode_steps)
+    probe = _gym(env_id, max_episode_steps, False, env_kwargs, success)
     discrete, double = _check_spaces(probe, env_id)
     observes_dict = isinstance(probe, DictObservation)
     probe.close()
     vec = gymnasium.vector.SyncVectorEnv(
-        [partial(_gym, env_id, max_episode_steps) for _ in range(num_envs)],
+        [
+            partial(_gym, env_id, max_episode_steps, False, env_kwargs, success)
+            for _ in range(num_envs)
+        ],
         autoreset_mode=gymnasium.vector.AutoresetMode.DISABLED,
     )
     env = GymWrapper(vec, categorical_action_encoding=discrete)
+    if success:
+        env.set_info_dict_reader(success_reader((num_envs,)))
     if double:
         env = TransformedEnv(env, DoubleToFloat())
     env.set_seed(seed)  # SyncVectorEnv seeds copy i with seed + i
-    return env if observes_dict else mark_plain_gym(env)
+    return env if observes_dict or success else mark_plain_gym(env)
+
+
+def _check_kwargs(env_kwargs) -> dict:
+    """``env_kwargs`` as a dict of keyword names; ValueError for anything else."""
+    if env_kwargs is None:
+        return {}
+    if not isinstance(env_kwargs, dict) or not all(
+        isinstance(k, str) and k.isidentifier() for k in env_kwargs
+    ):
+        raise ValueError(
+            f"env_kwargs must be a dict of keyword names to values, got {env_kwargs!r}"
+        )
+    if {"render_mode", "max_episode_steps"} & set(env_kwargs):
+        raise ValueError(
+            "env_kwargs cannot set render_mode or max_episode_steps: use pixels= and "
+            "max_episode_steps= of make_env"
+        )
+    return dict(env_kwargs)

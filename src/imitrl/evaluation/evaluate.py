@@ -19,6 +19,7 @@ from torchrl.envs.utils import ExplorationType
 from imitrl import keys
 from imitrl.data.returns import SuccessFn, episode_returns
 from imitrl.data.rollout import policy_errors_named, rollout_policy
+from imitrl.envs.success import SUCCESS
 from imitrl.envs.tabular_env import TabularEnv
 from imitrl.evaluation.statistics import t_interval
 from imitrl.evaluation.tabular import exact_values
@@ -105,6 +106,12 @@ def _tabular_success(env: TabularEnv) -> SuccessFn:
     return success
 
 
+def _reported_success(out) -> torch.Tensor:
+    """The env's own flag at an episode's last step (``make_env``'s ``success``: set from
+    the episode's first success on, so this is Meta-World's "success at any step")."""
+    return out.get((keys.NEXT, SUCCESS)).reshape(-1)
+
+
 def evaluate(
     env: EnvBase,
     policy: Learner | Expert | TensorDictModuleBase,
@@ -136,7 +143,8 @@ def evaluate(
             given, the policy's sampling: two policies evaluated with one seed start
             from the same initial states.
         success_fn: end-of-episode success criterion; defaults to "entered a goal
-            state" on a TabularEnv, none elsewhere.
+            state" on a TabularEnv, the env's own ``("next", "success")`` where it
+            reports one (``make_env``'s ``success``, on for Meta-World), none elsewhere.
         confidence: level of the intervals.
         generator: source of the policy's sampling in ``RANDOM`` mode (seed it for
             reproducible sampled evaluations); None: torch's global RNG (or ``seed``'s).
@@ -156,6 +164,8 @@ def evaluate(
     tabular = isinstance(env, TabularEnv)
     if success_fn is None and tabular:
         success_fn = _tabular_success(env)
+    elif success_fn is None and SUCCESS in env.observation_spec.keys():
+        success_fn = _reported_success
     with policy_errors_named(env, actor):
         summary = episode_returns(
             env,

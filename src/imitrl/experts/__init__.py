@@ -1,7 +1,8 @@
 """Built-in queryable experts: every builder returns an :class:`imitrl.policies.Expert`.
 
 Classic control needs only gymnasium; building a MuJoCo expert
-(``imitrl.experts.mujoco``) needs the ``mujoco`` extra.
+(``imitrl.experts.mujoco``) needs the ``mujoco`` extra, a Meta-World one
+(:func:`metaworld_expert`) the ``metaworld`` extra.
 """
 
 from imitrl.experts.classic_control import (
@@ -15,6 +16,7 @@ from imitrl.experts.classic_control import (
     pendulum_linearization,
 )
 from imitrl.experts.lqr import LinearFeedback, dlqr
+from imitrl.experts.metaworld import metaworld_expert
 from imitrl.experts.mujoco import (
     Linearization,
     inverted_double_pendulum_expert,
@@ -34,6 +36,7 @@ __all__ = [
     "inverted_double_pendulum_expert",
     "inverted_pendulum_expert",
     "linearize_mujoco",
+    "metaworld_expert",
     "mountaincar_expert",
     "pendulum_expert",
     "pendulum_linearization",

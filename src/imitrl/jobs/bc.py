@@ -92,6 +92,7 @@ def prepare(config: BCJob, name: str, *, keep_logs: bool = False) -> Setup:
         seed=config.seed,
         num_envs=config.num_envs,
         max_episode_steps=config.max_episode_steps,
+        env_kwargs=dict(config.env_kwargs),
     )
     limit = time_limit(config.env, config.max_episode_steps)
     expert = None
@@ -99,7 +100,7 @@ def prepare(config: BCJob, name: str, *, keep_logs: bool = False) -> Setup:
     if expert_name is None and config.expert is not None and config.dataset is None:
         raise ValueError(no_expert_message(config.env))
     if expert_name is not None:
-        expert = make_expert(expert_name, config.expert_kind)
+        expert = make_expert(expert_name, config.expert_kind, env_id=config.env, env=env)
         check_expert_fits(expert, expert_name, config.env, env)  # observations it can read
     make_learner = learner_factory(
         config.loss, env, hidden=config.hidden, lr=config.lr, seed=config.seed,
@@ -136,6 +137,7 @@ def evaluate_learner(config: BCJob, learner: Learner) -> dict:
         episodes=config.eval_episodes,
         seed=config.eval_seed,
         max_episode_steps=config.max_episode_steps,
+        env_kwargs=dict(config.env_kwargs),
         progress=config.progress,
     )
 
@@ -151,6 +153,7 @@ def evaluate_expert(config: BCJob, setup: Setup) -> dict | None:
         episodes=config.eval_episodes,
         seed=config.eval_seed,
         max_episode_steps=config.max_episode_steps,
+        env_kwargs=dict(config.env_kwargs),
         progress=config.progress,
     )
 

@@ -101,6 +101,29 @@ def _check_fields(path: Path, config: Any) -> None:
     steps = config.get("max_episode_steps")
     if steps is not None and (type(steps) is not int or steps < 1):
         raise bad("max_episode_steps", "a positive integer or null")
+    pairs = config.get("env_kwargs", [])
+    if not isinstance(pairs, list) or not all(_plain_pair(p) for p in pairs):
+        raise bad("env_kwargs", "a list of [name, value] pairs of JSON scalars (or lists of them)")
+
+
+def _plain_pair(pair: Any) -> bool:
+    """``[name, value]``: a keyword name and a JSON scalar (data, never an object to build)."""
+    return (
+        isinstance(pair, list)
+        and len(pair) == 2
+        and isinstance(pair[0], str)
+        and pair[0].isidentifier()
+        and (_scalar(pair[1]) or (isinstance(pair[1], list) and all(map(_scalar, pair[1]))))
+    )
+
+
+def _scalar(value: Any) -> bool:
+    return value is None or isinstance(value, str | int | float | bool)
+
+
+def checkpoint_env_kwargs(config: dict) -> dict:
+    """The env's constructor arguments a checkpoint was trained with (checked data)."""
+    return {name: value for name, value in config.get("env_kwargs", [])}
 
 
 def checkpoint_env(checkpoint: Path, config: dict) -> str:

@@ -10,7 +10,7 @@ without them; the rest fails when the job starts, naming the flag.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -46,10 +46,16 @@ class BCJob:
     """gymnasium id, or module:Env-v0 (importing module registers Env-v0)"""
     num_envs: int = 1
     """env copies stepped together (lanes) when collecting episodes"""
+    env_kwargs: tuple[tuple[str, object], ...] = field(
+        default=(), metadata={"repeat": "--env-kwarg"}
+    )
+    """a keyword argument of the env's constructor, name=value (gymnasium.make(env,
+    name=value)), e.g. --env-kwarg obs_type=pixels_agent_pos for metaworld/<task>-v3"""
     max_episode_steps: int | None = None
     """override the env's time limit; none = its registered limit"""
     expert: str | None = "auto"
-    """auto = the built-in expert of --env (listed below); a built-in name; or
+    """auto = the built-in expert of --env (listed below; metaworld for every
+    metaworld/<task>-v3, the task's scripted policy); a built-in name; or
     module:function; none = no expert (needs --dataset, and nothing is compared with
     the learner)"""
     expert_kind: str = "builder"

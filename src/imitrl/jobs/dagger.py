@@ -135,7 +135,11 @@ def episode_source(config: DAggerJob, setup: Setup) -> EnvSource | RaySource:
     if config.workers is None:  # exploration None: each round's learner acts as it says
         return EnvSource(setup.env, generator=torch.Generator().manual_seed(config.seed))
     env_fn = functools.partial(
-        make_env, config.env, seed=config.seed, max_episode_steps=config.max_episode_steps
+        make_env,
+        config.env,
+        seed=config.seed,
+        max_episode_steps=config.max_episode_steps,
+        env_kwargs=dict(config.env_kwargs),
     )
     return RaySource(env_fn, config.workers, seed=config.seed, address=config.address)
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -33,12 +33,15 @@ def evaluate_returns(
     episodes: int,
     seed: int,
     max_episode_steps: int | None,
+    env_kwargs: dict | None = None,
     progress: bool = False,
 ) -> dict:
     """Mean return of ``policy`` (writes ``action``) over ``episodes`` episodes, 95% interval.
 
     Returns ``{"mean_return", "return_ci": [lo, hi], "mean_length", "episodes",
-    "exploration", "seed"}`` (``[None, None]`` for one episode: no interval).
+    "exploration", "seed"}`` (``[None, None]`` for one episode: no interval), and
+    ``"success_rate"``, ``"success_ci"`` (Wilson, 95%) for an env that reports success
+    (``make_env``'s ``success``: the Meta-World tasks).
     """
     import torch
 
@@ -47,7 +50,13 @@ def evaluate_returns(
     from imitrl.jobs.resolve import time_limit
 
     lanes = min(episodes, EVAL_LANES)
-    env = make_env(env_id, seed=seed, num_envs=lanes, max_episode_steps=max_episode_steps)
+    env = make_env(
+        env_id,
+        seed=seed,
+        num_envs=lanes,
+        max_episode_steps=max_episode_steps,
+        env_kwargs=env_kwargs,
+    )
     time_limit(env_id, max_episode_steps)  # an env without a time limit is refused up front
     try:
         ev = evaluate(
@@ -60,7 +69,11 @@ def evaluate_returns(
         )
     finally:
         env.close()
+    success = {}
+    if ev.success_rate is not None:
+        success = {"success_rate": ev.success_rate, "success_ci": list(ev.success_ci)}
     return {
+        **success,
         "mean_return": ev.mean_return,
         # one episode has no interval: None (JSON null), not NaN (no JSON value)
         "return_ci": [None if math.isnan(x) else x for x in ev.return_ci],
@@ -75,8 +88,12 @@ def format_return(name: str, ev: dict) -> str:
     """One report line: ``name: return m [lo, hi] over n episodes (exploration)``."""
     lo, hi = ev["return_ci"]
     interval = "[no interval]" if lo is None else f"[{lo:.2f}, {hi:.2f}]"
+    success = ""
+    if ev.get("success_rate") is not None:
+        s_lo, s_hi = ev["success_ci"]
+        success = f"success {ev['success_rate']:.0%} [{s_lo:.0%}, {s_hi:.0%}], "
     return (
-        f"{name}: return {ev['mean_return']:.2f} {interval} over "
+        f"{name}: {success}return {ev['mean_return']:.2f} {interval} over "
         f"{ev['episodes']} episodes ({ev['exploration']}), mean length {ev['mean_length']:.1f}"
     )
 
@@ -98,6 +115,11 @@ class EvalJob:
     module:Env-v0 is refused: imitrl imports only the modules you name here)"""
     max_episode_steps: int | None = None
     """override the env's time limit; none = the checkpoint's (or the env's own limit)"""
+    env_kwargs: tuple[tuple[str, object], ...] = field(
+        default=(), metadata={"repeat": "--env-kwarg"}
+    )
+    """a keyword argument of the env's constructor, name=value; none given = the
+    checkpoint's"""
     eval_episodes: int = 10
     """evaluation episodes (the default of bc/dagger, so the run's numbers reproduce)"""
     eval_seed: int = 10_000
@@ -140,7 +162,12 @@ def run_eval(config: EvalJob) -> dict:
     from torchrl.envs.utils import ExplorationType
 
     from imitrl.envs import make_env
-    from imitrl.jobs.checkpoint import checkpoint_env, load_learner, read_config
+    from imitrl.jobs.checkpoint import (
+        checkpoint_env,
+        checkpoint_env_kwargs,
+        load_learner,
+        read_config,
+    )
     from imitrl.jobs.resolve import make_expert
     from imitrl.policies import as_actor
 
@@ -148,13 +175,15 @@ def run_eval(config: EvalJob) -> dict:
         saved = read_config(config.checkpoint)
         env_id = config.env or checkpoint_env(config.checkpoint, saved)
         steps = config.max_episode_steps or saved["max_episode_steps"]
-        specs = make_env(env_id, seed=0, max_episode_steps=steps)  # the learner's shapes
+        kwargs = dict(config.env_kwargs) or checkpoint_env_kwargs(saved)
+        # the learner's shapes
+        specs = make_env(env_id, seed=0, max_episode_steps=steps, env_kwargs=kwargs)
         learner = load_learner(config.checkpoint, specs, device=config.device)
         specs.close()
         policy, exploration, name = learner.policy, learner.exploration, "learner"
     else:
-        env_id, steps = config.env, config.max_episode_steps
-        expert = make_expert(config.expert, config.expert_kind)
+        env_id, steps, kwargs = config.env, config.max_episode_steps, dict(config.env_kwargs)
+        expert = make_expert(config.expert, config.expert_kind, env_id=env_id)
         policy, exploration = as_actor(expert), ExplorationType.DETERMINISTIC
         name = f"expert {config.expert}"
     ev = evaluate_returns(
@@ -164,6 +193,7 @@ def run_eval(config: EvalJob) -> dict:
         episodes=config.eval_episodes,
         seed=config.eval_seed,
         max_episode_steps=steps,
+        env_kwargs=kwargs,
         progress=config.progress,
     )
     results = {"policy": name, "env": env_id, "evaluation": ev}

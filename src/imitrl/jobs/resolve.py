@@ -34,6 +34,7 @@ from torchrl.envs import EnvBase
 
 from imitrl import experts, keys
 from imitrl.data.buffer import OBSERVATION_KEYS, REQUIRED_KEYS
+from imitrl.envs.make import METAWORLD_PREFIX
 from imitrl.jobs.names import EXPERT_ENVS, EXPERT_KINDS
 from imitrl.objectives import registry
 from imitrl.objectives.registry import LearnerConfig, TaskSpec
@@ -93,12 +94,18 @@ def _import(spec: str) -> object:
     return getattr(module, attr)
 
 
+METAWORLD = "metaworld"
+"""``--expert metaworld``: the scripted policy of ``--env metaworld/<task>-v3``"""
+
+
 def expert_for_env(spec: str | None, env_id: str) -> str | None:
     """``--expert`` as given, or for ``auto`` the built-in expert that acts in ``env_id``
     (None when there is none: a job that needs an expert then says what to pass)."""
     if spec != AUTO:
         return spec
     plain = env_id.split(":", 1)[-1]
+    if plain.startswith(METAWORLD_PREFIX):
+        return METAWORLD
     return next((name for name, env in EXPERT_ENVS.items() if env == plain), None)
 
 
@@ -107,7 +114,7 @@ def no_expert_message(env_id: str) -> str:
     return (
         f"--env {env_id} has no built-in expert (built-in: "
         + ", ".join(f"{n} for {e}" for n, e in EXPERT_ENVS.items())
-        + "); pass --expert module:function (with --expert-kind callable for a batched "
+        + f", {METAWORLD} for {METAWORLD_PREFIX}<task>-v3); pass --expert module:function (with --expert-kind callable for a batched "
         "obs -> action function) or --dataset DIR"
     )
 
@@ -126,8 +133,13 @@ def check_expert_fits(expert: TensorDictModuleBase, spec: str, env_id: str, env:
         ) from err
 
 
-def make_expert(spec: str, kind: str = "builder") -> TensorDictModuleBase:
+def make_expert(
+    spec: str, kind: str = "builder", *, env_id: str | None = None, env: EnvBase | None = None
+) -> TensorDictModuleBase:
     """The expert named by ``spec`` (a built-in name or ``module:function``), built.
+
+    ``env_id`` and ``env``: the env it acts in (``metaworld`` needs them: the task's
+    scripted policy, reading the 39-d state where the env gives it).
 
     Returns a TensorDictModule reading ``observation`` and writing ``expert_action``.
     """
@@ -135,10 +147,12 @@ def make_expert(spec: str, kind: str = "builder") -> TensorDictModuleBase:
         raise ValueError(f"--expert-kind must be one of {EXPERT_KINDS}, got {kind!r}")
     if spec == AUTO:
         raise ValueError("--expert auto is resolved against --env first (expert_for_env)")
+    if spec == METAWORLD:
+        return _metaworld_expert(env_id, env)
     if ":" not in spec:
         if spec not in EXPERTS:
             raise ValueError(
-                f"unknown expert {spec!r}; built-in: {', '.join(EXPERTS)}, "
+                f"unknown expert {spec!r}; built-in: {', '.join([*EXPERTS, METAWORLD])}, "
                 "or module:function (see --expert-kind)"
             )
         return EXPERTS[spec]()
@@ -168,6 +182,18 @@ def make_expert(spec: str, kind: str = "builder") -> TensorDictModuleBase:
             "obs -> action, pass --expert-kind callable)"
         )
     return expert
+
+
+def _metaworld_expert(env_id: str | None, env: EnvBase | None) -> Expert:
+    plain = (env_id or "").split(":", 1)[-1]
+    if not plain.startswith(METAWORLD_PREFIX):
+        raise ValueError(
+            f"--expert {METAWORLD} labels Meta-World tasks: pass --env "
+            f"{METAWORLD_PREFIX}<task>-v3 (got --env {env_id})"
+        )
+    observes = env.observation_spec.keys() if env is not None else ()
+    key = keys.ENVIRONMENT_STATE if keys.ENVIRONMENT_STATE in observes else keys.OBSERVATION
+    return experts.metaworld_expert(plain, observation_key=key)
 
 
 def _required_arguments(fn: Callable) -> list[str]:

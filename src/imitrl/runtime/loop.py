@@ -44,6 +44,7 @@ from imitrl.policies.action_check import check_action
 
 __all__ = [
     "NEXT_KEYS",
+    "OPTIONAL_NEXT_KEYS",
     "OPTIONAL_ROW_KEYS",
     "ROW_KEYS",
     "Lanes",
@@ -62,8 +63,11 @@ ROW_KEYS = (
     keys.EXPERT_EXECUTED,
 )
 NEXT_KEYS = (keys.REWARD, keys.DONE, keys.TERMINATED, keys.TRUNCATED)
-OPTIONAL_ROW_KEYS = (keys.PIXELS,)
-"""kept in the rows when the env gives them (a pixel env's images beside its state)"""
+OPTIONAL_ROW_KEYS = (keys.PIXELS, keys.ENVIRONMENT_STATE)
+"""kept in the rows when the env gives them (a pixel env's images, a Dict env's
+``environment_state`` beside its state)"""
+OPTIONAL_NEXT_KEYS = ("success",)
+"""kept under ``"next"`` when the env gives them (``make_env``'s ``success``)"""
 
 
 class Stepper(ABC):

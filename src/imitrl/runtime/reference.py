@@ -17,7 +17,7 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase
 
 from imitrl import keys
-from imitrl.runtime.loop import NEXT_KEYS, OPTIONAL_ROW_KEYS, ROW_KEYS, Stepper
+from imitrl.runtime.loop import NEXT_KEYS, OPTIONAL_NEXT_KEYS, OPTIONAL_ROW_KEYS, ROW_KEYS, Stepper
 
 __all__ = ["TorchRLStepper"]
 
@@ -47,7 +47,9 @@ class TorchRLStepper(Stepper):
     def step(self) -> tuple[np.ndarray, np.ndarray]:
         if self._record and self._row_keys is None:  # the row keys this env gives
             present = [k for k in OPTIONAL_ROW_KEYS if k in self._td.keys()]
-            self._row_keys = [*ROW_KEYS, *present, *[(keys.NEXT, k) for k in NEXT_KEYS]]
+            observed = self.env.observation_spec.keys()
+            after = [*NEXT_KEYS, *[k for k in OPTIONAL_NEXT_KEYS if k in observed]]
+            self._row_keys = [*ROW_KEYS, *present, *[(keys.NEXT, k) for k in after]]
         self._out, self._next = self.env.step_and_maybe_reset(self._td)
         if self._record:
             self._steps.append(self._out.select(*self._row_keys))

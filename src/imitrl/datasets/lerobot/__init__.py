@@ -61,7 +61,8 @@ statistics, a slice of whole episodes at a time), ``_episode_table`` (the episod
 appended a slice at a time), ``_v3_files`` (the other files of a v3.0 directory),
 ``_stats`` (LeRobot's feature and image statistics, vectorised over episodes),
 ``_stats_totals`` (``meta/stats.json`` from running totals, with the digits of LeRobot's
-aggregation over every episode at once).
+aggregation over every episode at once), ``_metaworld`` (Meta-World recordings with
+exactly ``lerobot/metaworld_mt50``'s features: :func:`save_metaworld_lerobot`).
 """
 
 from imitrl.datasets.lerobot._hub import download_lerobot
@@ -85,6 +86,7 @@ from imitrl.datasets.lerobot._layout import (  # noqa: F401
     SIDECAR_FORMAT,
 )
 from imitrl.datasets.lerobot._locate import resolve_lerobot_root
+from imitrl.datasets.lerobot._metaworld import save_metaworld_lerobot
 from imitrl.datasets.lerobot._read import load_lerobot
 from imitrl.datasets.lerobot._write import save_lerobot
 
@@ -95,4 +97,5 @@ __all__ = [
     "load_lerobot",
     "resolve_lerobot_root",
     "save_lerobot",
+    "save_metaworld_lerobot",
 ]

@@ -101,16 +101,24 @@ def _video_entry(name: str, value: torch.Tensor, layout: Literal["hwc", "chw"]) 
     return {"dtype": "video", "shape": [height, width, 3], "names": IMAGE_NAMES["hwc"]}
 
 
-def _plan(rows: TensorDictBase, names: Mapping[str, Any], video: bool) -> Plan:
+def _plan(
+    rows: TensorDictBase,
+    names: Mapping[str, Any],
+    video: bool,
+    features: Sequence[str] | None = None,
+) -> Plan:
     """Every leaf key as a feature (``STEP`` and ``"task_index"`` become bookkeeping; image
-    keys become video features if ``video``), then LeRobot's bookkeeping columns; from the
-    keys' dtypes and shapes alone (no row is read)."""
+    keys become video features if ``video``; only the ``features`` named, if given), then
+    LeRobot's bookkeeping columns; from the keys' dtypes and shapes alone (no row is read)."""
+    _check_features(rows, features)
     columns: list[Column] = []
     info: dict[str, dict] = {}
     sidecar: dict[str, dict] = {}
     videos: dict[str, np.ndarray] = {}
     for key in rows.keys(include_nested=True, leaves_only=True):
         if key_name(key) in (keys.STEP, "task_index"):
+            continue
+        if features is not None and feature_name(key) not in features:
             continue
         value = rows.get(key)
         if value.dtype not in NUMPY_NAMES:
@@ -152,6 +160,21 @@ def _plan(rows: TensorDictBase, names: Mapping[str, Any], video: bool) -> Plan:
             "shape": list(rows.get("task_index").shape[1:]),
         }
     return Plan(columns, info, sidecar, videos)
+
+
+def _check_features(rows: TensorDictBase, features: Sequence[str] | None) -> None:
+    """Every name of ``features`` is a feature the rows give (ValueError naming them)."""
+    if features is None:
+        return
+    if isinstance(features, str):
+        raise ValueError(f"features must be a list of feature names, got the string {features!r}")
+    given = {feature_name(k) for k in rows.keys(include_nested=True, leaves_only=True)}
+    missing = [f for f in features if f not in given and f not in BOOKKEEPING]
+    if missing:
+        raise ValueError(
+            f"features {missing} are not in the rows, which give {sorted(given)} (LeRobot's "
+            f"bookkeeping {list(BOOKKEEPING)} is always written)"
+        )
 
 
 def _check_camera(
@@ -302,6 +325,7 @@ def save_lerobot(
     overwrite: bool = False,
     video: bool = False,
     video_files_size_in_mb: float = DEFAULT_VIDEO_FILE_SIZE_IN_MB,
+    features: Sequence[str] | None = None,
 ) -> Path:
     """Write demonstrations as a LeRobot v3.0 dataset that LeRobot's own reader opens.
 
@@ -353,6 +377,12 @@ def save_lerobot(
         video_files_size_in_mb: a camera's episodes go into one mp4 file until the next
             would bring it to this size, then into the next file (LeRobot's
             ``video_files_size_in_mb``).
+        features: write only these features (names as above) beside LeRobot's
+            bookkeeping columns, e.g. a published dataset's exact feature set
+            (:data:`imitrl.envs.metaworld.LEROBOT_FEATURES`); the rows' ``EPISODE`` and
+            ``STEP`` still delimit the episodes. Without imitrl's own columns
+            (``imitrl.*``) :func:`load_lerobot` reads the dataset as it reads LeRobot's
+            (episodes by ``episode_index``, one round). None: every key.
 
     Returns:
         the dataset directory.
@@ -370,7 +400,7 @@ def save_lerobot(
     if isinstance(size, bool) or not isinstance(size, int | float) or not size > 0:
         raise ValueError(f"video_files_size_in_mb must be > 0, got {video_files_size_in_mb!r}")
     episodes = _episodes(rows, tasks)
-    plan = _plan(rows, dict(names or {}), video)
+    plan = _plan(rows, dict(names or {}), video, features)
     if plan.videos:
         import_av()  # before anything is written: a missing PyAV says how to install it
     with publishing(path, overwrite=overwrite, replaceable=_replaceable) as tmp:

@@ -1,0 +1,63 @@
+"""Meta-World's scripted experts, batched over lanes: ``metaworld_expert("pick-place-v3")``.
+
+Every Meta-World v3 task ships a closed-loop scripted policy
+(``metaworld.policies.ENV_POLICY_MAP``) that maps one 39-d observation to a 4-d action.
+The policies keep no state, so they label any state a learner visits: a queryable
+expert for DAgger. :func:`metaworld_expert` calls the task's policy on each lane's
+observation.
+
+The scripted policies return actions outside the action bounds [-1, 1] (up to about 25
+in magnitude) and rely on the env, which clips every action it executes
+(``np.clip(action, -1, 1)`` in ``SawyerXYZEnv.set_xyz_action``). The expert clips its
+labels the same way (``Expert.from_callable(..., clip=True)``): the label is the action
+the env executes, the one a learner bounded by the action spec can imitate.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import torch
+
+from imitrl import keys
+from imitrl.policies.experts import Expert
+
+__all__ = ["metaworld_expert"]
+
+
+class _LanePolicy:
+    """The task's scripted policy on ``[*B, 39]`` observations (a loop over lanes)."""
+
+    def __init__(self, task: str) -> None:
+        from imitrl.envs.metaworld import _import_metaworld, task_of
+
+        _import_metaworld()
+        from metaworld.policies import ENV_POLICY_MAP
+
+        self.task = task_of(task)
+        self.policy = ENV_POLICY_MAP[self.task]()
+        # its move() warns at every call whose gain exceeds the bounds: the labels are
+        # clipped on purpose (module docstring)
+        warnings.filterwarnings(
+            "ignore", message=r"Constant\(s\) may be too high", category=UserWarning
+        )
+
+    def __call__(self, obs: torch.Tensor) -> torch.Tensor:
+        flat = obs.detach().cpu().reshape(-1, obs.shape[-1]).to(torch.float64).numpy()
+        actions = np.stack([self.policy.get_action(o) for o in flat]).astype(np.float32)
+        return torch.from_numpy(actions).reshape(*obs.shape[:-1], actions.shape[-1])
+
+
+def metaworld_expert(task: str, *, observation_key=None) -> Expert:
+    """The scripted policy of Meta-World task ``task`` (``"pick-place-v3"`` or
+    ``"metaworld/pick-place-v3"``) as an :class:`Expert` with clipped labels.
+
+    Args:
+        observation_key: the key of the 39-d state: None picks ``"observation"``
+            (``obs_type="state"``, the default env); pass ``"environment_state"`` for
+            the LeRobot observation types, where ``"observation"`` is the hand's 4-d
+            ``agent_pos``.
+    """
+    key = keys.OBSERVATION if observation_key is None else observation_key
+    return Expert.from_callable(_LanePolicy(task), observation_key=key, clip=True)
