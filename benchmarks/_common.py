@@ -1,8 +1,8 @@
 """Shared by the benchmark scripts: rollouts, a seeded uniform policy, experts from the
 command line, reference returns, slippery FrozenLake.
 
-Rollouts: :func:`rollout`, :func:`returns` and :func:`source` are the only places the
-benchmarks call ``rollout_episodes``, ``episode_returns`` and ``EnvSource``; every
+Rollouts: :func:`rollout`, :func:`returns`, :func:`summaries` and :func:`source` are the
+only places the benchmarks call ``rollout_episodes``, ``episode_returns`` and ``EnvSource``; every
 call states its ``max_steps`` (today: the most steps a lane may take in total).
 """
 
@@ -61,6 +61,21 @@ def returns(
     """``[episodes]`` float64 undiscounted returns of ``policy`` (writes ``ACTION``)."""
     summary = episode_returns(env, policy, episodes, exploration=exploration, max_steps=max_steps)
     return summary.returns
+
+
+def summaries(
+    env: EnvBase,
+    policy: TensorDictModuleBase,
+    episodes: int,
+    *,
+    exploration: ExplorationType,
+    max_steps: int,
+    success_fn=None,
+):
+    """Per-episode returns, lengths and success (``success_fn``) of ``policy``."""
+    return episode_returns(
+        env, policy, episodes, exploration=exploration, max_steps=max_steps, success_fn=success_fn
+    )
 
 
 def source(env: EnvBase, *, exploration: ExplorationType | None, max_steps: int) -> EnvSource:

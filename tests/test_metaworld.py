@@ -252,3 +252,11 @@ def test_a_recorded_mt10_dataset_has_exactly_lerobots_features_and_trains_a_lear
     fit_bc(learner, rows, BCConfig(num_steps=20, batch_size=16, seed=0))
     ev = evaluate(state_env, learner, 2, seed=1)
     assert ev.num_episodes == 2 and ev.success_rate is not None
+
+
+def test_the_readme_example_runs_as_written(tmp_path):
+    from ._readme import run as run_readme
+
+    namespace, printed = run_readme("metaworld-example", tmp_path)  # output as documented
+    assert printed[:5] == ["4", "successes", "in", "226", "rows"]
+    assert namespace["rows"].get(("next", "success")).sum() == 4  # each episode ends at success

@@ -45,7 +45,7 @@ def test_every_code_block_is_run_by_a_test_or_marked_a_fragment():
     assert unmarked == [], f"README code blocks neither named nor marked as fragments: {unmarked}"
     named = {name for _, lang, name, _ in blocks if name and lang == "python"}
     tested = {"pieces-example", "lerobot-example", "continuous-example", "camera-example",
-              "disk-buffer-example"}  # fmt: skip
+              "disk-buffer-example", "metaworld-example"}  # fmt: skip
     assert named == tested, f"named blocks without a test here or elsewhere: {named - tested}"
 
 

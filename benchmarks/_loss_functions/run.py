@@ -14,9 +14,11 @@ from dataclasses import asdict, replace
 from typing import Any
 
 import torch
+from tensordict import TensorDictBase
 
 from _common import DET, rollout, source
 from _loss_functions.tasks import TaskDef, build
+from imitrl import keys
 from imitrl.algorithms import DAggerConfig, dagger, fit_bc
 from imitrl.data import DemonstrationBuffer
 from imitrl.data.chunks import add_chunk_labels
@@ -87,7 +89,7 @@ def loss_cell(defn: TaskDef, loss: str, seed: int, quick_mode: bool) -> list[dic
         return out
 
     def on_fit(k: int, learner: Learner) -> None:
-        if k in (0, proto.rounds - 1):
+        if k in (0, proto.rounds - 1, proto.rounds):  # BC, DAgger, BC at its query budget
             t = time.perf_counter()
             result = task.score(learner.policy, learner.exploration, seed)
             result.update(task.extras(learner, seed))
@@ -117,10 +119,23 @@ def loss_cell(defn: TaskDef, loss: str, seed: int, quick_mode: bool) -> list[dic
         )
         learner = out.learner
         records = [(learner, r.rows_trained, r.bc) for r in out.rounds]
+    if proto.matched and expert is not None and proto.rounds > 1:
+        steps = sum(c.num_steps for c in fit_configs) if warm else fit_configs[-1].num_steps
+        learner_m = registry.build(loss, spec, config)
+        matched = _expert_rows(env, expert, records[-1][1], task.max_steps(), seed)
+        t = time.perf_counter()
+        rows_m = matched if horizon is None else add_chunk_labels(matched, horizon)
+        fit_m = fit_bc(learner_m, rows_m, replace(bc, num_steps=steps))
+        fit_seconds.append(time.perf_counter() - t)
+        fit_configs.append(replace(bc, num_steps=steps))
+        on_fit(proto.rounds, learner_m)
+        records.append((learner_m, matched.shape[0], fit_m))
     env.close()
     exploration = str(learner.exploration).split(".")[-1].lower()
     rows = []
     algorithms = [("bc", 0)] + ([("dagger", proto.rounds - 1)] if proto.rounds > 1 else [])
+    if len(records) > proto.rounds:  # BC at DAgger's query budget
+        algorithms.append(("bc_matched", proto.rounds))
     for algorithm, k in algorithms:
         _, rows_trained, fit = records[k]
         rows.append(
@@ -136,7 +151,7 @@ def loss_cell(defn: TaskDef, loss: str, seed: int, quick_mode: bool) -> list[dic
                 "fit_seconds": fit_seconds[k],
                 # the gradient steps the reported learner took (warm: every fit so far)
                 "fit_steps": sum(c.num_steps for c in fit_configs[: k + 1])
-                if warm
+                if warm and algorithm != "bc_matched"
                 else fit_configs[k].num_steps,
                 "fit_batch": fit_configs[k].batch_size,
                 **results[k],
@@ -146,6 +161,19 @@ def loss_cell(defn: TaskDef, loss: str, seed: int, quick_mode: bool) -> list[dic
         row["cell_seconds"] = time.perf_counter() - t0
         row["cell_cpu_seconds"] = time.process_time() - cpu0
     return rows
+
+
+def _expert_rows(env, expert, count: int, max_steps: int, seed: int) -> TensorDictBase:
+    """The first ``count`` rows of fresh expert-driven episodes (from starts of their own:
+    the env re-seeded apart from the demonstrations'), for BC at a query budget."""
+    env.set_seed(20_000 + seed)
+    parts, have = [], 0
+    while have < count:
+        rows = rollout(env, as_actor(expert), 4, exploration=DET, max_steps=max_steps)
+        rows.set(keys.EPISODE, rows.get(keys.EPISODE) + 4 * len(parts))
+        parts.append(rows)
+        have += rows.shape[0]
+    return torch.cat(parts)[:count]
 
 
 def run(

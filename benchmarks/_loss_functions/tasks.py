@@ -27,11 +27,12 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from _common import DET, RND, Uniform, returns, rollout
+from _common import DET, RND, Uniform, returns, rollout, summaries
 from imitrl import keys
 from imitrl.algorithms import BCConfig
 from imitrl.data.chunks import IS_INIT
 from imitrl.envs import TabularEnv, make_env
+from imitrl.envs.success import SUCCESS, reported_success
 from imitrl.evaluation import exact_values
 from imitrl.jobs.resolve import EXPERT_KINDS, load_dataset, make_expert, task_spec
 from imitrl.objectives.registry import Learner, LearnerConfig, TaskSpec
@@ -40,8 +41,10 @@ from imitrl.policies.chunking import chunk_env
 from imitrl.tabular import TabularMDP, greedy, success_probability, value_iteration
 
 SCORES = ("return", "success", "exact")
-"""``return``: mean episode return; ``success``: fraction of episodes with a positive
-return; ``exact``: a tabular gymnasium env's success probability from its MDP"""
+"""``return``: mean episode return; ``success``: fraction of successful episodes (the
+env's own ``("next", "success")`` flag where it reports one, as the Meta-World tasks do;
+else a positive return); ``exact``: a tabular gymnasium env's success probability from
+its MDP"""
 
 
 # --------------------------------------------------------------------- protocol
@@ -67,6 +70,9 @@ class Protocol:
     """gradient steps of each relabel round's fit, continuing the previous round's
     learner (DAgger's warm start, as imitation's DAgger trains one policy throughout);
     None: every round refits a fresh learner for ``bc.num_steps``"""
+    matched: bool = False
+    """also fit BC on as many expert-driven rows as DAgger's last fit saw (its expert
+    queries): BC at an equal query budget, reported as ``bc_matched``"""
 
     def __post_init__(self) -> None:
         if self.round_steps is not None and self.round_steps < 1:
@@ -415,7 +421,9 @@ class EnvTask(Task):
     def expert(self) -> TensorDictModuleBase | None:
         if self.defn.expert is None:
             return None
-        return make_expert(self.defn.expert, self.defn.expert_kind)
+        # a built-in name or module:function; the env id for experts made per env
+        # (metaworld: the task's scripted policy)
+        return make_expert(self.defn.expert, self.defn.expert_kind, env_id=self.defn.env)
 
     def env(self, *, seed: int, lanes: int) -> EnvBase:
         if self._class is not None:
@@ -446,10 +454,27 @@ class EnvTask(Task):
             rows = rollout(env, behaviour, n, exploration=exploration, max_steps=self.max_steps())
             r = _episode_returns(rows)
             out.update(self._outcome(rows))
+        elif SUCCESS in env.observation_spec.keys():  # the env reports success itself
+            summary = summaries(
+                env,
+                policy,
+                n,
+                exploration=exploration,
+                max_steps=self.max_steps(),
+                success_fn=reported_success,
+            )
+            r, flags = summary.returns, summary.success
+            out.update(
+                successes=int(flags.sum()),
+                episodes=n,
+                mean_length=float(summary.lengths.double().mean()),
+            )
         else:
             r = returns(env, policy, n, exploration=exploration, max_steps=self.max_steps())
         env.close()
-        if self.defn.score == "success":
+        if self.defn.score == "success" and "successes" in out:
+            out["score"] = out["successes"] / n
+        elif self.defn.score == "success":
             out["score"] = float((r > 0).double().mean())
         else:
             out.update(score=float(r.mean()), returns=r.tolist())

@@ -12,10 +12,16 @@ episode's last step is then its "at any step" success, whatever ends the episode
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import gymnasium
 import numpy as np
 
-__all__ = ["SUCCESS", "SuccessInfo", "reads_success", "success_reader"]
+if TYPE_CHECKING:  # the wrapper needs neither: make_env's workers import it cheaply
+    import torch
+    from tensordict import TensorDictBase
+
+__all__ = ["SUCCESS", "SuccessInfo", "reads_success", "reported_success", "success_reader"]
 
 SUCCESS = "success"
 """the info key (and the TorchRL key under ``"next"``)"""
@@ -75,3 +81,10 @@ def success_reader(batch_size: tuple[int, ...] = ()):
 
     spec = Composite({SUCCESS: Unbounded(shape=batch_size, dtype=torch.bool)}, shape=batch_size)
     return default_info_dict_reader([SUCCESS], spec=spec)
+
+
+def reported_success(out: TensorDictBase) -> torch.Tensor:
+    """The env's own flag at an episode's last step, ``[lanes]`` bool: with
+    :class:`SuccessInfo` it is set from the episode's first success on, so this is
+    Meta-World's "success at any step" (a ``success_fn`` of ``episode_returns``)."""
+    return out.get(("next", SUCCESS)).reshape(-1)

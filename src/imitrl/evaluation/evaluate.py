@@ -19,7 +19,7 @@ from torchrl.envs.utils import ExplorationType
 from imitrl import keys
 from imitrl.data.returns import SuccessFn, episode_returns
 from imitrl.data.rollout import policy_errors_named, rollout_policy
-from imitrl.envs.success import SUCCESS
+from imitrl.envs.success import SUCCESS, reported_success
 from imitrl.envs.tabular_env import TabularEnv
 from imitrl.evaluation.statistics import t_interval
 from imitrl.evaluation.tabular import exact_values
@@ -106,12 +106,6 @@ def _tabular_success(env: TabularEnv) -> SuccessFn:
     return success
 
 
-def _reported_success(out) -> torch.Tensor:
-    """The env's own flag at an episode's last step (``make_env``'s ``success``: set from
-    the episode's first success on, so this is Meta-World's "success at any step")."""
-    return out.get((keys.NEXT, SUCCESS)).reshape(-1)
-
-
 def evaluate(
     env: EnvBase,
     policy: Learner | Expert | TensorDictModuleBase,
@@ -165,7 +159,7 @@ def evaluate(
     if success_fn is None and tabular:
         success_fn = _tabular_success(env)
     elif success_fn is None and SUCCESS in env.observation_spec.keys():
-        success_fn = _reported_success
+        success_fn = reported_success
     with policy_errors_named(env, actor):
         summary = episode_returns(
             env,

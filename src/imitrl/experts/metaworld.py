@@ -19,6 +19,7 @@ import warnings
 
 import numpy as np
 import torch
+from torchrl.data import Bounded
 
 from imitrl import keys
 from imitrl.policies.experts import Expert
@@ -60,4 +61,7 @@ def metaworld_expert(task: str, *, observation_key=None) -> Expert:
             ``agent_pos``.
     """
     key = keys.OBSERVATION if observation_key is None else observation_key
-    return Expert.from_callable(_LanePolicy(task), observation_key=key, clip=True)
+    # every task's action space (so the labels are clipped wherever the expert acts,
+    # before any env binds it: as_actor(expert), a DAgger relabel)
+    spec = Bounded(low=-1.0, high=1.0, shape=(4,), dtype=torch.float32)
+    return Expert.from_callable(_LanePolicy(task), action_spec=spec, observation_key=key, clip=True)

@@ -1,0 +1,225 @@
+"""``metaworld_mt10.py``'s tables and figure: success per task with Wilson intervals, the
+aggregate across tasks (IQM, optimality gap, probability of improvement over MSE with
+stratified bootstrap intervals), and the DAgger target."""
+
+from __future__ import annotations
+
+import statistics
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+
+import _report
+from imitrl.evaluation import wilson_interval
+from imitrl.evaluation.aggregate import (
+    iqm,
+    optimality_gap,
+    stratified_bootstrap,
+    stratified_bootstrap_pair,
+)
+from imitrl.plotting import save_figure
+
+ALGORITHMS = ("bc", "dagger", "bc_matched")
+LABELS = {"bc": "BC", "dagger": "DAgger", "bc_matched": "BC at DAgger's queries"}
+TARGET, TARGET_TASKS = 0.95, 8
+BASELINE = "mse"
+REPS = 2000
+
+
+def _split(name: str) -> tuple[str, int]:
+    task, demos = name.split("/")
+    return task, int(demos.removesuffix("demo"))
+
+
+def _pooled(rows: list[dict]) -> tuple[int, int]:
+    return sum(r["successes"] for r in rows), sum(r["episodes"] for r in rows)
+
+
+def _fmt(k: int, n: int) -> str:
+    if n == 0:
+        return "-"
+    lo, hi = wilson_interval(k, n)
+    return f"{k / n:.2f} [{lo:.2f}, {hi:.2f}]"
+
+
+def _groups(payload: dict) -> tuple[dict, dict]:
+    cells: dict = defaultdict(list)  # (task, demos, loss, algorithm) -> rows over seeds
+    for r in payload["rows"]:
+        task, demos = _split(r["task"])
+        cells[(task, demos, r["loss"], r["algorithm"])].append(r)
+    expert: dict = defaultdict(list)  # (task, demos) -> expert rows over seeds
+    for r in payload["references"]:
+        if r["policy"] == "expert":
+            expert[_split(r["task"])].append(r)
+    return cells, expert
+
+
+def normalised(payload: dict) -> dict:
+    """``{(loss, demos, algorithm): [seeds, tasks]}`` of success / the expert's success
+    on the same seed's held-out starts (1 where the expert failed every episode)."""
+    cells, expert = _groups(payload)
+    config = payload["config"]
+    out = {}
+    for loss in config["losses"]:
+        for demos in config["demos"]:
+            for algorithm in ALGORITHMS:
+                grid = np.full((config["seeds"], len(config["tasks"])), np.nan)
+                for j, task in enumerate(config["tasks"]):
+                    ref = {r["seed"]: r["score"] for r in expert[(task, demos)]}
+                    for r in cells.get((task, demos, loss, algorithm), []):
+                        e = ref.get(r["seed"], 0.0)
+                        grid[r["seed"], j] = r["score"] / e if e > 0 else 1.0
+                if not np.isnan(grid).any():
+                    out[(loss, demos, algorithm)] = grid
+    return out
+
+
+def target_counts(payload: dict) -> dict:
+    """``{(loss, demos): tasks where DAgger's pooled success >= TARGET x the expert's}``."""
+    cells, expert = _groups(payload)
+    config = payload["config"]
+    out = {}
+    for loss in config["losses"]:
+        for demos in config["demos"]:
+            met = []
+            for task in config["tasks"]:
+                k, n = _pooled(cells.get((task, demos, loss, "dagger"), []))
+                ek, en = _pooled(expert[(task, demos)])
+                if n and en and k / n >= TARGET * (ek / en):
+                    met.append(task)
+            out[(loss, demos)] = met
+    return out
+
+
+def markdown(payload: dict, figure_name: str) -> str:
+    config, proto = payload["config"], next(iter(payload["config"]["protocol"].values()))
+    cells, expert = _groups(payload)
+    bc = proto["bc"]
+    head = (
+        f"MT10 tasks {len(config['tasks'])}, demonstrations {config['demos']}, losses "
+        f"{config['losses']}, {config['seeds']} seed(s); each cell: demonstrations of the "
+        f"scripted expert, BC fit {bc['num_steps']} steps x batch {bc['batch_size']} "
+        f"(ACT: its own batch), MLP {proto['learner']['hidden']} lr {proto['learner']['lr']}, "
+        f"DAgger {proto['rounds'] - 1} relabel rounds x {proto['episodes_per_round']} "
+        f"episodes (beta 0, warm start, {proto['round_steps']} steps a round), BC at "
+        f"DAgger's query budget; evaluation {proto['eval_episodes']} held-out episodes of at "
+        f"most {proto['max_episode_steps']} steps, success = `info['success']` at any step. "
+        f"Wall time {payload['wall_seconds'] / 60:.1f} min with {config['jobs']} process(es) "
+        f"at 1 thread, 1-min load {payload['load_average_start'][0]:.2f} at the start and "
+        f"{payload['load_average_end'][0]:.2f} at the end (2 cores)."
+    )
+    counts = target_counts(payload)
+    best = max(counts.items(), key=lambda kv: len(kv[1]))
+    met = len(best[1]) >= TARGET_TASKS and best[0][1] <= 5
+    verdict = (
+        f"**Target** (DAgger >= {TARGET:.2f} of the expert's success on >= {TARGET_TASKS} of "
+        f"10 tasks from <= 5 demonstrations): {'met' if met else 'not met'}. Tasks reached, "
+        "per loss and demonstrations: "
+        + "; ".join(f"{loss} {d} demo(s): {len(t)}" for (loss, d), t in counts.items())
+        + "."
+    )
+    rows = []
+    for task in config["tasks"]:
+        for demos in config["demos"]:
+            for loss in config["losses"]:
+                got = {a: cells.get((task, demos, loss, a), []) for a in ALGORITHMS}
+                queries = [r["rows_trained"] for r in got["dagger"]]
+                rows.append(
+                    [task, demos, loss]
+                    + [_fmt(*_pooled(got[a])) for a in ALGORITHMS]
+                    + [f"{statistics.median(queries):.0f}" if queries else "-"]
+                    + [_fmt(*_pooled(expert[(task, demos)]))]
+                )
+    per_task = _report.table(
+        ["task", "demos", "loss", *[LABELS[a] for a in ALGORITHMS], "DAgger queries", "expert"],
+        rows,
+    )
+    agg_rows = []
+    scores = normalised(payload)
+    for (loss, demos, algorithm), grid in scores.items():
+        i = stratified_bootstrap(grid, iqm, reps=REPS)
+        g = stratified_bootstrap(grid, optimality_gap, reps=REPS)
+        base = scores.get((BASELINE, demos, algorithm))
+        p = "-"
+        if base is not None and loss != BASELINE:
+            pi = stratified_bootstrap_pair(grid, base, reps=REPS)
+            p = f"{pi.point:.2f} [{pi.low:.2f}, {pi.high:.2f}]"
+        agg_rows.append(
+            [
+                loss,
+                demos,
+                LABELS[algorithm],
+                f"{i.point:.2f} [{i.low:.2f}, {i.high:.2f}]",
+                f"{g.point:.2f} [{g.low:.2f}, {g.high:.2f}]",
+                p,
+            ]
+        )
+    aggregate = _report.table(
+        ["loss", "demos", "algorithm", "IQM", "optimality gap", f"P(better than {BASELINE})"],
+        agg_rows,
+    )
+    return "\n\n".join(
+        [
+            head,
+            verdict,
+            "Success rate per task (pooled over seeds, 95% Wilson interval); DAgger's "
+            "queries: the expert-labelled rows its last fit saw (demonstrations included), "
+            "the budget BC at DAgger's queries gets.",
+            per_task,
+            "Across tasks: expert-normalised success (success / the expert's on the same "
+            "held-out starts), 95% stratified bootstrap intervals over seeds "
+            f"({REPS} replicates).",
+            aggregate,
+            f"![Meta-World MT10]({figure_name})",
+        ]
+    )
+
+
+def figure(payload: dict, path: Path) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    config = payload["config"]
+    scores = normalised(payload)
+    cells, expert = _groups(payload)
+    demos = max(config["demos"])
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(13, 4.6), gridspec_kw={"width_ratios": [3, 2]})
+    tasks = config["tasks"]
+    x = np.arange(len(tasks))
+    loss = config["losses"][0]
+    width = 0.2
+    bars = [("expert", None), *[(a, a) for a in ALGORITHMS]]
+    for i, (label, algorithm) in enumerate(bars):
+        values = []
+        for task in tasks:
+            rows = (
+                expert[(task, demos)]
+                if algorithm is None
+                else cells.get((task, demos, loss, algorithm), [])
+            )
+            k, n = _pooled(rows)
+            values.append(k / n if n else np.nan)
+        ax1.bar(x + (i - 1.5) * width, values, width, label=LABELS.get(label, "expert"))
+    ax1.set_xticks(x, [t.removesuffix("-v3") for t in tasks], rotation=35, ha="right")
+    ax1.set_ylim(0, 1.05)
+    ax1.set_ylabel("success rate (pooled over seeds)")
+    ax1.set_title(f"per task, {loss}, {demos} demonstration(s)")
+    ax1.legend(fontsize=8, loc="lower left")
+    labels, points, errs = [], [], []
+    for (name, d, algorithm), grid in scores.items():
+        i = stratified_bootstrap(grid, iqm, reps=REPS)
+        labels.append(f"{name} {d}d {LABELS[algorithm]}")
+        points.append(i.point)
+        errs.append((i.point - i.low, i.high - i.point))
+    y = np.arange(len(labels))
+    ax2.errorbar(points, y, xerr=np.array(errs).T if errs else None, fmt="o", ms=4, capsize=2)
+    ax2.set_yticks(y, labels, fontsize=7)
+    ax2.invert_yaxis()
+    ax2.axvline(1.0, color="grey", lw=0.8, ls="--")
+    ax2.set_xlabel("IQM of expert-normalised success (95% bootstrap)")
+    ax2.set_title("aggregate over MT10")
+    fig.tight_layout()
+    return save_figure(fig, path)
