@@ -55,19 +55,23 @@ LOSSES = ("mse", "flow_chunk", "act", "diffusion_chunk")
 DEMOS = (1, 5)
 PROTOCOL = Protocol(
     demo_episodes=5,
-    rounds=4,
-    episodes_per_round=2,
-    bc=BCConfig(num_steps=1000, batch_size=256),
-    learner=LearnerConfig(hidden=(256, 256), lr=1e-3),
-    eval_episodes=10,
-    max_episode_steps=200,
-    round_steps=400,
+    rounds=3,
+    episodes_per_round=3,
+    bc=BCConfig(num_steps=400, batch_size=256),
+    learner=LearnerConfig(hidden=(128, 128), lr=3e-3),
+    eval_episodes=6,
+    max_episode_steps=150,
+    round_steps=200,
     matched=True,
 )
-"""every cell's budget; the demonstrations per task variant (``DEMOS``) replace
-``demo_episodes``. Episodes are cut at 200 steps: the experts succeed by step 46-98 in
-the median (``tests/test_metaworld.py``), and a failing learner's episode would
-otherwise cost 500 steps of simulation."""
+"""every cell's budget, sized so that the full run (10 tasks x 2 demonstration counts x
+4 losses x 5 seeds, ``--jobs 2``) fits an hour on 2 cores (measured on pick-place, one
+seed: 6 evaluation episodes a learner and 400-step fits, about 130 core-seconds a task
+and seed; 10 episodes and 1000-step fits took three times as long); the demonstrations per task
+variant (``DEMOS``) replace ``demo_episodes``, and BC at DAgger's query budget runs from
+the largest number of demonstrations only. Episodes are cut at 150 steps: the experts
+succeed by step 46-98 in the median (``tests/test_metaworld.py``), and a failing
+learner's episode would otherwise cost 500 steps of simulation."""
 
 
 def task_defs(tasks: tuple[str, ...], demos: tuple[int, ...], quick: bool) -> list[TaskDef]:
@@ -75,7 +79,7 @@ def task_defs(tasks: tuple[str, ...], demos: tuple[int, ...], quick: bool) -> li
     out = []
     for task in tasks:
         for n in demos:
-            protocol = replace(PROTOCOL, demo_episodes=n)
+            protocol = replace(PROTOCOL, demo_episodes=n, matched=n == max(demos))
             out.append(
                 TaskDef(
                     f"{task}/{n}demo",

@@ -38,6 +38,7 @@ set for you when ``MUJOCO_GL`` is unset and there is no display) or ``osmesa``.
 from __future__ import annotations
 
 import os
+import pickle
 
 import gymnasium
 import numpy as np
@@ -220,12 +221,22 @@ def make_task(
     if render_mode is not None and "MUJOCO_GL" not in os.environ and not os.environ.get("DISPLAY"):
         # headless: MuJoCo's default (glfw) needs a display; EGL renders without one
         os.environ["MUJOCO_GL"] = "egl"
-    metaworld = _import_metaworld()
-    benchmark = metaworld.MT1(task, seed=0)  # the task's first variation: set_task needs one
-    raw = benchmark.train_classes[task](
-        render_mode=render_mode, camera_name=camera_name, width=width, height=height
-    )
-    raw.set_task(benchmark.train_tasks[0])
+    _import_metaworld()
+    from metaworld.env_dict import ALL_V3_ENVIRONMENTS
+    from metaworld.types import Task
+
+    cls = ALL_V3_ENVIRONMENTS[task]
+    raw = cls(render_mode=render_mode, camera_name=camera_name, width=width, height=height)
+    # set_task needs a first placement; every reset draws its own below (seeded_rand_vec),
+    # so the middle of the task's range serves (metaworld.MT1 would simulate 50 resets to
+    # pick one: 0.7 s an env). The task data is what MT1 builds (its _make_tasks).
+    space = raw._random_reset_space
+    first = {
+        "env_cls": cls,
+        "rand_vec": (space.low + space.high) / 2,
+        "partially_observable": False,
+    }
+    raw.set_task(Task(env_name=task, data=pickle.dumps(first)))
     if camera_name == CAMERA:
         raw.model.cam_pos[2] = [0.75, 0.075, 0.7]  # LeRobot's corner2
     # the time limit is gymnasium's TimeLimit (the id's 500, or make_env's max_episode_steps):
