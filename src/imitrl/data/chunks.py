@@ -46,6 +46,7 @@ __all__ = [
     "IS_INIT",
     "add_chunk_labels",
     "chunk_labels",
+    "episode_order",
 ]
 
 EXPERT_CHUNK = "expert_action_chunk"
@@ -56,6 +57,20 @@ ACTION_CHUNK = "action_chunk"
 """``[N, H, *action]`` the actions a chunked learner predicts (written by the learner)"""
 IS_INIT = "is_init"
 """TorchRL's ``InitTracker`` key: the lane was just reset (a chunked policy replans)"""
+
+
+def episode_order(episode: torch.Tensor, step: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``order [N]``: the rows sorted by (episode, step); ``same [N-1]``: sorted row ``j+1``
+    is in sorted row ``j``'s episode. ValueError unless each episode's steps are
+    consecutive integers (rows may come in any order)."""
+    episode, step = episode.long(), step.long()
+    order = torch.argsort(step, stable=True)
+    order = order[torch.argsort(episode[order], stable=True)]  # by (episode, step)
+    e, t = episode[order], step[order]
+    same = e[1:] == e[:-1]
+    if bool((same & (t[1:] != t[:-1] + 1)).any()):
+        raise ValueError("each episode's steps must be consecutive integers (a gap or a repeat)")
+    return order, same
 
 
 def chunk_labels(
@@ -94,13 +109,7 @@ def chunk_labels(
         raise ValueError(
             f"need one expert_executed flag per row, got {tuple(expert_executed.shape)} for {n} rows"
         )
-    episode, step = episode.long(), step.long()
-    order = torch.argsort(step, stable=True)
-    order = order[torch.argsort(episode[order], stable=True)]  # by (episode, step)
-    e, t = episode[order], step[order]
-    same = e[1:] == e[:-1]
-    if bool((same & (t[1:] != t[:-1] + 1)).any()):
-        raise ValueError("each episode's steps must be consecutive integers (a gap or a repeat)")
+    order, same = episode_order(episode, step)
     is_last = torch.ones(n, dtype=torch.bool)
     is_last[:-1] = ~same
     # last[j]: the sorted index of the final row of row j's chunk: the episode's last row,

@@ -19,6 +19,7 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 
 from imitrl import keys
+from imitrl.data.chunks import episode_order
 
 __all__ = ["OBS_HISTORY", "add_observation_history", "observation_history"]
 
@@ -44,13 +45,7 @@ def observation_history(
             f"need one episode id and step per row: obs {tuple(obs.shape)}, episode "
             f"{tuple(episode.shape)}, step {tuple(step.shape)}"
         )
-    episode, step = episode.long(), step.long()
-    order = torch.argsort(step, stable=True)
-    order = order[torch.argsort(episode[order], stable=True)]  # by (episode, step)
-    e, t = episode[order], step[order]
-    same = e[1:] == e[:-1]
-    if bool((same & (t[1:] != t[:-1] + 1)).any()):
-        raise ValueError("each episode's steps must be consecutive integers (a gap or a repeat)")
+    order, same = episode_order(episode, step)
     starts = torch.ones(rows, dtype=torch.bool)
     starts[1:] = ~same
     first = torch.cummax(torch.where(starts, torch.arange(rows), 0), 0).values  # episode start

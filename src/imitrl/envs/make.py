@@ -203,6 +203,13 @@ def _single(
     return env
 
 
+def _reads(env: EnvBase) -> bool:
+    """``env`` (built by :func:`_single`) reads ``info["success"]``: an info reader, which
+    the direct path does not step."""
+    base = env.base_env if isinstance(env, TransformedEnv) else env
+    return reads_success(wrapped_gym_env(base))
+
+
 def _observes_dict(env: EnvBase) -> bool:
     """``env`` (built by :func:`_single`) observes a renamed ``Dict``: the direct path
     (:mod:`imitrl.runtime.fast.env_steps`), which converts one array per step, cannot step it."""
@@ -220,7 +227,7 @@ def make_env(
     max_episode_steps: int | None = None,
     pixels: tuple[int, int] | None = None,
     env_kwargs: dict | None = None,
-    success: bool | None = None,
+    success: bool = False,
 ) -> EnvBase:
     """A seeded TorchRL env for a registered gymnasium id.
 
@@ -249,9 +256,8 @@ def make_env(
             **env_kwargs)``), e.g. ``{"obs_type": "pixels_agent_pos"}`` for Meta-World.
         success: read the env's ``info["success"]`` into ``("next", "success")``, a bool
             set from the episode's first success on (:mod:`imitrl.envs.success`), which
-            ``evaluate`` reports. None: on for the ``metaworld/`` ids
-            (:mod:`imitrl.envs.metaworld`, which end episodes at their first success), off
-            for the others.
+            ``evaluate`` reports. An env built as a ``SuccessInfo`` (the ``metaworld/``
+            ids, :mod:`imitrl.envs.metaworld`) is read in any case.
 
     Returns:
         a TorchRL env: ``"observation"`` float32 ``[*batch, d]`` (int64 ``[*batch]``
@@ -269,7 +275,7 @@ def make_env(
     """
     _spec(env_id)
     env_kwargs = _check_kwargs(env_kwargs)
-    success = env_id.startswith(METAWORLD_PREFIX) if success is None else bool(success)
+    success = bool(success)
     checks.integer(seed, "seed")  # every copy's seed derives from it: None is a mistake here
     if int(num_envs) != num_envs or num_envs < 1:
         raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
@@ -300,7 +306,7 @@ def make_env(
     if num_envs == 1:
         env = _single(env_id, frame_skip, max_episode_steps, seed, pixels, env_kwargs, success)
         # rollouts step a plain one directly (imitrl.runtime.paths.stepper): same episodes
-        plain = pixels is None and frame_skip == 1 and not (_observes_dict(env) or success)
+        plain = pixels is None and frame_skip == 1 and not (_observes_dict(env) or _reads(env))
         return mark_plain_gym(env) if plain else env
     if pixels is not None:
         raise ValueError("pixels needs num_envs=1 or parallel=True (one renderer per copy)")
@@ -313,7 +319,7 @@ def make_env(
         )
     probe = _gym(env_id, max_episode_steps, False, env_kwargs, success)
     discrete, double = _check_spaces(probe, env_id)
-    observes_dict = isinstance(probe, DictObservation)
+    observes_dict, reads = isinstance(probe, DictObservation), reads_success(probe)
     probe.close()
     vec = gymnasium.vector.SyncVectorEnv(
         [
@@ -323,12 +329,12 @@ def make_env(
         autoreset_mode=gymnasium.vector.AutoresetMode.DISABLED,
     )
     env = GymWrapper(vec, categorical_action_encoding=discrete)
-    if success:
+    if reads:
         env.set_info_dict_reader(success_reader((num_envs,)))
     if double:
         env = TransformedEnv(env, DoubleToFloat())
     env.set_seed(seed)  # SyncVectorEnv seeds copy i with seed + i
-    return env if observes_dict or success else mark_plain_gym(env)
+    return env if observes_dict or reads else mark_plain_gym(env)
 
 
 def _check_kwargs(env_kwargs) -> dict:
