@@ -89,11 +89,11 @@ def test_other_optimizers_hooks_and_groups_keep_their_own_step():
 
 def test_a_fit_trains_as_plain_adam_steps_do():
     from imitrl.algorithms import BCConfig, fit_bc
-    from imitrl.runtime import paths
     from imitrl.data import rollout_episodes
     from imitrl.envs import make_env
     from imitrl.experts import pendulum_expert
     from imitrl.policies import ActorCritic
+    from imitrl.runtime import paths
 
     env = make_env("Pendulum-v1", seed=0)
     rows = rollout_episodes(env, pendulum_expert(), 1)

@@ -91,14 +91,14 @@ class BCConfig:
     precision: str = "fp32"
     """``"fp32"``; ``"bf16"``: each step's loss computed under ``torch.autocast`` in
     bfloat16 on the learner's device (weights, gradients and the optimizer stay
-    float32). Off by default: on a 2-core CPU it ran the MLP fit at 0.78x and the CNN fit
-    at 1.37x float32's speed, final loss within 1.4% on one seed
+    float32). Off by default: on a 2-core CPU it ran the MLP fit at 0.74x and the CNN fit
+    at 1.27x float32's speed, final loss within 1.4% on one seed
     (``benchmarks/fit_options.py``); not on by default for pixels until a multi-seed
     accuracy comparison and a GPU measurement back it"""
 
     compile: bool = False
     """run the loss through ``torch.compile`` (compiled at the fit's first step: tens
-    of seconds on a 2-core CPU). Off by default: 1.00x (MLP) and 0.88x (CNN) the eager
+    of seconds on a 2-core CPU). Off by default: 0.84x (MLP) and 0.78x (CNN) the eager
     fit's speed on a 2-core CPU, the same losses (``benchmarks/fit_options.py``); no GPU
     measurement yet"""
 

@@ -1,9 +1,9 @@
 """How many CPU threads torch uses (:func:`set_threads`), and the default's reason.
 
 torch starts with one intra-op thread per core. On the 2-core machines this project is
-measured on, two threads made 100 ``fit_bc`` steps 1.9x to 3.6x slower than one beside
+measured on, two threads made 100 ``fit_bc`` steps 2.6x to 6.3x slower than one beside
 a single busy core (another test, a second job, the OS), while on a quiet machine they
-saved 30-40% of a small CNN's time and nothing on a 64-64 MLP: each op
+saved 20-35% of a small CNN's time and at most 20% on a 64-64 MLP: each op
 waits for its slowest thread, and a thread that shares its core waits for the core
 (oversubscription; a plain torch loop slows the same way). Measured by
 ``benchmarks/threads.py`` (numbers and machine load in ``benchmarks/README.md``), the
