@@ -57,21 +57,24 @@ PROTOCOL = Protocol(
     demo_episodes=5,
     rounds=3,
     episodes_per_round=3,
-    bc=BCConfig(num_steps=400, batch_size=256),
+    bc=BCConfig(num_steps=320, batch_size=256),
     learner=LearnerConfig(hidden=(128, 128), lr=3e-3),
-    eval_episodes=6,
+    eval_episodes=5,
     max_episode_steps=150,
-    round_steps=200,
+    round_steps=160,
     matched=True,
 )
 """every cell's budget, sized so that the full run (10 tasks x 2 demonstration counts x
-4 losses x 5 seeds, ``--jobs 2``) fits an hour on 2 cores (measured on pick-place, one
-seed: 6 evaluation episodes a learner and 400-step fits, about 130 core-seconds a task
-and seed; 10 episodes and 1000-step fits took three times as long); the demonstrations per task
-variant (``DEMOS``) replace ``demo_episodes``, and BC at DAgger's query budget runs from
-the largest number of demonstrations only. Episodes are cut at 150 steps: the experts
-succeed by step 46-98 in the median (``tests/test_metaworld.py``), and a failing
-learner's episode would otherwise cost 500 steps of simulation."""
+4 losses x 5 seeds, ``--jobs 2``) fits an hour on 2 cores. Measured: at 400-step fits,
+200-step rounds and 6 evaluation episodes the full run took 64.2 min (120 core-minutes of
+cells: fits 45, of which ACT's 35; evaluations 37; the rest rollouts and DAgger's
+queries), so fits and rounds were cut by a fifth and evaluations by a sixth (about 15
+core-minutes); 1000-step fits and 10 episodes had cost three times as much on
+pick-place. The demonstrations per task variant (``DEMOS``) replace ``demo_episodes``,
+and BC at DAgger's query budget runs from the largest number of demonstrations only.
+Episodes are cut at 150 steps: the experts succeed by step 46-98 in the median
+(``tests/test_metaworld.py``), and a failing learner's episode would otherwise cost 500
+steps of simulation."""
 
 
 def task_defs(tasks: tuple[str, ...], demos: tuple[int, ...], quick: bool) -> list[TaskDef]:

@@ -186,12 +186,32 @@ def test_the_ema_decay_schedule_and_update_by_hand():
     expect = d * (w0 + 1.0) + (1 - d) * (w0 + 2.0)
     ema.update()
     assert torch.allclose(ema.averaged.weight, expect) and int(ema.step) == 3
-    own = model.weight.detach().clone()
-    with ema.swapped_in():
-        assert torch.equal(model.weight, ema.averaged.weight)
-    assert torch.equal(model.weight, own)
     state = ema.state_dict()
     assert "step" in state and "averaged.weight" in state  # checkpoints carry the average
+
+
+def test_ema_training_swaps_the_trained_weights_in_and_the_average_out():
+    model = torch.nn.Linear(2, 1)
+    ema = EMA(model)
+    w0 = model.weight.detach().clone()
+    with ema.trained_weights():
+        assert torch.equal(model.weight, w0)  # the trained copy starts as the model
+        with torch.no_grad():
+            model.weight.add_(1.0)
+        ema.update()  # decay 0: the average is the weights
+        with torch.no_grad():
+            model.weight.add_(2.0)
+        ema.update()  # decay 0 again (step 1)
+        with torch.no_grad():
+            model.weight.add_(4.0)
+        d = ema.decay()
+        ema.update()
+    average = d * (w0 + 3.0) + (1 - d) * (w0 + 7.0)
+    assert torch.allclose(model.weight, average)  # outside: the model acts with the average
+    assert torch.equal(ema.trained.weight, w0 + 7.0)
+    with ema.trained_weights():  # the next fit continues from the trained weights, not the average
+        assert torch.equal(model.weight, w0 + 7.0)
+    assert torch.allclose(model.weight, average)
 
 
 # ------------------------------------------------------------------------ histories

@@ -12,7 +12,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from imitrl import keys
 from imitrl.algorithms import BCConfig, DAggerConfig, EnvSource, dagger, fit_bc
 from imitrl.data import DemonstrationBuffer, rollout_episodes
-from imitrl.data.chunks import EXPERT_CHUNK, IS_INIT, add_chunk_labels
+from imitrl.data.chunks import EXPERT_CHUNK, IS_INIT
 from imitrl.envs import TabularEnv
 from imitrl.objectives import (
     AdvantageWeightedLoss,
@@ -68,7 +68,8 @@ def test_every_entry_builds_acts_and_trains(name, tname):
     learner = registry.build(name, task, CONFIG)
     assert isinstance(learner, Learner)
     horizon = registry.get(name).horizon
-    rows = _rows(task) if horizon is None else add_chunk_labels(_rows(task), horizon)
+    assert learner.horizon == horizon and learner.history == registry.get(name).history
+    rows = learner.training_rows(_rows(task))  # chunk labels and histories, where it needs them
     # acts: one action per row, of the action space's dtype, inside the bounds (a chunked
     # learner: the first action of a fresh plan)
     inputs = rows.select(keys.OBSERVATION).clone()

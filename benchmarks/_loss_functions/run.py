@@ -21,7 +21,6 @@ from _loss_functions.tasks import TaskDef, build
 from imitrl import keys
 from imitrl.algorithms import DAggerConfig, dagger, fit_bc
 from imitrl.data import DemonstrationBuffer
-from imitrl.data.chunks import add_chunk_labels
 from imitrl.objectives import registry
 from imitrl.objectives.registry import Learner
 from imitrl.policies import as_actor
@@ -52,10 +51,8 @@ def loss_cell(defn: TaskDef, loss: str, seed: int, quick_mode: bool) -> list[dic
     proto = task.protocol
     spec = task.spec()
     config = replace(proto.learner, seed=seed)
-    entry = registry.get(loss)
-    bc = replace(proto.bc, seed=seed)
-    if entry.batch_size is not None and bc.batch_size is not None:
-        bc = replace(bc, batch_size=entry.batch_size)  # the loss's own recipe (ACT)
+    # the loss's own recipe: ACT's minibatch, Diffusion Policy's warm-up and cosine decay
+    bc = registry.fit_config(loss, replace(proto.bc, seed=seed))
     warm = proto.round_steps is not None
 
     # 1. demonstrations: a recorded dataset, or the expert drives the env (every row labelled)
@@ -75,15 +72,14 @@ def loss_cell(defn: TaskDef, loss: str, seed: int, quick_mode: bool) -> list[dic
     fit_seconds: list[float] = []
     fit_configs: list = []  # each fit's steps and batch size
 
-    horizon = entry.horizon
-
     def timed_fit(learner: Learner, buf: DemonstrationBuffer):
+        # what dagger does without train=, timed; a chunked learner's fit adds every row's
+        # label chunk (and history) from the (relabelled) rows of its episode
         t = time.perf_counter()
-        # a chunked learner: every row's label chunk, from the (relabelled) rows of its
-        # episode (imitrl.data.chunks); otherwise what dagger does without train=, timed
-        rows = buf if horizon is None else add_chunk_labels(buf.data, horizon)
         config = replace(bc, num_steps=proto.round_steps) if warm and fit_seconds else bc
-        out = fit_bc(learner, rows, config)
+        if warm and fit_seconds:
+            config = registry.fit_config(loss, config)  # its warm-up sized to this fit
+        out = fit_bc(learner, buf, config)
         fit_seconds.append(time.perf_counter() - t)
         fit_configs.append(config)
         return out
@@ -124,10 +120,10 @@ def loss_cell(defn: TaskDef, loss: str, seed: int, quick_mode: bool) -> list[dic
         learner_m = registry.build(loss, spec, config)
         matched = _expert_rows(env, expert, records[-1][1], task.max_steps(), seed)
         t = time.perf_counter()
-        rows_m = matched if horizon is None else add_chunk_labels(matched, horizon)
-        fit_m = fit_bc(learner_m, rows_m, replace(bc, num_steps=steps))
+        config_m = registry.fit_config(loss, replace(bc, num_steps=steps))
+        fit_m = fit_bc(learner_m, matched, config_m)
         fit_seconds.append(time.perf_counter() - t)
-        fit_configs.append(replace(bc, num_steps=steps))
+        fit_configs.append(config_m)
         on_fit(proto.rounds, learner_m)
         records.append((learner_m, matched.shape[0], fit_m))
     env.close()

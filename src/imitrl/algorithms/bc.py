@@ -83,6 +83,11 @@ class BCConfig:
     of ``torch.optim.lr_scheduler.CosineAnnealingLR``); every fit starts again from the
     optimizer's own rate, which the fit restores when it ends"""
 
+    warmup_steps: int = 0
+    """steps of a linear warm-up of the learning rate from 0 at the start of every fit
+    (before ``lr_schedule``'s constant rate or cosine decay, which then runs over the
+    remaining steps; Diffusion Policy warms up over 500)"""
+
     full_batch_max_rows: int | None = 1 << 20
     """the most rows a full-batch fit (``batch_size=None``) runs on before it is refused
     (activations for every row every step; distinct pairs are not limited); None = no
@@ -107,6 +112,7 @@ class BCConfig:
         checks.integer(self.batch_size, "BCConfig.batch_size", minimum=1, none_ok=True)
         checks.integer(self.seed, "BCConfig.seed")
         checks.boolean(self.deduplicate, "BCConfig.deduplicate", none_ok=True)
+        checks.integer(self.warmup_steps, "BCConfig.warmup_steps", minimum=0)
         if self.lr_schedule not in LR_SCHEDULES:
             raise ValueError(f"lr_schedule must be one of {LR_SCHEDULES}, got {self.lr_schedule!r}")
         checks.integer(
@@ -182,6 +188,24 @@ def distinct_pairs(
     out.set(keys.OBSERVATION, (codes // base).to(obs.dtype))
     out.set(label_key, (codes % base).to(label.dtype))
     return out, counts
+
+
+def _with_training_columns(
+    learner: Learner, data: DemonstrationBuffer | TensorDictBase
+) -> DemonstrationBuffer | TensorDictBase:
+    """``data`` with the chunk labels and histories the learner's rows need
+    (:meth:`Learner.training_rows`), or ``data`` itself when it needs none."""
+    if learner.horizon is None and learner.history is None:
+        return data
+    if isinstance(data, DemonstrationBuffer):
+        if data.path is not None:
+            raise ValueError(
+                "a learner of chunks or observation histories needs its rows' episodes in "
+                "memory to label them: fit it on an in-memory buffer (or rows you labelled "
+                "with Learner.training_rows)"
+            )
+        data = data.data
+    return learner.training_rows(data)
 
 
 def _dedup(learner: Learner, rows: TensorDictBase, config: BCConfig):
@@ -304,14 +328,28 @@ def _zero_grad(opt: torch.optim.Optimizer) -> Callable[[], None]:
 
 
 class _Cosine:
-    """The cosine decay of one fit over ``opt``'s own learning rates (BCConfig.lr_schedule)."""
+    """One fit's schedule over ``opt``'s own learning rates (``BCConfig.lr_schedule`` and
+    ``warmup_steps``): a linear warm-up from 0, then constant or the cosine decay over the
+    remaining steps (diffusers' ``get_cosine_schedule_with_warmup``)."""
 
-    def __init__(self, opt: torch.optim.Optimizer, num_steps: int) -> None:
-        self.opt, self.num_steps = opt, max(int(num_steps), 1)
+    def __init__(
+        self, opt: torch.optim.Optimizer, num_steps: int, warmup: int = 0, kind: str = "cosine"
+    ) -> None:
+        self.opt, self.num_steps, self.warmup = opt, max(int(num_steps), 1), int(warmup)
+        self.cosine = kind == "cosine"
         self.base = [group["lr"] for group in opt.param_groups]
 
+    def scale(self, step: int) -> float:
+        """The factor on the optimizer's rate at ``step``."""
+        if step < self.warmup:
+            return step / self.warmup
+        if not self.cosine:
+            return 1.0
+        progress = (step - self.warmup) / max(1, self.num_steps - self.warmup)
+        return 0.5 * (1.0 + math.cos(math.pi * progress))
+
     def at(self, step: int) -> None:
-        scale = 0.5 * (1.0 + math.cos(math.pi * step / self.num_steps))
+        scale = self.scale(step)
         for group, lr in zip(self.opt.param_groups, self.base):
             group["lr"] = lr * scale
 
@@ -356,6 +394,7 @@ def fit_bc(
             f"fit_bc takes an imitrl Learner (ActorCritic, a registry learner), got "
             f"{type(learner).__name__}"
         )
+    data = _with_training_columns(learner, data)
     rows = _rows(data, list(learner.loss.in_keys))
     on_disk = isinstance(data, DemonstrationBuffer) and data.path is not None
     if on_disk:
@@ -388,11 +427,15 @@ def fit_bc(
         weights = None if weights is None else to_device(weights, device)
     losses = torch.empty(config.num_steps, device=device)  # recording never waits for it
     steps = tqdm(range(config.num_steps), desc="bc fit", disable=not progress, leave=False)
-    schedule = _Cosine(opt, config.num_steps) if config.lr_schedule == "cosine" else None
+    schedule = None
+    if config.lr_schedule == "cosine" or config.warmup_steps:
+        schedule = _Cosine(opt, config.num_steps, config.warmup_steps, config.lr_schedule)
+    ema = learner.ema
     if config.precision == "bf16":  # the forward in bfloat16; backward and the step float32
         objective = _bf16(objective, device)
     try:
-        with learner.loss.fitting():  # e.g. its networks without nn.Module.__call__
+        # e.g. its networks without nn.Module.__call__; an EMA learner's trained weights
+        with learner.loss.fitting(), learner.fitting_weights():
             for step in steps:
                 batch = batches.next() if minibatch else rows
                 if cross and minibatch:  # pinned, without blocking: runtime.device
@@ -403,6 +446,8 @@ def fit_bc(
                 if schedule is not None:
                     schedule.at(step)
                 opt_step()
+                if ema is not None:
+                    ema.update()
                 losses[step] = loss.detach()
     finally:
         if schedule is not None:

@@ -21,9 +21,17 @@ from tensordict import TensorDict, TensorDictBase
 from imitrl import keys
 from imitrl.data.chunks import episode_order
 
-__all__ = ["OBS_HISTORY", "add_observation_history", "observation_history"]
+__all__ = ["OBS_HISTORY", "add_observation_history", "history_key", "observation_history"]
 
-OBS_HISTORY = "observation_history"
+
+def history_key(key):
+    """The key of ``key``'s history: ``"<key>_history"`` (the last part of a nested key)."""
+    if isinstance(key, tuple):
+        return (*key[:-1], f"{key[-1]}_history")
+    return f"{key}_history"
+
+
+OBS_HISTORY = history_key(keys.OBSERVATION)
 """``[N, n, *obs]`` the row's last ``n`` observations in its episode, oldest first"""
 
 

@@ -62,5 +62,10 @@ LOSSES: tuple[tuple[str, str, str], ...] = (
         "continuous",
         "ACT (TorchRL ACTModel/ACTLoss, d=32, 1+1 layers) on chunks of 8, temporal ensembling (m=0.01); its own batch 128 and lr 0.003",
     ),
+    (
+        "diffusion_unet",
+        "continuous",
+        "Diffusion Policy: U-Net 32-64-128, T_o=2, T_p=16, executes 8; DDPM K=100 squaredcos_cap_v2, DDIM 10 steps; AdamW lr 0.001, EMA",
+    ),
 )
 """(name, actions, summary) of every loss of :mod:`imitrl.objectives.registry`"""

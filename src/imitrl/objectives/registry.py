@@ -27,14 +27,22 @@ l1                     continuous deterministic (tanh)  ``|mu(s) - a*|``
 smooth_l1              continuous deterministic (tanh)  Huber(1)
 mse_l2                 continuous deterministic (tanh)  MSE + 1e-4 ||W||^2
 diffusion              continuous DDPM (DiffusionActor) epsilon-prediction (DiffusionBCLoss), sampled
+                                  MLP baseline
 diffusion_ddim         continuous the same network      the same loss; sampled by DDIM in 8 steps
 flow                   continuous rectified flow        conditional flow matching, 8 Euler steps
 ====================== ========== ===================== =====================================
 
+``diffusion`` and ``diffusion_ddim`` are MLP baselines (an MLP score network on one
+observation, as TorchRL's ``DiffusionActor``); Diffusion Policy as its paper builds it
+is ``diffusion_unet`` (:mod:`imitrl.objectives.registry_chunks`).
+
 Chunked entries (``*_chunk``: the learner predicts the expert's next ``H`` actions;
 :mod:`imitrl.objectives.registry_chunks`) carry ``LossEntry.horizon``: their rows need
-chunk labels (:func:`imitrl.data.chunks.add_chunk_labels`) and their envs
-``is_init`` (:func:`imitrl.policies.chunking.chunk_env`).
+chunk labels (:func:`imitrl.data.chunks.add_chunk_labels`, which ``fit_bc`` adds:
+``Learner.horizon``) and their envs ``is_init`` (:func:`imitrl.policies.chunking.chunk_env`);
+``LossEntry.history`` says how many past observations a row must carry (``fit_bc`` adds
+them too), and ``LossEntry.recipe`` the fit schedule of the loss's recipe
+(:func:`fit_config`).
 
 Integer observations (tabular tasks) get a table of logits (``ActorCritic.tabular``),
 vector observations an MLP (``ActorCritic.mlp``). Each entry states how its policy
@@ -45,7 +53,7 @@ heads above, a sample for diffusion.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 
 import torch
 from torchrl.data import Bounded
@@ -67,6 +75,7 @@ __all__ = [
     "TaskSpec",
     "build",
     "entries",
+    "fit_config",
     "get",
     "mlp",
     "names",
@@ -148,6 +157,12 @@ class LossEntry:
     batch_size: int | None = None
     """the minibatch the loss's recipe trains on, in place of a benchmark protocol's
     (ACT's transformer: small batches, as its paper); None: the protocol's"""
+    history: int | None = None
+    """observations a row must carry (``add_observation_history(rows, n)``, which
+    ``fit_bc`` adds for the learner: ``Learner.history``); None: the current one"""
+    recipe: Callable | None = None
+    """``BCConfig -> BCConfig``: the fit schedule of the loss's recipe (Diffusion Policy's
+    warm-up and cosine decay), applied by :func:`fit_config`; None: the caller's"""
 
     def applies_to(self, task: TaskSpec) -> bool:
         """Whether this objective can train a policy for ``task``."""
@@ -168,6 +183,8 @@ def register(
     requires: Sequence[str] = (),
     horizon: int | None = None,
     batch_size: int | None = None,
+    history: int | None = None,
+    recipe: Callable | None = None,
 ) -> Callable[[Callable[[TaskSpec, LearnerConfig], Learner]], Callable]:
     """Decorator: register ``build(task, config) -> Learner`` under ``name``
     (``horizon``: the chunk length of a chunked learner; ``batch_size``: the minibatch of
@@ -188,12 +205,14 @@ def register(
         raise ValueError(f"horizon must be a positive integer or None, got {horizon!r}")
     if batch_size is not None and (int(batch_size) != batch_size or batch_size < 1):
         raise ValueError(f"batch_size must be a positive integer or None, got {batch_size!r}")
+    if history is not None and (int(history) != history or history < 1):
+        raise ValueError(f"history must be a positive integer or None, got {history!r}")
 
     def decorator(fn: Callable[[TaskSpec, LearnerConfig], Learner]) -> Callable:
         if name in _REGISTRY:
             raise ValueError(f"a loss named {name!r} is already registered")
         _REGISTRY[name] = LossEntry(
-            name, actions, fn, summary, tuple(requires), horizon, batch_size
+            name, actions, fn, summary, tuple(requires), horizon, batch_size, history, recipe
         )
         return fn
 
@@ -234,6 +253,15 @@ def build(name: str, task: TaskSpec, config: LearnerConfig = LearnerConfig()) ->
     if not isinstance(learner, Learner):
         raise ValueError(f"loss {name!r} built a {type(learner).__name__}, expected a Learner")
     return learner.placed(config.device)
+
+
+def fit_config(name: str, bc):
+    """``bc`` (a :class:`~imitrl.algorithms.BCConfig`) as entry ``name``'s recipe trains:
+    its own minibatch (``LossEntry.batch_size``) and schedule (``LossEntry.recipe``)."""
+    entry = get(name)
+    if entry.batch_size is not None and bc.batch_size is not None:
+        bc = replace(bc, batch_size=entry.batch_size)
+    return bc if entry.recipe is None else entry.recipe(bc)
 
 
 # ----------------------------------------------------------------- policy heads

@@ -19,7 +19,20 @@ flow_chunk             flow matching, masked, 16 Euler       receding horizon, n
                        steps                                 held per episode
 act                    ACT: TorchRL's ACTModel (CVAE,        temporal ensembling, m
                        transformer, sized for CPU), ACTLoss
+diffusion_unet         Diffusion Policy (Chi et al. 2023):   receding horizon, 8 of 16
+                       temporal U-Net with FiLM, the last 2
+                       observations, DDPM K=100 cosine
+                       schedule, DDIM 10 steps, AdamW,
+                       warm-up + cosine lr, EMA weights;
+                       masked epsilon loss
 ====================== ===================================== =========================
+
+``diffusion_chunk`` and ``diffusion_ddim_chunk`` (and the one-step ``diffusion``,
+``diffusion_ddim`` of the registry) are the **MLP baselines**: TorchRL's
+``DiffusionActor`` with an MLP score network on the current observation, a linear
+schedule over 50 steps, Adam, no EMA. ``diffusion_unet`` is Diffusion Policy as its
+paper builds it (:mod:`imitrl.objectives.diffusion_unet`), at CPU widths; the paper's
+widths are ``diffusion_unet_learner(task, config, UnetDiffusionConfig())``.
 
 Temporal ensembling averages chunks predicted at different steps; a sampling policy's
 chunks may come from different modes, whose average no demonstrator took, so only a
@@ -29,6 +42,7 @@ deterministic head ensembles here (as ACT ensembles its CVAE's mean, ``z = 0``).
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import replace
 
 import torch
 from torchrl.envs.utils import ExplorationType
@@ -37,6 +51,12 @@ from imitrl.objectives.act import ACTChunkLoss, ACTPolicy
 from imitrl.objectives.bc import BehaviorCloningLoss
 from imitrl.objectives.chunked import FLAT_CHUNK, ChunkRegressionLoss, FlatChunkLoss
 from imitrl.objectives.diffusion import DiffusionBehaviorCloningLoss
+from imitrl.objectives.diffusion_unet import (
+    UnetDiffusionConfig,
+    UnetDiffusionLoss,
+    UnetDiffusionPolicy,
+    fit_recipe,
+)
 from imitrl.objectives.flow import FlowMatchingLoss
 from imitrl.objectives.registry import (
     Learner,
@@ -48,8 +68,16 @@ from imitrl.objectives.registry import (
     register,
 )
 from imitrl.policies.chunking import ChunkedPolicy, ChunkExecution, tile_spec
+from imitrl.policies.ema import EMA
 
-__all__ = ["CHUNK_EXECUTE", "CHUNK_HORIZON", "ENSEMBLE_M", "FLOW_CHUNK_STEPS"]
+__all__ = [
+    "CHUNK_EXECUTE",
+    "CHUNK_HORIZON",
+    "DIFFUSION_UNET",
+    "ENSEMBLE_M",
+    "FLOW_CHUNK_STEPS",
+    "diffusion_unet_learner",
+]
 
 # H and k, measured on the two-way task (flow_chunk, BC, 200 held-out episodes per
 # setting, seeds 0-1): k = 2-4 is best; k = 1 lets a sampling policy switch modes
@@ -90,7 +118,14 @@ def _spec(task: TaskSpec) -> TaskSpec:
 def _learner(task, network, loss, opt, execution, *, exploration, normalizer=None) -> Learner:
     m = int(task.action.shape[0])
     policy = ChunkedPolicy(network, m, execution)
-    return Learner(policy, loss, opt, exploration=exploration, normalizer=normalizer)
+    return Learner(
+        policy,
+        loss,
+        opt,
+        exploration=exploration,
+        normalizer=normalizer,
+        horizon=execution.horizon,
+    )
 
 
 def _regression(loss_type: str, execution: ChunkExecution) -> Callable:
@@ -217,3 +252,60 @@ def _act(task: TaskSpec, config: LearnerConfig) -> Learner:
     return _learner(
         task, policy, loss, opt, ENSEMBLE, exploration=det, normalizer=policy.normalizer
     )
+
+
+DIFFUSION_UNET = UnetDiffusionConfig.cpu()
+"""``diffusion_unet``: Diffusion Policy at CPU widths (:meth:`UnetDiffusionConfig.cpu`).
+The paper's widths and learning rate (66M parameters, for a GPU) are
+``diffusion_unet_learner(task, config, UnetDiffusionConfig())``; they are not a registry
+entry because everything that runs every entry (the loss benchmark, the tests) would
+train them on the CPU."""
+
+
+def diffusion_unet_learner(
+    task: TaskSpec, config: LearnerConfig, unet: UnetDiffusionConfig
+) -> Learner:
+    """Diffusion Policy (:mod:`imitrl.objectives.diffusion_unet`) for ``task``: the U-Net
+    over ``unet.horizon`` actions, conditioned on the last ``unet.obs_horizon``
+    observations, executing ``unet.action_steps`` per query, trained by AdamW and acting
+    with the EMA of its weights. ``config`` gives the seed and ``normalize`` (the widths
+    and the learning rate are ``unet``'s, the paper's recipe)."""
+    if task.observation_dim is None:
+        raise ValueError("Diffusion Policy needs vector observations")
+    unet = replace(unet, normalize=config.normalize)
+    network = UnetDiffusionPolicy(task.observation_dim, task.action, unet, seed=config.seed)
+    execution = ChunkExecution(unet.horizon, execute=unet.action_steps)
+    policy = ChunkedPolicy(network, int(task.action.shape[0]), execution, history=unet.obs_horizon)
+    opt = torch.optim.AdamW(
+        network.parameters(), lr=unet.lr, betas=unet.betas, weight_decay=unet.weight_decay
+    )
+    ema = EMA(policy, power=unet.ema_power, max_decay=unet.ema_max_decay) if unet.ema else None
+    return Learner(
+        policy,
+        UnetDiffusionLoss(network, seed=config.seed),
+        opt,
+        exploration=ExplorationType.RANDOM,
+        normalizer=network.normalizer,
+        ema=ema,
+        horizon=unet.horizon,
+        history=unet.obs_horizon,
+    )
+
+
+def _unet_summary(unet: UnetDiffusionConfig) -> str:
+    dims = "-".join(map(str, unet.down_dims))
+    return (
+        f"Diffusion Policy: U-Net {dims}, T_o={unet.obs_horizon}, T_p={unet.horizon}, "
+        f"executes {unet.action_steps}; DDPM K={unet.train_steps} {unet.schedule}, "
+        f"{unet.sampler.upper()} {unet.sample_steps} steps; AdamW lr {unet.lr:g}, EMA"
+    )
+
+
+register(
+    "diffusion_unet",
+    actions="continuous",
+    summary=_unet_summary(DIFFUSION_UNET),
+    horizon=DIFFUSION_UNET.horizon,
+    history=DIFFUSION_UNET.obs_horizon,
+    recipe=fit_recipe(DIFFUSION_UNET),
+)(lambda task, config: diffusion_unet_learner(task, config, DIFFUSION_UNET))

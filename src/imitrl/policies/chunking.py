@@ -24,6 +24,13 @@ that rollouts, ``evaluate`` and DAgger's behaviour policy run unchanged:
   success 0.90 with a fresh draw per replan and 0.93 held; with 32 steps 0.92 fresh and
   0.96 held (0.96 held at 16 steps too; ``benchmarks/README.md``).
 
+* **observation history** (``history=n``, Diffusion Policy's ``T_o``): the network reads
+  ``"<key>_history"`` ``[*B, n, *obs]``, the lane's last ``n`` observations (oldest
+  first, the first since its reset repeated before it), which the policy keeps from
+  the observations it is given: the rows' history
+  (:func:`~imitrl.data.history.observation_history`) at act time, in rollouts, DAgger's
+  rounds and evaluation alike.
+
 State lives across calls (the current plan, its age, the last ``H`` chunks) per lane
 of a batched env, and is dropped where TorchRL's ``InitTracker`` marks a reset
 (``is_init``): wrap the env with :func:`chunk_env`. A policy without ``is_init`` in its
@@ -48,6 +55,7 @@ from torchrl.envs import EnvBase, InitTracker, TransformedEnv
 
 from imitrl import keys
 from imitrl.data.chunks import ACTION_CHUNK, IS_INIT
+from imitrl.data.history import history_key
 
 __all__ = [
     "ChunkExecution",
@@ -121,7 +129,13 @@ class ChunkedPolicy(TensorDictModuleBase):
     """
 
     def __init__(
-        self, network: TensorDictModuleBase, action_dim: int, execution: ChunkExecution
+        self,
+        network: TensorDictModuleBase,
+        action_dim: int,
+        execution: ChunkExecution,
+        *,
+        history: int | None = None,
+        history_keys: tuple = (keys.OBSERVATION,),
     ) -> None:
         super().__init__()
         if execution.hold_noise and not callable(getattr(network, "draw_noise", None)):
@@ -132,13 +146,20 @@ class ChunkedPolicy(TensorDictModuleBase):
         self.network = network
         self.action_dim = int(action_dim)
         self.execution = execution
-        self.in_keys = [*network.in_keys, IS_INIT]
+        self.history = None if history is None else int(history)
+        sources = {history_key(k): k for k in history_keys} if history is not None else {}
+        for key in sources:
+            if key not in network.in_keys:
+                raise ValueError(f"the network does not read the history {key!r} it is given")
+        self._history_sources = sources  # history key -> the observation it stacks
+        self.in_keys = [sources.get(k, k) for k in network.in_keys] + [IS_INIT]
         self.out_keys = [ACTION_CHUNK, keys.ACTION]
         self._plan: torch.Tensor | None = None  # [L, H, m] the chunk being executed
         self._age: torch.Tensor | None = None  # [L] steps since the plan was made
         self._history: torch.Tensor | None = None  # [L, H, H, m], slot j: made j steps ago
         self._count: torch.Tensor | None = None  # [L] chunks in the history since the reset
         self._noise: torch.Tensor | None = None  # [L, d] this episode's draw (hold_noise)
+        self._seen: dict = {}  # history key -> [L, n, *obs] the lane's last observations
 
     def predict(
         self, tensordict: TensorDictBase, noise: torch.Tensor | None = None
@@ -174,6 +195,8 @@ class ChunkedPolicy(TensorDictModuleBase):
                 )
             self._noise[init.to(draw.device)] = draw
         flat_td = tensordict.reshape(lanes) if len(batch) != 1 else tensordict
+        if self._history_sources:  # a copy: the caller's tensordict gets no history
+            flat_td = self._with_history(flat_td.copy(), init)
         if self.execution.ensemble is not None:
             chunk, action = self._ensemble_step(flat_td, init)
         else:
@@ -181,6 +204,27 @@ class ChunkedPolicy(TensorDictModuleBase):
         tensordict.set(ACTION_CHUNK, chunk.reshape(*batch, *chunk.shape[1:]))
         tensordict.set(keys.ACTION, action.reshape(*batch, self.action_dim))
         return tensordict
+
+    def _with_history(self, td: TensorDictBase, init: torch.Tensor) -> TensorDictBase:
+        """``td`` with each lane's last ``history`` observations, oldest first, the first
+        observation since its reset repeated before it (as rows are padded: the history
+        of :func:`~imitrl.data.history.observation_history`)."""
+        n = self.history
+        for key, source in self._history_sources.items():
+            obs = td.get(source)  # [L, *obs]
+            seen = self._seen.get(key)
+            if seen is None or seen.shape[0] != obs.shape[0] or seen.shape[2:] != obs.shape[1:]:
+                if not bool(init.all()):
+                    raise ValueError("a history's first call must follow a reset of every lane")
+                seen = obs.unsqueeze(1).expand(-1, n, *obs.shape[1:]).clone()
+            else:
+                seen = torch.cat([seen[:, 1:], obs.unsqueeze(1)], dim=1)
+                reset = init.to(seen.device)
+                if bool(reset.any()):
+                    seen[reset] = obs[reset].unsqueeze(1).expand(-1, n, *obs.shape[1:])
+            self._seen[key] = seen
+            td.set(key, seen)
+        return td
 
     def _reset_state(self, lanes: int, device: torch.device) -> None:
         """Each lane's plan on ``device``: where the lanes' tensordicts are (the env's, or
@@ -191,6 +235,7 @@ class ChunkedPolicy(TensorDictModuleBase):
         self._history = torch.zeros(lanes, H, H, m, device=device)
         self._count = torch.zeros(lanes, dtype=torch.int64, device=device)
         self._noise = None
+        self._seen = {}
 
     def _receding_step(self, td: TensorDictBase, init: torch.Tensor):
         replan = init | (self._age >= self.execution.replan_every)

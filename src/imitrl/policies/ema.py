@@ -30,11 +30,13 @@ class EMA(nn.Module):
 
     Args:
         model: the network being trained (its weights are read, never written, except
-            inside :meth:`swapped_in`).
+            inside :meth:`trained_weights`).
         power, inv_gamma, min_decay, max_decay, update_after_step: the decay's schedule.
 
-    The average is a copy of ``model`` (:attr:`averaged`), saved with the learner's state
-    dict; ``step`` counts the updates (a buffer: checkpoints and resumes carry it).
+    The average is a copy of ``model`` (:attr:`averaged`), and so are the weights being
+    trained while the model acts with the average (:attr:`trained`, see
+    :meth:`trained_weights`); both are saved with the learner's state dict, and ``step`` counts
+    the updates (a buffer): checkpoints and DAgger's resume carry all three.
     """
 
     def __init__(
@@ -53,6 +55,7 @@ class EMA(nn.Module):
         if power <= 0 or inv_gamma <= 0:
             raise ValueError(f"power and inv_gamma must be positive, got {power}, {inv_gamma}")
         self.averaged = copy.deepcopy(model).requires_grad_(False)
+        self.trained = copy.deepcopy(model).requires_grad_(False)
         self.power, self.inv_gamma = float(power), float(inv_gamma)
         self.min_decay, self.max_decay = float(min_decay), float(max_decay)
         self.update_after_step = int(update_after_step)
@@ -72,26 +75,49 @@ class EMA(nn.Module):
     def update(self) -> None:
         """Average the model's current weights in (after an optimiser step)."""
         d = self.decay()
+        avgs, ws = [], []
         for avg, w in zip(self.averaged.parameters(), self._model.parameters(), strict=True):
-            if avg.is_floating_point():
-                avg.mul_(d).add_(w.detach().to(avg.dtype), alpha=1 - d)
+            if avg.is_floating_point() and avg.dtype == w.dtype:
+                avgs.append(avg)
+                ws.append(w.detach())
             else:
                 avg.copy_(w)
+        if avgs:  # ema + (1 - d) (w - ema) = d ema + (1 - d) w, in one pass over the list
+            torch._foreach_lerp_(avgs, ws, 1.0 - d)
         for avg, b in zip(self.averaged.buffers(), self._model.buffers(), strict=True):
             avg.copy_(b)
         self.step += 1
 
     @contextlib.contextmanager
-    def swapped_in(self) -> Iterator[None]:
-        """Within: the model holds the averaged weights (to act or evaluate); its own
-        weights come back on exit."""
-        saved = [p.detach().clone() for p in self._model.parameters()]
+    def trained_weights(self) -> Iterator[None]:
+        """Within: the model holds the weights being trained (an optimiser's steps, each
+        followed by :meth:`update`); on exit they are kept in :attr:`trained` and the
+        model holds the average again, to act, to be evaluated and to be saved.
+
+        Outside this context a learner with an EMA acts with its averaged weights, as
+        Diffusion Policy evaluates; the trained weights (and the optimiser's moments,
+        which belong to the same parameter objects) carry over to the next fit: DAgger's
+        warm start continues training, not averaging. Buffers (a normaliser's
+        statistics) are not averaged: all three copies take the model's on exit.
+        """
         with torch.no_grad():
-            for p, avg in zip(self._model.parameters(), self.averaged.parameters(), strict=True):
-                p.copy_(avg)
+            for p, w in zip(self._model.parameters(), self.trained.parameters(), strict=True):
+                p.copy_(w)
         try:
             yield
         finally:
             with torch.no_grad():
-                for p, w in zip(self._model.parameters(), saved, strict=True):
-                    p.copy_(w)
+                for p, w, avg in zip(
+                    self._model.parameters(),
+                    self.trained.parameters(),
+                    self.averaged.parameters(),
+                    strict=True,
+                ):
+                    w.copy_(p)
+                    p.copy_(avg)
+                for b, bt, ba in zip(
+                    self._model.buffers(), self.trained.buffers(), self.averaged.buffers(),
+                    strict=True,
+                ):  # fmt: skip
+                    bt.copy_(b)
+                    ba.copy_(b)

@@ -9,7 +9,15 @@ A :class:`Learner` holds
 * ``exploration``: how the policy acts when rolled out or evaluated
   (``DETERMINISTIC``: the greedy action / mode; ``RANDOM``: a sample);
 * ``normalizer``: an optional :class:`ObservationNormalizer` inside the policy's
-  network, fitted to the demonstrations by :meth:`Learner.prepare`.
+  network, fitted to the demonstrations by :meth:`Learner.prepare`;
+* ``ema``: an optional :class:`~imitrl.policies.ema.EMA` of the policy's weights: a fit
+  trains the weights and averages them after every step, and the policy acts (is rolled
+  out, evaluated, saved) with the average (any loss can use it: ``Learner(..., ema=EMA(policy))``);
+* ``horizon`` and ``history``: what the rows of a fit must carry besides the buffer's
+  columns: the expert's next ``horizon`` labels (:func:`~imitrl.data.chunks.add_chunk_labels`)
+  and the last ``history`` observations (:func:`~imitrl.data.history.add_observation_history`).
+  ``fit_bc`` adds both, from the rows' episodes (:meth:`Learner.training_rows`), so DAgger's
+  relabelled rounds get them the same way as the demonstrations.
 
 :class:`~imitrl.policies.ActorCritic` is a Learner with a value head; the loss
 registry builds Learners; any user policy becomes one with ``Learner(policy, loss,
@@ -18,6 +26,8 @@ opt)``.
 
 from __future__ import annotations
 
+import contextlib
+
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
@@ -25,7 +35,10 @@ from torch import nn
 from torchrl.envs.utils import ExplorationType
 
 from imitrl import keys
+from imitrl.data.chunks import add_chunk_labels
+from imitrl.data.history import add_observation_history, history_key
 from imitrl.objectives.base import ImitationLoss
+from imitrl.policies.ema import EMA
 from imitrl.policies.normalization import ObservationNormalizer
 from imitrl.runtime.device import module_device, resolve_device
 
@@ -42,6 +55,11 @@ class Learner(nn.Module):
         opt_pi: optimizer over ``policy``'s parameters.
         exploration: how the policy acts in rollouts and evaluation.
         normalizer: the observation normaliser inside ``policy``'s network, or None.
+        ema: a moving average of ``policy``'s weights to act with, or None.
+        horizon: ``H`` of a chunked policy's labels, or None.
+        history: observations a row must carry (its last ``history``, oldest first),
+            or None.
+        history_keys: the observation keys whose history the rows carry.
     """
 
     def __init__(
@@ -52,6 +70,10 @@ class Learner(nn.Module):
         *,
         exploration: ExplorationType = ExplorationType.DETERMINISTIC,
         normalizer: ObservationNormalizer | None = None,
+        ema: EMA | None = None,
+        horizon: int | None = None,
+        history: int | None = None,
+        history_keys: tuple = (keys.OBSERVATION,),
     ) -> None:
         super().__init__()
         if not isinstance(policy, TensorDictModuleBase):
@@ -70,6 +92,33 @@ class Learner(nn.Module):
         self.opt_pi = opt_pi
         self.exploration = exploration
         self.normalizer = normalizer
+        if ema is not None and (not isinstance(ema, EMA) or ema._model is not policy):
+            raise ValueError("ema must be an imitrl EMA of this learner's policy: EMA(policy)")
+        self.ema = ema
+        for name, value in (("horizon", horizon), ("history", history)):
+            if value is not None and (isinstance(value, bool) or int(value) != value or value < 1):
+                raise ValueError(f"{name} must be a positive integer or None, got {value!r}")
+        self.horizon = None if horizon is None else int(horizon)
+        self.history = None if history is None else int(history)
+        self.history_keys = tuple(history_keys)
+
+    def training_rows(self, rows: TensorDictBase) -> TensorDictBase:
+        """``rows`` with what the loss reads beyond a buffer's columns: chunk labels
+        (``horizon``) and observation histories (``history``), each computed from the
+        rows' own episodes (``EPISODE``, ``STEP``); ``rows`` itself when neither is set."""
+        if self.horizon is not None:
+            rows = add_chunk_labels(rows, self.horizon)
+        if self.history is not None:
+            for key in self.history_keys:
+                rows = add_observation_history(
+                    rows, self.history, obs_key=key, out_key=history_key(key)
+                )
+        return rows
+
+    def fitting_weights(self) -> contextlib.AbstractContextManager:
+        """A fit's steps run in it: with an EMA, the trained weights are in the policy
+        within and the average without (:meth:`~imitrl.policies.ema.EMA.trained_weights`)."""
+        return contextlib.nullcontext() if self.ema is None else self.ema.trained_weights()
 
     def optimizers(self) -> dict[str, torch.optim.Optimizer]:
         """Every optimizer of the learner by name (saved and restored with it)."""

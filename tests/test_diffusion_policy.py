@@ -1,0 +1,259 @@
+"""Diffusion Policy as a learner (issue 30): the registry's ``diffusion_unet``, observation
+histories fed at act time as the rows carry them, EMA weights through fits and
+checkpoints, the warm-up and cosine schedule, the masked epsilon loss."""
+
+from __future__ import annotations
+
+import copy
+import math
+
+import pytest
+import torch
+from tensordict import TensorDict
+from tensordict.nn import TensorDictModuleBase
+from torchrl.data import Bounded
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from imitrl import keys
+from imitrl.algorithms import BCConfig, fit_bc
+from imitrl.algorithms.bc import _Cosine
+from imitrl.data.chunks import CHUNK_PAD, EXPERT_CHUNK, IS_INIT
+from imitrl.data.history import OBS_HISTORY, add_observation_history
+from imitrl.objectives import registry
+from imitrl.objectives.diffusion_unet import UnetDiffusionConfig
+from imitrl.objectives.registry import LearnerConfig, TaskSpec
+from imitrl.policies.chunking import ChunkedPolicy, ChunkExecution
+
+ACTION = Bounded(-2.0, 2.0, shape=(2,))
+TASK = TaskSpec(action=ACTION, observation_dim=3)
+
+
+def _rows(n: int = 64, episodes: int = 4, seed: int = 0) -> TensorDict:
+    g = torch.Generator().manual_seed(seed)
+    obs = torch.randn(n, 3, generator=g)
+    label = (obs[:, :2] * 0.8).clamp(-2, 2)  # a function of the state, inside the bounds
+    episode, step = torch.arange(n) // (n // episodes), torch.arange(n) % (n // episodes)
+    return TensorDict(
+        {keys.OBSERVATION: obs, keys.EXPERT_ACTION: label, keys.EPISODE: episode, keys.STEP: step},
+        [n],
+    )
+
+
+def _learner(seed: int = 0):
+    return registry.build("diffusion_unet", TASK, LearnerConfig(seed=seed))
+
+
+# --------------------------------------------------------------- the registry entry
+def test_the_entry_is_the_papers_recipe_at_cpu_widths():
+    entry = registry.get("diffusion_unet")
+    assert (entry.horizon, entry.history) == (16, 2)
+    learner = _learner()
+    assert learner.horizon == 16 and learner.history == 2 and learner.ema is not None
+    assert learner.exploration == ExplorationType.RANDOM
+    opt = learner.opt_pi
+    assert isinstance(opt, torch.optim.AdamW)
+    group = opt.param_groups[0]
+    assert group["weight_decay"] == 1e-6 and group["betas"] == (0.95, 0.999)
+    net = learner.policy.network
+    assert net.schedule.kind == "squaredcos_cap_v2" and net.schedule.num_steps == 100
+    assert learner.policy.execution.replan_every == 8
+    # the recipe: cosine decay after a warm-up of min(500, steps // 10)
+    bc = registry.fit_config("diffusion_unet", BCConfig(num_steps=2000, batch_size=64))
+    assert (bc.lr_schedule, bc.warmup_steps) == ("cosine", 200)
+    bc = registry.fit_config("diffusion_unet", BCConfig(num_steps=10_000, batch_size=64))
+    assert bc.warmup_steps == 500
+    # the paper's defaults, every one a documented field
+    paper = UnetDiffusionConfig()
+    assert paper.down_dims == (256, 512, 1024) and paper.lr == 1e-4
+    assert (paper.obs_horizon, paper.horizon, paper.action_steps) == (2, 16, 8)
+    assert (paper.ema_power, paper.warmup_steps, paper.sample_steps) == (0.75, 500, 10)
+
+
+def test_a_fit_lowers_the_loss_and_the_same_seed_gives_the_same_digits():
+    def run(seed: int):
+        learner = _learner(seed)
+        result = fit_bc(learner, _rows(), BCConfig(num_steps=40, batch_size=32, seed=seed))
+        obs = TensorDict(
+            {keys.OBSERVATION: torch.randn(3, 3, generator=torch.Generator().manual_seed(5)),
+             IS_INIT: torch.ones(3, 1, dtype=torch.bool)},
+            [3],
+        )  # fmt: skip
+        with set_exploration_type(ExplorationType.RANDOM), torch.no_grad():
+            action = learner.policy(obs).get(keys.ACTION)
+        return result.losses, action
+
+    losses, action = run(0)
+    assert losses[-10:].mean() < 0.7 * losses[:10].mean()
+    again, action_again = run(0)
+    assert torch.equal(losses, again) and torch.equal(action, action_again)
+    other, _ = run(1)
+    assert not torch.equal(losses, other)
+    assert action.shape == (3, 2) and ((action >= -2) & (action <= 2)).all()
+
+
+def test_the_loss_is_the_masked_epsilon_error_by_hand():
+    learner = _learner()
+    rows = learner.training_rows(_rows())
+    pad = rows.get(CHUNK_PAD)
+    assert pad.any() and (~pad).any()  # chunks run past the 16-step episodes' ends
+    batch = rows[:8]
+    net = learner.policy.network
+    g = torch.Generator().manual_seed(0)  # the loss's generator, seeded as the entry seeds it
+    k = torch.randint(0, 100, (8,), generator=g)
+    eps = torch.randn(8, 16, 2, generator=g)
+    x0 = batch.get(EXPERT_CHUNK) / 2.0  # bounds [-2, 2] -> [-1, 1]
+    cond = net.normalizer(batch.get(OBS_HISTORY)).flatten(-2)
+    with torch.no_grad():
+        err = (net.unet(net.schedule.add_noise(x0, eps, k), k, cond) - eps).pow(2)
+        keep = ~batch.get(CHUNK_PAD)
+        expect = err[keep].sum() / (keep.sum() * 2)
+        got = learner.loss(batch)["loss_diffusion"]
+    assert torch.allclose(got, expect, rtol=1e-6, atol=0)
+
+
+def test_labels_of_the_wrong_horizon_are_refused_by_name():
+    learner = _learner()
+    rows = learner.training_rows(_rows())
+    rows.set(EXPERT_CHUNK, rows.get(EXPERT_CHUNK)[:, :8])
+    with pytest.raises(ValueError, match=r"float \[N, 16, 2\].*add_chunk_labels"):
+        learner.loss.check_labels(rows)
+
+
+# --------------------------------------------------------------------- EMA learners
+def test_a_fit_trains_the_weights_and_the_policy_acts_with_their_average():
+    learner = _learner()
+    before = [p.detach().clone() for p in learner.policy.parameters()]
+    fit_bc(learner, _rows(), BCConfig(num_steps=5, batch_size=32))
+    ema = learner.ema
+    acting = list(learner.policy.parameters())
+    assert all(torch.equal(a, b) for a, b in zip(acting, ema.averaged.parameters()))
+    trained = [p.detach().clone() for p in ema.trained.parameters()]
+    assert any(not torch.equal(a, b) for a, b in zip(acting, trained))  # 5 steps: not equal
+    assert any(not torch.equal(a, b) for a, b in zip(trained, before))
+    assert int(ema.step) == 5
+    # a second fit continues from the trained weights (DAgger's warm start)
+    seen = []
+    orig = learner.loss.objective
+
+    def spy(batch, weights=None):
+        seen.append([p.detach().clone() for p in learner.policy.parameters()])
+        return orig(batch, weights)
+
+    learner.loss.objective = spy
+    fit_bc(learner, _rows(), BCConfig(num_steps=1, batch_size=32))
+    assert all(torch.equal(a, b) for a, b in zip(seen[0], trained))
+
+
+def test_a_checkpoint_carries_the_average_the_trained_weights_and_the_step():
+    learner = _learner()
+    fit_bc(learner, _rows(), BCConfig(num_steps=4, batch_size=32))
+    state = learner.state_dict()
+    assert any(k.startswith("ema.trained.") for k in state) and "ema.step" in state
+    fresh = _learner(seed=3)
+    fresh.load_state_dict(state)
+    for a, b in zip(fresh.ema.trained.parameters(), learner.ema.trained.parameters()):
+        assert torch.equal(a, b)
+    for a, b in zip(fresh.policy.parameters(), learner.policy.parameters()):
+        assert torch.equal(a, b)
+    assert int(fresh.ema.step) == 4
+    # the loss's and the sampler's generators are saved with the weights
+    assert torch.equal(fresh.loss.generator.get_state(), learner.loss.generator.get_state())
+    net, fresh_net = learner.policy.network, fresh.policy.network
+    assert torch.equal(fresh_net.generator.get_state(), net.generator.get_state())
+    # both continue with the same digits, given the optimiser's moments (a copy: a live
+    # state dict shares Adam's step tensors)
+    fresh.opt_pi.load_state_dict(copy.deepcopy(learner.opt_pi.state_dict()))
+    a = fit_bc(learner, _rows(), BCConfig(num_steps=3, batch_size=32, seed=1)).losses
+    b = fit_bc(fresh, _rows(), BCConfig(num_steps=3, batch_size=32, seed=1)).losses
+    assert torch.equal(a, b)
+
+
+def test_warm_up_then_cosine_by_hand():
+    opt = torch.optim.SGD([torch.nn.Parameter(torch.zeros(1))], lr=2.0)
+    schedule = _Cosine(opt, 110, warmup=10)
+    assert schedule.scale(0) == 0.0 and schedule.scale(5) == 0.5
+    assert schedule.scale(10) == 1.0
+    assert schedule.scale(60) == pytest.approx(0.5)  # half-way through the decay
+    assert schedule.scale(109) == pytest.approx(0.5 * (1 + math.cos(math.pi * 99 / 100)))
+    schedule.at(5)
+    assert opt.param_groups[0]["lr"] == 1.0
+    schedule.restore()
+    assert opt.param_groups[0]["lr"] == 2.0
+    constant = _Cosine(opt, 100, warmup=4, kind="constant")
+    assert [constant.scale(s) for s in (0, 2, 4, 50)] == [0.0, 0.5, 1.0, 1.0]
+    with pytest.raises(ValueError, match="warmup_steps"):
+        BCConfig(warmup_steps=-1)
+
+
+# ------------------------------------------------------------- histories at act time
+class _Recorder(TensorDictModuleBase):
+    """A network that records the histories it is given and plans zeros."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.in_keys, self.out_keys = [OBS_HISTORY], [keys.ACTION]
+        self.seen: list[torch.Tensor] = []
+
+    def forward(self, td):
+        self.seen.append(td.get(OBS_HISTORY).clone())
+        td.set(keys.ACTION, torch.zeros(*td.batch_size, 4 * 1))
+        return td
+
+
+def test_the_acting_history_is_the_rows_history():
+    # two lanes, replanning every step; lane 1 is reset at step 3
+    net = _Recorder()
+    policy = ChunkedPolicy(net, 1, ChunkExecution(4, execute=1), history=3)
+    assert policy.in_keys == [keys.OBSERVATION, IS_INIT]
+    obs = torch.arange(12.0).reshape(6, 2, 1) * torch.tensor([1.0, 100.0]).reshape(1, 2, 1)
+    init = torch.zeros(6, 2, dtype=torch.bool)
+    init[0] = True
+    init[3, 1] = True
+    for t in range(6):
+        td = TensorDict({keys.OBSERVATION: obs[t], IS_INIT: init[t].unsqueeze(-1)}, [2])
+        out = policy(td)
+        assert OBS_HISTORY not in out.keys()  # the caller's tensordict gets no history
+    # the rows of the same two lanes' episodes: lane 0 one episode of 6 steps, lane 1
+    # two episodes (steps 0-2 and 3-5)
+    episode = torch.tensor([[0, 1], [0, 1], [0, 1], [0, 2], [0, 2], [0, 2]])
+    step = torch.tensor([[0, 0], [1, 1], [2, 2], [3, 0], [4, 1], [5, 2]])
+    rows = TensorDict(
+        {keys.OBSERVATION: obs.reshape(12, 1), keys.EPISODE: episode.reshape(12),
+         keys.STEP: step.reshape(12)},
+        [12],
+    )  # fmt: skip
+    expect = add_observation_history(rows, 3).get(OBS_HISTORY).reshape(6, 2, 3, 1)
+    assert torch.equal(torch.stack(net.seen), expect)
+    assert net.seen[0][1].flatten().tolist() == [100.0, 100.0, 100.0]  # padded by the first
+    assert net.seen[4][1].flatten().tolist() == [700.0, 700.0, 900.0]  # after lane 1's reset
+
+
+def test_a_history_the_network_does_not_read_is_refused():
+    class Plain(_Recorder):
+        def __init__(self) -> None:
+            super().__init__()
+            self.in_keys = [keys.OBSERVATION]
+
+    with pytest.raises(ValueError, match="does not read the history"):
+        ChunkedPolicy(Plain(), 1, ChunkExecution(4, execute=1), history=2)
+
+
+def test_a_buffer_checkpoint_on_disk_restores_the_ema_learner_exactly(tmp_path):
+    from imitrl.data import DemonstrationBuffer
+
+    buffer = DemonstrationBuffer(action_spec=ACTION)
+    rows = _rows()
+    rows.set(keys.ACTION, rows.get(keys.EXPERT_ACTION))
+    rows.set(keys.EXPERT_EXECUTED, torch.ones(64, dtype=torch.bool))
+    rows.set(keys.ROUND, torch.zeros(64, dtype=torch.long))
+    buffer.extend(rows)
+    learner = _learner()
+    fit_bc(learner, buffer, BCConfig(num_steps=3, batch_size=32))
+    buffer.save(tmp_path / "ckpt", learner=learner)
+    twin = _learner(seed=7)
+    DemonstrationBuffer.load(tmp_path / "ckpt", learner=twin)
+    for (name, a), b in zip(learner.state_dict().items(), twin.state_dict().values()):
+        assert torch.equal(a, b), name  # weights, both EMA copies, step, generators
+    a = fit_bc(learner, buffer, BCConfig(num_steps=2, batch_size=32, seed=2)).losses
+    b = fit_bc(twin, buffer, BCConfig(num_steps=2, batch_size=32, seed=2)).losses
+    assert torch.equal(a, b)
