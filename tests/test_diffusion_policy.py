@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import copy
 import math
+from dataclasses import replace
 
 import pytest
 import torch
@@ -257,3 +258,100 @@ def test_a_buffer_checkpoint_on_disk_restores_the_ema_learner_exactly(tmp_path):
     a = fit_bc(learner, buffer, BCConfig(num_steps=2, batch_size=32, seed=2)).losses
     b = fit_bc(twin, buffer, BCConfig(num_steps=2, batch_size=32, seed=2)).losses
     assert torch.equal(a, b)
+
+
+def test_weights_set_on_the_policy_directly_become_the_trained_ones():
+    learner = _learner()
+    fit_bc(learner, _rows(), BCConfig(num_steps=3, batch_size=32))
+    other = _learner(seed=9)
+    learner.policy.load_state_dict(other.policy.state_dict())  # not the learner's own load
+    seen = []
+    orig = learner.loss.objective
+
+    def spy(batch, weights=None):
+        seen.append([p.detach().clone() for p in learner.policy.parameters()])
+        return orig(batch, weights)
+
+    learner.loss.objective = spy
+    fit_bc(learner, _rows(), BCConfig(num_steps=1, batch_size=32))
+    assert all(torch.equal(a, b) for a, b in zip(seen[0], other.policy.parameters()))
+
+
+def test_rows_that_carry_their_labels_and_histories_are_used_as_they_are():
+    learner = _learner()
+    rows = learner.training_rows(_rows())
+    rows.set(EXPERT_CHUNK, torch.zeros_like(rows.get(EXPERT_CHUNK)))
+    again = learner.training_rows(rows.exclude(keys.EPISODE, keys.STEP))  # no episodes needed
+    assert torch.equal(again.get(EXPERT_CHUNK), rows.get(EXPERT_CHUNK))
+    assert torch.equal(again.get(OBS_HISTORY), rows.get(OBS_HISTORY))
+
+
+# --------------------------------------------------------------------- the camera
+def test_the_resnet18_trunk_is_torchvisions_layout_with_groupnorm():
+    from imitrl.policies.resnet_encoder import ResNet18GN
+
+    trunk = ResNet18GN(3)
+    # torchvision's resnet18 without its classifier: 11,689,512 - 513,000 parameters
+    assert sum(p.numel() for p in trunk.parameters()) == 11_176_512
+    assert not any(isinstance(m, torch.nn.BatchNorm2d) for m in trunk.modules())
+    norms = [m for m in trunk.modules() if isinstance(m, torch.nn.GroupNorm)]
+    assert norms and all(m.num_groups == m.num_channels // 16 for m in norms)
+    assert trunk(torch.zeros(2, 3, 76, 76)).shape == (2, 512, 3, 3)
+
+
+def test_spatial_softmax_returns_the_keypoints_expected_coordinates():
+    from imitrl.policies.resnet_encoder import SpatialSoftmax
+
+    pool = SpatialSoftmax(1, 3, 5, keypoints=1)
+    with torch.no_grad():
+        pool.keypoints.weight.fill_(1.0)
+        pool.keypoints.bias.zero_()
+    features = torch.full((1, 1, 3, 5), -1e4)
+    features[0, 0, 2, 1] = 0.0  # all the mass at row 2 (y = 1), column 1 (x = -0.5)
+    assert torch.allclose(pool(features), torch.tensor([[-0.5, 1.0]]))
+    uniform = pool(torch.zeros(1, 1, 3, 5))
+    assert torch.allclose(uniform, torch.zeros(1, 2), atol=1e-6)  # the centre
+
+
+def test_random_crops_take_each_sample_at_its_own_offset_and_acting_the_centre():
+    from imitrl.policies.resnet_encoder import crop
+
+    images = torch.arange(2 * 1 * 6 * 6, dtype=torch.float32).reshape(2, 1, 6, 6)
+    centre = crop(images, (4, 4), None)
+    assert torch.equal(centre, images[..., 1:5, 1:5])
+    g = torch.Generator().manual_seed(0)
+    out = crop(images, (4, 4), g)
+    g2 = torch.Generator().manual_seed(0)
+    top, left = torch.randint(0, 3, (2,), generator=g2), torch.randint(0, 3, (2,), generator=g2)
+    for i in range(2):
+        t, l0 = int(top[i]), int(left[i])
+        assert torch.equal(out[i], images[i, :, t : t + 4, l0 : l0 + 4])
+
+
+def test_a_camera_learner_fits_acts_with_image_histories_and_uses_the_image():
+    from imitrl.objectives.registry_chunks import DIFFUSION_UNET, diffusion_unet_learner
+
+    unet = replace(DIFFUSION_UNET, down_dims=(16, 32), step_embed_dim=16, keypoints=4)
+    learner = diffusion_unet_learner(TASK, LearnerConfig(seed=0), unet, pixel_shape=(40, 40, 3))
+    assert learner.history_keys == (keys.OBSERVATION, keys.PIXELS)
+    rows = _rows()
+    g = torch.Generator().manual_seed(1)
+    rows.set(keys.PIXELS, torch.randint(0, 256, (64, 40, 40, 3), dtype=torch.uint8, generator=g))
+    result = fit_bc(learner, rows, BCConfig(num_steps=12, batch_size=16))
+    assert torch.isfinite(result.losses).all()
+    td = TensorDict(
+        {keys.OBSERVATION: rows[:2].get(keys.OBSERVATION), keys.PIXELS: rows[:2].get(keys.PIXELS),
+         IS_INIT: torch.ones(2, 1, dtype=torch.bool)},
+        [2],
+    )  # fmt: skip
+    assert learner.policy.in_keys == [keys.OBSERVATION, keys.PIXELS, IS_INIT]
+    net = learner.policy.network
+    hist = learner.training_rows(rows)[:2]
+    with torch.no_grad():
+        cond = net.condition(hist)
+        hist.set("pixels_history", 255 - hist.get("pixels_history"))
+        assert not torch.equal(cond, net.condition(hist))  # the image changes the features
+    with set_exploration_type(ExplorationType.RANDOM), torch.no_grad():
+        assert learner.policy(td).get(keys.ACTION).shape == (2, 2)
+    with pytest.raises(ValueError, match="1x1 feature map"):
+        diffusion_unet_learner(TASK, LearnerConfig(), unet, pixel_shape=(24, 24, 3))

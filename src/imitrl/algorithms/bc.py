@@ -335,7 +335,9 @@ class _Cosine:
     def __init__(
         self, opt: torch.optim.Optimizer, num_steps: int, warmup: int = 0, kind: str = "cosine"
     ) -> None:
-        self.opt, self.num_steps, self.warmup = opt, max(int(num_steps), 1), int(warmup)
+        # a warm-up longer than the fit is cut at its end (the fit stays in its warm-up)
+        self.opt, self.num_steps = opt, max(int(num_steps), 1)
+        self.warmup = min(int(warmup), self.num_steps)
         self.cosine = kind == "cosine"
         self.base = [group["lr"] for group in opt.param_groups]
 

@@ -124,8 +124,14 @@ def demonstrations(config: BCJob, setup: Setup) -> DemonstrationBuffer:
 
 
 def bc_config(config: BCJob) -> BCConfig:
-    """The behaviour-cloning fit the flags describe."""
-    return BCConfig(num_steps=config.steps, batch_size=config.batch_size, seed=config.seed)
+    """The behaviour-cloning fit the flags describe, with the loss's own recipe (its
+    minibatch and schedule: :func:`~imitrl.objectives.registry.fit_config`)."""
+    bc = BCConfig(num_steps=config.steps, batch_size=config.batch_size, seed=config.seed)
+    if config.loss == "default":
+        return bc
+    from imitrl.objectives import registry
+
+    return registry.fit_config(config.loss, bc)
 
 
 def evaluate_learner(config: BCJob, learner: Learner) -> dict:

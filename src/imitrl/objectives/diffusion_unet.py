@@ -8,7 +8,9 @@ executes it with a receding horizon. The pieces, each in its own module:
   sinusoidal step embedding (:class:`~imitrl.policies.unet1d.ConditionalUnet1D`);
 * the observation horizon ``T_o``: the network reads the last ``T_o`` observations of the
   episode (``observation_history``, :mod:`imitrl.data.history`), normalised and
-  flattened into FiLM's conditioning vector; rows carry the history
+  flattened into FiLM's conditioning vector; with a camera (``pixel_shape``), each step's
+  image is encoded by a ResNet-18 with GroupNorm and a spatial softmax, trained on random
+  crops (:mod:`imitrl.policies.resnet_encoder`), and its features join the state's; rows carry the history
   (:meth:`~imitrl.policies.Learner.training_rows`), and the acting policy builds it
   from what each lane has seen since its reset
   (:class:`~imitrl.policies.chunking.ChunkedPolicy` ``history=``);
@@ -29,6 +31,18 @@ end, or past the first step a DAgger round's learner drove (:mod:`imitrl.data.ch
 its padded entries are left out of the loss (``mask_padding``, LeRobot's
 ``do_mask_loss_for_padding``): a relabelled row's chunk holds one expert label, and the
 repeated padding is no action the expert planned.
+
+Where this differs from the paper, and why:
+
+* the predicted window starts at the current step (``t .. t + T_p - 1``, as every chunked
+  learner here is labelled, :mod:`imitrl.data.chunks`); the paper's starts ``T_o - 1``
+  steps earlier and executes from index ``T_o - 1``. The executed actions are the same;
+  the paper's network also predicts the ``T_o - 1`` actions already taken;
+* observations are normalised by mean and standard deviation (the library's
+  :class:`~imitrl.policies.normalization.ObservationNormalizer`), actions by the spec's
+  bounds; the paper min-max normalises both from the data;
+* padded label entries are masked (above);
+* DDIM in 10 steps by default (``sampler``).
 """
 
 from __future__ import annotations
@@ -44,10 +58,11 @@ from torchrl.data import Bounded
 
 from imitrl import keys
 from imitrl.data.chunks import CHUNK_PAD, EXPERT_CHUNK
-from imitrl.data.history import OBS_HISTORY
+from imitrl.data.history import OBS_HISTORY, history_key
 from imitrl.objectives.base import ImitationLoss
 from imitrl.objectives.noise_schedule import NoiseSchedule
 from imitrl.policies.normalization import ObservationNormalizer
+from imitrl.policies.resnet_encoder import RgbEncoder
 from imitrl.policies.unet1d import ConditionalUnet1D
 
 __all__ = ["UnetDiffusionConfig", "UnetDiffusionLoss", "UnetDiffusionPolicy"]
@@ -71,8 +86,9 @@ class UnetDiffusionConfig:
     """temporal kernel of every convolution"""
     n_groups: int = 8
     """GroupNorm groups"""
-    step_embed_dim: int = 128
-    """size of the sinusoidal diffusion-step embedding"""
+    step_embed_dim: int = 256
+    """size of the sinusoidal diffusion-step embedding (the paper's state configs; its
+    image configs and LeRobot use 128)"""
     train_steps: int = 100
     """``K``: diffusion steps of training"""
     schedule: str = "squaredcos_cap_v2"
@@ -80,7 +96,9 @@ class UnetDiffusionConfig:
     clip_sample: bool = True
     """clip the predicted clean sample to ``[-1, 1]`` at every reverse step"""
     sampler: str = "ddim"
-    """``"ddim"`` (``sample_steps`` deterministic steps) or ``"ddpm"`` (all ``K``)"""
+    """``"ddim"`` (``sample_steps`` deterministic steps) or ``"ddpm"`` (all ``K``). The
+    paper samples its simulated tasks by DDPM in 100 steps and its real robot by DDIM in
+    10 (LeRobot: DDPM); DDIM is the default here, a tenth of the network calls"""
     sample_steps: int = 10
     """DDIM steps at inference (the paper's real-world setting)"""
     lr: float = 1e-4
@@ -99,9 +117,16 @@ class UnetDiffusionConfig:
     ema_max_decay: float = 0.9999
     """the EMA decay's cap"""
     mask_padding: bool = True
-    """leave padded chunk entries out of the loss (module docstring)"""
+    """leave padded chunk entries out of the loss, averaging over the kept ones (module
+    docstring; the paper trains on the padding, LeRobot's ``do_mask_loss_for_padding``
+    is off by default and averages over every entry)"""
     normalize: bool = True
     """normalise observations by the demonstrations' mean and standard deviation"""
+    crop_shape: tuple[int, int] | None = None
+    """cameras: ``(h, w)`` of the random training crops (centre crop when acting); None:
+    the paper's proportion, 76 of every 84 pixels"""
+    keypoints: int = 32
+    """cameras: keypoints of each camera's spatial softmax (features ``2 * keypoints``)"""
 
     def __post_init__(self) -> None:
         for name in ("obs_horizon", "horizon", "action_steps", "train_steps", "sample_steps"):
@@ -154,11 +179,19 @@ class UnetDiffusionPolicy(TensorDictModuleBase):
         seed: initialisation seed; samples draw from a generator seeded ``seed + 1``.
 
     ``RANDOM`` exploration samples (a fresh latent per query, as the paper acts);
-    ``DETERMINISTIC`` starts from the zero latent, repeatable but not a sample.
+    ``DETERMINISTIC`` starts from the zero latent: with DDIM (deterministic updates)
+    repeatable but not a sample; DDPM still adds its per-step noise.
     """
 
     def __init__(
-        self, observation_dim: int, action_spec: Bounded, config: UnetDiffusionConfig, *, seed: int
+        self,
+        observation_dim: int,
+        action_spec: Bounded,
+        config: UnetDiffusionConfig,
+        *,
+        seed: int,
+        pixel_shape: tuple[int, int, int] | None = None,
+        pixel_key: NestedKey = keys.PIXELS,
     ) -> None:
         super().__init__()
         if not isinstance(action_spec, Bounded) or len(action_spec.shape) != 1:
@@ -167,12 +200,21 @@ class UnetDiffusionPolicy(TensorDictModuleBase):
             )
         self.config = config
         self.action_dim, self.observation_dim = int(action_spec.shape[0]), int(observation_dim)
+        self.pixel_key = None if pixel_shape is None else pixel_key
         self.in_keys, self.out_keys = [OBS_HISTORY], [keys.ACTION]
+        if self.pixel_key is not None:
+            self.in_keys.append(history_key(pixel_key))
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(int(seed))
+            self.rgb = None
+            if pixel_shape is not None:
+                h, w, _ = pixel_shape
+                crop = config.crop_shape or (round(h * 76 / 84), round(w * 76 / 84))
+                self.rgb = RgbEncoder(tuple(pixel_shape), crop, config.keypoints)
+            per_step = self.observation_dim + (0 if self.rgb is None else self.rgb.features)
             self.unet = ConditionalUnet1D(
                 self.action_dim,
-                config.obs_horizon * self.observation_dim,
+                config.obs_horizon * per_step,
                 down_dims=config.down_dims,
                 kernel_size=config.kernel_size,
                 n_groups=config.n_groups,
@@ -194,19 +236,29 @@ class UnetDiffusionPolicy(TensorDictModuleBase):
         return self.generator.get_state()
 
     def set_extra_state(self, state: torch.Tensor) -> None:
-        self.generator.set_state(state)
+        self.generator.set_state(state.cpu())  # (a map_location may have moved it)
 
-    def condition(self, history: torch.Tensor) -> torch.Tensor:
-        """``[B, T_o, d] -> [B, T_o * d]``: FiLM's observation features."""
+    def condition(
+        self, td: TensorDictBase, generator: torch.Generator | None = None
+    ) -> torch.Tensor:
+        """FiLM's observation features ``[B, T_o * (d + F)]`` from ``td``'s histories: per
+        step the normalised state and (cameras) the image features, random crops drawn
+        from ``generator`` when given (training), centre crops otherwise."""
         n = self.config.obs_horizon
+        history = td.get(OBS_HISTORY)
         if history.shape[-2:] != (n, self.observation_dim):
             raise ValueError(
                 f"{OBS_HISTORY!r} must be [..., {n}, {self.observation_dim}] (the last "
                 f"{n} observations), got {tuple(history.shape)}"
             )
-        h = history.float()
+        h = history.reshape(-1, n, self.observation_dim).float()
         if self.normalizer is not None:
             h = self.normalizer(h)
+        if self.rgb is not None:
+            images = td.get(history_key(self.pixel_key))  # [*B, T_o, H, W, C] uint8
+            flat = images.reshape(-1, *images.shape[-3:])
+            features = self.rgb(flat, generator).reshape(h.shape[0], n, -1)
+            h = torch.cat([h, features], dim=-1)
         return h.flatten(-2)
 
     def to_unit(self, action: torch.Tensor) -> torch.Tensor:
@@ -215,9 +267,8 @@ class UnetDiffusionPolicy(TensorDictModuleBase):
 
     @torch.no_grad()
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        history = tensordict.get(OBS_HISTORY)
-        batch = history.shape[:-2]
-        cond = self.condition(history.reshape(-1, *history.shape[-2:]))
+        batch = tensordict.get(OBS_HISTORY).shape[:-2]
+        cond = self.condition(tensordict)
         shape = (cond.shape[0], self.config.horizon, self.action_dim)
         if interaction_type() == InteractionType.DETERMINISTIC:
             x = torch.zeros(shape, device=cond.device)
@@ -271,11 +322,12 @@ class UnetDiffusionLoss(ImitationLoss):
         return self.generator.get_state()
 
     def set_extra_state(self, state: torch.Tensor) -> None:
-        self.generator.set_state(state)
+        self.generator.set_state(state.cpu())  # (a map_location may have moved it)
 
     def read_keys(self) -> list[NestedKey]:
         t = self.tensor_keys
-        return [t.observation, t.history, t.label, t.pad]
+        cameras = [] if self.policy.pixel_key is None else [history_key(self.policy.pixel_key)]
+        return [t.observation, t.history, *cameras, t.label, t.pad]
 
     def check_labels(self, rows: TensorDictBase) -> None:
         super().check_labels(rows)
@@ -291,7 +343,10 @@ class UnetDiffusionLoss(ImitationLoss):
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         p = self.policy
         x0 = p.to_unit(tensordict.get(self.tensor_keys.label))
-        cond = p.condition(tensordict.get(self.tensor_keys.history))
+        td = tensordict
+        if self.tensor_keys.history != OBS_HISTORY:
+            td = tensordict.copy().set(OBS_HISTORY, tensordict.get(self.tensor_keys.history))
+        cond = p.condition(td, self.generator)  # random crops in training
         n = x0.shape[0]
         k = torch.randint(0, p.config.train_steps, (n,), generator=self.generator).to(x0.device)
         eps = torch.randn(x0.shape, generator=self.generator).to(x0.device)

@@ -47,6 +47,7 @@ from dataclasses import replace
 import torch
 from torchrl.envs.utils import ExplorationType
 
+from imitrl import keys
 from imitrl.objectives.act import ACTChunkLoss, ACTPolicy
 from imitrl.objectives.bc import BehaviorCloningLoss
 from imitrl.objectives.chunked import FLAT_CHUNK, ChunkRegressionLoss, FlatChunkLoss
@@ -263,24 +264,43 @@ train them on the CPU."""
 
 
 def diffusion_unet_learner(
-    task: TaskSpec, config: LearnerConfig, unet: UnetDiffusionConfig
+    task: TaskSpec,
+    config: LearnerConfig,
+    unet: UnetDiffusionConfig,
+    *,
+    pixel_shape: tuple[int, int, int] | None = None,
+    pixel_key=keys.PIXELS,
 ) -> Learner:
     """Diffusion Policy (:mod:`imitrl.objectives.diffusion_unet`) for ``task``: the U-Net
     over ``unet.horizon`` actions, conditioned on the last ``unet.obs_horizon``
     observations, executing ``unet.action_steps`` per query, trained by AdamW and acting
     with the EMA of its weights. ``config`` gives the seed and ``normalize`` (the widths
-    and the learning rate are ``unet``'s, the paper's recipe)."""
+    and the learning rate are ``unet``'s, the paper's recipe).
+
+    ``pixel_shape`` ``(H, W, C)``: a camera under ``pixel_key`` (uint8 images) beside the
+    state, encoded by :class:`~imitrl.policies.resnet_encoder.RgbEncoder`; its history
+    is carried and fed like the state's.
+    """
     if task.observation_dim is None:
         raise ValueError("Diffusion Policy needs vector observations")
     unet = replace(unet, normalize=config.normalize)
-    network = UnetDiffusionPolicy(task.observation_dim, task.action, unet, seed=config.seed)
+    network = UnetDiffusionPolicy(
+        task.observation_dim,
+        task.action,
+        unet,
+        seed=config.seed,
+        pixel_shape=pixel_shape,
+        pixel_key=pixel_key,
+    )
+    seen = (keys.OBSERVATION,) if pixel_shape is None else (keys.OBSERVATION, pixel_key)
     execution = ChunkExecution(unet.horizon, execute=unet.action_steps)
-    policy = ChunkedPolicy(network, int(task.action.shape[0]), execution, history=unet.obs_horizon)
+    m = int(task.action.shape[0])
+    policy = ChunkedPolicy(network, m, execution, history=unet.obs_horizon, history_keys=seen)
     opt = torch.optim.AdamW(
         network.parameters(), lr=unet.lr, betas=unet.betas, weight_decay=unet.weight_decay
     )
     ema = EMA(policy, power=unet.ema_power, max_decay=unet.ema_max_decay) if unet.ema else None
-    return Learner(
+    learner = Learner(
         policy,
         UnetDiffusionLoss(network, seed=config.seed),
         opt,
@@ -289,7 +309,9 @@ def diffusion_unet_learner(
         ema=ema,
         horizon=unet.horizon,
         history=unet.obs_horizon,
+        history_keys=seen,
     )
+    return learner.placed(config.device)
 
 
 def _unet_summary(unet: UnetDiffusionConfig) -> str:

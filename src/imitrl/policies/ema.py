@@ -98,9 +98,19 @@ class EMA(nn.Module):
         Diffusion Policy evaluates; the trained weights (and the optimiser's moments,
         which belong to the same parameter objects) carry over to the next fit: DAgger's
         warm start continues training, not averaging. Buffers (a normaliser's
-        statistics) are not averaged: all three copies take the model's on exit.
+        statistics) are not averaged: all three copies take the model's on exit. Weights
+        set on the model directly since the last fit (not through the learner's
+        ``load_state_dict``, which restores all three copies) are taken as the trained
+        weights and the average restarts from them.
         """
         with torch.no_grad():
+            pairs = list(zip(self._model.parameters(), self.averaged.parameters(), strict=True))
+            if not all(torch.equal(p, avg) for p, avg in pairs):
+                # weights set on the model since (a policy's own load_state_dict, an
+                # edit): they become the trained weights and the average starts there
+                for (p, avg), w in zip(pairs, self.trained.parameters(), strict=True):
+                    w.copy_(p)
+                    avg.copy_(p)
             for p, w in zip(self._model.parameters(), self.trained.parameters(), strict=True):
                 p.copy_(w)
         try:

@@ -35,7 +35,7 @@ from torch import nn
 from torchrl.envs.utils import ExplorationType
 
 from imitrl import keys
-from imitrl.data.chunks import add_chunk_labels
+from imitrl.data.chunks import CHUNK_PAD, EXPERT_CHUNK, add_chunk_labels
 from imitrl.data.history import add_observation_history, history_key
 from imitrl.objectives.base import ImitationLoss
 from imitrl.policies.ema import EMA
@@ -105,14 +105,18 @@ class Learner(nn.Module):
     def training_rows(self, rows: TensorDictBase) -> TensorDictBase:
         """``rows`` with what the loss reads beyond a buffer's columns: chunk labels
         (``horizon``) and observation histories (``history``), each computed from the
-        rows' own episodes (``EPISODE``, ``STEP``); ``rows`` itself when neither is set."""
-        if self.horizon is not None:
+        rows' own episodes (``EPISODE``, ``STEP``) unless the rows already carry them
+        (rows you labelled yourself are used as they are); ``rows`` itself when neither
+        is set."""
+        have = set(rows.keys(include_nested=True))
+        if self.horizon is not None and not {EXPERT_CHUNK, CHUNK_PAD} <= have:
             rows = add_chunk_labels(rows, self.horizon)
         if self.history is not None:
             for key in self.history_keys:
-                rows = add_observation_history(
-                    rows, self.history, obs_key=key, out_key=history_key(key)
-                )
+                if history_key(key) not in have:
+                    rows = add_observation_history(
+                        rows, self.history, obs_key=key, out_key=history_key(key)
+                    )
         return rows
 
     def fitting_weights(self) -> contextlib.AbstractContextManager:
