@@ -44,7 +44,7 @@ from imitrl.objectives.registry_chunks import DIFFUSION_UNET, diffusion_unet_lea
 
 NAME = "diffusion_policy"
 TASK = TaskSpec(action=Bounded(-1.0, 1.0, shape=(4,)), observation_dim=39)
-FULL = {"repeats": 7, "warm": 2, "batches": (64, 256), "lanes": (1, 10)}
+FULL = {"repeats": 5, "warm": 1, "batches": (64, 256), "lanes": (1, 10)}
 QUICK = {"repeats": 2, "warm": 1, "batches": (8,), "lanes": (1,)}
 
 
