@@ -258,6 +258,8 @@ def test_a_buffer_checkpoint_on_disk_restores_the_ema_learner_exactly(tmp_path):
     a = fit_bc(learner, buffer, BCConfig(num_steps=2, batch_size=32, seed=2)).losses
     b = fit_bc(twin, buffer, BCConfig(num_steps=2, batch_size=32, seed=2)).losses
     assert torch.equal(a, b)
+    for x, y in zip(learner.policy.parameters(), twin.policy.parameters()):
+        assert torch.equal(x, y)  # the average continues with the loaded step's decay
 
 
 def test_weights_set_on_the_policy_directly_become_the_trained_ones():

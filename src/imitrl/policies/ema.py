@@ -60,11 +60,19 @@ class EMA(nn.Module):
         self.min_decay, self.max_decay = float(min_decay), float(max_decay)
         self.update_after_step = int(update_after_step)
         self.register_buffer("step", torch.zeros((), dtype=torch.long))
+        # the count as a Python int too: reading the buffer each update would wait for
+        # the device; a loaded state dict sets both
+        self._updates = 0
+        self.register_load_state_dict_post_hook(EMA._after_load)
         object.__setattr__(self, "_model", model)  # not a submodule: the learner owns it
+
+    @staticmethod
+    def _after_load(module: EMA, _incompatible) -> None:
+        module._updates = int(module.step)
 
     def decay(self, step: int | None = None) -> float:
         """``decay(n)`` at update ``n`` (default: the next update's)."""
-        n = int(self.step) if step is None else int(step)
+        n = self._updates if step is None else int(step)
         s = max(0, n - self.update_after_step - 1)
         if s <= 0:
             return 0.0
@@ -87,6 +95,7 @@ class EMA(nn.Module):
         for avg, b in zip(self.averaged.buffers(), self._model.buffers(), strict=True):
             avg.copy_(b)
         self.step += 1
+        self._updates += 1
 
     @contextlib.contextmanager
     def trained_weights(self) -> Iterator[None]:
