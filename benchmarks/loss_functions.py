@@ -37,6 +37,7 @@ table), ``_loss_functions/run.py`` (the cells), ``_loss_functions/report.py``
     python benchmarks/loss_functions.py --jobs 2             # same results, two processes
     python benchmarks/loss_functions.py --quick              # smoke run, into a temporary dir
     python benchmarks/loss_functions.py --tasks two_way --losses mse diffusion --seeds 3 --out /tmp/x
+    python benchmarks/loss_functions.py --merge results/loss_functions.json /tmp/x/loss_functions.json
     python benchmarks/loss_functions.py --quick --losses mse \
         --task name=pend,env=Pendulum-v1,expert=imitrl.experts:pendulum_expert,steps=500
 
@@ -59,6 +60,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _report
+from _loss_functions.merge import merge
 from _loss_functions.report import NAME, report
 from _loss_functions.run import run
 from _loss_functions.tasks import TASKS, parse_task
@@ -104,6 +106,15 @@ def main(argv: list[str] | None = None) -> None:
         help="bootstrap replicates of the aggregate intervals (default 2000; 100 with --quick)",
     )
     parser.add_argument(
+        "--merge",
+        type=Path,
+        nargs="+",
+        default=None,
+        metavar="JSON",
+        help="combine results files of disjoint cells (same seeds and protocols) and render "
+        "them as one run (_loss_functions/merge.py)",
+    )
+    parser.add_argument(
         "--render",
         type=Path,
         default=None,
@@ -122,6 +133,9 @@ def main(argv: list[str] | None = None) -> None:
     out_dir = _report.destination(NAME, quick=args.quick, out=args.out)
     if args.render is not None:
         report(json.loads(args.render.read_text()), out_dir)
+        return
+    if args.merge is not None:
+        report(merge([json.loads(path.read_text()) for path in args.merge]), out_dir)
         return
     for loss in args.losses or []:
         registry.get(loss)

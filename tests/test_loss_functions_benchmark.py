@@ -250,3 +250,33 @@ def test_relabel_rounds_warm_start_for_the_round_steps_and_act_keeps_its_batch()
     assert mse["bc"]["fit_batch"] == proto.bc.batch_size
     act = loss_cell(TASKS["two_way"], "act", 0, True)
     assert {r["fit_batch"] for r in act} == {ACT_BATCH}
+
+
+def test_runs_of_disjoint_cells_merge_into_the_run_of_all_of_them():
+    from _loss_functions.merge import merge
+
+    def raw(losses, seeds=1):
+        out = run(tasks=[TASKS["corridor"]], losses=losses, seeds=seeds, quick_mode=True)
+        out["wall_seconds"] = 1.0
+        out["config"] = {"seeds": seeds, "tasks": ["corridor"], "losses": losses, "jobs": 1,
+                         "quick": True, "command": f"run {losses}"}  # fmt: skip
+        return out
+
+    def cells(rows):
+        return sorted(
+            tuple(sorted((k, v) for k, v in r.items() if k not in TIMING)) for r in rows
+        )
+
+    both = raw(["mse", "l1"])
+    merged = merge([raw(["mse"]), raw(["l1"])])
+    assert cells(merged["rows"]) == cells(both["rows"])  # the same digits, cell for cell
+    assert len(merged["references"]) == len(both["references"])
+    assert [p["command"] for p in merged["config"]["parts"]] == ["run ['mse']", "run ['l1']"]
+    with pytest.raises(ValueError, match="more than one run"):
+        merge([raw(["mse"]), raw(["mse"])])
+    with pytest.raises(ValueError, match="different numbers of seeds"):
+        merge([raw(["mse"]), raw(["l1"], seeds=2)])
+    changed = raw(["l1"])
+    changed["references"][0]["score"] += 1
+    with pytest.raises(ValueError, match="reference"):
+        merge([raw(["mse"]), changed])

@@ -1,0 +1,80 @@
+"""Runs of disjoint cells combined into one result: a loss added without re-running the rest.
+
+Every cell's digits depend on its seed alone (``run.py``), so a run of new losses on
+the same tasks, seeds and protocols completes an earlier run exactly as if both had
+run together. :func:`merge` refuses what would not: different seeds, a task whose
+protocol or definition differs, references (expert and random scores) that differ, or
+a cell present in both. The merged result names every run it came from, its command
+and wall time (``config["parts"]``).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+__all__ = ["merge"]
+
+
+def _cell(row: dict) -> tuple:
+    return (row["task"], row["loss"], row["seed"], row["algorithm"])
+
+
+def merge(runs: list[dict[str, Any]]) -> dict[str, Any]:
+    """One raw result (``run.py``'s, with ``config``) from ``runs`` (ValueError naming
+    the first disagreement)."""
+    if len(runs) < 2:
+        raise ValueError("merge needs at least two results")
+    first = runs[0]
+    seeds = {r["config"]["seeds"] for r in runs}
+    if len(seeds) != 1:
+        raise ValueError(f"the runs used different numbers of seeds: {sorted(seeds)}")
+    out = {
+        "rows": [],
+        "references": [],
+        "protocols": {},
+        "tasks": {},
+        "losses": {},
+        "wall_seconds": 0.0,
+    }
+    refs: dict[tuple, float] = {}
+    cells: set[tuple] = set()
+    for k, run in enumerate(runs):
+        for name, protocol in run["protocols"].items():
+            if out["protocols"].setdefault(name, protocol) != protocol:
+                raise ValueError(f"run {k} trained task {name!r} with another protocol")
+        for name, definition in run.get("tasks", {}).items():
+            if out["tasks"].setdefault(name, definition) != definition:
+                raise ValueError(f"run {k} defines task {name!r} differently")
+        for ref in run["references"]:
+            key = (ref["task"], ref["policy"], ref["seed"])
+            if key in refs and refs[key] != ref["score"]:
+                raise ValueError(f"run {k} measured another {key} reference: the code changed")
+            if key not in refs:
+                refs[key] = ref["score"]
+                out["references"].append(ref)
+        for row in run["rows"]:
+            if _cell(row) in cells:
+                raise ValueError(f"cell {_cell(row)} is in more than one run")
+            cells.add(_cell(row))
+            out["rows"].append(row)
+        out["losses"].update(run.get("losses", {}))
+        out["wall_seconds"] += run["wall_seconds"]
+    config = dict(first["config"])
+    config["tasks"] = list(dict.fromkeys(t for r in runs for t in r["config"]["tasks"]))
+    config["losses"] = None
+    config["jobs"] = max(r["config"]["jobs"] for r in runs)
+    config["parts"] = [
+        {
+            "command": r["config"].get("command"),
+            "wall_seconds": r["wall_seconds"],
+            "torch": r.get("machine", {}).get("torch"),
+            "rows": len(r["rows"]),
+        }
+        for r in runs
+    ]
+    config["command"] = " + ".join(
+        f"{p['command']} ({p['wall_seconds'] / 60:.1f} min)" for p in config["parts"]
+    )
+    out["config"] = config
+    out["machine"] = first.get("machine", {})
+    return out
