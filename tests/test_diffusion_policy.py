@@ -357,3 +357,53 @@ def test_a_camera_learner_fits_acts_with_image_histories_and_uses_the_image():
         assert learner.policy(td).get(keys.ACTION).shape == (2, 2)
     with pytest.raises(ValueError, match="1x1 feature map"):
         diffusion_unet_learner(TASK, LearnerConfig(), unet, pixel_shape=(24, 24, 3))
+
+
+class _Crash(Exception):
+    pass
+
+
+def test_dagger_with_diffusion_policy_resumes_to_the_uninterrupted_run(tmp_path):
+    from imitrl.algorithms import DAggerConfig, EnvSource, dagger
+    from imitrl.data import DemonstrationBuffer, rollout_episodes
+    from imitrl.envs import make_env
+    from imitrl.experts import pendulum_expert
+    from imitrl.policies.chunking import chunk_env
+
+    def run(directory, resume=False, crash_at=None):
+        torch.manual_seed(0)
+        env = chunk_env(make_env("Pendulum-v1", seed=0, num_envs=2, max_episode_steps=12))
+        task = TaskSpec(action=env.action_spec_unbatched, observation_dim=3)
+        buffer = DemonstrationBuffer(action_spec=env.action_spec_unbatched)
+        demo = make_env("Pendulum-v1", seed=1, max_episode_steps=12)
+        buffer.extend(rollout_episodes(demo, pendulum_expert(), 2))
+
+        def on_fit(k, learner):
+            if k == crash_at:
+                raise _Crash
+
+        return dagger(
+            EnvSource(env, exploration=None, max_steps=12),
+            pendulum_expert(),
+            lambda: registry.build("diffusion_unet", task, LearnerConfig(seed=0)),
+            buffer,
+            DAggerConfig(
+                rounds=3,
+                episodes_per_round=2,
+                warm_start=True,
+                bc=BCConfig(num_steps=4, batch_size=16),
+            ),  # fmt: skip
+            checkpoint_dir=directory,
+            resume=resume,
+            on_fit=on_fit,
+        )
+
+    whole = run(tmp_path / "whole")
+    with pytest.raises(_Crash):
+        run(tmp_path / "cut", crash_at=2)  # after round 1's checkpoint
+    resumed = run(tmp_path / "cut", resume=True)
+    assert bool((whole.buffer.data == resumed.buffer.data).all())
+    a, b = whole.learner.state_dict(), resumed.learner.state_dict()
+    assert a.keys() == b.keys() and any(k.startswith("ema.trained") for k in a)
+    for key in a:
+        assert torch.equal(a[key], b[key]), key

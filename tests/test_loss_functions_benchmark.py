@@ -263,9 +263,7 @@ def test_runs_of_disjoint_cells_merge_into_the_run_of_all_of_them():
         return out
 
     def cells(rows):
-        return sorted(
-            tuple(sorted((k, v) for k, v in r.items() if k not in TIMING)) for r in rows
-        )
+        return sorted(tuple(sorted((k, v) for k, v in r.items() if k not in TIMING)) for r in rows)
 
     both = raw(["mse", "l1"])
     merged = merge([raw(["mse"]), raw(["l1"])])
