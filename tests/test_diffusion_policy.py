@@ -392,7 +392,7 @@ def test_dagger_with_diffusion_policy_resumes_to_the_uninterrupted_run(tmp_path)
                 episodes_per_round=2,
                 warm_start=True,
                 bc=BCConfig(num_steps=4, batch_size=16),
-            ),  # fmt: skip
+            ),
             checkpoint_dir=directory,
             resume=resume,
             on_fit=on_fit,
