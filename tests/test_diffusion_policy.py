@@ -407,3 +407,26 @@ def test_dagger_with_diffusion_policy_resumes_to_the_uninterrupted_run(tmp_path)
     assert a.keys() == b.keys() and any(k.startswith("ema.trained") for k in a)
     for key in a:
         assert torch.equal(a[key], b[key]), key
+
+
+def test_a_chunked_learner_acts_in_an_env_without_an_init_tracker_and_on_the_cli(tmp_path):
+    from imitrl.cli import main
+    from imitrl.envs import make_env
+    from imitrl.evaluation import evaluate
+
+    env = make_env("Pendulum-v1", seed=0, num_envs=2, max_episode_steps=10)
+    task = TaskSpec(action=env.action_spec_unbatched, observation_dim=3)
+    learner = registry.build("diffusion_unet", task, LearnerConfig(seed=0))
+    assert IS_INIT not in env.observation_spec.keys()
+    first = evaluate(env, learner, 2, seed=2)
+    assert first.num_episodes == 2 and first.mean_length == 10
+    # samples come from the learner's own seeded generator (as flow's): a fresh learner
+    # of the same seed, evaluated on the same seed, plays the same episodes
+    twin = registry.build("diffusion_unet", task, LearnerConfig(seed=0))
+    assert evaluate(env, twin, 2, seed=2).mean_return == first.mean_return
+    out = tmp_path / "run"
+    args = ["bc", "--env", "Pendulum-v1", "--expert", "pendulum", "--loss", "diffusion_unet",
+            "--steps", "3", "--batch-size", "16", "--demos", "1", "--eval-episodes", "1",
+            "--max-episode-steps", "20", "--out", str(out)]  # fmt: skip
+    assert main(args) == 0
+    assert (out / "results.json").is_file()

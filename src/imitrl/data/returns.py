@@ -21,7 +21,7 @@ from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from tqdm.auto import tqdm
 
-from imitrl.data.rollout import _seeded, rollout_policy
+from imitrl.data.rollout import _seeded, init_tracked, rollout_policy
 from imitrl.policies.experts import Expert
 from imitrl.rng import rng_from
 from imitrl.runtime import paths
@@ -87,7 +87,9 @@ def episode_returns(
         if table is not None:
             tally.returns[:], tally.lengths[:] = table
         else:
-            stepper = paths.stepper(env, actor, record=False, fast_path=fast_path)
+            stepper = paths.stepper(
+                init_tracked(env, actor), actor, record=False, fast_path=fast_path
+            )
             tally.stepper = stepper
             play(stepper, book, labels=False, on_reward=tally.add, on_end=tally.end)
     if bar is not None:

@@ -24,10 +24,11 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.data import Bounded, TensorSpec
-from torchrl.envs import EnvBase
+from torchrl.envs import EnvBase, InitTracker, TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from imitrl import keys
+from imitrl.data.chunks import IS_INIT
 from imitrl.policies.experts import Expert
 from imitrl.rng import rng_from
 from imitrl.runtime import paths
@@ -84,6 +85,17 @@ def rollout_policy(
     # a learner on another device than the env (a GPU): its inputs cross there and its
     # actions back, once per step (imitrl.runtime.device); on the CPU the module itself
     return acting(policy, env.device), exploration
+
+
+def init_tracked(env: EnvBase, policy: TensorDictModuleBase) -> EnvBase:
+    """``env``, or ``env`` with TorchRL's ``InitTracker`` when ``policy`` reads
+    ``"is_init"`` (a chunked policy, which must know where each lane was reset) and the
+    env does not write it: so every rollout and evaluation of a chunked learner works on
+    any env, as :func:`~imitrl.policies.chunking.chunk_env` would wrap it (the wrapper
+    shares the env; the direct stepper does not apply to it)."""
+    if IS_INIT not in policy.in_keys or IS_INIT in env.observation_spec.keys(True):
+        return env
+    return TransformedEnv(env, InitTracker())
 
 
 def policy_generator(seed: int) -> torch.Generator:
@@ -157,7 +169,7 @@ def rollout_episodes(
     actor, exploration = rollout_policy(env, policy, exploration)
     generator = _seeded(env, seed, generator)
     with torch.no_grad(), set_exploration_type(exploration), rng_from(generator):
-        stepper = paths.stepper(env, actor, record=True, fast_path=fast_path)
+        stepper = paths.stepper(init_tracked(env, actor), actor, record=True, fast_path=fast_path)
         play(stepper, book, labels=True)
         traj = stepper.trajectory()
     if traj is None:
