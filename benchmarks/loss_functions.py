@@ -142,7 +142,14 @@ def main(argv: list[str] | None = None) -> None:
     torch.set_num_threads(1)
     seeds = args.seeds if args.seeds is not None else (1 if args.quick else 5)
     t0 = time.perf_counter()
-    raw = run(tasks=tasks, losses=args.losses, seeds=seeds, quick_mode=args.quick, jobs=args.jobs)
+    raw = run(
+        tasks=tasks,
+        losses=args.losses,
+        seeds=seeds,
+        quick_mode=args.quick,
+        jobs=args.jobs,
+        modules=tuple(args.modules),
+    )
     raw["wall_seconds"] = time.perf_counter() - t0
     raw["config"] = {
         "seeds": seeds,

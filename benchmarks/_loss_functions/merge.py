@@ -28,6 +28,11 @@ def merge(runs: list[dict[str, Any]]) -> dict[str, Any]:
     seeds = {r["config"]["seeds"] for r in runs}
     if len(seeds) != 1:
         raise ValueError(f"the runs used different numbers of seeds: {sorted(seeds)}")
+    if len({bool(r["config"].get("quick")) for r in runs}) != 1:
+        raise ValueError("a quick run and a full run cannot be merged")
+    torches = {r.get("machine", {}).get("torch") for r in runs} - {None}
+    if len(torches) > 1:
+        raise ValueError(f"the runs used different torch versions: {sorted(torches)}")
     out = {
         "rows": [],
         "references": [],

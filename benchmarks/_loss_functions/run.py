@@ -7,10 +7,10 @@ wherever (``--jobs``) it runs.
 
 from __future__ import annotations
 
+import importlib
 import multiprocessing
 import sys
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import asdict, replace
 from typing import Any
 
@@ -183,6 +183,7 @@ def run(
     seeds: int,
     quick_mode: bool,
     jobs: int = 1,
+    modules: tuple[str, ...] = (),
 ) -> dict[str, Any]:
     """Every (loss, task, seed) cell and the expert/random references; returns the raw rows."""
     cells, refs = [], []
@@ -216,15 +217,19 @@ def run(
     if jobs > 1:
         # fresh workers every WORKER_CELLS cells: a worker's resident memory grew by about
         # 90 MB a cell on Meta-World (to 5.7 GB each after 14 minutes of ACT cells) and
-        # is not given back to the system; a cell's digits depend on its seed alone
+        # is not given back to the system; a cell's digits depend on its seed alone.
+        # multiprocessing's Pool, not ProcessPoolExecutor(max_tasks_per_child=): the
+        # executor does not replace a retiring worker while tasks are queued and hangs
+        # (CPython gh-115634); spawned workers import the modules that register losses
         spawn = multiprocessing.get_context("spawn")
-        with ProcessPoolExecutor(jobs, mp_context=spawn, max_tasks_per_child=WORKER_CELLS) as pool:
-            ref_rows = [r for rows in pool.map(reference_cell, *zip(*refs)) for r in rows]
-            futures = {pool.submit(loss_cell, *cells[i]): i for i in schedule}
-            for future in as_completed(futures):
-                i = futures[future]
-                done[i] = future.result()
-                report(len(done), i, done[i])
+        with spawn.Pool(
+            jobs, maxtasksperchild=WORKER_CELLS, initializer=_import_all, initargs=(modules,)
+        ) as pool:
+            ref_rows = [r for rows in pool.starmap(reference_cell, refs) for r in rows]
+            work = [(i, cells[i]) for i in schedule]
+            for i, cell in pool.imap_unordered(_indexed_cell, work, chunksize=1):
+                done[i] = cell
+                report(len(done), i, cell)
     else:
         ref_rows = [r for args in refs for r in reference_cell(*args)]
         for i in schedule:
@@ -234,6 +239,17 @@ def run(
     protocols = {d.name: asdict(build(d, quick_mode).protocol) for d in tasks}
     definitions = {d.name: asdict(d) for d in tasks}
     return {"rows": rows, "references": ref_rows, "protocols": protocols, "tasks": definitions}
+
+
+def _import_all(modules: tuple[str, ...]) -> None:
+    """A spawned worker's start: import the modules whose entries join the run."""
+    for module in modules:
+        importlib.import_module(module)
+
+
+def _indexed_cell(item: tuple[int, tuple]) -> tuple[int, list[dict]]:
+    i, args = item
+    return i, loss_cell(*args)
 
 
 def _cost(defn: TaskDef, loss: str) -> float:

@@ -95,7 +95,8 @@ def init_tracked(env: EnvBase, policy: TensorDictModuleBase) -> EnvBase:
     shares the env; the direct stepper does not apply to it)."""
     if IS_INIT not in policy.in_keys or IS_INIT in env.observation_spec.keys(True):
         return env
-    return TransformedEnv(env, InitTracker())
+    # auto_unwrap=False: a TransformedEnv around env, not a copy of env's own transforms
+    return TransformedEnv(env, InitTracker(), auto_unwrap=False)
 
 
 def policy_generator(seed: int) -> torch.Generator:

@@ -124,14 +124,16 @@ def demonstrations(config: BCJob, setup: Setup) -> DemonstrationBuffer:
 
 
 def bc_config(config: BCJob) -> BCConfig:
-    """The behaviour-cloning fit the flags describe, with the loss's own recipe (its
-    minibatch and schedule: :func:`~imitrl.objectives.registry.fit_config`)."""
+    """The behaviour-cloning fit the flags describe, on the loss's own schedule where its
+    recipe has one (``LossEntry.recipe``: Diffusion Policy's warm-up and cosine decay);
+    ``--batch-size`` is kept as given."""
     bc = BCConfig(num_steps=config.steps, batch_size=config.batch_size, seed=config.seed)
     if config.loss == "default":
         return bc
     from imitrl.objectives import registry
 
-    return registry.fit_config(config.loss, bc)
+    recipe = registry.get(config.loss).recipe
+    return bc if recipe is None else recipe(bc)
 
 
 def evaluate_learner(config: BCJob, learner: Learner) -> dict:

@@ -125,6 +125,7 @@ class RgbEncoder(nn.Module):
     ) -> None:
         super().__init__()
         h, w, c = (int(s) for s in image_shape)
+        self.image_shape = (h, w, c)
         self.crop_shape = (h, w) if crop_shape is None else tuple(int(s) for s in crop_shape)
         if not (0 < self.crop_shape[0] <= h and 0 < self.crop_shape[1] <= w):
             raise ValueError(f"crop_shape {self.crop_shape} must fit the image {(h, w)}")
@@ -144,6 +145,11 @@ class RgbEncoder(nn.Module):
     def forward(self, images: torch.Tensor, generator: torch.Generator | None = None):
         """Features of ``images``; random crops drawn from ``generator`` when given
         (training), the centre crop otherwise (acting)."""
+        if tuple(images.shape[-3:]) != self.image_shape:
+            raise ValueError(
+                f"the camera encoder was built for images {self.image_shape} (H, W, C), "
+                f"got {tuple(images.shape[-3:])}"
+            )
         x = images.movedim(-1, -3).float() / 255.0
         x = crop(x, self.crop_shape, generator)
         return torch.relu(self.out(self.pool(self.backbone(x))))
