@@ -230,6 +230,8 @@ def run(
             for i, cell in pool.imap_unordered(_indexed_cell, work, chunksize=1):
                 done[i] = cell
                 report(len(done), i, cell)
+            pool.close()  # let the workers exit (the with-block would terminate them)
+            pool.join()
     else:
         ref_rows = [r for args in refs for r in reference_cell(*args)]
         for i in schedule:
