@@ -15,6 +15,25 @@ from typing import Any
 __all__ = ["merge"]
 
 
+def _with_defaults(protocol: dict) -> dict:
+    """A recorded protocol with the fields it predates filled with their defaults (a run
+    recorded before a field existed trained as its default says)."""
+    from dataclasses import MISSING, asdict, fields
+
+    from _loss_functions.tasks import Protocol
+    from imitrl.algorithms import BCConfig
+    from imitrl.objectives.registry import LearnerConfig
+
+    out = {f.name: f.default for f in fields(Protocol) if f.default is not MISSING}
+    out.update(protocol)
+    out["bc"] = {**asdict(BCConfig()), **protocol.get("bc", {})}
+    out["learner"] = {
+        **{k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(LearnerConfig()).items()},
+        **protocol.get("learner", {}),
+    }
+    return out
+
+
 def _cell(row: dict) -> tuple:
     return (row["task"], row["loss"], row["seed"], row["algorithm"])
 
@@ -45,9 +64,12 @@ def merge(runs: list[dict[str, Any]]) -> dict[str, Any]:
     cells: set[tuple] = set()
     for k, run in enumerate(runs):
         for name, protocol in run["protocols"].items():
+            protocol = _with_defaults(protocol)  # fields added since an older run: defaults
             if out["protocols"].setdefault(name, protocol) != protocol:
                 raise ValueError(f"run {k} trained task {name!r} with another protocol")
         for name, definition in run.get("tasks", {}).items():
+            if "protocol" in definition:
+                definition = {**definition, "protocol": _with_defaults(definition["protocol"])}
             if out["tasks"].setdefault(name, definition) != definition:
                 raise ValueError(f"run {k} defines task {name!r} differently")
         for ref in run["references"]:
