@@ -121,6 +121,20 @@ def test_labels_of_the_wrong_horizon_are_refused_by_name():
 
 
 # --------------------------------------------------------------------- EMA learners
+def _weights_a_fit_starts_from(learner) -> list[torch.Tensor]:
+    """The policy's weights at the first step of a one-step fit (what it trains from)."""
+    seen = []
+    orig = learner.loss.objective
+
+    def spy(batch, weights=None):
+        seen.append([p.detach().clone() for p in learner.policy.parameters()])
+        return orig(batch, weights)
+
+    learner.loss.objective = spy
+    fit_bc(learner, _rows(), BCConfig(num_steps=1, batch_size=32))
+    return seen[0]
+
+
 def test_a_fit_trains_the_weights_and_the_policy_acts_with_their_average():
     learner = _learner()
     before = [p.detach().clone() for p in learner.policy.parameters()]
@@ -133,16 +147,7 @@ def test_a_fit_trains_the_weights_and_the_policy_acts_with_their_average():
     assert any(not torch.equal(a, b) for a, b in zip(trained, before))
     assert int(ema.step) == 5
     # a second fit continues from the trained weights (DAgger's warm start)
-    seen = []
-    orig = learner.loss.objective
-
-    def spy(batch, weights=None):
-        seen.append([p.detach().clone() for p in learner.policy.parameters()])
-        return orig(batch, weights)
-
-    learner.loss.objective = spy
-    fit_bc(learner, _rows(), BCConfig(num_steps=1, batch_size=32))
-    assert all(torch.equal(a, b) for a, b in zip(seen[0], trained))
+    assert all(torch.equal(a, b) for a, b in zip(_weights_a_fit_starts_from(learner), trained))
 
 
 def test_a_checkpoint_carries_the_average_the_trained_weights_and_the_step():
@@ -267,16 +272,8 @@ def test_weights_set_on_the_policy_directly_become_the_trained_ones():
     fit_bc(learner, _rows(), BCConfig(num_steps=3, batch_size=32))
     other = _learner(seed=9)
     learner.policy.load_state_dict(other.policy.state_dict())  # not the learner's own load
-    seen = []
-    orig = learner.loss.objective
-
-    def spy(batch, weights=None):
-        seen.append([p.detach().clone() for p in learner.policy.parameters()])
-        return orig(batch, weights)
-
-    learner.loss.objective = spy
-    fit_bc(learner, _rows(), BCConfig(num_steps=1, batch_size=32))
-    assert all(torch.equal(a, b) for a, b in zip(seen[0], other.policy.parameters()))
+    start = _weights_a_fit_starts_from(learner)
+    assert all(torch.equal(a, b) for a, b in zip(start, other.policy.parameters()))
 
 
 def test_rows_that_carry_their_labels_and_histories_are_used_as_they_are():
