@@ -21,8 +21,11 @@ from torchrl.envs.utils import ExplorationType
 from imitrl import keys
 from imitrl.algorithms import BCConfig, Constant, DAggerConfig, dagger
 from imitrl.data import DemonstrationBuffer, rollout_episodes
+from imitrl.data.chunks import IS_INIT
 from imitrl.envs import make_env
 from imitrl.experts import cartpole_expert
+from imitrl.objectives import registry
+from imitrl.objectives.registry import LearnerConfig, TaskSpec
 from imitrl.policies import ActorCritic, BetaMixer, behaviour_policy
 from imitrl.runtime import OnDevice
 
@@ -31,6 +34,7 @@ from imitrl.algorithms.ray_source import (  # noqa: E402
     WORKER_THREADS,
     RaySource,
     init_ray,
+    worker_env,
     worker_policy,
 )
 from imitrl.cli import build_parser  # noqa: E402
@@ -204,6 +208,28 @@ def test_the_cli_job_runs_dagger_on_workers(ray_session, tmp_path):
     assert (parsed.workers, parsed.address) == (3, "auto")
     with pytest.raises(ValueError, match="--workers"):
         DAggerJob(address="auto")
+
+
+def test_a_chunked_learner_runs_on_workers_with_the_users_plain_env(ray_session, tmp_path):
+    """A chunked learner reads ``is_init``; Pendulum does not write it. The workers wrap
+    their env in TorchRL's InitTracker as a local rollout does (without it the worker's
+    first step raises): DAgger's relabel round and the evaluation run on a worker."""
+    env_fn = functools.partial(make_env, "Pendulum-v1", seed=0)
+    plain = make_env("Pendulum-v1", seed=0)
+    task = TaskSpec(action=plain.action_spec_unbatched, observation_dim=3)
+    chunked = registry.build("mse_chunk", task, LearnerConfig(hidden=(8,)))
+
+    flat = registry.build("mse", task, LearnerConfig(hidden=(8,)))
+    assert worker_env(env_fn, plain, flat.policy) is env_fn
+    tracked = worker_env(env_fn, plain, chunked.policy)()
+    assert bool(tracked.reset().get(IS_INIT).all())
+    job = DAggerJob(
+        env="Pendulum-v1", loss="mse_chunk", demos=1, rounds=2, episodes_per_round=1,
+        steps=5, hidden=(8,), eval_episodes=1, out=tmp_path, progress=False, workers=1,
+    )  # fmt: skip
+    results = run_dagger_job(job)
+    # round 0 relabels one whole episode (200 steps) the initial fit drove; the last fits only
+    assert [r["rows_collected"] for r in results["rounds"]] == [200, 0]
 
 
 def test_missing_ray_gives_the_install_hint(monkeypatch):

@@ -56,6 +56,7 @@ already running in this process; workers import imitrl and the user's modules th
 from __future__ import annotations
 
 import copy
+import functools
 import time
 import warnings
 from collections import deque
@@ -67,7 +68,7 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.collectors import Collector
-from torchrl.envs import EnvBase
+from torchrl.envs import EnvBase, InitTracker, TransformedEnv
 from torchrl.envs.utils import ExplorationType, exploration_type
 
 from imitrl import keys
@@ -79,7 +80,7 @@ from imitrl.algorithms.ray_setup import (
     patient_weight_sync,
 )
 from imitrl.data.returns import EpisodeSummary
-from imitrl.data.rollout import NEXT_KEYS, OPTIONAL_ROW_KEYS, ROW_KEYS
+from imitrl.data.rollout import NEXT_KEYS, OPTIONAL_ROW_KEYS, ROW_KEYS, init_tracked
 from imitrl.envs.limits import episode_limit
 from imitrl.policies.experts import Expert
 from imitrl.policies.learner import Learner
@@ -94,6 +95,7 @@ __all__ = [
     "RoundTiming",
     "init_ray",
     "slot_seeds",
+    "worker_env",
     "worker_policy",
 ]
 
@@ -381,7 +383,7 @@ class RaySource:
         policy = worker_policy(behaviour)
         start = time.perf_counter()
         self._collector = RayCollector(
-            self.make_env,
+            worker_env(self.make_env, self._env, policy),
             policy,
             collector_class=_EpisodeCollector,
             num_collectors=self.workers,
@@ -444,6 +446,24 @@ def worker_policy(behaviour: TensorDictModuleBase) -> TensorDictModuleBase:
         elif isinstance(module, BetaMixer):
             module.generator = None
     return policy
+
+
+def worker_env(
+    make_env: Callable[[], EnvBase], env: EnvBase, policy: TensorDictModuleBase
+) -> Callable[[], EnvBase]:
+    """The ``make_env`` the workers call: ``make_env`` itself, or, when ``policy`` reads
+    ``"is_init"`` (a chunked learner) and ``env`` (the driver's copy) does not write it,
+    ``make_env`` followed by :func:`~imitrl.data.rollout.init_tracked`, as a local rollout
+    wraps it: so DAgger with a chunked learner runs on workers with the user's plain env."""
+    if init_tracked(env, policy) is env:
+        return make_env
+    return functools.partial(_tracked_env, make_env)
+
+
+def _tracked_env(make_env: Callable[[], EnvBase]) -> EnvBase:
+    """``make_env()`` in TorchRL's ``InitTracker``, as :func:`init_tracked` wraps it
+    (a module-level function: the workers unpickle and call it)."""
+    return TransformedEnv(make_env(), InitTracker(), auto_unwrap=False)
 
 
 def _quota(num_episodes: int, slots: int) -> list[int]:
