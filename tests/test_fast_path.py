@@ -204,7 +204,7 @@ def test_tabular_env_direct_path_equals_torchrl(lake, lake_q, rng, lanes):
 
 @pytest.mark.parametrize("lanes", [1, 3])
 def test_sampled_and_success_returns_equal_torchrl(lanes):
-    """A sampled learner (run through its own forward, drawing from the seeded generator)
+    """A sampled learner (its draws replayed from the seeded generator)
     and a success criterion (the step tensordict rebuilt where an episode ends)."""
 
     def make():
@@ -291,21 +291,25 @@ def _policies():
     yield cart, Expert.from_policy(_learner(cart).policy).as_actor()  # a label of a policy
 
 
-@pytest.mark.parametrize("exploration", [DET, MODE])
+@pytest.mark.parametrize("exploration", [DET, MODE, RND])
 def test_policy_replay_equals_the_tensordict_call(exploration):
+    """Every module replayed, none run through forward; a sampled actor (RANDOM) draws
+    the same numbers from the global RNG as its own forward does."""
     for env, policy in _policies():
         td = env.reset()
         with torch.no_grad(), set_exploration_type(exploration):
             replay = TensorPolicy(policy, env.batch_size)
-            assert not replay.opaque  # every module replayed, none run through forward
+            assert not replay.opaque
             values = dict(td.items(True, True))
             try:
+                torch.manual_seed(11)
                 out = policy(td.clone())
             except RuntimeError as err:  # TanhNormal has no mode: the replay says so too
                 with pytest.raises(RuntimeError, match="has not analytical mode"):
                     replay(values)
                 assert "has not analytical mode" in str(err)
                 continue
+            torch.manual_seed(11)
             replay(values)
         assert_same(TensorDict(values, batch_size=env.batch_size), out)
 

@@ -33,7 +33,7 @@ def _check_device(device: str) -> None:
         raise ValueError(f"--device: {err}") from None
 
 
-_SHARED = ("env", "max_episode_steps", "expert", "expert_kind", "dataset", "demos", "hidden",
+_SHARED = ("env", "num_envs", "max_episode_steps", "expert", "expert_kind", "dataset", "demos", "hidden",
            "lr", "eval_episodes", "eval_seed", "seed", "device", "out", "logger", "progress")  # fmt: skip
 """the GAIL/AIRL flags that ``imitrl bc``'s preparation reads (:meth:`GAILJob.bc_view`)"""
 
@@ -163,6 +163,9 @@ class GAILJob:
 
     env: str = "CartPole-v1"
     """gymnasium id, or module:Env-v0 (importing module registers Env-v0)"""
+    num_envs: int = 1
+    """env copies (lanes) the generator steps together, its policy batched over them;
+    --rollout-steps must be a multiple of it"""
     max_episode_steps: int | None = None
     """override the env's time limit; none = its registered limit"""
     expert: str | None = "auto"
@@ -239,6 +242,13 @@ class GAILJob:
                 f"--expert-kind must be one of {EXPERT_KINDS}, got {self.expert_kind!r}"
             )
         _check_device(self.device)
+        if int(self.num_envs) != self.num_envs or self.num_envs < 1:
+            raise ValueError(f"--num-envs must be a positive integer, got {self.num_envs!r}")
+        if self.rollout_steps % self.num_envs:
+            raise ValueError(
+                f"--rollout-steps ({self.rollout_steps}) must be a multiple of --num-envs "
+                f"({self.num_envs}): each round steps every lane equally"
+            )
         if self.eval_episodes < 1:
             raise ValueError(f"--eval-episodes must be >= 1, got {self.eval_episodes}")
         if int(self.eval_every) != self.eval_every or self.eval_every < 0:

@@ -24,6 +24,11 @@ the reference one on public TorchRL (:class:`imitrl.runtime.reference.TorchRLSte
 ``policy(td)`` and ``env.step_and_maybe_reset``) or the accelerated one
 (:mod:`imitrl.runtime.fast`), chosen by :func:`imitrl.runtime.paths.stepper`. Both play
 the same episodes, digit for digit (``tests/test_fast_path.py``).
+
+**Fixed steps.** An on-policy learner (GAIL's and AIRL's PPO generator) wants batches of
+a fixed number of steps that continue across rounds, episodes cut wherever a batch ends:
+:func:`play_steps` steps the same stepper ``steps`` times per lane per call, from where
+the last call left every lane, resetting the lanes that end.
 """
 
 from __future__ import annotations
@@ -47,11 +52,13 @@ __all__ = [
     "OPTIONAL_NEXT_KEYS",
     "OPTIONAL_ROW_KEYS",
     "ROW_KEYS",
+    "STEP_ROW_KEYS",
     "Lanes",
     "Stepper",
     "episode_bound",
     "lane_count",
     "play",
+    "play_steps",
     "policy_errors_named",
     "quota",
 ]
@@ -63,6 +70,8 @@ ROW_KEYS = (
     keys.EXPERT_EXECUTED,
 )
 NEXT_KEYS = (keys.REWARD, keys.DONE, keys.TERMINATED, keys.TRUNCATED)
+STEP_ROW_KEYS = (keys.OBSERVATION, keys.ACTION)
+"""what :func:`play_steps` records of the root (an on-policy learner's batch: no expert)"""
 OPTIONAL_ROW_KEYS = (keys.PIXELS, keys.ENVIRONMENT_STATE)
 """kept in the rows when the env gives them (a pixel env's images, a Dict env's
 ``environment_state`` beside its state)"""
@@ -108,6 +117,16 @@ class Stepper(ABC):
     @abstractmethod
     def trajectory(self) -> TensorDictBase | None:
         """The recorded steps ``[*batch, T]`` (None when none was taken)."""
+
+    @abstractmethod
+    def clear(self) -> None:
+        """Forget the recorded steps (the env and the policy's state stay)."""
+
+    def take(self) -> TensorDictBase | None:
+        """The recorded steps, which the stepper then forgets (:func:`play_steps`)."""
+        steps = self.trajectory()
+        self.clear()
+        return steps
 
     @contextmanager
     def running(self) -> Iterator[None]:
@@ -286,3 +305,26 @@ def _steps(stepper: Stepper, book: Lanes, labels: bool, on_reward, on_end) -> No
         # the finished lanes reset even after the last step, as TorchRL's
         # step_and_maybe_reset does: the env's random state ends where it leaves it
         stepper.advance(None if ended is None else done)
+
+
+def play_steps(stepper: Stepper, steps: int) -> TensorDictBase:
+    """``steps`` steps of every lane from where the last call left them; the recorded
+    steps ``[*batch, steps]``, which the stepper then forgets.
+
+    Call ``stepper.reset()`` once before the first call (outside ``torch.inference_mode``).
+    Lanes that end an episode reset and go on; an episode is bounded by the env's own
+    time limit only (a batch may end inside an episode: the next call continues it).
+    """
+    if int(steps) != steps or steps < 1:
+        raise ValueError(f"steps must be a positive integer, got {steps!r}")
+    env, first = stepper.env, True
+    with policy_errors_named(env, stepper.policy), stepper.running():
+        for _ in range(int(steps)):
+            values = stepper.act()
+            if first:  # each call's first action (a batch's cost is thousands of steps)
+                check_first_step(env, values, labels=False)
+                first = False
+            _, done = stepper.step()
+            ended = True in done.tolist() if done.dtype == np.bool_ else bool(done.any())
+            stepper.advance(done if ended else None)
+    return stepper.take()

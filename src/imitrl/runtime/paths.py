@@ -84,11 +84,23 @@ def mark_plain_gym(env: EnvBase) -> EnvBase:
 
 
 def stepper(
-    env: EnvBase, policy: TensorDictModuleBase, *, record: bool, fast_path: bool = True
+    env: EnvBase,
+    policy: TensorDictModuleBase,
+    *,
+    record: bool,
+    fast_path: bool = True,
+    row_keys: tuple | None = None,
+    next_observation: bool = False,
 ) -> Stepper:
-    """The stepper of ``env`` driven by ``policy`` for :func:`~imitrl.runtime.loop.play`:
-    the accelerated one where it knows the env and ``fast_path`` and :func:`fast_enabled`
-    allow, else the reference one. Build it inside the rollout's exploration type."""
+    """The stepper of ``env`` driven by ``policy`` for :func:`~imitrl.runtime.loop.play`
+    (or :func:`~imitrl.runtime.loop.play_steps`): the accelerated one where it knows the
+    env and ``fast_path`` and :func:`fast_enabled` allow, else the reference one. Build it
+    inside the rollout's exploration type. ``row_keys``: the root entries a recording
+    keeps (None: :data:`~imitrl.runtime.loop.ROW_KEYS`); ``next_observation``: keep
+    ``("next", "observation")`` too."""
+    from imitrl.runtime.loop import ROW_KEYS
+
+    extra = (ROW_KEYS if row_keys is None else tuple(row_keys), next_observation)
     if fast_path and fast_enabled():
         from imitrl.runtime.fast.env_steps import direct_steps
 
@@ -96,10 +108,10 @@ def stepper(
         if direct is not None:
             from imitrl.runtime.fast.stepper import DirectStepper
 
-            return DirectStepper(env, direct, policy, record)
+            return DirectStepper(env, direct, policy, record, *extra)
     from imitrl.runtime.reference import TorchRLStepper
 
-    return TorchRLStepper(env, policy, record)
+    return TorchRLStepper(env, policy, record, *extra)
 
 
 def table_returns(

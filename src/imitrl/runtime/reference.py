@@ -29,10 +29,20 @@ class TorchRLStepper(Stepper):
         env: any TorchRL env with zero or one batch dimension.
         policy: the module that drives it.
         record: keep each step's row entries for :meth:`trajectory`.
+        row_keys: the root entries it keeps (the env's optional ones beside them).
+        next_observation: keep ``("next", "observation")`` too.
     """
 
-    def __init__(self, env: EnvBase, policy: TensorDictModuleBase, record: bool) -> None:
+    def __init__(
+        self,
+        env: EnvBase,
+        policy: TensorDictModuleBase,
+        record: bool,
+        row_keys: tuple = ROW_KEYS,
+        next_observation: bool = False,
+    ) -> None:
         self.env, self.policy, self._record = env, policy, record
+        self._keys, self._next_observation = tuple(row_keys), next_observation
         self._steps: list[TensorDictBase] = []
         self._row_keys: list | None = None
         self._td = self._out = self._next = None
@@ -49,7 +59,9 @@ class TorchRLStepper(Stepper):
             present = [k for k in OPTIONAL_ROW_KEYS if k in self._td.keys()]
             observed = self.env.observation_spec.keys()
             after = [*NEXT_KEYS, *[k for k in OPTIONAL_NEXT_KEYS if k in observed]]
-            self._row_keys = [*ROW_KEYS, *present, *[(keys.NEXT, k) for k in after]]
+            if self._next_observation:
+                after.append(keys.OBSERVATION)
+            self._row_keys = [*self._keys, *present, *[(keys.NEXT, k) for k in after]]
         self._out, self._next = self.env.step_and_maybe_reset(self._td)
         if self._record:
             self._steps.append(self._out.select(*self._row_keys))
@@ -67,3 +79,6 @@ class TorchRLStepper(Stepper):
         if not self._steps:
             return None
         return torch.stack(self._steps, dim=len(self.env.batch_size)).contiguous()
+
+    def clear(self) -> None:
+        self._steps = []

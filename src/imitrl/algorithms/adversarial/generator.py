@@ -9,7 +9,7 @@ GAE needs, not the twin ``Q(s, a)`` heads SAC needs. PPO trains the same object
 :func:`~imitrl.evaluation.evaluate` evaluates and the checkpoint saves. (This choice was
 made on these grounds, not measured against SAC.)
 
-One update (:meth:`PPOGenerator.update`) on a collector batch ``[*B, T]`` carrying
+One update (:meth:`PPOGenerator.update`) on a round's batch ``[*B, T]`` carrying
 ``("next", LEARNED_REWARD)``:
 
 1. ``log pi_old(a|s)`` of the collected actions, written under the loss's

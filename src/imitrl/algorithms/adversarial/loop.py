@@ -2,8 +2,12 @@
 
 Round after round, until ``total_steps`` environment steps:
 
-1. a TorchRL ``Collector`` plays ``rollout_steps`` steps of the learner's policy on the
-   env, sampling its actions (``ExplorationType.RANDOM``);
+1. the one rollout loop (:func:`~imitrl.runtime.loop.play_steps`) plays ``rollout_steps``
+   steps of the learner's policy on the env's lanes (``rollout_steps / lanes`` each,
+   continuing where the last round left every lane), sampling its actions
+   (``ExplorationType.RANDOM``) batched over the lanes; the accelerated stepper where
+   the seam (:mod:`imitrl.runtime.paths`) has one, TorchRL's ``step_and_maybe_reset``
+   elsewhere, with the same digits;
 2. ``discriminator_updates`` steps of the discriminator, each on ``discriminator_batch``
    expert transitions and as many of this round's policy transitions, drawn with
    replacement;
@@ -39,7 +43,6 @@ from typing import Protocol
 
 import torch
 from tensordict import TensorDictBase
-from torchrl.collectors import Collector
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.record.loggers import Logger
@@ -57,7 +60,9 @@ from imitrl.algorithms.adversarial.transitions import (
 )
 from imitrl.data.buffer import DemonstrationBuffer
 from imitrl.policies.actor_critic import ActorCritic
+from imitrl.runtime import paths
 from imitrl.runtime.device import acting
+from imitrl.runtime.loop import STEP_ROW_KEYS, Stepper, lane_count, play_steps
 
 __all__ = [
     "AdversarialConfig",
@@ -75,10 +80,10 @@ class AdversarialConfig:
     The generator's learning rate is the learner's own (its ``opt_pi`` / ``opt_v``, set
     when it is built)."""
 
-    total_steps: int = 100_000
-    """environment steps of the whole run (rounded up to whole rounds)"""
+    total_steps: int = 102_400
+    """environment steps of the whole run (50 rounds of 2048; rounded up to whole rounds)"""
     rollout_steps: int = 2048
-    """environment steps collected per round (the collector's frames_per_batch)"""
+    """environment steps collected per round, all lanes together (a multiple of them)"""
     ppo_epochs: int = 10
     """PPO passes over each round's batch"""
     minibatch_size: int = 256
@@ -251,25 +256,14 @@ def train_adversarial(
             epochs=config.ppo_epochs, minibatch_size=config.minibatch_size,
             max_grad_norm=config.max_grad_norm,
         )  # fmt: skip
-        # a learner off the CPU: TorchRL's collector moves each step's observations to it
-        # and its actions back to the env, and stores the batch where the learner trains
-        devices = {} if device.type == "cpu" else {
-            "policy_device": device, "env_device": env.device, "storing_device": device,
-        }  # fmt: skip
-        collector = Collector(
-            env,
-            learner.policy,
-            frames_per_batch=config.rollout_steps,
-            total_frames=config.total_steps,
-            exploration_type=ExplorationType.RANDOM,
-            auto_register_policy_transforms=False,
-            **devices,
-        )
+        stepper, per_lane = _stepper(env, learner, config.rollout_steps)
+        rounds = -(-config.total_steps // (per_lane * lane_count(env)))  # whole rounds
         try:
-            for k, batch in enumerate(collector):
+            for k in range(rounds):
+                with set_exploration_type(ExplorationType.RANDOM), torch.no_grad():
+                    batch = play_steps(stepper, per_lane).to(device)
                 steps += batch.numel()
                 record = _round(k, steps, batch, expert, discriminator, generator, config, draws)
-                collector.update_policy_weights_()
                 if on_round is not None:
                     info = on_round(k, learner, steps)
                     record.info = info if isinstance(info, dict) else None
@@ -277,12 +271,29 @@ def train_adversarial(
                 _log(logger, name, record)
                 bar.update(batch.numel())
         finally:
-            collector.shutdown(close_env=False)
             bar.close()
     return AdversarialResult(
         learner=learner, rounds=records, env_steps=steps,
         expert_queries=len(demonstrations), expert_transitions=n_expert,
     )  # fmt: skip
+
+
+def _stepper(env: EnvBase, learner: ActorCritic, rollout_steps: int) -> tuple[Stepper, int]:
+    """The stepper the rounds share (the env reset once: batches continue across rounds)
+    and the steps each lane plays per round."""
+    lanes = lane_count(env)
+    if rollout_steps % lanes:
+        raise ValueError(
+            f"rollout_steps ({rollout_steps}) must be a multiple of the env's {lanes} lanes "
+            "(each round steps every lane equally)"
+        )
+    with set_exploration_type(ExplorationType.RANDOM), torch.no_grad():
+        policy = acting(learner.policy, env.device)  # a learner on a GPU crosses per step
+        stepper = paths.stepper(
+            env, policy, record=True, row_keys=STEP_ROW_KEYS, next_observation=True
+        )
+        stepper.reset()
+    return stepper, rollout_steps // lanes
 
 
 def _fit_normalizer(env: EnvBase, learner: ActorCritic, rows: TensorDictBase, warmup: int) -> int:
@@ -304,7 +315,7 @@ def _fit_normalizer(env: EnvBase, learner: ActorCritic, rows: TensorDictBase, wa
 
 
 def _round(k, steps, batch, expert, discriminator, generator, config, draws) -> RoundRecord:
-    """Discriminator steps, then the learned reward, then PPO, on one collector batch."""
+    """Discriminator steps, then the learned reward, then PPO, on one round's batch."""
     n = batch.numel()
     policy = policy_transitions(batch)
     if config.absorbing:

@@ -10,7 +10,7 @@
   Every row must have executed the expert's action (``EXPERT_EXECUTED``): adversarial
   imitation matches the expert's state-action occupancy, which only its own
   trajectories sample.
-* :func:`policy_transitions`: a collector batch ``[*B, T]`` flattened to rows.
+* :func:`policy_transitions`: a round's batch ``[*B, T]`` flattened to rows.
 * :func:`action_features`: the float ``[N, k]`` action a discriminator network reads.
 
 Every returned TensorDict holds ``OBSERVATION [N, d]``, ``ACTION [N, ...]``,
@@ -80,7 +80,7 @@ def expert_transitions(rows: TensorDictBase) -> TensorDict:
 
 
 def policy_transitions(batch: TensorDictBase) -> TensorDict:
-    """A collector batch ``[*B, T]`` -> transitions ``[N]``, ``N = prod(B) * T``, same order."""
+    """A round's batch ``[*B, T]`` -> transitions ``[N]``, ``N = prod(B) * T``, same order."""
     flat = batch.reshape(-1)
     return _transitions(
         flat.get(keys.OBSERVATION),

@@ -15,8 +15,10 @@ module                              replayed as
 =================================== ================================================
 ``TensorDictSequential``            its modules in order
 ``Module``, ``TensorDictModule``    ``module.module(*in_keys) -> out_keys``
-``ProbabilisticActor`` (greedy)     the network, then the distribution's
-                                    ``deterministic_sample`` (``mode`` under MODE)
+``ProbabilisticActor``              the network, then the distribution's
+                                    ``deterministic_sample`` (``mode`` under MODE;
+                                    one ``rsample``/``sample`` under RANDOM, as
+                                    tensordict draws it, from the same RNG)
 :class:`~imitrl.policies.Expert`    its function of ``in_keys``, cast by ``cast_label``
 ``Expert.as_actor``'s executor      ``ACTION <- EXPERT_ACTION``
 :class:`~imitrl.policies.BetaMixer` ``BetaMixer.mix`` (the same coins)
@@ -25,8 +27,8 @@ module                              replayed as
 The networks inside run by :func:`direct_call`: an ``nn.Sequential`` (or
 :class:`~imitrl.policies.heads.Chain`) of hookless modules calls each child's
 ``forward`` without ``nn.Module.__call__``'s hook bookkeeping (about a fifth of a small
-MLP's call at batch 1). Any other module, a sampled (``RANDOM``) actor, or a module with
-hooks runs through its own ``forward`` on a TensorDict of the dict's entries. Each
+MLP's call at batch 1). Any other module (an actor under MEAN or MEDIAN, one that
+writes its log-probability), or a module with hooks runs through its own ``forward`` on a TensorDict of the dict's entries. Each
 replay runs the module's own code on the same tensors, so the outputs are the module's to the bit
 (``tests/test_fast_path.py``, the seam's test, checks it for every learner head and the DAgger behaviour
 policy).
@@ -173,7 +175,7 @@ class TensorPolicy:
             )
         if kind in (Module, TensorDictModule) and plain_module(node):
             return self._module(node)
-        if kind is ProbabilisticActor and self._greedy_actor(node):
+        if kind is ProbabilisticActor and self._replayable_actor(node):
             return self._actor(node)
         if isinstance(node, Expert) and type(node).forward is Expert.forward:
             return self._expert(node)
@@ -247,15 +249,18 @@ class TensorPolicy:
 
         return step
 
-    def _greedy_actor(self, node: ProbabilisticActor) -> bool:
-        """An actor whose last module draws nothing under this exploration type."""
-        if self.exploration not in (ExplorationType.DETERMINISTIC, ExplorationType.MODE):
-            return False  # sampled: its draws are the module's own (run through forward)
+    def _replayable_actor(self, node: ProbabilisticActor) -> bool:
+        """An actor of plain modules whose last module builds one distribution and writes
+        one sample: greedy (DETERMINISTIC, MODE) or drawn (RANDOM)."""
+        if self.exploration not in (
+            ExplorationType.DETERMINISTIC, ExplorationType.MODE, ExplorationType.RANDOM,
+        ):  # fmt: skip
+            return False  # MEAN, MEDIAN: through its own forward
         *det, last = list(node.module)
         return (
             isinstance(last, ProbabilisticTensorDictModule)
             and (
-                self.exploration is ExplorationType.MODE
+                self.exploration is not ExplorationType.DETERMINISTIC
                 or hasattr(last.distribution_class, "deterministic_sample")  # as _dist_sample
             )
             and not (last._forward_hooks or last._forward_pre_hooks)
@@ -271,8 +276,10 @@ class TensorPolicy:
         dist_class, dist_kwargs = last.distribution_class, last.distribution_kwargs
         names = [k[-1] if isinstance(k, tuple) else k for k in last.dist_keys]
         in_keys, (out_key,) = list(last.in_keys), list(last.dist_sample_keys)
-        mode = self.exploration is ExplorationType.MODE
-        if dist_class is GreedyCategorical and names == ["logits"] and not dist_kwargs:
+        exploration = self.exploration
+        if exploration is ExplorationType.RANDOM:
+            self.draws = True
+        elif dist_class is GreedyCategorical and names == ["logits"] and not dist_kwargs:
             (logits_key,) = in_keys
 
             def greedy(values: Values) -> None:
@@ -286,7 +293,12 @@ class TensorPolicy:
             params(values)  # the network: writes the distribution's parameters
             # ProbabilisticTensorDictModule.get_dist, then _dist_sample
             dist = dist_class(**{n: values.get(k) for n, k in zip(names, in_keys)}, **dist_kwargs)
-            values[out_key] = dist.mode if mode else dist.deterministic_sample
+            if exploration is ExplorationType.RANDOM:  # the module's own draw, one sample
+                values[out_key] = dist.rsample() if dist.has_rsample else dist.sample()
+            elif exploration is ExplorationType.MODE:
+                values[out_key] = dist.mode
+            else:
+                values[out_key] = dist.deterministic_sample
 
         return step
 

@@ -40,17 +40,25 @@ class DirectStepper(Stepper):
     """``direct`` stepping ``env``'s simulator, ``policy`` called as a :class:`TensorPolicy`.
 
     Build it inside the rollout's ``set_exploration_type`` (the policy's replay reads the
-    exploration type once, when built).
+    exploration type once, when built). ``row_keys``: the root entries recorded;
+    ``next_observation``: record ``("next", "observation")`` too.
     """
 
     def __init__(
-        self, env: EnvBase, direct: DirectSteps, policy: TensorDictModuleBase, record: bool
+        self,
+        env: EnvBase,
+        direct: DirectSteps,
+        policy: TensorDictModuleBase,
+        record: bool,
+        row_keys: tuple = ROW_KEYS,
+        next_observation: bool = False,
     ) -> None:
         self.env, self.policy, self._direct, self._record = env, policy, direct, record
         self.call = TensorPolicy(policy, env.batch_size)
         self._action_key = env.action_key
         self._values: dict = {}
-        self._columns: dict = {k: [] for k in ROW_KEYS}
+        self._row_keys, self._next_observation = tuple(row_keys), next_observation
+        self._columns: dict = {k: [] for k in self._row_keys}
         self._raw: list[RawStep] = []  # the next entries are made tensors once, at the end
         self._last: RawStep | None = None
 
@@ -72,7 +80,7 @@ class DirectStepper(Stepper):
     def step(self) -> tuple[np.ndarray, np.ndarray]:
         values = self._values
         if self._record:
-            for k in ROW_KEYS:
+            for k in self._row_keys:
                 self._columns[k].append(values[k])
         self._last = step = self._direct.step_raw(values.get(self._action_key))
         if self._record:
@@ -96,7 +104,13 @@ class DirectStepper(Stepper):
             return None
         dim = len(self.env.batch_size)
         stacked = {k: torch.stack(v, dim=dim) for k, v in self._columns.items()}
+        nxt = dict(zip(NEXT_KEYS, self._direct.next_tensors(self._raw)))
+        if self._next_observation:  # each step's own, before any reset
+            nxt[keys.OBSERVATION] = torch.stack([s.observation for s in self._raw], dim=dim)
         return TensorDict(
-            {**stacked, keys.NEXT: dict(zip(NEXT_KEYS, self._direct.next_tensors(self._raw)))},
-            batch_size=stacked[keys.ACTION].shape[: dim + 1],
+            {**stacked, keys.NEXT: nxt}, batch_size=stacked[keys.ACTION].shape[: dim + 1]
         )
+
+    def clear(self) -> None:
+        self._columns = {k: [] for k in self._row_keys}
+        self._raw = []
