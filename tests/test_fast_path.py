@@ -527,7 +527,8 @@ def test_only_the_seam_imports_the_accelerated_internals():
 
 def test_one_rollout_loop_steps_every_env():
     """TorchRL's step call appears once, in the reference stepper; the direct step once, in
-    the accelerated one; and only the loop calls a stepper's step."""
+    the accelerated one; and only the loop calls a stepper's step (in ``play``, for whole
+    episodes, and ``play_steps``, for an on-policy learner's fixed-step batches)."""
     calls: dict[str, list[str]] = {"step_and_maybe_reset": [], "step_raw": [], ".step()": []}
     for path in SRC.rglob("*.py"):
         for node in ast.walk(ast.parse(path.read_text())):
@@ -540,7 +541,7 @@ def test_one_rollout_loop_steps_every_env():
     assert calls == {
         "step_and_maybe_reset": ["runtime/reference.py"],
         "step_raw": ["runtime/fast/stepper.py"],
-        ".step()": ["runtime/loop.py"],
+        ".step()": ["runtime/loop.py", "runtime/loop.py"],
     }
 
 
