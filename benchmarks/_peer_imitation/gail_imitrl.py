@@ -1,0 +1,93 @@
+"""imitrl's GAIL side of ``peer_gail.py``: one (task, protocol, seed) run, as a whole process.
+
+    python benchmarks/_peer_imitation/gail_imitrl.py SPEC_JSON RESULT_JSON
+
+``SPEC_JSON`` is :meth:`gail_tasks.GailTask.spec`. The run is what ``imitrl gail
+--num-envs LANES`` does, through the public API, with the spec's settings:
+
+1. setup: the generator's env (``make_env``, ``lanes`` lanes), ``demo_episodes`` greedy
+   episodes of the built-in expert (``rollout_episodes``), the learner
+   (``ActorCritic.for_env``: a categorical head for discrete actions, tanh-normal for
+   continuous ones, as ``imitrl gail``'s default loss; hidden 64, 64);
+2. train: :func:`imitrl.algorithms.adversarial.gail` for ``total_steps``;
+3. evaluation: the learner greedy (``evaluate``) on ``eval_lanes`` lanes seeded
+   ``eval_seed``, ``eval_episodes`` episodes.
+"""
+
+import time
+
+T_START = time.perf_counter()
+
+import json  # noqa: E402
+import sys  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import torch  # noqa: E402
+
+torch.set_num_threads(1)
+
+from torchrl.envs.utils import ExplorationType  # noqa: E402
+
+from imitrl.algorithms.adversarial import GAILConfig, gail  # noqa: E402
+from imitrl.data import DemonstrationBuffer, rollout_episodes  # noqa: E402
+from imitrl.envs import make_env  # noqa: E402
+from imitrl.evaluation import evaluate  # noqa: E402
+from imitrl.experts import cartpole_expert, pendulum_expert  # noqa: E402
+from imitrl.policies import ActorCritic  # noqa: E402
+
+T_IMPORTED = time.perf_counter()
+EXPERTS = {"CartPole-v1": cartpole_expert, "Pendulum-v1": pendulum_expert}
+
+
+def run(spec: dict) -> dict:
+    now = time.perf_counter
+    seed, env_id, s = spec["seed"], spec["env_id"], spec["settings"]
+    t0 = now()
+    env = make_env(env_id, seed=seed, num_envs=spec["lanes"])
+    demo_env = make_env(env_id, seed=seed)
+    buffer = DemonstrationBuffer(action_spec=demo_env.action_spec_unbatched)
+    buffer.extend(rollout_episodes(demo_env, EXPERTS[env_id](), spec["demo_episodes"]))
+    head = "tanh_normal" if env_id == "Pendulum-v1" else "categorical"
+    learner = ActorCritic.for_env(demo_env, head=head, hidden=(64, 64), lr=s["lr"], seed=seed)
+    config = GAILConfig(
+        total_steps=spec["total_steps"], rollout_steps=spec["rollout_steps"],
+        ppo_epochs=s["ppo_epochs"], minibatch_size=s["minibatch_size"],
+        discriminator_updates=s["discriminator_updates"],
+        discriminator_batch=s["discriminator_batch"], discriminator_lr=s["discriminator_lr"],
+        discriminator_hidden=tuple(s["discriminator_hidden"]), gamma=s["gamma"], seed=seed,
+    )  # fmt: skip
+    setup = now() - t0
+
+    t0 = now()
+    result = gail(env, learner, buffer, config)
+    train = now() - t0
+
+    t0 = now()
+    eval_env = make_env(env_id, seed=spec["eval_seed"], num_envs=spec["eval_lanes"])
+    ev = evaluate(
+        eval_env, learner.policy, spec["eval_episodes"], seed=spec["eval_seed"],
+        exploration=ExplorationType.DETERMINISTIC,
+    )  # fmt: skip
+    evaluation = now() - t0
+    return {
+        "library": "imitrl",
+        "phases": {
+            "imports": T_IMPORTED - T_START,
+            "setup": setup,
+            "train": train,
+            "evaluation": evaluation,
+        },
+        "returns": {"final": float(ev.mean_return)},
+        "env_steps": int(result.env_steps),
+        "demo_rows": len(buffer),
+    }
+
+
+def main() -> None:
+    out = run(json.loads(sys.argv[1]))
+    out["phases"]["in_process"] = time.perf_counter() - T_START
+    Path(sys.argv[2]).write_text(json.dumps(out))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,103 @@
+"""The GAIL tasks of ``peer_gail.py`` and each side's settings under each protocol.
+
+Standard library only: both children (imitrl's, and imitation's in the peer's venv) read
+the settings resolved here from the JSON spec, so the two sides cannot drift apart.
+
+Two protocols, named beside every ratio:
+
+* ``own``: each library at its own recommended settings. imitation: its GAIL tutorial
+  (``docs/tutorials/3_train_gail``: PPO ``batch_size=64, n_epochs=5, ent_coef=0``,
+  learning rate 4e-4, gamma 0.95; ``BasicRewardNet`` with ``RunningNorm``;
+  ``demo_batch_size=1024, gen_replay_buffer_capacity=512, n_disc_updates_per_round=8``).
+  imitrl: ``GAILConfig``'s defaults (PPO 10 epochs of minibatches of 256, 10
+  discriminator steps of 256 + 256 transitions, learning rates 3e-4, gamma 0.99);
+* ``matched``: imitrl with imitation's numbers wherever both have the knob (learning
+  rate, gamma, PPO epochs and minibatch, discriminator steps, batch, learning rate (Adam's
+  default 1e-3 in imitation) and hidden layers (``BasicRewardNet``'s 32, 32)). imitation
+  runs the same in both protocols, so it runs once per (task, seed).
+
+On both sides and in both protocols: ``lanes`` envs stepped together (the tutorial's 8),
+``rollout_steps`` env steps per round (imitation: PPO ``n_steps = rollout_steps /
+lanes``), ``total_steps`` in all, ``demo_episodes`` greedy expert episodes, a greedy
+evaluation of ``eval_episodes`` episodes on ``eval_lanes`` vector envs seeded
+``eval_seed`` (as each library's own scripts evaluate). Where a task sets ``lr`` or
+``gamma`` (Pendulum: 1e-3 and 0.9, untuned defaults fail there on both sides) both
+libraries use it in both protocols.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, replace
+
+EVAL_SEED = 10_000
+PROTOCOLS = ("own", "matched")
+
+IMITATION = {
+    "lr": 4e-4, "gamma": 0.95, "ppo_epochs": 5, "minibatch_size": 64,
+    "discriminator_updates": 8, "discriminator_batch": 1024, "discriminator_lr": 1e-3,
+    "discriminator_hidden": [32, 32], "gen_replay_buffer_capacity": 512,
+}  # fmt: skip
+"""imitation's GAIL tutorial (and its defaults where the tutorial is silent)"""
+IMITRL = {
+    "lr": 3e-4, "gamma": 0.99, "ppo_epochs": 10, "minibatch_size": 256,
+    "discriminator_updates": 10, "discriminator_batch": 256, "discriminator_lr": 3e-4,
+    "discriminator_hidden": [64, 64],
+}  # fmt: skip
+"""imitrl's defaults (``GAILConfig``, ``ActorCritic``'s learning rate for PPO)"""
+
+
+@dataclass(frozen=True)
+class GailTask:
+    name: str
+    env_id: str
+    total_steps: int
+    lr: float | None = None
+    """both libraries' learning rate (None: each its own)"""
+    gamma: float | None = None
+    """both libraries' discount (None: each its own)"""
+    demo_episodes: int = 10
+    rollout_steps: int = 2048
+    lanes: int = 8
+    eval_episodes: int = 20
+    eval_lanes: int = 10
+
+    def spec(self, seed: int, library: str, protocol: str) -> dict:
+        """What a child reads: the task, seeds and the resolved settings of its side."""
+        return {
+            **asdict(self),
+            "seed": seed,
+            "eval_seed": EVAL_SEED + seed,
+            "protocol": protocol,
+            "settings": settings(self, library, protocol),
+        }
+
+
+def settings(task: GailTask, library: str, protocol: str) -> dict:
+    """The hyperparameters ``library`` runs ``task`` with under ``protocol``."""
+    if protocol not in PROTOCOLS:
+        raise ValueError(f"protocol must be one of {PROTOCOLS}, got {protocol!r}")
+    own = IMITATION if library == "imitation" or protocol == "matched" else IMITRL
+    out = dict(own)
+    if task.lr is not None:
+        out["lr"] = task.lr
+    if task.gamma is not None:
+        out["gamma"] = task.gamma
+    return out
+
+
+TASKS = {
+    t.name: t
+    for t in (
+        GailTask("cartpole", "CartPole-v1", 24_576),
+        GailTask("pendulum", "Pendulum-v1", 30_720, lr=1e-3, gamma=0.9),
+    )
+}
+"""issue 31's budgets: 12 and 15 rounds of 2048 steps"""
+
+
+def quick(task: GailTask) -> GailTask:
+    """The smoke budget: two rounds of 64 steps on 2 lanes, 2 evaluation episodes."""
+    return replace(
+        task, total_steps=128, rollout_steps=64, lanes=2, demo_episodes=1, eval_episodes=2,
+        eval_lanes=2,
+    )  # fmt: skip
