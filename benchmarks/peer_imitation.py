@@ -12,11 +12,13 @@ alternating (imitrl, imitation, imitrl, ...), one torch thread each:
   20 evaluation episodes;
 
 a [32, 32] tanh MLP, BC 1000 steps, then 500 steps after each relabel round, batch 32
-(see ``_peer_imitation/tasks.py``). Each library runs with its own defaults otherwise:
-imitrl refits a fresh learner each round with beta = 0 (``dagger``'s defaults),
-imitation trains one policy on with ``LinearBetaSchedule(15)`` (``SimpleDAggerTrainer``'s);
-what each side does, phase by phase, is in ``_peer_imitation/imitrl_run.py`` and
-``_peer_imitation/peer_run.py``. The experts are the same functions: the peer's copies
+(see ``_peer_imitation/tasks.py``). Two protocols, each (task, seed) run under both and
+named in every row: ``own``, each library with its own defaults (imitrl refits a fresh
+learner each round with beta = 0, ``dagger``'s defaults; imitation trains one policy on
+with ``LinearBetaSchedule(15)``, ``SimpleDAggerTrainer``'s), and ``matched`` (both train
+one policy on with beta = 0). Each evaluates on vector envs as its own code does
+(imitrl 16 lanes, imitation 50, as its scripts). What each side does, phase by phase, is
+in ``_peer_imitation/imitrl_run.py`` and ``_peer_imitation/peer_run.py``. The experts are the same functions: the peer's copies
 (numpy) must label a batch of observations exactly as imitrl's do, or the run stops.
 
 Recorded: whole-process wall time (launch to exit, measured here) and the child's
@@ -55,7 +57,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _report
 from _peer_imitation import runs
 from _peer_imitation.report import NAME, markdown, summarise
-from _peer_imitation.tasks import TASKS, quick
+from _peer_imitation.tasks import PROTOCOLS, TASKS, quick
 
 PEER_PYTHON = "/work/peer_venv/bin/python"
 
@@ -116,6 +118,7 @@ def main(argv: list[str] | None = None) -> None:
         peer_python=args.peer_python,
         timeout=args.timeout,
         concurrent=args.quick,
+        protocols=PROTOCOLS,
     )
 
     # -- untimed: FrozenLake's exact values, the experts' returns

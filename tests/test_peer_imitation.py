@@ -101,3 +101,27 @@ def test_peer_experts_label_like_imitrl():
     assert report["CartPole-v1"]["max_difference"] == 0
     assert report["FrozenLake-v1"]["max_difference"] == 0
     assert report["Pendulum-v1"]["max_difference"] <= 1e-5
+
+
+def test_each_protocol_is_a_row_of_its_own_and_the_spec_says_what_it_runs():
+    """``own`` and ``matched`` runs of one task never pair across protocols; the spec
+    carries the protocol and each library's evaluation lanes (imitation's 50 as its
+    scripts evaluate; imitrl's 16)."""
+    runs_ = []
+    for protocol, (ours, theirs) in (("own", (1.0, 4.0)), ("matched", (3.0, 2.0))):
+        for library, wall in (("imitrl", ours), ("imitation", theirs)):
+            run = fake_run("pendulum", library, 0, wall, -900.0, -300.0)
+            runs_.append({**run, "protocol": protocol})
+    s = summarise(runs_, {"pendulum": [-150.0]})
+    assert list(s) == ["pendulum, own", "pendulum, matched"]
+    assert s["pendulum, own"]["phases"]["wall"]["ratios"] == [0.25]
+    assert s["pendulum, matched"]["phases"]["wall"]["ratios"] == [1.5]
+    assert s["pendulum, matched"]["expert"] == [-150.0]
+    spec = TASKS["cartpole"].spec(2, "matched")
+    assert spec["protocol"] == "matched" and spec["eval_lanes"] == {"imitrl": 16, "imitation": 50}
+    from imitrl.jobs.evaluate import EVAL_LANES
+
+    assert spec["eval_lanes"]["imitrl"] == EVAL_LANES  # what imitrl's own jobs evaluate on
+    assert TASKS["cartpole"].spec(2)["protocol"] == "own"
+    with pytest.raises(ValueError, match="protocol must be one of"):
+        TASKS["cartpole"].spec(0, "beta_half")

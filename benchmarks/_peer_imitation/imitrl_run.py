@@ -5,7 +5,8 @@
 ``SPEC_JSON`` is :meth:`tasks.Task.spec` (a JSON string); the phase times and returns
 are written to ``RESULT_JSON``. The run is what a user writes with imitrl's public API
 and defaults (``ActorCritic.for_env``, ``dagger`` with a fresh learner per round and
-beta = 0, ``evaluate`` greedy), with the task's budgets:
+beta = 0, ``evaluate`` greedy on vector envs); under the ``matched`` protocol one learner
+is trained on across rounds (``warm_start=True``), as imitation does. The task's budgets:
 
 1. setup: the train and evaluation envs (``make_env``), the expert (FrozenLake: value
    iteration, gamma 0.95, 1000 sweeps; CartPole, Pendulum: ``imitrl.experts``), the
@@ -13,8 +14,8 @@ beta = 0, ``evaluate`` greedy), with the task's budgets:
 2. bc: the first fit, ``bc_steps`` steps on the demonstrations (``dagger``'s round 0);
 3. dagger: ``rounds`` relabel rounds of ``episodes_per_round`` episodes, each followed
    by a ``round_steps`` fit of a fresh learner on the whole buffer (collection + fits);
-4. evaluation: the BC learner and the final learner, ``eval_episodes`` each, from the
-   reset seed ``eval_seed``.
+4. evaluation: the BC learner and the final learner, ``eval_episodes`` each, on
+   ``eval_lanes["imitrl"]`` lanes seeded from ``eval_seed``.
 
 Phases are wall-clock seconds inside this process (``imports`` from the first line of
 this file); the parent measures the whole process.
@@ -65,7 +66,8 @@ def run(spec: dict) -> dict:
     # -- setup: envs, expert, demonstrations
     t0 = now()
     env = make_env(env_id, seed=seed)
-    eval_env = make_env(env_id, seed=eval_seed)
+    lanes = min(spec["eval_lanes"]["imitrl"], spec["eval_episodes"])
+    eval_env = make_env(env_id, seed=eval_seed, num_envs=lanes)
     expert = EXPERTS[env_id]()
     demos = rollout_episodes(env, expert, spec["demo_episodes"])
     if spec["demo_steps"] is not None:
@@ -104,6 +106,7 @@ def run(spec: dict) -> dict:
         rounds=last + 1,
         episodes_per_round=spec["episodes_per_round"],
         bc=BCConfig(spec["round_steps"], batch_size=spec["batch_size"], seed=seed),
+        warm_start=spec["protocol"] == "matched",
         seed=seed,
     )
     t0 = now()

@@ -11,21 +11,22 @@ before it times anything.
 
 A run is imitation's documented pipeline with the task's budgets:
 
-1. setup: ``imitation.util.util.make_vec_env`` (one env, ``RolloutInfoWrapper``) for
-   training and for evaluation, the expert as a Stable-Baselines3 ``BasePolicy``, the
+1. setup: ``imitation.util.util.make_vec_env`` (``RolloutInfoWrapper``): one env for
+   training, ``eval_lanes["imitation"]`` (50, as imitation's scripts) for evaluation; the expert as a Stable-Baselines3 ``BasePolicy``, the
    demonstrations from ``rollout.generate_trajectories`` (cut to ``demo_steps``);
 2. bc: ``bc.BC`` (its default policy, ``FeedForward32Policy``: [32, 32] tanh) trained
    ``bc_steps`` batches on the demonstrations;
 3. dagger: ``dagger.SimpleDAggerTrainer`` built on that BC trainer with the
-   demonstrations as its round-0 data (imitation's default beta schedule,
-   ``LinearBetaSchedule(15)``, and its warm start: one policy trained on), then
+   demonstrations as its round-0 data (protocol ``own``: imitation's default beta
+   schedule, ``LinearBetaSchedule(15)``; ``matched``: beta 0; both with its warm start,
+   one policy trained on), then
    ``rounds`` rounds of what ``SimpleDAggerTrainer.train`` does in a round, with the
    round count fixed instead of a timestep budget: ``episodes_per_round`` episodes
    through the trainer's ``InteractiveTrajectoryCollector``, then
    ``extend_and_update`` for ``round_steps`` batches;
 4. evaluation: the BC policy and the final policy, greedy
    (``stable_baselines3...evaluate_policy``, ``deterministic=True``), ``eval_episodes``
-   each from the reset seed ``eval_seed``.
+   each on the evaluation vector env seeded ``eval_seed``.
 
 Both sides are run quiet: imitation's logger writes no output formats, BC shows no
 progress bar and DAgger's fits roll out no logging episodes (``log_rollouts_venv=None``;
@@ -153,12 +154,12 @@ def expert_function(env_id: str):
 
 
 # -------------------------------------------------------------------------- run
-def make_venv(env_id: str, seed: int):
-    """One env in imitation's ``make_vec_env`` (DummyVecEnv, Monitor, RolloutInfoWrapper)."""
+def make_venv(env_id: str, seed: int, n_envs: int = 1):
+    """``n_envs`` envs in imitation's ``make_vec_env`` (DummyVecEnv, Monitor, RolloutInfoWrapper)."""
     return make_vec_env(
         env_id,
         rng=np.random.default_rng(seed),
-        n_envs=1,
+        n_envs=n_envs,
         post_wrappers=[lambda env, _: RolloutInfoWrapper(env)],
     )
 
@@ -177,6 +178,11 @@ def mean_return(policy, venv, episodes: int, seed: int) -> float:
     return float(np.mean(rewards))
 
 
+def zero_beta(round_num: int) -> float:
+    """The matched protocol's beta: the learner drives every relabel round."""
+    return 0.0
+
+
 def greedy_table(policy, num_states: int) -> list[int]:
     return policy.predict(np.arange(num_states), deterministic=True)[0].astype(int).tolist()
 
@@ -192,7 +198,9 @@ def run(spec: dict) -> dict:
     # -- setup: envs, expert, demonstrations
     t0 = now()
     venv = make_venv(env_id, seed)
-    eval_venv = make_venv(env_id, eval_seed)
+    eval_venv = make_venv(
+        env_id, eval_seed, min(spec["eval_lanes"]["imitation"], spec["eval_episodes"])
+    )
     expert = ScriptedExpert(venv.observation_space, venv.action_space, expert_function(env_id))
     demos = rollout.generate_trajectories(
         expert,
@@ -251,6 +259,8 @@ def run(spec: dict) -> dict:
         expert_trajs=demos,
         bc_trainer=trainer,
         custom_logger=quiet,
+        # matched protocol: beta 0, as imitrl's default; own: imitation's LinearBetaSchedule(15)
+        **({"beta_schedule": zero_beta} if spec["protocol"] == "matched" else {}),
     )
     setup_dagger = now() - t0
     for _ in range(spec["rounds"]):

@@ -57,14 +57,20 @@ def _per_stage(by: dict[str, dict[int, dict]], field: str) -> dict:
     }
 
 
+def label(run: dict) -> str:
+    """A run's row label: its task and protocol (``cartpole, matched``)."""
+    protocol = run.get("protocol")
+    return run["task"] if protocol is None else f"{run['task']}, {protocol}"
+
+
 def summarise(runs: list[dict], references: dict[str, list[float]]) -> dict:
     """Per task: every phase's per-seed seconds of both libraries, per-pair ratios,
     medians; the BC and final returns per seed (FrozenLake: also the exact success of
     each greedy policy, on which it is judged); whether each target is met."""
     out = {}
-    for task in dict.fromkeys(r["task"] for r in runs):
+    for task in dict.fromkeys(label(r) for r in runs):
         by = {
-            lib: {r["seed"]: r for r in runs if r["task"] == task and r["library"] == lib}
+            lib: {r["seed"]: r for r in runs if label(r) == task and r["library"] == lib}
             for lib in ("imitrl", "imitation")
         }
         returns = _per_stage(by, "returns")
@@ -76,7 +82,7 @@ def summarise(runs: list[dict], references: dict[str, list[float]]) -> dict:
             "phases": {key: _phase(by, key, target) for key, _, target in PHASES},
             "returns": returns,
             "exact_success": exact,
-            "expert": references.get(task),
+            "expert": references.get(task.split(",")[0]),
             "rows": {lib: [by[lib][s]["rows"] for s in sorted(by[lib])] for lib in by},
             "returns_met": bool(_median(ours) >= _median(theirs) - 1e-9) if theirs else None,
         }

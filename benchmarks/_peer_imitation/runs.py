@@ -50,17 +50,27 @@ def _call(cmd: list[str], library: str, timeout: float) -> tuple[float, dict]:
 
 
 def run_once(
-    task: Task, seed: int, library: str, *, peer_python: str, workdir: Path, timeout: float
+    task: Task,
+    seed: int,
+    library: str,
+    *,
+    peer_python: str,
+    workdir: Path,
+    timeout: float,
+    protocol: str = "own",
 ) -> dict:
-    """One (task, library, seed) run as a fresh process: its wall time and its report."""
-    result = workdir / f"{task.name}-{library}-{seed}.json"
-    spec = json.dumps(task.spec(seed))
+    """One (task, protocol, library, seed) run as a fresh process: its wall time and report."""
+    result = workdir / f"{task.name}-{protocol}-{library}-{seed}.json"
+    spec = json.dumps(task.spec(seed, protocol))
     if library == "imitrl":
         cmd = [sys.executable, str(IMITRL_RUN), spec, str(result)]
     else:
         cmd = [peer_python, str(PEER_RUN), "run", spec, str(result)]
     wall, out = _call(cmd, library, timeout)
-    return {"task": task.name, "library": library, "seed": seed, "wall": wall, **out}
+    return {
+        "task": task.name, "protocol": protocol, "library": library, "seed": seed,
+        "wall": wall, **out,
+    }  # fmt: skip
 
 
 def run_all(
@@ -71,21 +81,25 @@ def run_all(
     peer_python: str,
     timeout: float,
     concurrent: bool = False,
+    protocols: tuple[str, ...] = ("own",),
     log=print,
 ) -> list[dict]:
-    """Every (task, seed) pair, the libraries alternating (imitrl, imitation, imitrl, ...),
-    one process at a time; ``concurrent``: all at once (the smoke run, timings moot)."""
-    order = [(t, s, lib) for t in tasks for s in range(seeds) for lib in libraries]
+    """Every (task, seed, protocol), the libraries alternating (imitrl, imitation, imitrl,
+    ...), one process at a time; ``concurrent``: all at once (the smoke run, timings moot)."""
+    order = [
+        (t, s, p, lib) for t in tasks for s in range(seeds) for p in protocols for lib in libraries
+    ]
     with tempfile.TemporaryDirectory(prefix="peer-imitation-") as tmp:
 
-        def one(job: tuple[Task, int, str]) -> dict:
-            task, seed, library = job
+        def one(job: tuple[Task, int, str, str]) -> dict:
+            task, seed, protocol, library = job
             r = run_once(
-                task, seed, library, peer_python=peer_python, workdir=Path(tmp), timeout=timeout
-            )
+                task, seed, library, peer_python=peer_python, workdir=Path(tmp),
+                timeout=timeout, protocol=protocol,
+            )  # fmt: skip
             phases = ", ".join(f"{k} {v:.2f}" for k, v in r["phases"].items())
             log(
-                f"{task.name} seed {seed} {library:9s} wall {r['wall']:.2f} s "
+                f"{task.name} {protocol} seed {seed} {library:9s} wall {r['wall']:.2f} s "
                 f"({phases}); returns {r['returns']}"
             )
             return r
@@ -168,8 +182,8 @@ def frozenlake_exact(table: list[int]) -> float:
 
 def expert_returns(task: Task, seeds: int) -> list[float]:
     """The expert's score per seed: FrozenLake its exact success (the same for every
-    seed); elsewhere its greedy mean return on the evaluation episodes of that seed,
-    measured through imitrl (both libraries reset from the same seeds)."""
+    seed); elsewhere its greedy mean return on imitrl's evaluation episodes of that
+    seed (imitrl's lanes; imitation's 50 vector envs reset from other states)."""
     from imitrl.envs import make_env
     from imitrl.evaluation import evaluate
 
@@ -180,6 +194,7 @@ def expert_returns(task: Task, seeds: int) -> list[float]:
     out = []
     for seed in range(seeds):
         spec = task.spec(seed)
-        env = make_env(task.env_id, seed=spec["eval_seed"])
+        lanes = min(spec["eval_lanes"]["imitrl"], task.eval_episodes)  # imitrl's states
+        env = make_env(task.env_id, seed=spec["eval_seed"], num_envs=lanes)
         out.append(evaluate(env, expert, task.eval_episodes, seed=spec["eval_seed"]).mean_return)
     return out

@@ -9,9 +9,17 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, replace
 
+PROTOCOLS = ("own", "matched")
+"""``own``: each library's defaults (imitrl refits a fresh learner every round with beta 0;
+imitation trains one policy on with ``LinearBetaSchedule(15)``); ``matched``: both train
+one policy on (imitrl ``warm_start=True``) with beta 0 (imitation ``beta_schedule=0``)"""
+EVAL_LANES = {"imitrl": 16, "imitation": 50}
+"""vector envs each library evaluates on, as its own code does (imitrl's jobs: at most 16
+lanes; imitation's scripts: 50)"""
 EVAL_SEED = 10_000
-"""evaluation env seed of training seed s: ``EVAL_SEED + s`` (every policy of a run,
-and both libraries, start their evaluation episodes from the same reset seed)"""
+"""evaluation env seed of training seed s: ``EVAL_SEED + s`` (every policy of a run
+starts its evaluation episodes from the same reset seed; each library seeds its own
+vector envs from it, so the two sample different initial states)"""
 
 
 @dataclass(frozen=True)
@@ -41,13 +49,18 @@ class Task:
     hidden: tuple[int, ...] = (32, 32)
     """hidden layers of the tanh MLP (imitation's default ``FeedForward32Policy``)"""
 
-    def spec(self, seed: int) -> dict:
-        """What a child process reads: the task, the training seed and the evaluation seed."""
+    def spec(self, seed: int, protocol: str = "own") -> dict:
+        """What a child process reads: the task, the training and evaluation seeds, the
+        protocol and each library's evaluation lanes."""
+        if protocol not in PROTOCOLS:
+            raise ValueError(f"protocol must be one of {PROTOCOLS}, got {protocol!r}")
         return {
             **asdict(self),
             "hidden": list(self.hidden),
             "seed": seed,
             "eval_seed": EVAL_SEED + seed,
+            "protocol": protocol,
+            "eval_lanes": dict(EVAL_LANES),
         }
 
 
