@@ -44,8 +44,11 @@ from imitrl.objectives.registry_chunks import DIFFUSION_UNET, diffusion_unet_lea
 
 NAME = "diffusion_policy"
 TASK = TaskSpec(action=Bounded(-1.0, 1.0, shape=(4,)), observation_dim=39)
-FULL = {"repeats": 5, "warm": 1, "batches": (64, 256), "lanes": (1, 10)}
-QUICK = {"repeats": 2, "warm": 1, "batches": (8,), "lanes": (1,)}
+FULL = {
+    "repeats": 5, "warm": 1, "batches": (64, 256), "lanes": (1, 10), "samplers": ("ddim", "ddpm"),
+}  # fmt: skip
+QUICK = {"repeats": 1, "warm": 0, "batches": (8,), "lanes": (1,), "samplers": ("ddim",)}
+"""the smoke run: every path once, without DDPM's 100 steps at the paper's widths (10 s)"""
 
 
 def _median_seconds(fn, budget: dict) -> float:
@@ -130,7 +133,7 @@ def measure(budget: dict) -> dict:
             seconds = train_step(make, batch, budget)
             out["train"].append({"widths": widths, "batch": batch, "seconds": seconds})
             print(f"train {widths} batch {batch}: {seconds * 1e3:.0f} ms", file=sys.stderr)
-        for sampler in ("ddim", "ddpm"):
+        for sampler in budget["samplers"]:
             for lanes in budget["lanes"]:
                 seconds = query(_unet(widths, sampler), lanes, budget)
                 out["query"].append(

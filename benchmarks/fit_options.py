@@ -42,9 +42,12 @@ class Config:
     image: tuple[int, int] = (36, 36)
     repeats: int = 3
     """runs per option (the best samples/s is kept; the final loss is the same each run)"""
+    compiled: tuple[str, ...] = ("mlp", "cnn")
+    """the fits also timed under torch.compile (each compilation takes 10-20 s; none in the
+    smoke run: ``tests/test_devices.py`` checks a compiled fit against the eager one)"""
 
 
-QUICK = Config(steps=3, batch_size=16, rows=64, image=(36, 36), repeats=1)
+QUICK = Config(steps=3, batch_size=16, rows=64, image=(36, 36), repeats=1, compiled=())
 OPTIONS = {"fp32": {}, "bf16": {"precision": "bf16"}, "compile": {"compile": True}}
 
 
@@ -97,6 +100,8 @@ def main(argv: list[str] | None = None) -> dict:
     results = {"device": str(device), "config": dataclasses.asdict(cfg), "load": os.getloadavg()[0]}
     for kind in ("mlp", "cnn"):
         for name, option in OPTIONS.items():
+            if name == "compile" and kind not in cfg.compiled:
+                continue
             runs = [_fit(cfg, kind, option, device) for _ in range(cfg.repeats)]
             best = max(runs, key=lambda r: r["samples_per_s"])
             results[f"{kind}/{name}"] = best
@@ -108,6 +113,8 @@ def main(argv: list[str] | None = None) -> dict:
     for kind in ("mlp", "cnn"):
         base = results[f"{kind}/fp32"]["samples_per_s"]
         for name in OPTIONS:
+            if f"{kind}/{name}" not in results:
+                continue
             r = results[f"{kind}/{name}"]
             lines.append(f"| {kind} | {name} | {r['samples_per_s']:,.0f} | {r['samples_per_s'] / base:.2f} "
                          f"| {r['first_step_s']:.2f} | {r['final_loss']:.5f} |")  # fmt: skip

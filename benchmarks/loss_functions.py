@@ -66,6 +66,10 @@ from _loss_functions.run import run
 from _loss_functions.tasks import TASKS, parse_task
 from imitrl.objectives import registry
 
+QUICK_LOSSES = ("cross_entropy", "gaussian_nll", "mse", "flow", "mse_chunk")
+"""``--quick``'s default: a loss of each cheap family, one-step and chunked (the smoke run
+of the pipeline; ``tests/test_loss_registry.py`` builds and trains every entry)"""
+
 
 def main(argv: list[str] | None = None) -> None:
     parser = _report.parser(__doc__)
@@ -89,7 +93,13 @@ def main(argv: list[str] | None = None) -> None:
         "(a LeRobot or Minari directory), budget keys demos=,rounds=,episodes=,steps=,"
         "batch=,hidden=,lr=,eval= (repeatable)",
     )
-    parser.add_argument("--losses", nargs="+", default=None, help="registry names (default: all)")
+    parser.add_argument(
+        "--losses",
+        nargs="+",
+        default=None,
+        help="registry names (default: all; with --quick, one of each family: "
+        f"{' '.join(QUICK_LOSSES)})",
+    )
     parser.add_argument(
         "--import",
         dest="modules",
@@ -137,6 +147,8 @@ def main(argv: list[str] | None = None) -> None:
     if args.merge is not None:
         report(merge([json.loads(path.read_text()) for path in args.merge]), out_dir)
         return
+    if args.quick and args.losses is None:
+        args.losses = list(QUICK_LOSSES)
     for loss in args.losses or []:
         registry.get(loss)
     torch.set_num_threads(1)

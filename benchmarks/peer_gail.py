@@ -15,7 +15,7 @@ imitrl's whole-process wall time <= 0.5x imitation's with returns at least imita
 
     python benchmarks/peer_gail.py                  # full run, refreshes the README block
     python benchmarks/peer_gail.py --out /tmp/peer  # full run elsewhere, README untouched
-    python benchmarks/peer_gail.py --quick          # imitrl's side, tiny budgets, temp dir
+    python benchmarks/peer_gail.py --quick          # imitrl's side, tiny budgets, at once
 
 The peer's venv is ``peer_imitation.py``'s (its docstring says how to build it).
 """
@@ -26,6 +26,7 @@ import json
 import sys
 import tempfile
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import torch
@@ -41,7 +42,7 @@ CHILD = {"imitrl": HERE / "gail_imitrl.py", "imitation": HERE / "gail_peer.py"}
 PEER_PYTHON = "/work/peer_venv/bin/python"
 
 
-def order(seeds: int, quick_run: bool) -> list[tuple[str, str | None]]:
+def order(quick_run: bool) -> list[tuple[str, str | None]]:
     """(library, protocol) of one (task, seed), in the order they run."""
     if quick_run:
         return [("imitrl", p) for p in PROTOCOLS]
@@ -73,20 +74,27 @@ def main(argv: list[str] | None = None) -> None:
         if not Path(args.peer_python).exists():
             raise SystemExit(f"no python at {args.peer_python}: see peer_imitation.py's docstring")
         peer_versions = runs.peer_versions(args.peer_python)
-    t0, results = time.perf_counter(), []
+    t0 = time.perf_counter()
+    jobs = [(t, s, lib, p) for t in tasks for s in range(seeds) for lib, p in order(args.quick)]
     with tempfile.TemporaryDirectory(prefix="peer-gail-") as tmp:
-        for task in tasks:
-            for seed in range(seeds):
-                for library, protocol in order(seeds, args.quick):
-                    r = run_one(task, seed, library, protocol, peer_python=args.peer_python,
-                                workdir=Path(tmp), timeout=args.timeout)  # fmt: skip
-                    print(
-                        f"{task.name} seed {seed} {library:9s} {protocol or '':7s} wall "
-                        f"{r['wall']:.2f} s, train {r['phases']['train']:.2f} s, return "
-                        f"{r['returns']['final']:.1f}",
-                        file=sys.stderr,
-                    )
-                    results.append(r)
+
+        def one(job) -> dict:
+            task, seed, library, protocol = job
+            r = run_one(task, seed, library, protocol, peer_python=args.peer_python,
+                        workdir=Path(tmp), timeout=args.timeout)  # fmt: skip
+            print(
+                f"{task.name} seed {seed} {library:9s} {protocol or '':7s} wall "
+                f"{r['wall']:.2f} s, train {r['phases']['train']:.2f} s, return "
+                f"{r['returns']['final']:.1f}",
+                file=sys.stderr,
+            )
+            return r
+
+        if args.quick:  # the smoke run: every process at once (timings moot)
+            with ThreadPoolExecutor(len(jobs)) as pool:
+                results = list(pool.map(one, jobs))
+        else:  # one process at a time, in turn
+            results = [one(job) for job in jobs]
     raw = {
         "config": {
             "seeds": seeds,
