@@ -17,9 +17,11 @@
    evaluations, one line per round), the checkpoint and ``curves.png`` (discriminator
    and PPO losses, return per env step) into ``--out``.
 
-The default budget is 50 rounds of 2048 steps: ``--total-steps`` a multiple of
-``--rollout-steps``, else TorchRL's collector warns that it is "not exactly divisible"
-and rounds the budget up to whole rounds.
+The default budget is 50 rounds of 2048 steps; a ``--total-steps`` that is not a
+multiple of ``--rollout-steps`` is rounded up to whole rounds (``env_steps`` in
+results.json says how many were taken). ``--num-envs N`` steps N copies of the env
+together (the policy batched over them, ``--rollout-steps / N`` steps each per round);
+a run's numbers depend on the seed and N.
 """
 
 from __future__ import annotations

@@ -14,7 +14,18 @@ normal         continuous      loc, scale -> Gaussian, actions clipped to   ``nl
                                the bounds (labels on the bounds are fine)
 tanh_normal    continuous      loc, scale -> ``TanhNormal`` inside the      ``nll``
                (bounded)       bounds (labels on the bounds are refused)
+normal_free    continuous      as ``normal``, the scale a learned log-std   ``nll``
+                               per action dimension, the same in every
+                               state (SB3's ``DiagGaussian``)
+tanh_normal_   continuous      as ``tanh_normal``, the scale a learned      ``nll``
+free           (bounded)       log-std per action dimension
 ============== =============== ============================================ ============
+
+``normal`` and ``tanh_normal`` read their scale off the network (``NormalParamExtractor``:
+a biased softplus of a second output per dimension), so a likelihood fit can shrink it
+state by state and chase the labels' noise; the ``_free`` heads keep one learned log-std
+per dimension (TorchRL's ``AddStateIndependentNormalScale``, initial std 1), as
+Stable-Baselines3's and imitation's Gaussian policies do.
 
 The first loss of each row is the default; the default continuous head is
 ``deterministic`` (MSE): it clones saturating (bang-bang) and smooth experts alike.
@@ -26,7 +37,11 @@ import itertools
 from collections.abc import Callable, Sequence
 
 import torch
-from tensordict.nn import NormalParamExtractor, TensorDictModuleBase
+from tensordict.nn import (
+    AddStateIndependentNormalScale,
+    NormalParamExtractor,
+    TensorDictModuleBase,
+)
 from tensordict.utils import NestedKey
 from torch import nn
 from torchrl.modules import ProbabilisticActor, TanhNormal
@@ -43,20 +58,25 @@ from imitrl.policies.specs import ActionSpace
 
 __all__ = ["DEFAULT_HEAD", "HEADS", "HEAD_LOSSES", "Chain", "build_head", "mlp"]
 
-HEADS = ("categorical", "multi", "deterministic", "normal", "tanh_normal")
+HEADS = (
+    "categorical", "multi", "deterministic", "normal", "tanh_normal", "normal_free",
+    "tanh_normal_free",
+)  # fmt: skip
 HEAD_LOSSES = {
     "categorical": ("nll",),
     "multi": ("nll",),
     "deterministic": ("mse", "l1", "smooth_l1"),
     "normal": ("nll",),
     "tanh_normal": ("nll",),
+    "normal_free": ("nll",),
+    "tanh_normal_free": ("nll",),
 }
 """the ``BehaviorCloningLoss`` types each head can be fitted with; the first is the default"""
 DEFAULT_HEAD = {"discrete": "categorical", "multi_discrete": "multi", "continuous": "deterministic"}
 _KIND_HEADS = {
     "discrete": ("categorical",),
     "multi_discrete": ("multi",),
-    "continuous": ("deterministic", "normal", "tanh_normal"),
+    "continuous": ("deterministic", "normal", "tanh_normal", "normal_free", "tanh_normal_free"),
 }
 
 
@@ -124,9 +144,9 @@ def check_head(space: ActionSpace, head: str | None) -> str:
         raise ValueError(
             f"{space.kind} actions need head {' or '.join(map(repr, allowed))}, got {head!r}"
         )
-    if head == "tanh_normal" and space.low is None:
+    if head.startswith("tanh_normal") and space.low is None:
         raise ValueError(
-            "head 'tanh_normal' needs a bounded action spec; use 'normal' or 'deterministic'"
+            f"head {head!r} needs a bounded action spec; use 'normal' or 'deterministic'"
         )
     return head
 
@@ -182,9 +202,13 @@ def build_head(
         last: list[nn.Module] = [] if space.low is None else [Squash(space.low, space.high)]
         net = Chain(*trunk, nn.Linear(width, dim), *last)
         return Module(net, in_keys=in_keys, out_keys=[keys.ACTION])
-    net = Chain(*trunk, nn.Linear(width, 2 * dim), NormalParamExtractor())
+    if head.endswith("_free"):  # loc from the network, one learned log-std per dimension
+        scale = AddStateIndependentNormalScale(dim, scale_mapping="exp", init_value=0.0)
+        net = Chain(*trunk, nn.Linear(width, dim), scale)
+    else:
+        net = Chain(*trunk, nn.Linear(width, 2 * dim), NormalParamExtractor())
     out = [keys.LOC, keys.SCALE]
-    if head == "normal":
+    if head.startswith("normal"):
         return _probabilistic(
             net, out, ClippedNormal, {"low": space.low, "high": space.high}, space.spec, in_keys
         )
