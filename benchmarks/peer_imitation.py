@@ -74,6 +74,12 @@ def main(argv: list[str] | None = None) -> None:
     )
     parser.add_argument("--tasks", nargs="+", default=list(TASKS), choices=list(TASKS))
     parser.add_argument(
+        "--imitrl-loss",
+        default="default",
+        help="imitrl's learner: default (ActorCritic.for_env) or a loss-registry name "
+        "(gaussian_nll: the likelihood learner set beside imitation's Gaussian NLL policy)",
+    )
+    parser.add_argument(
         "--timeout", type=float, default=3600.0, help="seconds one child process may take"
     )
     parser.add_argument(
@@ -119,6 +125,7 @@ def main(argv: list[str] | None = None) -> None:
         timeout=args.timeout,
         concurrent=args.quick,
         protocols=PROTOCOLS,
+        imitrl_loss=args.imitrl_loss,
     )
 
     # -- untimed: FrozenLake's exact values, the experts' returns
@@ -133,6 +140,7 @@ def main(argv: list[str] | None = None) -> None:
             "seeds": seeds,
             "tasks": [asdict(t) for t in tasks],
             "libraries": list(libraries),
+            "imitrl_loss": args.imitrl_loss,
             "quick": args.quick,
             "peer_python": None if args.quick else args.peer_python,
             "command": " ".join(["python benchmarks/peer_imitation.py", *(argv or sys.argv[1:])]),

@@ -282,7 +282,7 @@ def _policies():
     yield cart, _learner(cart).policy
     yield lake_env, _learner(lake_env).policy
     yield lake_env, ActorCritic.tabular(16, 4).policy
-    for head in ("deterministic", "normal", "tanh_normal"):
+    for head in ("deterministic", "normal", "tanh_normal", "normal_free", "tanh_normal_free"):
         yield pend, _learner(pend, head=head).policy
     expert = cartpole_expert()
     expert.bind(cart.action_spec_unbatched)

@@ -156,3 +156,27 @@ def test_beta_mixer_extremes_and_validation():
         BetaMixer(1.5)
     with pytest.raises(ValueError, match="beta must be 1"):
         behaviour_policy(expert, None, BetaMixer(0.5))
+
+
+@pytest.mark.parametrize("head", ["normal_free", "tanh_normal_free"])
+def test_free_heads_keep_one_learned_scale_for_every_state(head):
+    """The ``_free`` heads: the scale is a parameter per action dimension (std 1 at the
+    start), the same in every state, and a likelihood fit moves it; the state-dependent
+    heads read theirs off the network, so it differs between states."""
+    from imitrl.algorithms import BCConfig, fit_bc
+
+    spec = Bounded(-2.0, 2.0, shape=(2,))
+    obs = torch.randn(64, 3, generator=torch.Generator().manual_seed(0))
+    ac = ActorCritic.mlp(3, spec, head=head, hidden=(16,), seed=0)
+    params = ac.policy.module[0](TensorDict({keys.OBSERVATION: obs}, [64]))
+    assert torch.equal(params[keys.SCALE], torch.ones(64, 2))
+    label = (obs[:, :2] * 0.5).clamp(-1.5, 1.5)
+    rows = TensorDict({keys.OBSERVATION: obs, keys.EXPERT_ACTION: label}, [64])
+    fit_bc(ac, rows, BCConfig(num_steps=200, batch_size=64))
+    after = ac.policy.module[0](TensorDict({keys.OBSERVATION: obs}, [64]))[keys.SCALE]
+    assert bool((after == after[0]).all()) and bool((after[0] < 0.9).all())  # shrunk
+    (free,) = [p for n, p in ac.policy.named_parameters() if "state_independent_scale" in n]
+    assert free.shape == (2,) and torch.equal(after[0], free.exp())
+    other = ActorCritic.mlp(3, spec, head=head.removesuffix("_free"), hidden=(16,), seed=0)
+    varying = other.policy.module[0](TensorDict({keys.OBSERVATION: obs}, [64]))[keys.SCALE]
+    assert not bool((varying == varying[0]).all())

@@ -4,7 +4,8 @@
 
 ``SPEC_JSON`` is :meth:`tasks.Task.spec` (a JSON string); the phase times and returns
 are written to ``RESULT_JSON``. The run is what a user writes with imitrl's public API
-and defaults (``ActorCritic.for_env``, ``dagger`` with a fresh learner per round and
+and defaults (the learner ``imitrl bc --loss`` builds: ``ActorCritic.for_env`` for the
+default, or the ``imitrl_loss`` registry entry; Adam at 1e-3, as imitation's BC; ``dagger`` with a fresh learner per round and
 beta = 0, ``evaluate`` greedy on vector envs); under the ``matched`` protocol one learner
 is trained on across rounds (``warm_start=True``), as imitation does. The task's budgets:
 
@@ -38,7 +39,8 @@ from imitrl.data import DemonstrationBuffer, rollout_episodes  # noqa: E402
 from imitrl.envs import make_env  # noqa: E402
 from imitrl.evaluation import evaluate  # noqa: E402
 from imitrl.experts import cartpole_expert, pendulum_expert  # noqa: E402
-from imitrl.policies import ActorCritic, Expert  # noqa: E402
+from imitrl.jobs.resolve import learner_factory  # noqa: E402
+from imitrl.policies import Expert  # noqa: E402
 from imitrl.tabular import TabularMDP, greedy, value_iteration  # noqa: E402
 
 T_IMPORTED = time.perf_counter()
@@ -113,7 +115,7 @@ def run(spec: dict) -> dict:
     result = dagger(
         EnvSource(env),
         expert,
-        lambda: ActorCritic.for_env(env, hidden=hidden, seed=seed),
+        learner_factory(spec.get("imitrl_loss", "default"), env, hidden=hidden, lr=1e-3, seed=seed),
         buffer,
         config,
         train=train,

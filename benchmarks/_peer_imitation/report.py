@@ -165,6 +165,8 @@ def markdown(raw: dict) -> str:
         f"{raw['wall_seconds']:.0f} s. imitrl: {ours}. Peer venv: {versions}. Seconds are "
         "medians over seeds; ratios imitrl / imitation per seed, then their median."
     )
+    if cfg.get("imitrl_loss", "default") != "default":
+        head += f" imitrl's learner: the `{cfg['imitrl_loss']}` registry entry."
     returns = (
         "**Returns per seed** (greedy; FrozenLake: the mean return = the success rate over "
         "the evaluation episodes, then the exact success probability in 100 steps)"

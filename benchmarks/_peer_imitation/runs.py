@@ -58,10 +58,11 @@ def run_once(
     workdir: Path,
     timeout: float,
     protocol: str = "own",
+    imitrl_loss: str = "default",
 ) -> dict:
     """One (task, protocol, library, seed) run as a fresh process: its wall time and report."""
     result = workdir / f"{task.name}-{protocol}-{library}-{seed}.json"
-    spec = json.dumps(task.spec(seed, protocol))
+    spec = json.dumps(task.spec(seed, protocol, imitrl_loss))
     if library == "imitrl":
         cmd = [sys.executable, str(IMITRL_RUN), spec, str(result)]
     else:
@@ -82,6 +83,7 @@ def run_all(
     timeout: float,
     concurrent: bool = False,
     protocols: tuple[str, ...] = ("own",),
+    imitrl_loss: str = "default",
     log=print,
 ) -> list[dict]:
     """Every (task, seed, protocol), the libraries alternating (imitrl, imitation, imitrl,
@@ -95,7 +97,7 @@ def run_all(
             task, seed, protocol, library = job
             r = run_once(
                 task, seed, library, peer_python=peer_python, workdir=Path(tmp),
-                timeout=timeout, protocol=protocol,
+                timeout=timeout, protocol=protocol, imitrl_loss=imitrl_loss,
             )  # fmt: skip
             phases = ", ".join(f"{k} {v:.2f}" for k, v in r["phases"].items())
             log(

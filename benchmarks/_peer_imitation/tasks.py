@@ -49,9 +49,10 @@ class Task:
     hidden: tuple[int, ...] = (32, 32)
     """hidden layers of the tanh MLP (imitation's default ``FeedForward32Policy``)"""
 
-    def spec(self, seed: int, protocol: str = "own") -> dict:
+    def spec(self, seed: int, protocol: str = "own", imitrl_loss: str = "default") -> dict:
         """What a child process reads: the task, the training and evaluation seeds, the
-        protocol and each library's evaluation lanes."""
+        protocol, each library's evaluation lanes and imitrl's learner (``default``: the
+        one ``ActorCritic.for_env`` builds; else a loss-registry name)."""
         if protocol not in PROTOCOLS:
             raise ValueError(f"protocol must be one of {PROTOCOLS}, got {protocol!r}")
         return {
@@ -61,6 +62,7 @@ class Task:
             "eval_seed": EVAL_SEED + seed,
             "protocol": protocol,
             "eval_lanes": dict(EVAL_LANES),
+            "imitrl_loss": imitrl_loss,
         }
 
 
