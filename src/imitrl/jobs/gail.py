@@ -4,7 +4,8 @@
 
 1. resolve the flags as ``imitrl bc`` does (:func:`imitrl.jobs.bc.prepare`: env, expert,
    dataset, logger); the learner is ``--loss`` of the loss registry, ``default`` meaning
-   the categorical head for discrete actions and ``gaussian_nll`` (a tanh-normal head)
+   the categorical head for discrete actions and ``gaussian_nll`` (a tanh-normal head,
+   its log-std a learned parameter per dimension, as PPO's Gaussian policies usually are)
    for continuous ones: PPO needs ``log pi``, which the deterministic head lacks. The
    resolved name is what ``config.json`` records, so ``imitrl eval --checkpoint`` rebuilds
    the same learner;

@@ -34,7 +34,11 @@ LOSSES: tuple[tuple[str, str, str], ...] = (
         "discrete",
         "advantage-weighted cross-entropy (policy_step's objective)",
     ),
-    ("gaussian_nll", "continuous", "tanh-normal NLL, acts with tanh(mean)"),
+    (
+        "gaussian_nll",
+        "continuous",
+        "tanh-normal NLL with a learned state-independent log-std, acts with tanh(mean)",
+    ),
     ("mse", "continuous", "mean squared error"),
     ("l1", "continuous", "mean absolute error"),
     ("smooth_l1", "continuous", "Huber loss (delta 1)"),
