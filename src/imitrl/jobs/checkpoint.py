@@ -17,6 +17,7 @@ import torch
 from torchrl.envs import EnvBase
 
 from imitrl.jobs.resolve import learner_factory
+from imitrl.objectives import registry
 from imitrl.policies import Learner
 
 __all__ = [
@@ -95,9 +96,11 @@ def _check_fields(path: Path, config: Any) -> None:
         raise bad("hidden", f"a list of layer widths in [1, {MAX_WIDTH}]")
     if type(config.get("seed")) is not int:
         raise bad("seed", "an integer")
-    lr = config.get("lr")
-    if isinstance(lr, bool) or not isinstance(lr, int | float) or not 0 < lr < float("inf"):
-        raise bad("lr", "a positive number")
+    lr = config.get("lr")  # null: the loss's own rate (no --lr given)
+    if lr is not None and (
+        isinstance(lr, bool) or not isinstance(lr, int | float) or not 0 < lr < float("inf")
+    ):
+        raise bad("lr", "a positive number or null")
     steps = config.get("max_episode_steps")
     if steps is not None and (type(steps) is not int or steps < 1):
         raise bad("max_episode_steps", "a positive integer or null")
@@ -143,6 +146,16 @@ def checkpoint_env(checkpoint: Path, config: dict) -> str:
     return env
 
 
+def _saved_lr(config: dict) -> float | None:
+    """The learning rate to rebuild a saved learner with: the one it trained at, except
+    for an entry that trains at its recipe's own (a run saved before such entries refused
+    --lr recorded the CLI default, which they did not use)."""
+    loss = config["loss"]
+    if loss != "default" and loss in registry.names() and registry.get(loss).own_lr is not None:
+        return None
+    return config.get("lr")
+
+
 def load_learner(checkpoint: Path, env: EnvBase, *, device: str | None = None) -> Learner:
     """The learner saved in ``checkpoint``, rebuilt for ``env`` on ``device`` (None: the
     CPU; the checkpoint may have been saved on another device) and loaded with its weights."""
@@ -151,7 +164,7 @@ def load_learner(checkpoint: Path, env: EnvBase, *, device: str | None = None) -
         config["loss"],
         env,
         hidden=tuple(config["hidden"]),
-        lr=config["lr"],
+        lr=_saved_lr(config),
         seed=config["seed"],
         device=device,
     )

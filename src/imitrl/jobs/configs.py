@@ -72,8 +72,9 @@ class BCJob:
     deterministic MSE head for continuous ones) or a loss-registry name (listed below)"""
     hidden: tuple[int, ...] = (64, 64)
     """hidden layer sizes of the learner's network"""
-    lr: float = 1e-3
-    """Adam learning rate of the learner"""
+    lr: float | None = None
+    """Adam learning rate of the learner; none = the loss's own: 1e-3, or the recipe's
+    rate of act and diffusion_unet, which refuse another --lr"""
     steps: int = 1000
     """gradient steps of the behaviour-cloning fit (of every round's fit for dagger)"""
     batch_size: int | None = 256

@@ -240,27 +240,38 @@ def learner_factory(
     env: EnvBase,
     *,
     hidden: tuple[int, ...],
-    lr: float,
+    lr: float | None,
     seed: int,
     device: str | None = None,
 ) -> Callable[[], Learner]:
     """``() -> Learner``: a fresh learner for ``env`` trained by ``loss``, same init each call.
 
+    ``lr`` None: the learner's own default (``LearnerConfig.lr``, or the recipe's rate of
+    an entry with ``own_lr``); a rate an entry with ``own_lr`` would not use is refused.
     Builds one learner right away, so that an unknown loss, or a loss for the other
     kind of action, fails here.
     """
+    default_lr = LearnerConfig.lr
     if loss == "default":
 
         def make() -> Learner:
-            return ActorCritic.for_env(env, hidden=hidden, lr=lr, seed=seed, device=device)
+            rate = default_lr if lr is None else lr
+            return ActorCritic.for_env(env, hidden=hidden, lr=rate, seed=seed, device=device)
 
     else:
         if loss not in registry.names():
             raise ValueError(
                 f"unknown loss {loss!r}; choose default or one of: {', '.join(registry.names())}"
             )
+        own = registry.get(loss).own_lr
+        if lr is not None and own is not None and lr != own:
+            raise ValueError(
+                f"--loss {loss} trains at its recipe's learning rate {own:g}, not --lr {lr:g}: "
+                "leave --lr out (the rate is the loss's, see imitrl.objectives.registry)"
+            )
         task = task_spec(env)
-        config = LearnerConfig(hidden=tuple(hidden), lr=lr, seed=seed, device=device)
+        rate = default_lr if lr is None else lr
+        config = LearnerConfig(hidden=tuple(hidden), lr=rate, seed=seed, device=device)
 
         def make() -> Learner:
             return registry.build(loss, task, config)

@@ -126,7 +126,8 @@ class LearnerConfig:
     hidden: tuple[int, ...] = (64, 64)
     """hidden layers of MLP policies (and of the diffusion score network)"""
     lr: float = 1e-3
-    """Adam learning rate of the policy (ACT keeps its recipe's, ``registry_chunks.ACT_LR``)"""
+    """Adam learning rate of the policy (entries with ``own_lr``, ACT and diffusion_unet,
+    keep their recipe's)"""
     seed: int = 0
     """initialisation seed (and the seed of any sampling the learner does)"""
     normalize: bool = True
@@ -163,6 +164,10 @@ class LossEntry:
     recipe: Callable | None = None
     """``BCConfig -> BCConfig``: the fit schedule of the loss's recipe (Diffusion Policy's
     warm-up and cosine decay), applied by :func:`fit_config`; None: the caller's"""
+    own_lr: float | None = None
+    """the learning rate of the loss's recipe, which ``LearnerConfig.lr`` does not set
+    (ACT's, Diffusion Policy's); None: the entry trains at ``LearnerConfig.lr``. The CLI
+    refuses an ``--lr`` such an entry would not use"""
 
     def applies_to(self, task: TaskSpec) -> bool:
         """Whether this objective can train a policy for ``task``."""
@@ -185,6 +190,7 @@ def register(
     batch_size: int | None = None,
     history: int | None = None,
     recipe: Callable | None = None,
+    own_lr: float | None = None,
 ) -> Callable[[Callable[[TaskSpec, LearnerConfig], Learner]], Callable]:
     """Decorator: register ``build(task, config) -> Learner`` under ``name``
     (``horizon``: the chunk length of a chunked learner; ``batch_size``: the minibatch of
@@ -212,8 +218,9 @@ def register(
         if name in _REGISTRY:
             raise ValueError(f"a loss named {name!r} is already registered")
         _REGISTRY[name] = LossEntry(
-            name, actions, fn, summary, tuple(requires), horizon, batch_size, history, recipe
-        )
+            name, actions, fn, summary, tuple(requires), horizon, batch_size, history, recipe,
+            own_lr,
+        )  # fmt: skip
         return fn
 
     return decorator

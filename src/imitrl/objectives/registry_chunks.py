@@ -236,6 +236,7 @@ def _flow_chunk(task: TaskSpec, config: LearnerConfig) -> Learner:
     f"temporal ensembling (m={ENSEMBLE_M}); its own batch {ACT_BATCH} and lr {ACT_LR}",
     horizon=_H,
     batch_size=ACT_BATCH,
+    own_lr=ACT_LR,
 )
 def _act(task: TaskSpec, config: LearnerConfig) -> Learner:
     if task.observation_dim is None:
@@ -330,4 +331,5 @@ register(
     horizon=DIFFUSION_UNET.horizon,
     history=DIFFUSION_UNET.obs_horizon,
     recipe=fit_recipe(DIFFUSION_UNET),
+    own_lr=DIFFUSION_UNET.lr,
 )(lambda task, config: diffusion_unet_learner(task, config, DIFFUSION_UNET))
