@@ -60,6 +60,22 @@ def test_a_run_depends_on_seed_and_lanes_and_both_paths_agree(method, env_id, la
     assert first == slow and _same_weights(la, lc)
 
 
+def test_the_generator_takes_the_tensor_ppo_step_where_it_computes_the_same():
+    """The test above compares the paths only if the fast one runs: it does for every
+    probabilistic head at imitrl's settings, and not with an entropy bonus (whose Monte
+    Carlo estimate for a tanh-normal draws from the RNG): there the loss module runs."""
+    from imitrl.algorithms.adversarial.generator import PPOGenerator
+
+    kw = dict(gamma=0.99, gae_lambda=0.95, clip_epsilon=0.2, epochs=1, minibatch_size=8,
+              max_grad_norm=0.5)  # fmt: skip
+    for env_id in ("CartPole-v1", "Pendulum-v1"):
+        _, _, learner = _setup(env_id, 1)
+        assert paths.ppo_loss(PPOGenerator(learner, entropy_coeff=0.0, **kw).loss) is not None
+        assert paths.ppo_loss(PPOGenerator(learner, entropy_coeff=0.01, **kw).loss) is None
+        with paths.reference():
+            assert paths.ppo_loss(PPOGenerator(learner, entropy_coeff=0.0, **kw).loss) is None
+
+
 def test_other_lane_counts_play_other_episodes():
     one, _ = _run("gail", "CartPole-v1", 1)
     four, _ = _run("gail", "CartPole-v1", 4)

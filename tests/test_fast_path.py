@@ -521,7 +521,15 @@ def test_only_the_seam_imports_the_accelerated_internals():
     assert outside == []
     # and the seam does import each of them (the grep above could pass on a renamed package)
     seam = _imports(SRC / "runtime" / "paths.py")
-    for module in ("env_steps", "stepper", "toy_text", "policy_call", "tensor_chain", "adam_step"):
+    for module in (
+        "env_steps",
+        "stepper",
+        "toy_text",
+        "policy_call",
+        "tensor_chain",
+        "adam_step",
+        "ppo_step",
+    ):
         assert f"imitrl.runtime.fast.{module}" in seam
 
 

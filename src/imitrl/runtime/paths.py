@@ -15,6 +15,7 @@ returns`                                                     of a fixed state ta
 :func:`loss_chain` the actor on a TensorDict                 its plain modules' networks on tensors
 :func:`optimizer_  ``opt.step``                              Adam's functional form on the CPU (its
 step`                                                        wrapper costs as much as a small update)
+:func:`ppo_loss`   ``ClipPPOLoss(minibatch)``                ``TensorPPO``: its arithmetic on tensors
 ================== ========================================= ==========================================
 
 On a GPU the CPU tricks step aside for the device's own fast forms: ``optimizer_step``
@@ -52,6 +53,7 @@ __all__ = [
     "mark_plain_gym",
     "network",
     "optimizer_step",
+    "ppo_loss",
     "reference",
     "stepper",
     "table_returns",
@@ -145,6 +147,17 @@ def loss_chain(modules: list[nn.Module] | None):
     from imitrl.runtime.fast.tensor_chain import TensorChain
 
     return TensorChain.of(modules)
+
+
+def ppo_loss(loss):
+    """A :class:`~imitrl.runtime.fast.ppo_step.TensorPPO` of the ``ClipPPOLoss`` ``loss``
+    (its losses on a minibatch's tensors, the same bits), or None on the reference path
+    and wherever it would compute anything else: then call ``loss`` on the TensorDict."""
+    if not fast_enabled():
+        return None
+    from imitrl.runtime.fast.ppo_step import TensorPPO
+
+    return TensorPPO.of(loss)
 
 
 def optimizer_step(opt: torch.optim.Optimizer) -> Callable[[], None]:

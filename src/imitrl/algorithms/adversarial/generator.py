@@ -99,15 +99,21 @@ class PPOGenerator:
         sums: dict[str, float] = {}
         # Adam's step through the seam (its functional form on the CPU: the same bits)
         steps = [paths.optimizer_step(o) for o in (self.learner.opt_pi, self.learner.opt_v)]
+        fast = paths.ppo_loss(self.loss)  # the loss on tensors (same bits), or None
         for _ in range(self.epochs):
             with torch.no_grad():
                 self.gae(batch)
             flat = batch.reshape(-1)
+            columns = None if fast is None else self._columns(flat)
             order = torch.randperm(n, generator=generator)
             sums = {}
             for start in range(0, n, self.minibatch_size):
-                out = self.loss(flat[order[start : start + self.minibatch_size]])
-                losses = {k: v for k, v in out.items() if k.startswith("loss_")}
+                rows = order[start : start + self.minibatch_size]
+                if fast is None:
+                    out = self.loss(flat[rows])
+                    losses = {k: v for k, v in out.items() if k.startswith("loss_")}
+                else:
+                    losses = fast(*(c[rows] for c in columns))
                 total = sum(losses.values())
                 self.learner.opt_pi.zero_grad(set_to_none=True)
                 self.learner.opt_v.zero_grad(set_to_none=True)
@@ -119,3 +125,13 @@ class PPOGenerator:
                     sums[k] = sums.get(k, 0.0) + float(v.detach())
         steps = -(-n // self.minibatch_size)
         return {k: v / steps for k, v in sums.items()}
+
+    def _columns(self, flat: TensorDictBase) -> tuple[torch.Tensor, ...]:
+        """What :class:`~imitrl.runtime.fast.ppo_step.TensorPPO` reads of the rows: the
+        observation, action, behaviour log-probability, advantage and value target."""
+        k = self.loss.tensor_keys
+        return tuple(
+            flat.get(key)
+            for key in (self.loss.actor_network.in_keys[0], k.action, k.sample_log_prob,
+                        k.advantage, k.value_target)
+        )  # fmt: skip
