@@ -232,6 +232,34 @@ def test_a_chunked_learner_runs_on_workers_with_the_users_plain_env(ray_session,
     assert [r["rows_collected"] for r in results["rounds"]] == [200, 0]
 
 
+class _RaiseOnStep(Transform):
+    """An env that refuses its first step (a user's bug, not a dying process)."""
+
+    def _step(self, tensordict, next_tensordict):
+        raise ValueError("the env refuses to step")
+
+
+def cartpole_that_raises(*, seed: int):
+    return TransformedEnv(make_env("CartPole-v1", seed=seed), _RaiseOnStep())
+
+
+def test_an_error_in_a_worker_is_raised_in_the_driver_with_its_message(ray_session):
+    """Ray 2.x turns an exception in an actor's call into a dead worker (its error store
+    fails), which would read as "all workers died"; the worker returns it instead, and
+    the driver raises the same type with the worker's message. No row is added."""
+    env = make_env("CartPole-v1", seed=0)
+    buffer = DemonstrationBuffer(action_spec=env.action_spec_unbatched)
+    buffer.extend(rollout_episodes(env, cartpole_expert(), 1))
+    before = len(buffer)
+    config = DAggerConfig(rounds=2, episodes_per_round=1, bc=BCConfig(num_steps=2), seed=0)
+    make = functools.partial(cartpole_that_raises, seed=0)
+    with RaySource(make, 1, seed=0) as src:
+        with pytest.raises(ValueError, match="slot 0 failed: ValueError: the env refuses"):
+            dagger(src, cartpole_expert(), lambda: _learner(env), buffer, config)
+        assert src.live_workers == 1  # the worker is alive, not replayed elsewhere
+    assert len(buffer) == before
+
+
 def test_missing_ray_gives_the_install_hint(monkeypatch):
     monkeypatch.setitem(sys.modules, "ray", None)  # `import ray` raises ImportError
     with pytest.raises(ImportError, match=r"imitrl\[distributed\]"):

@@ -17,7 +17,10 @@ ids are ``first_episode + (episodes of slots < w) + j``, so rows come in (round,
 worker slot, episode) order and depend on ``(seed, workers)`` only, not on which actor
 ran a slot, nor on what it ran before.
 
-**A worker that dies** (its actor process exits) loses its slot's call; the driver
+**An error in a worker** (its env or the policy raises) comes back as a value and is
+raised in the driver with the worker's message and traceback, as the same builtin
+exception type: a round that fails adds no rows. **A worker that dies** (its actor
+process exits) loses its slot's call; the driver
 gives that slot, with the same seeds, to a surviving worker, so the round completes
 with the rows an undisturbed run gives (later rounds run on the survivors, with the
 same slots). Rows reach the driver only as a slot's whole episodes, and the round is
@@ -31,7 +34,7 @@ trajectories ending in ``done`` are yielded). Its own iterator is not used: it r
 every worker for a fixed frame budget with no per-round seeding, and a dead worker
 makes ``ray.get`` raise inside it, after which ``BaseCollector.__iter__`` shuts every
 actor down, losing the other workers' finished episodes. So each slot is a call of
-:meth:`_EpisodeCollector.play_episodes` (a ``Collector`` subclass, TorchRL's
+:meth:`EpisodeCollector.play_episodes` (a ``Collector`` subclass, TorchRL's
 ``collector_class`` extension point) on ``RayCollector.remote_collectors``, awaited
 with ``ray.wait``.
 
@@ -55,8 +58,6 @@ already running in this process; workers import imitrl and the user's modules th
 
 from __future__ import annotations
 
-import copy
-import functools
 import time
 import warnings
 from collections import deque
@@ -67,8 +68,7 @@ import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
-from torchrl.collectors import Collector
-from torchrl.envs import EnvBase, InitTracker, TransformedEnv
+from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, exploration_type
 
 from imitrl import keys
@@ -79,20 +79,24 @@ from imitrl.algorithms.ray_setup import (
     init_ray,
     patient_weight_sync,
 )
+from imitrl.algorithms.ray_worker import (
+    EpisodeCollector,
+    WorkerFailure,
+    worker_env,
+    worker_policy,
+)
 from imitrl.data.returns import EpisodeSummary
-from imitrl.data.rollout import NEXT_KEYS, OPTIONAL_ROW_KEYS, ROW_KEYS, init_tracked
 from imitrl.envs.limits import episode_limit
 from imitrl.policies.experts import Expert
 from imitrl.policies.learner import Learner
 from imitrl.policies.mixture import BetaMixer, behaviour_policy
-from imitrl.runtime.device import OnDevice
-from imitrl.runtime.threads import set_threads
 
 __all__ = [
     "RAY_INSTALL_HINT",
     "WORKER_THREADS",
     "RaySource",
     "RoundTiming",
+    "WorkerFailure",
     "init_ray",
     "slot_seeds",
     "worker_env",
@@ -101,7 +105,6 @@ __all__ = [
 
 COLLECT, EVALUATE = 0, 1
 """the seed streams of :func:`slot_seeds`"""
-_KEEP = (*ROW_KEYS, *[(keys.NEXT, k) for k in NEXT_KEYS])
 
 
 def slot_seeds(seed: int, stream: int, index: int, slot: int) -> tuple[int, int]:
@@ -113,35 +116,6 @@ def slot_seeds(seed: int, stream: int, index: int, slot: int) -> tuple[int, int]
     """
     state = np.random.SeedSequence([int(seed), stream, int(index), int(slot)]).generate_state(2)
     return int(state[0]), int(state[1])
-
-
-class _EpisodeCollector(Collector):
-    """A TorchRL ``Collector`` (one per Ray actor) that plays a seeded slot of whole episodes.
-
-    Built by ``RayCollector`` with ``trajs_per_batch=1, traj_format="cat"``: each
-    ``next()`` is one whole episode (the inner collector holds unfinished ones back).
-    Its process runs :data:`WORKER_THREADS` torch threads, set before the collector is.
-    """
-
-    def __init__(self, *args, **kwargs) -> None:  # Collector's own, as RayCollector passes them
-        set_threads(WORKER_THREADS)  # this actor's process, before its first torch op
-        super().__init__(*args, **kwargs)
-
-    def play_episodes(
-        self, env_seed: int, torch_seed: int, num_episodes: int, exploration: ExplorationType
-    ) -> tuple[TensorDict, float]:
-        """``num_episodes`` whole episodes back to back (``[T]``), and the seconds they took."""
-        start = time.perf_counter()
-        self.exploration_type = exploration
-        self.set_seed(env_seed)
-        self.reset()  # a fresh initial state; drops episodes left from the last call
-        torch.manual_seed(torch_seed)  # this actor's process: the learner's and mixer's draws
-        episodes = [self.next() for _ in range(num_episodes)]
-        rows = torch.cat(episodes).select(*_KEEP, *OPTIONAL_ROW_KEYS, strict=False)
-        return rows, time.perf_counter() - start
-
-    def __repr__(self) -> str:  # Ray prefixes the actor's log lines with it: keep it one line
-        return f"{type(self).__name__}(worker {self.worker_idx})"
 
 
 @dataclass
@@ -353,6 +327,8 @@ class RaySource:
                     stacklevel=3,
                 )
                 continue
+            if isinstance(rows, WorkerFailure):  # nothing of the round reaches the buffer
+                raise rows.error(task[0])
             slots[task[0]], slowest = rows, max(slowest, seconds)
             free.append(actor)
         return slots, slowest
@@ -373,7 +349,7 @@ class RaySource:
         return seconds
 
     def _start(self, behaviour: TensorDictModuleBase, exploration) -> None:
-        """``ray.init`` (unless running) and one ``_EpisodeCollector`` actor per worker."""
+        """``ray.init`` (unless running) and one ``EpisodeCollector`` actor per worker."""
         from torchrl.collectors.distributed import RayCollector
 
         patient_weight_sync()
@@ -385,7 +361,7 @@ class RaySource:
         self._collector = RayCollector(
             worker_env(self.make_env, self._env, policy),
             policy,
-            collector_class=_EpisodeCollector,
+            collector_class=EpisodeCollector,
             num_collectors=self.workers,
             frames_per_batch=int(self.frames_per_batch),
             total_frames=-1,
@@ -429,41 +405,6 @@ class RaySource:
 
     def __exit__(self, *exc) -> None:
         self.close()
-
-
-def worker_policy(behaviour: TensorDictModuleBase) -> TensorDictModuleBase:
-    """The copy of ``behaviour`` the workers are built with: on the CPU, same weight keys.
-
-    Parameters and buffers are moved to the CPU and every :class:`OnDevice` wrapper (a
-    learner on CUDA acting in a CPU env) is told its module is there now, so the
-    driver's broadcast weights load as they are; a ``BetaMixer`` draws its coins from the
-    worker's seeded torch RNG. The caller's module is left as it is.
-    """
-    policy = copy.deepcopy(behaviour).cpu()
-    for module in policy.modules():
-        if isinstance(module, OnDevice):
-            module.device = torch.device("cpu")
-        elif isinstance(module, BetaMixer):
-            module.generator = None
-    return policy
-
-
-def worker_env(
-    make_env: Callable[[], EnvBase], env: EnvBase, policy: TensorDictModuleBase
-) -> Callable[[], EnvBase]:
-    """The ``make_env`` the workers call: ``make_env`` itself, or, when ``policy`` reads
-    ``"is_init"`` (a chunked learner) and ``env`` (the driver's copy) does not write it,
-    ``make_env`` followed by :func:`~imitrl.data.rollout.init_tracked`, as a local rollout
-    wraps it: so DAgger with a chunked learner runs on workers with the user's plain env."""
-    if init_tracked(env, policy) is env:
-        return make_env
-    return functools.partial(_tracked_env, make_env)
-
-
-def _tracked_env(make_env: Callable[[], EnvBase]) -> EnvBase:
-    """``make_env()`` in TorchRL's ``InitTracker``, as :func:`init_tracked` wraps it
-    (a module-level function: the workers unpickle and call it)."""
-    return TransformedEnv(make_env(), InitTracker(), auto_unwrap=False)
 
 
 def _quota(num_episodes: int, slots: int) -> list[int]:
