@@ -37,6 +37,7 @@ import _report
 from imitrl import keys
 from imitrl.algorithms import BCConfig, fit_bc
 from imitrl.data.chunks import IS_INIT
+from imitrl.data.history import history_key
 from imitrl.objectives import registry
 from imitrl.objectives.diffusion_unet import UnetDiffusionConfig
 from imitrl.objectives.registry import LearnerConfig, TaskSpec
@@ -62,10 +63,14 @@ def _median_seconds(fn, budget: dict) -> float:
     return statistics.median(times)
 
 
-def _rows(n: int) -> TensorDict:
+CAMERA = (84, 84, 3)
+"""the camera learner's images: 84x84 RGB (cropped to 76x76 in training, as the paper)"""
+
+
+def _rows(n: int, camera: bool = False) -> TensorDict:
     g = torch.Generator().manual_seed(0)
     episode = torch.arange(n) // 50
-    return TensorDict(
+    rows = TensorDict(
         {
             keys.OBSERVATION: torch.randn(n, 39, generator=g),
             keys.EXPERT_ACTION: torch.rand(n, 4, generator=g) * 2 - 1,
@@ -74,18 +79,26 @@ def _rows(n: int) -> TensorDict:
         },
         [n],
     )
+    if camera:
+        rows.set(keys.PIXELS, torch.randint(0, 256, (n, *CAMERA), dtype=torch.uint8, generator=g))
+    return rows
 
 
-def _unet(widths: str, sampler: str):
+def _unet(widths: str, sampler: str, camera: bool = False):
     unet = DIFFUSION_UNET if widths == "cpu" else UnetDiffusionConfig()
     unet = replace(unet, sampler=sampler)
-    return lambda: diffusion_unet_learner(TASK, LearnerConfig(seed=0), unet)
+    pixels = CAMERA if camera else None
+    return lambda: diffusion_unet_learner(TASK, LearnerConfig(seed=0), unet, pixel_shape=pixels)
+
+
+def _has_camera(learner) -> bool:
+    return keys.PIXELS in learner.history_keys
 
 
 def train_step(make, batch: int, budget: dict) -> float:
     """Seconds per training step at ``batch`` (forward, backward, optimizer, EMA)."""
     learner = make()
-    rows = learner.training_rows(_rows(max(4 * batch, 200)))
+    rows = learner.training_rows(_rows(max(4 * batch, 200), camera=_has_camera(learner)))
     steps = budget["warm"] + budget["repeats"]
     t = time.perf_counter()
     fit_bc(learner, rows, BCConfig(num_steps=steps, batch_size=batch))
@@ -102,10 +115,15 @@ def query(make, lanes: int, budget: dict) -> float:
 
 
 def _inputs(lanes: int, learner) -> dict:
-    obs = torch.randn(lanes, 39, generator=torch.Generator().manual_seed(1))
+    g = torch.Generator().manual_seed(1)
+    obs = torch.randn(lanes, 39, generator=g)
     out = {keys.OBSERVATION: obs, IS_INIT: torch.ones(lanes, 1, dtype=torch.bool)}
+    if _has_camera(learner):
+        out[keys.PIXELS] = torch.randint(0, 256, (lanes, *CAMERA), dtype=torch.uint8, generator=g)
     if learner.history is not None:
-        out["observation_history"] = obs.unsqueeze(1).expand(-1, learner.history, -1).clone()
+        for key in learner.history_keys:
+            value = out[key].unsqueeze(1).expand(-1, learner.history, *out[key].shape[1:])
+            out[history_key(key)] = value.clone()
     return out
 
 
@@ -114,12 +132,13 @@ def per_action(make, lanes: int, budget: dict) -> float:
     queries every ``k`` steps, or every step for an ensembling or one-step learner)."""
     learner = make()
     inputs = _inputs(lanes, learner)
-    obs, calls = inputs[keys.OBSERVATION], 32
+    calls = 32
+    seen = {k: inputs[k] for k in learner.history_keys or (keys.OBSERVATION,)}
 
     def episode() -> None:  # every lane reset at its first call
         for t in range(calls):
             init = torch.full((lanes, 1), t == 0)
-            learner.policy(TensorDict({keys.OBSERVATION: obs, IS_INIT: init}, [lanes]))
+            learner.policy(TensorDict({**seen, IS_INIT: init}, [lanes]))
 
     with set_exploration_type(learner.exploration), torch.no_grad():
         return _median_seconds(episode, budget) / calls
@@ -144,7 +163,19 @@ def measure(budget: dict) -> dict:
         name: (lambda name=name: registry.build(name, TASK, LearnerConfig(hidden=(128, 128))))
         for name in ("mse", "mse_chunk", "flow_chunk", "act")
     }
-    for name, make in {"diffusion_unet": _unet("cpu", "ddim"), **others}.items():
+    camera = _unet("cpu", "ddim", camera=True)  # ResNet-18 (GroupNorm) + spatial softmax
+    for batch in budget["batches"]:
+        seconds = train_step(camera, batch, budget)
+        out["train"].append({"widths": "cpu + camera", "batch": batch, "seconds": seconds})
+        print(f"train cpu + camera batch {batch}: {seconds * 1e3:.0f} ms", file=sys.stderr)
+    for lanes in budget["lanes"]:
+        seconds = query(camera, lanes, budget)
+        out["query"].append(
+            {"widths": "cpu + camera", "sampler": "ddim", "lanes": lanes, "seconds": seconds}
+        )
+        print(f"query cpu + camera ddim x{lanes}: {seconds * 1e3:.1f} ms", file=sys.stderr)
+    makers = {"diffusion_unet": _unet("cpu", "ddim"), "diffusion_unet + camera": camera}
+    for name, make in {**makers, **others}.items():
         for lanes in budget["lanes"]:
             seconds = per_action(make, lanes, budget)
             out["action"].append({"loss": name, "lanes": lanes, "seconds": seconds})
@@ -173,7 +204,10 @@ def markdown(payload: dict) -> str:
             f"One torch thread, Meta-World's shapes (39-d state, 4-d action); median of "
             f"{payload['budget']['repeats']} timed calls; 1-min load "
             f"{payload['load_average_start'][0]:.2f} at the start; wall time "
-            f"{payload['wall_seconds'] / 60:.1f} min. CPU only: no GPU was available.",
+            f"{payload['wall_seconds'] / 60:.1f} min. CPU only: no GPU was available. "
+            "Parameters: the U-Net's; with the camera, the whole network (the U-Net at CPU "
+            f"widths and the ResNet-18 encoder with its spatial softmax, {CAMERA[0]}x"
+            f"{CAMERA[1]} images cropped to 76x76 in training).",
             train,
             query,
             action,
@@ -191,6 +225,8 @@ def main(argv: list[str] | None = None) -> None:
         w: sum(p.numel() for p in _unet(w, "ddim")().policy.network.unet.parameters())
         for w in ("cpu", "paper")
     }
+    camera = _unet("cpu", "ddim", camera=True)().policy.network
+    params["cpu + camera"] = sum(p.numel() for p in camera.parameters())
     measured = measure(budget)
     payload = {
         "budget": {k: list(v) if isinstance(v, tuple) else v for k, v in budget.items()},
