@@ -52,7 +52,8 @@ LOSSES: tuple[tuple[str, str, str], ...] = (
     (
         "gaussian_nll_chunk",
         "continuous",
-        "tanh-normal NLL of chunks of 8 (unmasked), acts with the mean",
+        "tanh-normal NLL of chunks of 8 (unmasked), a learned state-independent log-std, "
+        "acts with the mean",
     ),
     ("diffusion_chunk", "continuous", "diffusion (DDPM) on chunks of 8 (unmasked), executes 4"),
     ("diffusion_ddim_chunk", "continuous", "diffusion on chunks of 8, sampled by DDIM, executes 4"),

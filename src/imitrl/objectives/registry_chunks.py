@@ -12,7 +12,7 @@ name                   policy and loss                       execution
 mse_chunk              deterministic, masked MSE             receding horizon (k of H)
 l1_chunk               deterministic, masked L1              receding horizon
 l1_chunk_ensemble      deterministic, masked L1 (ACT's)      temporal ensembling, m
-gaussian_nll_chunk     tanh-normal NLL of the flat chunk     receding horizon
+gaussian_nll_chunk     tanh-normal NLL (free std), flat chunk receding horizon
 diffusion_chunk        DDPM over the flat chunk              receding horizon
 diffusion_ddim_chunk   the same, sampled by DDIM             receding horizon
 flow_chunk             flow matching, masked, 16 Euler       receding horizon, noise
@@ -165,11 +165,16 @@ register(
 @register(
     "gaussian_nll_chunk",
     actions="continuous",
-    summary=f"tanh-normal NLL of chunks of {_H} (unmasked), acts with the mean",
+    summary=f"tanh-normal NLL of chunks of {_H} (unmasked), a learned state-independent "
+    "log-std, acts with the mean",
     horizon=_H,
 )
 def _gaussian_nll_chunk(task: TaskSpec, config: LearnerConfig) -> Learner:
-    ac = mlp(_spec(task), config, head="tanh_normal")
+    """The head as ``gaussian_nll``'s (one learned log-std per dimension): on the loss
+    benchmark's continuous tasks (5 seeds) its BC / DAgger mean normalised score rose from
+    0.16 / 0.03 with the state-dependent scale to 0.31 / 0.35 (corridor fell, 0.50 ->
+    0.08 as BC; Pendulum and the two-way task rose)."""
+    ac = mlp(_spec(task), config, head="tanh_normal_free")
     inner = BehaviorCloningLoss(ac.policy, loss_type="nll")
     inner.set_keys(label=FLAT_CHUNK)
     loss = FlatChunkLoss(inner, dim=_H * int(task.action.shape[0]))
