@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import pytest
 import torch
+from tensordict import TensorDict
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from imitrl import keys
@@ -74,6 +75,11 @@ def test_the_generator_takes_the_tensor_ppo_step_where_it_computes_the_same():
         assert paths.ppo_loss(PPOGenerator(learner, entropy_coeff=0.01, **kw).loss) is None
         with paths.reference():
             assert paths.ppo_loss(PPOGenerator(learner, entropy_coeff=0.0, **kw).loss) is None
+        # a batch with an entry ClipPPOLoss reads as a loss mask: the module itself
+        masked = TensorDict({"shifted_valid": torch.ones(4, dtype=torch.bool)}, [4])
+        loss = PPOGenerator(learner, entropy_coeff=0.0, **kw).loss
+        assert paths.ppo_loss(loss, masked) is None and paths.ppo_loss(loss, masked[:0]) is None
+        assert paths.ppo_loss(loss, TensorDict({}, [4])) is not None
 
 
 def test_other_lane_counts_play_other_episodes():

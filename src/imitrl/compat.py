@@ -23,6 +23,9 @@ before_return``, ``TensorDictModule :func:`plain_sampler` (``imitrl.runtime.fast
 _generator``/``_generator_key``,
 ``ProbabilisticTensorDictSequential
 ._requires_sample`` (read)
+``ClipPPOLoss._clip_bounds``,       :func:`plain_clip_ppo`, :func:`ppo_clip_bounds`
+``._asymmetric_clip``,              (``imitrl.runtime.fast.ppo_step.TensorPPO``, PPO's
+``LossModule._loss_mask_keys()``    loss on tensors)
 ``torchrl.weight_update._ray.       :func:`raise_ray_weight_sync_wait`
 _DIST_TIMEOUT``                     (``imitrl.algorithms.ray_source.RaySource``)
 =================================== ==========================================================
@@ -263,3 +266,37 @@ def raise_ray_weight_sync_wait(seconds: float) -> None:
     import torchrl.weight_update._ray as ray_sync
 
     ray_sync._DIST_TIMEOUT = max(ray_sync._DIST_TIMEOUT, timedelta(seconds=seconds))
+
+
+def plain_clip_ppo(loss, batch: TensorDictBase | None = None) -> bool:
+    """Whether a ``ClipPPOLoss`` computes only the clipped objective and a smooth-L1
+    critic, averaged (no entropy bonus, value clipping, delayed actor, importance-ratio
+    cap, asymmetric clip or advantage scaling beyond standardisation), and ``batch``
+    holds none of the entries it reads as a loss mask.
+
+    Why: ``TensorPPO`` replays exactly that arithmetic on tensors; whether the clip is
+    asymmetric and which batch entries mask the loss live in the private
+    ``_asymmetric_clip`` and ``_loss_mask_keys()``.
+    """
+    if loss.functional or loss.delay_actor or getattr(loss, "_asymmetric_clip", False):
+        return False
+    if batch is not None and any(k in batch.keys(True) for k in loss._loss_mask_keys()):
+        return False
+    return not (
+        loss.entropy_bonus
+        or loss.clip_value
+        or not loss.normalize_advantage
+        or loss.normalize_advantage_exclude_dims
+        or getattr(loss, "advantage_norm", None) is not None
+        or getattr(loss, "max_importance_ratio", None) is not None
+        or loss.loss_critic_type != "smooth_l1"
+        or loss.reduction != "mean"
+        or loss.separate_losses
+        or loss.critic_coeff is None
+    )
+
+
+def ppo_clip_bounds(loss) -> tuple[torch.Tensor, torch.Tensor]:
+    """``ClipPPOLoss``'s log-ratio bounds ``(log1p(-eps), log1p(eps))``, the same tensors
+    its forward clamps with. Why: they are the private ``_clip_bounds`` property."""
+    return loss._clip_bounds

@@ -167,6 +167,13 @@ def episode_bound(env: EnvBase, max_steps: int | None, num_episodes: int) -> tup
     return limit, f"the env's own time limit of {limit}"
 
 
+def any_done(done: np.ndarray) -> bool:
+    """Whether any lane ended at this step. ``True in done.tolist()`` is ``done.any()`` for
+    a bool array at a tenth of its cost on one lane (a few lanes are the common case;
+    this runs every step)."""
+    return True in done.tolist() if done.dtype == np.bool_ else bool(done.any())
+
+
 class Lanes:
     """Per-lane bookkeeping of a rollout under round-robin quotas (module docstring).
 
@@ -201,10 +208,7 @@ class Lanes:
                     f"an episode ran past {self.bound_name} steps without ending (the bound is "
                     "per episode); pass a larger max_steps= or give the env a time limit"
                 )
-        # ``True in done.tolist()`` is ``done.any()`` for a bool array at a tenth of its
-        # cost on one lane (a few lanes are the common case; this runs every step)
-        ended = True in done.tolist() if done.dtype == np.bool_ else bool(done.any())
-        return np.flatnonzero(done) if ended else None
+        return np.flatnonzero(done) if any_done(done) else None
 
     def kept(self, ended: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Of the ``ended`` lanes, those still owed episodes: (lanes, episode ids, lengths)."""
@@ -325,6 +329,5 @@ def play_steps(stepper: Stepper, steps: int) -> TensorDictBase:
                 check_first_step(env, values, labels=False)
                 first = False
             _, done = stepper.step()
-            ended = True in done.tolist() if done.dtype == np.bool_ else bool(done.any())
-            stepper.advance(done if ended else None)
+            stepper.advance(done if any_done(done) else None)
     return stepper.take()

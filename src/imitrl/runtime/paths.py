@@ -149,15 +149,16 @@ def loss_chain(modules: list[nn.Module] | None):
     return TensorChain.of(modules)
 
 
-def ppo_loss(loss):
+def ppo_loss(loss, batch=None):
     """A :class:`~imitrl.runtime.fast.ppo_step.TensorPPO` of the ``ClipPPOLoss`` ``loss``
     (its losses on a minibatch's tensors, the same bits), or None on the reference path
-    and wherever it would compute anything else: then call ``loss`` on the TensorDict."""
+    and wherever it would compute anything else (a configuration it does not replay, a
+    ``batch`` carrying a loss mask): then call ``loss`` on the TensorDict."""
     if not fast_enabled():
         return None
     from imitrl.runtime.fast.ppo_step import TensorPPO
 
-    return TensorPPO.of(loss)
+    return TensorPPO.of(loss, batch)
 
 
 def optimizer_step(opt: torch.optim.Optimizer) -> Callable[[], None]:

@@ -98,8 +98,10 @@ class PPOGenerator:
         n = batch.numel()
         sums: dict[str, float] = {}
         # Adam's step through the seam (its functional form on the CPU: the same bits)
-        steps = [paths.optimizer_step(o) for o in (self.learner.opt_pi, self.learner.opt_v)]
-        fast = paths.ppo_loss(self.loss)  # the loss on tensors (same bits), or None
+        optimizer_steps = [
+            paths.optimizer_step(o) for o in (self.learner.opt_pi, self.learner.opt_v)
+        ]
+        fast = paths.ppo_loss(self.loss, batch)  # the loss on tensors (same bits), or None
         for _ in range(self.epochs):
             with torch.no_grad():
                 self.gae(batch)
@@ -119,7 +121,7 @@ class PPOGenerator:
                 self.learner.opt_v.zero_grad(set_to_none=True)
                 total.backward()
                 torch.nn.utils.clip_grad_norm_(self.params, self.max_grad_norm)
-                for step in steps:
+                for step in optimizer_steps:
                     step()
                 for k, v in losses.items():
                     sums[k] = sums.get(k, 0.0) + float(v.detach())

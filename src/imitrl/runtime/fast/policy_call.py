@@ -28,8 +28,8 @@ The networks inside run by :func:`direct_call`: an ``nn.Sequential`` (or
 :class:`~imitrl.policies.heads.Chain`) of hookless modules calls each child's
 ``forward`` without ``nn.Module.__call__``'s hook bookkeeping (about a fifth of a small
 MLP's call at batch 1). Any other module (an actor under MEAN or MEDIAN, one that
-writes its log-probability), or a module with hooks runs through its own ``forward`` on a TensorDict of the dict's entries. Each
-replay runs the module's own code on the same tensors, so the outputs are the module's to the bit
+writes its log-probability), or a module with hooks runs through its own ``forward`` on
+a TensorDict of the dict's entries. Each replay runs the module's own code on the same tensors, so the outputs are the module's to the bit
 (``tests/test_fast_path.py``, the seam's test, checks it for every learner head and the DAgger behaviour
 policy).
 """

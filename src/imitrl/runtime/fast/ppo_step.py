@@ -18,12 +18,13 @@ the generator calls the loss module itself.
 from __future__ import annotations
 
 import torch
+from tensordict import TensorDictBase
 from tensordict.nn import ProbabilisticTensorDictModule, TensorDictModule
 from torch.nn import functional as F
 from torchrl.modules import ProbabilisticActor
 from torchrl.objectives import ClipPPOLoss
 
-from imitrl.compat import plain_sampler
+from imitrl.compat import plain_clip_ppo, plain_sampler, ppo_clip_bounds
 
 __all__ = ["TensorPPO"]
 
@@ -47,23 +48,10 @@ class TensorPPO:
         self.loss = loss
 
     @classmethod
-    def of(cls, loss: ClipPPOLoss) -> TensorPPO | None:
-        """A :class:`TensorPPO` of ``loss``, or None where it would compute anything else."""
-        if type(loss) is not ClipPPOLoss or loss.functional or loss.delay_actor:
-            return None
-        if (
-            loss.entropy_bonus
-            or loss.clip_value
-            or not loss.normalize_advantage
-            or loss.normalize_advantage_exclude_dims
-            or getattr(loss, "advantage_norm", None) is not None
-            or getattr(loss, "max_importance_ratio", None) is not None
-            or getattr(loss, "_asymmetric_clip", False)
-            or loss.loss_critic_type != "smooth_l1"
-            or loss.reduction != "mean"
-            or loss.separate_losses
-            or loss.critic_coeff is None
-        ):
+    def of(cls, loss: ClipPPOLoss, batch: TensorDictBase | None = None) -> TensorPPO | None:
+        """A :class:`TensorPPO` of ``loss``, or None where it would compute anything else
+        (also when ``batch`` carries an entry ``ClipPPOLoss`` reads as a loss mask)."""
+        if type(loss) is not ClipPPOLoss or not plain_clip_ppo(loss, batch):
             return None
         actor, critic = loss.actor_network, loss.critic_network
         if type(actor) is not ProbabilisticActor or not isinstance(critic, TensorDictModule):
@@ -102,7 +90,7 @@ class TensorPPO:
         dist = self.dist_class(**dict(zip(self.names, out)), **self.dist_kwargs)
         log_weight = (dist.log_prob(action) - old_log_prob).unsqueeze(-1)  # _log_weight
         gain1 = log_weight.exp() * advantage
-        log_weight_clip = log_weight.clamp(*self.loss._clip_bounds)
+        log_weight_clip = log_weight.clamp(*ppo_clip_bounds(self.loss))
         gain2 = log_weight_clip.exp() * advantage
         gain = torch.stack([gain1, gain2], -1).min(dim=-1).values
         value = self.value_net(obs)  # loss_critic: distance_loss, then critic_coeff
