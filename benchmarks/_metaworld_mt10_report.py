@@ -60,16 +60,17 @@ def normalised(payload: dict) -> dict:
     on the same seed's held-out starts (1 where the expert failed every episode)."""
     cells, expert = _groups(payload)
     config = payload["config"]
+    seed_row = {s: i for i, s in enumerate(sorted({r["seed"] for r in payload["rows"]}))}
     out = {}
     for loss in config["losses"]:
         for demos in config["demos"]:
             for algorithm in ALGORITHMS:
-                grid = np.full((config["seeds"], len(config["tasks"])), np.nan)
+                grid = np.full((len(seed_row), len(config["tasks"])), np.nan)
                 for j, task in enumerate(config["tasks"]):
                     ref = {r["seed"]: r["score"] for r in expert[(task, demos)]}
                     for r in cells.get((task, demos, loss, algorithm), []):
                         e = ref.get(r["seed"], 0.0)
-                        grid[r["seed"], j] = r["score"] / e if e > 0 else 1.0
+                        grid[seed_row[r["seed"]], j] = r["score"] / e if e > 0 else 1.0
                 if not np.isnan(grid).any():
                     out[(loss, demos, algorithm)] = grid
     return out

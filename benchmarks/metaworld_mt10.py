@@ -102,6 +102,12 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--losses", nargs="+", default=list(LOSSES))
     p.add_argument("--demos", nargs="+", type=int, default=list(DEMOS))
     p.add_argument("--seeds", type=int, default=5)
+    p.add_argument(
+        "--first-seed",
+        type=int,
+        default=0,
+        help="run seeds first..first+seeds-1 (a cell's digits depend on its seed alone)",
+    )
     p.add_argument("--jobs", type=int, default=1, help="worker processes, one thread each")
     args = p.parse_args(argv)
     out_dir = _report.destination(NAME, quick=args.quick, out=args.out)
@@ -115,7 +121,7 @@ def main(argv: list[str] | None = None) -> None:
     raw = run(
         tasks=task_defs(tasks, demos, args.quick),
         losses=losses,
-        seeds=seeds,
+        seeds=range(args.first_seed, args.first_seed + seeds),
         quick_mode=args.quick,
         jobs=args.jobs,
     )
@@ -124,6 +130,7 @@ def main(argv: list[str] | None = None) -> None:
         "losses": losses,
         "demos": list(demos),
         "seeds": seeds,
+        "first_seed": args.first_seed,
         "jobs": args.jobs,
         "quick": args.quick,
         "protocol": json.loads(json.dumps(raw["protocols"], default=str)),

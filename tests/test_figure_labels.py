@@ -125,9 +125,12 @@ def test_study_figures_with_long_labels(tmp_path, saved):
     figures_irl.plot_reward(grid, np.linspace(-3, 3, 16), np.zeros(16), tmp_path / "r.png")
     figures_irl.plot_irl_sweep({1: {k: np.ones(2) for k in ("irl", "bc", "dagger")}}, 0.7,
                                tmp_path / "irl.png")  # fmt: skip
+    row = {m: {"normalised_return": 0.5} for m in ("airl_g", "airl_f", "maxent", "source_expert")}
+    figures_irl.plot_airl_transfer([{"target": "source", "dataset": "10 episodes", **row}],
+                                   tuple(row), tmp_path / "airl.png")  # fmt: skip
     figures.plot_chain([{"eps": 0.01, "cloned": np.ones(50), "cloned_exact": np.ones(50),
                          "recovering": np.ones(50)}] * 2, tmp_path / "ch.png")  # fmt: skip
-    assert len(saved) == 11
+    assert len(saved) == 12
     assert _cut_off(saved) == {}
 
 

@@ -144,6 +144,7 @@ def test_report_and_figures(study):
         "ex_corruption",
         "irl_reward",
         "irl_sweep",
+        "airl_transfer",
     ):
         png = out / f"{name}.png"
         head = png.read_bytes()[:24]
@@ -186,6 +187,46 @@ def test_irl_section(study):
     assert targets["is_slippery=False"]["target_expert"] == success_probability(det, own) == 1.0
     claims = {c["claim"]: c for c in r["prose_checks"]}
     assert claims["planning against the inferred reward recovers the expert"]["agrees"]
+
+
+def test_airl_section(study):
+    """Section 8b: the reported scores recompute from the printed rewards; with unlimited
+    demonstrations AIRL's g is every kernel's own optimum, the source-shaped f is not."""
+    from imitrl.tabular import airl as A
+    from imitrl.tabular.dp import policy_evaluation
+
+    out, r = study
+    text = (out / "report.txt").read_text()
+    assert "8b. Beyond cloning: AIRL's reward under changed dynamics, exactly" in text
+    section = r["airl"]
+    assert section["beta"] == 20.0 and 0.2 < section["demonstrator_success"] < 0.3
+    fits = {f["dataset"]: f for f in section["fits"]}
+    assert list(fits) == ["10 episodes", "100 episodes", "1000 episodes", "unlimited"]
+    kernels = {
+        "source": {},
+        "is_slippery=False": {"is_slippery": False},
+        "success_rate=0.5": {"success_rate": 0.5},
+        "success_rate=0.9": {"success_rate": 0.9},
+    }
+    rows = {(row["target"], row["dataset"]): row for row in section["transfer"]}
+    assert {t for t, _ in rows} == set(kernels)
+    for name, kwargs in kernels.items():
+        mdp = TabularMDP.from_gym("FrozenLake-v1", 0.95, make_kwargs=kwargs)
+        own = greedy(mdp.backup(value_iteration(mdp, 1000)[-1]))
+        uniform = torch.full((16, 4), 0.25, dtype=torch.float64)
+        v_own, v_uni = (float(mdp.initial @ policy_evaluation(mdp, p)) for p in (own, uniform))
+        for dataset, fit in fits.items():
+            g = torch.tensor(fit["g"], dtype=torch.float64)
+            plan = A.plan(mdp, g)
+            v = float(mdp.initial @ policy_evaluation(mdp, plan))
+            row = rows[(name, dataset)]
+            assert row["airl_g"]["normalised_return"] == pytest.approx(
+                (v - v_uni) / (v_own - v_uni), abs=1e-9
+            )
+            assert row["airl_g"]["success"] == pytest.approx(success_probability(mdp, plan))
+        assert rows[(name, "unlimited")]["airl_g"]["normalised_return"] == pytest.approx(1.0)
+    assert rows[("is_slippery=False", "unlimited")]["airl_f"]["normalised_return"] < 0.5
+    assert rows[("is_slippery=False", "unlimited")]["maxent"]["normalised_return"] < 0.5
 
 
 def _small(out, *extra):

@@ -11,6 +11,7 @@ import importlib
 import multiprocessing
 import sys
 import time
+from collections.abc import Sequence
 from dataclasses import asdict, replace
 from typing import Any
 
@@ -180,16 +181,20 @@ def run(
     *,
     tasks: list[TaskDef],
     losses: list[str] | None,
-    seeds: int,
+    seeds: int | Sequence[int],
     quick_mode: bool,
     jobs: int = 1,
     modules: tuple[str, ...] = (),
 ) -> dict[str, Any]:
-    """Every (loss, task, seed) cell and the expert/random references; returns the raw rows."""
+    """Every (loss, task, seed) cell and the expert/random references; returns the raw rows.
+
+    ``seeds``: a count (seeds 0..n-1) or the seeds themselves (a cell's digits depend on
+    its seed alone, so a run of seeds 1-4 extends a run of seed 0)."""
+    seed_list = list(range(seeds)) if isinstance(seeds, int) else list(seeds)
     cells, refs = [], []
     for defn in tasks:
         spec = build(defn, quick_mode).spec()
-        for seed in range(seeds):
+        for seed in seed_list:
             refs.append((defn, seed, quick_mode))
             for loss in registry.names(spec):
                 if losses is None or loss in losses:

@@ -2,7 +2,8 @@
 
 Modules import one way, lower to higher: ``validation`` and ``bellman`` (numpy/torch
 only) -> ``gym_model`` -> ``mdp`` -> ``policy`` -> ``dp`` and ``finite_horizon``;
-``sampling`` reads ``mdp`` only; ``maxent_irl`` reads ``mdp`` and ``finite_horizon``.
+``sampling`` reads ``mdp`` only; ``maxent_irl`` reads ``mdp`` and ``finite_horizon``;
+``airl`` (imported as a module: ``imitrl.tabular.airl``) reads ``mdp`` and ``sampling``.
 """
 
 from imitrl.tabular.dp import backup, greedy, policy_evaluation, value_iteration

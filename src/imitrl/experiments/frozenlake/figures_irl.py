@@ -10,7 +10,7 @@ from matplotlib.figure import Figure
 
 from imitrl.experiments.frozenlake.figures import _ARROWS, _nothing, _save
 
-__all__ = ["plot_irl_sweep", "plot_reward"]
+__all__ = ["plot_airl_transfer", "plot_irl_sweep", "plot_reward"]
 
 _METHODS = {"irl": ("MaxEnt IRL", "C2"), "bc": ("BC", "C3"), "dagger": ("DAgger", "C0")}
 
@@ -69,4 +69,39 @@ def plot_irl_sweep(
     ax.set_ylim(-0.02, 1.0)
     ax.set_title("redrawn datasets: each dot one dataset, bar the median")
     ax.legend(fontsize=8, loc="lower right")
+    return _save(fig, path)
+
+
+_TRANSFER = {
+    "airl_g": ("AIRL g(s)", "C0", "o-"),
+    "airl_f": ("AIRL f(s, a), source shaping", "C1", "s--"),
+    "maxent": ("MaxEnt IRL theta[s']", "C2", "^-"),
+    "source_expert": ("source expert's policy", "gray", ":"),
+}
+
+
+def plot_airl_transfer(rows: list[dict], methods: tuple[str, ...], path: Path) -> Path:
+    """One panel per kernel: each method's normalised return against the dataset."""
+    targets = list(dict.fromkeys(r["target"] for r in rows))
+    if not targets:
+        return _nothing(path, "AIRL transfer", "no fits")
+    datasets = list(dict.fromkeys(r["dataset"] for r in rows))
+    n = len(targets)
+    fig = Figure(figsize=(3.2 * n + 2.6, 3.8))
+    axes = fig.subplots(1, n + 1, gridspec_kw={"width_ratios": [1] * n + [0.8]})
+    for ax, target in zip(axes[:n], targets):
+        by = {r["dataset"]: r for r in rows if r["target"] == target}
+        for m in methods:
+            label, color, style = _TRANSFER[m]
+            y = [by[d][m]["normalised_return"] for d in datasets]
+            ax.plot(range(len(datasets)), y, style, color=color, label=label, ms=4)
+        ax.axhline(1.0, color="black", lw=0.6)
+        ax.set_xticks(range(len(datasets)), [d.replace(" episodes", "") for d in datasets])
+        ax.set_xlabel("demonstrated episodes")
+        ax.set_ylim(-0.1, 1.1)
+        ax.set_title(target if target != "source" else "source (training) kernel", fontsize=9)
+    axes[0].set_ylabel("normalised return\n(own optimum 1, uniform 0)")
+    axes[n].axis("off")  # the legend's own panel: no line hidden under it
+    axes[n].legend(*axes[0].get_legend_handles_labels(), loc="center left", fontsize=8)
+    fig.suptitle("rewards planned against under each kernel, exact", fontsize=10)
     return _save(fig, path)

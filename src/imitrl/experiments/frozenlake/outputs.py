@@ -36,6 +36,7 @@ FIGURES = (
     "ex_corruption",
     "irl_reward",
     "irl_sweep",
+    "airl_transfer",
 )
 """The figures a run may draw, each ``<name>.png``."""
 OUTPUT_FILES = frozenset({"report.txt", "results.json", *(f"{f}.png" for f in FIGURES)})

@@ -14,6 +14,7 @@ One module per part, run in this order on one shared :class:`StudyContext`:
   (4. redrawn datasets), :mod:`.compounding_error` (5. the chain),
   :mod:`.divergence` (6. state distributions), :mod:`.dagger_rounds` (7. DAgger),
   :mod:`.irl` (8. maximum-entropy IRL, exactly; ``--no-irl`` skips it);
+  :mod:`.airl_transfer` (8b. AIRL's reward under changed dynamics; ``--no-airl``);
 * the exercises :mod:`.ex_demo_counts`, :mod:`.ex_state_errors`, :mod:`.ex_budget`,
   :mod:`.ex_corruption`, built on :mod:`.replicates` (K datasets fitted as one);
 * :mod:`.prose_check`, the section's claims against the exact numbers.
@@ -27,6 +28,7 @@ from dataclasses import asdict
 from pathlib import Path
 
 from imitrl.experiments.frozenlake import outputs
+from imitrl.experiments.frozenlake.airl_transfer import airl_transfer
 from imitrl.experiments.frozenlake.backends import BatchedBackend, FaithfulBackend
 from imitrl.experiments.frozenlake.cloning import behaviour_cloning, evaluation
 from imitrl.experiments.frozenlake.compounding_error import compounding_error
@@ -123,6 +125,8 @@ def _sections(config: StudyConfig) -> list[tuple[str, Callable[[StudyContext], N
     ]
     if config.irl:
         sections.append(("irl", irl))
+        if config.airl:
+            sections.append(("airl", airl_transfer))
     if config.exercises:
         sections += [
             ("ex_demo_counts", ex_demo_counts),
