@@ -78,7 +78,8 @@ def markdown(results: dict) -> str:
         "(R_expert - R_random); mean [95% t-interval over seeds]. Env steps = the learner's "
         "own steps in the env (the demonstration's count as expert queries). Total time "
         f"{results['seconds']:.0f} s on {results['machine']['cpu_count']} CPU cores "
-        f"({results['jobs']} process(es), `torch.set_num_threads(1)`).",
+        f"({results['jobs']} process(es), `torch.set_num_threads(1)`)."
+        + (f" {results['merged']}." if results.get("merged") else ""),
         "",
         "GAIL/AIRL budgets (PPO generator, the library's `AdversarialConfig` defaults "
         "otherwise; the normaliser's warm-up steps count as env steps):",
@@ -101,12 +102,12 @@ def budget_table(results: dict) -> str:
         [_report.env_label(t), results["demonstrations"][t], f"{b['total_steps']:,}",
          f"{b['rollout_steps']:,}", b["minibatch_size"], b["eval_every"], b["lr"], b["gamma"],
          "yes" if b["absorbing"] else "no", f"{b['normalizer_warmup']:,}",
-         "x".join(map(str, b["hidden"]))]
+         "x".join(map(str, b["hidden"])), b.get("airl_entropy_weight", 1.0)]
         for t, b in results["budgets"].items()
     ]  # fmt: skip
     header = ["task", "demonstration", "env steps", "steps per round", "PPO minibatch",
               "eval every (rounds)", "lr", "gamma", "absorbing states",
-              "normaliser warm-up steps", "MLP"]  # fmt: skip
+              "normaliser warm-up steps", "MLP", "AIRL's w (f - w log pi)"]  # fmt: skip
     return _report.table(header, rows)
 
 

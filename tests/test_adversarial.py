@@ -158,6 +158,27 @@ def test_airl_reward_matches_f_minus_log_pi_of_the_learner():
     torch.testing.assert_close(disc.reward(tr), disc.f(tr).detach() - log_pi)
 
 
+def test_airl_entropy_weight_scales_only_the_generator_s_log_pi():
+    """``f - w log pi`` is the generator's reward; the discriminator's logit stays
+    ``f - log pi`` (its loss does not depend on ``w``)."""
+    learner = _learner()
+    tr, _ = _separable(8)
+    log_pi = learner.log_prob(tr[keys.OBSERVATION], tr[keys.ACTION]).detach().unsqueeze(-1)
+    one = AIRLDiscriminator(learner, gamma=0.99, hidden=(8,), seed=0)
+    zero = AIRLDiscriminator(learner, gamma=0.99, hidden=(8,), seed=0, entropy_weight=0.0)
+    half = AIRLDiscriminator(learner, gamma=0.99, hidden=(8,), seed=0, entropy_weight=0.5)
+    f = one.f(tr).detach()
+    torch.testing.assert_close(zero.reward(tr), f)
+    torch.testing.assert_close(half.reward(tr), f - 0.5 * log_pi)
+    torch.testing.assert_close(zero.logits(tr), one.logits(tr))
+    assert AIRLConfig(entropy_weight=0.0).entropy_weight == 0.0
+    with pytest.raises(ValueError, match="entropy_weight"):
+        AIRLConfig(entropy_weight=-1.0)
+    job = AIRLJob(env="Pendulum-v1", expert="pendulum", entropy_weight=0.0)
+    assert job.algorithm_config().entropy_weight == 0.0
+    assert AIRLJob(env="Pendulum-v1", expert="pendulum").algorithm_config().entropy_weight == 1.0
+
+
 # -------------------------------------------------------------- contracts
 def test_gail_discriminator_keys_and_expert_side():
     disc = GAILDiscriminator(_learner(), hidden=(16,), seed=0)

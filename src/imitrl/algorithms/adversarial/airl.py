@@ -33,6 +33,18 @@ __all__ = ["AIRLConfig", "airl"]
 class AIRLConfig(AdversarialConfig):
     """AIRL: every field of :class:`AdversarialConfig`; ``gamma`` also discounts ``h(s')``."""
 
+    entropy_weight: float = 1.0
+    """weight ``w`` of ``-log pi`` in the generator's reward ``f - w log pi``: 1 is the
+    paper's ``log D - log(1 - D)`` (a soft-RL generator at temperature 1); 0 trains the
+    generator on ``f`` alone. The discriminator's logit is ``f - log pi`` either way."""
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if not (self.entropy_weight >= 0 and self.entropy_weight < float("inf")):
+            raise ValueError(
+                f"entropy_weight must be a finite number >= 0, got {self.entropy_weight}"
+            )
+
 
 def airl(
     env: EnvBase,
@@ -58,6 +70,7 @@ def airl(
         lr=config.discriminator_lr,
         grad_penalty=config.grad_penalty,
         seed=config.seed,
+        entropy_weight=config.entropy_weight,
     )
     result = train_adversarial(
         env, learner, demonstrations, discriminator, config,

@@ -51,9 +51,10 @@ def shaped_f(
     return g + gamma * (~terminated).to(h_next.dtype) * h_next - h
 
 
-def airl_reward(f: torch.Tensor, log_pi: torch.Tensor) -> torch.Tensor:
-    """``log D - log(1 - D) = f - log pi(a|s)`` (the logit of ``D``); inputs ``[N, 1]``."""
-    return f - log_pi
+def airl_reward(f: torch.Tensor, log_pi: torch.Tensor, entropy_weight: float = 1.0) -> torch.Tensor:
+    """``f - w log pi(a|s)``; at ``w = 1`` it is ``log D - log(1 - D)``, the logit of
+    ``D``; inputs ``[N, 1]``."""
+    return f - entropy_weight * log_pi
 
 
 class ShapedReward(nn.Module):
@@ -87,6 +88,7 @@ class AIRLDiscriminator:
         lr: Adam learning rate.
         grad_penalty: weight of the gradient penalty; 0 disables it.
         seed: initialisation seed (the global RNG is left untouched).
+        entropy_weight: ``w`` of the generator's reward ``f - w log pi`` (1: the paper's).
     """
 
     def __init__(
@@ -98,6 +100,7 @@ class AIRLDiscriminator:
         lr: float = 3e-4,
         grad_penalty: float = 0.0,
         seed: int = 0,
+        entropy_weight: float = 1.0,
     ) -> None:
         if not 0.0 <= gamma <= 1.0:
             raise ValueError(f"gamma must be in [0, 1], got {gamma}")
@@ -106,6 +109,7 @@ class AIRLDiscriminator:
         if learner.head == "deterministic":
             raise ValueError("AIRL needs log pi(a|s): build the learner with a probabilistic head")
         self.learner, self.grad_penalty = learner, float(grad_penalty)
+        self.entropy_weight = float(entropy_weight)
         (obs_dim,) = learner.observation_shape
         self.normalizer = learner.normalizer if learner.normalizer is not None else nn.Identity()
         with torch.random.fork_rng(devices=[]):
@@ -184,6 +188,6 @@ class AIRLDiscriminator:
         }
 
     def reward(self, transitions: TensorDictBase) -> torch.Tensor:
-        """``[N, 1]`` ``f - log pi``, without gradient."""
+        """``[N, 1]`` the generator's reward ``f - w log pi``, without gradient."""
         with torch.no_grad():
-            return self.logits(transitions)
+            return airl_reward(self.f(transitions), self.log_pi(transitions), self.entropy_weight)
