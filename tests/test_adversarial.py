@@ -350,6 +350,28 @@ def _retrained(config) -> ActorCritic:
     return learner
 
 
+def test_absorbing_states_default_to_whether_a_demonstration_ends_by_termination(tmp_path):
+    """--absorbing unset: on for Acrobot (the expert's episode ends at the goal), off for
+    CartPole cut at 50 steps (truncated); the flag overrides either way."""
+    from imitrl.algorithms.adversarial.absorbing import demonstrations_terminate
+
+    rows = TensorDict({("next", "terminated"): torch.zeros(4, 1, dtype=torch.bool)}, [4])
+    assert not demonstrations_terminate(rows)
+    rows["next", "terminated"][2] = True
+    assert demonstrations_terminate(rows)
+    assert not demonstrations_terminate(TensorDict({}, [3]))  # the data says nothing
+    cases = [
+        (dict(env="Acrobot-v1", expert="acrobot"), True, "ends by termination"),
+        (dict(max_episode_steps=50), False, "every demonstration is truncated"),
+        (dict(max_episode_steps=50, absorbing=True), True, "--absorbing"),
+    ]
+    for i, (flags, on, why) in enumerate(cases):
+        config = GAILJob(eval_episodes=1, out=tmp_path / str(i), progress=False,
+                         **{**TINY, **flags})  # fmt: skip
+        results = run_gail(config)
+        assert results["absorbing"]["on"] is on and why in results["absorbing"]["why"]
+
+
 def test_job_flags_are_checked(tmp_path):
     with pytest.raises(ValueError, match="demos"):
         GAILJob(demos=0)

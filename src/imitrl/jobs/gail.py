@@ -35,6 +35,7 @@ from imitrl.algorithms.adversarial import (
     airl,
     gail,
 )
+from imitrl.algorithms.adversarial.absorbing import demonstrations_terminate
 from imitrl.jobs.bc import (
     BCJob,
     Setup,
@@ -110,7 +111,11 @@ def _train(config: GAILJob, name: str) -> dict:
     log_evaluation(setup.logger, 0, initial_ev, expert_ev)  # env step 0
     evaluations: list[tuple[int, dict]] = []  # (env steps, evaluation)
     on_round = _evaluator(config, bc_view, setup, evaluations)
-    training, progress, logger = config.algorithm_config(), config.progress, setup.logger
+    absorbing = (
+        demonstrations_terminate(buffer.data) if config.absorbing is None else config.absorbing
+    )
+    training = dataclasses.replace(config.algorithm_config(), absorbing=absorbing)
+    progress, logger = config.progress, setup.logger
     if name == "gail":
         result = gail(setup.env, learner, buffer, training, progress=progress, logger=logger,
                       on_round=on_round)  # fmt: skip
@@ -130,6 +135,14 @@ def _train(config: GAILJob, name: str) -> dict:
             "source": str(config.dataset) if config.dataset else f"expert {config.expert}",
             "episodes": buffer.num_episodes,
             "rows": len(buffer),
+        },
+        "absorbing": {
+            "on": absorbing,
+            "why": "--absorbing/--no-absorbing"
+            if config.absorbing is not None
+            else "a demonstration ends by termination"
+            if absorbing
+            else "every demonstration is truncated",
         },
         "env_steps": result.env_steps,
         "expert_queries": result.expert_queries,
@@ -163,6 +176,8 @@ def report(results: dict) -> list[str]:
     lines = [
         f"demonstrations: {demos['episodes']} episodes, {demos['rows']} rows ({demos['source']})",
         f"env steps: {results['env_steps']}, expert queries: {results['expert_queries']}",
+        f"absorbing states: {'on' if results['absorbing']['on'] else 'off'} "
+        f"({results['absorbing']['why']})",
     ]
     if results["expert"] is not None:
         lines.append(format_return("expert", results["expert"]))

@@ -46,7 +46,24 @@ from torch import nn
 from imitrl.algorithms.adversarial.keys import ABSORBING
 from imitrl.algorithms.adversarial.transitions import NEXT_ABSORBING, NEXT_TERMINATED
 
-__all__ = ["absorbing_rows", "absorbing_tail", "state_features", "with_absorbing"]
+__all__ = [
+    "absorbing_rows",
+    "absorbing_tail",
+    "demonstrations_terminate",
+    "state_features",
+    "with_absorbing",
+]
+
+
+def demonstrations_terminate(rows: TensorDictBase) -> bool:
+    """Whether any demonstrated episode ends by termination (``("next", "terminated")``):
+    a goal reached (Acrobot, FrozenLake, MountainCar), where the expert's episodes end
+    and absorbing states price that end; False where every one is truncated (CartPole,
+    Pendulum, InvertedPendulum: the expert survives to the time limit), where GAIL's
+    living bonus is the right prior (module docstring)."""
+    if NEXT_TERMINATED not in rows.keys(include_nested=True):
+        return False
+    return bool(rows.get(NEXT_TERMINATED).any())
 
 
 def absorbing_rows(template: TensorDictBase, n: int) -> TensorDict:
