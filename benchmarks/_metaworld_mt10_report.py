@@ -106,9 +106,15 @@ def markdown(payload: dict, figure_name: str) -> str:
         f"episodes (beta 0, warm start, {proto['round_steps']} steps a round), BC at "
         f"DAgger's query budget; evaluation {proto['eval_episodes']} held-out episodes of at "
         f"most {proto['max_episode_steps']} steps, success = `info['success']` at any step. "
-        f"Wall time {payload['wall_seconds'] / 60:.1f} min with {config['jobs']} process(es) "
-        f"at 1 thread, 1-min load {payload['load_average_start'][0]:.2f} at the start and "
-        f"{payload['load_average_end'][0]:.2f} at the end (2 cores)."
+        + (
+            f"Wall time {payload['wall_seconds'] / 60:.1f} min with {config['jobs']} "
+            f"process(es) at 1 thread, 1-min load {payload['load_average_start'][0]:.2f} at "
+            f"the start and {payload['load_average_end'][0]:.2f} at the end (2 cores)."
+            if config["jobs"] != "merged"
+            else f"Merged from {len(payload['merged_from'])} runs of disjoint cells "
+            f"({', '.join(payload['merged_from'])}); their wall times sum to "
+            f"{payload['wall_seconds'] / 60:.1f} min."
+        )
     )
     counts = target_counts(payload)
     best = max(counts.items(), key=lambda kv: len(kv[1]))

@@ -27,6 +27,8 @@ success on at least 8 of the 10 tasks from at most 5 demonstrations.
     python benchmarks/metaworld_mt10.py --jobs 2     # full run, refreshes benchmarks/README.md
     python benchmarks/metaworld_mt10.py --quick      # smoke run, into a temporary directory
     python benchmarks/metaworld_mt10.py --tasks reach-v3 --losses mse --seeds 1 --out /tmp/x
+    python benchmarks/metaworld_mt10.py --merge results/metaworld_mt10.json a.json b.json \
+        --demos 5                # one report of runs of disjoint cells (other losses, seeds)
 """
 
 from __future__ import annotations
@@ -96,6 +98,60 @@ def task_defs(tasks: tuple[str, ...], demos: tuple[int, ...], quick: bool) -> li
     return out
 
 
+MERGED = f"{NAME}_merged"
+"""the merged report's name (its JSON, figure and README block): the full run's own stay"""
+
+
+def merge(runs: list[dict], demos: tuple[int, ...]) -> dict:
+    """One payload of ``runs``' cells with ``demos`` demonstrations (ValueError where two
+    runs disagree on a task's protocol, a reference or a cell: the code changed between
+    them, or the cells overlap). A cell's digits depend on its seed alone, so cells of
+    other losses or seeds, run apart, join as if run together."""
+    if len(runs) < 2:
+        raise ValueError("--merge needs at least two results files")
+    keep = {f"{t}/{n}demo" for r in runs for t in r["config"]["tasks"] for n in demos}
+    rows, refs, cells, protocols = [], {}, set(), {}
+    for k, part in enumerate(runs):
+        for name, protocol in part["config"]["protocol"].items():
+            if name in keep and protocols.setdefault(name, protocol) != protocol:
+                raise ValueError(f"run {k} trained {name} with another protocol")
+        for ref in part["references"]:
+            key = (ref["task"], ref["policy"], ref["seed"])
+            if ref["task"] in keep and refs.setdefault(key, ref) != ref:
+                raise ValueError(f"run {k} measured another {key} reference: the code changed")
+        for row in part["rows"]:
+            key = (row["task"], row["loss"], row["seed"], row["algorithm"])
+            if row["task"] not in keep:
+                continue
+            if key in cells:
+                raise ValueError(f"run {k} repeats the cell {key}")
+            cells.add(key)
+            rows.append(row)
+    losses = list(dict.fromkeys(r["loss"] for r in rows))
+    seeds = sorted({r["seed"] for r in rows})
+    for loss in losses:  # every loss at every seed: the aggregate compares like with like
+        have = sorted({r["seed"] for r in rows if r["loss"] == loss})
+        if have != seeds:
+            raise ValueError(f"{loss} has seeds {have}, the merge {seeds}")
+    config = {
+        **runs[0]["config"],
+        "losses": losses,
+        "demos": list(demos),
+        "seeds": len(seeds),
+        "jobs": "merged",
+        "protocol": protocols,
+    }
+    return {
+        "config": config,
+        "rows": rows,
+        "references": list(refs.values()),
+        "wall_seconds": sum(r["wall_seconds"] for r in runs),
+        "load_average_start": runs[0]["load_average_start"],
+        "load_average_end": runs[-1]["load_average_end"],
+        "merged_from": [r.get("source", f"run {k}") for k, r in enumerate(runs)],
+    }
+
+
 def main(argv: list[str] | None = None) -> None:
     p = _report.parser(__doc__)
     p.add_argument("--tasks", nargs="+", default=list(MT10), choices=list(MT10))
@@ -109,7 +165,24 @@ def main(argv: list[str] | None = None) -> None:
         help="run seeds first..first+seeds-1 (a cell's digits depend on its seed alone)",
     )
     p.add_argument("--jobs", type=int, default=1, help="worker processes, one thread each")
+    p.add_argument(
+        "--merge",
+        nargs="+",
+        type=Path,
+        default=None,
+        help=f"results files of runs of disjoint cells: one report ({MERGED}) of their "
+        "cells with --demos demonstrations; nothing is run",
+    )
     args = p.parse_args(argv)
+    if args.merge is not None:
+        runs = [{**json.loads(f.read_text()), "source": str(f)} for f in args.merge]
+        payload = merge(runs, tuple(args.demos))
+        out_dir = None if args.out is None else Path(args.out)
+        fig = figure(payload, _report.results_dir(out_dir) / f"{MERGED}.png")
+        text = markdown(payload, fig.name)
+        print(text)
+        print(f"results: {_report.write(MERGED, payload, text, out_dir=out_dir)}")
+        return
     out_dir = _report.destination(NAME, quick=args.quick, out=args.out)
     seeds = 1 if args.quick else args.seeds
     tasks = ("reach-v3",) if args.quick and args.tasks == list(MT10) else tuple(args.tasks)
