@@ -70,10 +70,15 @@ def _datasets(
 
 def _score(mdp: TabularMDP, table: torch.Tensor, own_value: float, uniform: float) -> dict:
     v = float(mdp.initial @ policy_evaluation(mdp, table))
+    spread = own_value - uniform  # 0 where no policy does better than chance: undefined
     return {
-        "normalised_return": (v - uniform) / (own_value - uniform),
+        "normalised_return": (v - uniform) / spread if spread > 0 else None,
         "success": success_probability(mdp, table),
     }
+
+
+def _signed(x: float | None) -> str:
+    return "n/a" if x is None else f"{x:+.3f}"
 
 
 def _plans(ctx, target: TabularMDP, fit: _airl.AIRLResult, theta: torch.Tensor) -> dict:
@@ -102,13 +107,17 @@ def _fit_all(ctx: StudyContext, demonstrator: torch.Tensor) -> list[dict]:
 
 def _report_fits(ctx: StudyContext, fits: list[dict]) -> None:
     rep, goal = ctx.report, ctx.mdp.goal
+    live = ~ctx.mdp.terminal
     for f in fits:
         g = f["airl"].g
-        live = ~ctx.mdp.terminal
+        shape = (
+            f"g(goal) - max g(live) {float(g[goal].max() - g[live].max()):+.2f}"
+            if goal.any()
+            else f"g from {float(g.min()):+.2f} to {float(g.max()):+.2f}"
+        )
         rep.line(
             f"  {f['label']:<13} AIRL after {ctx.config.airl_rounds} rounds: generator-demonstrator "
-            f"occupancy gap {float(f['airl'].occupancy_gap[-1]):.4f}; g(goal) - max g(live) "
-            f"{float(g[goal].max() - g[live].max()):+.2f}"
+            f"occupancy gap {float(f['airl'].occupancy_gap[-1]):.4f}; {shape}"
         )
 
 
@@ -116,8 +125,16 @@ def airl_transfer(ctx: StudyContext) -> None:
     """Fits, transfer table and figure (module docstring)."""
     cfg, rep, mdp = ctx.config, ctx.report, ctx.mdp
     rep.section("8b. Beyond cloning: AIRL's reward under changed dynamics, exactly")
-    if not 0.0 < cfg.gamma < 1.0 or mdp.max_steps is None:
-        rep.line(f"skipped: AIRL needs a discount in (0, 1) and a time limit (gamma {cfg.gamma})")
+    why = (
+        f"AIRL needs a discount in (0, 1) and a time limit (gamma {cfg.gamma})"
+        if not 0.0 < cfg.gamma < 1.0 or mdp.max_steps is None
+        else "the env pays no reward anywhere (no goal can be reached): nothing to recover"
+        if not (mdp.r != 0).any()
+        else None
+    )
+    if why is not None:
+        rep.line(f"skipped: {why}")
+        figures_irl.plot_airl_transfer([], METHODS, ctx.figure("airl_transfer"))
         return
     demonstrator = _airl.boltzmann_policy(mdp, cfg.airl_beta)
     T = mdp.max_steps
@@ -158,7 +175,7 @@ def airl_transfer(ctx: StudyContext) -> None:
             rep.line(
                 f"  {label:<22} {f['label']:<13} "
                 + "  ".join(
-                    f"{m} {row[m]['normalised_return']:+.3f} [{row[m]['success']:.1%}]"
+                    f"{m} {_signed(row[m]['normalised_return'])} [{row[m]['success']:.1%}]"
                     for m in METHODS
                 )
                 + f"  (own expert [{row['own_success']:.1%}])"

@@ -94,6 +94,7 @@ def plot_airl_transfer(rows: list[dict], methods: tuple[str, ...], path: Path) -
         for m in methods:
             label, color, style = _TRANSFER[m]
             y = [by[d][m]["normalised_return"] for d in datasets]
+            y = [np.nan if v is None else v for v in y]  # undefined: no policy beats chance
             ax.plot(range(len(datasets)), y, style, color=color, label=label, ms=4)
         ax.axhline(1.0, color="black", lw=0.6)
         ax.set_xticks(range(len(datasets)), [d.replace(" episodes", "") for d in datasets])
