@@ -93,6 +93,10 @@ def test_airl_refuses_an_undiscounted_problem(lake):
         A.airl(lake, torch.full((16, 4), 1 / 64, dtype=torch.float64), gamma=1.0)
     with pytest.raises(ValueError, match="inverse temperature"):
         A.boltzmann_policy(lake, 0.0)
+    with pytest.raises(ValueError, match="zero everywhere"):
+        A.airl(lake, torch.zeros(16, 4, dtype=torch.float64))
+    with pytest.raises(ValueError, match=r"\[16, 4\]"):
+        A.airl(lake, torch.ones(4, 16, dtype=torch.float64))
 
 
 def test_the_boltzmann_demonstrator_is_the_game_s_fixed_point(lake):

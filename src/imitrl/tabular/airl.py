@@ -218,6 +218,8 @@ def airl(
     rho_e = torch.as_tensor(expert_occupancy, dtype=torch.float64)
     if rho_e.shape != (S, A) or not torch.isfinite(rho_e).all() or (rho_e < 0).any():
         raise ValueError(f"expert occupancy must be a finite non-negative [{S}, {A}] tensor")
+    if not rho_e.sum() > 0:
+        raise ValueError("expert occupancy is zero everywhere: no demonstrated step")
     if int(rounds) != rounds or rounds < 1 or disc_iters < 1 or sweeps < 1:
         raise ValueError(
             f"need rounds, disc_iters, sweeps >= 1; got {rounds}, {disc_iters}, {sweeps}"
