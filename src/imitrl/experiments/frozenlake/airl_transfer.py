@@ -121,6 +121,39 @@ def _report_fits(ctx: StudyContext, fits: list[dict]) -> None:
         )
 
 
+def _transfer(ctx: StudyContext, fits: list[dict]) -> list[dict]:
+    """Every fit's plans scored under the source and each ``--irl-transfer`` kernel."""
+    cfg, rep = ctx.config, ctx.report
+    rep.line(
+        "normalised discounted return under each kernel (uniform policy 0, that kernel's own "
+        "optimal policy 1) [exact success]: " + ", ".join(METHODS)
+    )
+    uniform_policy = torch.full((ctx.S, ctx.A), 1 / ctx.A, dtype=torch.float64)
+    rows = []
+    for label, target in [("source", ctx.mdp), *transfer_mdps(cfg)]:
+        own = greedy(target.backup(value_iteration(target, cfg.vi_iters)[-1]))
+        own_value = float(target.initial @ policy_evaluation(target, own))
+        uniform = float(target.initial @ policy_evaluation(target, uniform_policy))
+        for f in fits:
+            plans = _plans(ctx, target, f["airl"], f["theta"])
+            row = {
+                "target": label,
+                "dataset": f["label"],
+                "own_success": success_probability(target, own),
+            }
+            row.update({m: _score(target, plans[m], own_value, uniform) for m in METHODS})
+            rows.append(row)
+            rep.line(
+                f"  {label:<22} {f['label']:<13} "
+                + "  ".join(
+                    f"{m} {_signed(row[m]['normalised_return'])} [{row[m]['success']:.1%}]"
+                    for m in METHODS
+                )
+                + f"  (own expert [{row['own_success']:.1%}])"
+            )
+    return rows
+
+
 def airl_transfer(ctx: StudyContext) -> None:
     """Fits, transfer table and figure (module docstring)."""
     cfg, rep, mdp = ctx.config, ctx.report, ctx.mdp
@@ -150,36 +183,7 @@ def airl_transfer(ctx: StudyContext) -> None:
     )
     fits = _fit_all(ctx, demonstrator)
     _report_fits(ctx, fits)
-    targets = [("source", mdp), *transfer_mdps(cfg)]
-    rep.line(
-        "normalised discounted return under each kernel (uniform policy 0, that kernel's own "
-        "optimal policy 1) [exact success]: " + ", ".join(METHODS)
-    )
-    rows = []
-    for label, target in targets:
-        own = greedy(target.backup(value_iteration(target, cfg.vi_iters)[-1]))
-        own_value = float(target.initial @ policy_evaluation(target, own))
-        uniform = float(
-            target.initial
-            @ policy_evaluation(target, torch.full((ctx.S, ctx.A), 1 / ctx.A, dtype=torch.float64))
-        )
-        for f in fits:
-            plans = _plans(ctx, target, f["airl"], f["theta"])
-            row = {
-                "target": label,
-                "dataset": f["label"],
-                "own_success": success_probability(target, own),
-            }
-            row.update({m: _score(target, plans[m], own_value, uniform) for m in METHODS})
-            rows.append(row)
-            rep.line(
-                f"  {label:<22} {f['label']:<13} "
-                + "  ".join(
-                    f"{m} {_signed(row[m]['normalised_return'])} [{row[m]['success']:.1%}]"
-                    for m in METHODS
-                )
-                + f"  (own expert [{row['own_success']:.1%}])"
-            )
+    rows = _transfer(ctx, fits)
     rep.set(
         "airl",
         {
