@@ -136,14 +136,7 @@ def _train(config: GAILJob, name: str) -> dict:
             "episodes": buffer.num_episodes,
             "rows": len(buffer),
         },
-        "absorbing": {
-            "on": absorbing,
-            "why": "--absorbing/--no-absorbing"
-            if config.absorbing is not None
-            else "a demonstration ends by termination"
-            if absorbing
-            else "every demonstration is truncated",
-        },
+        "absorbing": {"on": absorbing, "why": _absorbing_why(config, buffer, absorbing)},
         "env_steps": result.env_steps,
         "expert_queries": result.expert_queries,
         "expert": expert_ev,
@@ -154,6 +147,17 @@ def _train(config: GAILJob, name: str) -> dict:
     }
     finish(dataclasses.replace(config, loss=loss), name, learner, results, setup)
     return results
+
+
+def _absorbing_why(config: GAILJob, buffer, absorbing: bool) -> str:
+    """Why absorbing states are on or off, for results.json and the report."""
+    if config.absorbing is not None:
+        return "--absorbing" if absorbing else "--no-absorbing"
+    if absorbing:
+        return "a demonstration ends by termination"
+    if ("next", "terminated") in buffer.data.keys(include_nested=True):
+        return "every demonstration is truncated"
+    return "the demonstrations do not record termination"
 
 
 def run_gail(config: GAILJob) -> dict:
