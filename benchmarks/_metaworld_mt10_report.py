@@ -111,8 +111,8 @@ def markdown(payload: dict, figure_name: str) -> str:
             f"process(es) at 1 thread, 1-min load {payload['load_average_start'][0]:.2f} at "
             f"the start and {payload['load_average_end'][0]:.2f} at the end (2 cores)."
             if config["jobs"] != "merged"
-            else f"Merged from {len(payload['merged_from'])} runs of disjoint cells "
-            f"({', '.join(payload['merged_from'])}); their wall times sum to "
+            else f"Merged from runs of disjoint cells ({'; '.join(payload['merged_from'])}); "
+            "their wall times sum to "
             f"{payload['wall_seconds'] / 60:.1f} min."
         )
     )

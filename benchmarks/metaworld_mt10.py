@@ -179,7 +179,7 @@ def main(argv: list[str] | None = None) -> None:
         payload = merge(runs, tuple(args.demos))
         out_dir = None if args.out is None else Path(args.out)
         fig = figure(payload, _report.results_dir(out_dir) / f"{MERGED}.png")
-        text = markdown(payload, fig.name)
+        text = markdown(payload, fig.name if out_dir else f"results/{fig.name}")
         print(text)
         print(f"results: {_report.write(MERGED, payload, text, out_dir=out_dir)}")
         return
@@ -218,7 +218,7 @@ def main(argv: list[str] | None = None) -> None:
     }
     target = _report.results_dir(out_dir)
     fig = figure(payload, target / f"{NAME}.png")
-    text = markdown(payload, fig.name)
+    text = markdown(payload, fig.name if out_dir else f"results/{fig.name}")  # README's link
     path = _report.write(NAME, payload, text, out_dir=out_dir)
     print(text)
     print(f"results: {path}")
