@@ -159,3 +159,17 @@ def test_airl_is_deterministic(lake):
     rho = A.empirical_occupancy(lake, A.sample_episodes(lake, pi, 30, seed=3))
     one, two = A.airl(lake, rho, rounds=20), A.airl(lake, rho, rounds=20)
     assert torch.equal(one.g, two.g) and torch.equal(one.h, two.h)
+
+
+def test_bad_airl_inputs_are_refused_naming_what_was_expected(lake):
+    from imitrl.experiments.frozenlake.config import StudyConfig
+
+    with pytest.raises(ValueError, match=r"--airl-beta must be > 0"):
+        StudyConfig(airl_beta=0.0)
+    with pytest.raises(ValueError, match=r"--airl-rounds must be an integer >= 1"):
+        StudyConfig(airl_rounds=0)
+    pi = A.boltzmann_policy(lake, 20.0)
+    with pytest.raises(ValueError, match="episodes >= 1"):
+        A.sample_episodes(lake, pi, 0, seed=0)
+    with pytest.raises(ValueError, match=r"finite \[S\] or \[S, A\]"):
+        A.plan(lake, torch.zeros(3, dtype=torch.float64))

@@ -36,6 +36,7 @@ from imitrl.algorithms.adversarial import (
     gail,
 )
 from imitrl.algorithms.adversarial.absorbing import demonstrations_terminate
+from imitrl.algorithms.adversarial.transitions import NEXT_TERMINATED
 from imitrl.jobs.bc import (
     BCJob,
     Setup,
@@ -155,7 +156,7 @@ def _absorbing_why(config: GAILJob, buffer, absorbing: bool) -> str:
         return "--absorbing" if absorbing else "--no-absorbing"
     if absorbing:
         return "a demonstration ends by termination"
-    if ("next", "terminated") in buffer.data.keys(include_nested=True):
+    if NEXT_TERMINATED in buffer.data.keys(include_nested=True):
         return "every demonstration is truncated"
     return "the demonstrations do not record termination"
 

@@ -38,6 +38,7 @@ import torch
 import torch.nn.functional as F
 
 from imitrl.tabular.mdp import TabularMDP
+from imitrl.tabular.policy import kernel_under
 from imitrl.tabular.sampling import OutcomeSampler
 
 __all__ = [
@@ -109,9 +110,8 @@ def discounted_occupancy(
     """``[S, A]`` ``rho(s, a) = (1 - gamma) sum_t gamma^t Pr(s_t = s, a_t = a)`` from
     ``mdp.initial``, exact: ``d = (1 - gamma) (I - gamma P_pi^T)^-1 d_0``. Sums to 1."""
     gamma = _gamma(mdp, gamma)
-    S = mdp.num_states
-    p_pi = torch.einsum("sa,sat->st", policy, mdp.P)
-    eye = torch.eye(S, dtype=torch.float64)
+    p_pi = kernel_under(mdp, policy)
+    eye = torch.eye(mdp.num_states, dtype=torch.float64)
     d = (1.0 - gamma) * torch.linalg.solve(eye - gamma * p_pi.T, mdp.initial)
     return d[:, None] * policy
 

@@ -44,7 +44,11 @@ from tensordict import TensorDict, TensorDictBase
 from torch import nn
 
 from imitrl.algorithms.adversarial.keys import ABSORBING
-from imitrl.algorithms.adversarial.transitions import NEXT_ABSORBING, NEXT_TERMINATED
+from imitrl.algorithms.adversarial.transitions import (
+    NEXT_ABSORBING,
+    NEXT_TERMINATED,
+    rows_terminated,
+)
 
 __all__ = [
     "absorbing_rows",
@@ -61,9 +65,7 @@ def demonstrations_terminate(rows: TensorDictBase) -> bool:
     and absorbing states price that end; False where every one is truncated (CartPole,
     Pendulum, InvertedPendulum: the expert survives to the time limit), where GAIL's
     living bonus is the right prior (module docstring)."""
-    if NEXT_TERMINATED not in rows.keys(include_nested=True):
-        return False
-    return bool(rows.get(NEXT_TERMINATED).any())
+    return bool(rows_terminated(rows).any())
 
 
 def absorbing_rows(template: TensorDictBase, n: int) -> TensorDict:

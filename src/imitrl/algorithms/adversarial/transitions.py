@@ -29,14 +29,20 @@ from imitrl import keys
 from imitrl.algorithms.adversarial.keys import ABSORBING
 from imitrl.policies.specs import ActionSpace
 
-__all__ = ["action_features", "expert_transitions", "policy_transitions", "sample_rows"]
+__all__ = [
+    "action_features",
+    "expert_transitions",
+    "policy_transitions",
+    "rows_terminated",
+    "sample_rows",
+]
 
 NEXT_OBS = (keys.NEXT, keys.OBSERVATION)
 NEXT_TERMINATED = (keys.NEXT, keys.TERMINATED)
 NEXT_ABSORBING = (keys.NEXT, ABSORBING)
 
 
-def _terminated(rows: TensorDictBase) -> torch.Tensor:
+def rows_terminated(rows: TensorDictBase) -> torch.Tensor:
     """``[N]`` bool: the row's episode terminated there (False where the data says nothing)."""
     if NEXT_TERMINATED in rows.keys(include_nested=True):
         return rows.get(NEXT_TERMINATED).reshape(rows.shape[0], -1).any(-1)
@@ -66,7 +72,7 @@ def expert_transitions(rows: TensorDictBase) -> TensorDict:
             "expert's: adversarial imitation needs the expert's own trajectories"
         )
     obs, episode, step = rows.get(keys.OBSERVATION), rows.get(keys.EPISODE), rows.get(keys.STEP)
-    terminated = _terminated(rows)
+    terminated = rows_terminated(rows)
     has_next = torch.zeros_like(terminated)
     has_next[:-1] = (episode[1:] == episode[:-1]) & (step[1:] == step[:-1] + 1)
     next_obs = obs.clone()  # terminal rows keep s' = s, never read (module docstring)
