@@ -149,7 +149,7 @@ def figure(agg: dict, path: Path) -> None:
         ax.grid(axis="x", alpha=0.3)
         ax.set_title(title, fontsize=10)
         if col == 0:
-            ax.legend(loc="lower left", fontsize=8)
+            marks = ax.get_legend_handles_labels()  # drawn in the legend panel, off the data
     cmap = plt.get_cmap("tab20")
     taus = np.asarray(agg["taus"])
     for col, algorithm in enumerate(ALGORITHMS):
@@ -170,7 +170,10 @@ def figure(agg: dict, path: Path) -> None:
     handles, labels = fig.axes[-1].get_legend_handles_labels()
     legend_ax = fig.add_subplot(grid[1, 2])
     legend_ax.axis("off")
-    legend_ax.legend(handles, labels, loc="center", ncol=2, fontsize=9, title="loss")
+    legend_ax.add_artist(
+        legend_ax.legend(*marks, loc="upper center", ncol=2, fontsize=9, title="algorithm")
+    )
+    legend_ax.legend(handles, labels, loc="lower center", ncol=2, fontsize=9, title="loss")
     fig.suptitle(
         f"Aggregate over {', '.join(agg['tasks'])} (runs = seeds; 95% stratified bootstrap)",
         fontsize=11,
