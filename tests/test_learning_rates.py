@@ -13,8 +13,8 @@ from imitrl.jobs.bc import run_bc
 from imitrl.jobs.checkpoint import CONFIG_FILE, load_learner
 from imitrl.jobs.configs import BCJob
 from imitrl.jobs.resolve import learner_factory
+from imitrl.objectives import defaults as registry_defaults
 from imitrl.objectives import registry
-from imitrl.objectives.registry import LearnerConfig
 from imitrl.objectives.registry_chunks import ACT_LR, DIFFUSION_UNET
 
 
@@ -37,7 +37,10 @@ def test_every_other_entry_honours_lr_and_defaults_to_the_learner_config():
     env = make_env("Pendulum-v1", seed=0)
     for name in ("default", "mse", "gaussian_nll", "flow_chunk"):
         assert _rate(learner_factory(name, env, hidden=(8,), lr=0.02, seed=0)()) == 0.02
-        assert _rate(learner_factory(name, env, hidden=(8,), lr=None, seed=0)()) == LearnerConfig.lr
+        assert (
+            _rate(learner_factory(name, env, hidden=(8,), lr=None, seed=0)())
+            == registry_defaults.NETWORK_LR
+        )
     assert BCJob().lr is None  # the CLI's --lr: none = the loss's own
 
 

@@ -7,7 +7,8 @@
 
 1. setup: the generator's env (``make_env``, ``lanes`` lanes), ``demo_episodes`` greedy
    episodes of the built-in expert (``rollout_episodes``), the learner
-   (as ``imitrl gail`` builds it by default: a categorical head for discrete actions,
+   (as ``imitrl gail`` builds it by default: ``cross_entropy``'s categorical MLP for
+   discrete actions,
    ``gaussian_nll``, a tanh-normal with a learned state-independent log-std, for
    continuous ones; hidden 64, 64);
 2. train: :func:`imitrl.algorithms.adversarial.gail` for ``total_steps``;
@@ -34,7 +35,7 @@ from imitrl.data import DemonstrationBuffer, rollout_episodes  # noqa: E402
 from imitrl.envs import make_env  # noqa: E402
 from imitrl.evaluation import evaluate  # noqa: E402
 from imitrl.experts import cartpole_expert, pendulum_expert  # noqa: E402
-from imitrl.jobs.resolve import learner_factory  # noqa: E402
+from imitrl.jobs.resolve import learner_factory, resolve_loss  # noqa: E402
 
 T_IMPORTED = time.perf_counter()
 EXPERTS = {"CartPole-v1": cartpole_expert, "Pendulum-v1": pendulum_expert}
@@ -48,7 +49,7 @@ def run(spec: dict) -> dict:
     demo_env = make_env(env_id, seed=seed)
     buffer = DemonstrationBuffer(action_spec=demo_env.action_spec_unbatched)
     buffer.extend(rollout_episodes(demo_env, EXPERTS[env_id](), spec["demo_episodes"]))
-    loss = "gaussian_nll" if env_id == "Pendulum-v1" else "default"  # imitrl gail's default
+    loss = resolve_loss("default", demo_env, probabilistic=True)  # imitrl gail's default
     learner = learner_factory(loss, demo_env, hidden=(64, 64), lr=s["lr"], seed=seed)()
     config = GAILConfig(
         total_steps=spec["total_steps"], rollout_steps=spec["rollout_steps"],

@@ -4,8 +4,10 @@
 
 ``SPEC_JSON`` is :meth:`tasks.Task.spec` (a JSON string); the phase times and returns
 are written to ``RESULT_JSON``. The run is what a user writes with imitrl's public API
-and defaults (the learner ``imitrl bc --loss`` builds: ``ActorCritic.for_env`` for the
-default, or the ``imitrl_loss`` registry entry; Adam at 1e-3, as imitation's BC; ``dagger`` with a fresh learner per round and
+and defaults (the learner ``imitrl bc --loss`` builds: ``--loss for_env``, an MLP on
+one-hot states for FrozenLake as imitation's policy is, for the benchmark's
+``default``, or the ``imitrl_loss`` registry entry; Adam at 1e-3, as imitation's BC;
+``dagger`` with a fresh learner per round and
 beta = 0, ``evaluate`` greedy on vector envs); under the ``matched`` protocol one learner
 is trained on across rounds (``warm_start=True``), as imitation does. The task's budgets:
 
@@ -39,7 +41,7 @@ from imitrl.data import DemonstrationBuffer, rollout_episodes  # noqa: E402
 from imitrl.envs import make_env  # noqa: E402
 from imitrl.evaluation import evaluate  # noqa: E402
 from imitrl.experts import cartpole_expert, pendulum_expert  # noqa: E402
-from imitrl.jobs.resolve import learner_factory  # noqa: E402
+from imitrl.jobs.resolve import FOR_ENV, learner_factory  # noqa: E402
 from imitrl.policies import Expert  # noqa: E402
 from imitrl.tabular import TabularMDP, greedy, value_iteration  # noqa: E402
 
@@ -57,6 +59,14 @@ EXPERTS = {
     "CartPole-v1": cartpole_expert,
     "Pendulum-v1": pendulum_expert,
 }
+
+
+def _loss(spec: dict) -> str:
+    """The benchmark's ``default`` learner is ``for_env``'s MLP on every task (on vector
+    observations the same network as the registry entry ``--loss default`` names; on
+    FrozenLake's integer states an MLP, as imitation's, not the registry's table)."""
+    loss = spec.get("imitrl_loss", "default")
+    return FOR_ENV if loss == "default" else loss
 
 
 def run(spec: dict) -> dict:
@@ -115,7 +125,7 @@ def run(spec: dict) -> dict:
     result = dagger(
         EnvSource(env),
         expert,
-        learner_factory(spec.get("imitrl_loss", "default"), env, hidden=hidden, lr=1e-3, seed=seed),
+        learner_factory(_loss(spec), env, hidden=hidden, lr=1e-3, seed=seed),
         buffer,
         config,
         train=train,

@@ -21,7 +21,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from tensordict.nn import TensorDictModuleBase
@@ -45,6 +45,7 @@ from imitrl.jobs.resolve import (
     load_dataset,
     make_expert,
     no_expert_message,
+    resolve_loss,
     time_limit,
 )
 from imitrl.policies import Learner, as_actor
@@ -80,13 +81,19 @@ class Setup:
     """a fresh learner, same initialisation each call"""
     logger: Logger
     """the run's TorchRL logger"""
+    loss: str
+    """what ``--loss`` resolved to for the env (:func:`~imitrl.jobs.resolve.resolve_loss`:
+    a registry entry, or ``for_env``): what the run records and a checkpoint rebuilds"""
 
 
-def prepare(config: BCJob, name: str, *, keep_logs: bool = False) -> Setup:
+def prepare(
+    config: BCJob, name: str, *, keep_logs: bool = False, probabilistic: bool = False
+) -> Setup:
     """Resolve and check every flag of ``config`` before any work (ValueError otherwise).
 
     ``keep_logs``: append to the command's earlier CSV logs (a resumed run) instead of
-    starting them afresh."""
+    starting them afresh; ``probabilistic``: the job needs ``log pi`` (``--loss default``
+    resolves to a head with an action distribution)."""
     env = make_env(
         config.env,
         seed=config.seed,
@@ -102,14 +109,14 @@ def prepare(config: BCJob, name: str, *, keep_logs: bool = False) -> Setup:
     if expert_name is not None:
         expert = make_expert(expert_name, config.expert_kind, env_id=config.env, env=env)
         check_expert_fits(expert, expert_name, config.env, env)  # observations it can read
+    loss = resolve_loss(config.loss, env, probabilistic=probabilistic)
     make_learner = learner_factory(
-        config.loss, env, hidden=config.hidden, lr=config.lr, seed=config.seed,
-        device=config.device,
-    )  # fmt: skip
+        loss, env, hidden=config.hidden, lr=config.lr, seed=config.seed, device=config.device
+    )
     if config.dataset is not None:
         dataset_format(config.dataset)
     logger = make_logger(config.logger, config.out, name, fresh=not keep_logs)
-    return Setup(env, limit, expert, make_learner, logger)
+    return Setup(env, limit, expert, make_learner, logger, loss)
 
 
 def demonstrations(config: BCJob, setup: Setup) -> DemonstrationBuffer:
@@ -127,11 +134,11 @@ def bc_config(config: BCJob) -> BCConfig:
     """The behaviour-cloning fit the flags describe, on the loss's own schedule where its
     recipe has one (``LossEntry.recipe``: Diffusion Policy's warm-up and cosine decay);
     ``--batch-size`` is kept as given."""
-    bc = BCConfig(num_steps=config.steps, batch_size=config.batch_size, seed=config.seed)
-    if config.loss == "default":
-        return bc
     from imitrl.objectives import registry
 
+    bc = BCConfig(num_steps=config.steps, batch_size=config.batch_size, seed=config.seed)
+    if config.loss not in registry.names():  # for_env's learner: no recipe
+        return bc
     recipe = registry.get(config.loss).recipe
     return bc if recipe is None else recipe(bc)
 
@@ -201,6 +208,7 @@ def run_bc(config: BCJob) -> dict:
 def _run_bc(config: BCJob) -> dict:
     start = time.perf_counter()
     setup = prepare(config, "bc")
+    config = replace(config, loss=setup.loss)  # recorded as resolved: --loss default's entry
     buffer = demonstrations(config, setup)
     learner = setup.make_learner()
     fit = fit_bc(learner, buffer, bc_config(config), progress=config.progress, logger=setup.logger)
@@ -210,6 +218,7 @@ def _run_bc(config: BCJob) -> dict:
     results = {
         "command": "bc",
         "env": config.env,
+        "learner_loss": setup.loss,
         "demonstrations": {
             "source": str(config.dataset) if config.dataset else f"expert {config.expert}",
             "episodes": buffer.num_episodes,

@@ -16,7 +16,7 @@ from typing import Any
 import torch
 from torchrl.envs import EnvBase
 
-from imitrl.jobs.resolve import learner_factory
+from imitrl.jobs.resolve import FOR_ENV, LEGACY_DEFAULT, learner_factory
 from imitrl.objectives import registry
 from imitrl.policies import Learner
 
@@ -151,7 +151,7 @@ def _saved_lr(config: dict) -> float | None:
     for an entry that trains at its recipe's own (a run saved before such entries refused
     --lr recorded the CLI default, which they did not use)."""
     loss = config["loss"]
-    if loss != "default" and loss in registry.names() and registry.get(loss).own_lr is not None:
+    if loss in registry.names() and registry.get(loss).own_lr is not None:
         return None
     return config.get("lr")
 
@@ -160,8 +160,9 @@ def load_learner(checkpoint: Path, env: EnvBase, *, device: str | None = None) -
     """The learner saved in ``checkpoint``, rebuilt for ``env`` on ``device`` (None: the
     CPU; the checkpoint may have been saved on another device) and loaded with its weights."""
     config = read_config(checkpoint)
+    loss = config["loss"]  # saved before --loss default was resolved: for_env's learner
     make = learner_factory(
-        config["loss"],
+        FOR_ENV if loss == LEGACY_DEFAULT else loss,
         env,
         hidden=tuple(config["hidden"]),
         lr=_saved_lr(config),

@@ -68,13 +68,16 @@ class BCJob:
     demos: int = 5
     """greedy expert demonstration episodes (when no --dataset)"""
     loss: str = "default"
-    """default (ActorCritic.for_env: categorical head for discrete actions,
-    deterministic MSE head for continuous ones) or a loss-registry name (listed below)"""
+    """a loss-registry name (listed below); default = cross_entropy for discrete actions
+    (a logits table on integer states, an MLP otherwise), mse for continuous ones;
+    for_env = ActorCritic.for_env's network (a one-hot MLP on integer states, a CNN on
+    images: what default is where the registry builds nothing)"""
     hidden: tuple[int, ...] = (64, 64)
     """hidden layer sizes of the learner's network"""
     lr: float | None = None
-    """Adam learning rate of the learner; none = the loss's own: 1e-3, or the recipe's
-    rate of act and diffusion_unet, which refuse another --lr"""
+    """Adam learning rate of the learner; none = the network's own: 0.1 for a logits
+    table, 1e-3 for any other network, the recipe's rate for act and diffusion_unet
+    (which refuse another --lr)"""
     steps: int = 1000
     """gradient steps of the behaviour-cloning fit (of every round's fit for dagger)"""
     batch_size: int | None = 256
@@ -180,8 +183,9 @@ class GAILJob:
     demos: int = 1
     """greedy expert demonstration episodes (when no --dataset)"""
     loss: str = "default"
-    """the learner: default (categorical head for discrete actions, gaussian_nll for
-    continuous ones) or a loss-registry name whose head is probabilistic"""
+    """the learner: a loss-registry name whose head is probabilistic; default =
+    cross_entropy for discrete actions (a logits table on integer states, an MLP
+    otherwise), gaussian_nll for continuous ones"""
     hidden: tuple[int, ...] = (64, 64)
     """hidden layer sizes of the learner's policy and value networks"""
     lr: float = 3e-4

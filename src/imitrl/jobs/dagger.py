@@ -21,6 +21,7 @@ demonstrations); the evaluation stays in this process, so its numbers compare wi
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import time
 from pathlib import Path
@@ -63,6 +64,7 @@ def _run_dagger(config: DAggerJob) -> dict:
     start = time.perf_counter()
     checkpoint = config.out / "run"
     setup = prepare(config, "dagger", keep_logs=config.resume)
+    config = dataclasses.replace(config, loss=setup.loss)  # recorded as resolved
     if setup.expert is None:  # --expert auto with a --dataset, on an env without one
         raise ValueError(no_expert_message(config.env))
     buffer = demonstrations(config, setup)
@@ -114,6 +116,7 @@ def _run_dagger(config: DAggerJob) -> dict:
     results = {
         "command": "dagger",
         "env": config.env,
+        "learner_loss": setup.loss,
         "demonstrations": {
             "source": str(config.dataset) if config.dataset else f"expert {config.expert}",
             "episodes": demo_episodes,

@@ -4,7 +4,8 @@
 
 1. resolve the flags as ``imitrl bc`` does (:func:`imitrl.jobs.bc.prepare`: env, expert,
    dataset, logger); the learner is ``--loss`` of the loss registry, ``default`` meaning
-   the categorical head for discrete actions and ``gaussian_nll`` (a tanh-normal head,
+   ``cross_entropy`` for discrete actions (a logits table on integer states, an MLP
+   otherwise) and ``gaussian_nll`` (a tanh-normal head,
    its log-std a learned parameter per dimension, as PPO's Gaussian policies usually are)
    for continuous ones: PPO needs ``log pi``, which the deterministic head lacks. The
    resolved name is what ``config.json`` records, so ``imitrl eval --checkpoint`` rebuilds
@@ -50,31 +51,18 @@ from imitrl.jobs.bc import (
 from imitrl.jobs.configs import AIRLJob, GAILJob
 from imitrl.jobs.evaluate import format_return
 from imitrl.jobs.output import claimed
-from imitrl.jobs.resolve import learner_factory
 from imitrl.policies import ActorCritic
-from imitrl.policies.specs import action_space
 
 __all__ = ["AIRLJob", "GAILJob", "report", "run_airl", "run_gail"]
 
 
-def _loss(config: GAILJob, setup: Setup) -> str:
-    """``--loss`` resolved for the env: a probabilistic head (module docstring)."""
-    if config.loss != "default":
-        return config.loss
-    kind = action_space(setup.env.action_spec_unbatched).kind
-    return "gaussian_nll" if kind == "continuous" else "default"
-
-
-def _learner(config: GAILJob, setup: Setup, loss: str) -> ActorCritic:
-    make = learner_factory(
-        loss, setup.env, hidden=config.hidden, lr=config.lr, seed=config.seed,
-        device=config.device,
-    )  # fmt: skip
-    learner = make()
+def _learner(setup: Setup) -> ActorCritic:
+    """The learner ``--loss`` names, refused unless it has an action distribution."""
+    learner = setup.make_learner()
     if not isinstance(learner, ActorCritic) or learner.head == "deterministic":
         raise ValueError(
-            f"--loss {loss} builds a learner without an action distribution; the generator "
-            "(PPO) needs log pi: use default, cross_entropy or gaussian_nll"
+            f"--loss {setup.loss} builds a learner without an action distribution; the "
+            "generator (PPO) needs log pi: use default, cross_entropy or gaussian_nll"
         )
     return learner
 
@@ -102,10 +90,10 @@ def _run(config: GAILJob, name: str) -> dict:
 
 def _train(config: GAILJob, name: str) -> dict:
     start = time.perf_counter()
-    setup = prepare(config.bc_view(config.loss), name)
-    loss = _loss(config, setup)
+    setup = prepare(config.bc_view(config.loss), name, probabilistic=True)
+    loss = setup.loss  # --loss default: a head with log pi (imitrl.objectives.defaults)
     bc_view = config.bc_view(loss)
-    learner = _learner(config, setup, loss)
+    learner = _learner(setup)
     buffer = demonstrations(bc_view, setup)
     expert_ev = evaluate_expert(bc_view, setup)
     initial_ev = evaluate_learner(bc_view, learner)

@@ -11,9 +11,11 @@ exit status 2.
   ``function(obs [N, d]) -> action [N] or [N, m]``, a batched policy wrapped with
   :meth:`~imitrl.policies.Expert.from_callable`. A builder's return value is checked
   once, when it is built.
-* ``--loss``: ``default`` (``ActorCritic.for_env``: categorical head for discrete
-  actions, deterministic MSE head for continuous ones) or a name of the loss
-  registry (:mod:`imitrl.objectives.registry`).
+* ``--loss``: a name of the loss registry (:mod:`imitrl.objectives.registry`), the
+  one builder of learners; ``default`` is resolved to one for the env
+  (:func:`resolve_loss`: ``cross_entropy`` for discrete actions, ``mse`` for
+  continuous ones, ``gaussian_nll`` where the job needs ``log pi``), or to
+  :data:`FOR_ENV` where the registry builds nothing (image observations).
 * ``--dataset``: a directory; its files say its format (``meta/info.json``: LeRobot;
   ``main_data.hdf5`` / ``metadata.json``, or a ``data/`` folder holding them: Minari).
 """
@@ -29,14 +31,14 @@ from pathlib import Path
 import gymnasium
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
-from torchrl.data import Bounded, Categorical
+from torchrl.data import Bounded, Categorical, MultiCategorical
 from torchrl.envs import EnvBase
 
 from imitrl import experts, keys
 from imitrl.data.buffer import OBSERVATION_KEYS, REQUIRED_KEYS
 from imitrl.envs.make import METAWORLD_PREFIX
 from imitrl.jobs.names import EXPERT_ENVS, EXPERT_KINDS
-from imitrl.objectives import registry
+from imitrl.objectives import defaults, registry
 from imitrl.objectives.registry import LearnerConfig, TaskSpec
 from imitrl.policies import ActorCritic, Expert, Learner
 
@@ -45,12 +47,15 @@ __all__ = [
     "EXPERTS",
     "EXPERT_ENVS",
     "EXPERT_KINDS",
+    "FOR_ENV",
+    "LEGACY_DEFAULT",
     "check_expert_fits",
     "dataset_format",
     "expert_for_env",
     "learner_factory",
     "load_dataset",
     "make_expert",
+    "resolve_loss",
     "task_spec",
     "time_limit",
 ]
@@ -220,7 +225,7 @@ def task_spec(env: EnvBase) -> TaskSpec:
     """The registry's view of ``env``: action count or ``Bounded`` spec, observation size."""
     obs = env.observation_spec_unbatched[keys.OBSERVATION]
     action = env.action_spec_unbatched
-    if isinstance(action, Categorical):
+    if isinstance(action, Categorical) and not isinstance(action, MultiCategorical):
         act: int | Bounded = int(action.space.n)
     elif isinstance(action, Bounded):
         act = action
@@ -235,6 +240,31 @@ def task_spec(env: EnvBase) -> TaskSpec:
     return TaskSpec(action=act, observation_dim=int(obs.shape[0]))
 
 
+FOR_ENV = "for_env"
+"""``--loss for_env``: the network :meth:`ActorCritic.for_env` builds for the env (a
+one-hot MLP on integer states, a CNN on images), with its default head. What ``--loss
+default`` resolves to where the registry builds nothing (image observations;
+multi-discrete, one-hot or unbounded actions), and what a checkpoint saved when
+``default`` meant ``for_env`` everywhere is rebuilt as (:data:`LEGACY_DEFAULT`)."""
+LEGACY_DEFAULT = "default"
+"""the loss name checkpoints saved before ``default`` was resolved to a registry entry
+record: their learner was ``for_env``'s"""
+
+
+def resolve_loss(loss: str, env: EnvBase, *, probabilistic: bool = False) -> str:
+    """``--loss`` as a name :func:`learner_factory` builds: ``default`` becomes the
+    registry entry for the env's actions (:func:`imitrl.objectives.defaults.default_loss`;
+    ``probabilistic``: the job needs ``log pi``), or :data:`FOR_ENV` where the registry
+    cannot describe the env (:func:`task_spec` refuses it); any other name is kept."""
+    if loss != "default":
+        return loss
+    try:
+        task = task_spec(env)
+    except ValueError:
+        return FOR_ENV
+    return defaults.default_loss(task.actions, probabilistic=probabilistic)
+
+
 def learner_factory(
     loss: str,
     env: EnvBase,
@@ -246,22 +276,24 @@ def learner_factory(
 ) -> Callable[[], Learner]:
     """``() -> Learner``: a fresh learner for ``env`` trained by ``loss``, same init each call.
 
-    ``lr`` None: the learner's own default (``LearnerConfig.lr``, or the recipe's rate of
-    an entry with ``own_lr``); a rate an entry with ``own_lr`` would not use is refused.
-    Builds one learner right away, so that an unknown loss, or a loss for the other
-    kind of action, fails here.
+    ``loss``: a registry name, :data:`FOR_ENV`, or ``default`` (:func:`resolve_loss`).
+    ``lr`` None: the learner's own default (:mod:`imitrl.objectives.defaults`: a table's,
+    a network's, or the recipe's rate of an entry with ``own_lr``); a rate an entry with
+    ``own_lr`` would not use is refused. Builds one learner right away, so that an
+    unknown loss, or a loss for the other kind of action, fails here.
     """
-    default_lr = LearnerConfig.lr
-    if loss == "default":
+    loss = resolve_loss(loss, env)
+    if loss == FOR_ENV:
+        rate = defaults.learning_rate(None, None, lr)
 
         def make() -> Learner:
-            rate = default_lr if lr is None else lr
             return ActorCritic.for_env(env, hidden=hidden, lr=rate, seed=seed, device=device)
 
     else:
         if loss not in registry.names():
             raise ValueError(
-                f"unknown loss {loss!r}; choose default or one of: {', '.join(registry.names())}"
+                f"unknown loss {loss!r}; choose default, {FOR_ENV} or one of: "
+                f"{', '.join(registry.names())}"
             )
         own = registry.get(loss).own_lr
         if lr is not None and own is not None and lr != own:
@@ -270,8 +302,7 @@ def learner_factory(
                 "leave --lr out (the rate is the loss's, see imitrl.objectives.registry)"
             )
         task = task_spec(env)
-        rate = default_lr if lr is None else lr
-        config = LearnerConfig(hidden=tuple(hidden), lr=rate, seed=seed, device=device)
+        config = LearnerConfig(hidden=tuple(hidden), lr=lr, seed=seed, device=device)
 
         def make() -> Learner:
             return registry.build(loss, task, config)

@@ -61,6 +61,7 @@ from torchrl.envs.utils import ExplorationType
 
 from imitrl.objectives.advantage_weighted import Advantage, AdvantageWeightedLoss
 from imitrl.objectives.base import ImitationLoss
+from imitrl.objectives.defaults import learning_rate
 from imitrl.objectives.diffusion import DiffusionBehaviorCloningLoss, DiffusionPolicy
 from imitrl.objectives.flow import FlowMatchingLoss, FlowPolicy
 from imitrl.objectives.regularized import RegularizedBCLoss
@@ -125,9 +126,11 @@ class LearnerConfig:
 
     hidden: tuple[int, ...] = (64, 64)
     """hidden layers of MLP policies (and of the diffusion score network)"""
-    lr: float = 1e-3
-    """Adam learning rate of the policy (entries with ``own_lr``, ACT and diffusion_unet,
-    keep their recipe's)"""
+    lr: float | None = None
+    """Adam learning rate of the policy; None: the network's default (a logits table 0.1,
+    any other network 1e-3: :mod:`imitrl.objectives.defaults`). Entries with ``own_lr``
+    (ACT, diffusion_unet) keep their recipe's. :func:`build` resolves it, so an entry's
+    builder always reads a number"""
     seed: int = 0
     """initialisation seed (and the seed of any sampling the learner does)"""
     normalize: bool = True
@@ -166,7 +169,8 @@ class LossEntry:
     warm-up and cosine decay), applied by :func:`fit_config`; None: the caller's"""
     own_lr: float | None = None
     """the learning rate of the loss's recipe, which ``LearnerConfig.lr`` does not set
-    (ACT's, Diffusion Policy's); None: the entry trains at ``LearnerConfig.lr``. The CLI
+    (ACT's, Diffusion Policy's); None: the entry trains at ``LearnerConfig.lr`` (or its
+    default: :func:`imitrl.objectives.defaults.learning_rate`). The CLI
     refuses an ``--lr`` such an entry would not use"""
 
     def applies_to(self, task: TaskSpec) -> bool:
@@ -256,6 +260,7 @@ def build(name: str, task: TaskSpec, config: LearnerConfig = LearnerConfig()) ->
         missing = [r for r in entry.requires if getattr(task, r) is None]
         why = f"it needs {', '.join(missing)}" if missing else f"it is for {entry.actions} actions"
         raise ValueError(f"loss {name!r} does not apply to this task: {why}")
+    config = replace(config, lr=learning_rate(entry.own_lr, task.num_states, config.lr))
     learner = entry.build(task, config)
     if not isinstance(learner, Learner):
         raise ValueError(f"loss {name!r} built a {type(learner).__name__}, expected a Learner")
@@ -280,20 +285,22 @@ def mlp(
     loss: str | ImitationLoss | None = None,
 ) -> ActorCritic:
     """The task's standard learner: a logits table for integer states, else an MLP with
-    ``head``, trained with ``loss`` (a loss type of the head, None = its default)."""
+    ``head``, trained with ``loss`` (a loss type of the head, None = its default), at
+    ``config.lr`` or the network's default rate (:mod:`imitrl.objectives.defaults`)."""
+    lr = learning_rate(None, task.num_states, config.lr)
     if task.num_states is not None:
         if task.actions != "discrete" or head not in (None, "categorical"):
             raise ValueError("integer-state tasks support a categorical policy only")
         if loss not in (None, "nll"):
             raise ValueError("a tabular policy is built with its cross-entropy loss")
-        return ActorCritic.tabular(task.num_states, task.action, lr=config.lr)
+        return ActorCritic.tabular(task.num_states, task.action, lr=lr)
     return ActorCritic.mlp(
         task.observation_dim,
         task.action,
         head=head,
         loss=loss,
         hidden=config.hidden,
-        lr=config.lr,
+        lr=lr,
         seed=config.seed,
         normalize=config.normalize,
     )

@@ -39,6 +39,7 @@ from torchrl.modules import ProbabilisticActor
 from imitrl import keys
 from imitrl.objectives.base import ImitationLoss
 from imitrl.objectives.bc import BehaviorCloningLoss
+from imitrl.objectives.defaults import NETWORK_LR, TABLE_LR
 from imitrl.policies.distributions import GreedyCategorical
 from imitrl.policies.heads import HEAD_LOSSES, HEADS, OneHotInput, build_head, check_head, mlp
 from imitrl.policies.learner import Learner
@@ -105,7 +106,7 @@ class ActorCritic(Learner):
         *,
         head: str,
         loss: str | ImitationLoss | None = None,
-        lr: float = 1e-2,
+        lr: float = NETWORK_LR,
         num_states: int | None = None,
         observation_shape: Sequence[int] | None = None,
         normalizer: ObservationNormalizer | None = None,
@@ -139,7 +140,7 @@ class ActorCritic(Learner):
         num_states: int,
         num_actions: int,
         *,
-        lr: float = 0.1,
+        lr: float = TABLE_LR,
         device: str | torch.device | None = None,
     ) -> ActorCritic:
         """One preference ``theta[s, a]`` per pair: zero-initialised embedding tables.
@@ -185,7 +186,7 @@ class ActorCritic(Learner):
         loss: str | ImitationLoss | None = None,
         hidden: Sequence[int] = (64, 64),
         activation: type[nn.Module] = nn.Tanh,
-        lr: float = 1e-3,
+        lr: float = NETWORK_LR,
         seed: int = 0,
         normalize: bool = True,
         device: str | torch.device | None = None,
@@ -258,7 +259,7 @@ class ActorCritic(Learner):
         strides: Sequence[int] | None = None,
         hidden: Sequence[int] = (256,),
         activation: type[nn.Module] = nn.ReLU,
-        lr: float = 1e-3,
+        lr: float = NETWORK_LR,
         seed: int = 0,
         normalize: bool = True,
         pixel_key: NestedKey = keys.PIXELS,
@@ -295,7 +296,7 @@ class ActorCritic(Learner):
         loss: str | ImitationLoss | None = None,
         hidden: Sequence[int] | None = None,
         activation: type[nn.Module] | None = None,
-        lr: float = 1e-3,
+        lr: float = NETWORK_LR,
         seed: int = 0,
         normalize: bool = True,
         state: bool = False,

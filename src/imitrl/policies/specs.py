@@ -13,7 +13,15 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-from torchrl.data import Bounded, Categorical, MultiCategorical, OneHot, TensorSpec, Unbounded
+from torchrl.data import (
+    Bounded,
+    Categorical,
+    MultiCategorical,
+    MultiOneHot,
+    OneHot,
+    TensorSpec,
+    Unbounded,
+)
 
 __all__ = [
     "ActionSpace",
@@ -103,6 +111,11 @@ def action_space(action: int | TensorSpec) -> ActionSpace:
         if action < 1:
             raise ValueError(f"need at least one action, got {action}")
         return ActionSpace("discrete", n=int(action))
+    if isinstance(action, MultiOneHot):  # a OneHot subclass with no single n
+        raise ValueError(
+            "MultiOneHot actions (a gymnasium MultiDiscrete space, one-hot encoded) are not "
+            "supported: wrap the env with categorical_action_encoding=True (MultiCategorical)"
+        )
     if isinstance(action, OneHot):
         if len(action.shape) != 1:
             raise ValueError(
