@@ -135,3 +135,81 @@ def test_the_gail_job_runs_on_lanes(tmp_path):
                      out=tmp_path, progress=False, **TINY)  # fmt: skip
     results = run_gail(config)
     assert results["env_steps"] == 256 and len(results["rounds"]) == 2
+
+
+def _round_batch(env_id: str, lanes: int) -> TensorDict:
+    """One round's batch as the generator sees it, with a learned reward."""
+    env, _, learner = _setup(env_id, lanes)
+    stepper = paths.stepper(env, learner.policy, record=True, row_keys=STEP_ROW_KEYS,
+                            next_observation=True)  # fmt: skip
+    with set_exploration_type(ExplorationType.RANDOM), torch.no_grad():
+        stepper.reset()
+        batch = play_steps(stepper, 64)
+    reward = torch.randn(*batch.shape, 1, generator=torch.Generator().manual_seed(1))
+    batch.set(("next", "learned_reward"), reward)
+    return batch, learner
+
+
+@pytest.mark.parametrize("env_id", ["CartPole-v1", "Pendulum-v1"])
+@pytest.mark.parametrize("lanes", [1, 3])
+@pytest.mark.parametrize("vectorized", [None, True])
+def test_gae_on_tensors_writes_the_modules_bits(env_id, lanes, vectorized):
+    from torchrl.objectives.value import GAE
+
+    batch, learner = _round_batch(env_id, lanes)
+    module = GAE(gamma=0.97, lmbda=0.9, value_network=learner.value, vectorized=vectorized)
+    module.set_keys(reward="learned_reward")
+    fast = paths.gae(module, batch)
+    assert fast is not module
+    ref, out = batch.clone(), batch.clone()
+    with torch.no_grad():
+        module(ref)
+    fast(out)
+    for key in ("advantage", "value_target", "state_value", ("next", "state_value")):
+        assert torch.equal(out.get(key), ref.get(key)), key
+    with paths.reference():
+        assert paths.gae(module, batch) is module
+
+
+def test_gae_on_tensors_steps_aside_where_the_module_computes_otherwise():
+    from torchrl.objectives.value import GAE
+
+    batch, learner = _round_batch("Pendulum-v1", 2)
+    module = GAE(gamma=0.97, lmbda=0.9, value_network=learner.value)
+    module.set_keys(reward="learned_reward")
+    for other in (
+        GAE(gamma=0.97, lmbda=0.9, value_network=learner.value, average_gae=True),
+        GAE(gamma=0.97, lmbda=0.9, value_network=learner.value, shifted=True),
+        GAE(gamma=0.97, lmbda=0.9, value_network=learner.value, value_chunk_size=16),
+    ):
+        assert paths.gae(other, batch) is other
+    steps = batch.clone().set("steps_to_next_obs", torch.ones(*batch.shape, 1))
+    assert paths.gae(module, steps) is module
+    # a NaN next observation (a compact-observation collector's episode end): the module
+    # substitutes the observation; the fast path hands such a batch to it
+    holed = batch.clone()
+    holed.get(("next", "observation"))[0, 3] = float("nan")
+    ref = holed.clone()
+    with torch.no_grad():
+        module(ref)
+    out = paths.gae(module, holed)(holed)
+    assert torch.equal(out.get("advantage"), ref.get("advantage"))
+    assert not torch.isnan(out.get("advantage")).any()
+
+
+@pytest.mark.parametrize("shape", [(50, 1), (3, 40, 1), (2, 2, 30, 2)])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_the_recursion_over_numpy_gives_torchrls_gae_bits(shape, dtype):
+    from torchrl.objectives.value.functional import generalized_advantage_estimate
+
+    from imitrl.runtime.fast.gae_step import recursive_gae
+
+    g = torch.Generator().manual_seed(len(shape))
+    v, nv, r = (torch.randn(shape, generator=g, dtype=dtype) * 10 for _ in range(3))
+    done = torch.rand(shape, generator=g) < 0.1
+    terminated = done & (torch.rand(shape, generator=g) < 0.5)
+    gamma, lmbda = torch.tensor(0.99, dtype=dtype), torch.tensor(0.95, dtype=dtype)
+    ref = generalized_advantage_estimate(gamma, lmbda, v, nv, r, done, terminated)
+    out = recursive_gae(gamma, lmbda, v, nv, r, done=done, terminated=terminated)
+    for a, b in zip(out, ref):
+        assert a.dtype == b.dtype and a.shape == b.shape and torch.equal(a, b)

@@ -16,6 +16,8 @@ returns`                                                     of a fixed state ta
 :func:`optimizer_  ``opt.step``                              Adam's functional form on the CPU (its
 step`                                                        wrapper costs as much as a small update)
 :func:`ppo_loss`   ``ClipPPOLoss(minibatch)``                ``TensorPPO``: its arithmetic on tensors
+:func:`gae`        ``GAE(batch)``                            ``TensorGAE``: the value net called once
+                                                             on the stacked observations, no vmap
 ================== ========================================= ==========================================
 
 On a GPU the CPU tricks step aside for the device's own fast forms: ``optimizer_step``
@@ -49,6 +51,7 @@ if TYPE_CHECKING:  # imported when used: envs and objectives import this module
 
 __all__ = [
     "fast_enabled",
+    "gae",
     "loss_chain",
     "mark_plain_gym",
     "network",
@@ -159,6 +162,17 @@ def ppo_loss(loss, batch=None):
     from imitrl.runtime.fast.ppo_step import TensorPPO
 
     return TensorPPO.of(loss, batch)
+
+
+def gae(module, batch):
+    """``module`` (a TorchRL ``GAE``) as a callable on ``batch``: a
+    :class:`~imitrl.runtime.fast.gae_step.TensorGAE` (the same bits) where it replays the
+    module's configuration, the module itself on the reference path and elsewhere."""
+    if not fast_enabled():
+        return module
+    from imitrl.runtime.fast.gae_step import TensorGAE
+
+    return TensorGAE.of(module, batch) or module
 
 
 def optimizer_step(opt: torch.optim.Optimizer) -> Callable[[], None]:

@@ -102,9 +102,10 @@ class PPOGenerator:
             paths.optimizer_step(o) for o in (self.learner.opt_pi, self.learner.opt_v)
         ]
         fast = paths.ppo_loss(self.loss, batch)  # the loss on tensors (same bits), or None
+        gae = paths.gae(self.gae, batch)  # GAE on tensors (same bits), or the module
         for _ in range(self.epochs):
             with torch.no_grad():
-                self.gae(batch)
+                gae(batch)
             flat = batch.reshape(-1)
             columns = None if fast is None else self._columns(flat)
             order = torch.randperm(n, generator=generator)
