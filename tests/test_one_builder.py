@@ -60,12 +60,12 @@ def test_on_vector_observations_the_entry_is_the_network_default_built_before(en
 def test_on_integer_states_default_and_cross_entropy_build_the_same_table():
     env = make_env("FrozenLake-v1", seed=0)
     assert resolve_loss("default", env) == "cross_entropy"
-    a = learner_factory("default", env, hidden=(64, 64), lr=None, seed=0)()
-    b = learner_factory("cross_entropy", env, hidden=(64, 64), lr=None, seed=0)()
+    a = learner_factory("default", env, hidden=None, lr=None, seed=0)()
+    b = learner_factory("cross_entropy", env, hidden=None, lr=None, seed=0)()
     assert _same_weights(a, b)
     assert sum(p.numel() for p in a.policy.parameters()) == 16 * 4  # a logits table
     assert _rate(a) == _rate(b) == defaults.TABLE_LR
-    assert _rate(learner_factory("default", env, hidden=(8,), lr=0.02, seed=0)()) == 0.02
+    assert _rate(learner_factory("default", env, hidden=None, lr=0.02, seed=0)()) == 0.02
 
 
 def test_default_learning_rates_are_one_per_network():
@@ -170,3 +170,30 @@ def _config_of(job: BCJob) -> dict:
     from imitrl.jobs.checkpoint import to_json
 
     return to_json(job)
+
+
+def test_hidden_is_refused_for_a_table_and_honoured_for_networks():
+    lake = make_env("FrozenLake-v1", seed=0)
+    with pytest.raises(ValueError, match=r"--hidden 32: --loss cross_entropy on 16 integer"):
+        learner_factory("default", lake, hidden=(32,), lr=None, seed=0)
+    mlp = learner_factory(FOR_ENV, lake, hidden=(32,), lr=None, seed=0)()
+    assert [p.shape[0] for p in mlp.value.parameters()][:2] == [32, 32]  # weight, bias
+    cart = make_env("CartPole-v1", seed=0)
+    default = learner_factory("default", cart, hidden=None, lr=None, seed=0)()
+    assert _same_weights(default, ActorCritic.for_env(cart, hidden=(64, 64), seed=0))
+    narrow = learner_factory("default", cart, hidden=(8,), lr=None, seed=0)()
+    assert sum(p.numel() for p in narrow.policy.parameters()) < 100
+    assert BCJob().hidden is None and GAILJob().hidden is None
+
+
+def test_a_table_checkpoint_that_recorded_the_old_hidden_default_loads(tmp_path):
+    env = make_env("FrozenLake-v1", seed=0)
+    table = learner_factory("cross_entropy", env, hidden=None, lr=None, seed=0)()
+    with torch.no_grad():
+        for p in table.parameters():
+            p.add_(torch.arange(p.numel()).reshape(p.shape) / 10)
+    config = {**_config_of(BCJob(env="FrozenLake-v1")), "loss": "cross_entropy",
+              "hidden": [64, 64]}  # fmt: skip
+    (tmp_path / CONFIG_FILE).write_text(json.dumps({"command": "bc", "config": config}))
+    torch.save(table.state_dict(), tmp_path / WEIGHTS_FILE)
+    assert _same_weights(load_learner(tmp_path, env), table)

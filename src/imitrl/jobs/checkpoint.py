@@ -16,7 +16,7 @@ from typing import Any
 import torch
 from torchrl.envs import EnvBase
 
-from imitrl.jobs.resolve import FOR_ENV, LEGACY_DEFAULT, learner_factory
+from imitrl.jobs.resolve import FOR_ENV, LEGACY_DEFAULT, learner_factory, task_spec
 from imitrl.objectives import registry
 from imitrl.policies import Learner
 
@@ -89,11 +89,12 @@ def _check_fields(path: Path, config: Any) -> None:
     for field in ("env", "loss"):
         if not isinstance(config.get(field), str) or not config[field]:
             raise bad(field, "a name")
-    hidden = config.get("hidden")
-    if not isinstance(hidden, list) or not all(
-        type(h) is int and 1 <= h <= MAX_WIDTH for h in hidden
+    hidden = config.get("hidden")  # null: the network's own layers (no --hidden given)
+    if hidden is not None and (
+        not isinstance(hidden, list)
+        or not all(type(h) is int and 1 <= h <= MAX_WIDTH for h in hidden)
     ):
-        raise bad("hidden", f"a list of layer widths in [1, {MAX_WIDTH}]")
+        raise bad("hidden", f"a list of layer widths in [1, {MAX_WIDTH}] or null")
     if type(config.get("seed")) is not int:
         raise bad("seed", "an integer")
     lr = config.get("lr")  # null: the loss's own rate (no --lr given)
@@ -160,11 +161,15 @@ def load_learner(checkpoint: Path, env: EnvBase, *, device: str | None = None) -
     """The learner saved in ``checkpoint``, rebuilt for ``env`` on ``device`` (None: the
     CPU; the checkpoint may have been saved on another device) and loaded with its weights."""
     config = read_config(checkpoint)
-    loss = config["loss"]  # saved before --loss default was resolved: for_env's learner
+    loss = config["loss"]
+    loss = FOR_ENV if loss == LEGACY_DEFAULT else loss  # saved when default meant for_env
+    hidden = None if config["hidden"] is None else tuple(config["hidden"])
+    if loss != FOR_ENV and hidden is not None and task_spec(env).num_states is not None:
+        hidden = None  # a table: runs before --hidden was optional recorded the default
     make = learner_factory(
-        FOR_ENV if loss == LEGACY_DEFAULT else loss,
+        loss,
         env,
-        hidden=tuple(config["hidden"]),
+        hidden=hidden,
         lr=_saved_lr(config),
         seed=config["seed"],
         device=device,

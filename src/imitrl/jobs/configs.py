@@ -72,8 +72,9 @@ class BCJob:
     (a logits table on integer states, an MLP otherwise), mse for continuous ones;
     for_env = ActorCritic.for_env's network (a one-hot MLP on integer states, a CNN on
     images: what default is where the registry builds nothing)"""
-    hidden: tuple[int, ...] = (64, 64)
-    """hidden layer sizes of the learner's network"""
+    hidden: tuple[int, ...] | None = None
+    """hidden layer sizes of the learner's network; none = the network's own (64,64 for
+    an MLP); refused where the learner is a logits table (integer states), which has none"""
     lr: float | None = None
     """Adam learning rate of the learner; none = the network's own: 0.1 for a logits
     table, 1e-3 for any other network, the recipe's rate for act and diffusion_unet
@@ -186,8 +187,8 @@ class GAILJob:
     """the learner: a loss-registry name whose head is probabilistic; default =
     cross_entropy for discrete actions (a logits table on integer states, an MLP
     otherwise), gaussian_nll for continuous ones"""
-    hidden: tuple[int, ...] = (64, 64)
-    """hidden layer sizes of the learner's policy and value networks"""
+    hidden: tuple[int, ...] | None = None
+    """hidden layer sizes of the learner's policy and value networks; none = 64,64"""
     lr: float = 3e-4
     """Adam learning rate of the learner (PPO's policy and value steps)"""
     total_steps: int = 102_400

@@ -26,6 +26,7 @@ import importlib
 import inspect
 import re
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 
 import gymnasium
@@ -269,7 +270,7 @@ def learner_factory(
     loss: str,
     env: EnvBase,
     *,
-    hidden: tuple[int, ...],
+    hidden: tuple[int, ...] | None,
     lr: float | None,
     seed: int,
     device: str | None = None,
@@ -279,8 +280,10 @@ def learner_factory(
     ``loss``: a registry name, :data:`FOR_ENV`, or ``default`` (:func:`resolve_loss`).
     ``lr`` None: the learner's own default (:mod:`imitrl.objectives.defaults`: a table's,
     a network's, or the recipe's rate of an entry with ``own_lr``); a rate an entry with
-    ``own_lr`` would not use is refused. Builds one learner right away, so that an
-    unknown loss, or a loss for the other kind of action, fails here.
+    ``own_lr`` would not use is refused. ``hidden`` None: the network's own layers; given
+    for a logits table (a registry entry on integer states), it is refused. Builds one
+    learner right away, so that an unknown loss, or a loss for the other kind of action,
+    fails here.
     """
     loss = resolve_loss(loss, env)
     if loss == FOR_ENV:
@@ -289,23 +292,33 @@ def learner_factory(
         def make() -> Learner:
             return ActorCritic.for_env(env, hidden=hidden, lr=rate, seed=seed, device=device)
 
-    else:
-        if loss not in registry.names():
-            raise ValueError(
-                f"unknown loss {loss!r}; choose default, {FOR_ENV} or one of: "
-                f"{', '.join(registry.names())}"
-            )
-        own = registry.get(loss).own_lr
-        if lr is not None and own is not None and lr != own:
-            raise ValueError(
-                f"--loss {loss} trains at its recipe's learning rate {own:g}, not --lr {lr:g}: "
-                "leave --lr out (the rate is the loss's, see imitrl.objectives.registry)"
-            )
-        task = task_spec(env)
-        config = LearnerConfig(hidden=tuple(hidden), lr=lr, seed=seed, device=device)
+        make()
+        return make
 
-        def make() -> Learner:
-            return registry.build(loss, task, config)
+    if loss not in registry.names():
+        raise ValueError(
+            f"unknown loss {loss!r}; choose default, {FOR_ENV} or one of: "
+            f"{', '.join(registry.names())}"
+        )
+    own = registry.get(loss).own_lr
+    if lr is not None and own is not None and lr != own:
+        raise ValueError(
+            f"--loss {loss} trains at its recipe's learning rate {own:g}, not --lr {lr:g}: "
+            "leave --lr out (the rate is the loss's, see imitrl.objectives.registry)"
+        )
+    task = task_spec(env)
+    if hidden is not None and task.num_states is not None:
+        raise ValueError(
+            f"--hidden {','.join(map(str, hidden))}: --loss {loss} on {task.num_states} "
+            f"integer states builds a logits table, which has no hidden layers; leave "
+            f"--hidden out, or take --loss {FOR_ENV} (an MLP on one-hot states)"
+        )
+    config = LearnerConfig(lr=lr, seed=seed, device=device)
+    if hidden is not None:
+        config = replace(config, hidden=tuple(hidden))
+
+    def make() -> Learner:
+        return registry.build(loss, task, config)
 
     make()
     return make
