@@ -137,9 +137,13 @@ def test_bc_vs_dagger_says_why_a_score_is_nan(capsys):
 # -------------------------------------------------- item 13: help and progress
 def test_help_shows_defaults_as_they_are_typed(capsys):
     with pytest.raises(SystemExit):
+        main(["frozenlake", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "(default: 10,100,1000)" in text and "(10, 100, 1000)" not in text
+    with pytest.raises(SystemExit):
         main(["bc", "--help"])
     text = " ".join(capsys.readouterr().out.split())
-    assert "(default: 64,64)" in text and "(64, 64)" not in text
+    assert "which has none (default: none)" in text  # --hidden: the network's own
 
 
 def test_frozenlake_takes_max_episode_steps_like_every_command(tmp_path):
