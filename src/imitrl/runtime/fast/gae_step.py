@@ -3,21 +3,28 @@
 Accelerated internals of :mod:`imitrl.runtime.paths` (import them from there, nowhere else).
 
 The GAIL/AIRL generator recomputes GAE over its whole round (2048 rows) before every PPO
-epoch. Through the ``GAE`` module that costs about 6 ms on CartPole's and Pendulum's
-small value networks, two thirds of it outside the arithmetic: ``torch.func.vmap`` of
-the value module over the stacked ``[observation, next observation]`` TensorDicts, the
-selects and stacks that feed it, the NaN scan of the next observations. :class:`TensorGAE`
-computes what ``GAE.forward`` computes for the configuration imitrl's generator builds
-(a value module of one input and one output, no chunked or shifted value calls, no
-parameters passed in, no averaging, no auto-reset, no ``steps_to_next_obs``): the value
-network called once on the same stacked observations (a batched linear layer gives the
-vmapped call's bits), then the same advantage function
-(``generalized_advantage_estimate``, or ``vec_generalized_advantage_estimate`` when the
-module is vectorised) on the same tensors. It writes what the module writes: the
-advantage, the value target, and the value at both ends of each step.
-``tests/test_adversarial_lanes.py`` trains GAIL and AIRL on both paths and compares every
-weight. A batch whose next observations hold a NaN (what TorchRL's compact-observation
-collectors leave at episode ends) goes through the module.
+epoch. Through the ``GAE`` module that costs about 7 ms on Pendulum's small value
+network: ``torch.func.vmap`` of the value module over the stacked ``[observation, next
+observation]`` TensorDicts (with the selects and stacks that feed it), then
+``generalized_advantage_estimate``'s backward recursion, a few tensor calls per time
+step. :class:`TensorGAE` computes what ``GAE.forward`` computes for the configuration
+imitrl's generator builds (a value module of one input and one output, no chunked or
+shifted value calls, no parameters passed in, no averaging, no auto-reset, no
+``steps_to_next_obs``), in about 3 ms, half of it the value network's own forward:
+
+* the value network called once on the same stacked observations (a batched linear
+  layer gives the vmapped call's bits);
+* the module's advantage function on the same tensors: ``vec_generalized_advantage_
+  estimate`` when the module is vectorised; otherwise ``generalized_advantage_estimate``,
+  its recursion run over numpy views (:func:`recursive_gae`: the same float operations in
+  the same order) where the values are ``[*B, T, F]`` on the CPU, the function itself
+  elsewhere.
+
+It writes what the module writes: the advantage, the value target, and the value at both
+ends of each step. ``tests/test_adversarial_lanes.py`` checks these against the module
+and the recursion against the function, bit for bit, and trains GAIL and AIRL on both
+paths and compares every weight. A batch whose next observations hold a NaN (what
+TorchRL's compact-observation collectors leave at episode ends) goes through the module.
 """
 
 from __future__ import annotations
