@@ -28,6 +28,9 @@ _generator``/``_generator_key``,
 ``LossModule._loss_mask_keys()``    loss on tensors)
 ``torchrl.weight_update._ray.       :func:`raise_ray_weight_sync_wait`
 _DIST_TIMEOUT``                     (``imitrl.algorithms.ray_source.RaySource``)
+``torch.distributions.utils.        :func:`standard_normal`, :func:`safe_tanh`
+_standard_normal``, torchrl's       (``imitrl.runtime.fast.tanh_normal``, a tanh-normal
+``safetanh_noeps`` (undocumented)   actor's action without its distribution)
 =================================== ==========================================================
 """
 
@@ -300,3 +303,21 @@ def ppo_clip_bounds(loss) -> tuple[torch.Tensor, torch.Tensor]:
     """``ClipPPOLoss``'s log-ratio bounds ``(log1p(-eps), log1p(eps))``, the same tensors
     its forward clamps with. Why: they are the private ``_clip_bounds`` property."""
     return loss._clip_bounds
+
+
+def standard_normal(shape: torch.Size, like: torch.Tensor) -> torch.Tensor:
+    """The noise ``torch.distributions.Normal.rsample`` draws for a sample of ``shape``
+    (``dtype`` and device of ``like``), from the global RNG. Why: it is the private
+    ``torch.distributions.utils._standard_normal``; calling it draws exactly what the
+    distribution would."""
+    from torch.distributions.utils import _standard_normal
+
+    return _standard_normal(shape, dtype=like.dtype, device=like.device)
+
+
+def safe_tanh(x: torch.Tensor) -> torch.Tensor:
+    """TorchRL's ``SafeTanhTransform`` forward (``tanh`` clamped one resolution inside
+    +-1). Why: ``torchrl.modules.distributions.utils.safetanh_noeps`` is undocumented."""
+    from torchrl.modules.distributions.utils import safetanh_noeps
+
+    return safetanh_noeps(x)

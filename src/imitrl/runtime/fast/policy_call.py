@@ -59,6 +59,7 @@ from imitrl.policies.distributions import GreedyCategorical
 from imitrl.policies.experts import Expert, _ExecuteExpert
 from imitrl.policies.mixture import BetaMixer
 from imitrl.policies.modules import Module
+from imitrl.runtime.fast import tanh_normal
 
 __all__ = ["TensorPolicy", "Values", "direct_call"]
 
@@ -288,6 +289,21 @@ class TensorPolicy:
                 values[out_key] = GreedyCategorical.greedy(values[logits_key])
 
             return greedy
+
+        if exploration is not ExplorationType.MODE and tanh_normal.replays(
+            dist_class, names, dist_kwargs
+        ):
+            (loc_key, scale_key), draw = in_keys, exploration is ExplorationType.RANDOM
+            low, high = dist_kwargs.get("low"), dist_kwargs.get("high")
+
+            def tanh_normal_step(values: Values) -> None:
+                params(values)
+                # rsample / deterministic_sample without the distribution (same bits)
+                values[out_key] = tanh_normal.tanh_normal_action(
+                    values[loc_key], values[scale_key], low, high, draw=draw
+                )
+
+            return tanh_normal_step
 
         def step(values: Values) -> None:
             params(values)  # the network: writes the distribution's parameters
