@@ -213,3 +213,31 @@ def test_the_recursion_over_numpy_gives_torchrls_gae_bits(shape, dtype):
     out = recursive_gae(gamma, lmbda, v, nv, r, done=done, terminated=terminated)
     for a, b in zip(out, ref):
         assert a.dtype == b.dtype and a.shape == b.shape and torch.equal(a, b)
+
+
+def test_gae_on_tensors_refuses_value_modules_and_modes_it_does_not_replay():
+    from tensordict.nn import TensorDictModule, TensorDictSequential, set_skip_existing
+    from torchrl.objectives.value import GAE
+
+    batch, learner = _round_batch("Pendulum-v1", 2)
+    net = learner.value.module
+    seq = TensorDictSequential(
+        TensorDictModule(net, in_keys=["observation"], out_keys=["state_value"]),
+        selected_out_keys=["state_value"],
+    )
+    for value, skip in ((seq, None), (learner.value, True)):
+        module = GAE(gamma=0.97, lmbda=0.9, value_network=value, skip_existing=skip)
+        module.set_keys(reward="learned_reward")
+        assert paths.gae(module, batch) is module
+    module = GAE(gamma=0.97, lmbda=0.9, value_network=learner.value)
+    module.set_keys(reward="learned_reward")
+    with set_skip_existing(True):
+        assert paths.gae(module, batch) is module
+    # a float64 reward beside float32 values: the function itself (it rounds each step)
+    wide = batch.clone()
+    wide.set(("next", "learned_reward"), wide.get(("next", "learned_reward")).double() / 3)
+    ref = wide.clone()
+    with torch.no_grad():
+        module(ref)
+    out = paths.gae(module, wide)(wide.clone())
+    assert torch.equal(out.get("advantage"), ref.get("advantage"))

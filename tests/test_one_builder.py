@@ -197,3 +197,33 @@ def test_a_table_checkpoint_that_recorded_the_old_hidden_default_loads(tmp_path)
     (tmp_path / CONFIG_FILE).write_text(json.dumps({"command": "bc", "config": config}))
     torch.save(table.state_dict(), tmp_path / WEIGHTS_FILE)
     assert _same_weights(load_learner(tmp_path, env), table)
+
+
+class _PixelsOnlyEnv(gymnasium.Env):
+    observation_space = gymnasium.spaces.Dict(
+        {"pixels": gymnasium.spaces.Box(0, 255, (16, 16, 3), np.uint8)}
+    )
+    action_space = gymnasium.spaces.Discrete(3)
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        return {"pixels": np.zeros((16, 16, 3), np.uint8)}, {}
+
+    def step(self, action):
+        return {"pixels": np.zeros((16, 16, 3), np.uint8)}, 0.0, False, False, {}
+
+
+def test_on_images_default_is_for_envs_cnn_with_or_without_a_state():
+    from imitrl.envs.pixel_tasks import PixelBalanceEnv
+
+    beside = make_env("Pendulum-v1", seed=0, pixels=(16, 16))  # pixels and a state
+    balance = PixelBalanceEnv(pixels=(16, 16), seed=0)
+    alone = GymWrapper(_PixelsOnlyEnv())  # no "observation" at all
+    for env in (beside, balance, alone):
+        assert resolve_loss("default", env) == FOR_ENV
+        assert resolve_loss("default", env, probabilistic=True) == FOR_ENV
+        learner = learner_factory("default", env, hidden=None, lr=None, seed=0)()
+        assert learner.pixel_inputs is not None  # a CNN that reads the image
+        assert _same_weights(learner, ActorCritic.for_env(env, seed=0))
+    with pytest.raises(ValueError, match="needs an 'observation' observation"):
+        task_spec(alone)

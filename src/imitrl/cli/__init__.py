@@ -110,7 +110,9 @@ def _names_epilog() -> str:
     experts = ", ".join(f"{name} ({env})" for name, env in EXPERT_ENVS.items())
     return (
         f"built-in experts (--expert; auto = the one for --env): {experts}\n\n"
-        f"losses (--loss): default, or one of\n{losses}"
+        f"losses (--loss): default (resolved for the env: cross_entropy for discrete "
+        f"actions, mse for continuous ones, for_env for images), for_env "
+        f"(ActorCritic.for_env's network), or one of\n{losses}"
     )
 
 

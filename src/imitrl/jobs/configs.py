@@ -71,7 +71,7 @@ class BCJob:
     """a loss-registry name (listed below); default = cross_entropy for discrete actions
     (a logits table on integer states, an MLP otherwise), mse for continuous ones;
     for_env = ActorCritic.for_env's network (a one-hot MLP on integer states, a CNN on
-    images: what default is where the registry builds nothing)"""
+    images: what default is where the registry builds nothing, as on images)"""
     hidden: tuple[int, ...] | None = None
     """hidden layer sizes of the learner's network; none = the network's own (64,64 for
     an MLP); refused where the learner is a logits table (integer states), which has none"""

@@ -224,7 +224,13 @@ def time_limit(env_id: str, override: int | None) -> int:
 
 def task_spec(env: EnvBase) -> TaskSpec:
     """The registry's view of ``env``: action count or ``Bounded`` spec, observation size."""
-    obs = env.observation_spec_unbatched[keys.OBSERVATION]
+    spec = env.observation_spec_unbatched
+    if keys.OBSERVATION not in spec.keys():
+        raise ValueError(
+            f"the loss registry needs an {keys.OBSERVATION!r} observation, got keys "
+            f"{list(spec.keys())}"
+        )
+    obs = spec[keys.OBSERVATION]
     action = env.action_spec_unbatched
     if isinstance(action, Categorical) and not isinstance(action, MultiCategorical):
         act: int | Bounded = int(action.space.n)
@@ -256,9 +262,12 @@ def resolve_loss(loss: str, env: EnvBase, *, probabilistic: bool = False) -> str
     """``--loss`` as a name :func:`learner_factory` builds: ``default`` becomes the
     registry entry for the env's actions (:func:`imitrl.objectives.defaults.default_loss`;
     ``probabilistic``: the job needs ``log pi``), or :data:`FOR_ENV` where the registry
-    cannot describe the env (:func:`task_spec` refuses it); any other name is kept."""
+    cannot describe the env (image observations, with or without a state beside them;
+    specs :func:`task_spec` refuses); any other name is kept."""
     if loss != "default":
         return loss
+    if keys.PIXELS in env.observation_spec_unbatched.keys():
+        return FOR_ENV  # images (with or without a state): for_env's CNN reads them
     try:
         task = task_spec(env)
     except ValueError:

@@ -14,8 +14,10 @@ continuous ``mse``           ``gaussian_nll``
 ========== ================ ===========================================
 
 ``cross_entropy`` is a logits table on integer states (FrozenLake) and an MLP on vector
-observations, like every discrete entry. Image observations are the one case the
-registry does not build: there ``default`` is :meth:`ActorCritic.for_env`'s CNN.
+observations, like every discrete entry. Where the registry builds nothing (image
+observations, with or without a state beside them; multi-discrete, one-hot or unbounded
+actions) ``default`` is ``for_env``: :meth:`ActorCritic.for_env`'s network (a CNN on
+images) (:func:`imitrl.jobs.resolve.resolve_loss`).
 
 Adam's learning rate when none is given (``LearnerConfig.lr`` None, no ``--lr``), one
 per kind of network:

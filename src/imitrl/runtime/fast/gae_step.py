@@ -8,17 +8,18 @@ network: ``torch.func.vmap`` of the value module over the stacked ``[observation
 observation]`` TensorDicts (with the selects and stacks that feed it), then
 ``generalized_advantage_estimate``'s backward recursion, a few tensor calls per time
 step. :class:`TensorGAE` computes what ``GAE.forward`` computes for the configuration
-imitrl's generator builds (a value module of one input and one output, no chunked or
-shifted value calls, no parameters passed in, no averaging, no auto-reset, no
-``steps_to_next_obs``), in about 3 ms, half of it the value network's own forward:
+imitrl's generator builds (a plain ``TensorDictModule``/``ValueOperator`` of one input
+and one output, no chunked or shifted value calls, no parameters passed in, no
+averaging, no auto-reset, no skip-existing, no ``steps_to_next_obs``), in about 3 ms,
+half of it the value network's own forward:
 
 * the value network called once on the same stacked observations (a batched linear
   layer gives the vmapped call's bits);
 * the module's advantage function on the same tensors: ``vec_generalized_advantage_
   estimate`` when the module is vectorised; otherwise ``generalized_advantage_estimate``,
   its recursion run over numpy views (:func:`recursive_gae`: the same float operations in
-  the same order) where the values are ``[*B, T, F]`` on the CPU, the function itself
-  elsewhere.
+  the same order) where the values and the reward are ``[*B, T, F]`` CPU tensors of one
+  dtype, the function itself elsewhere.
 
 It writes what the module writes: the advantage, the value target, and the value at both
 ends of each step. ``tests/test_adversarial_lanes.py`` checks these against the module
@@ -32,13 +33,16 @@ from __future__ import annotations
 import numpy as np
 import torch
 from tensordict import TensorDictBase
-from tensordict.nn import TensorDictModule
+from tensordict.nn import TensorDictModule, skip_existing
+from torchrl.modules import ValueOperator
 from torchrl.objectives.value import GAE
 from torchrl.objectives.value.functional import (
     generalized_advantage_estimate,
     vec_generalized_advantage_estimate,
 )
 
+from imitrl.compat import plain_module
+from imitrl.policies.modules import Value
 from imitrl.runtime.fast.policy_call import direct_call
 
 __all__ = ["TensorGAE"]
@@ -69,14 +73,12 @@ class TensorGAE:
     @classmethod
     def of(cls, gae: GAE, batch: TensorDictBase) -> TensorGAE | None:
         """A :class:`TensorGAE` of ``gae``, or None where it would compute anything else."""
-        if type(gae) is not GAE or not _plain(gae):
-            return None
+        if type(gae) is not GAE or not _plain(gae) or gae.skip_existing or skip_existing():
+            return None  # skip-existing reuses the batch's values from the second epoch on
         value = gae.value_network
-        if (
-            not isinstance(value, TensorDictModule)
-            or value._forward_hooks
-            or value._forward_pre_hooks
-        ):
+        if type(value) not in (TensorDictModule, ValueOperator, Value) or not plain_module(value):
+            return None  # a subclass or a sequence may compute anything in its forward
+        if value._forward_hooks or value._forward_pre_hooks:
             return None
         if len(value.in_keys) != 1 or len(value.out_keys) != 1:
             return None
@@ -106,7 +108,7 @@ class TensorGAE:
                 adv, target = vec_generalized_advantage_estimate(
                     *args, done=done, terminated=terminated, time_dim=time_dim
                 )
-            elif _recursion_applies(value, time_dim, batch.ndim):
+            elif _recursion_applies(value, args[4], time_dim, batch.ndim):
                 adv, target = recursive_gae(*args, done=done, terminated=terminated)
             else:
                 adv, target = generalized_advantage_estimate(
@@ -128,11 +130,16 @@ def _time_dim(gae: GAE, batch: TensorDictBase) -> int:
     return names.index("time") if "time" in names else batch.ndim - 1
 
 
-def _recursion_applies(value: torch.Tensor, time_dim: int, batch_dims: int) -> bool:
-    """Values ``[*B, T, F]`` on the CPU, time the batch's last dimension."""
+def _recursion_applies(
+    value: torch.Tensor, reward: torch.Tensor, time_dim: int, batch_dims: int
+) -> bool:
+    """Values ``[*B, T, F]`` on the CPU, time the batch's last dimension, the reward of
+    the values' shape and dtype (anything else: the function, with its own checks)."""
     return (
         value.device.type == "cpu"
         and value.dtype in (torch.float32, torch.float64)
+        and reward.dtype == value.dtype
+        and reward.shape == value.shape
         and time_dim == batch_dims - 1
         and value.ndim == batch_dims + 1
     )
