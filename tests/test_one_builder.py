@@ -227,3 +227,16 @@ def test_on_images_default_is_for_envs_cnn_with_or_without_a_state():
         assert _same_weights(learner, ActorCritic.for_env(env, seed=0))
     with pytest.raises(ValueError, match="needs an 'observation' observation"):
         task_spec(alone)
+
+
+def test_gail_refuses_an_integer_state_learner_saying_what_to_do():
+    from imitrl.algorithms.adversarial import GAILConfig, gail
+    from imitrl.data import DemonstrationBuffer
+
+    env = make_env("FrozenLake-v1", seed=0)
+    for learner in (
+        learner_factory("default", env, hidden=None, lr=None, seed=0)(),  # a table
+        learner_factory(FOR_ENV, env, hidden=None, lr=None, seed=0)(),  # a one-hot MLP
+    ):
+        with pytest.raises(ValueError, match=r"reads 16 integer states .* one-hot the env"):
+            gail(env, learner, DemonstrationBuffer(num_states=16), GAILConfig())

@@ -21,6 +21,7 @@ from imitrl.algorithms.adversarial.airl_discriminator import AIRLDiscriminator
 from imitrl.algorithms.adversarial.loop import (
     AdversarialConfig,
     AdversarialResult,
+    check_inputs,
     train_adversarial,
 )
 from imitrl.data.buffer import DemonstrationBuffer
@@ -63,6 +64,7 @@ def airl(
         raise ValueError(f"airl takes an AIRLConfig, got {type(config).__name__}")
     if not isinstance(learner, ActorCritic):
         raise ValueError(f"airl trains an ActorCritic, got {type(learner).__name__}")
+    check_inputs(env, learner, demonstrations)  # before the discriminator reads the learner
     discriminator = AIRLDiscriminator(
         learner,
         gamma=config.gamma,

@@ -28,6 +28,7 @@ from imitrl.algorithms.adversarial.gail_discriminator import GAILDiscriminator
 from imitrl.algorithms.adversarial.loop import (
     AdversarialConfig,
     AdversarialResult,
+    check_inputs,
     train_adversarial,
 )
 from imitrl.data.buffer import DemonstrationBuffer
@@ -57,6 +58,7 @@ def gail(
         raise ValueError(f"gail takes a GAILConfig, got {type(config).__name__}")
     if not isinstance(learner, ActorCritic):
         raise ValueError(f"gail trains an ActorCritic, got {type(learner).__name__}")
+    check_inputs(env, learner, demonstrations)  # before the discriminator reads the learner
     discriminator = GAILDiscriminator(
         learner,
         hidden=config.discriminator_hidden,

@@ -69,6 +69,7 @@ __all__ = [
     "AdversarialResult",
     "Discriminator",
     "RoundRecord",
+    "check_inputs",
     "train_adversarial",
 ]
 
@@ -198,7 +199,16 @@ class AdversarialResult:
     absorbing rows not counted)"""
 
 
-def _check(env: EnvBase, learner: ActorCritic, buffer: DemonstrationBuffer) -> None:
+def check_inputs(env: EnvBase, learner: ActorCritic, buffer: DemonstrationBuffer) -> None:
+    """Refuse, before any work, a learner or demonstrations adversarial imitation cannot
+    train on ``env`` (ValueError naming what was expected)."""
+    if isinstance(learner, ActorCritic) and learner.num_states is not None:
+        raise ValueError(
+            f"adversarial imitation reads vector observations; this learner reads "
+            f"{learner.num_states} integer states (a logits table or a one-hot MLP): one-hot "
+            "the env's observations first, with a TorchRL Transform such as "
+            "benchmarks/beyond_cloning.py's OneHotObservation, and build the learner on them"
+        )
     if not isinstance(learner, ActorCritic) or learner.observation_shape is None:
         raise ValueError(
             "adversarial imitation trains an ActorCritic over vector observations "
@@ -237,7 +247,7 @@ def train_adversarial(
         on_round: ``on_round(round, learner, env_steps)`` after each round; a dict it
             returns is kept as the round's ``info``.
     """
-    _check(env, learner, demonstrations)
+    check_inputs(env, learner, demonstrations)
     rows = demonstrations.data
     device = learner.device  # discriminator and PPO train there; the env stays where it is
     expert = expert_transitions(rows).to(device)
