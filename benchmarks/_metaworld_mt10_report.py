@@ -214,7 +214,8 @@ def figure(payload: dict, path: Path) -> Path:
     ax1.set_ylim(0, 1.05)
     ax1.set_ylabel("success rate (pooled over seeds)")
     ax1.set_title(f"per task, {loss}, {demos} demonstration(s)")
-    ax1.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.45), ncol=4)
+    # below the rotated task names (the longest, button-press-topdown, reaches -0.45)
+    ax1.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.55), ncol=4)
     labels, points, errs = [], [], []
     for (name, d, algorithm), grid in scores.items():
         i = stratified_bootstrap(grid, iqm, reps=REPS)

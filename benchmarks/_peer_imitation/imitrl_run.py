@@ -41,7 +41,7 @@ from imitrl.data import DemonstrationBuffer, rollout_episodes  # noqa: E402
 from imitrl.envs import make_env  # noqa: E402
 from imitrl.evaluation import evaluate  # noqa: E402
 from imitrl.experts import cartpole_expert, pendulum_expert  # noqa: E402
-from imitrl.jobs.resolve import FOR_ENV, learner_factory, task_spec  # noqa: E402
+from imitrl.jobs.resolve import FOR_ENV, builds_table, learner_factory  # noqa: E402
 from imitrl.policies import Expert  # noqa: E402
 from imitrl.tabular import TabularMDP, greedy, value_iteration  # noqa: E402
 
@@ -72,8 +72,7 @@ def _loss(spec: dict) -> str:
 def _hidden(spec: dict, env, hidden: tuple[int, ...]) -> tuple[int, ...] | None:
     """The task's layers, except for a registry entry's logits table (integer states),
     which has none and refuses them."""
-    table = _loss(spec) != FOR_ENV and task_spec(env).num_states is not None
-    return None if table else hidden
+    return None if builds_table(_loss(spec), env) else hidden
 
 
 def run(spec: dict) -> dict:

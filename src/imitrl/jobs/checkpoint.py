@@ -16,7 +16,7 @@ from typing import Any
 import torch
 from torchrl.envs import EnvBase
 
-from imitrl.jobs.resolve import FOR_ENV, LEGACY_DEFAULT, learner_factory, task_spec
+from imitrl.jobs.resolve import FOR_ENV, LEGACY_DEFAULT, builds_table, learner_factory
 from imitrl.objectives import registry
 from imitrl.policies import Learner
 
@@ -164,7 +164,7 @@ def load_learner(checkpoint: Path, env: EnvBase, *, device: str | None = None) -
     loss = config["loss"]
     loss = FOR_ENV if loss == LEGACY_DEFAULT else loss  # saved when default meant for_env
     hidden = None if config["hidden"] is None else tuple(config["hidden"])
-    if loss != FOR_ENV and hidden is not None and task_spec(env).num_states is not None:
+    if hidden is not None and builds_table(loss, env):
         hidden = None  # a table: runs before --hidden was optional recorded the default
     make = learner_factory(
         loss,

@@ -50,6 +50,7 @@ __all__ = [
     "EXPERT_KINDS",
     "FOR_ENV",
     "LEGACY_DEFAULT",
+    "builds_table",
     "check_expert_fits",
     "dataset_format",
     "expert_for_env",
@@ -273,6 +274,13 @@ def resolve_loss(loss: str, env: EnvBase, *, probabilistic: bool = False) -> str
     except ValueError:
         return FOR_ENV
     return defaults.default_loss(task.actions, probabilistic=probabilistic)
+
+
+def builds_table(loss: str, env: EnvBase) -> bool:
+    """Whether ``loss`` (resolved for ``env``) builds a logits table: a registry entry on
+    integer states, which has no hidden layers (``learner_factory`` refuses ``hidden``)."""
+    loss = resolve_loss(loss, env)
+    return loss in registry.names() and task_spec(env).num_states is not None
 
 
 def learner_factory(

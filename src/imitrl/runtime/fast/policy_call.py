@@ -294,14 +294,12 @@ class TensorPolicy:
             dist_class, names, dist_kwargs
         ):
             (loc_key, scale_key), draw = in_keys, exploration is ExplorationType.RANDOM
-            low, high = dist_kwargs.get("low"), dist_kwargs.get("high")
+            action = tanh_normal.TanhNormalAction(dist_kwargs.get("low"), dist_kwargs.get("high"))
 
             def tanh_normal_step(values: Values) -> None:
                 params(values)
                 # rsample / deterministic_sample without the distribution (same bits)
-                values[out_key] = tanh_normal.tanh_normal_action(
-                    values[loc_key], values[scale_key], low, high, draw=draw
-                )
+                values[out_key] = action(values[loc_key], values[scale_key], draw=draw)
 
             return tanh_normal_step
 
