@@ -100,13 +100,14 @@ def markdown(results: dict) -> str:
 def budget_table(results: dict) -> str:
     rows = [
         [_report.env_label(t), results["demonstrations"][t], f"{b['total_steps']:,}",
-         f"{b['rollout_steps']:,}", b["minibatch_size"], b["eval_every"], b["lr"], b["gamma"],
+         f"{b['rollout_steps']:,}", b["minibatch_size"], b["eval_every"], b["lr"],
+         "linear" if b.get("anneal_lr") else "constant", b["gamma"],
          "yes" if b["absorbing"] else "no", f"{b['normalizer_warmup']:,}",
          "x".join(map(str, b["hidden"])), b.get("airl_entropy_weight", 1.0)]
         for t, b in results["budgets"].items()
     ]  # fmt: skip
     header = ["task", "demonstration", "env steps", "steps per round", "PPO minibatch",
-              "eval every (rounds)", "lr", "gamma", "absorbing states",
+              "eval every (rounds)", "lr", "lr schedule", "gamma", "absorbing states",
               "normaliser warm-up steps", "MLP", "AIRL's w (f - w log pi)"]  # fmt: skip
     return _report.table(header, rows)
 

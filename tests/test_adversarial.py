@@ -325,6 +325,43 @@ def test_same_seed_same_numbers(method):
     assert not torch.allclose(la.normalizer.scale, demo_std, rtol=1e-3)
 
 
+@pytest.mark.parametrize("anneal", [False, True])
+def test_annealing_steps_round_k_of_k_at_one_minus_k_over_k(monkeypatch, anneal):
+    from imitrl.algorithms.adversarial.generator import PPOGenerator
+
+    seen, update = [], PPOGenerator.update
+
+    def spy(self, batch, generator):
+        seen.append([g["lr"] for o in (self.learner.opt_pi, self.learner.opt_v)
+                     for g in o.param_groups])  # fmt: skip
+        return update(self, batch, generator)
+
+    monkeypatch.setattr(PPOGenerator, "update", spy)
+    env, buffer, learner = _cartpole(3)
+    budget = {**TINY, "total_steps": 4 * TINY["rollout_steps"]}
+    result = gail(env, learner, buffer, GAILConfig(**budget, anneal_lr=anneal))
+    assert len(result.rounds) == len(seen) == 4
+    scales = [1 - k / 4 for k in range(4)] if anneal else [1.0] * 4
+    assert seen == [[3e-4 * s, 3e-4 * s] for s in scales]
+    # the learner keeps its own rate after the run
+    assert [g["lr"] for g in learner.opt_pi.param_groups + learner.opt_v.param_groups] == [
+        3e-4,
+        3e-4,
+    ]
+
+
+def test_learning_rates_come_back_after_an_error():
+    from imitrl.algorithms.adversarial.generator import PPOGenerator
+
+    _, _, learner = _cartpole(0)
+    gen = PPOGenerator(learner, gamma=0.99, gae_lambda=0.95, clip_epsilon=0.2,
+                       entropy_coeff=0.0, epochs=1, minibatch_size=8, max_grad_norm=0.5)  # fmt: skip
+    with pytest.raises(RuntimeError, match="boom"), gen.learning_rates(0.25):
+        assert learner.opt_pi.param_groups[0]["lr"] == 3e-4 * 0.25
+        raise RuntimeError("boom")
+    assert learner.opt_pi.param_groups[0]["lr"] == learner.opt_v.param_groups[0]["lr"] == 3e-4
+
+
 # ------------------------------------------------------------------- jobs
 @pytest.mark.parametrize(("job", "run"), [(GAILJob, run_gail), (AIRLJob, run_airl)])
 def test_jobs_write_results_and_a_loadable_checkpoint(tmp_path, job, run):

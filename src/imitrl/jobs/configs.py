@@ -213,6 +213,10 @@ class GAILJob:
     """GAE's lambda"""
     entropy_coeff: float = 0.0
     """weight of PPO's entropy bonus"""
+    anneal_lr: bool = False
+    """the learner's learning rate falls linearly over the rounds (round k of K at 1 -
+    k/K of --lr, CleanRL's PPO default); off: constant. Measured on Pendulum AIRL
+    (benchmarks/beyond_cloning.py): it holds the expert's return to the last round"""
     absorbing: bool | None = None
     """absorbing states for terminated episodes (DAC); none (default): on when a
     demonstration episode ends by termination (a goal: Acrobot, FrozenLake), off when
@@ -274,8 +278,8 @@ class GAILJob:
         names = (
             "total_steps", "rollout_steps", "ppo_epochs", "minibatch_size",
             "discriminator_updates", "discriminator_batch", "discriminator_lr",
-            "grad_penalty", "gamma", "gae_lambda", "entropy_coeff", "absorbing",
-            "normalizer_warmup", "seed",
+            "grad_penalty", "gamma", "gae_lambda", "entropy_coeff", "anneal_lr",
+            "absorbing", "normalizer_warmup", "seed",
         )  # fmt: skip
         fields = {n: getattr(self, n) for n in names}
         fields["absorbing"] = bool(self.absorbing)  # none: decided from the demonstrations

@@ -18,7 +18,9 @@ One update (:meth:`PPOGenerator.update`) on a round's batch ``[*B, T]`` carrying
 2. ``epochs`` times: GAE (``gamma``, ``lambda``) on the whole batch with the current value
    head, then minibatches of ``minibatch_size`` rows in an order drawn from ``generator``;
    each step minimises ``loss_objective + loss_entropy + loss_critic`` with the learner's
-   own ``opt_pi`` and ``opt_v``, gradients clipped to ``max_grad_norm``.
+   own ``opt_pi`` and ``opt_v``, gradients clipped to ``max_grad_norm``; the loop may
+   scale their learning rates for the round (:meth:`PPOGenerator.learning_rates`:
+   ``AdversarialConfig.anneal_lr``).
 
 Episode ends: TorchRL's GAE reads the env's ``("next", "terminated")`` and ``("next",
 "done")`` (``torchrl.objectives.value.functional.generalized_advantage_estimate``:
@@ -29,6 +31,9 @@ bootstraps the critic's ``V(s')`` of the final observation, and the trace stops 
 """
 
 from __future__ import annotations
+
+import contextlib
+from collections.abc import Iterator
 
 import torch
 from tensordict import TensorDictBase
@@ -128,6 +133,22 @@ class PPOGenerator:
                     sums[k] = sums.get(k, 0.0) + float(v.detach())
         steps = -(-n // self.minibatch_size)
         return {k: v / steps for k, v in sums.items()}
+
+    @contextlib.contextmanager
+    def learning_rates(self, scale: float) -> Iterator[None]:
+        """Within the block, every parameter group of ``opt_pi`` and ``opt_v`` steps at
+        ``scale`` times its own learning rate (the annealing of
+        ``AdversarialConfig.anneal_lr``); the learner's own rates are back after it, even
+        on an error."""
+        groups = [g for o in (self.learner.opt_pi, self.learner.opt_v) for g in o.param_groups]
+        own = [g["lr"] for g in groups]
+        for g, lr in zip(groups, own):
+            g["lr"] = lr * scale
+        try:
+            yield
+        finally:
+            for g, lr in zip(groups, own):
+                g["lr"] = lr
 
     def _columns(self, flat: TensorDictBase) -> tuple[torch.Tensor, ...]:
         """What :class:`~imitrl.runtime.fast.ppo_step.TensorPPO` reads of the rows: the

@@ -109,6 +109,10 @@ class AdversarialConfig:
     """weight of PPO's entropy bonus"""
     max_grad_norm: float = 0.5
     """gradient-norm clip of each PPO step"""
+    anneal_lr: bool = False
+    """the generator's learning rates fall linearly over the rounds, round ``k`` of ``K``
+    stepping at ``1 - k / K`` times the learner's own (CleanRL's PPO default); the
+    learner's optimizers keep their own rates after the run. False: constant"""
     absorbing: bool = False
     """absorbing-state handling (DAC) of terminated episodes, for tasks whose episodes end
     at a goal; False: a terminal step ends the learned reward, and GAIL's ``-log(1 - D) >
@@ -273,7 +277,10 @@ def train_adversarial(
                 with set_exploration_type(ExplorationType.RANDOM), torch.no_grad():
                     batch = play_steps(stepper, per_lane).to(device)
                 steps += batch.numel()
-                record = _round(k, steps, batch, expert, discriminator, generator, config, draws)
+                with generator.learning_rates(1 - k / rounds if config.anneal_lr else 1.0):
+                    record = _round(
+                        k, steps, batch, expert, discriminator, generator, config, draws
+                    )
                 if on_round is not None:
                     info = on_round(k, learner, steps)
                     record.info = info if isinstance(info, dict) else None
