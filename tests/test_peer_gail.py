@@ -34,7 +34,8 @@ def test_own_gives_each_library_its_settings_and_matched_gives_imitrl_imitations
 
 
 def _run(library, protocol, seed, wall, ret):
-    phases = {"imports": 1.0, "setup": 0.5, "train": wall - 2.0, "evaluation": 0.5}
+    phases = {"imports": 1.0, "setup": 0.5, "train": wall - 2.0, "evaluation": 0.5,
+              "in_process": wall - (0.25 if library == "imitrl" else 1.25)}  # fmt: skip
     return {"task": "cartpole", "library": library, "protocol": protocol, "seed": seed,
             "wall": wall, "phases": phases, "returns": {"final": ret}}  # fmt: skip
 
@@ -58,3 +59,7 @@ def test_every_ratio_is_labelled_with_its_protocol_and_judged_per_seed():
     lines = [line for line in markdown(raw).splitlines() if line.startswith("| cartpole")]
     assert [line.split("|")[2].strip() for line in lines] == ["own", "matched"]
     assert "0.40 / 0.45" in lines[0] and "**no**" in lines[1]
+    # the process outside the child's clock (start and exit), each side's own
+    assert summary["own"]["phases"]["outside"]["imitrl"] == [0.25, 0.25]
+    assert summary["own"]["phases"]["outside"]["imitation"] == [1.25, 1.25]
+    assert "| 0.2 / 0.2 | 1.2 / 1.2 |" in lines[0]

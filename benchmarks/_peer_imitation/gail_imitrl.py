@@ -3,7 +3,9 @@
     python benchmarks/_peer_imitation/gail_imitrl.py SPEC_JSON RESULT_JSON
 
 ``SPEC_JSON`` is :meth:`gail_tasks.GailTask.spec`. The run is what ``imitrl gail
---num-envs LANES`` does, through the public API, with the spec's settings:
+--num-envs LANES`` does, through the public API, with the spec's settings (after the
+imports, the import-time heap frozen out of the garbage collector's walks, as the command
+does: :mod:`imitrl.runtime.heap`):
 
 1. setup: the generator's env (``make_env``, ``lanes`` lanes), ``demo_episodes`` greedy
    episodes of the built-in expert (``rollout_episodes``), the learner
@@ -36,6 +38,9 @@ from imitrl.envs import make_env  # noqa: E402
 from imitrl.evaluation import evaluate  # noqa: E402
 from imitrl.experts import cartpole_expert, pendulum_expert  # noqa: E402
 from imitrl.jobs.resolve import learner_factory, resolve_loss  # noqa: E402
+from imitrl.runtime.heap import freeze_imported  # noqa: E402
+
+freeze_imported()  # as the imitrl command does once its modules are imported
 
 T_IMPORTED = time.perf_counter()
 EXPERTS = {"CartPole-v1": cartpole_expert, "Pendulum-v1": pendulum_expert}

@@ -7,12 +7,15 @@ import statistics
 import _report
 
 NAME = "peer_gail"
-PHASES = ("wall", "imports", "setup", "train", "evaluation")
+PHASES = ("wall", "imports", "setup", "train", "evaluation", "outside")
+"""``outside``: the whole process less the child's own clock (interpreter start and exit)"""
 TARGET = 0.5
 """issue 31: imitrl's whole-process wall time at most half imitation's"""
 
 
 def _seconds(run: dict, key: str) -> float:
+    if key == "outside":
+        return run["wall"] - run["phases"]["in_process"]
     return run["wall"] if key == "wall" else run["phases"][key]
 
 
@@ -67,19 +70,22 @@ def table(summary: dict) -> str:
     for task, by in summary.items():
         for protocol, s in by.items():
             wall = s["phases"]["wall"]
-            train = s["phases"]["train"]
+            train, outside = s["phases"]["train"], s["phases"]["outside"]
             med = wall["median_ratio"]
             rows.append([
                 task, protocol,
                 _per_seed(wall["imitrl"], 1), _per_seed(wall["imitation"], 1),
                 _per_seed(wall["ratios"]), "-" if med is None else f"{med:.2f}",
                 _per_seed(train["ratios"]),
+                _per_seed(outside["imitrl"], 1), _per_seed(outside["imitation"], 1),
                 _per_seed(s["returns"]["imitrl"], 1), _per_seed(s["returns"]["imitation"], 1),
                 _yes(s["wall_met"]), _yes(s["returns_met"]),
             ])  # fmt: skip
     header = [
         "task", "protocol", "imitrl wall s", "imitation wall s", "wall ratio per seed",
-        "median wall ratio", "train ratio per seed", "imitrl return", "imitation return",
+        "median wall ratio", "train ratio per seed", "imitrl start + exit s",
+        "imitation start + exit s",
+        "imitrl return", "imitation return",
         f"wall <= {TARGET}", "return >= imitation's (each seed)",
     ]  # fmt: skip
     return _report.table(header, rows)

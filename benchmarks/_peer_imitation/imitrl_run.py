@@ -20,6 +20,9 @@ is trained on across rounds (``warm_start=True``), as imitation does. The task's
 4. evaluation: the BC learner and the final learner, ``eval_episodes`` each, on
    ``eval_lanes["imitrl"]`` lanes seeded from ``eval_seed``.
 
+After the imports the import-time heap is frozen out of the garbage collector's walks,
+as the ``imitrl`` command does (:mod:`imitrl.runtime.heap`).
+
 Phases are wall-clock seconds inside this process (``imports`` from the first line of
 this file); the parent measures the whole process.
 """
@@ -43,7 +46,10 @@ from imitrl.evaluation import evaluate  # noqa: E402
 from imitrl.experts import cartpole_expert, pendulum_expert  # noqa: E402
 from imitrl.jobs.resolve import FOR_ENV, builds_table, learner_factory  # noqa: E402
 from imitrl.policies import Expert  # noqa: E402
+from imitrl.runtime.heap import freeze_imported  # noqa: E402
 from imitrl.tabular import TabularMDP, greedy, value_iteration  # noqa: E402
+
+freeze_imported()  # as the imitrl command does once its modules are imported
 
 T_IMPORTED = time.perf_counter()
 
