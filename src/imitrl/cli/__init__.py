@@ -28,7 +28,7 @@ keeps its own).
 
 Run as the process's command (the ``imitrl`` script, ``python -m imitrl``), a command
 freezes the import-time heap out of the garbage collector's walks once its modules are
-imported (:mod:`imitrl.runtime.heap`: the process's exit no longer walks two million
+imported (:mod:`imitrl.runtime.heap`: the process's exit no longer walks 390,000
 objects, about a second on this project's machines).
 
 Results and report lines go to stdout, progress bars to stderr; bad input is one

@@ -1,16 +1,18 @@
 """The import-time heap and Python's cyclic garbage collector, in a process imitrl owns.
 
 An imitrl command imports torch, tensordict (which imports ``torch._dynamo`` and sympy),
-torchrl and gymnasium: about two million objects tracked by the cyclic collector, which
-live until the process ends. Every full collection walks all of them, and so does the
-collection at interpreter exit: on the 2-core machines this project is measured on, a
-process that imports imitrl's GAIL path and exits spent 1.2-1.3 s in that exit (the
-same imports then ``gc.freeze()``: 0.15-0.2 s; ``benchmarks/README.md``, ``peer_gail``).
+torchrl and gymnasium: about 390,000 objects tracked by the cyclic collector, which
+live until the process ends. Every full collection walks all of them (0.2 s on the
+2-core machines this project is measured on), and at interpreter exit, once the modules
+are cleared, the collector finds them garbage and frees them one by one: a process that
+imports imitrl's GAIL path and exits spent 1.2-1.3 s in that exit, 0.15-0.2 s with the
+heap frozen first (``benchmarks/README.md``, ``peer_gail``).
 
 :func:`freeze_imported` moves every object tracked at that moment into the collector's
 permanent generation (``gc.freeze``), which no collection walks again: the objects are
 untouched and stay alive (they would anyway: modules, functions, classes), collections
-during the run look at what the run creates, and the exit's collection does too.
+during the run look at what the run creates, and the exit leaves the frozen objects to the
+operating system instead of freeing them one by one.
 What it costs: garbage cycles that exist at the moment of the freeze are never freed
 (a one-off, the import's leftovers), and the ``__del__`` of an object in such a cycle
 never runs.
