@@ -362,6 +362,22 @@ def test_learning_rates_come_back_after_an_error():
     assert learner.opt_pi.param_groups[0]["lr"] == learner.opt_v.param_groups[0]["lr"] == 3e-4
 
 
+def test_learning_rates_scale_each_group_once_and_keep_a_tensor_rate():
+    from imitrl.algorithms.adversarial.generator import PPOGenerator
+
+    _, _, learner = _cartpole(0)
+    params = list(learner.policy.parameters()) + list(learner.value.parameters())
+    rate = torch.tensor(2e-3)
+    shared = torch.optim.Adam([{"params": params[:2], "lr": rate}, {"params": params[2:]}], lr=1e-3)
+    learner.opt_pi = learner.opt_v = shared  # one optimizer, two groups, both roles
+    gen = PPOGenerator(learner, gamma=0.99, gae_lambda=0.95, clip_epsilon=0.2,
+                       entropy_coeff=0.0, epochs=1, minibatch_size=8, max_grad_norm=0.5)  # fmt: skip
+    with gen.learning_rates(0.5):
+        assert torch.equal(shared.param_groups[0]["lr"], rate * 0.5)  # once, not x 0.25
+        assert shared.param_groups[1]["lr"] == 5e-4
+    assert shared.param_groups[0]["lr"] is rate and shared.param_groups[1]["lr"] == 1e-3
+
+
 # ------------------------------------------------------------------- jobs
 @pytest.mark.parametrize(("job", "run"), [(GAILJob, run_gail), (AIRLJob, run_airl)])
 def test_jobs_write_results_and_a_loadable_checkpoint(tmp_path, job, run):

@@ -20,6 +20,8 @@ CHILD = textwrap.dedent(
     import gc, json, weakref
     from imitrl.runtime.heap import freeze_imported
 
+    gc.disable()  # no automatic collection between making a cycle and the freeze
+
     class Node:
         pass
 
@@ -59,17 +61,28 @@ TINY = [
 ]  # fmt: skip
 
 
-def _record(monkeypatch) -> list[int]:
-    calls: list[int] = []
-    monkeypatch.setattr(cli, "freeze_imported", lambda: calls.append(1) or 0)
-    return calls
-
-
 def test_the_command_line_freezes_only_a_process_it_owns(monkeypatch, tmp_path):
-    calls = _record(monkeypatch)
+    events: list[str] = []
+    monkeypatch.setattr(cli, "freeze_imported", lambda: events.append("freeze") or 0)
+    load = cli._load
+
+    def logged(spec: str):
+        got = load(spec)
+        if not spec.endswith(":run_bc"):
+            return got
+        events.append("imported")
+
+        def run(config):
+            events.append("run")
+            return got(config)
+
+        return run
+
+    monkeypatch.setattr(cli, "_load", logged)
     argv = ["bc", *TINY, "--out", str(tmp_path / "given")]
     assert cli.main(argv) == 0  # a caller's argv: the caller's heap is left alone
-    assert calls == []
+    assert events == ["imported", "run"]
+    events.clear()
     monkeypatch.setattr(sys, "argv", ["imitrl", "bc", *TINY, "--out", str(tmp_path / "owned")])
     assert cli.main() == 0  # the console script's call: the command owns the process
-    assert calls == [1]
+    assert events == ["imported", "freeze", "run"]  # after its imports, before it runs

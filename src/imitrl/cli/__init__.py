@@ -26,10 +26,11 @@ the command's function starts; ``bench`` hands it to the script's process as
 ``OMP_NUM_THREADS`` (torch's starting thread count there; a benchmark that sets its own
 keeps its own).
 
-Run as the process's command (the ``imitrl`` script, ``python -m imitrl``), a command
-freezes the import-time heap out of the garbage collector's walks once its modules are
-imported (:mod:`imitrl.runtime.heap`: the process's exit no longer walks 390,000
-objects, about a second on this project's machines).
+Run as the process's command (the ``imitrl`` script, ``python -m imitrl``), every
+command but ``bench`` (which starts a script in a process of its own) freezes the
+import-time heap out of the garbage collector's walks once its modules are imported
+(:mod:`imitrl.runtime.heap`: the process's exit no longer frees 300,000 to 430,000
+objects one by one, about a second on this project's machines).
 
 Results and report lines go to stdout, progress bars to stderr; bad input is one
 line on stderr and exit status 2.

@@ -214,9 +214,10 @@ class GAILJob:
     entropy_coeff: float = 0.0
     """weight of PPO's entropy bonus"""
     anneal_lr: bool = False
-    """the learner's learning rate falls linearly over the rounds (round k of K at 1 -
-    k/K of --lr, CleanRL's PPO default); off: constant. Measured on Pendulum AIRL
-    (benchmarks/beyond_cloning.py): it holds the expert's return to the last round"""
+    """the learner's learning rate falls linearly over the rounds, the first at --lr, the
+    last at --lr/K of K rounds (CleanRL's PPO schedule); --discriminator-lr stays
+    constant; off: constant. Measured on Pendulum AIRL (benchmarks/beyond_cloning.py): it
+    holds the expert's return to the last round"""
     absorbing: bool | None = None
     """absorbing states for terminated episodes (DAC); none (default): on when a
     demonstration episode ends by termination (a goal: Acrobot, FrozenLake), off when

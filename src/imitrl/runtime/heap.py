@@ -1,7 +1,8 @@
 """The import-time heap and Python's cyclic garbage collector, in a process imitrl owns.
 
 An imitrl command imports torch, tensordict (which imports ``torch._dynamo`` and sympy),
-torchrl and gymnasium: about 390,000 objects tracked by the cyclic collector, which
+torchrl and gymnasium: 300,000 to 430,000 objects tracked by the cyclic collector (about
+390,000 for ``imitrl gail``), which
 live until the process ends. Every full collection walks all of them (0.2 s on the
 2-core machines this project is measured on), and at interpreter exit, once the modules
 are cleared, the collector finds them garbage and frees them one by one: a process that
@@ -14,8 +15,10 @@ untouched and stay alive (they would anyway: modules, functions, classes), colle
 during the run look at what the run creates, and the exit leaves the frozen objects to the
 operating system instead of freeing them one by one.
 What it costs: garbage cycles that exist at the moment of the freeze are never freed
-(a one-off, the import's leftovers), and the ``__del__`` of an object in such a cycle
-never runs.
+(a one-off, the import's leftovers: none in an ``imitrl gail`` process, where
+``gc.collect()`` just before the freeze finds nothing), nor is a frozen object that
+becomes cyclic garbage later in the run, and the ``__del__`` of an object in such a
+cycle never runs.
 
 Only a process's owner should call it: the command line (:func:`imitrl.cli.main`) calls
 it once a command's modules are imported, before the command runs; the benchmarks'

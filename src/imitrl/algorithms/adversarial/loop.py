@@ -79,7 +79,7 @@ class AdversarialConfig:
     """What GAIL and AIRL share: budget, generator (PPO + GAE), discriminator schedule.
 
     The generator's learning rate is the learner's own (its ``opt_pi`` / ``opt_v``, set
-    when it is built)."""
+    when it is built), scaled round by round when ``anneal_lr``."""
 
     total_steps: int = 102_400
     """environment steps of the whole run (50 rounds of 2048; rounded up to whole rounds)"""
@@ -110,9 +110,11 @@ class AdversarialConfig:
     max_grad_norm: float = 0.5
     """gradient-norm clip of each PPO step"""
     anneal_lr: bool = False
-    """the generator's learning rates fall linearly over the rounds, round ``k`` of ``K``
-    stepping at ``1 - k / K`` times the learner's own (CleanRL's PPO default); the
-    learner's optimizers keep their own rates after the run. False: constant"""
+    """the generator's learning rates fall linearly over the rounds: round ``k`` of ``K``
+    (``k`` from 0) steps at ``1 - k / K`` times the learner's own, the first at the
+    learner's rate, the last at ``1 / K`` of it (CleanRL's PPO schedule); the
+    discriminator's rate stays constant, and the learner's optimizers keep their own
+    rates after the run. False: constant"""
     absorbing: bool = False
     """absorbing-state handling (DAC) of terminated episodes, for tasks whose episodes end
     at a goal; False: a terminal step ends the learned reward, and GAIL's ``-log(1 - D) >
