@@ -214,8 +214,9 @@ def figure(payload: dict, path: Path) -> Path:
     ax1.set_ylim(0, 1.05)
     ax1.set_ylabel("success rate (pooled over seeds)")
     ax1.set_title(f"per task, {loss}, {demos} demonstration(s)")
-    # below the rotated task names (the longest, button-press-topdown, reaches -0.45)
-    ax1.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.55), ncol=4)
+    # a figure legend in a strip of its own, under the rotated task names
+    handles, names = ax1.get_legend_handles_labels()
+    legend = fig.legend(handles, names, fontsize=8, loc="lower center", ncol=4, frameon=True)
     labels, points, errs = [], [], []
     for (name, d, algorithm), grid in scores.items():
         i = stratified_bootstrap(grid, iqm, reps=REPS)
@@ -229,5 +230,6 @@ def figure(payload: dict, path: Path) -> Path:
     ax2.axvline(1.0, color="grey", lw=0.8, ls="--")
     ax2.set_xlabel("IQM of expert-normalised success (95% bootstrap)")
     ax2.set_title("aggregate over MT10")
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0.07, 1, 1))
+    legend.set_bbox_to_anchor((ax1.get_position().x0 + ax1.get_position().width / 2, 0.0))
     return save_figure(fig, path)
