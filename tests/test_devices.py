@@ -27,7 +27,7 @@ from imitrl.experts import cartpole_expert, pendulum_expert
 from imitrl.objectives import registry
 from imitrl.objectives.registry import LearnerConfig
 from imitrl.policies import ActorCritic
-from imitrl.runtime.device import OnDevice, acting, resolve_device
+from imitrl.runtime.device import OnDevice, acting, on_cpu, resolve_device
 
 from .test_loss_registry import TASKS, _cases, _rows
 
@@ -131,6 +131,33 @@ def test_gail_and_airl_steps_with_the_learner_on_the_device(device, algorithm):
 
 
 # ------------------------------------------------------- crossing the device once
+def test_a_tensordict_without_a_device_is_on_the_cpu_when_its_leaves_are():
+    # what fit_bc's batches and the rollout's values are: TensorDict(...) without device=
+    rows = TensorDict({"a": torch.zeros(2), ("n", "b"): torch.ones(2, 3)}, batch_size=[2])
+    assert rows.device is None and on_cpu(rows)  # the crash on CUDA read rows.device.type
+    assert on_cpu(rows.to("cpu")) and on_cpu(torch.zeros(1))
+    assert not on_cpu(TensorDict({"a": torch.zeros(2, device="meta")}, batch_size=[2]))
+    assert not on_cpu(TensorDict({}, batch_size=[2]))  # no leaf says where it is
+    assert not on_cpu(torch.zeros(1, device="meta"))
+
+
+def test_a_policy_holding_a_wrapped_learner_acts_as_it_is():
+    # DAgger's behaviour policy: the learner already crosses through OnDevice, the CPU
+    # expert beside it must read the env's tensors where they are (found on a GPU)
+    from tensordict.nn import TensorDictModule, TensorDictSequential
+
+    far = TensorDictModule(torch.nn.Linear(4, 2, device="meta"), ["observation"], ["action"])
+    wrapped = acting(far, "cpu")
+    assert isinstance(wrapped, OnDevice) and wrapped.device.type == "meta"
+    expert = TensorDictModule(lambda obs: obs * 2, ["observation"], ["expert_action"])
+    behaviour = TensorDictSequential(wrapped, expert)
+    assert acting(behaviour, "cpu") is behaviour  # not wrapped again around the expert
+    assert acting(wrapped, "cpu") is wrapped
+    assert acting(expert, "cpu") is expert  # no parameters: it acts where the env is
+    near = TensorDictModule(torch.nn.Linear(4, 2), ["observation"], ["action"])
+    assert acting(TensorDictSequential(wrapped, near), "cpu").__class__ is TensorDictSequential
+
+
 def test_on_device_reads_its_keys_there_and_writes_its_outputs_back():
     policy = ActorCritic.mlp(3, 2, hidden=(8,), seed=0).policy
     wrapped = OnDevice(policy, torch.device("cpu"))

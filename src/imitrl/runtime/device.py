@@ -19,6 +19,7 @@ the learner (its policy, loss and optimizer) lives on one device, ``cpu`` or ``c
 
 from __future__ import annotations
 
+import itertools
 import re
 
 import torch
@@ -26,7 +27,9 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torch import nn
 
-__all__ = ["DEVICES", "OnDevice", "acting", "module_device", "resolve_device", "to_device"]
+__all__ = [
+    "DEVICES", "OnDevice", "acting", "module_device", "on_cpu", "resolve_device", "to_device",
+]  # fmt: skip
 
 DEVICES = "auto, cpu, cuda or cuda:N"
 """what ``device=`` (``--device``) accepts"""
@@ -85,12 +88,23 @@ def module_device(module: nn.Module) -> torch.device:
     return torch.device("cpu")
 
 
+def on_cpu(data) -> bool:
+    """Whether ``data`` (a tensor or a TensorDict) lives on the CPU. A TensorDict without
+    a device of its own (``device=None``, what ``TensorDict(...)`` builds unless told)
+    does when every leaf does."""
+    if data.device is not None:
+        return data.device.type == "cpu"
+    devices = [getattr(v, "device", None) for v in data.values(True, True)]
+    return bool(devices) and all(d is not None and d.type == "cpu" for d in devices)
+
+
 def to_device(data, device: torch.device):
-    """``data`` (a tensor or a TensorDict) on ``device``: unchanged when it is there;
-    from the CPU to CUDA through pinned memory, without blocking."""
+    """``data`` (a tensor or a TensorDict, with or without a device of its own) on
+    ``device``: unchanged when it is there; from the CPU to CUDA through pinned memory,
+    without blocking."""
     if device is None or data.device == device:
         return data
-    if device.type == "cuda" and data.device.type == "cpu":
+    if device.type == "cuda" and on_cpu(data):
         return data.pin_memory().to(device, non_blocking=True)
     return data.to(device)
 
@@ -121,9 +135,22 @@ def acting(
     module: TensorDictModuleBase, env_device: torch.device | str | None
 ) -> TensorDictModuleBase:
     """``module`` ready to act in an env on ``env_device``: itself when its parameters are
-    there (the CPU case: the same calls, the same digits), else :class:`OnDevice`."""
+    there (the CPU case: the same calls, the same digits), else :class:`OnDevice`.
+
+    Parameters inside an :class:`OnDevice` within ``module`` cross on their own and are
+    not counted: DAgger's behaviour policy (a CPU expert, and the learner already wrapped)
+    acts as it is, and its expert reads the env's tensors where they are."""
     env_device = torch.device(env_device or "cpu")
-    here = module_device(module)
-    if isinstance(module, OnDevice) or here == env_device:
+    if isinstance(module, OnDevice):
+        return module
+    crossing = {
+        id(t)
+        for m in module.modules()
+        if isinstance(m, OnDevice)
+        for t in itertools.chain(m.parameters(), m.buffers())
+    }
+    own = itertools.chain(module.parameters(), module.buffers())
+    here = next((t.device for t in own if id(t) not in crossing), env_device)
+    if here == env_device:
         return module
     return OnDevice(module, here)
