@@ -153,7 +153,7 @@ def test_a_policy_holding_a_wrapped_learner_acts_as_it_is():
     behaviour = TensorDictSequential(wrapped, expert)
     assert acting(behaviour, "cpu") is behaviour  # not wrapped again around the expert
     assert acting(wrapped, "cpu") is wrapped
-    assert acting(expert, "cpu") is expert  # no parameters: it acts where the env is
+    assert acting(expert, "cpu") is expert  # no parameters: a CPU function, as before
     near = TensorDictModule(torch.nn.Linear(4, 2), ["observation"], ["action"])
     assert acting(TensorDictSequential(wrapped, near), "cpu").__class__ is TensorDictSequential
 

@@ -150,7 +150,8 @@ def acting(
         for t in itertools.chain(m.parameters(), m.buffers())
     }
     own = itertools.chain(module.parameters(), module.buffers())
-    here = next((t.device for t in own if id(t) not in crossing), env_device)
+    # no parameter of its own: a CPU function (an expert), as module_device says
+    here = next((t.device for t in own if id(t) not in crossing), torch.device("cpu"))
     if here == env_device:
         return module
     return OnDevice(module, here)
