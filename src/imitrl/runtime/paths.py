@@ -14,8 +14,13 @@ returns`                                                     of a fixed state ta
 :func:`network`    ``module(x)``                             ``direct_call``: no hook bookkeeping
 :func:`loss_chain` the actor on a TensorDict                 its plain modules' networks on tensors
 :func:`optimizer_  ``opt.step``                              Adam's functional form on the CPU (its
-step`                                                        wrapper costs as much as a small update)
+step`                                                        wrapper costs as much as a small update),
+                                                             several optimizers in one call
+:func:`clip_grad_  ``torch.nn.utils.clip_grad_norm_``        its four foreach calls, no wrapper
+norm`
 :func:`ppo_loss`   ``ClipPPOLoss(minibatch)``                ``TensorPPO``: its arithmetic on tensors
+:func:`gail_loss`  ``GAILLoss(batch)``                       ``TensorGAILLoss``: its arithmetic on the
+                                                             four feature tensors
 :func:`gae`        ``GAE(batch)``                            ``TensorGAE``: the value net called once
                                                              on the stacked observations, no vmap
 ================== ========================================= ==========================================
@@ -36,7 +41,7 @@ rollout's ``fast_path=False`` does the same for that rollout's stepper.
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from contextvars import ContextVar
 from typing import TYPE_CHECKING
 
@@ -50,8 +55,10 @@ if TYPE_CHECKING:  # imported when used: envs and objectives import this module
     from imitrl.runtime.loop import Lanes, Stepper
 
 __all__ = [
+    "clip_grad_norm",
     "fast_enabled",
     "gae",
+    "gail_loss",
     "loss_chain",
     "mark_plain_gym",
     "network",
@@ -164,6 +171,17 @@ def ppo_loss(loss, batch=None):
     return TensorPPO.of(loss, batch)
 
 
+def gail_loss(loss, batch=None):
+    """A :class:`~imitrl.runtime.fast.gail_step.TensorGAILLoss` of the ``GAILLoss``
+    ``loss`` (its loss from the four feature tensors, the same bits), or None on the
+    reference path and wherever it would compute anything else: then call ``loss``."""
+    if not fast_enabled():
+        return None
+    from imitrl.runtime.fast.gail_step import TensorGAILLoss
+
+    return TensorGAILLoss.of(loss, batch)
+
+
 def gae(module, batch):
     """``module`` (a TorchRL ``GAE``) as a callable on ``batch``: a
     :class:`~imitrl.runtime.fast.gae_step.TensorGAE` (the same bits) where it replays the
@@ -175,12 +193,31 @@ def gae(module, batch):
     return TensorGAE.of(module, batch) or module
 
 
-def optimizer_step(opt: torch.optim.Optimizer) -> Callable[[], None]:
-    """``opt.step`` for a fit's loop: Adam's functional form with the optimizer's own
-    state on the CPU (the same kernels, so the same bits), ``opt.step`` everywhere else
-    and on the reference path."""
+def optimizer_step(*opts: torch.optim.Optimizer) -> Callable[[], None]:
+    """``opt.step()`` of each of ``opts`` for a fit's loop: Adam's functional form with
+    the optimizers' own state on the CPU, one call for all of them while their settings
+    agree (the same kernels, so the same bits), ``opt.step`` everywhere else and on the
+    reference path."""
     if not fast_enabled():
-        return opt.step
+        if len(opts) == 1:
+            return opts[0].step
+
+        def each() -> None:
+            for opt in opts:
+                opt.step()
+
+        return each
     from imitrl.runtime.fast.adam_step import optimizer_step as fast_step
 
-    return fast_step(opt)
+    return fast_step(*opts)
+
+
+def clip_grad_norm(params: Sequence[torch.Tensor], max_norm: float) -> torch.Tensor:
+    """``torch.nn.utils.clip_grad_norm_(params, max_norm)``: its four calls without its
+    wrapper where it would take its foreach path on the CPU (the same bits), the function
+    itself elsewhere and on the reference path."""
+    if not fast_enabled():
+        return torch.nn.utils.clip_grad_norm_(params, max_norm)
+    from imitrl.runtime.fast.clip_grad import clip_grad_norm as fast_clip
+
+    return fast_clip(params, max_norm)

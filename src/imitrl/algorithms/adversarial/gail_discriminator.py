@@ -23,7 +23,7 @@ normalised coordinates; float features are what it can interpolate).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import torch
 from tensordict import TensorDict, TensorDictBase
@@ -44,6 +44,7 @@ from imitrl.algorithms.adversarial.transitions import action_features
 from imitrl.policies.actor_critic import ActorCritic
 from imitrl.policies.heads import mlp
 from imitrl.policies.modules import Module
+from imitrl.runtime import paths
 
 __all__ = ["GAILDiscriminator", "PairNetwork", "gail_reward"]
 
@@ -111,6 +112,8 @@ class GAILDiscriminator:
             discriminator_pred=EXPERT_PROBABILITY,
         )
         self.optimizer = torch.optim.Adam(self.loss.parameters(), lr=lr)
+        self.params = [p for g in self.optimizer.param_groups for p in g["params"]]
+        self._steps: dict[bool, Callable[[], None]] = {}
 
     def pairs(self, transitions: TensorDictBase) -> TensorDict:
         """``STATE_FEATURES`` and ``ACTION_FEATURES`` ``[N]`` of transitions ``[N]``."""
@@ -144,20 +147,41 @@ class GAILDiscriminator:
     def update(self, expert: TensorDictBase, policy: TensorDictBase) -> dict[str, float]:
         """One Adam step on ``GAILLoss`` over ``[B]`` expert and ``[B]`` policy transitions;
         returns the loss (penalty included), the penalty and each side's accuracy."""
-        out = self.loss(self.batch(expert, policy))
-        self.optimizer.zero_grad(set_to_none=True)
-        out.get("loss").backward()
-        self.optimizer.step()
-        with torch.no_grad():
-            expert_acc = (self.logits(expert) > 0).float().mean()
-            policy_acc = (self.logits(policy) < 0).float().mean()
-        gp = out.get("gp_loss", torch.zeros(()))
+        batch = self.batch(expert, policy)
+        sides = (batch.exclude(POLICY), batch.get(POLICY))  # each side's pairs
+        fast = paths.gail_loss(self.loss, batch)  # the loss on tensors (same bits), or None
+        if fast is None:
+            out = self.loss(batch)
+            loss, gp = out.get("loss"), out.get("gp_loss", torch.zeros(()))
+        else:
+            loss = fast(*(side.get(k) for side in sides for k in self.module.in_keys))
+            gp = torch.zeros(())
+        for p in self.params:  # the optimizer's zero_grad(set_to_none=True)
+            p.grad = None
+        loss.backward()
+        self._step()
+        with torch.no_grad():  # each side's pairs through D after the step
+            if fast is None:
+                logits = [self.module(side).get(DISCRIMINATOR_LOGIT) for side in sides]
+            else:  # the module's network on the same tensors: its logit output
+                net, names = self.module.module, self.module.in_keys
+                logits = [net(*(side.get(k) for k in names))[0] for side in sides]
+            expert_acc = (logits[0] > 0).float().mean()
+            policy_acc = (logits[1] < 0).float().mean()
         return {
-            "loss": float(out.get("loss").detach()),
+            "loss": float(loss.detach()),
             "grad_penalty": float(gp),
             "expert_accuracy": float(expert_acc),
             "policy_accuracy": float(policy_acc),
         }
+
+    def _step(self) -> None:
+        """The optimizer's step through the seam (Adam's functional form on the CPU, the
+        same bits), made once per path."""
+        key = paths.fast_enabled()
+        if key not in self._steps:
+            self._steps[key] = paths.optimizer_step(self.optimizer)
+        self._steps[key]()
 
     def reward(self, transitions: TensorDictBase) -> torch.Tensor:
         """``[N, 1]`` ``-log(1 - D(s, a))``, without gradient."""

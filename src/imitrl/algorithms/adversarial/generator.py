@@ -102,17 +102,18 @@ class PPOGenerator:
         batch.set(self.loss.tensor_keys.sample_log_prob, log_prob)
         n = batch.numel()
         sums: dict[str, float] = {}
-        # Adam's step through the seam (its functional form on the CPU: the same bits)
-        optimizer_steps = [
-            paths.optimizer_step(o) for o in (self.learner.opt_pi, self.learner.opt_v)
-        ]
+        opts = (self.learner.opt_pi, self.learner.opt_v)
+        owned = [p for o in opts for g in o.param_groups for p in g["params"]]
+        # Adam's step through the seam (its functional form on the CPU, both optimizers
+        # in one call: the same bits), the clip likewise
+        optimizer_step = paths.optimizer_step(*opts)
         fast = paths.ppo_loss(self.loss, batch)  # the loss on tensors (same bits), or None
         gae = paths.gae(self.gae, batch)  # GAE on tensors (same bits), or the module
         for _ in range(self.epochs):
             with torch.no_grad():
                 gae(batch)
             flat = batch.reshape(-1)
-            columns = None if fast is None else self._columns(flat)
+            columns = None if fast is None else fast.columns(flat)
             order = torch.randperm(n, generator=generator)
             sums = {}
             for start in range(0, n, self.minibatch_size):
@@ -123,12 +124,11 @@ class PPOGenerator:
                 else:
                     losses = fast(*(c[rows] for c in columns))
                 total = sum(losses.values())
-                self.learner.opt_pi.zero_grad(set_to_none=True)
-                self.learner.opt_v.zero_grad(set_to_none=True)
+                for p in owned:  # both optimizers' zero_grad(set_to_none=True)
+                    p.grad = None
                 total.backward()
-                torch.nn.utils.clip_grad_norm_(self.params, self.max_grad_norm)
-                for step in optimizer_steps:
-                    step()
+                paths.clip_grad_norm(self.params, self.max_grad_norm)
+                optimizer_step()
                 for k, v in losses.items():
                     sums[k] = sums.get(k, 0.0) + float(v.detach())
         steps = -(-n // self.minibatch_size)
@@ -149,13 +149,3 @@ class PPOGenerator:
         finally:
             for g, lr in zip(groups, own):
                 g["lr"] = lr
-
-    def _columns(self, flat: TensorDictBase) -> tuple[torch.Tensor, ...]:
-        """What :class:`~imitrl.runtime.fast.ppo_step.TensorPPO` reads of the rows: the
-        observation, action, behaviour log-probability, advantage and value target."""
-        k = self.loss.tensor_keys
-        return tuple(
-            flat.get(key)
-            for key in (self.loss.actor_network.in_keys[0], k.action, k.sample_log_prob,
-                        k.advantage, k.value_target)
-        )  # fmt: skip

@@ -25,6 +25,7 @@ from torchrl.modules import ProbabilisticActor
 from torchrl.objectives import ClipPPOLoss
 
 from imitrl.compat import plain_clip_ppo, plain_sampler, ppo_clip_bounds
+from imitrl.runtime.fast.tanh_normal import TanhNormalLogProb
 
 __all__ = ["TensorPPO"]
 
@@ -46,6 +47,7 @@ class TensorPPO:
         self.dist_class, self.dist_kwargs = last.distribution_class, last.distribution_kwargs
         self.names = [k[-1] if isinstance(k, tuple) else k for k in last.dist_keys]
         self.loss = loss
+        self.tanh_normal = TanhNormalLogProb.of(self.dist_class, self.names, self.dist_kwargs)
 
     @classmethod
     def of(cls, loss: ClipPPOLoss, batch: TensorDictBase | None = None) -> TensorPPO | None:
@@ -74,6 +76,17 @@ class TensorPPO:
             return None
         return cls(loss)
 
+    def columns(self, flat: TensorDictBase) -> tuple[torch.Tensor, ...]:
+        """What :meth:`__call__` reads of a batch's rows (index each by the minibatch's
+        rows): the observation, action, behaviour log-probability, advantage and value
+        target."""
+        k = self.loss.tensor_keys
+        return tuple(
+            flat.get(key)
+            for key in (self.loss.actor_network.in_keys[0], k.action, k.sample_log_prob,
+                        k.advantage, k.value_target)
+        )  # fmt: skip
+
     def __call__(
         self,
         obs: torch.Tensor,
@@ -87,8 +100,12 @@ class TensorPPO:
         advantage = (advantage - advantage.mean()) / advantage.std().clamp_min(_RESOLUTION)
         out = self.net(obs)
         out = out if isinstance(out, tuple) else (out,)
-        dist = self.dist_class(**dict(zip(self.names, out)), **self.dist_kwargs)
-        log_weight = (dist.log_prob(action) - old_log_prob).unsqueeze(-1)  # _log_weight
+        if self.tanh_normal is not None:  # its log-probability without the distribution
+            log_prob = self.tanh_normal(*out, action)
+        else:
+            dist = self.dist_class(**dict(zip(self.names, out)), **self.dist_kwargs)
+            log_prob = dist.log_prob(action)
+        log_weight = (log_prob - old_log_prob).unsqueeze(-1)  # _log_weight
         gain1 = log_weight.exp() * advantage
         log_weight_clip = log_weight.clamp(*ppo_clip_bounds(self.loss))
         gain2 = log_weight_clip.exp() * advantage
