@@ -258,3 +258,28 @@ def test_safe_tanh_is_torchrls_with_and_without_a_gradient():
     (ya * w).sum().backward()
     (yb * w).sum().backward()
     assert torch.equal(xa.grad, xb.grad)
+
+
+@pytest.mark.parametrize("shape", [(8, 2), (5, 3, 4), (7,)])
+def test_the_categorical_draw_and_log_prob_are_the_distributions(shape):
+    from imitrl.policies.distributions import GreedyCategorical
+    from imitrl.runtime.fast import categorical
+
+    g = torch.Generator().manual_seed(len(shape))
+    logits = (torch.randn(shape, generator=g) * 5).requires_grad_()
+    torch.manual_seed(11)
+    ref = GreedyCategorical(logits).sample()
+    torch.manual_seed(11)
+    draw = categorical.sample(logits.detach())
+    assert draw.shape == ref.shape and torch.equal(draw, ref)
+    assert not torch.equal(torch.get_rng_state(), torch.manual_seed(11).get_state())  # it drew
+    action = torch.randint(shape[-1], shape[:-1], generator=g)
+    out = [GreedyCategorical(logits).log_prob(action), categorical.log_prob(logits, action)]
+    grads = []
+    for lp in out:
+        (lp * torch.arange(lp.numel()).reshape(lp.shape)).sum().backward()
+        grads.append(logits.grad)
+        logits.grad = None
+    assert torch.equal(out[0], out[1]) and torch.equal(*grads)
+    assert categorical.replays(GreedyCategorical, ["logits"], {})
+    assert not categorical.replays(torch.distributions.Categorical, ["logits"], {})

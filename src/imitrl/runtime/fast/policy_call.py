@@ -59,7 +59,7 @@ from imitrl.policies.distributions import GreedyCategorical
 from imitrl.policies.experts import Expert, _ExecuteExpert
 from imitrl.policies.mixture import BetaMixer
 from imitrl.policies.modules import Module
-from imitrl.runtime.fast import tanh_normal
+from imitrl.runtime.fast import categorical, tanh_normal
 
 __all__ = ["TensorPolicy", "Values", "direct_call"]
 
@@ -280,6 +280,15 @@ class TensorPolicy:
         exploration = self.exploration
         if exploration is ExplorationType.RANDOM:
             self.draws = True
+            if categorical.replays(dist_class, names, dist_kwargs):
+                (logits_key,) = in_keys
+
+                def categorical_step(values: Values) -> None:
+                    params(values)
+                    # sample() without building the distribution (same bits, same draw)
+                    values[out_key] = categorical.sample(values[logits_key])
+
+                return categorical_step
         elif dist_class is GreedyCategorical and names == ["logits"] and not dist_kwargs:
             (logits_key,) = in_keys
 

@@ -11,8 +11,13 @@ no value clipping, no entropy bonus, advantages standardised over the minibatch,
 smooth-L1 critic, mean reduction, no loss masks in the batch), on the same tensors with
 the same operations in the same order: the same losses and gradients, to the bit
 (``tests/test_adversarial_lanes.py`` trains GAIL and AIRL on both paths and compares
-every weight). Any other configuration returns None from :meth:`TensorPPO.of` and
-the generator calls the loss module itself.
+every weight; ``tests/test_fast_ppo.py`` compares losses and gradients for every
+probabilistic head). The log-probability of a tanh-normal or a categorical head is
+computed without building its distribution
+(:class:`~imitrl.runtime.fast.tanh_normal.TanhNormalLogProb`,
+:func:`~imitrl.runtime.fast.categorical.log_prob`: its operations on the same tensors),
+other heads build theirs. Any other configuration returns None from
+:meth:`TensorPPO.of` and the generator calls the loss module itself.
 """
 
 from __future__ import annotations
@@ -25,6 +30,7 @@ from torchrl.modules import ProbabilisticActor
 from torchrl.objectives import ClipPPOLoss
 
 from imitrl.compat import plain_clip_ppo, plain_sampler, ppo_clip_bounds
+from imitrl.runtime.fast import categorical
 from imitrl.runtime.fast.tanh_normal import TanhNormalLogProb
 
 __all__ = ["TensorPPO"]
@@ -48,6 +54,7 @@ class TensorPPO:
         self.names = [k[-1] if isinstance(k, tuple) else k for k in last.dist_keys]
         self.loss = loss
         self.tanh_normal = TanhNormalLogProb.of(self.dist_class, self.names, self.dist_kwargs)
+        self.categorical = categorical.replays(self.dist_class, self.names, self.dist_kwargs)
 
     @classmethod
     def of(cls, loss: ClipPPOLoss, batch: TensorDictBase | None = None) -> TensorPPO | None:
@@ -102,6 +109,8 @@ class TensorPPO:
         out = out if isinstance(out, tuple) else (out,)
         if self.tanh_normal is not None:  # its log-probability without the distribution
             log_prob = self.tanh_normal(*out, action)
+        elif self.categorical:
+            log_prob = categorical.log_prob(*out, action)
         else:
             dist = self.dist_class(**dict(zip(self.names, out)), **self.dist_kwargs)
             log_prob = dist.log_prob(action)
