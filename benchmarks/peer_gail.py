@@ -74,6 +74,7 @@ def main(argv: list[str] | None = None) -> None:
         if not Path(args.peer_python).exists():
             raise SystemExit(f"no python at {args.peer_python}: see peer_imitation.py's docstring")
         peer_versions = runs.peer_versions(args.peer_python)
+    bytecode = None if args.quick else runs.byte_compile_imitrl()
     t0 = time.perf_counter()
     jobs = [(t, s, lib, p) for t in tasks for s in range(seeds) for lib, p in order(args.quick)]
     with tempfile.TemporaryDirectory(prefix="peer-gail-") as tmp:
@@ -108,6 +109,7 @@ def main(argv: list[str] | None = None) -> None:
                 for t in tasks
             },
             "quick": args.quick,
+            "bytecode": bytecode,
             "command": " ".join(["python benchmarks/peer_gail.py", *(argv or sys.argv[1:])]),
         },
         "imitrl_versions": {k: v for k, v in _report.machine().items() if k != "platform"},

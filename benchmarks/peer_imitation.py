@@ -105,7 +105,7 @@ def main(argv: list[str] | None = None) -> None:
     t0 = time.perf_counter()
 
     # -- the peer's venv and its copies of the experts, before anything is timed
-    peer_versions, expert_check = None, None
+    peer_versions, expert_check, bytecode = None, None, None
     if not args.quick:
         if not Path(args.peer_python).exists():
             raise SystemExit(
@@ -115,6 +115,7 @@ def main(argv: list[str] | None = None) -> None:
         peer_versions = runs.peer_versions(args.peer_python)
         expert_check = runs.check_experts(args.peer_python, timeout=args.timeout)
         print(f"experts agree: {expert_check}")
+        bytecode = runs.byte_compile_imitrl()
 
     # -- the timed runs, one fresh process each
     results = runs.run_all(
@@ -142,6 +143,7 @@ def main(argv: list[str] | None = None) -> None:
             "libraries": list(libraries),
             "imitrl_loss": args.imitrl_loss,
             "quick": args.quick,
+            "bytecode": bytecode,
             "peer_python": None if args.quick else args.peer_python,
             "command": " ".join(["python benchmarks/peer_imitation.py", *(argv or sys.argv[1:])]),
         },

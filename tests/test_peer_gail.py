@@ -63,3 +63,16 @@ def test_every_ratio_is_labelled_with_its_protocol_and_judged_per_seed():
     assert summary["own"]["phases"]["outside"]["imitrl"] == [0.25, 0.25]
     assert summary["own"]["phases"]["outside"]["imitation"] == [1.25, 1.25]
     assert "| 0.2 / 0.2 | 1.2 / 1.2 |" in lines[0]
+    # the median and every seed, each judged in its own column
+    uneven = [_run("imitrl", "own", s, w, 500.0) for s, w in enumerate((8.0, 9.0, 11.0))]
+    uneven += [_run("imitation", None, s, 20.0, 480.0) for s in range(3)]
+    own = summarise(uneven)["cartpole"]["own"]
+    assert own["wall_met"] is True and own["wall_met_each_seed"] is False  # 0.55 on seed 2
+    assert summary["own"]["wall_met_each_seed"] is True
+    raw = {"config": {"seeds": 3, "bytecode": "imitrl's modules byte-compiled"},
+           "imitrl_versions": {}, "peer_versions": None, "summary": summarise(uneven),
+           "wall_seconds": 1.0}  # fmt: skip
+    text = markdown(raw)
+    assert "Bytecode: imitrl's modules byte-compiled." in text
+    (line,) = [x for x in text.splitlines() if x.startswith("| cartpole | own")]
+    assert line.split("|")[-4:-1] == [" yes ", " **no** ", " yes "]

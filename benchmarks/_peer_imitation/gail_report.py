@@ -49,6 +49,9 @@ def summarise(runs: list[dict]) -> dict:
                 "phases": phases,
                 "returns": {"imitrl": mine_r, "imitation": peer_r},
                 "wall_met": None if med is None else med <= TARGET,
+                "wall_met_each_seed": (
+                    all(r <= TARGET for r in phases["wall"]["ratios"]) if seeds else None
+                ),
                 "returns_met": (
                     all(ours[s]["returns"]["final"] >= peer[s]["returns"]["final"] for s in seeds)
                     if seeds else None
@@ -79,14 +82,15 @@ def table(summary: dict) -> str:
                 _per_seed(train["ratios"]),
                 _per_seed(outside["imitrl"], 1), _per_seed(outside["imitation"], 1),
                 _per_seed(s["returns"]["imitrl"], 1), _per_seed(s["returns"]["imitation"], 1),
-                _yes(s["wall_met"]), _yes(s["returns_met"]),
+                _yes(s["wall_met"]), _yes(s.get("wall_met_each_seed")), _yes(s["returns_met"]),
             ])  # fmt: skip
     header = [
         "task", "protocol", "imitrl wall s", "imitation wall s", "wall ratio per seed",
         "median wall ratio", "train ratio per seed", "imitrl start + exit s",
         "imitation start + exit s",
         "imitrl return", "imitation return",
-        f"wall <= {TARGET}", "return >= imitation's (each seed)",
+        f"median wall <= {TARGET}", f"wall <= {TARGET} each seed",
+        "return >= imitation's (each seed)",
     ]  # fmt: skip
     return _report.table(header, rows)
 
@@ -108,5 +112,6 @@ def markdown(raw: dict) -> str:
         "imitrl / imitation of the same seed, whole process (wall) and the training phase "
         "alone (train); **protocol** `own`: each library at its own recommended settings; "
         "`matched`: imitrl with imitation's hyperparameters (see the script's docstring)."
+        + (f" Bytecode: {cfg['bytecode']}." if cfg.get("bytecode") else "")
     )
     return "\n\n".join([head, table(raw["summary"])])
