@@ -15,10 +15,12 @@ returns`                                                     of a fixed state ta
 :func:`loss_chain` the actor on a TensorDict                 its plain modules' networks on tensors
 :func:`optimizer_  ``opt.step``                              Adam's functional form on the CPU (its
 step`                                                        wrapper costs as much as a small update),
-                                                             several optimizers in one call
+                                                             several optimizers as one flat call
 :func:`clip_grad_  ``torch.nn.utils.clip_grad_norm_``        its four foreach calls, no wrapper
 norm`
-:func:`ppo_loss`   ``ClipPPOLoss(minibatch)``                ``TensorPPO``: its arithmetic on tensors
+:func:`ppo_loss`   ``ClipPPOLoss(minibatch)``                ``TensorPPO``: its arithmetic on tensors,
+                                                             a tanh-normal's or categorical's log-
+                                                             probability without the distribution
 :func:`gail_loss`  ``GAILLoss(batch)``                       ``TensorGAILLoss``: its arithmetic on the
                                                              four feature tensors
 :func:`gae`        ``GAE(batch)``                            ``TensorGAE``: the value net called once

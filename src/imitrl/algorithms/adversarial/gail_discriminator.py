@@ -19,6 +19,11 @@ actions; zeros at the absorbing state). Its gradient penalty (``use_grad_penalty
 weight ``gp_lambda``) is ``lambda * mean((|grad_x D(x_mix)| - 1)^2)`` at random
 per-entry interpolations ``x_mix`` of the expert and policy feature pairs (so in
 normalised coordinates; float features are what it can interpolate).
+
+A step (:meth:`GAILDiscriminator.update`) computes ``GAILLoss`` through the seam
+(:func:`imitrl.runtime.paths.gail_loss`: without a penalty, its arithmetic on the four
+feature tensors, the same bits), steps Adam through it too, then reports each side's
+accuracy on the same pairs after the step.
 """
 
 from __future__ import annotations

@@ -20,6 +20,7 @@ makes it).
 
 from __future__ import annotations
 
+import functools
 import itertools
 from collections.abc import Callable
 
@@ -121,7 +122,13 @@ class _FlatStep:
     call on the parameters, gradients and moments laid end to end computes each element
     as the calls per tensor do, at one tensor's overhead (a [64, 64] actor-critic's 13
     tensors: about 300 us per step through ``adam`` on the CPU, about 100 us here, one
-    thread). The moments live in flat buffers whose views *are* the optimizers' state
+    thread) -- provided an element's bits do not depend on its position in the tensor.
+    Adam's operations are multiplies, adds, divides, square roots and their compounds
+    (``lerp``, ``addcmul``, ``addcdiv``); a kernel's vectorised loop and its scalar tail
+    could still round a compound differently (a fused multiply-add in one of them), so
+    :func:`_flat_agrees` checks, once per process and setting, that the flat call gives
+    the per-tensor calls' bits on tensors whose sizes leave scalar tails, and the step
+    takes the per-tensor calls where it does not. The moments live in flat buffers whose views *are* the optimizers' state
     (``opt.state[p]["exp_avg"]`` and the others), so ``opt.step()``, ``state_dict()`` and
     this step read and write the same memory; the parameters are gathered into a flat
     buffer and written back each step, the step counts advanced together. Anything else
@@ -169,8 +176,10 @@ class _FlatStep:
         params = self.params
         states = [s.opt.state[p] for s in self.parts for p in s.params]
         steps = [st["step"] for st in states]
+        first = self.parts[0].group
         if (
             any(p.dtype != params[0].dtype for p in params)
+            or not _flat_agrees(tuple(first[k] for k in _SETTINGS), params[0].dtype)
             or any(s.dtype != steps[0].dtype for s in steps)
             or len({float(s) for s in steps}) != 1
             or getattr(self.parts[0].opt, "grad_scale", None) is not None
@@ -196,6 +205,30 @@ class _FlatStep:
         buffer = torch.empty(bounds[-1], dtype=params[0].dtype)
         self.flat = (buffer, views(buffer), moments, steps)
         return self.flat
+
+
+@functools.cache
+def _flat_agrees(settings: tuple, dtype: torch.dtype) -> bool:
+    """Whether one ``adam`` call on tensors laid end to end gives, element for element,
+    the bits of the calls per tensor, with these group settings (:data:`_SETTINGS`'
+    values) and this dtype, on this machine: five steps on tensors of 1, 3, 17, 64 and
+    100 elements (each with a scalar tail in a vectorised loop), gradients of several
+    magnitudes."""
+    group = dict(zip(_SETTINGS, settings), fused=None)
+    g = torch.Generator().manual_seed(0)
+    sizes = (1, 3, 17, 64, 100)
+    params = [torch.randn(n, generator=g, dtype=dtype) for n in sizes]
+    flat = torch.cat(params)
+    lists = [[torch.zeros_like(p) for p in params] for _ in range(3)]
+    flat_lists = [[torch.zeros_like(flat)] for _ in range(3)]
+    if not group["amsgrad"]:
+        lists[2], flat_lists[2] = [], []
+    steps, flat_step = [torch.zeros(()) for _ in sizes], torch.zeros(())
+    for k in range(5):
+        grads = [torch.randn(n, generator=g, dtype=dtype) * 10.0 ** (k - 2) for n in sizes]
+        _adam(None, group, params, grads, [*lists, steps])
+        _adam(None, group, [flat], [torch.cat(grads)], [*flat_lists, [flat_step]])
+    return torch.equal(torch.cat(params), flat)
 
 
 def _adam(opt, group, params, grads, lists) -> None:
