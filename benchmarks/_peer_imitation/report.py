@@ -167,6 +167,8 @@ def markdown(raw: dict) -> str:
     )
     if cfg.get("imitrl_loss", "default") != "default":
         head += f" imitrl's learner: the `{cfg['imitrl_loss']}` registry entry."
+    if cfg.get("bytecode"):
+        head += f" Bytecode: {cfg['bytecode']}."
     returns = (
         "**Returns per seed** (greedy; FrozenLake: the mean return = the success rate over "
         "the evaluation episodes, then the exact success probability in 100 steps)"
