@@ -20,7 +20,6 @@ makes it).
 
 from __future__ import annotations
 
-import functools
 import itertools
 from collections.abc import Callable
 
@@ -46,12 +45,21 @@ def _hooked(opt: torch.optim.Optimizer) -> bool:
     )
 
 
+def _same(a: list, b: list) -> bool:
+    return len(a) == len(b) and all(x is y for x, y in zip(a, b))
+
+
 def optimizer_step(*opts: torch.optim.Optimizer) -> Callable[[], None]:
     """``opt.step()`` for each of ``opts`` in a fit's loop (module docstring): decided once,
     call it per step."""
     steps = [_AdamStep.of(opt) or opt.step for opt in opts]
-    if all(isinstance(s, _AdamStep) for s in steps):
-        return _FlatStep(steps)
+    params = [p for s in steps if isinstance(s, _AdamStep) for p in s.params]
+    if (
+        all(isinstance(s, _AdamStep) for s in steps)
+        and len(params) > 1  # one tensor: nothing to lay end to end
+        and len({id(p) for p in params}) == len(params)  # a shared parameter steps twice
+    ):
+        return _FlatStep(opts, steps)
     if len(steps) == 1:
         return steps[0]
 
@@ -90,9 +98,21 @@ class _AdamStep:
     def ready(self) -> list[torch.Tensor] | None:
         """The gradients, where ``adam`` may step now: every one there and dense, the
         state made (Adam's first step makes it), no hook registered since."""
+        groups = self.opt.param_groups
+        if (
+            len(groups) != 1
+            or groups[0] is not self.group
+            or not _same(groups[0]["params"], self.params)
+        ):
+            return None  # a group added or replaced since: Adam's own step reads them
         grads = [p.grad for p in self.params]
         if any(g is None or g.is_sparse for g in grads) or _hooked(self.opt):
             return None
+        if (
+            self.lists
+            and self.opt.state.get(self.params[0], {}).get("exp_avg") is not self.lists[0][0]
+        ):
+            self.lists.clear()  # the state was replaced (load_state_dict): read it again
         if not self.lists:
             states = [self.opt.state.get(p) for p in self.params]
             if not all(states):
@@ -115,33 +135,41 @@ class _AdamStep:
 
 
 class _FlatStep:
-    """The optimizers' parameters stepped by one ``adam`` call on one flat tensor.
+    """The optimizers' parameters stepped by one ``adam`` call on one flat tensor each.
 
     Adam is elementwise: each parameter's update reads its own gradient, moments and the
     scalars of its step count. Where every group setting and every step count agree, one
-    call on the parameters, gradients and moments laid end to end computes each element
-    as the calls per tensor do, at one tensor's overhead (a [64, 64] actor-critic's 13
-    tensors: about 300 us per step through ``adam`` on the CPU, about 100 us here, one
-    thread) -- provided an element's bits do not depend on its position in the tensor.
-    Adam's operations are multiplies, adds, divides, square roots and their compounds
-    (``lerp``, ``addcmul``, ``addcdiv``); a kernel's vectorised loop and its scalar tail
-    could still round a compound differently (a fused multiply-add in one of them), so
-    :func:`_flat_agrees` checks, once per process and setting, that the flat call gives
-    the per-tensor calls' bits on tensors whose sizes leave scalar tails, and the step
-    takes the per-tensor calls where it does not. The moments live in flat buffers whose views *are* the optimizers' state
-    (``opt.state[p]["exp_avg"]`` and the others), so ``opt.step()``, ``state_dict()`` and
-    this step read and write the same memory; the parameters are gathered into a flat
-    buffer and written back each step, the step counts advanced together. Anything else
-    (a gradient missing, settings or step counts that differ, mixed dtypes) takes each
-    optimizer's own step, and the buffers are laid out anew afterwards.
+    call on each optimizer's parameters, gradients and moments laid end to end computes
+    each element as the calls per tensor do, at a tensor's overhead per optimizer (a
+    [64, 64] actor-critic's 13 tensors in two optimizers: about 300 us per step through
+    ``adam`` per tensor on the CPU, about 150 us here, one thread, load 0.5) -- provided
+    an element's bits do not depend on its position in the tensor. Adam's operations are
+    multiplies, adds, divides, square roots and their compounds (``lerp``, ``addcmul``,
+    ``addcdiv``); a kernel's vectorised loop and its scalar tail could still round a
+    compound differently (a fused multiply-add in one of them), so :func:`_flat_agrees`
+    checks, once per process and setting, that the flat call gives the per-tensor calls'
+    bits on tensors whose sizes leave scalar tails, and the step takes the per-tensor
+    calls where it does not.
+
+    Each optimizer's moments live in flat buffers of its own whose views *are* its state
+    (``opt.state[p]["exp_avg"]`` and the others), so ``opt.step()``, ``state_dict()`` (one
+    optimizer's state saves its own buffers only) and this step read and write the same
+    memory; the parameters are gathered into a flat buffer and written back each step,
+    the step counts advanced together. Anything else (a gradient missing, settings or step
+    counts that differ, mixed dtypes) takes each optimizer's own step, and the buffers are
+    laid out anew afterwards; an optimizer whose groups or state were replaced since
+    (``load_state_dict``, ``add_param_group``) is read afresh.
     """
 
-    def __init__(self, parts: list[_AdamStep]) -> None:
-        self.parts = parts
-        self.params = [p for s in parts for p in s.params]
-        self.flat: tuple | None = None  # parameter buffer, its views, moment buffers, steps
+    def __init__(self, opts: tuple[torch.optim.Optimizer, ...], parts: list[_AdamStep]) -> None:
+        self.opts, self.parts = opts, parts
+        self.layouts: list[_Layout] | None = None
 
     def __call__(self) -> None:
+        if not self._current():
+            for opt in self.opts:
+                opt.step()  # an optimizer this step no longer replays: its own step
+            return
         first = self.parts[0].group
         grads = [s.ready() for s in self.parts]
         if any(g is None for g in grads) or any(
@@ -149,72 +177,120 @@ class _FlatStep:
         ):
             self._each()
             return
-        flat = self.flat or self._lay_out()
-        if flat is None:
+        layouts = self.layouts or self._lay_out()
+        if layouts is None:
             self._each()
             return
-        buffer, views, moments, steps = flat
         with torch.no_grad():
-            torch.cat([p.reshape(-1) for p in self.params], out=buffer)
-            grad = torch.cat([g.reshape(-1) for gs in grads for g in gs])
-            lists = [[m] for m in moments]
+            for lay, part in zip(layouts, self.parts):
+                torch.cat([p.reshape(-1) for p in part.params], out=lay.buffer)
+            flat_grads = [torch.cat([g.reshape(-1) for g in gs]) for gs in grads]
+            lists = [[lay.moments[i] for lay in layouts] for i in range(len(layouts[0].moments))]
             if len(lists) == 2:
                 lists.append([])  # no max_exp_avg_sq without amsgrad
-            _adam(self.parts[0].opt, first, [buffer], [grad], [*lists, steps[:1]])
-            if len(steps) > 1:
-                torch._foreach_add_(steps[1:], 1)
-            torch._foreach_copy_(self.params, views)
+            steps = [lay.steps[0] for lay in layouts]
+            buffers = [lay.buffer for lay in layouts]
+            _adam(self.parts[0].opt, first, buffers, flat_grads, [*lists, steps])
+            others = [t for lay in layouts for t in lay.steps[1:]]
+            if others:
+                torch._foreach_add_(others, 1)
+            torch._foreach_copy_(
+                [p for part in self.parts for p in part.params],
+                [v for lay in layouts for v in lay.views],
+            )
+
+    def _current(self) -> bool:
+        """Whether the optimizers are as this step read them (their group and parameters
+        the same objects); where they are not, read them again, or False where one no
+        longer qualifies. A layout whose state was replaced is dropped."""
+        for k, part in enumerate(self.parts):
+            groups = part.opt.param_groups
+            params = groups[0]["params"] if len(groups) == 1 else []
+            if groups[0] is not part.group or not _same(params, part.params):
+                fresh = _AdamStep.of(part.opt)
+                if fresh is None:
+                    return False
+                self.parts[k], self.layouts = fresh, None
+        if self.layouts is not None and any(
+            part.opt.state.get(part.params[0], {}).get("exp_avg") is not lay.views_of[0]
+            for lay, part in zip(self.layouts, self.parts)
+        ):
+            self.layouts = None  # load_state_dict replaced the state: lay it out again
+            for part in self.parts:
+                part.lists.clear()
+        return True
 
     def _each(self) -> None:
-        self.flat = None  # each optimizer steps on its own: lay out again next time
+        self.layouts = None  # each optimizer steps on its own: lay out again next time
         for step in self.parts:
             step()
 
-    def _lay_out(self) -> tuple | None:
-        """The flat buffers (:class:`_FlatStep`), the state moved into them; None where
-        one call would not compute what the per-tensor calls do."""
-        params = self.params
+    def _lay_out(self) -> list[_Layout] | None:
+        """Each optimizer's flat buffers, its state moved into them; None where one call
+        would not compute what the per-tensor calls do."""
+        params = [p for part in self.parts for p in part.params]
         states = [s.opt.state[p] for s in self.parts for p in s.params]
         steps = [st["step"] for st in states]
         first = self.parts[0].group
+        key = (*(first[k] for k in _SETTINGS if k != "lr"), type(first["lr"]))
         if (
             any(p.dtype != params[0].dtype for p in params)
-            or not _flat_agrees(tuple(first[k] for k in _SETTINGS), params[0].dtype)
+            or not _flat_agrees(key, first["lr"], params[0].dtype)
             or any(s.dtype != steps[0].dtype for s in steps)
             or len({float(s) for s in steps}) != 1
             or getattr(self.parts[0].opt, "grad_scale", None) is not None
             or getattr(self.parts[0].opt, "found_inf", None) is not None
         ):
             return None
-        names = ["exp_avg", "exp_avg_sq"] + (
-            ["max_exp_avg_sq"] if self.parts[0].group["amsgrad"] else []
-        )
+        names = ["exp_avg", "exp_avg_sq"] + (["max_exp_avg_sq"] if first["amsgrad"] else [])
+        self.layouts = [_Layout(part, names) for part in self.parts]
+        for part in self.parts:
+            part.lists.clear()  # their cached state lists held the tensors just replaced
+        return self.layouts
+
+
+class _Layout:
+    """One optimizer's parameters and moments laid end to end (:class:`_FlatStep`): the
+    moments' flat buffers, whose views replace the tensors of its state."""
+
+    def __init__(self, part: _AdamStep, names: list[str]) -> None:
+        params = part.params
+        states = [part.opt.state[p] for p in params]
         bounds = list(itertools.accumulate((p.numel() for p in params), initial=0))
 
         def views(flat: torch.Tensor) -> list[torch.Tensor]:
             return [flat[a:b].view(p.shape) for a, b, p in zip(bounds, bounds[1:], params)]
 
-        moments = []
+        self.moments: list[torch.Tensor] = []
         for name in names:
             flat = torch.cat([st[name].reshape(-1) for st in states])
             for st, view in zip(states, views(flat)):
                 st[name] = view  # the optimizer's state is now a view of the flat buffer
-            moments.append(flat)
-        for part in self.parts:
-            part.lists.clear()  # their cached state lists held the tensors just replaced
-        buffer = torch.empty(bounds[-1], dtype=params[0].dtype)
-        self.flat = (buffer, views(buffer), moments, steps)
-        return self.flat
+            self.moments.append(flat)
+        self.views_of = [st["exp_avg"] for st in states]  # to notice a replaced state
+        self.steps = [st["step"] for st in states]
+        self.buffer = torch.empty(bounds[-1], dtype=params[0].dtype)
+        self.views = views(self.buffer)
 
 
-@functools.cache
-def _flat_agrees(settings: tuple, dtype: torch.dtype) -> bool:
+def _flat_agrees(key: tuple, lr, dtype: torch.dtype) -> bool:
     """Whether one ``adam`` call on tensors laid end to end gives, element for element,
-    the bits of the calls per tensor, with these group settings (:data:`_SETTINGS`'
-    values) and this dtype, on this machine: five steps on tensors of 1, 3, 17, 64 and
-    100 elements (each with a scalar tail in a vectorised loop), gradients of several
-    magnitudes."""
-    group = dict(zip(_SETTINGS, settings), fused=None)
+    the bits of the calls per tensor, with these group settings (``key``: every one of
+    :data:`_SETTINGS` but the learning rate, then its type) and this dtype, on this
+    machine: five steps on tensors of 1, 3, 17, 64 and 100 elements (each with a scalar
+    tail in a vectorised loop), gradients of several magnitudes. Checked once per key, at
+    the first learning rate seen (a rate changes the values, not the kernels)."""
+    if (key, dtype) not in _AGREES:
+        _AGREES[(key, dtype)] = _check_flat(key, lr, dtype)
+    return _AGREES[(key, dtype)]
+
+
+_AGREES: dict[tuple, bool] = {}
+
+
+def _check_flat(key: tuple, lr, dtype: torch.dtype) -> bool:
+    names = [k for k in _SETTINGS if k != "lr"]
+    group = dict(zip(names, key), lr=lr, fused=None)
     g = torch.Generator().manual_seed(0)
     sizes = (1, 3, 17, 64, 100)
     params = [torch.randn(n, generator=g, dtype=dtype) for n in sizes]

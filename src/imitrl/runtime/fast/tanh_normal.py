@@ -108,8 +108,17 @@ class TanhNormalLogProb:
     """
 
     def __init__(self, low: torch.Tensor | None, high: torch.Tensor | None) -> None:
-        self.bounds = TanhNormalAction(low, high).affine
-        self.log_half = None if self.bounds is None else torch.abs(self.bounds[1]).log()
+        self.affine = TanhNormalAction(low, high).affine
+        self._on: dict[torch.device, tuple[torch.Tensor, ...]] = {}
+
+    def _bounds(self, device: torch.device) -> tuple[torch.Tensor, ...]:
+        """``(loc, scale, log |scale|)`` of the affine part on ``device``: moved there, as
+        ``TanhNormal`` moves its bounds to ``loc``'s device, and the log taken there, as
+        ``AffineTransform.log_abs_det_jacobian`` takes it."""
+        if device not in self._on:
+            shift, half = (t.to(device) for t in self.affine)
+            self._on[device] = (shift, half, torch.abs(half).log())
+        return self._on[device]
 
     @classmethod
     def of(cls, dist_class, names: list[str], dist_kwargs: dict) -> TanhNormalLogProb | None:
@@ -122,7 +131,7 @@ class TanhNormalLogProb:
         out = cls(low, high)
         lo = torch.as_tensor(-1.0) if low is None else low
         hi = torch.as_tensor(1.0) if high is None else high
-        u = torch.linspace(0.0, 1.0, 37)[:, None]  # 37 rows: a scalar tail on every width
+        u = torch.linspace(0.0, 1.0, 37, device=lo.device)[:, None]  # a scalar tail on every width
         action = lo + (hi - lo) * u.expand(37, *torch.broadcast_shapes(lo.shape, hi.shape))
         probe = dist_class(torch.zeros_like(action), torch.ones_like(action), **dist_kwargs)
         base = probe.base_dist
@@ -143,14 +152,13 @@ class TanhNormalLogProb:
 
     def action_terms(self, action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The pre-image of ``action`` and the log-Jacobian part of the log-probability."""
-        if self.bounds is not None and self.bounds[0].device != action.device:
-            self.bounds = tuple(t.to(action.device) for t in self.bounds)  # a learner's device
-            self.log_half = self.log_half.to(action.device)
-        y = action if self.bounds is None else (action - self.bounds[0]) / self.bounds[1]
-        x = safe_atanh(y)
-        jacobian = 2.0 * (_LOG_2 - x - F.softplus(-2.0 * x))
-        if self.log_half is not None:
-            jacobian = jacobian + self.log_half.expand(x.shape)
+        if self.affine is None:
+            x = safe_atanh(action)
+            jacobian = 2.0 * (_LOG_2 - x - F.softplus(-2.0 * x))
+        else:
+            shift, half, log_half = self._bounds(action.device)
+            x = safe_atanh((action - shift) / half)
+            jacobian = 2.0 * (_LOG_2 - x - F.softplus(-2.0 * x)) + log_half.expand(x.shape)
         return x, 0.0 - sum_rightmost(jacobian, 1)
 
     def __call__(
