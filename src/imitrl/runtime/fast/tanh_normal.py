@@ -78,9 +78,10 @@ class TanhNormalAction:
 
 class TanhNormalLogProb:
     """``TanhNormal(loc, scale, low=low, high=high).log_prob(action)`` on a minibatch's
-    tensors, without building the distribution (about 0.5 ms a PPO step on Pendulum's
-    batch of 256, load 0.5: the distribution's construction and its transforms' objects
-    cost ten times their arithmetic).
+    tensors, without building the distribution: on Pendulum's batch of 256, 89 us a call
+    against 332 us for ``TanhNormal(...).log_prob`` (one thread, load 0.2; the
+    construction, the transforms' objects and ``Function.apply`` around an arithmetic of
+    about twenty tensor calls).
 
     ``TransformedDistribution.log_prob`` inverts the transforms and sums their
     log-Jacobians on the action, then adds the base ``Independent(Normal)``'s log-density
