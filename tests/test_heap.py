@@ -8,6 +8,7 @@ in-process with the freeze replaced by a recorder.
 
 from __future__ import annotations
 
+import gc
 import json
 import subprocess
 import sys
@@ -63,6 +64,7 @@ TINY = [
 
 def test_the_command_line_freezes_only_a_process_it_owns(monkeypatch, tmp_path):
     events: list[str] = []
+    gcs: list[bool] = []  # whether automatic collection is on, at the import and the run
     monkeypatch.setattr(cli, "freeze_imported", lambda: events.append("freeze") or 0)
     load = cli._load
 
@@ -71,9 +73,11 @@ def test_the_command_line_freezes_only_a_process_it_owns(monkeypatch, tmp_path):
         if not spec.endswith(":run_bc"):
             return got
         events.append("imported")
+        gcs.append(gc.isenabled())
 
         def run(config):
             events.append("run")
+            gcs.append(gc.isenabled())
             return got(config)
 
         return run
@@ -82,7 +86,31 @@ def test_the_command_line_freezes_only_a_process_it_owns(monkeypatch, tmp_path):
     argv = ["bc", *TINY, "--out", str(tmp_path / "given")]
     assert cli.main(argv) == 0  # a caller's argv: the caller's heap is left alone
     assert events == ["imported", "run"]
+    assert gcs == [True, True]  # its collector never paused
     events.clear()
+    gcs.clear()
     monkeypatch.setattr(sys, "argv", ["imitrl", "bc", *TINY, "--out", str(tmp_path / "owned")])
     assert cli.main() == 0  # the console script's call: the command owns the process
     assert events == ["imported", "freeze", "run"]  # after its imports, before it runs
+    assert gcs == [False, True]  # paused for the imports, back for the run
+    assert gc.isenabled()
+
+
+def test_the_collector_pause_restores_what_it_found_even_on_an_error():
+    from imitrl.runtime.heap import collector_paused
+
+    assert gc.isenabled()
+    try:
+        with collector_paused():
+            assert not gc.isenabled()
+            raise ImportError("a missing extra")
+    except ImportError:
+        pass
+    assert gc.isenabled()
+    gc.disable()
+    try:
+        with collector_paused():
+            pass
+        assert not gc.isenabled()  # it was off: it stays off
+    finally:
+        gc.enable()

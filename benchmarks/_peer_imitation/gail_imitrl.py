@@ -3,9 +3,9 @@
     python benchmarks/_peer_imitation/gail_imitrl.py SPEC_JSON RESULT_JSON
 
 ``SPEC_JSON`` is :meth:`gail_tasks.GailTask.spec`. The run is what ``imitrl gail
---num-envs LANES`` does, through the public API, with the spec's settings (after the
-imports, the import-time heap frozen out of the garbage collector's walks, as the command
-does: :mod:`imitrl.runtime.heap`):
+--num-envs LANES`` does, through the public API, with the spec's settings (the imports
+run with the garbage collector paused, then the import-time heap is frozen out of its
+walks, as the command does: :mod:`imitrl.runtime.heap`):
 
 1. setup: the generator's env (``make_env``, ``lanes`` lanes), ``demo_episodes`` greedy
    episodes of the built-in expert (``rollout_episodes``), the learner
@@ -18,9 +18,11 @@ does: :mod:`imitrl.runtime.heap`):
    ``eval_seed``, ``eval_episodes`` episodes.
 """
 
+import gc
 import time
 
 T_START = time.perf_counter()
+gc.disable()  # as the imitrl command imports its modules: the collector paused (runtime.heap)
 
 import json  # noqa: E402
 import sys  # noqa: E402
@@ -41,6 +43,7 @@ from imitrl.jobs.resolve import learner_factory, resolve_loss  # noqa: E402
 from imitrl.runtime.heap import freeze_imported  # noqa: E402
 
 freeze_imported()  # as the imitrl command does once its modules are imported
+gc.enable()
 
 T_IMPORTED = time.perf_counter()
 EXPERTS = {"CartPole-v1": cartpole_expert, "Pendulum-v1": pendulum_expert}

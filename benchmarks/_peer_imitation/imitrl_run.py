@@ -20,16 +20,18 @@ is trained on across rounds (``warm_start=True``), as imitation does. The task's
 4. evaluation: the BC learner and the final learner, ``eval_episodes`` each, on
    ``eval_lanes["imitrl"]`` lanes seeded from ``eval_seed``.
 
-After the imports the import-time heap is frozen out of the garbage collector's walks,
-as the ``imitrl`` command does (:mod:`imitrl.runtime.heap`).
+The imports run with the garbage collector paused, then the import-time heap is frozen
+out of its walks, as the ``imitrl`` command does (:mod:`imitrl.runtime.heap`).
 
 Phases are wall-clock seconds inside this process (``imports`` from the first line of
 this file); the parent measures the whole process.
 """
 
+import gc
 import time
 
 T_START = time.perf_counter()
+gc.disable()  # as the imitrl command imports its modules: the collector paused (runtime.heap)
 
 import json  # noqa: E402
 import sys  # noqa: E402
@@ -50,6 +52,7 @@ from imitrl.runtime.heap import freeze_imported  # noqa: E402
 from imitrl.tabular import TabularMDP, greedy, value_iteration  # noqa: E402
 
 freeze_imported()  # as the imitrl command does once its modules are imported
+gc.enable()
 
 T_IMPORTED = time.perf_counter()
 
