@@ -277,8 +277,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Run the ``imitrl`` command; returns the exit status (2 on bad input).
 
     ``argv`` None (the ``imitrl`` console script, ``python -m imitrl``): the command owns
-    its process, and the import-time heap is frozen before it runs
-    (:mod:`imitrl.runtime.heap`); a caller that passes ``argv`` keeps its heap as it is.
+    its process: it imports its modules with the garbage collector paused and freezes the
+    import-time heap before it runs (:mod:`imitrl.runtime.heap`); a caller that passes
+    ``argv`` keeps its collector and heap as they are.
     """
     owns_process = argv is None
     argv = sys.argv[1:] if argv is None else list(argv)

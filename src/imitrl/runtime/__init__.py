@@ -6,8 +6,9 @@
 * :mod:`imitrl.runtime.threads`: torch's intra-op threads (:func:`set_threads`, default
   :data:`DEFAULT_THREADS` = 1, measured in ``benchmarks/threads.py``) and each worker's
   share when several run at once (:func:`worker_threads`).
-* :mod:`imitrl.runtime.heap`: the import-time heap frozen out of the garbage collector's
-  walks (:func:`~imitrl.runtime.heap.freeze_imported`) in a process imitrl owns.
+* :mod:`imitrl.runtime.heap`: in a process imitrl owns, its imports with the garbage
+  collector paused (:func:`~imitrl.runtime.heap.collector_paused`), then the import-time
+  heap frozen out of the collector's walks (:func:`~imitrl.runtime.heap.freeze_imported`).
 * :mod:`imitrl.runtime.loop`: the one rollout loop (:func:`~imitrl.runtime.loop.play`)
   that collection, relabelling and evaluation share, over a ``Stepper``.
 * :mod:`imitrl.runtime.reference`: the reference stepper, on public TorchRL alone.

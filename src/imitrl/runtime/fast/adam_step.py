@@ -164,6 +164,7 @@ class _FlatStep:
     def __init__(self, opts: tuple[torch.optim.Optimizer, ...], parts: list[_AdamStep]) -> None:
         self.opts, self.parts = opts, parts
         self.layouts: list[_Layout] | None = None
+        self.arguments: tuple = ()  # each step's lists for adam, made with the layouts
 
     def __call__(self) -> None:
         if not self._current():
@@ -181,23 +182,15 @@ class _FlatStep:
         if layouts is None:
             self._each()
             return
+        buffers, lists, others, params, views = self.arguments
         with torch.no_grad():
             for lay, part in zip(layouts, self.parts):
                 torch.cat([p.reshape(-1) for p in part.params], out=lay.buffer)
             flat_grads = [torch.cat([g.reshape(-1) for g in gs]) for gs in grads]
-            lists = [[lay.moments[i] for lay in layouts] for i in range(len(layouts[0].moments))]
-            if len(lists) == 2:
-                lists.append([])  # no max_exp_avg_sq without amsgrad
-            steps = [lay.steps[0] for lay in layouts]
-            buffers = [lay.buffer for lay in layouts]
-            _adam(self.parts[0].opt, first, buffers, flat_grads, [*lists, steps])
-            others = [t for lay in layouts for t in lay.steps[1:]]
+            _adam(self.parts[0].opt, first, buffers, flat_grads, lists)
             if others:
                 torch._foreach_add_(others, 1)
-            torch._foreach_copy_(
-                [p for part in self.parts for p in part.params],
-                [v for lay in layouts for v in lay.views],
-            )
+            torch._foreach_copy_(params, views)
 
     def _current(self) -> bool:
         """Whether the optimizers are as this step read them (their group and parameters
@@ -243,10 +236,21 @@ class _FlatStep:
         ):
             return None
         names = ["exp_avg", "exp_avg_sq"] + (["max_exp_avg_sq"] if first["amsgrad"] else [])
-        self.layouts = [_Layout(part, names) for part in self.parts]
+        layouts = [_Layout(part, names) for part in self.parts]
         for part in self.parts:
             part.lists.clear()  # their cached state lists held the tensors just replaced
-        return self.layouts
+        moments = [[lay.moments[i] for lay in layouts] for i in range(len(names))]
+        if len(moments) == 2:
+            moments.append([])  # no max_exp_avg_sq without amsgrad
+        self.arguments = (  # what each step passes: made once per layout
+            [lay.buffer for lay in layouts],
+            [*moments, [lay.steps[0] for lay in layouts]],  # adam advances these counts
+            [t for lay in layouts for t in lay.steps[1:]],  # ... and the step these
+            params,
+            [v for lay in layouts for v in lay.views],
+        )
+        self.layouts = layouts
+        return layouts
 
 
 class _Layout:
