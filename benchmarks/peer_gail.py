@@ -13,11 +13,13 @@ whole process (launch to exit, measured here) and by phase (imports, setup, trai
 evaluation, measured in the child), labelled with its protocol. The target (issue 31):
 imitrl's whole-process wall time <= 0.5x imitation's with returns at least imitation's.
 
-    python benchmarks/peer_gail.py                  # full run, refreshes the README block
+    python benchmarks/peer_gail.py --imitrl-python /work/imitrl_venv/bin/python
+                                                    # full run, refreshes the README block
     python benchmarks/peer_gail.py --out /tmp/peer  # full run elsewhere, README untouched
     python benchmarks/peer_gail.py --quick          # imitrl's side, tiny budgets, at once
 
-The peer's venv is ``peer_imitation.py``'s (its docstring says how to build it).
+The peer's venv is ``peer_imitation.py``'s, and so is imitrl's (``--imitrl-python``; its
+docstring says how to build both).
 """
 
 from __future__ import annotations
@@ -49,10 +51,10 @@ def order(quick_run: bool) -> list[tuple[str, str | None]]:
     return [("imitrl", "own"), ("imitation", None), ("imitrl", "matched")]
 
 
-def run_one(task, seed, library, protocol, *, peer_python, workdir, timeout) -> dict:
+def run_one(task, seed, library, protocol, *, peer_python, imitrl_python, workdir, timeout) -> dict:
     spec = json.dumps(task.spec(seed, library, protocol or "own"))
     result = workdir / f"{task.name}-{library}-{protocol}-{seed}.json"
-    python = sys.executable if library == "imitrl" else peer_python
+    python = imitrl_python if library == "imitrl" else peer_python
     wall, out = runs._call([python, str(CHILD[library]), spec, str(result)], library, timeout)
     return {"task": task.name, "library": library, "protocol": protocol, "seed": seed,
             "wall": wall, **out}  # fmt: skip
@@ -61,6 +63,11 @@ def run_one(task, seed, library, protocol, *, peer_python, workdir, timeout) -> 
 def main(argv: list[str] | None = None) -> None:
     parser = _report.parser(__doc__)
     parser.add_argument("--peer-python", default=PEER_PYTHON)
+    parser.add_argument(
+        "--imitrl-python", default=sys.executable,
+        help="python of the venv that runs imitrl's children (default: this one; see "
+        "peer_imitation.py's docstring for the recommended one)",
+    )  # fmt: skip
     parser.add_argument("--seeds", type=int, default=None, help="default 3; 1 with --quick")
     parser.add_argument("--tasks", nargs="+", default=list(TASKS), choices=list(TASKS))
     parser.add_argument("--timeout", type=float, default=1800.0)
@@ -74,6 +81,7 @@ def main(argv: list[str] | None = None) -> None:
         if not Path(args.peer_python).exists():
             raise SystemExit(f"no python at {args.peer_python}: see peer_imitation.py's docstring")
         peer_versions = runs.peer_versions(args.peer_python)
+    install = runs.imitrl_install(args.imitrl_python)
     bytecode = None if args.quick else runs.byte_compile_imitrl()
     t0 = time.perf_counter()
     jobs = [(t, s, lib, p) for t in tasks for s in range(seeds) for lib, p in order(args.quick)]
@@ -82,7 +90,8 @@ def main(argv: list[str] | None = None) -> None:
         def one(job) -> dict:
             task, seed, library, protocol = job
             r = run_one(task, seed, library, protocol, peer_python=args.peer_python,
-                        workdir=Path(tmp), timeout=args.timeout)  # fmt: skip
+                        imitrl_python=args.imitrl_python, workdir=Path(tmp),
+                        timeout=args.timeout)  # fmt: skip
             print(
                 f"{task.name} seed {seed} {library:9s} {protocol or '':7s} wall "
                 f"{r['wall']:.2f} s, train {r['phases']['train']:.2f} s, return "
@@ -110,9 +119,13 @@ def main(argv: list[str] | None = None) -> None:
             },
             "quick": args.quick,
             "bytecode": bytecode,
+            "imitrl_install": install,
             "command": " ".join(["python benchmarks/peer_gail.py", *(argv or sys.argv[1:])]),
         },
-        "imitrl_versions": {k: v for k, v in _report.machine().items() if k != "platform"},
+        "imitrl_versions": {
+            **{k: v for k, v in _report.machine().items() if k != "platform"},
+            **install["versions"],  # the stack of the venv that ran imitrl's children
+        },
         "peer_versions": peer_versions,
         "runs": results,
         "summary": summarise(results),

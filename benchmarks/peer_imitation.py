@@ -35,9 +35,20 @@ The peer's venv, outside the repository (``--peer-python`` points at its python)
     /work/peer_venv/bin/pip install imitation torch==2.13.0
 
 (torch first, then pinned again on imitation's line so that pip keeps the CPU build; it
-resolves to imitation 1.0.1, stable-baselines3 2.2.1, gymnasium 0.29.1.) Then::
+resolves to imitation 1.0.1, stable-baselines3 2.2.1, gymnasium 0.29.1.) imitrl's side
+runs likewise from an install of its own requirements, without the extras of the dev
+venv (TorchRL imports ray and mujoco whenever they are installed:
+``runs.imitrl_install``), with this checkout's ``src`` first on its path
+(``--imitrl-python``; the default is the python running the script)::
 
-    python benchmarks/peer_imitation.py                  # full run, refreshes the README block
+    python3 -m venv /work/imitrl_venv
+    /work/imitrl_venv/bin/pip install torch==2.13.0
+    /work/imitrl_venv/bin/pip install -e .
+
+Then::
+
+    python benchmarks/peer_imitation.py --imitrl-python /work/imitrl_venv/bin/python
+                                                         # full run, refreshes the README block
     python benchmarks/peer_imitation.py --out /tmp/peer  # full run elsewhere, README untouched
     python benchmarks/peer_imitation.py --quick          # imitrl's side, tiny budgets, temp dir
     python benchmarks/peer_imitation.py --render /tmp/peer/peer_imitation.json --out /tmp/x
@@ -68,6 +79,12 @@ def main(argv: list[str] | None = None) -> None:
         "--peer-python",
         default=PEER_PYTHON,
         help=f"python of the venv with imitation (default {PEER_PYTHON}; see the docstring)",
+    )
+    parser.add_argument(
+        "--imitrl-python",
+        default=sys.executable,
+        help="python of the venv that runs imitrl's children (default: this one; see the "
+        "docstring for the recommended one)",
     )
     parser.add_argument(
         "--seeds", type=int, default=None, help="seeds per task (default 3; 1 with --quick)"
@@ -104,7 +121,8 @@ def main(argv: list[str] | None = None) -> None:
     libraries = ("imitrl",) if args.quick else runs.LIBRARIES
     t0 = time.perf_counter()
 
-    # -- the peer's venv and its copies of the experts, before anything is timed
+    # -- both venvs and the peer's copies of the experts, before anything is timed
+    install = runs.imitrl_install(args.imitrl_python)
     peer_versions, expert_check, bytecode = None, None, None
     if not args.quick:
         if not Path(args.peer_python).exists():
@@ -127,6 +145,7 @@ def main(argv: list[str] | None = None) -> None:
         concurrent=args.quick,
         protocols=PROTOCOLS,
         imitrl_loss=args.imitrl_loss,
+        imitrl_python=args.imitrl_python,
     )
 
     # -- untimed: FrozenLake's exact values, the experts' returns
@@ -145,9 +164,13 @@ def main(argv: list[str] | None = None) -> None:
             "quick": args.quick,
             "bytecode": bytecode,
             "peer_python": None if args.quick else args.peer_python,
+            "imitrl_install": install,
             "command": " ".join(["python benchmarks/peer_imitation.py", *(argv or sys.argv[1:])]),
         },
-        "imitrl_versions": {k: v for k, v in _report.machine().items() if k != "platform"},
+        "imitrl_versions": {
+            **{k: v for k, v in _report.machine().items() if k != "platform"},
+            **install["versions"],  # the stack of the venv that ran imitrl's children
+        },
         "peer_versions": peer_versions,
         "expert_check": expert_check,
         "runs": results,

@@ -20,6 +20,8 @@ from imitrl.experts import cartpole_expert, pendulum_expert
 from imitrl.jobs.configs import GAILJob
 from imitrl.policies import ActorCritic
 from imitrl.runtime import paths
+from imitrl.runtime.fast import gae_step
+from imitrl.runtime.fast.gae_step import DistinctRows
 from imitrl.runtime.loop import STEP_ROW_KEYS, play_steps
 
 TINY = dict(total_steps=256, rollout_steps=128, ppo_epochs=2, minibatch_size=64,
@@ -241,3 +243,78 @@ def test_gae_on_tensors_refuses_value_modules_and_modes_it_does_not_replay():
         module(ref)
     out = paths.gae(module, wide)(wide.clone())
     assert torch.equal(out.get("advantage"), ref.get("advantage"))
+
+
+# GAE's value network on each observation once (runtime.fast.gae_step.DistinctRows):
+# within a lane, a step's next observation is the following step's unless an episode
+# ended; the distinct call runs only where it gave the stacked call's bits
+def _rowwise(x: torch.Tensor) -> torch.Tensor:
+    """A row's value from that row alone: ``[N, F] -> [N, 1]``."""
+    return (x * torch.arange(1, x.shape[-1] + 1, dtype=x.dtype)).sum(-1, keepdim=True)
+
+
+def test_distinct_rows_give_back_both_ends_of_every_step():
+    g = torch.Generator().manual_seed(0)
+    obs = torch.randn(3, 10, 2, generator=g)
+    nxt = torch.cat([obs[:, 1:], torch.randn(3, 1, 2, generator=g)], 1).clone()
+    nxt[0, 4] = torch.randn(2, generator=g)  # an episode's end: a reset follows
+    nxt[2, 7] = torch.randn(2, generator=g)
+    obs[1, 3, 0], nxt[1, 2, 0] = 0.0, -0.0  # equal as numbers, not as bits
+    rows = DistinctRows.of(obs, nxt, batch_dims=2, time_dim=1)
+    extra = 3 + 3  # each lane's last step, two resets and the signed zero
+    assert rows.n_extra == extra
+    assert rows.inputs.shape == (64, 2)  # 30 + 6 rows, padded to a block
+    value, next_value = rows.values(_rowwise(rows.inputs))
+    assert torch.equal(value, _rowwise(obs.reshape(-1, 2)).reshape(3, 10, 1))
+    assert torch.equal(next_value, _rowwise(nxt.reshape(-1, 2)).reshape(3, 10, 1))
+    assert torch.signbit(rows.inputs[30:36]).any()  # the -0.0 row is its own
+    # not a [*B, T, F] batch with time last: the stacked call
+    assert DistinctRows.of(obs, nxt, batch_dims=2, time_dim=0) is None
+    assert DistinctRows.of(obs[..., None], nxt[..., None], batch_dims=2, time_dim=1) is None
+    assert DistinctRows.of(obs[:, :1], nxt[:, :1], batch_dims=2, time_dim=1) is None
+
+
+def _gae_and_calls(batch, learner):
+    from torchrl.objectives.value import GAE
+
+    module = GAE(gamma=0.97, lmbda=0.9, value_network=learner.value)
+    module.set_keys(reward="learned_reward")
+    fast = paths.gae(module, batch)
+    calls = []
+    net = fast.net
+    fast.net = lambda x: calls.append(x[..., 0].numel()) or net(x)
+    return module, fast, calls
+
+
+def test_the_distinct_call_runs_after_agreeing_once_and_gives_the_modules_bits(monkeypatch):
+    monkeypatch.setattr(gae_step, "_DISTINCT_AGREES", {})
+    batch, learner = _round_batch("CartPole-v1", 3)  # episodes end inside the batch
+    module, fast, calls = _gae_and_calls(batch, learner)
+    ref = batch.clone()
+    with torch.no_grad():
+        module(ref)
+    n = batch.numel()
+    for _ in range(3):
+        out = fast(batch.clone())
+        for key in ("advantage", "value_target", "state_value", ("next", "state_value")):
+            assert torch.equal(out.get(key), ref.get(key)), key
+    assert list(gae_step._DISTINCT_AGREES.values()) == [True]
+    # the first call: the stacked one and the distinct one compared; then distinct only
+    distinct = -(-(n + 3) // 64) * 64
+    assert calls[0] == 2 * n and calls[1] >= distinct and calls[2:] == [calls[1]] * 2
+    assert calls[1] < 2 * n
+
+
+def test_a_signature_whose_calls_disagreed_keeps_the_stacked_call(monkeypatch):
+    batch, learner = _round_batch("Pendulum-v1", 2)
+    module, fast, calls = _gae_and_calls(batch, learner)
+    rows = DistinctRows.of(
+        batch.get("observation"), batch.get(("next", "observation")), batch.ndim, batch.ndim - 1
+    )
+    monkeypatch.setattr(gae_step, "_DISTINCT_AGREES", {rows.signature(fast.params): False})
+    ref = batch.clone()
+    with torch.no_grad():
+        module(ref)
+    for _ in range(2):
+        assert torch.equal(fast(batch.clone()).get("advantage"), ref.get("advantage"))
+    assert calls == [2 * batch.numel()] * 2

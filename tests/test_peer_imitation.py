@@ -125,3 +125,30 @@ def test_each_protocol_is_a_row_of_its_own_and_the_spec_says_what_it_runs():
     assert TASKS["cartpole"].spec(2)["protocol"] == "own"
     with pytest.raises(ValueError, match="protocol must be one of"):
         TASKS["cartpole"].spec(0, "beta_half")
+
+
+def test_imitrl_children_import_this_checkout_and_the_install_is_reported(monkeypatch, tmp_path):
+    """Whichever venv runs imitrl's children, they import this checkout's ``src``
+    (PYTHONPATH first); the report names that venv and its extras, and a venv whose imitrl
+    is another one is refused before anything is timed."""
+    import tensordict
+    import torch
+
+    env = runs._child_env("imitrl")
+    assert env["PYTHONPATH"].split(":")[0] == str(ROOT / "src")
+    assert "PYTHONPATH" not in runs._child_env("imitation")
+    install = runs.imitrl_install(sys.executable)
+    assert Path(install["imitrl"]).resolve() == (ROOT / "src" / "imitrl" / "__init__.py")
+    assert install["versions"]["torch"] == torch.__version__
+    assert install["versions"]["tensordict"] == tensordict.__version__
+    assert set(install["optional_packages"]) <= set(runs.OPTIONAL)
+    from _peer_imitation.report import install_line
+
+    assert "requirements alone" in install_line({**install, "optional_packages": []})
+    assert "with ray, mujoco installed" in install_line(
+        {**install, "optional_packages": ["ray", "mujoco"]}
+    )
+    assert install_line(None) == ""
+    monkeypatch.setattr(runs, "SRC", tmp_path)  # a checkout the venv's imitrl is not from
+    with pytest.raises(RuntimeError, match="imports imitrl from"):
+        runs.imitrl_install(sys.executable)

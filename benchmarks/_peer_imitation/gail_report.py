@@ -5,6 +5,7 @@ from __future__ import annotations
 import statistics
 
 import _report
+from _peer_imitation.report import install_line
 
 NAME = "peer_gail"
 PHASES = ("wall", "imports", "setup", "train", "evaluation", "outside")
@@ -113,5 +114,6 @@ def markdown(raw: dict) -> str:
         "alone (train); **protocol** `own`: each library at its own recommended settings; "
         "`matched`: imitrl with imitation's hyperparameters (see the script's docstring)."
         + (f" Bytecode: {cfg['bytecode']}." if cfg.get("bytecode") else "")
+        + install_line(cfg.get("imitrl_install"))
     )
     return "\n\n".join([head, table(raw["summary"])])

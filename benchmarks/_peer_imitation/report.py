@@ -148,6 +148,15 @@ def returns_table(summary: dict) -> str:
     return _report.table([*RETURN_HEADER, "imitrl >= imitation (median)"], rows)
 
 
+def install_line(install: dict | None) -> str:
+    """One sentence for a report: which venv ran imitrl, and its extras."""
+    if not install:
+        return ""
+    extras = install["optional_packages"]
+    held = f"with {', '.join(extras)} installed" if extras else "imitrl's requirements alone"
+    return f" imitrl's children ran on `{install['python']}` ({held})."
+
+
 def markdown(raw: dict) -> str:
     """The README block: how it was run, the phase table, the returns table."""
     cfg, ours, peer = raw["config"], raw["imitrl_versions"], raw.get("peer_versions")
@@ -169,6 +178,7 @@ def markdown(raw: dict) -> str:
         head += f" imitrl's learner: the `{cfg['imitrl_loss']}` registry entry."
     if cfg.get("bytecode"):
         head += f" Bytecode: {cfg['bytecode']}."
+    head += install_line(cfg.get("imitrl_install"))
     returns = (
         "**Returns per seed** (greedy; FrozenLake: the mean return = the success rate over "
         "the evaluation episodes, then the exact success probability in 100 steps)"

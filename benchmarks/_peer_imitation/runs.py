@@ -45,12 +45,58 @@ def byte_compile_imitrl() -> str:
     return f"imitrl's modules byte-compiled before the timed runs ({root})"
 
 
+SRC = HERE.parents[1] / "src"
+"""this checkout's imitrl: first on every imitrl child's path, whichever venv runs it"""
+
+OPTIONAL = ("ray", "mujoco", "metaworld", "pyarrow", "av", "h5py", "huggingface-hub", "minari")
+"""imitrl's optional dependencies (its extras) worth naming in a report: TorchRL imports
+ray and mujoco at its own import when they are installed"""
+
+
 def _child_env(library: str) -> dict[str, str]:
-    """The environment of a child: the peer's child sees no PYTHONPATH of ours."""
+    """The environment of a child: the peer's child sees no PYTHONPATH of ours; an imitrl
+    child imports this checkout's ``src`` first."""
     env = dict(os.environ)
     if library == "imitation":
         env.pop("PYTHONPATH", None)
+    else:
+        env["PYTHONPATH"] = os.pathsep.join(p for p in (str(SRC), env.get("PYTHONPATH")) if p)
     return env
+
+
+def imitrl_install(python: str, *, timeout: float = 120) -> dict:
+    """What runs imitrl's children: ``python``, the imitrl it imports (this checkout's, or
+    ``RuntimeError``), the versions of its stack and which of :data:`OPTIONAL` its venv
+    holds.
+
+    Each library runs from its own install: the peer from a venv with imitation and what
+    it requires; imitrl from ``python``'s venv. The recommended one for a timed run holds
+    imitrl's requirements alone (no extras; the module docstrings of ``peer_imitation.py``
+    and ``peer_gail.py`` say how to build it): TorchRL imports ray and mujoco whenever
+    they are installed, 0.3-0.35 s more of imports in a venv with every extra (measured
+    on ``imitrl gail``'s imports, 6 alternating runs each, load 0.8-1.0)."""
+    code = (
+        "import json, importlib.metadata as m, imitrl\n"
+        "names = ('torch', 'torchrl', 'tensordict', 'gymnasium', 'numpy')\n"
+        "have = {d.metadata['Name'].lower(): d.version for d in m.distributions()}\n"
+        "print(json.dumps({'imitrl': imitrl.__file__, 'have': have,"
+        " 'versions': {n: have.get(n) for n in names}}))"
+    )
+    proc = subprocess.run(
+        [python, "-c", code], capture_output=True, text=True, timeout=timeout,
+        env=_child_env("imitrl"),
+    )  # fmt: skip
+    if proc.returncode != 0:
+        raise RuntimeError(f"{python} cannot import imitrl: {proc.stderr[-2000:]}")
+    info = json.loads(proc.stdout)
+    if not Path(info["imitrl"]).resolve().is_relative_to(SRC.resolve()):
+        raise RuntimeError(f"{python} imports imitrl from {info['imitrl']}, not from {SRC}")
+    return {
+        "python": python,
+        "imitrl": info["imitrl"],
+        "versions": info["versions"],
+        "optional_packages": [n for n in OPTIONAL if n in info["have"]],
+    }
 
 
 def _call(cmd: list[str], library: str, timeout: float) -> tuple[float, dict]:
@@ -78,12 +124,13 @@ def run_once(
     timeout: float,
     protocol: str = "own",
     imitrl_loss: str = "default",
+    imitrl_python: str = sys.executable,
 ) -> dict:
     """One (task, protocol, library, seed) run as a fresh process: its wall time and report."""
     result = workdir / f"{task.name}-{protocol}-{library}-{seed}.json"
     spec = json.dumps(task.spec(seed, protocol, imitrl_loss))
     if library == "imitrl":
-        cmd = [sys.executable, str(IMITRL_RUN), spec, str(result)]
+        cmd = [imitrl_python, str(IMITRL_RUN), spec, str(result)]
     else:
         cmd = [peer_python, str(PEER_RUN), "run", spec, str(result)]
     wall, out = _call(cmd, library, timeout)
@@ -103,6 +150,7 @@ def run_all(
     concurrent: bool = False,
     protocols: tuple[str, ...] = ("own",),
     imitrl_loss: str = "default",
+    imitrl_python: str = sys.executable,
     log=print,
 ) -> list[dict]:
     """Every (task, seed, protocol), the libraries alternating (imitrl, imitation, imitrl,
@@ -117,6 +165,7 @@ def run_all(
             r = run_once(
                 task, seed, library, peer_python=peer_python, workdir=Path(tmp),
                 timeout=timeout, protocol=protocol, imitrl_loss=imitrl_loss,
+                imitrl_python=imitrl_python,
             )  # fmt: skip
             phases = ", ".join(f"{k} {v:.2f}" for k, v in r["phases"].items())
             log(

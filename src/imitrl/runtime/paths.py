@@ -23,8 +23,8 @@ norm`
                                                              probability without the distribution
 :func:`gail_loss`  ``GAILLoss(batch)``                       ``TensorGAILLoss``: its arithmetic on the
                                                              four feature tensors
-:func:`gae`        ``GAE(batch)``                            ``TensorGAE``: the value net called once
-                                                             on the stacked observations, no vmap
+:func:`gae`        ``GAE(batch)``                            ``TensorGAE``: the value net called once,
+                                                             on each distinct observation, no vmap
 ================== ========================================= ==========================================
 
 On a GPU the CPU tricks step aside for the device's own fast forms: ``optimizer_step``

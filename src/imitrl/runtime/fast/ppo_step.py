@@ -31,6 +31,7 @@ from torchrl.objectives import ClipPPOLoss
 
 from imitrl.compat import plain_clip_ppo, plain_sampler, ppo_clip_bounds
 from imitrl.runtime.fast import categorical
+from imitrl.runtime.fast.policy_call import direct_call
 from imitrl.runtime.fast.tanh_normal import TanhNormalLogProb
 
 __all__ = ["TensorPPO"]
@@ -49,7 +50,9 @@ class TensorPPO:
     def __init__(self, loss: ClipPPOLoss) -> None:
         actor, critic = loss.actor_network, loss.critic_network
         params, last = list(actor.module)
-        self.net, self.value_net = params.module, critic.module
+        # the networks without nn.Module.__call__ per layer (direct_call: the same
+        # operations; decided here, so build a TensorPPO per update, as the generator does)
+        self.net, self.value_net = direct_call(params.module), direct_call(critic.module)
         self.dist_class, self.dist_kwargs = last.distribution_class, last.distribution_kwargs
         self.names = [k[-1] if isinstance(k, tuple) else k for k in last.dist_keys]
         self.loss = loss
