@@ -52,6 +52,13 @@ Then::
     python benchmarks/peer_imitation.py --out /tmp/peer  # full run elsewhere, README untouched
     python benchmarks/peer_imitation.py --quick          # imitrl's side, tiny budgets, temp dir
     python benchmarks/peer_imitation.py --render /tmp/peer/peer_imitation.json --out /tmp/x
+
+The GAIL rows (issue 31: imitrl's ``gail`` against imitation's ``GAIL`` at equal env
+steps, under both protocols) have a harness of their own, ``peer_gail.py``, with its own
+tasks, budgets, results file and README block; ``--gail`` runs it from here, with the
+arguments that follow::
+
+    python benchmarks/peer_imitation.py --gail --seeds 5 --imitrl-python /work/imitrl_venv/bin/python
 """
 
 from __future__ import annotations
@@ -74,11 +81,23 @@ PEER_PYTHON = "/work/peer_venv/bin/python"
 
 
 def main(argv: list[str] | None = None) -> None:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if "--gail" in argv:  # the GAIL rows: peer_gail.py, given the other arguments
+        import peer_gail
+
+        argv.remove("--gail")
+        peer_gail.main(argv)
+        return
     parser = _report.parser(__doc__)
     parser.add_argument(
         "--peer-python",
         default=PEER_PYTHON,
         help=f"python of the venv with imitation (default {PEER_PYTHON}; see the docstring)",
+    )
+    parser.add_argument(
+        "--gail",
+        action="store_true",
+        help="run the GAIL rows instead (peer_gail.py, given the other arguments)",
     )
     parser.add_argument(
         "--imitrl-python",
@@ -165,7 +184,7 @@ def main(argv: list[str] | None = None) -> None:
             "bytecode": bytecode,
             "peer_python": None if args.quick else args.peer_python,
             "imitrl_install": install,
-            "command": " ".join(["python benchmarks/peer_imitation.py", *(argv or sys.argv[1:])]),
+            "command": " ".join(["python benchmarks/peer_imitation.py", *argv]),
         },
         "imitrl_versions": {
             **{k: v for k, v in _report.machine().items() if k != "platform"},

@@ -152,3 +152,16 @@ def test_imitrl_children_import_this_checkout_and_the_install_is_reported(monkey
     monkeypatch.setattr(runs, "SRC", tmp_path)  # a checkout the venv's imitrl is not from
     with pytest.raises(RuntimeError, match="imports imitrl from"):
         runs.imitrl_install(sys.executable)
+
+
+def test_the_gail_rows_run_from_peer_imitation(monkeypatch):
+    """``peer_imitation.py --gail ...`` is ``peer_gail.py ...``: its GAIL rows, the other
+    arguments passed on as given."""
+    import peer_gail
+    import peer_imitation
+
+    seen = []
+    monkeypatch.setattr(peer_gail, "main", seen.append)
+    peer_imitation.main(["--seeds", "5", "--gail", "--imitrl-python", "/x/python"])
+    assert seen == [["--seeds", "5", "--imitrl-python", "/x/python"]]
+    assert "--gail" in peer_imitation.__doc__ and "peer_gail.py" in peer_imitation.__doc__
