@@ -1,6 +1,7 @@
-"""GAIL in imitrl and in HumanCompatibleAI's imitation 1.0.1, at equal env steps, under two protocols.
+"""GAIL and AIRL in imitrl and in HumanCompatibleAI's imitation 1.0.1, at equal env steps, under two protocols.
 
-Issue 31's harness (the DAgger side is ``peer_imitation.py``): CartPole-v1 (24,576 env
+Issue 31's harness (the DAgger side is ``peer_imitation.py``): GAIL, and AIRL (tasks
+``*_airl``, each library's AIRL tutorial or defaults), on CartPole-v1 (24,576 env
 steps, 12 rounds of 2048) and Pendulum-v1 (30,720 steps, 15 rounds; learning rate 1e-3
 and gamma 0.9 on both sides, where both libraries' untuned defaults fail), 10 greedy
 expert demonstrations (the same scripted experts as ``peer_imitation.py``, checked

@@ -11,7 +11,14 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from _peer_imitation.gail_report import markdown, summarise  # noqa: E402
-from _peer_imitation.gail_tasks import IMITATION, IMITRL, TASKS, settings  # noqa: E402
+from _peer_imitation.gail_tasks import (  # noqa: E402
+    IMITATION,
+    IMITATION_AIRL,
+    IMITRL,
+    IMITRL_AIRL,
+    TASKS,
+    settings,
+)
 
 
 def test_own_gives_each_library_its_settings_and_matched_gives_imitrl_imitations():
@@ -31,6 +38,25 @@ def test_own_gives_each_library_its_settings_and_matched_gives_imitrl_imitations
     # equal env steps: whole rounds on both sides, n_steps = rollout_steps / lanes
     for task in TASKS.values():
         assert task.total_steps % task.rollout_steps == 0 and task.rollout_steps % task.lanes == 0
+
+
+def test_airl_rows_take_imitations_airl_tutorial_and_imitrls_airl_defaults():
+    cart, pend = TASKS["cartpole_airl"], TASKS["pendulum_airl"]
+    assert cart.method == pend.method == "airl" and TASKS["cartpole"].method == "gail"
+    assert settings(cart, "imitation", "own") == IMITATION_AIRL
+    assert settings(cart, "imitation", "matched") == IMITATION_AIRL
+    assert settings(cart, "imitrl", "own") == IMITRL_AIRL
+    assert (IMITATION_AIRL["clip_epsilon"], IMITATION_AIRL["discriminator_updates"]) == (0.1, 16)
+    matched = settings(cart, "imitrl", "matched")  # imitation's numbers, imitrl's own w
+    assert {k: matched[k] for k in IMITATION_AIRL} == IMITATION_AIRL
+    assert matched["entropy_weight"] == IMITRL_AIRL["entropy_weight"] == 1.0
+    # Pendulum: the task's lr, gamma and imitrl's recommended w = 0 under both protocols
+    for protocol in ("own", "matched"):
+        s = settings(pend, "imitrl", protocol)
+        assert (s["lr"], s["gamma"], s["entropy_weight"]) == (1e-3, 0.9, 0.0)
+        assert "entropy_weight" not in settings(pend, "imitation", protocol)
+    # imitation's demonstration batch fits in the demonstrations' transitions
+    assert pend.demo_episodes * 200 >= IMITATION_AIRL["discriminator_batch"]
 
 
 def _run(library, protocol, seed, wall, ret):

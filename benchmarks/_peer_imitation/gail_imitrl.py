@@ -1,9 +1,9 @@
-"""imitrl's GAIL side of ``peer_gail.py``: one (task, protocol, seed) run, as a whole process.
+"""imitrl's GAIL and AIRL side of ``peer_gail.py``: one (task, protocol, seed) run, as a whole process.
 
     python benchmarks/_peer_imitation/gail_imitrl.py SPEC_JSON RESULT_JSON
 
 ``SPEC_JSON`` is :meth:`gail_tasks.GailTask.spec`. The run is what ``imitrl gail
---num-envs LANES`` does, through the public API, with the spec's settings (the imports
+--num-envs LANES`` (or ``imitrl airl``, for the task's ``method``) does, through the public API, with the spec's settings (the imports
 run with the garbage collector paused, then the import-time heap is frozen out of its
 walks, as the command does: :mod:`imitrl.runtime.heap`):
 
@@ -13,7 +13,7 @@ walks, as the command does: :mod:`imitrl.runtime.heap`):
    discrete actions,
    ``gaussian_nll``, a tanh-normal with a learned state-independent log-std, for
    continuous ones; hidden 64, 64);
-2. train: :func:`imitrl.algorithms.adversarial.gail` for ``total_steps``;
+2. train: :func:`imitrl.algorithms.adversarial.gail` (or ``airl``) for ``total_steps``;
 3. evaluation: the learner greedy (``evaluate``) on ``eval_lanes`` lanes seeded
    ``eval_seed``, ``eval_episodes`` episodes.
 """
@@ -34,7 +34,7 @@ torch.set_num_threads(1)
 
 from torchrl.envs.utils import ExplorationType  # noqa: E402
 
-from imitrl.algorithms.adversarial import GAILConfig, gail  # noqa: E402
+from imitrl.algorithms.adversarial import AIRLConfig, GAILConfig, airl, gail  # noqa: E402
 from imitrl.data import DemonstrationBuffer, rollout_episodes  # noqa: E402
 from imitrl.envs import make_env  # noqa: E402
 from imitrl.evaluation import evaluate  # noqa: E402
@@ -59,17 +59,26 @@ def run(spec: dict) -> dict:
     buffer.extend(rollout_episodes(demo_env, EXPERTS[env_id](), spec["demo_episodes"]))
     loss = resolve_loss("default", demo_env, probabilistic=True)  # imitrl gail's default
     learner = learner_factory(loss, demo_env, hidden=(64, 64), lr=s["lr"], seed=seed)()
-    config = GAILConfig(
+    fields = dict(
         total_steps=spec["total_steps"], rollout_steps=spec["rollout_steps"],
         ppo_epochs=s["ppo_epochs"], minibatch_size=s["minibatch_size"],
         discriminator_updates=s["discriminator_updates"],
         discriminator_batch=s["discriminator_batch"], discriminator_lr=s["discriminator_lr"],
         discriminator_hidden=tuple(s["discriminator_hidden"]), gamma=s["gamma"], seed=seed,
     )  # fmt: skip
+    if spec["method"] == "airl":
+        config = AIRLConfig(
+            **fields, clip_epsilon=s["clip_epsilon"], entropy_weight=s["entropy_weight"]
+        )
+    else:
+        config = GAILConfig(**fields)
     setup = now() - t0
 
     t0 = now()
-    result = gail(env, learner, buffer, config)
+    if spec["method"] == "airl":
+        result, _ = airl(env, learner, buffer, config)
+    else:
+        result = gail(env, learner, buffer, config)
     train = now() - t0
 
     t0 = now()

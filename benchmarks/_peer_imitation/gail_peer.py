@@ -1,4 +1,4 @@
-"""imitation's GAIL side of ``peer_imitation.py --gail``: runs in the PEER's venv.
+"""imitation's GAIL and AIRL side of ``peer_imitation.py --gail``: runs in the PEER's venv.
 
     PEER_PYTHON gail_peer.py SPEC_JSON RESULT_JSON
 
@@ -16,6 +16,10 @@ env, budget and demonstrations:
    Adam at its default 1e-3); ``GAIL(demo_batch_size=1024,
    gen_replay_buffer_capacity=512, n_disc_updates_per_round=8)`` (``allow_variable_horizon``
    on CartPole, whose episodes end when the pole falls); ``train(total_steps)``;
+   An AIRL task (``method``) runs imitation's AIRL tutorial (``docs/tutorials/4_train_airl``)
+   the same way: PPO also with ``clip_range`` and ``vf_coef`` from the settings,
+   ``BasicShapedRewardNet`` with ``RunningNorm`` (reward and potential hidden layers 32,
+   32), ``AIRL`` with the settings' batch, buffer and discriminator steps;
 3. evaluation: ``evaluate_policy`` greedy on ``eval_lanes`` vector envs seeded
    ``eval_seed`` (as imitation's own scripts evaluate), ``eval_episodes`` episodes.
 """
@@ -34,10 +38,11 @@ import torch  # noqa: E402
 
 torch.set_num_threads(1)
 
+from imitation.algorithms.adversarial.airl import AIRL  # noqa: E402
 from imitation.algorithms.adversarial.gail import GAIL  # noqa: E402
 from imitation.data import rollout  # noqa: E402
 from imitation.data.wrappers import RolloutInfoWrapper  # noqa: E402
-from imitation.rewards.reward_nets import BasicRewardNet  # noqa: E402
+from imitation.rewards.reward_nets import BasicRewardNet, BasicShapedRewardNet  # noqa: E402
 from imitation.util import logger as imit_logger  # noqa: E402
 from imitation.util.networks import RunningNorm  # noqa: E402
 from imitation.util.util import make_vec_env  # noqa: E402
@@ -77,6 +82,8 @@ def run(spec: dict) -> dict:
         rng=rng,
         deterministic_policy=True,
     )[: spec["demo_episodes"]]
+    airl = spec["method"] == "airl"
+    tutorial = {"clip_range": s["clip_epsilon"], "vf_coef": s["vf_coef"]} if airl else {}
     learner = PPO(
         env=venv,
         policy=MlpPolicy,
@@ -88,13 +95,14 @@ def run(spec: dict) -> dict:
         n_steps=spec["rollout_steps"] // lanes,
         seed=seed,
         device="cpu",
+        **tutorial,
     )
-    reward_net = BasicRewardNet(
+    reward_net = (BasicShapedRewardNet if airl else BasicRewardNet)(
         observation_space=venv.observation_space,
         action_space=venv.action_space,
         normalize_input_layer=RunningNorm,
     )
-    trainer = GAIL(
+    trainer = (AIRL if airl else GAIL)(
         demonstrations=demos,
         demo_batch_size=s["discriminator_batch"],
         gen_replay_buffer_capacity=s["gen_replay_buffer_capacity"],

@@ -1,4 +1,4 @@
-"""The GAIL tasks of ``peer_gail.py`` and each side's settings under each protocol.
+"""The GAIL and AIRL tasks of ``peer_gail.py`` and each side's settings under each protocol.
 
 Standard library only: both children (imitrl's, and imitation's in the peer's venv) read
 the settings resolved here from the JSON spec, so the two sides cannot drift apart.
@@ -15,6 +15,16 @@ Two protocols, named beside every ratio:
   rate, gamma, PPO epochs and minibatch, discriminator steps, batch, learning rate (Adam's
   default 1e-3 in imitation) and hidden layers (``BasicRewardNet``'s 32, 32)). imitation
   runs the same in both protocols, so it runs once per (task, seed).
+
+AIRL (tasks ``*_airl``) likewise: imitation's AIRL tutorial (``docs/tutorials/4_train_airl``:
+PPO ``batch_size=64, n_epochs=5, ent_coef=0, clip_range=0.1, vf_coef=0.1``, learning rate
+5e-4, gamma 0.95; ``BasicShapedRewardNet`` with ``RunningNorm``; ``demo_batch_size=2048,
+gen_replay_buffer_capacity=512, n_disc_updates_per_round=16``) against ``imitrl airl``'s
+defaults (``AIRLConfig``: GAIL's, and the generator paid ``f - log pi``), with the
+generator's entropy weight the task's where imitrl recommends one (Pendulum: 0, measured
+in ``beyond_cloning.py``); ``matched`` also gives imitrl imitation's PPO clip (imitrl has
+no value-loss coefficient to set). imitation's ``demo_batch_size`` must not exceed the
+demonstrations' transitions, so Pendulum's AIRL task takes 11 episodes (2,200 rows).
 
 On both sides and in both protocols: ``lanes`` envs stepped together (the tutorial's 8),
 ``rollout_steps`` env steps per round (imitation: PPO ``n_steps = rollout_steps /
@@ -44,6 +54,15 @@ IMITRL = {
     "discriminator_hidden": [64, 64],
 }  # fmt: skip
 """imitrl's defaults (``GAILConfig``, ``ActorCritic``'s learning rate for PPO)"""
+IMITATION_AIRL = {
+    "lr": 5e-4, "gamma": 0.95, "ppo_epochs": 5, "minibatch_size": 64, "clip_epsilon": 0.1,
+    "vf_coef": 0.1, "discriminator_updates": 16, "discriminator_batch": 2048,
+    "discriminator_lr": 1e-3, "discriminator_hidden": [32, 32],
+    "gen_replay_buffer_capacity": 512,
+}  # fmt: skip
+"""imitation's AIRL tutorial (and its defaults where the tutorial is silent)"""
+IMITRL_AIRL = {**IMITRL, "clip_epsilon": 0.2, "entropy_weight": 1.0}
+"""imitrl's defaults (``AIRLConfig``; PPO's clip and the generator's entropy weight)"""
 
 
 @dataclass(frozen=True)
@@ -55,6 +74,10 @@ class GailTask:
     """both libraries' learning rate (None: each its own)"""
     gamma: float | None = None
     """both libraries' discount (None: each its own)"""
+    method: str = "gail"
+    """``gail`` or ``airl``"""
+    entropy_weight: float | None = None
+    """imitrl's AIRL generator's entropy weight on this task (None: its default)"""
     demo_episodes: int = 10
     rollout_steps: int = 2048
     lanes: int = 8
@@ -76,8 +99,12 @@ def settings(task: GailTask, library: str, protocol: str) -> dict:
     """The hyperparameters ``library`` runs ``task`` with under ``protocol``."""
     if protocol not in PROTOCOLS:
         raise ValueError(f"protocol must be one of {PROTOCOLS}, got {protocol!r}")
-    own = IMITATION if library == "imitation" or protocol == "matched" else IMITRL
-    out = dict(own)
+    theirs, ours = (IMITATION_AIRL, IMITRL_AIRL) if task.method == "airl" else (IMITATION, IMITRL)
+    out = dict(theirs if library == "imitation" or protocol == "matched" else ours)
+    if task.method == "airl" and library == "imitrl":  # a knob imitation does not have
+        out["entropy_weight"] = (
+            IMITRL_AIRL["entropy_weight"] if task.entropy_weight is None else task.entropy_weight
+        )
     if task.lr is not None:
         out["lr"] = task.lr
     if task.gamma is not None:
@@ -90,9 +117,20 @@ TASKS = {
     for t in (
         GailTask("cartpole", "CartPole-v1", 24_576),
         GailTask("pendulum", "Pendulum-v1", 30_720, lr=1e-3, gamma=0.9),
+        GailTask("cartpole_airl", "CartPole-v1", 24_576, method="airl"),
+        GailTask(
+            "pendulum_airl",
+            "Pendulum-v1",
+            30_720,
+            lr=1e-3,
+            gamma=0.9,
+            method="airl",
+            entropy_weight=0.0,
+            demo_episodes=11,
+        ),
     )
 }
-"""issue 31's budgets: 12 and 15 rounds of 2048 steps"""
+"""issue 31's budgets: 12 and 15 rounds of 2048 steps, the same for GAIL and AIRL"""
 
 
 def quick(task: GailTask) -> GailTask:
