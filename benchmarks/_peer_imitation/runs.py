@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -75,6 +76,11 @@ def imitrl_install(python: str, *, timeout: float = 120) -> dict:
     and ``peer_gail.py`` say how to build it): TorchRL imports ray and mujoco whenever
     they are installed, 0.3-0.35 s more of imports in a venv with every extra (measured
     on ``imitrl gail``'s imports, 6 alternating runs each, load 0.8-1.0)."""
+    if shutil.which(python) is None:
+        raise RuntimeError(
+            f"no python at {python}: build imitrl's venv as peer_imitation.py's docstring "
+            "says, or pass --imitrl-python"
+        )
     code = (
         "import json, importlib.metadata as m, imitrl\n"
         "names = ('torch', 'torchrl', 'tensordict', 'gymnasium', 'numpy')\n"
