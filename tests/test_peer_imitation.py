@@ -149,7 +149,7 @@ def test_imitrl_children_import_this_checkout_and_the_install_is_reported(monkey
         {**install, "optional_packages": ["ray", "mujoco"]}
     )
     assert install_line(None) == ""
-    with pytest.raises(RuntimeError, match="no python at .*--imitrl-python"):
+    with pytest.raises(RuntimeError, match=r"no python at .*--imitrl-python"):
         runs.imitrl_install(str(tmp_path / "bin" / "python"))
     monkeypatch.setattr(runs, "SRC", tmp_path)  # a checkout the venv's imitrl is not from
     with pytest.raises(RuntimeError, match="imports imitrl from"):
