@@ -105,6 +105,7 @@ def test_imitrl_dagger_resume_after_a_kill_gives_the_uninterrupted_results(tmp_p
     import time
 
     from imitrl.cli import main
+    from imitrl.jobs.output import staging_folder
 
     flags = [
         "dagger", "--env", "CartPole-v1", "--expert", "cartpole", "--demos", "1",
@@ -119,14 +120,14 @@ def test_imitrl_dagger_resume_after_a_kill_gives_the_uninterrupted_results(tmp_p
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
     )
-    manifest = killed / "run" / "manifest.json"
+    manifest = staging_folder(killed) / "run" / "manifest.json"  # the run in progress
     deadline = time.monotonic() + 240
     while not manifest.exists() and proc.poll() is None and time.monotonic() < deadline:
         time.sleep(0.05)
     proc.send_signal(signal.SIGKILL)
     proc.wait()
     assert manifest.exists(), "the run ended before its first checkpoint"
-    assert not (killed / "results.json").exists(), "the run finished before the kill"
+    assert not killed.exists(), "the run finished before the kill"  # --out: finished runs only
     assert main([*flags, "--out", str(killed)]) == 2  # a saved run is not overwritten
     assert main([*flags, "--out", str(killed), "--resume"]) == 0
     whole = json.loads((tmp_path / "whole" / "results.json").read_text())

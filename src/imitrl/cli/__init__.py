@@ -34,7 +34,8 @@ collections over a growing heap, about a second, and the process's exit no longe
 300,000 to 430,000 objects one by one, about another, on this project's machines).
 
 Results and report lines go to stdout, progress bars to stderr; bad input is one
-line on stderr and exit status 2.
+line on stderr and exit status 2; a full disk or a folder that cannot be written is one
+line on stderr and exit status 1 (the outputs as they were).
 
 Import cost: ``imitrl --help`` imports no command; ``imitrl COMMAND ...`` imports that
 command's module alone (:class:`Command`), so ``imitrl --help``, ``imitrl bench`` and
@@ -303,6 +304,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (ValueError, ImportError) as err:  # bad flags, unknown names, missing extras
         print(f"imitrl {args.command}: {err}", file=sys.stderr)
         return 2
+    except OSError as err:  # a full disk, a read-only folder: named, outputs as they were
+        from imitrl.fs.write_errors import DiskFullError, NotWritableError
+
+        if not isinstance(err, DiskFullError | NotWritableError):
+            raise
+        print(f"imitrl {args.command}: {err}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:  # outputs are written whole or not at all (see each job)
         print(f"imitrl {args.command}: interrupted", file=sys.stderr)
         return 130

@@ -41,7 +41,7 @@ from tensordict import MemoryMappedTensor, TensorDict
 from torchrl.data.replay_buffers import LazyMemmapStorage
 
 from imitrl.compat import replace_storage_contents
-from imitrl.fs.disk_full import DiskFullError, is_disk_full, reporting_disk_full
+from imitrl.fs.write_errors import DiskFullError, is_disk_full, reporting_disk_full
 
 __all__ = ["LAYOUT", "DiskLayout", "GrowingMemmapStorage"]
 

@@ -27,7 +27,7 @@ from __future__ import annotations
 import os
 from pathlib import Path, PurePosixPath
 
-__all__ = ["inside", "links_stay_inside", "plain_name", "trusted_bases"]
+__all__ = ["check_relative", "inside", "links_stay_inside", "plain_name", "trusted_bases"]
 
 
 def trusted_bases(root: str | Path) -> tuple[Path, ...]:
@@ -64,6 +64,25 @@ def plain_name(name: object, *, what: str, where: str) -> str:
     return name
 
 
+def check_relative(root: str | Path, relative: object, *, named_by: str) -> tuple[str, ...]:
+    """The parts of ``relative`` when it is a plain relative path (no absolute path, no
+    ``..``, no backslash or NUL); ValueError naming ``root`` and ``named_by`` otherwise.
+    Only the text is checked: :func:`inside` and :class:`imitrl.fs.reading.OpenedFolder`
+    check where it leads."""
+    text = str(relative) if isinstance(relative, os.PathLike | str) else None
+    if not text or "\x00" in text or "\\" in text:
+        raise ValueError(
+            f"{root}: {named_by} names {relative!r}, not a relative path inside the dataset"
+        )
+    parts = PurePosixPath(text).parts
+    if PurePosixPath(text).is_absolute() or ".." in parts or not parts:
+        raise ValueError(
+            f"{root}: {named_by} names {text!r}, outside the dataset folder (an absolute "
+            "path or '..'); a dataset may only name its own files"
+        )
+    return parts
+
+
 def inside(root: str | Path, relative: object, *, named_by: str) -> Path:
     """``root / relative``, once ``relative`` is a plain relative path whose file (links
     followed) lies inside ``root`` (see the module docstring).
@@ -77,18 +96,7 @@ def inside(root: str | Path, relative: object, *, named_by: str) -> Path:
         ValueError: the name is absolute, climbs out with ``..``, holds a backslash or NUL,
             or resolves (through a symbolic link) outside the folder.
     """
-    text = str(relative) if isinstance(relative, os.PathLike | str) else None
-    if not text or "\x00" in text or "\\" in text:
-        raise ValueError(
-            f"{root}: {named_by} names {relative!r}, not a relative path inside the dataset"
-        )
-    parts = PurePosixPath(text).parts
-    if PurePosixPath(text).is_absolute() or ".." in parts or not parts:
-        raise ValueError(
-            f"{root}: {named_by} names {text!r}, outside the dataset folder (an absolute "
-            "path or '..'); a dataset may only name its own files"
-        )
-    path = Path(root, *parts)
+    path = Path(root, *check_relative(root, relative, named_by=named_by))
     real = Path(os.path.realpath(path))
     bases = trusted_bases(root)
     if not _within(real, bases):

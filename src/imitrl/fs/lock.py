@@ -3,9 +3,14 @@
 The lock is ``flock`` on the file ``.<name>.imitrl-lock`` in the path's parent folder:
 the kernel drops it when its holder dies, so a killed writer never leaves a stale lock.
 A second process (or a second thread of this one) that asks for a held lock is refused
-at once with a ``ValueError`` naming the holder; nobody waits. Within one thread the
+at once with a ``ValueError`` naming the holder, unless it asked to wait (``wait``: a
+download into a shared cache waits for the one in progress). Within one thread the
 lock is re-entrant, so a run that holds its checkpoint folder for its whole length
 (:func:`imitrl.algorithms.dagger`) can publish into it after every round.
+
+The lock file is opened without following a link (``O_NOFOLLOW``) and checked on the
+opened descriptor: a symbolic link, a hard link or a FIFO planted at its name is refused
+naming it, and nothing is written through it (:mod:`imitrl.fs.files`).
 
 Where ``fcntl`` is missing (not POSIX), the lock file is created with ``O_EXCL``; a
 killed writer's lock file must then be removed by hand, and the message says so.
@@ -13,11 +18,16 @@ killed writer's lock file must then be removed by hand, and the message says so.
 
 from __future__ import annotations
 
+import errno
 import os
+import sys
 import threading
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
+
+from imitrl.fs.files import PlantedLinkError, check_regular, make_folder
 
 try:
     import fcntl
@@ -31,6 +41,8 @@ LOCK_SUFFIX = ".imitrl-lock"
 _held: dict[Path, tuple[int, int]] = {}
 """locked path -> (holding thread, depth), for this process"""
 _guard = threading.Lock()
+_POLL_S = 0.05
+"""seconds between two tries of a held lock, for a caller that waits"""
 
 
 def absolute(path: str | Path) -> Path:
@@ -48,27 +60,36 @@ def lock_file(target: Path) -> Path:
 
 
 @contextmanager
-def exclusive(path: str | Path, *, what: str = "written") -> Iterator[Path]:
+def exclusive(
+    path: str | Path, *, what: str = "written", wait: float | None = 0.0
+) -> Iterator[Path]:
     """Hold the lock of ``path`` (see the module docstring); yields the absolute path.
 
     Args:
         path: the file or folder to be written (its parent folder is created).
         what: the verb of the refusal, "``path`` is being <what> by another process".
+        wait: seconds to wait for a holder to finish (0: refused at once, the default for
+            writers; None: as long as it takes, as a download into a shared cache waits).
 
     Raises:
-        ValueError: another process or thread holds it.
+        ValueError: another process or thread holds it (past ``wait``).
+        imitrl.fs.files.PlantedLinkError: a symbolic link, a hard link or a special file
+            stands where the lock file goes (nothing is written through it).
     """
     target = absolute(path)
     me = threading.get_ident()
-    with _guard:
-        holder = _held.get(target)
-        if holder is not None:
-            if holder[0] != me:
-                raise ValueError(
-                    f"{target} is being {what} by another thread of this process; one "
-                    "writer per path"
-                )
-            _held[target] = (me, holder[1] + 1)
+    deadline = None if wait is None else time.monotonic() + wait
+    while True:
+        with _guard:
+            holder = _held.get(target)
+            if holder is None or holder[0] == me:
+                _held[target] = (me, 1 if holder is None else holder[1] + 1)
+                break
+        if deadline is not None and time.monotonic() >= deadline:
+            raise ValueError(
+                f"{target} is being {what} by another thread of this process; one writer per path"
+            )
+        time.sleep(_POLL_S)
     if holder is not None:
         try:
             yield target
@@ -76,10 +97,13 @@ def exclusive(path: str | Path, *, what: str = "written") -> Iterator[Path]:
             with _guard:
                 _held[target] = (me, _held[target][1] - 1)
         return
-    target.parent.mkdir(parents=True, exist_ok=True)
-    fd = _acquire(target, what)
-    with _guard:
-        _held[target] = (me, 1)
+    try:
+        make_folder(target.parent)
+        fd = _acquire(target, what, deadline)
+    except BaseException:
+        with _guard:
+            del _held[target]
+        raise
     try:
         yield target
     finally:
@@ -88,30 +112,61 @@ def exclusive(path: str | Path, *, what: str = "written") -> Iterator[Path]:
         _release(target, fd)
 
 
-def _acquire(target: Path, what: str) -> int:
+def _open_lock(lock: Path, flags: int) -> int:
+    """The lock file, opened without following a link; only a regular file of one name."""
+    try:
+        fd = os.open(lock, flags | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC, 0o666)
+    except OSError as err:
+        if err.errno == errno.ELOOP or (err.errno == errno.EEXIST and lock.is_symlink()):
+            raise PlantedLinkError(
+                f"{lock}: a symbolic link stands where imitrl keeps its lock (it points to "
+                f"{_target(lock)}); imitrl never writes through a link: remove it"
+            ) from None
+        raise
+    check_regular(fd, lock, "its lock")
+    return fd
+
+
+def _target(link: Path) -> str:
+    try:
+        return os.readlink(link)
+    except OSError:
+        return "?"
+
+
+def _acquire(target: Path, what: str, deadline: float | None) -> int:
     lock = lock_file(target)
     if fcntl is None:  # pragma: no cover - not POSIX
         try:
-            fd = os.open(lock, os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o644)
+            fd = _open_lock(lock, os.O_RDWR | os.O_CREAT | os.O_EXCL)
         except FileExistsError:
             raise ValueError(
                 f"{target} is being {what} by another process ({lock} exists; if nothing is "
                 "running, a killed writer left it: remove it)"
             ) from None
     else:
+        told = False
         while True:
-            fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
+            fd = _open_lock(lock, os.O_RDWR | os.O_CREAT)
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:
                 holder = os.pread(fd, 200, 0).decode(errors="replace").strip() or "?"
                 os.close(fd)
-                raise ValueError(
-                    f"{target} is being {what} by another process ({holder}, holding {lock}); "
-                    "one writer per path"
-                ) from None
+                if deadline is not None and time.monotonic() >= deadline:
+                    raise ValueError(
+                        f"{target} is being {what} by another process ({holder}, holding "
+                        f"{lock}); one writer per path"
+                    ) from None
+                if not told:
+                    print(
+                        f"imitrl: waiting for {holder} ({target} is being {what})", file=sys.stderr
+                    )
+                    told = True
+                time.sleep(_POLL_S)
+                continue
             try:  # the previous holder may have removed the file before we locked it: retry
-                if os.stat(lock).st_ino == os.fstat(fd).st_ino:
+                if os.stat(lock, follow_symlinks=False).st_ino == os.fstat(fd).st_ino:
                     break
             except FileNotFoundError:
                 pass

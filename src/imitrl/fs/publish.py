@@ -31,6 +31,9 @@ removed) is removed; an ``old`` directory beside a missing destination is the pr
 one caught between the two renames and is moved back; beside a present destination it
 is what a finished swap had not yet removed, and is removed. Each is named in a warning.
 
+The temporary directory is made with the user's umask (not ``mkdtemp``'s 0700), so the
+published directory has the permissions any other program's output would have there.
+
 The working directory, or any directory holding it, is never replaced.
 """
 
@@ -42,16 +45,16 @@ import os
 import re
 import secrets
 import shutil
-import tempfile
 import warnings
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-from imitrl.fs.disk_full import reporting_disk_full
+from imitrl.fs.files import new_sibling
 from imitrl.fs.lock import absolute, exclusive
+from imitrl.fs.write_errors import reporting_disk_full
 
-__all__ = ["OLD", "TMP", "exchange", "fsync_dir", "publishing"]
+__all__ = ["OLD", "TMP", "exchange", "fsync_dir", "publishing", "recover", "swap_in"]
 
 TMP = ".imitrl-tmp-"
 OLD = ".imitrl-old-"
@@ -72,7 +75,7 @@ def _leftovers(target: Path, mark: str) -> list[Path]:
     return sorted(p for p in target.parent.iterdir() if pattern.fullmatch(p.name))
 
 
-def _recover(target: Path) -> None:
+def recover(target: Path) -> None:
     """Finish or undo what a killed writer of ``target`` left (the lock is held)."""
     done: list[str] = []
     for tmp in _leftovers(target, TMP):
@@ -144,7 +147,7 @@ def exchange(a: Path, b: Path) -> bool:
     raise OSError(code, os.strerror(code), str(b))
 
 
-def _swap_in(tmp: Path, target: Path) -> None:
+def swap_in(tmp: Path, target: Path) -> None:
     """``tmp`` becomes ``target``; an existing ``target`` ends at ``tmp`` (exchange) or is
     moved aside and removed (two renames; moved back if the second fails)."""
     if not os.path.lexists(target):
@@ -195,14 +198,14 @@ def publishing(
     target = absolute(path)
     _refuse_working_directory(target, path)
     with exclusive(target), reporting_disk_full(target, what=what):
-        _recover(target)
+        recover(target)
         _check_destination(target, path, overwrite, replaceable, empty_ok)
-        tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}{TMP}", dir=target.parent))
+        tmp = new_sibling(target, TMP)  # the user's umask, as the published folder keeps
         try:
             yield tmp
             fsync_dir(tmp)
             _check_destination(target, path, overwrite, replaceable, empty_ok)  # others
-            _swap_in(tmp, target)
+            swap_in(tmp, target)
             fsync_dir(target.parent)
         finally:
             if tmp.exists():

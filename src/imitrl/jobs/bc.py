@@ -84,12 +84,21 @@ class Setup:
     loss: str
     """what ``--loss`` resolved to for the env (:func:`~imitrl.jobs.resolve.resolve_loss`:
     a registry entry, or ``for_env``): what the run records and a checkpoint rebuilds"""
+    folder: Path
+    """where the run writes until it finishes (staged beside ``--out``, which it then
+    replaces: :mod:`imitrl.jobs.output`)"""
 
 
 def prepare(
-    config: BCJob, name: str, *, keep_logs: bool = False, probabilistic: bool = False
+    config: BCJob,
+    name: str,
+    folder: Path,
+    *,
+    keep_logs: bool = False,
+    probabilistic: bool = False,
 ) -> Setup:
-    """Resolve and check every flag of ``config`` before any work (ValueError otherwise).
+    """Resolve and check every flag of ``config`` before any work (ValueError otherwise);
+    the run will write into ``folder`` (:func:`imitrl.jobs.output.claimed`'s).
 
     ``keep_logs``: append to the command's earlier CSV logs (a resumed run) instead of
     starting them afresh; ``probabilistic``: the job needs ``log pi`` (``--loss default``
@@ -115,8 +124,8 @@ def prepare(
     )
     if config.dataset is not None:
         dataset_format(config.dataset)
-    logger = make_logger(config.logger, config.out, name, fresh=not keep_logs)
-    return Setup(env, limit, expert, make_learner, logger, loss)
+    logger = make_logger(config.logger, folder, name, fresh=not keep_logs)
+    return Setup(env, limit, expert, make_learner, logger, loss, folder)
 
 
 def demonstrations(config: BCJob, setup: Setup) -> DemonstrationBuffer:
@@ -184,16 +193,21 @@ def log_evaluation(logger: Logger, round_index: int, ev: dict, expert: dict | No
 
 
 def finish(config: BCJob, name: str, learner: Learner, results: dict, setup: Setup) -> None:
-    """Write results.json, the checkpoint and curves.png; close the env and the logger."""
+    """Write results.json, the checkpoint and curves.png into the run's folder (they
+    name their place in ``--out``, where the run is published); close the env and the
+    logger."""
     setup.env.close()
     setup.logger.shutdown()
     curves = plot_curves(
-        scalars_dir(config.out, name),
-        config.out / "curves.png",
+        scalars_dir(setup.folder, name),
+        setup.folder / "curves.png",
         title=f"imitrl {name} on {config.env} (loss {config.loss}, seed {config.seed})",
     )
-    results["files"] = {"curves": str(curves), "logs": str(config.out / "logs")}
-    save_run(config.out, name, config, learner, results)
+    results["files"] = {
+        "curves": str(config.out / curves.name),
+        "logs": str(config.out / "logs"),
+    }
+    save_run(setup.folder, name, config, learner, results)
 
 
 def run_bc(config: BCJob) -> dict:
@@ -201,13 +215,13 @@ def run_bc(config: BCJob) -> dict:
 
     ``--out`` follows :mod:`imitrl.jobs.output`'s rule: a previous run there is refused
     unless ``--overwrite``, and a second run writing it meanwhile is refused at once."""
-    with claimed(config.out, overwrite=config.overwrite):
-        return _run_bc(config)
+    with claimed(config.out, overwrite=config.overwrite) as folder:
+        return _run_bc(config, folder)
 
 
-def _run_bc(config: BCJob) -> dict:
+def _run_bc(config: BCJob, folder: Path) -> dict:
     start = time.perf_counter()
-    setup = prepare(config, "bc")
+    setup = prepare(config, "bc", folder)
     config = replace(config, loss=setup.loss)  # recorded as resolved: --loss default's entry
     buffer = demonstrations(config, setup)
     learner = setup.make_learner()

@@ -56,14 +56,14 @@ def run_dagger(config: DAggerJob) -> dict:
     ``--out`` follows :mod:`imitrl.jobs.output`'s rule: a previous run there is refused
     unless ``--overwrite`` or ``--resume``, and a second run writing it meanwhile is
     refused at once."""
-    with claimed(config.out, overwrite=config.overwrite, resume=config.resume):
-        return _run_dagger(config)
+    with claimed(config.out, overwrite=config.overwrite, resume=config.resume) as folder:
+        return _run_dagger(config, folder)
 
 
-def _run_dagger(config: DAggerJob) -> dict:
+def _run_dagger(config: DAggerJob, folder: Path) -> dict:
     start = time.perf_counter()
-    checkpoint = config.out / "run"
-    setup = prepare(config, "dagger", keep_logs=config.resume)
+    checkpoint = folder / "run"
+    setup = prepare(config, "dagger", folder, keep_logs=config.resume)
     config = dataclasses.replace(config, loss=setup.loss)  # recorded as resolved
     if setup.expert is None:  # --expert auto with a --dataset, on an env without one
         raise ValueError(no_expert_message(config.env))

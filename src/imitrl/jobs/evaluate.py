@@ -197,9 +197,13 @@ def run_eval(config: EvalJob) -> dict:
         progress=config.progress,
     )
     results = {"policy": name, "env": env_id, "evaluation": ev}
-    if config.out is not None:
-        config.out.mkdir(parents=True, exist_ok=True)
-        (config.out / "eval.json").write_text(json.dumps(results, indent=2) + "\n")
+    if config.out is not None:  # written whole, never through a link (imitrl.fs.files)
+        from imitrl.fs.files import make_folder, replace_file
+        from imitrl.fs.write_errors import reporting_disk_full
+
+        with reporting_disk_full(config.out, what="eval.json", left="--out is as it was"):
+            make_folder(config.out)
+            replace_file(config.out / "eval.json", json.dumps(results, indent=2) + "\n")
     return results
 
 

@@ -84,13 +84,13 @@ def _evaluator(config: GAILJob, bc_view: BCJob, setup: Setup, evaluations: list)
 
 
 def _run(config: GAILJob, name: str) -> dict:
-    with claimed(config.out, overwrite=config.overwrite):  # imitrl.jobs.output's rule
-        return _train(config, name)
+    with claimed(config.out, overwrite=config.overwrite) as folder:  # jobs.output's rule
+        return _train(config, name, folder)
 
 
-def _train(config: GAILJob, name: str) -> dict:
+def _train(config: GAILJob, name: str, folder: Path) -> dict:
     start = time.perf_counter()
-    setup = prepare(config.bc_view(config.loss), name, probabilistic=True)
+    setup = prepare(config.bc_view(config.loss), name, folder, probabilistic=True)
     loss = setup.loss  # --loss default: a head with log pi (imitrl.objectives.defaults)
     bc_view = config.bc_view(loss)
     learner = _learner(setup)

@@ -1,16 +1,31 @@
 """One rule for a job's ``--out`` (:func:`claimed`), the same for every command.
 
-* ``--out`` absent or empty: the run writes there.
-* ``--out`` holding a previous run's files (:data:`RUN_FILES`): refused, unless
-  ``--overwrite`` (those files are removed when the new run starts) or, for ``imitrl
-  dagger``, ``--resume`` (the saved run continues).
+A run never writes into ``--out`` while it runs. It writes into a staging folder beside
+it, ``.<name>.imitrl-run``, and when it finishes that folder takes ``--out``'s place in
+one step (:func:`imitrl.fs.publish.swap_in`: an atomic exchange), as every dataset and
+checkpoint writer of this library does. So:
+
+* a kill, an error or a full disk at any instant leaves ``--out`` as it was: a finished
+  run there (with ``--overwrite``) is whole until the new one is;
+* ``--out`` holds only finished runs (``results.json`` is their mark), so a failed or
+  killed run never blocks its own rerun;
+* ``--out`` absent or empty: the run is published there;
+* ``--out`` holding a finished run: refused unless ``--overwrite`` (it is replaced when
+  the new run finishes) or, for ``imitrl dagger``, ``--resume`` (the saved run continues);
 * ``--out`` holding anything else (a user's files): refused, with or without
   ``--overwrite``: a run never deletes what it did not write.
 
-The run holds ``--out``'s lock (:func:`imitrl.fs.exclusive`) from the check to its last
-file, so a second run given the same ``--out`` is refused at once instead of mixing
-its files with the first's. (``imitrl frozenlake`` replaces its own previous output
-atomically: :mod:`imitrl.experiments.frozenlake.outputs`.)
+The staging folder of a run that did not finish is removed by the next run of the same
+``--out`` (with a warning), except when it holds a DAgger checkpoint (``run/``): that is
+saved work, so the next run is refused unless ``--resume`` (it continues there) or
+``--overwrite`` (it is discarded). Logs of a run in progress are in its staging folder
+(the command says where on stderr).
+
+The run holds ``--out``'s lock (:func:`imitrl.fs.exclusive`) from the check to the
+exchange, so a second run given the same ``--out`` is refused at once. The staging
+folder is made with the user's umask; a planted symbolic link at it, at ``--out`` or at
+the lock is refused, naming it (:mod:`imitrl.fs.files`). (``imitrl frozenlake`` stages
+its output the same way: :mod:`imitrl.experiments.frozenlake.outputs`.)
 """
 
 from __future__ import annotations
@@ -18,19 +33,29 @@ from __future__ import annotations
 import os
 import re
 import shutil
+import sys
+import warnings
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
+from imitrl.fs.files import PlantedLinkError
 from imitrl.fs.lock import LOCK_SUFFIX, exclusive
-from imitrl.fs.publish import OLD, TMP
+from imitrl.fs.publish import OLD, TMP, fsync_dir, recover, swap_in
+from imitrl.fs.write_errors import DiskFullError, reporting_disk_full
 
-__all__ = ["RUN_FILES", "claimed"]
+__all__ = ["FINISHED", "RUN_FILES", "STAGE", "claimed", "staging_folder"]
 
 RUN_FILES = frozenset(
     {"config.json", "learner.pt", "results.json", "curves.png", "logs", "run", "eval.json"}
 )
 """what ``imitrl bc/dagger/gail/airl`` write into ``--out`` (``run/``: DAgger's checkpoint)"""
+
+FINISHED = "results.json"
+"""a run's last file: a folder holding it holds a finished run"""
+
+STAGE = ".imitrl-run"
+"""``.<name>.imitrl-run`` beside ``--out``: the run in progress"""
 
 _LEFTOVER = re.compile(
     r"\.[^/]+("
@@ -40,51 +65,126 @@ _LEFTOVER = re.compile(
 """what a killed writer of a run file leaves beside it (:mod:`imitrl.fs`): imitrl's own"""
 
 
-def _check(out: Path, overwrite: bool, resume: bool) -> None:
-    if out.is_symlink() or (out.exists() and not out.is_dir()):
-        raise ValueError(f"--out {out} is not a folder (a file or a link): give a folder")
-    entries = sorted(os.listdir(out)) if out.is_dir() else []
+def staging_folder(out: Path) -> Path:
+    """Where a run of ``--out`` writes until it finishes."""
+    return out.parent / f".{out.name}{STAGE}"
+
+
+def _entries(folder: Path, name: str) -> list[str]:
+    if folder.is_symlink():
+        raise PlantedLinkError(
+            f"{name} {folder} is a symbolic link (to {os.readlink(folder)}); a run writes "
+            "only into a folder of its own: give a folder"
+        )
+    if folder.exists() and not folder.is_dir():
+        raise ValueError(f"{name} {folder} is not a folder (a file): give a folder")
+    return sorted(os.listdir(folder)) if folder.is_dir() else []
+
+
+def _check(out: Path, overwrite: bool, resume: bool) -> bool:
+    """Apply the module's rule to ``--out``; whether it holds a finished run."""
+    entries = _entries(out, "--out")
     if not entries:
-        return
+        return False
     foreign = [e for e in entries if e not in RUN_FILES and not _LEFTOVER.fullmatch(e)]
     if foreign:
         raise ValueError(
             f"--out {out} holds files an imitrl run did not write ({', '.join(foreign[:5])}); "
             "a run never deletes them: give another --out"
         )
-    if resume:
-        return
-    if not overwrite:
+    finished = FINISHED in entries
+    if finished and not (overwrite or resume):
         more = ", --resume to continue it" if "run" in entries else ""
         raise ValueError(
-            f"--out {out} holds a previous run ({', '.join(entries)}): pass --overwrite to "
-            f"replace it{more}, or give another --out"
+            f"--out {out} holds a previous run, finished ({', '.join(entries)}): pass --overwrite to "
+            f"replace it (it stays whole until the new run finishes){more}, or give another "
+            "--out"
         )
-    for name in entries:
-        path = out / name
-        shutil.rmtree(path) if path.is_dir() else path.unlink()
+    return finished
+
+
+def _resumable(stage: Path) -> bool:
+    return (stage / "run").is_dir()
+
+
+def _stage(out: Path, overwrite: bool, resume: bool, finished: bool) -> Path:
+    """The folder the run writes into (module docstring)."""
+    stage = staging_folder(out)
+    left = _entries(stage, "the staging folder")
+    if os.path.lexists(stage):
+        if resume:
+            print(f"imitrl: continuing the unfinished run in {stage}", file=sys.stderr)
+            return stage
+        if _resumable(stage) and not overwrite:
+            raise ValueError(
+                f"--out {out}: a run was stopped before it finished and its DAgger checkpoint "
+                f"lies in {stage}: pass --resume to continue it, --overwrite to discard it, or "
+                "give another --out"
+            )
+        shutil.rmtree(stage)
+        warnings.warn(
+            f"{out}: removed an unfinished run's files ({', '.join(left) or 'empty'}) from "
+            f"{stage.name}: it was killed or failed",
+            UserWarning,
+            stacklevel=4,
+        )
+    if resume and finished and (out / "run").is_dir():
+        shutil.copytree(out, stage, symlinks=True)  # the finished run continues, a copy
+    else:
+        os.mkdir(stage, 0o777)  # the user's umask, as the published run keeps
+    return stage
+
+
+def _publish(stage: Path, out: Path) -> None:
+    fsync_dir(stage)
+    swap_in(stage, out)  # ``out`` absent: a rename; present: an atomic exchange
+    if stage.exists():  # the replaced run, now at the staging name
+        shutil.rmtree(stage)
+    fsync_dir(out.parent)
 
 
 @contextmanager
 def claimed(out: Path, *, overwrite: bool, resume: bool = False) -> Iterator[Path]:
-    """Hold ``out`` for a run and apply the module's rule; yields ``out``.
+    """Hold ``out`` for a run and apply the module's rule; yields the folder the run
+    writes into, published as ``out`` when the block ends without error.
 
     Raises:
-        ValueError: ``out`` is a file or a link, holds a previous run (without
-            ``overwrite`` or ``resume``) or foreign files, or another run holds it.
+        ValueError: ``out`` is a file or a link, holds a finished run (without
+            ``overwrite`` or ``resume``) or foreign files, an unfinished DAgger run lies
+            beside it (without ``resume`` or ``overwrite``), or another run holds it.
+        imitrl.fs.DiskFullError, imitrl.fs.NotWritableError: the file system refused the
+            run's files; ``out`` is as it was.
     """
     out = Path(out).expanduser()
     made = [p for p in (out, *out.absolute().parents) if not p.exists()]  # deepest first
+    stage: Path | None = None
     try:
-        with exclusive(out, what="written by another imitrl run"):
-            _check(out, overwrite, resume)
-            yield out
-    except BaseException:
-        for folder in made:  # a run refused or failed before writing leaves no folders
-            if not folder.is_dir():
-                continue
-            try:
-                folder.rmdir()
-            except OSError:
-                break  # not empty: the run wrote there, and what it wrote stays
+        with (
+            exclusive(out, what="written by another imitrl run"),
+            reporting_disk_full(out, what="the run's files", left="--out is as it was"),
+        ):
+            recover(out)  # a killed exchange of an earlier run (imitrl.fs.publish)
+            finished = _check(out, overwrite, resume)
+            stage = _stage(out, overwrite, resume, finished)
+            yield stage
+            _publish(stage, out)
+    except BaseException as err:
+        _clean_up(stage, made, err)
         raise
+
+
+def _clean_up(stage: Path | None, made: list[Path], err: BaseException) -> None:
+    """After a failed or refused run: its staging folder goes, unless it holds a DAgger
+    checkpoint (saved work, continued by ``--resume``); folders made for it go if empty."""
+    if stage is not None and stage.is_dir() and not _resumable(stage):
+        shutil.rmtree(stage, ignore_errors=True)
+    elif stage is not None and stage.is_dir() and not isinstance(err, DiskFullError):
+        print(f"imitrl: the unfinished run is kept in {stage} (--resume continues it)",
+              file=sys.stderr)  # fmt: skip
+    for folder in made:  # a run refused or failed before writing leaves no folders
+        if not folder.is_dir():
+            continue
+        try:
+            folder.rmdir()
+        except OSError:
+            break  # not empty: something else was written there, and it stays

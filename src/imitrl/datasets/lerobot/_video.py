@@ -37,7 +37,7 @@ from imitrl.datasets._common import NestedKey
 from imitrl.datasets.lerobot._checks import TOLERANCE_S
 from imitrl.datasets.lerobot._layout import IMAGE_NAMES, fill_template
 from imitrl.fs.contained import plain_name
-from imitrl.fs.disk_full import reporting_disk_full
+from imitrl.fs.write_errors import reporting_disk_full
 
 INSTALL_HINT = "pip install 'imitrl[datasets]' (or: pip install av)"
 

@@ -1,4 +1,7 @@
-"""A full disk named as such: which path was being written, and what is left there.
+"""A write the file system refuses, named as such: a full disk, or a folder imitrl may
+not write (read-only, or another user's).
+
+A full disk:
 
 The libraries underneath report a full file system each in their own way: ``OSError``
 with ``errno`` 28 (``ENOSPC``) or 122 (``EDQUOT``) and no file name from ``os.write``
@@ -9,6 +12,10 @@ names the destination, the free space on its file system, and what the writer le
 the writers of this library stage their files beside the destination and publish them
 only when complete (:mod:`imitrl.fs.publish`), so a full disk leaves the previous
 contents whole.
+
+A folder that cannot be written (``EACCES``, ``EPERM`` or ``EROFS`` from any of them)
+becomes one :class:`NotWritableError` (an ``OSError``) naming the destination and the
+folder refused, so the command line prints one line instead of a traceback.
 """
 
 from __future__ import annotations
@@ -20,7 +27,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-__all__ = ["DiskFullError", "is_disk_full", "reporting_disk_full"]
+__all__ = ["DiskFullError", "NotWritableError", "is_disk_full", "reporting_disk_full"]
 
 _CODES = {errno.ENOSPC, getattr(errno, "EDQUOT", errno.ENOSPC)}
 _TEXTS = ("no space left on device", "disk quota exceeded", "[errno 28]", "errno 28")
@@ -40,6 +47,43 @@ class DiskFullError(OSError):
 
     def __str__(self) -> str:
         return f"[Errno {self.errno}] {self.strerror}"
+
+
+class NotWritableError(OSError):
+    """The file system refused a write: a read-only folder, or one this user may not write."""
+
+    def __init__(self, path: Path, what: str, err: OSError) -> None:
+        refused = err.filename or path
+        message = (
+            f"cannot write {what} to {path}: {refused} is {_why(err)}; nothing was written "
+            "there. Choose a folder you can write, or change its permissions"
+        )
+        super().__init__(err.errno, message)
+        self.filename = str(path)
+
+    def __str__(self) -> str:
+        return str(self.strerror)
+
+
+_REFUSED = {errno.EACCES, errno.EPERM, errno.EROFS}
+
+
+def _why(err: OSError) -> str:
+    if err.errno == errno.EROFS:
+        return "on a read-only file system"
+    return "not writable by this user (permission denied)"
+
+
+def not_writable(err: BaseException) -> OSError | None:
+    """The permission error ``err`` was raised from (itself included), if any."""
+    seen: set[int] = set()
+    current: BaseException | None = err
+    while current is not None and id(current) not in seen:
+        seen.add(id(current))
+        if isinstance(current, OSError) and current.errno in _REFUSED:
+            return current
+        current = current.__cause__ or current.__context__
+    return None
 
 
 def is_disk_full(err: BaseException) -> bool:
@@ -71,12 +115,16 @@ def reporting_disk_full(
     path: str | Path, *, what: str, left: str = "nothing was published: it is as it was"
 ) -> Iterator[None]:
     """Run the block; a full file system inside it becomes a :class:`DiskFullError`
-    naming ``path`` (the destination), ``what`` was written and what is ``left``."""
+    naming ``path`` (the destination), ``what`` was written and what is ``left``, and a
+    refused write a :class:`NotWritableError`."""
     try:
         yield
-    except DiskFullError:
+    except (DiskFullError, NotWritableError):
         raise
     except (OSError, RuntimeError) as err:
-        if not is_disk_full(err):
+        if is_disk_full(err):
+            raise DiskFullError(Path(os.path.abspath(path)), what, left) from err
+        refused = not_writable(err)
+        if refused is None:
             raise
-        raise DiskFullError(Path(os.path.abspath(path)), what, left) from err
+        raise NotWritableError(Path(os.path.abspath(path)), what, refused) from err

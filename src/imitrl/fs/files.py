@@ -1,0 +1,132 @@
+"""Creating files and folders without following links, with the user's permissions.
+
+Every file or folder imitrl creates outside a staging folder it made itself (a lock, a
+hub cache entry, ``eval.json``, a staging folder beside its destination) is created
+here, so that a planted symbolic link (``results/.bc.imitrl-lock -> ~/.ssh/...``) can
+never make imitrl write through it:
+
+* a new file is opened ``O_CREAT | O_EXCL | O_NOFOLLOW``: it did not exist, and a link
+  standing at its name is refused, naming it (:func:`create_file`);
+* a file that replaces another is written whole to a fresh sibling and renamed over it
+  (:func:`replace_file`): ``rename`` replaces a link itself, never its target;
+* a folder is made with ``mkdir(path, 0o777)``, which fails on a link and takes the
+  user's ``umask`` like every other program's output (:func:`make_folder`,
+  :func:`new_sibling`): a dataset saved into a shared folder is readable by the group
+  when the umask says so (``tempfile.mkdtemp`` made them 0700).
+
+A refusal is a :class:`PlantedLinkError` (a ``ValueError``: bad input, one line on the
+command line) naming the link and where it points.
+"""
+
+from __future__ import annotations
+
+import errno
+import os
+import secrets
+import stat
+from pathlib import Path
+
+__all__ = [
+    "PlantedLinkError",
+    "check_regular",
+    "create_file",
+    "make_folder",
+    "new_sibling",
+    "replace_file",
+]
+
+_CREATE = os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | getattr(os, "O_CLOEXEC", 0)
+
+
+class PlantedLinkError(ValueError):
+    """A symbolic link (or another special file) stands where imitrl writes a file."""
+
+
+def _planted(path: Path, what: str) -> PlantedLinkError:
+    try:
+        points = f" (it points to {os.readlink(path)})"
+    except OSError:
+        points = ""
+    return PlantedLinkError(
+        f"{path}: a symbolic link stands where imitrl writes {what}{points}; imitrl never "
+        "writes through a link: remove it, or choose another folder"
+    )
+
+
+def check_regular(fd: int, path: Path, what: str) -> os.stat_result:
+    """``fstat(fd)`` when it is a regular file with one name; PlantedLinkError (the fd is
+    closed) when it is a FIFO, a device, a folder or a hard link shared with another name
+    (which could be a file outside the folder)."""
+    st = os.fstat(fd)
+    if stat.S_ISREG(st.st_mode) and st.st_nlink <= 1:
+        return st
+    os.close(fd)
+    kind = "a hard link to another file" if stat.S_ISREG(st.st_mode) else "not a regular file"
+    raise PlantedLinkError(
+        f"{path}: {kind} stands where imitrl writes {what}; imitrl writes only its own "
+        "regular files: remove it, or choose another folder"
+    )
+
+
+def create_file(path: str | Path, *, what: str = "a file", mode: int = 0o666) -> int:
+    """Open a new file for writing (``O_EXCL | O_NOFOLLOW``); returns its descriptor.
+
+    Raises:
+        PlantedLinkError: a symbolic link stands at ``path``.
+        FileExistsError: a file (or folder) already has that name.
+    """
+    path = Path(path)
+    try:
+        return os.open(path, _CREATE, mode)
+    except FileExistsError:
+        if path.is_symlink():
+            raise _planted(path, what) from None
+        raise
+    except OSError as err:
+        if err.errno == errno.ELOOP:
+            raise _planted(path, what) from None
+        raise
+
+
+def replace_file(path: str | Path, data: bytes | str, *, what: str = "a file") -> None:
+    """Write ``data`` to ``path`` whole: into a fresh sibling (:func:`create_file`),
+    flushed to disk, then renamed over ``path`` (a link at ``path`` is replaced, its target
+    never written). A reader finds the old file or the new one, never half of one."""
+    path = Path(path)
+    if isinstance(data, str):
+        data = data.encode()
+    tmp = path.with_name(f".{path.name}.imitrl-tmp-{secrets.token_hex(6)}")
+    fd = create_file(tmp, what=what)
+    try:
+        with os.fdopen(fd, "wb") as out:
+            out.write(data)
+            out.flush()
+            os.fsync(out.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+def make_folder(path: str | Path) -> Path:
+    """``path`` and its missing parents as folders (the user's umask); an existing folder
+    is kept. FileExistsError when ``path`` is a file; PlantedLinkError when it is a link
+    to a folder (a dangling link makes ``mkdir`` fail too)."""
+    path = Path(path)
+    if path.is_symlink():
+        raise _planted(path, "a folder")
+    path.mkdir(mode=0o777, parents=True, exist_ok=True)
+    return path
+
+
+def new_sibling(target: Path, mark: str) -> Path:
+    """A new, empty folder ``.<name><mark><random>`` beside ``target`` (the user's umask;
+    ``mkdir`` fails rather than reuse a name or follow a link)."""
+    for _ in range(100):
+        candidate = target.parent / f".{target.name}{mark}{secrets.token_hex(6)}"
+        try:
+            os.mkdir(candidate, 0o777)
+        except FileExistsError:
+            continue
+        return candidate
+    raise FileExistsError(errno.EEXIST, "no free name for a staging folder", str(target))
