@@ -17,15 +17,26 @@ Hub answers them:
   its sha256), ``Content-Length``/``X-Linked-Size``.
 
 Unknown repositories answer 404 with ``X-Error-Code: RepoNotFound``. The server runs in a
-daemon thread and shuts itself down after ``lifetime_s`` whatever the test does.
+daemon thread and shuts itself down after ``lifetime_s`` whatever the test does. Its log
+has one line per request, ``"<method> <path>"``, with `` +auth`` when it carried a token.
+
+Hostile behaviours, per :class:`Repo`: ``misbehave`` makes one kind of request (``refs``,
+``revision``, ``tree``, ``resolve``) stall, trickle, answer with a gzip bomb or announce a
+huge body; ``redirects`` answers a file's ``resolve`` with a 302 elsewhere (another
+scheme: :func:`tcp_listener` counts who connects; another host: ``localhost``, whose
+``/elsewhere/<org>/<name>/<rev>/<path>`` serves the file's right bytes).
 """
 
 from __future__ import annotations
 
 import contextlib
+import functools
 import hashlib
 import json
+import socket
+import struct
 import threading
+import zlib
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
@@ -33,6 +44,9 @@ from pathlib import Path
 from urllib.parse import unquote, urlsplit
 
 LFS_SUFFIXES = (".parquet", ".mp4", ".png")
+MISBEHAVIOURS = ("stall", "trickle", "gzip-bomb", "huge")
+BOMB_BYTES = 1 << 30
+"""what the gzip bomb inflates to: 1 GiB of zeros, in about 1 MB"""
 
 
 @dataclass
@@ -73,6 +87,17 @@ class Repo:
     """path -> bytes served instead of the file's (hostile servers)"""
     headers: dict[str, str] = field(default_factory=dict)
     """headers added to every file response (hostile servers)"""
+    misbehave: dict[str, str] = field(default_factory=dict)
+    """request kind (``refs``, ``revision``, ``tree``, ``resolve``) -> how it is answered
+    (hostile servers): ``stall`` (nothing, until the server stops), ``trickle`` (headers at
+    once, then the body a byte per ``trickle_s``), ``gzip-bomb`` (``Content-Encoding:
+    gzip``, :data:`BOMB_BYTES` of zeros), ``huge`` (``Content-Length: 2**40``, no body)"""
+    trickle_s: float = 0.2
+    redirects: dict[str, str] = field(default_factory=dict)
+    """path -> the ``Location`` its ``resolve`` answers with a 302 (``{port}``: this
+    server's) (hostile servers)"""
+    pace_s: float = 0.0
+    """seconds each answer's body pauses halfway (so that concurrent downloads overlap)"""
 
     def commit(self, rev: str) -> Commit | None:
         everything = [*self.branches.values(), *self.tags.values()]
@@ -84,21 +109,62 @@ def git_blob_sha1(data: bytes) -> str:
     return hashlib.sha1(b"blob %d\0" % len(data) + data).hexdigest()
 
 
+@functools.cache
+def gzip_bomb(size: int = BOMB_BYTES) -> bytes:
+    """A gzip stream of ``size`` zeros (a multiple of 1 MiB) in about ``size / 1000`` bytes,
+    made in a fraction of a second: one fully flushed deflate block of 1 MiB of zeros
+    (always the same bytes) repeated, then the trailer."""
+    block = bytes(1 << 20)
+    deflate = zlib.compressobj(9, zlib.DEFLATED, -zlib.MAX_WBITS)
+    repeated = deflate.compress(block) + deflate.flush(zlib.Z_FULL_FLUSH)
+    crc = 0
+    for _ in range(size >> 20):
+        crc = zlib.crc32(block, crc)
+    header = b"\x1f\x8b\x08\x00\x00\x00\x00\x00\x00\xff"
+    end = b"\x03\x00" + struct.pack("<II", crc, size & 0xFFFFFFFF)  # an empty final block
+    return header + repeated * (size >> 20) + end
+
+
 class _Handler(BaseHTTPRequestHandler):
     repos: dict[str, Repo] = {}
     log: list[str] = []
+    stop: threading.Event = threading.Event()
+    """set when the server stops: stalled and trickling answers end"""
 
     def log_message(self, *args) -> None:  # quiet
         pass
 
     def _send(self, status: int, body: bytes, headers: dict[str, str], head: bool = False) -> None:
+        how = self.misbehaving
+        if how == "stall":
+            self.stop.wait()
+            return
+        if how == "gzip-bomb":
+            body, headers = gzip_bomb(), {**headers, "Content-Encoding": "gzip"}
+            headers.pop("Content-Length", None)
+        if how == "huge":
+            body, headers = b"", {**headers, "Content-Length": str(1 << 40)}
         self.send_response(status)
         for k, v in headers.items():
             self.send_header(k, v)
         if "Content-Length" not in headers:
             self.send_header("Content-Length", str(len(body)))
         self.end_headers()
-        if not head:
+        if head:
+            return
+        if how == "trickle":
+            for i in range(len(body)):
+                self.wfile.write(body[i : i + 1])
+                self.wfile.flush()
+                if self.stop.wait(self.misbehaving_repo.trickle_s):
+                    return
+        elif self.misbehaving_repo is not None and self.misbehaving_repo.pace_s:
+            self.wfile.write(body[: len(body) // 2])
+            self.wfile.flush()
+            if self.stop.wait(self.misbehaving_repo.pace_s):
+                return
+            self.wfile.write(body[len(body) // 2 :])
+        else:
             self.wfile.write(body)
 
     def _json(self, value, status: int = 200, headers: dict | None = None) -> None:
@@ -116,16 +182,22 @@ class _Handler(BaseHTTPRequestHandler):
 
     def _route(self, head: bool) -> None:
         parts = [unquote(p) for p in urlsplit(self.path).path.split("/")[1:]]
-        self.log.append(f"{self.command} {self.path}")
+        auth = " +auth" if self.headers.get("Authorization") else ""
+        self.log.append(f"{self.command} {self.path}{auth}")
+        self.misbehaving, self.misbehaving_repo = None, None
         if parts[:2] == ["api", "datasets"] and len(parts) >= 5:
             repo_id, what, rest = f"{parts[2]}/{parts[3]}", parts[4], parts[5:]
         elif parts[:1] == ["datasets"] and len(parts) >= 6 and parts[3] == "resolve":
             repo_id, what, rest = f"{parts[1]}/{parts[2]}", "resolve", parts[4:]
+        elif parts[:1] == ["elsewhere"] and len(parts) >= 5:  # a redirect's other host
+            repo_id, what, rest = f"{parts[1]}/{parts[2]}", "elsewhere", parts[3:]
         else:
             return self._missing("EntryNotFound")
         repo = self.repos.get(repo_id)
         if repo is None:
             return self._missing("RepoNotFound")
+        self.misbehaving = repo.misbehave.get(what)
+        self.misbehaving_repo = repo
         if what == "refs":
 
             def refs(named, kind):
@@ -163,8 +235,12 @@ class _Handler(BaseHTTPRequestHandler):
             )
         if what == "tree":
             return self._json(self._tree(repo, commit))
-        if what == "resolve":
-            return self._file(repo, commit, "/".join(rest[1:]), head)
+        path = "/".join(rest[1:])
+        if what == "resolve" and path in repo.redirects:
+            where = repo.redirects[path].format(port=self.server.server_address[1])
+            return self._send(302, b"", {"Location": where})
+        if what in ("resolve", "elsewhere"):
+            return self._file(repo, commit, path, head)
         return self._missing("EntryNotFound")
 
     def _tree(self, repo: Repo, commit: Commit) -> list[dict]:
@@ -212,13 +288,19 @@ def hub_server(
 ) -> Iterator[tuple[str, list[str]]]:
     """``(endpoint, request log)`` of a Hub serving ``repos`` on 127.0.0.1; stopped on exit,
     or after ``lifetime_s`` seconds at the latest."""
-    handler = type("Handler", (_Handler,), {"repos": repos, "log": []})
+    stop = threading.Event()
+    handler = type("Handler", (_Handler,), {"repos": repos, "log": [], "stop": stop})
     server = ThreadingHTTPServer(("127.0.0.1", 0), handler)
     server.daemon_threads = True
     thread = threading.Thread(
         target=server.serve_forever, kwargs={"poll_interval": 0.05}, daemon=True
     )
-    timer = threading.Timer(lifetime_s, server.shutdown)
+
+    def shut() -> None:
+        stop.set()
+        server.shutdown()
+
+    timer = threading.Timer(lifetime_s, shut)
     timer.daemon = True
     thread.start()
     timer.start()
@@ -226,6 +308,35 @@ def hub_server(
         yield f"http://127.0.0.1:{server.server_address[1]}", handler.log
     finally:
         timer.cancel()
+        stop.set()
         server.shutdown()
         server.server_close()
         thread.join(timeout=5)
+
+
+@contextlib.contextmanager
+def tcp_listener() -> Iterator[tuple[int, list[str]]]:
+    """``(port, connections)`` of a listener on 127.0.0.1 that closes every connection at
+    once, noting its peer: a redirect's target (``ftp://``) that must never be reached."""
+    listener = socket.create_server(("127.0.0.1", 0))
+    listener.settimeout(0.05)
+    connections: list[str] = []
+    done = threading.Event()
+
+    def accept() -> None:
+        while not done.is_set():
+            try:
+                peer, address = listener.accept()
+            except (TimeoutError, OSError):
+                continue
+            connections.append(f"{address[0]}:{address[1]}")
+            peer.close()
+
+    thread = threading.Thread(target=accept, daemon=True)
+    thread.start()
+    try:
+        yield listener.getsockname()[1], connections
+    finally:
+        done.set()
+        thread.join(timeout=5)
+        listener.close()

@@ -43,12 +43,23 @@ def documented_output(code: str) -> list[str]:
     return out
 
 
+_TOLERANCE = re.compile(r"-?[0-9.]+ \(±([0-9.]+)")
+"""``71.2 (±0.3 on another CPU kind ...)``: a number documented with the spread it may
+show across machines (a CNN fit's float sums follow the CPU's vector width)"""
+
+
+def _tolerance(documented: str) -> float:
+    found = _TOLERANCE.match(documented)
+    return float(found.group(1)) if found else 0.0
+
+
 def _same_line(printed: str, documented: str) -> bool:
-    """A documented line may annotate its number (``500.0 (the expert's return)``)."""
+    """A documented line may annotate its number (``500.0 (the expert's return)``), and
+    give the spread it may show on another machine (``71.2 (±0.3 ...)``)."""
     number = re.match(r"-?[0-9.]+(?=\s|$)", documented)
     if number and documented != printed:
         try:
-            return float(printed) == float(number.group(0))
+            return abs(float(printed) - float(number.group(0))) <= _tolerance(documented)
         except ValueError:
             return False
     return printed == documented
@@ -78,6 +89,14 @@ def expected_numbers(code: str) -> list[float]:
     return [float(m.group(1)) for m in re.finditer(r"^# (-?[0-9.]+)", code, flags=re.M)]
 
 
+def same_numbers(code: str, printed: list[str]) -> bool:
+    """``printed`` are the block's promised numbers, each within its documented spread."""
+    lines = [m.group(1) for m in re.finditer(r"^# (-?[0-9.]+.*)$", code, flags=re.M)]
+    return len(lines) == len(printed) and all(
+        _same_line(p, d) for p, d in zip(printed, lines, strict=True)
+    )
+
+
 def run(name: str, cwd: Path) -> tuple[dict, list[str]]:
     """Run the block in a fresh interpreter (:func:`run_fresh`), then exec it again in
     ``cwd`` in this process; returns the second run's namespace and printed words."""
@@ -104,7 +123,7 @@ def run(name: str, cwd: Path) -> tuple[dict, list[str]]:
 
 
 def assert_prints_what_it_promises(name: str, printed: list[str]) -> None:
-    promised = expected_numbers(block(name))
-    assert [float(x) for x in printed] == promised, (
-        f"{name}: printed {printed}, README says {promised}"
+    code = block(name)
+    assert same_numbers(code, printed), (
+        f"{name}: printed {printed}, README says {expected_numbers(code)}"
     )

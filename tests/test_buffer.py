@@ -191,7 +191,7 @@ def test_load_errors(tmp_path):
     with pytest.raises(ValueError, match="cannot load"):  # no learner was saved
         DemonstrationBuffer.load(tmp_path / "ok", learner=ActorCritic.tabular(16, 4))
     (tmp_path / "ok" / "manifest.json").write_text("{not json")
-    with pytest.raises(ValueError, match=r"manifest\.json: not a checkpoint manifest"):
+    with pytest.raises(ValueError, match=r"manifest\.json: not JSON"):
         DemonstrationBuffer.load(tmp_path / "ok")
     with pytest.raises(ValueError, match="empty"):
         DemonstrationBuffer().save(tmp_path / "empty")

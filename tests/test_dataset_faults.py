@@ -254,7 +254,7 @@ def _kill_at(point: str, path: str) -> None:
 
     patches = {
         "mid write": [(_v3_files, "_write_stats", die)],
-        "written, not moved": [(publish, "_swap_in", die)],
+        "written, not moved": [(publish, "swap_in", die)],
         "exchanged, old not removed": [(publish, "exchange", exchange_then_die)],
         "old half removed": [(publish.shutil, "rmtree", rmtree_partly)],
         # where renameat2 is missing: two renames

@@ -160,7 +160,7 @@ def test_a_byte_changed_in_a_file_lerobot_never_rewrites_is_refused(resumed):
 def test_rewritten_statistics_that_are_not_statistics_are_refused(resumed):
     root, _ = resumed
     (root / "meta/stats.json").write_text('{"action": {"mean": [0.5,')
-    with pytest.raises(ValueError, match=r"stats\.json is not valid JSON"):
+    with pytest.raises(ValueError, match=r"stats\.json: not JSON"):
         _load(root)
     (root / "meta/stats.json").write_text('{"action": {"mean": "half"}}')
     with pytest.raises(ValueError, match=r"stats\.json: expected LeRobot's statistics"):

@@ -70,14 +70,50 @@ def _record_json(record) -> dict[str, Any]:
     return out
 
 
-def _record_from_json(cls, data: dict[str, Any]):
-    bc = data.pop("bc")
-    result = BCResult(
-        losses=torch.tensor(bc["losses"], dtype=torch.float32),
-        final_loss=bc["final_loss"],
-        num_rows=bc["num_rows"],
-    )
-    return cls(**data, bc=result)
+def _record_from_json(cls, data: Any, path: Path, k: int):
+    """Round record ``k`` as saved, rebuilt (ValueError naming the checkpoint otherwise)."""
+    try:
+        data = dict(data)
+        bc = data.pop("bc")
+        result = BCResult(
+            losses=torch.tensor(bc["losses"], dtype=torch.float32),
+            final_loss=bc["final_loss"],
+            num_rows=bc["num_rows"],
+        )
+        return cls(**data, bc=result)
+    except (KeyError, TypeError, ValueError, RuntimeError) as err:
+        raise ValueError(
+            f"{path}: round record {k} is malformed ({type(err).__name__}: {err})"
+        ) from None
+
+
+def _uint8_state(value: Any, what: str, path: Path) -> torch.Tensor:
+    """A generator's saved state (a list of bytes) as the tensor ``set_state`` takes."""
+    if not isinstance(value, list) or not all(type(b) is int and 0 <= b <= 255 for b in value):
+        raise ValueError(f"{path}: the {what} generator's state must be a list of bytes")
+    return torch.tensor(value, dtype=torch.uint8)
+
+
+_STATE_TYPES = {"next_round": int, "bc_step": int, "config": dict, "records": list, "source": dict}
+"""the entries of a DAgger checkpoint's state and their JSON types"""
+
+
+def _restore_generators(path, saved_source, mixer, torch_state, mixer_generator, source) -> None:
+    """Set the episode source's, the mixture's and torch's generators to the saved states;
+    all or none (what each accepts is its own to say: a refusal is a ValueError naming
+    the checkpoint, the generators as they were)."""
+    before = (source.state_dict(), generator_state(mixer_generator), torch.get_rng_state())
+    try:
+        source.load_state_dict(saved_source)
+        set_generator_state(mixer_generator, None if mixer is None else mixer.tolist())
+        torch.set_rng_state(torch_state)
+    except (KeyError, TypeError, ValueError, RuntimeError, IndexError) as err:
+        source.load_state_dict(before[0])
+        set_generator_state(mixer_generator, before[1])
+        torch.set_rng_state(before[2])
+        raise ValueError(
+            f"{path}: the saved generators do not fit this run ({type(err).__name__}: {err})"
+        ) from None
 
 
 @dataclasses.dataclass
@@ -115,31 +151,41 @@ def load_run(
     """Restore a run saved by :func:`save_run` into ``buffer``, the generators and ``source``.
 
     ``buffer`` must hold exactly the saved run's first rows (its demonstrations); the
-    saved relabel rounds are appended to it. Raises ValueError naming what differs.
+    saved relabel rounds are appended to it. The checkpoint is read once, by descriptor
+    (:meth:`DemonstrationBuffer.load`: its rows held to the bytes present), and every entry
+    of its state is checked before anything is changed. Raises ValueError naming what
+    differs or what is malformed.
     """
     learner = make_learner()
     saved, state = DemonstrationBuffer.load(path, learner=learner)
-    if state.get("format") != FORMAT:
-        raise ValueError(
-            f"{path} is not a DAgger checkpoint (state format {state.get('format')!r})"
-        )
+    if not isinstance(state, dict) or state.get("format") != FORMAT:
+        found = state.get("format") if isinstance(state, dict) else state
+        raise ValueError(f"{path} is not a DAgger checkpoint (state format {found!r})")
+    for name, kind in _STATE_TYPES.items():
+        if type(state.get(name)) is not kind:
+            raise ValueError(
+                f"{path}: state entry {name!r} must be a {kind.__name__}, got "
+                f"{type(state.get(name)).__name__}"
+            )
     mine = config_summary(config)
     if state["config"] != mine:
         diff = sorted(k for k in mine if mine[k] != state["config"].get(k))
         raise ValueError(f"{path} was saved by a run with another config (differs in {diff})")
-    if state["next_round"] > config.rounds:
+    if not 0 <= state["next_round"] <= config.rounds:
         raise ValueError(
             f"{path} has {state['next_round']} rounds done; the config asks {config.rounds}"
         )
+    if state["bc_step"] < 0:
+        raise ValueError(f"{path}: bc_step must be >= 0, got {state['bc_step']}")
+    records = [_record_from_json(record_cls, r, path, k) for k, r in enumerate(state["records"])]
+    mixer = None if state.get("mixer") is None else _uint8_state(state["mixer"], "mixer", path)
+    torch_state = _uint8_state(state.get("torch"), "torch", path)
     n = len(buffer)
     if n > len(saved) or not bool((saved.data[:n] == buffer.data).all()):
         raise ValueError(
             f"the buffer does not hold the demonstrations the run in {path} started from"
         )
+    _restore_generators(path, state["source"], mixer, torch_state, mixer_generator, source)
     if len(saved) > n:
         buffer.extend(saved.data[n:])
-    set_generator_state(mixer_generator, state["mixer"])
-    source.load_state_dict(state["source"])
-    torch.set_rng_state(torch.tensor(state["torch"], dtype=torch.uint8))
-    records = [_record_from_json(record_cls, r) for r in state["records"]]
     return RunState(state["next_round"], records, state["bc_step"], learner)

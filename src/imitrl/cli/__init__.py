@@ -21,10 +21,10 @@ frozenlake  ``StudyConfig``          ``experiments.frozenlake.run_study``
 
 Every command also takes ``--threads N``: torch's CPU threads while it runs (default
 :data:`~imitrl.runtime.threads.DEFAULT_THREADS` = 1, measured in
-``benchmarks/threads.py``), set with :func:`~imitrl.runtime.threads.set_threads` before
-the command's function starts; ``bench`` hands it to the script's process as
-``OMP_NUM_THREADS`` (torch's starting thread count there; a benchmark that sets its own
-keeps its own).
+``benchmarks/threads.py``; at most :data:`~imitrl.jobs.limits.MAX_THREADS`), set with
+:func:`~imitrl.runtime.threads.set_threads` before the command's function starts;
+``bench`` hands it to the script's process as ``OMP_NUM_THREADS`` (torch's starting
+thread count there; a benchmark that sets its own keeps its own).
 
 Run as the process's command (the ``imitrl`` script, ``python -m imitrl``), every
 command but ``bench`` (which starts a script in a process of its own) imports its
@@ -34,7 +34,10 @@ collections over a growing heap, about a second, and the process's exit no longe
 300,000 to 430,000 objects one by one, about another, on this project's machines).
 
 Results and report lines go to stdout, progress bars to stderr; bad input is one
-line on stderr and exit status 2; a full disk or a folder that cannot be written is one
+line on stderr and exit status 2 (a value its flag's type cannot read, as argparse's
+error: :class:`~imitrl.cli.flags.OneLineParser`; a number out of its range, or any
+other value the config refuses, as the config's ``ValueError``, before any work is
+done and before anything is written); a full disk or a folder that cannot be written is one
 line on stderr and exit status 1 (the outputs as they were).
 
 Import cost: ``imitrl --help`` imports no command; ``imitrl COMMAND ...`` imports that
@@ -57,7 +60,8 @@ from collections.abc import Callable, Collection, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from imitrl.cli.flags import add_config_flags, config_from_args
+from imitrl.cli.flags import OneLineParser, add_config_flags, config_from_args
+from imitrl.jobs.limits import MAX_THREADS, Bound
 from imitrl.runtime.heap import collector_paused, freeze_imported
 from imitrl.runtime.threads import DEFAULT_THREADS, set_threads
 
@@ -201,6 +205,10 @@ COMMANDS: dict[str, Command] = {
 }
 
 
+THREADS = Bound(1, MAX_THREADS)
+"""the values ``--threads`` takes (checked before the command starts)"""
+
+
 def add_threads_flag(parser: argparse.ArgumentParser) -> None:
     """``--threads N`` (every command): torch's CPU threads while the command runs."""
     parser.add_argument(
@@ -210,16 +218,16 @@ def add_threads_flag(parser: argparse.ArgumentParser) -> None:
         metavar="N",
         help="torch's CPU threads while the command runs (bench: the script's starting "
         "count, as OMP_NUM_THREADS); more threads than free cores slow a fit down "
-        f"several times: benchmarks/README.md, threads (default: {DEFAULT_THREADS})",
+        f"several times: benchmarks/README.md, threads (default: {DEFAULT_THREADS}); "
+        f"must be {THREADS.describe()}",
     )
 
 
 @contextlib.contextmanager
 def _script_threads(threads: int) -> Iterator[None]:
     """``OMP_NUM_THREADS=threads`` for the processes started inside (``bench``'s script:
-    torch there starts with that many threads), then this process's value back."""
-    if isinstance(threads, bool) or threads < 1:
-        raise ValueError(f"--threads must be an integer >= 1, got {threads!r}")
+    torch there starts with that many threads), then this process's value back.
+    ``threads`` was checked by :func:`main` (:data:`THREADS`)."""
     before = os.environ.get("OMP_NUM_THREADS")
     os.environ["OMP_NUM_THREADS"] = str(threads)
     try:
@@ -239,9 +247,7 @@ def build_parser(flags_for: Collection[str] | None = None) -> argparse.ArgumentP
     config's module, so :func:`main` asks only for the command on its command line.
     Every command with its flags also gets ``--threads`` (:func:`add_threads_flag`).
     """
-    parser = argparse.ArgumentParser(
-        prog="imitrl", description="imitrl: imitation learning on TorchRL"
-    )
+    parser = OneLineParser(prog="imitrl", description="imitrl: imitation learning on TorchRL")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name, command in COMMANDS.items():
         if flags_for is not None and name not in flags_for:
@@ -289,6 +295,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser(flags_for=[first] if first in COMMANDS else []).parse_args(argv)
     command = COMMANDS[args.command]
     try:
+        THREADS.check(args.threads, "--threads")
         if args.command == "bench":  # bench starts a script: its threads, and no torch here
             with _script_threads(args.threads):
                 results = command.run(config_from_args(command.config, args))

@@ -19,7 +19,13 @@ repeatable flag of ``name=value`` pairs (``--env-kwarg obs_type=pixels_agent_pos
 --env-kwarg terminate_on_success=False``): the value is a Python literal where it reads
 as one (``False``, ``3``, ``0.5``, ``(84, 84)``), else the string.
 
-Defaults are shown in the help as they are typed: ``64,64``, ``0.05:10``, ``none``.
+Defaults are shown in the help as they are typed: ``64,64``, ``0.05:10``, ``none``; a
+field declared with :func:`imitrl.jobs.limits.bounded` shows its range after the default
+(``(default: 5); must be an integer in [0, 10_000]``), from the one record its config's
+validation reads.
+
+A value the type cannot read (``--steps 2.5``, ``--hidden 64,x``) is an argparse error:
+one line on stderr naming the flag, exit status 2 (:class:`OneLineParser`).
 """
 
 from __future__ import annotations
@@ -33,7 +39,16 @@ import types
 import typing
 from pathlib import Path
 
-__all__ = ["add_config_flags", "config_from_args", "field_docs"]
+__all__ = ["OneLineParser", "add_config_flags", "config_from_args", "field_docs"]
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """An argument parser whose errors are one line on stderr (``imitrl bc: argument
+    --steps: invalid int value: '2.5'``) and exit status 2, as every other bad input of
+    the command line; ``--help`` still shows the usage."""
+
+    def error(self, message: str) -> typing.NoReturn:
+        self.exit(2, f"{self.prog}: {' '.join(message.split())}\n")
 
 
 def field_docs(cls: type) -> dict[str, str]:
@@ -64,7 +79,12 @@ def _parser_for(tp) -> typing.Callable[[str], object]:
     origin, args = typing.get_origin(tp), typing.get_args(tp)
     if origin in (typing.Union, types.UnionType) and type(None) in args:
         inner = _parser_for(next(a for a in args if a is not type(None)))
-        return lambda s: None if s.lower() == "none" else inner(s)
+
+        def optional(text: str) -> object:
+            return None if text.lower() == "none" else inner(text)
+
+        optional.__name__ = f"{getattr(inner, '__name__', 'value')} or none"
+        return optional
     if origin is tuple:
         item = args[0]
         if typing.get_origin(item) is tuple:  # pairs "a:b"
@@ -81,8 +101,14 @@ def _parser_for(tp) -> typing.Callable[[str], object]:
                     out.append((a(left), b(right)))
                 return tuple(out)
 
+            pairs.__name__ = f"comma-separated a:b pairs of {a.__name__}:{b.__name__}"
             return pairs
-        return lambda s: tuple(item(x) for x in s.split(",") if x)
+
+        def items(text: str) -> tuple:
+            return tuple(item(x) for x in text.split(",") if x)
+
+        items.__name__ = f"comma-separated {item.__name__}"  # argparse's "invalid ... value"
+        return items
     if tp is Path:
         return Path
     return tp
@@ -135,7 +161,9 @@ def add_config_flags(parser: argparse.ArgumentParser, cls: type) -> None:
             continue
         flags = ["--" + f.name.replace("_", "-"), *f.metadata.get("aliases", ())]
         default = f.default
-        help_text = f"{doc} (default: {shown(default)})"
+        bound = f.metadata.get("bound")  # imitrl.jobs.limits.bounded: the range it checks
+        ranged = "" if bound is None else f"; must be {bound.help(default)}"
+        help_text = f"{doc} (default: {shown(default)}){ranged}"
         if hints[f.name] in (bool, bool | None):
             parser.add_argument(
                 *flags,

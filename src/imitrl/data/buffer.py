@@ -46,7 +46,6 @@ verified before anything is read.
 from __future__ import annotations
 
 import io
-import json
 import shutil
 import sys
 from collections.abc import Iterable, Iterator
@@ -78,6 +77,7 @@ from imitrl.data.checkpoint import (
 from imitrl.data.disk import DiskLayout, GrowingMemmapStorage, release_pages
 from imitrl.data.permutation import LazyPermutation
 from imitrl.data.validation import OBSERVATION_KEYS, REQUIRED_KEYS, check_rows, episode_runs
+from imitrl.fs.reading import parse_json
 
 __all__ = ["OBSERVATION_KEYS", "REQUIRED_KEYS", "DemonstrationBuffer", "GrowingTensorStorage"]
 
@@ -426,7 +426,8 @@ class DemonstrationBuffer:
             num_states, next_episode = content["num_states"], content["next_episode"]
             if not (num_states is None or type(num_states) is int) or type(next_episode) is not int:
                 raise ValueError("num_states and next_episode must be integers")
-            state = json.loads(bytes(files[content["state"]].numpy()))
+            where = str(path / str(content["state"]))
+            state = parse_json(bytes(files[content["state"]].numpy()), where=where)
         except (KeyError, TypeError, ValueError) as err:
             raise ValueError(f"{path / MANIFEST}: malformed content ({err})") from None
         buf = cls(

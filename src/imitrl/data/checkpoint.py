@@ -27,7 +27,12 @@ saves are sorted out by the next save to the same path.
 Reading (:func:`read_checkpoint`) checks everything before interpreting any byte:
 the manifest's format and its own checksum, that the directory holds exactly the
 listed files, each file's size and SHA-256. Any mismatch is a ``ValueError`` that names
-the file. Reading opens files read-only and writes nothing.
+the file. Reading opens files read-only and writes nothing. The folder is pinned once and
+each file opened once, by descriptor, inside it (:mod:`imitrl.fs.reading`): a load that
+meets a saver's exchange reads the new checkpoint whole, or says the folder was replaced
+while it was read, never that the data is damaged. :func:`decode_rows` holds the rows the
+manifest declares to the bytes present (no row count or shape asks for memory the files
+do not hold).
 """
 
 from __future__ import annotations
@@ -36,21 +41,23 @@ import copy
 import hashlib
 import io
 import json
+import math
 import os
 import re
-import stat
 import sys
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import torch
 from tensordict import TensorDict, TensorDictBase
 
 from imitrl.fs.lock import absolute
 from imitrl.fs.publish import OLD, publishing
+from imitrl.fs.reading import OpenedFolder, ReplacedWhileReading, fd_path, parse_json, read_whole
 
 __all__ = [
     "MANIFEST",
+    "MAX_FILES",
     "decode_rows",
     "encode_rows",
     "learner_components",
@@ -60,9 +67,14 @@ __all__ = [
     "write_checkpoint",
 ]
 
+T = TypeVar("T")
+
 MANIFEST = "manifest.json"
 _NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,127}$")  # flat names, no path parts
 _MAX_MANIFEST_BYTES = 16 << 20
+MAX_FILES = 1024
+"""most files a checkpoint's manifest may list (one per key of the rows, the learner and
+its optimizers, the state: a few dozen); each is held open while the others are read"""
 
 
 # ------------------------------------------------------------------------ rows
@@ -98,22 +110,33 @@ def decode_rows(content: dict[str, Any], files: dict[str, torch.Tensor]) -> Tens
     """The rows that :func:`encode_rows` wrote, from verified files (views, no copy).
 
     ``content`` holds ``rows`` (N), ``byteorder`` and ``columns``; raises ``ValueError``
-    (or ``KeyError``/``TypeError`` on a malformed entry) if they disagree with the files.
+    (or ``KeyError``/``TypeError`` on a malformed entry) if they disagree with the files:
+    every column's file must hold its N rows exactly, computed in Python integers before
+    any tensor is shaped, and a row must take at least one byte (so N is no more than the
+    bytes present).
     """
     if content["byteorder"] != sys.byteorder:
         raise ValueError(f"{content['byteorder']}-endian data on a {sys.byteorder}-endian machine")
     n = content["rows"]
     if type(n) is not int or n < 1:
         raise ValueError(f"rows must be a positive integer, got {n!r}")
-    rows = TensorDict({}, batch_size=[n])
-    for column in content["columns"]:
-        dtype, shape = _DTYPES[column["dtype"]], torch.Size(column["shape"])
+    columns = content["columns"]
+    if not isinstance(columns, list):
+        raise ValueError(f"columns must be a list, got {type(columns).__name__}")
+    row_bytes, rows = 0, TensorDict({}, batch_size=[n])
+    for column in columns:
+        dtype, shape = _DTYPES[column["dtype"]], column["shape"]
+        if not isinstance(shape, list) or not all(type(d) is int and 0 <= d < 2**31 for d in shape):
+            raise ValueError(f"{column['file']}: shape must be a list of sizes, got {shape!r}")
         raw = files[column["file"]]
-        expected = n * shape.numel() * torch.empty((), dtype=dtype).element_size()
-        if raw.numel() != expected:
-            raise ValueError(f"{column['file']}: {raw.numel()} bytes, {n} rows need {expected}")
+        width = math.prod(shape) * torch.empty((), dtype=dtype).element_size()
+        if raw.numel() != n * width:  # Python integers: no overflow, nothing allocated
+            raise ValueError(f"{column['file']}: {raw.numel()} bytes, {n} rows need {n * width}")
         parts = column["key"]
         rows.set(tuple(parts) if len(parts) > 1 else parts[0], raw.view(dtype).reshape(n, *shape))
+        row_bytes += width
+    if row_bytes == 0:
+        raise ValueError(f"{n} rows declared, and the files hold no byte of any of them")
     return rows
 
 
@@ -248,7 +271,9 @@ def _check_replaceable(target: Path, fmt: str) -> None:
     """Refuse (ValueError) to replace anything at ``target`` but a checkpoint of format
     ``fmt`` holding only its own files."""
     try:
-        content = _read_manifest(target, fmt)
+        content = read_whole(
+            target, lambda folder: _read_manifest(folder, fmt), what="checkpoint", links=False
+        )
     except ValueError as err:
         raise ValueError(
             f"{target} exists and is not a readable checkpoint of format {fmt!r}: refusing "
@@ -270,7 +295,13 @@ def read_checkpoint(
     ``files[name]`` the file's bytes as a uint8 tensor ``[size]``.
 
     Every listed file is checked for presence, size and SHA-256, and the directory for
-    unlisted entries, before any of it is returned. Nothing is written.
+    unlisted entries, before any of it is returned. Nothing is written. The folder is
+    pinned once and each file opened once, by descriptor, inside it: a regular file, never
+    a symbolic link or a FIFO (:class:`~imitrl.fs.reading.OpenedFolder`); a load that meets
+    a writer's replacement of the folder runs again on the new one
+    (:func:`~imitrl.fs.reading.read_whole`), and one that meets it every time says it was
+    "replaced while reading" (:class:`~imitrl.fs.reading.ReplacedWhileReading`), never
+    that the data is damaged.
 
     ``map_bytes``: files of at least this many bytes are hashed in a streaming pass and
     returned memory-mapped (copy-on-write, paged in as they are read) instead of read
@@ -284,21 +315,38 @@ def read_checkpoint(
     path = Path(path)
     if not (path / MANIFEST).is_file():
         raise ValueError(_missing_message(path))
-    content = _read_manifest(path, fmt)
+    return read_whole(
+        path, lambda folder: _read_folder(folder, fmt, map_bytes), what="checkpoint", links=False
+    )
+
+
+def _read_folder(
+    folder: OpenedFolder, fmt: str, map_bytes: int | None
+) -> tuple[dict[str, Any], dict[str, torch.Tensor]]:
+    """:func:`read_checkpoint` on the pinned folder."""
+    path = folder.root
+    content = _read_manifest(folder, fmt)
     listed = content["files"]
-    present = set(os.listdir(path)) - {MANIFEST}
-    unlisted = sorted(present - set(listed))
+    entries = set(folder.listdir()) - {MANIFEST}  # through the pinned descriptor
+    unlisted = sorted(entries - set(listed))
     if unlisted:
         raise ValueError(f"{path / unlisted[0]}: a file the checkpoint's {MANIFEST} does not list")
-    for name, entry in sorted(listed.items()):  # sizes first: cheap, before any hashing
-        _check_size(path / name, entry["bytes"], os.lstat(path / name) if name in present else None)
-    files = {}
-    for name, entry in sorted(listed.items()):
-        size, sha256 = entry["bytes"], entry["sha256"]
-        if map_bytes is not None and size >= max(1, map_bytes):
-            files[name] = _map_verified(path / name, size, sha256)
-        else:
-            files[name] = _read_verified(path / name, size, sha256)
+    opened: dict[str, int] = {}
+    try:
+        for name, entry in sorted(listed.items()):  # sizes first: cheap, before any hashing
+            opened[name] = _open_listed(folder, name, entry["bytes"], name in entries)
+        files = {}
+        for name, entry in sorted(listed.items()):
+            size, sha256 = entry["bytes"], entry["sha256"]
+            if map_bytes is not None and size >= max(1, map_bytes):
+                files[name] = _map_verified(opened[name], path / name, size, sha256)
+            else:
+                files[name] = _read_verified(opened[name], path / name, size, sha256)
+    finally:
+        for fd in opened.values():
+            os.close(fd)
+    if folder.replaced():  # files found by name (a hub snapshot's): all from one folder
+        raise ReplacedWhileReading(f"{path}: replaced while reading it")
     return content, files
 
 
@@ -314,20 +362,16 @@ def _missing_message(path: Path) -> str:
     return f"{path} is not a saved DemonstrationBuffer (no {MANIFEST}){hint}"
 
 
-def _read_manifest(path: Path, fmt: str) -> dict[str, Any]:
+def _read_manifest(folder: OpenedFolder, fmt: str) -> dict[str, Any]:
     """The manifest's ``content``, checked against its checksum and for its file table."""
-    where = path / MANIFEST
-    info = os.lstat(where) if os.path.lexists(where) else None
-    if info is None or not stat.S_ISREG(info.st_mode):
-        raise ValueError(f"{where}: missing or not a regular file")
-    if info.st_size > _MAX_MANIFEST_BYTES:
-        raise ValueError(f"{where}: {info.st_size} bytes, too large for a manifest")
+    where = folder.root / MANIFEST
+    data = folder.read_bytes(MANIFEST, named_by="checkpoint manifest", limit=_MAX_MANIFEST_BYTES)
+    manifest = parse_json(data, where=str(where))
     try:
-        manifest = json.loads(where.read_bytes())
         body, declared = manifest["content"], manifest["content_sha256"]
         found = manifest["format"]
-    except (ValueError, KeyError, TypeError) as err:
-        raise ValueError(f"{where}: not a checkpoint manifest ({err})") from None
+    except (KeyError, TypeError) as err:
+        raise ValueError(f"{where}: not a checkpoint manifest (no {err})") from None
     if found != fmt:
         raise ValueError(f"{where}: format {found!r}, expected {fmt!r}")
     try:
@@ -339,6 +383,8 @@ def _read_manifest(path: Path, fmt: str) -> dict[str, Any]:
     files = body.get("files") if isinstance(body, dict) else None
     if not isinstance(files, dict) or not all(_valid_entry(n, e) for n, e in files.items()):
         raise ValueError(f"{where}: malformed file table")
+    if len(files) > MAX_FILES:
+        raise ValueError(f"{where}: lists {len(files)} files, more than the {MAX_FILES} it may")
     return body
 
 
@@ -355,21 +401,26 @@ def _valid_entry(name: Any, entry: Any) -> bool:
     )
 
 
-def _check_size(where: Path, size: int, info: os.stat_result | None) -> None:
-    if info is None:
+def _open_listed(folder: OpenedFolder, name: str, size: int, present: bool) -> int:
+    """A descriptor of the listed file ``name``, a regular file of the manifest's ``size``
+    (ValueError naming it otherwise)."""
+    where = folder.root / name
+    if not present:
         raise ValueError(f"{where}: missing (the checkpoint's {MANIFEST} lists it)")
-    if not stat.S_ISREG(info.st_mode):
-        raise ValueError(f"{where}: not a regular file")
-    if info.st_size != size:
+    fd = folder.open(name, named_by=f"the checkpoint's {MANIFEST}")
+    found = os.fstat(fd).st_size
+    if found != size:
+        os.close(fd)
         raise ValueError(
-            f"{where}: {info.st_size} bytes, the manifest says {size} (truncated or appended to)"
+            f"{where}: {found} bytes, the manifest says {size} (truncated or appended to)"
         )
+    return fd
 
 
-def _read_verified(where: Path, size: int, sha256: str) -> torch.Tensor:
+def _read_verified(fd: int, where: Path, size: int, sha256: str) -> torch.Tensor:
     out = torch.empty(size, dtype=torch.uint8)
     view = memoryview(out.numpy())
-    with open(where, "rb", buffering=0) as f:
+    with os.fdopen(fd, "rb", buffering=0, closefd=False) as f:
         got = 0
         while got < size:
             n = f.readinto(view[got:])
@@ -383,11 +434,14 @@ def _read_verified(where: Path, size: int, sha256: str) -> torch.Tensor:
     return out
 
 
-def _map_verified(where: Path, size: int, sha256: str, block: int = 8 << 20) -> torch.Tensor:
-    """The file as a private (copy-on-write) memory map, after a streaming SHA-256 pass."""
+def _map_verified(
+    fd: int, where: Path, size: int, sha256: str, block: int = 8 << 20
+) -> torch.Tensor:
+    """The file as a private (copy-on-write) memory map, after a streaming SHA-256 pass;
+    mapped through the descriptor (:func:`~imitrl.fs.reading.fd_path`): the file hashed."""
     digest, buffer = hashlib.sha256(), bytearray(block)
     view = memoryview(buffer)
-    with open(where, "rb", buffering=0) as f:
+    with os.fdopen(fd, "rb", buffering=0, closefd=False) as f:
         got = 0
         while True:
             n = f.readinto(view)
@@ -399,4 +453,4 @@ def _map_verified(where: Path, size: int, sha256: str, block: int = 8 << 20) -> 
         raise ValueError(f"{where}: changed size while being read")
     if digest.hexdigest() != sha256:
         raise ValueError(f"{where}: SHA-256 does not match the manifest (the file was altered)")
-    return torch.from_file(str(where), shared=False, size=size, dtype=torch.uint8)
+    return torch.from_file(fd_path(fd), shared=False, size=size, dtype=torch.uint8)

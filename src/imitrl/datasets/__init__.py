@@ -12,6 +12,7 @@ from imitrl.datasets._common import LoadedDemonstrations
 from imitrl.datasets.lerobot import (
     DEFAULT_KEY_MAP,
     IMITRL_COLUMNS,
+    HubLimits,
     download_lerobot,
     load_lerobot,
     resolve_lerobot_root,
@@ -23,6 +24,7 @@ from imitrl.datasets.minari import load_minari, resolve_minari_root, save_minari
 __all__ = [
     "DEFAULT_KEY_MAP",
     "IMITRL_COLUMNS",
+    "HubLimits",
     "LoadedDemonstrations",
     "download_lerobot",
     "load_lerobot",

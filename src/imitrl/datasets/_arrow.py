@@ -5,7 +5,10 @@ plain scalar column, a vector ``(k,)`` as a (fixed-size) list column and an arra
 ``(a, b, ...)`` as nested lists (``datasets.Array2D`` .. ``Array5D``); images are
 ``struct<bytes: binary, path: string>`` holding PNG bytes. Conversions here check
 every list length against the declared shape and refuse nulls, so a malformed column
-fails with the file and feature named instead of loading wrong values.
+fails with the file and feature named instead of loading wrong values. A parquet file
+is read inside a dataset folder pinned by a descriptor (:func:`parquet_file`: a regular
+file, never a link out or a FIFO); an image's header is read before it is decoded, its
+size bounded (:func:`decode_images`).
 """
 
 from __future__ import annotations
@@ -14,6 +17,8 @@ import ctypes
 import io
 import json
 import os
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -22,8 +27,15 @@ import pyarrow.compute as pc
 import pyarrow.parquet as pq
 import torch
 
-from imitrl.datasets._common import TORCH_DTYPES, WIDEN, check_finite, exact_cast
-from imitrl.fs.contained import inside
+from imitrl.datasets._common import (
+    TORCH_DTYPES,
+    WIDEN,
+    check_finite,
+    exact_cast,
+    open_in,
+    read_in,
+)
+from imitrl.fs.reading import OpenedFolder, fd_path
 
 __all__ = [
     "array_shape",
@@ -31,7 +43,9 @@ __all__ = [
     "column_to_tensor",
     "decode_images",
     "encode_images",
+    "footer_rows",
     "hf_feature",
+    "parquet_file",
     "read_parquet",
     "release_unused_memory",
     "tensor_to_array",
@@ -64,36 +78,79 @@ def _malloc_trim():
 _MALLOC_TRIM = _malloc_trim()
 
 
+@contextmanager
+def parquet_file(
+    folder: OpenedFolder, relative: str, *, named_by: str, **options: bool
+) -> Iterator[pq.ParquetFile]:
+    """The parquet file ``relative`` of ``folder``, opened by descriptor (a regular file
+    inside the folder: :meth:`~imitrl.fs.reading.OpenedFolder.open`) for the block;
+    ValueError naming it when it is not a readable parquet file (truncated, say).
+
+    Args:
+        named_by: who names the file, for messages (``"meta/info.json's data_path"``).
+        options: ``memory_map`` or ``pre_buffer`` for ``pyarrow.parquet.ParquetFile``.
+    """
+    where = folder.root / relative
+    fd = open_in(folder, relative, named_by=named_by)
+    try:
+        try:
+            pf = pq.ParquetFile(fd_path(fd), **options)
+        except (pa.ArrowException, OSError) as err:
+            raise ValueError(
+                f"{where}: not a readable parquet file ({_named(err, fd, where)})"
+            ) from None
+        with pf:
+            yield pf
+    finally:
+        os.close(fd)
+
+
+def _named(err: Exception, fd: int, where: Path) -> str:
+    """pyarrow's message, naming the file instead of the descriptor's path."""
+    return str(err).replace(fd_path(fd), str(where))
+
+
+def footer_rows(folder: OpenedFolder, relative: str, *, named_by: str) -> int:
+    """Rows of a parquet file, from its footer; ValueError naming the file when it is not
+    a readable parquet file (a truncated file is named, not blamed on what counts it)."""
+    with parquet_file(folder, relative, named_by=named_by) as pf:
+        return pf.metadata.num_rows
+
+
 def read_parquet(
-    path: Path, columns: list[str] | None = None, *, declared: list[str] | None = None
+    folder: OpenedFolder,
+    relative: str,
+    columns: list[str] | None = None,
+    *,
+    declared: list[str] | None = None,
+    named_by: str,
 ) -> pa.Table:
-    """Read a parquet file, naming the file (and missing columns) in every error.
+    """Read a parquet file of ``folder`` (:func:`parquet_file`), naming the file (and missing
+    columns) in every error.
 
     Args:
         columns: the columns to read (all when None).
         declared: the columns the file must hold, no more and no fewer (a pandas index
             column aside): a name that differs between a file and its metadata is refused.
     """
-    check_schema(path, columns, declared)
-    try:
-        return pq.read_table(path, columns=columns)
-    except (pa.ArrowException, OSError) as err:
-        raise ValueError(f"{path}: cannot read the parquet data ({err})") from err
+    where = folder.root / relative
+    with parquet_file(folder, relative, named_by=named_by) as pf:
+        check_schema(where, pf.schema_arrow, columns, declared)
+        try:
+            return pf.read(columns=columns)
+        except (pa.ArrowException, OSError) as err:
+            raise ValueError(f"{where}: cannot read the parquet data ({err})") from None
 
 
-def check_schema(path: Path, columns: list[str] | None, declared: list[str] | None) -> None:
-    """A parquet file holds ``columns`` and, if given, exactly the ``declared`` ones (a
-    pandas index column aside); ValueError naming the file otherwise."""
-    if not path.is_file():
-        raise ValueError(f"{path}: file not found")
-    try:
-        schema = pq.read_schema(path)
-    except (pa.ArrowException, OSError) as err:
-        raise ValueError(f"{path}: not a readable parquet file ({err})") from err
+def check_schema(
+    where: Path, schema: pa.Schema, columns: list[str] | None, declared: list[str] | None
+) -> None:
+    """A parquet file (``where``, its ``schema``) holds ``columns`` and, if given, exactly the
+    ``declared`` ones (a pandas index column aside); ValueError naming the file otherwise."""
     missing = [c for c in [*(columns or []), *(declared or [])] if c not in schema.names]
     if missing:
         raise ValueError(
-            f"{path}: declared feature(s) {sorted(set(missing))} absent from the file "
+            f"{where}: declared feature(s) {sorted(set(missing))} absent from the file "
             f"(columns present: {schema.names})"
         )
     extra = [
@@ -102,7 +159,7 @@ def check_schema(path: Path, columns: list[str] | None, declared: list[str] | No
         if declared is not None and c not in declared and not c.startswith("__index_level_")
     ]
     if extra:
-        raise ValueError(f"{path}: column(s) {extra} are not declared in meta/info.json")
+        raise ValueError(f"{where}: column(s) {extra} are not declared in meta/info.json")
 
 
 def _storage(arr: pa.Array) -> pa.Array:
@@ -175,53 +232,130 @@ def column_to_tensor(
     return torch.from_numpy(values.reshape(n, *dims).copy())
 
 
+MAX_IMAGE_PIXELS = 1 << 25
+"""height x width an image feature's frame may have (33.5 million pixels: an 8K frame,
+7680 x 4320, fits; about 100 MB a frame in RGB), checked on the image's header before it
+is decoded"""
+
+MAX_IMAGE_FILE_BYTES = 256 << 20
+"""bytes an image file named by an image feature's ``path`` may hold"""
+
+DEFLATE_MAX_RATIO = 1032
+"""the most deflate (PNG's compression) expands its input: a PNG whose header declares
+more pixel bytes than its size times this holds less than it declares"""
+
+_PNG = b"\x89PNG\r\n\x1a\n"
+
+
+class _Refused(ValueError):
+    """An image header declaring more than an image may hold (:func:`_header_size`)."""
+
+
+_PNG_CHANNELS = {0: 1, 2: 3, 3: 1, 4: 2, 6: 4}  # colour type -> samples a pixel
+
+
+def _header_size(blob: bytes) -> tuple[int, int]:
+    """``(height, width)`` an image's header declares, read without decoding it: a PNG's
+    IHDR (bytes 16-24), checked against the bytes present (:data:`DEFLATE_MAX_RATIO`),
+    else what PIL reads of another format's header."""
+    if blob.startswith(_PNG):
+        if len(blob) < 33 or blob[12:16] != b"IHDR":
+            raise _Refused("a PNG without its IHDR header")
+        width, height = int.from_bytes(blob[16:20], "big"), int.from_bytes(blob[20:24], "big")
+        _check_pixels(height, width)
+        depth, channels = blob[24], _PNG_CHANNELS.get(blob[25], 4)
+        pixel_bytes = height * -(-width * channels * depth // 8)
+        if pixel_bytes > DEFLATE_MAX_RATIO * len(blob):
+            raise _Refused(
+                f"its header declares {height}x{width} (height x width), {pixel_bytes:,} bytes "
+                f"of pixels, more than its {len(blob):,} bytes can hold (deflate expands at "
+                f"most {DEFLATE_MAX_RATIO} times)"
+            )
+        return height, width
+    from PIL import Image  # pillow ships with matplotlib
+
+    with Image.open(io.BytesIO(blob)) as img:  # reads the header only
+        _check_pixels(img.height, img.width)
+        return img.height, img.width
+
+
+def _check_pixels(height: int, width: int) -> None:
+    if height * width > MAX_IMAGE_PIXELS:
+        raise _Refused(
+            f"its header declares {height}x{width} (height x width), more than the "
+            f"{MAX_IMAGE_PIXELS:,} pixels an image may have (MAX_IMAGE_PIXELS); refused "
+            "before decoding it"
+        )
+
+
+def _image_bytes(
+    blob: bytes | None, path: str | None, folder: OpenedFolder, where: str, i: int
+) -> bytes:
+    """An image's bytes: embedded, or the file its ``path`` names inside the folder."""
+    if blob is not None:
+        return blob
+    if path:
+        named_by = f"{where}, row {i}"
+        return read_in(folder, path, named_by=named_by, limit=MAX_IMAGE_FILE_BYTES)
+    raise ValueError(f"{where}: frame {i} has no bytes and no path")
+
+
 def decode_images(
-    col: pa.ChunkedArray, *, shape: tuple[int, ...], root: Path, where: str
+    col: pa.ChunkedArray, *, shape: tuple[int, ...], folder: OpenedFolder, where: str
 ) -> torch.Tensor:
     """``struct<bytes, path>`` PNG/JPEG column -> uint8 ``[N, *shape]`` in the declared layout.
 
     The declared shape is ``(C, H, W)`` or ``(H, W, C)`` (LeRobot accepts both; the
-    feature's ``names`` say which); pixels come back as uint8 in that layout.
+    feature's ``names`` say which); pixels come back as uint8 in that layout. Every
+    image's header is read first (no pixel decoded): its size must be the declared one
+    and at most :data:`MAX_IMAGE_PIXELS`, and a PNG's must fit the bytes present; only
+    then is ``[N, *shape]`` allocated and each image decoded into it. An image named by
+    ``path`` is read inside ``folder`` (:meth:`~imitrl.fs.reading.OpenedFolder.read_bytes`).
     """
     from PIL import Image  # pillow ships with matplotlib
 
     arr = col.combine_chunks() if isinstance(col, pa.ChunkedArray) else col
     if not pa.types.is_struct(arr.type):
         raise ValueError(f"{where}: an image feature must be struct<bytes, path>, got {arr.type}")
-    blobs = arr.field("bytes").to_pylist() if arr.type.get_field_index("bytes") >= 0 else None
-    paths = arr.field("path").to_pylist() if arr.type.get_field_index("path") >= 0 else None
     if len(shape) != 3:
         raise ValueError(f"{where}: image features need a 3-d shape, declared {list(shape)}")
-    frames = []
+    has = {name: arr.type.get_field_index(name) >= 0 for name in ("bytes", "path")}
+    blobs = arr.field("bytes").to_pylist() if has["bytes"] else [None] * len(arr)
+    paths = arr.field("path").to_pylist() if has["path"] else [None] * len(arr)
+    images = []
     for i in range(len(arr)):
-        blob = blobs[i] if blobs is not None else None
+        data = _image_bytes(blobs[i], paths[i], folder, where, i)
         try:
-            if blob is not None:
-                img = Image.open(io.BytesIO(blob))
-            elif paths is not None and paths[i]:
-                img = Image.open(inside(root, paths[i], named_by=f"{where}, row {i}"))
-            else:
-                raise ValueError("no bytes and no path")
-            if (img.height, img.width) not in ((shape[0], shape[1]), (shape[1], shape[2])):
-                raise ValueError(  # from the header: a huge declared image is never decoded
-                    f"{img.height}x{img.width} (height x width), declared {list(shape)}"
-                )
-            pixels = np.asarray(img.convert("RGB") if img.mode not in ("L", "RGB") else img)
+            size = _header_size(data)
+        except _Refused as err:
+            raise ValueError(f"{where}: frame {i}: {err}") from None
+        except Exception as err:  # PIL raises assorted errors for broken images
+            raise ValueError(f"{where}: frame {i} is not a decodable image ({err})") from err
+        if size not in ((shape[0], shape[1]), (shape[1], shape[2])):
+            raise ValueError(
+                f"{where}: frame {i} is {size[0]}x{size[1]} (height x width), declared "
+                f"{list(shape)}"
+            )
+        images.append(data)
+    del blobs
+    out = np.empty((len(images), *shape), dtype=np.uint8)
+    for i, data in enumerate(images):
+        try:
+            with Image.open(io.BytesIO(data)) as img:
+                pixels = np.asarray(img.convert("RGB") if img.mode not in ("L", "RGB") else img)
         except Exception as err:  # PIL raises assorted errors for broken images
             raise ValueError(f"{where}: frame {i} is not a decodable image ({err})") from err
         if pixels.ndim == 2:
             pixels = pixels[:, :, None]
         if pixels.shape == tuple(shape):  # (H, W, C)
-            frames.append(pixels)
+            out[i] = pixels
         elif pixels.transpose(2, 0, 1).shape == tuple(shape):  # (C, H, W)
-            frames.append(pixels.transpose(2, 0, 1))
+            out[i] = pixels.transpose(2, 0, 1)
         else:
             raise ValueError(
                 f"{where}: frame {i} is {list(pixels.shape)} (H, W, C), declared {list(shape)}"
             )
-    return (
-        torch.from_numpy(np.stack(frames)) if frames else torch.empty(0, *shape, dtype=torch.uint8)
-    )
+    return torch.from_numpy(out)
 
 
 def encode_images(pixels: np.ndarray, frame_index: np.ndarray) -> pa.Array:

@@ -22,8 +22,9 @@ from tensordict import TensorDict
 from torchrl.envs import EnvBase
 
 from imitrl import keys
+from imitrl.fs.reading import OpenedFolder, ReplacedWhileReading
 
-__all__ = ["LoadedDemonstrations", "NestedKey", "conform_to_env", "key_name"]
+__all__ = ["LoadedDemonstrations", "NestedKey", "conform_to_env", "key_name", "open_in", "read_in"]
 
 NestedKey = str | tuple[str, ...]
 
@@ -94,6 +95,35 @@ def check_finite(array: np.ndarray, *, where: str) -> None:
             f"{where}: frame {frame} holds {float(value)!r} (NaN and inf are refused: "
             "they would poison training)"
         )
+
+
+def open_in(folder: OpenedFolder, relative: str, *, named_by: str) -> int:
+    """``folder.open(relative)`` (a descriptor of a regular file inside the folder), every
+    failure a ValueError: an ``OSError`` the open lets through when the file changes in
+    the middle of it (a link swapped back for a file between its ``lstat`` and its
+    ``readlink``) is reported as the change it is (:func:`_changed`)."""
+    try:
+        return folder.open(relative, named_by=named_by)
+    except OSError as err:
+        raise _changed(folder, relative, named_by, err) from None
+
+
+def read_in(folder: OpenedFolder, relative: str, *, named_by: str, limit: int) -> bytes:
+    """``folder.read_bytes(relative, limit=limit)``, every failure a ValueError (as
+    :func:`open_in`)."""
+    try:
+        return folder.read_bytes(relative, named_by=named_by, limit=limit)
+    except OSError as err:
+        raise _changed(folder, relative, named_by, err) from None
+
+
+def _changed(folder: OpenedFolder, relative: str, named_by: str, err: OSError) -> ValueError:
+    if folder.replaced():
+        return ReplacedWhileReading(f"{folder.root}: replaced while reading it ({relative})")
+    return ValueError(
+        f"{folder.root / relative}: changed while it was opened ({err.strerror}; {named_by} "
+        "names it)"
+    )
 
 
 def key_name(key: NestedKey) -> str:

@@ -115,7 +115,17 @@ def make_folder(path: str | Path) -> Path:
     path = Path(path)
     if path.is_symlink():
         raise _planted(path, "a folder")
-    path.mkdir(mode=0o777, parents=True, exist_ok=True)
+    missing = []
+    for folder in (path, *path.parents):  # made top down, without recursion: a path may
+        if os.path.isdir(folder):  # be thousands of folders deep
+            break
+        missing.append(folder)
+    for folder in reversed(missing):
+        try:
+            os.mkdir(folder, 0o777)
+        except FileExistsError:
+            if not os.path.isdir(folder):
+                raise
     return path
 
 

@@ -28,6 +28,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from imitrl.fs.files import PlantedLinkError, check_regular, make_folder
+from imitrl.fs.write_errors import reporting_disk_full
 
 try:
     import fcntl
@@ -41,6 +42,10 @@ LOCK_SUFFIX = ".imitrl-lock"
 _held: dict[Path, tuple[int, int]] = {}
 """locked path -> (holding thread, depth), for this process"""
 _guard = threading.Lock()
+_PATH_MAX = os.pathconf("/", "PC_PATH_MAX") if hasattr(os, "pathconf") else 1024
+_NAME_MAX = os.pathconf("/", "PC_NAME_MAX") if hasattr(os, "pathconf") else 255
+_BESIDE = 40
+"""bytes a name may grow by beside it (``.<name>.imitrl-tmp-<hex>``, ``.imitrl-lock``)"""
 _POLL_S = 0.05
 """seconds between two tries of a held lock, for a caller that waits"""
 
@@ -51,6 +56,14 @@ def absolute(path: str | Path) -> Path:
     target = Path(os.path.abspath(os.path.expanduser(path)))
     if target.name in ("", ".", ".."):
         raise ValueError(f"{path!r} names no directory that can be written (resolved: {target})")
+    longest_name = max(len(os.fsencode(part)) for part in target.parts)
+    if len(os.fsencode(target)) + _BESIDE > _PATH_MAX or longest_name + _BESIDE > _NAME_MAX:
+        raise ValueError(
+            f"{str(path)[:80]}...: a path of {len(os.fsencode(target)):,} bytes in "
+            f"{len(target.parts):,} parts (longest name {longest_name:,} bytes); this system "
+            f"writes paths up to {_PATH_MAX:,} bytes and names up to {_NAME_MAX} (less "
+            f"{_BESIDE} for the files imitrl keeps beside it): choose a shorter one"
+        )
     return target
 
 
@@ -98,8 +111,9 @@ def exclusive(
                 _held[target] = (me, _held[target][1] - 1)
         return
     try:
-        make_folder(target.parent)
-        fd = _acquire(target, what, deadline)
+        with reporting_disk_full(target, what="files", left="nothing was written"):
+            make_folder(target.parent)
+            fd = _acquire(target, what, deadline)
     except BaseException:
         with _guard:
             del _held[target]

@@ -33,7 +33,7 @@ import stat
 from collections import deque
 from collections.abc import Callable
 from pathlib import Path, PurePosixPath
-from typing import TypeVar
+from typing import Any, TypeVar
 
 from imitrl.fs.contained import check_relative, trusted_bases
 
@@ -53,6 +53,10 @@ _DIR = os.O_RDONLY | os.O_DIRECTORY | os.O_NOFOLLOW | getattr(os, "O_CLOEXEC", 0
 _FILE = os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0)
 
 T = TypeVar("T")
+
+
+class _Missing(ValueError):
+    """No entry of that name (a walk that met ENOENT or ENOTDIR)."""
 
 
 class ReplacedWhileReading(ValueError):
@@ -80,14 +84,17 @@ class OpenedFolder:
     Args:
         root: the folder (a dataset, a checkpoint, a hub snapshot).
         what: what it is, for messages ("dataset", "checkpoint").
+        links: follow symbolic links that stay inside (a hub snapshot's, a dataset a user
+            assembled); False refuses every link (a folder imitrl wrote holds none).
 
     Raises:
         ValueError: ``root`` is not a folder.
     """
 
-    def __init__(self, root: str | Path, *, what: str = "dataset") -> None:
+    def __init__(self, root: str | Path, *, what: str = "dataset", links: bool = True) -> None:
         self.root = Path(root)
         self.what = what
+        self.links = links
         real = Path(os.path.realpath(root))
         # the widest trusted folder holding it: a hub snapshot resolves inside its repo
         bases = [b for b in trusted_bases(root) if b == real or b in real.parents]
@@ -97,7 +104,19 @@ class OpenedFolder:
             self._fd = os.open(self.base, _DIR)
         except OSError as err:
             raise ValueError(f"{root}: not a {what} folder ({err.strerror})") from None
-        self.identity = _identity(real)
+        # the identity of the folder pinned, read off the descriptors (the name may already
+        # name another folder: a writer's exchange between the open and a look-up)
+        self.identity = self._pinned_identity()
+
+    def _pinned_identity(self) -> tuple[int, int] | None:
+        if not self.prefix:
+            st = os.fstat(self._fd)
+            return st.st_dev, st.st_ino
+        try:
+            st = os.stat(os.path.join(*self.prefix), dir_fd=self._fd)
+        except OSError:
+            return None
+        return st.st_dev, st.st_ino
 
     def close(self) -> None:
         """Let go of the folder's descriptor."""
@@ -110,6 +129,52 @@ class OpenedFolder:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+    def _folder(self, relative: object, named_by: str) -> int:
+        parts = () if relative == "." else check_relative(self.root, relative, named_by=named_by)
+        where = self.root.joinpath(*parts)
+        return self._walk(deque([*self.prefix, *parts]), where, named_by, folder=True)
+
+    def listdir(self, relative: object = ".", *, named_by: str = "a listing") -> list[str]:
+        """The names in the folder ``relative`` (the pinned folder itself by default),
+        listed through the pinned descriptor, sorted."""
+        fd = self._folder(relative, named_by)
+        try:
+            return sorted(os.listdir(fd))
+        finally:
+            os.close(fd)
+
+    def entries(
+        self, relative: object = ".", *, named_by: str = "a listing"
+    ) -> list[tuple[str, bool]]:
+        """``(name, is a folder)`` of each entry of the folder ``relative``, through the
+        pinned descriptor; [] when there is no such folder. A symbolic link counts as a
+        file: :meth:`open` decides where it may lead."""
+        try:
+            fd = self._folder(relative, named_by)
+        except _Missing:
+            return []
+        try:
+            with os.scandir(fd) as found:
+                return sorted((e.name, e.is_dir(follow_symlinks=False)) for e in found)
+        finally:
+            os.close(fd)
+
+    def exists(self, relative: object, *, named_by: str = "a look-up") -> bool:
+        """Whether the folder holds an entry ``relative`` (a file, a folder or a link; not
+        followed at its last name)."""
+        parts = check_relative(self.root, relative, named_by=named_by)
+        try:
+            fd = self._folder("/".join(parts[:-1]) or ".", named_by)
+        except _Missing:
+            return False
+        try:
+            os.stat(parts[-1], dir_fd=fd, follow_symlinks=False)
+        except OSError:
+            return False
+        finally:
+            os.close(fd)
+        return True
 
     def replaced(self) -> bool:
         """Whether ``root`` now names another folder than the one pinned (or none)."""
@@ -127,7 +192,8 @@ class OpenedFolder:
         where = self.root.joinpath(*parts)
         return self._walk(deque([*self.prefix, *parts]), where, named_by)
 
-    def _walk(self, todo: deque[str], where: Path, named_by: str) -> int:
+    def _walk(self, todo: deque[str], where: Path, named_by: str, folder: bool = False) -> int:
+        """The descriptor of the file (``folder``: the folder) ``todo`` leads to."""
         stack = [os.dup(self._fd)]
         links = 0
         try:
@@ -142,6 +208,8 @@ class OpenedFolder:
                     continue
                 st = self._lstat(name, stack[-1], where, named_by)
                 if stat.S_ISLNK(st.st_mode):
+                    if not self.links:
+                        raise self._no_links(where, named_by)
                     links += 1
                     if links > MAX_LINKS:
                         raise ValueError(f"{where}: more than {MAX_LINKS} symbolic links")
@@ -149,12 +217,14 @@ class OpenedFolder:
                     continue
                 last = not todo
                 try:
-                    fd = os.open(name, _FILE if last else _DIR, dir_fd=stack[-1])
+                    fd = os.open(name, _FILE if last and not folder else _DIR, dir_fd=stack[-1])
                 except OSError as err:
                     raise self._vanished(err, where, named_by) from None
-                if last:
+                if last and not folder:
                     return self._regular(fd, where, named_by)
                 stack.append(fd)
+            if folder:
+                return stack.pop()  # the last folder reached (closed by the caller)
             raise ValueError(f"{where}: {named_by} names the {self.what} folder, not a file")
         finally:
             for fd in stack:
@@ -166,10 +236,22 @@ class OpenedFolder:
         except OSError as err:
             raise self._vanished(err, where, named_by) from None
 
+    def _no_links(self, where: Path, named_by: str) -> ValueError:
+        real = Path(os.path.realpath(where))
+        out = real != self.base and self.base not in real.parents
+        kind = f"a symbolic link out of the {self.what} folder" if out else "a symbolic link"
+        return ValueError(
+            f"{where}: {kind}, not a regular file ({named_by} names it); a {self.what} "
+            "imitrl wrote holds regular files only"
+        )
+
     def _link_parts(self, name: str, stack: list[int], where: Path, named_by: str) -> list[str]:
         """The parts a link stands for, from where the walk is; an absolute target is
         taken from the base (refused outside it), and the stack unwound to the base."""
-        target = os.readlink(name, dir_fd=stack[-1])
+        try:
+            target = os.readlink(name, dir_fd=stack[-1])
+        except OSError as err:  # no longer a link: swapped back after the lstat
+            raise ValueError(f"{where}: changed while it was opened ({err.strerror})") from None
         if not os.path.isabs(target):
             return list(PurePosixPath(target).parts)
         absolute = Path(os.path.normpath(target))
@@ -201,8 +283,8 @@ class OpenedFolder:
             return ReplacedWhileReading(f"{self.root}: replaced while reading it ({where})")
         if err.errno == errno.ELOOP:  # a link swapped in after the check
             return ValueError(f"{where}: became a symbolic link while it was opened")
-        if err.errno == errno.ENOENT:
-            return ValueError(f"{where}: missing ({named_by} names it)")
+        if err.errno in (errno.ENOENT, errno.ENOTDIR):
+            return _Missing(f"{where}: missing ({named_by} names it)")
         return ValueError(f"{where}: cannot be read ({err.strerror}; {named_by} names it)")
 
     def read_bytes(self, relative: object, *, named_by: str, limit: int) -> bytes:
@@ -222,24 +304,46 @@ class OpenedFolder:
         return data
 
 
-def parse_json(data: bytes | str, *, where: str) -> object:
+def parse_json(data: bytes | str, *, where: str, max_depth: int | None = None) -> Any:
     """``json.loads(data)``; a ValueError naming ``where`` for text that is not JSON, not
-    UTF-8, or nested too deep for the parser (a hostile file's recursion, which
-    ``json.loads`` meets with a bare ``RecursionError``)."""
+    UTF-8, has a number past Python's 4,300 digits, or is nested too deep: for the parser
+    (a hostile file's recursion, which ``json.loads`` meets with a bare
+    ``RecursionError``), or past ``max_depth`` levels of lists and objects (walked
+    without recursion) where the caller knows its format's nesting."""
     try:
-        return json.loads(data)
+        value = json.loads(data)
     except RecursionError:
         raise ValueError(f"{where}: JSON nested too deeply to be read; refused") from None
-    except (UnicodeDecodeError, json.JSONDecodeError) as err:
+    except ValueError as err:  # not UTF-8, not JSON, a number past Python's digit limit
         raise ValueError(f"{where}: not JSON ({err})") from None
+    if max_depth is not None:
+        _check_depth(value, max_depth, where)
+    return value
+
+
+def _check_depth(value: object, max_depth: int, where: str) -> None:
+    todo: list[tuple[object, int]] = [(value, 0)]
+    while todo:
+        node, depth = todo.pop()
+        if not isinstance(node, dict | list):
+            continue
+        if depth >= max_depth:
+            raise ValueError(f"{where}: JSON nested more than {max_depth} levels deep; refused")
+        todo.extend((v, depth + 1) for v in (node.values() if isinstance(node, dict) else node))
 
 
 def read_whole(
-    root: str | Path, load: Callable[[OpenedFolder], T], *, what: str = "dataset", tries: int = 3
+    root: str | Path,
+    load: Callable[[OpenedFolder], T],
+    *,
+    what: str = "dataset",
+    links: bool = True,
+    tries: int = 3,
 ) -> T:
     """``load(folder)`` on ``root`` pinned; run again on the folder now in place (up to
     ``tries`` times in all) when it failed because the folder was replaced while it ran.
 
+    ``what`` and ``links``: as :class:`OpenedFolder` takes them.
     A load that succeeded read one folder whole through its pinned descriptor (the old
     one, if a writer exchanged it meanwhile), so its result is kept.
 
@@ -247,7 +351,7 @@ def read_whole(
         ReplacedWhileReading: replaced during every try.
     """
     for _ in range(tries):
-        with OpenedFolder(root, what=what) as folder:
+        with OpenedFolder(root, what=what, links=links) as folder:
             try:
                 return load(folder)
             except ValueError:

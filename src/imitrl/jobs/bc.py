@@ -88,6 +88,14 @@ class Setup:
     """where the run writes until it finishes (staged beside ``--out``, which it then
     replaces: :mod:`imitrl.jobs.output`)"""
 
+    def close(self) -> None:
+        """Close the env and shut the logger down (its files closed); a second call does
+        nothing."""
+        if not getattr(self, "_closed", False):
+            self._closed = True
+            self.env.close()
+            self.logger.shutdown()
+
 
 def prepare(
     config: BCJob,
@@ -196,8 +204,7 @@ def finish(config: BCJob, name: str, learner: Learner, results: dict, setup: Set
     """Write results.json, the checkpoint and curves.png into the run's folder (they
     name their place in ``--out``, where the run is published); close the env and the
     logger."""
-    setup.env.close()
-    setup.logger.shutdown()
+    setup.close()  # the logger's files complete before they are plotted
     curves = plot_curves(
         scalars_dir(setup.folder, name),
         setup.folder / "curves.png",
@@ -222,29 +229,34 @@ def run_bc(config: BCJob) -> dict:
 def _run_bc(config: BCJob, folder: Path) -> dict:
     start = time.perf_counter()
     setup = prepare(config, "bc", folder)
-    config = replace(config, loss=setup.loss)  # recorded as resolved: --loss default's entry
-    buffer = demonstrations(config, setup)
-    learner = setup.make_learner()
-    fit = fit_bc(learner, buffer, bc_config(config), progress=config.progress, logger=setup.logger)
-    expert_ev = evaluate_expert(config, setup)
-    learner_ev = evaluate_learner(config, learner)
-    log_evaluation(setup.logger, 0, learner_ev, expert_ev)
-    results = {
-        "command": "bc",
-        "env": config.env,
-        "learner_loss": setup.loss,
-        "demonstrations": {
-            "source": str(config.dataset) if config.dataset else f"expert {config.expert}",
-            "episodes": buffer.num_episodes,
-            "rows": len(buffer),
-        },
-        "final_loss": fit.final_loss,
-        "expert": expert_ev,
-        "learner": learner_ev,
-        "seconds": time.perf_counter() - start,
-    }
-    finish(config, "bc", learner, results, setup)
-    return results
+    try:
+        config = replace(config, loss=setup.loss)  # recorded as resolved: --loss default's entry
+        buffer = demonstrations(config, setup)
+        learner = setup.make_learner()
+        fit = fit_bc(
+            learner, buffer, bc_config(config), progress=config.progress, logger=setup.logger
+        )
+        expert_ev = evaluate_expert(config, setup)
+        learner_ev = evaluate_learner(config, learner)
+        log_evaluation(setup.logger, 0, learner_ev, expert_ev)
+        results = {
+            "command": "bc",
+            "env": config.env,
+            "learner_loss": setup.loss,
+            "demonstrations": {
+                "source": str(config.dataset) if config.dataset else f"expert {config.expert}",
+                "episodes": buffer.num_episodes,
+                "rows": len(buffer),
+            },
+            "final_loss": fit.final_loss,
+            "expert": expert_ev,
+            "learner": learner_ev,
+            "seconds": time.perf_counter() - start,
+        }
+        finish(config, "bc", learner, results, setup)
+        return results
+    finally:
+        setup.close()  # the env and the logger, whatever happened
 
 
 def report(results: dict) -> list[str]:

@@ -4,28 +4,50 @@ The checkpoint is the job's config (enough to rebuild the learner: env, loss,
 hidden sizes, learning rate, seed) and ``torch.save(learner.state_dict())`` (the
 weights and the observation normaliser's statistics). ``imitrl eval --checkpoint
 DIR`` rebuilds the learner from the config and loads the weights.
+
+A checkpoint may be downloaded, and replaced by a writer while it is read: it is hostile
+until checked. :func:`read_checkpoint` reads both files from the folder pinned once, each
+opened once by descriptor (a regular file inside the folder: no link out, no FIFO),
+sizes bounded before anything is read; the saved config meets the checks of the flags it
+came from (:mod:`imitrl.jobs.limits`: ``hidden: [65536, 65536]`` asks for more weights
+than a network may have); the network it asks for must fit in the weights file before it
+is built (:func:`build_learner`, :func:`check_holds`).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import json
+import os
+import zipfile
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 import torch
 from torchrl.envs import EnvBase
 
-from imitrl.jobs.resolve import FOR_ENV, LEGACY_DEFAULT, builds_table, learner_factory
+from imitrl.fs.reading import OpenedFolder, ReplacedWhileReading, parse_json, read_whole
+from imitrl.jobs.configs import BCJob
+from imitrl.jobs.limits import hidden_parameters
+from imitrl.jobs.resolve import FOR_ENV, LEGACY_DEFAULT, builds_table, learner_factory, task_spec
 from imitrl.objectives import registry
 from imitrl.policies import Learner
 
 __all__ = [
     "CONFIG_FILE",
+    "MAX_CONFIG_BYTES",
+    "MAX_WEIGHTS_BYTES",
+    "PARAMETER_BYTES",
     "RESULTS_FILE",
     "WEIGHTS_FILE",
+    "SavedRun",
+    "build_learner",
+    "check_holds",
     "checkpoint_env",
+    "checkpoint_env_kwargs",
     "load_learner",
+    "read_checkpoint",
     "read_config",
     "save_run",
     "to_json",
@@ -56,58 +78,189 @@ def save_run(out: Path, command: str, config: Any, learner: Learner, results: di
     (out / RESULTS_FILE).write_text(json.dumps(to_json(results), indent=2) + "\n")
 
 
-MAX_WIDTH = 1 << 16
-"""widest hidden layer a checkpoint's config may ask for (a downloaded config is hostile:
-it never makes ``imitrl eval`` allocate what it likes)"""
+MAX_CONFIG_BYTES = 1 << 20
+"""largest ``config.json`` read (imitrl writes a few kB); a larger one is refused before
+it is read"""
+MAX_WEIGHTS_BYTES = 2 << 30
+"""largest ``learner.pt`` loaded (2 GiB: the float32 weights of a policy and a value
+network of :data:`~imitrl.jobs.limits.MAX_PARAMETERS` each are 800 MB); a larger one
+is refused before it is read"""
+PARAMETER_BYTES = 4
+"""bytes a weight takes in ``learner.pt``: float32, what every imitrl learner holds"""
 
 
-def read_config(checkpoint: Path) -> dict:
-    """The saved job config (a dict of the ``bc`` / ``dagger`` flags), its fields checked
-    (a downloaded checkpoint is hostile until checked: :func:`_check_fields`)."""
-    path = Path(checkpoint) / CONFIG_FILE
-    if not path.is_file() or not (Path(checkpoint) / WEIGHTS_FILE).is_file():
+@dataclass(frozen=True)
+class SavedRun:
+    """A checkpoint read whole, from one folder (:func:`read_checkpoint`)."""
+
+    path: Path
+    """the checkpoint folder"""
+    config: dict
+    """the saved job config, its fields checked (:func:`read_config`)"""
+    state: dict
+    """``learner.state_dict()`` as saved, on the CPU"""
+    weights_bytes: int
+    """the size of ``learner.pt``, which the network the config asks for must fit"""
+
+
+def _expect_checkpoint(checkpoint: Path) -> Path:
+    """``checkpoint``, when it holds both files (ValueError saying what it should be)."""
+    root = Path(checkpoint)
+    if not (root / CONFIG_FILE).is_file() or not (root / WEIGHTS_FILE).is_file():
         raise ValueError(
             f"--checkpoint {checkpoint}: expected {CONFIG_FILE} and {WEIGHTS_FILE} "
             "(the --out directory of imitrl bc or imitrl dagger)"
         )
-    try:
-        config = json.loads(path.read_text())["config"]
-    except (json.JSONDecodeError, KeyError, TypeError) as err:
-        raise ValueError(f"{path}: not a config written by imitrl bc/dagger ({err})") from err
-    _check_fields(path, config)
+    return root
+
+
+def read_config(checkpoint: Path) -> dict:
+    """The saved job config (a dict of the ``bc`` / ``dagger`` flags), its fields checked
+    (a downloaded checkpoint is hostile until checked: :func:`_check_fields`).
+
+    ``config.json`` is opened once, by descriptor, inside the folder (no link out, no
+    FIFO: :class:`~imitrl.fs.reading.OpenedFolder`), at most :data:`MAX_CONFIG_BYTES`.
+    """
+    root = _expect_checkpoint(checkpoint)
+    return read_whole(root, _config, what="checkpoint", links=False)
+
+
+def read_checkpoint(checkpoint: Path) -> SavedRun:
+    """``config.json`` and ``learner.pt`` read together from the folder pinned once
+    (:func:`~imitrl.fs.reading.read_whole`): both files of one checkpoint even while a
+    writer replaces it (an exchange met while reading runs the read again on the new one;
+    one met every time is :class:`~imitrl.fs.reading.ReplacedWhileReading`, "replaced
+    while reading"). Before ``learner.pt`` is unpacked, its size is held to
+    :data:`MAX_WEIGHTS_BYTES` and its records must be stored uncompressed (as
+    ``torch.save`` writes them), so unpacking takes no more memory than the file's size;
+    the network the config asks for is held to that size before it is built
+    (:func:`build_learner`, :func:`check_holds`: the env's sizes count, and whether the
+    widths are used at all).
+
+    Raises:
+        ValueError: naming the file and what is wrong with it.
+    """
+    root = _expect_checkpoint(checkpoint)
+    return read_whole(root, _read_run, what="checkpoint", links=False)
+
+
+def _read_run(folder: OpenedFolder) -> SavedRun:
+    config = _config(folder)
+    state, size = _weights(folder)
+    if folder.replaced():  # files found by name (a hub snapshot's): both from one folder
+        raise ReplacedWhileReading(f"{folder.root}: replaced while reading it")
+    return SavedRun(folder.root, config, state, size)
+
+
+def _config(folder: OpenedFolder) -> dict:
+    """``config.json``'s ``config``, checked (:func:`_check_fields`)."""
+    where = folder.root / CONFIG_FILE
+    data = folder.read_bytes(CONFIG_FILE, named_by="checkpoint's config", limit=MAX_CONFIG_BYTES)
+    meta = parse_json(data, where=str(where))
+    if not isinstance(meta, dict) or "config" not in meta:
+        raise ValueError(f"{where}: not a config written by imitrl bc/dagger (no 'config')")
+    config = meta["config"]
+    _check_fields(where, config)
     return config
 
 
+def _weights(folder: OpenedFolder) -> tuple[dict, int]:
+    """``learner.pt`` unpacked onto the CPU (a GPU checkpoint loads on a machine without
+    one), once its size was checked; returns ``(state, size)``."""
+    where = folder.root / WEIGHTS_FILE
+    fd = folder.open(WEIGHTS_FILE, named_by="the checkpoint's layout")
+    with os.fdopen(fd, "rb") as f:
+        size = os.fstat(f.fileno()).st_size
+        if size > MAX_WEIGHTS_BYTES:
+            raise ValueError(
+                f"{where}: {size:_} bytes, more than the {MAX_WEIGHTS_BYTES:_} a learner's "
+                "weights may take (imitrl.jobs.checkpoint.MAX_WEIGHTS_BYTES); refused "
+                "before reading it"
+            )
+        _check_stored(f, where, size)
+        f.seek(0)
+        try:
+            state = torch.load(f, weights_only=True, map_location="cpu")
+        except Exception as err:  # torch.load raises assorted errors on a bad archive
+            raise ValueError(
+                f"{where}: not a learner's weights ({type(err).__name__}: {err})"
+            ) from None
+    if not isinstance(state, dict):
+        raise ValueError(f"{where}: not a learner's weights (a {type(state).__name__})")
+    return state, size
+
+
+def _check_stored(f: BinaryIO, where: Path, size: int) -> None:
+    """Refuse a weights archive that would unpack to more than its ``size``: one whose
+    records are compressed (``torch.save`` stores them as they are) or say so."""
+    try:
+        with zipfile.ZipFile(f) as archive:
+            records = archive.infolist()
+    except (zipfile.BadZipFile, zipfile.LargeZipFile, ValueError, OSError, EOFError) as err:
+        raise ValueError(
+            f"{where}: not a learner's weights (not the zip archive torch.save writes: {err})"
+        ) from None
+    packed = [r.filename for r in records if r.compress_type != zipfile.ZIP_STORED]
+    unpacked = sum(r.file_size for r in records)
+    if packed or unpacked > size:
+        raise ValueError(
+            f"{where}: records that unpack to {unpacked:_} bytes from {size:_} (compressed: "
+            f"{packed[:3]}); torch.save stores them as they are, so refused before unpacking"
+        )
+
+
+def check_holds(where: Path, hidden: tuple[int, ...], size: int, env: EnvBase) -> None:
+    """Refuse (ValueError naming both numbers) weights of ``size`` bytes too small for the
+    network the hidden widths ask for on ``env``, before it is built: at least
+    :func:`~imitrl.jobs.limits.hidden_parameters` weights of :data:`PARAMETER_BYTES` each,
+    with the env's observation and action sizes."""
+    inputs, outputs = _env_sizes(env)
+    implied = hidden_parameters(tuple(hidden), inputs, outputs)
+    if implied * PARAMETER_BYTES > size:
+        raise ValueError(
+            f"{where}: {size:_} bytes cannot hold the network its config asks for: hidden "
+            f"{list(hidden)} on {inputs} inputs and {outputs} outputs has at least "
+            f"{implied:_} weights, {implied * PARAMETER_BYTES:_} bytes as float32; "
+            "refused before building it"
+        )
+
+
+def _env_sizes(env: EnvBase) -> tuple[int, int]:
+    """The observation and action sizes an MLP on ``env`` reads and writes (1 and 1
+    where the env is not one the registry describes: a lower bound for any network)."""
+    try:
+        task = task_spec(env)
+    except ValueError:
+        return 1, 1
+    inputs = task.observation_dim if task.num_states is None else task.num_states
+    outputs = task.action if isinstance(task.action, int) else int(task.action.shape[0])
+    return int(inputs), int(outputs)
+
+
+def _field_bound(name: str) -> Any:
+    """The limits of ``BCJob``'s field ``name``: a saved config meets the checks the
+    command line's flags meet (:mod:`imitrl.jobs.limits`)."""
+    return next(f for f in dataclasses.fields(BCJob) if f.name == name).metadata["bound"]
+
+
 def _check_fields(path: Path, config: Any) -> None:
-    """The fields ``imitrl eval`` rebuilds a learner from: what imitrl bc/dagger write."""
+    """The fields ``imitrl eval`` rebuilds a learner from: what imitrl bc/dagger write,
+    held to the limits of their flags."""
     if not isinstance(config, dict):
         raise ValueError(f"{path}: 'config' must be an object, got {type(config).__name__}")
-
-    def bad(field: str, expected: str) -> ValueError:
-        return ValueError(f"{path}: {field} must be {expected}, got {config.get(field)!r}")
-
     for field in ("env", "loss"):
         if not isinstance(config.get(field), str) or not config[field]:
-            raise bad(field, "a name")
-    hidden = config.get("hidden")  # null: the network's own layers (no --hidden given)
-    if hidden is not None and (
-        not isinstance(hidden, list)
-        or not all(type(h) is int and 1 <= h <= MAX_WIDTH for h in hidden)
-    ):
-        raise bad("hidden", f"a list of layer widths in [1, {MAX_WIDTH}] or null")
-    if type(config.get("seed")) is not int:
-        raise bad("seed", "an integer")
-    lr = config.get("lr")  # null: the loss's own rate (no --lr given)
-    if lr is not None and (
-        isinstance(lr, bool) or not isinstance(lr, int | float) or not 0 < lr < float("inf")
-    ):
-        raise bad("lr", "a positive number or null")
-    steps = config.get("max_episode_steps")
-    if steps is not None and (type(steps) is not int or steps < 1):
-        raise bad("max_episode_steps", "a positive integer or null")
+            raise ValueError(f"{path}: {field} must be a name, got {config.get(field)!r}")
+    # null hidden / lr / max_episode_steps: the network's own layers, the loss's own rate,
+    # the env's own limit (no flag given)
+    for field in ("hidden", "seed", "lr", "max_episode_steps"):
+        _field_bound(field).check_field(config.get(field), f"{path}: {field}", none="null")
     pairs = config.get("env_kwargs", [])
     if not isinstance(pairs, list) or not all(_plain_pair(p) for p in pairs):
-        raise bad("env_kwargs", "a list of [name, value] pairs of JSON scalars (or lists of them)")
+        raise ValueError(
+            f"{path}: env_kwargs must be a list of [name, value] pairs of JSON scalars (or "
+            f"lists of them), got {pairs!r}"[:300]
+        )
 
 
 def _plain_pair(pair: Any) -> bool:
@@ -159,13 +312,23 @@ def _saved_lr(config: dict) -> float | None:
 
 def load_learner(checkpoint: Path, env: EnvBase, *, device: str | None = None) -> Learner:
     """The learner saved in ``checkpoint``, rebuilt for ``env`` on ``device`` (None: the
-    CPU; the checkpoint may have been saved on another device) and loaded with its weights."""
-    config = read_config(checkpoint)
+    CPU; the checkpoint may have been saved on another device) and loaded with its weights
+    (:func:`read_checkpoint`, then :func:`build_learner`)."""
+    return build_learner(read_checkpoint(checkpoint), env, device=device)
+
+
+def build_learner(saved: SavedRun, env: EnvBase, *, device: str | None = None) -> Learner:
+    """The learner of ``saved`` rebuilt for ``env`` on ``device`` and loaded with its
+    weights; the network its config asks for is held to the weights' size with the env's
+    observation and action sizes first (:func:`check_holds`)."""
+    config = saved.config
     loss = config["loss"]
     loss = FOR_ENV if loss == LEGACY_DEFAULT else loss  # saved when default meant for_env
-    hidden = None if config["hidden"] is None else tuple(config["hidden"])
+    hidden = None if config.get("hidden") is None else tuple(config["hidden"])
     if hidden is not None and builds_table(loss, env):
         hidden = None  # a table: runs before --hidden was optional recorded the default
+    if hidden is not None:
+        check_holds(saved.path / WEIGHTS_FILE, hidden, saved.weights_bytes, env)
     make = learner_factory(
         loss,
         env,
@@ -175,17 +338,10 @@ def load_learner(checkpoint: Path, env: EnvBase, *, device: str | None = None) -
         device=device,
     )
     learner = make()
-    where = Path(checkpoint) / WEIGHTS_FILE
-    try:  # onto the CPU first: a GPU checkpoint loads on a machine without one
-        state = torch.load(where, weights_only=True, map_location="cpu")
-    except Exception as err:  # torch.load raises assorted errors on a bad archive
-        raise ValueError(
-            f"{where}: not a learner's weights ({type(err).__name__}: {err})"
-        ) from None
     try:
-        learner.load_state_dict(state)
+        learner.load_state_dict(saved.state)
     except RuntimeError as err:  # shapes or names that do not match the rebuilt learner
         raise ValueError(
-            f"{checkpoint}: the weights do not fit the rebuilt learner on {learner.device} ({err})"
+            f"{saved.path}: the weights do not fit the rebuilt learner on {learner.device} ({err})"
         ) from err
     return learner

@@ -64,72 +64,75 @@ def _run_dagger(config: DAggerJob, folder: Path) -> dict:
     start = time.perf_counter()
     checkpoint = folder / "run"
     setup = prepare(config, "dagger", folder, keep_logs=config.resume)
-    config = dataclasses.replace(config, loss=setup.loss)  # recorded as resolved
-    if setup.expert is None:  # --expert auto with a --dataset, on an env without one
-        raise ValueError(no_expert_message(config.env))
-    buffer = demonstrations(config, setup)
-    demo_rows, demo_episodes = len(buffer), buffer.num_episodes
-    expert_ev = evaluate_expert(config, setup)
-
-    def on_fit(round_index: int, learner: Learner) -> dict:
-        ev = evaluate_learner(config, learner)
-        log_evaluation(setup.logger, round_index, ev, expert_ev if round_index == 0 else None)
-        return ev  # kept in the round's record, and so in the checkpoint
-
-    source = episode_source(config, setup)
     try:
-        result = dagger(
-            source,
-            setup.expert,
-            setup.make_learner,
-            buffer,
-            DAggerConfig(
-                rounds=config.rounds,
-                episodes_per_round=config.episodes_per_round,
-                beta=Constant(config.beta),
-                warm_start=config.warm_start,
-                bc=bc_config(config),
-                seed=config.seed,
-            ),
-            on_fit=on_fit,
-            progress=config.progress,
-            logger=setup.logger,
-            checkpoint_dir=checkpoint,
-            resume=config.resume,
-        )
-    finally:
-        if isinstance(source, RaySource):
-            source.close()  # the Ray workers, and Ray where the source started it
-    evaluations = [r.info for r in result.rounds]
-    rounds = [
-        {
-            "round": r.round,
-            "rows_trained": r.rows_trained,
-            "final_loss": r.bc.final_loss,
-            "beta_next": r.beta_next,
-            "rows_collected": r.rows_collected,
-            "expert_executed_fraction": r.expert_executed_fraction,
-            "evaluation": ev,
+        config = dataclasses.replace(config, loss=setup.loss)  # recorded as resolved
+        if setup.expert is None:  # --expert auto with a --dataset, on an env without one
+            raise ValueError(no_expert_message(config.env))
+        buffer = demonstrations(config, setup)
+        demo_rows, demo_episodes = len(buffer), buffer.num_episodes
+        expert_ev = evaluate_expert(config, setup)
+
+        def on_fit(round_index: int, learner: Learner) -> dict:
+            ev = evaluate_learner(config, learner)
+            log_evaluation(setup.logger, round_index, ev, expert_ev if round_index == 0 else None)
+            return ev  # kept in the round's record, and so in the checkpoint
+
+        source = episode_source(config, setup)
+        try:
+            result = dagger(
+                source,
+                setup.expert,
+                setup.make_learner,
+                buffer,
+                DAggerConfig(
+                    rounds=config.rounds,
+                    episodes_per_round=config.episodes_per_round,
+                    beta=Constant(config.beta),
+                    warm_start=config.warm_start,
+                    bc=bc_config(config),
+                    seed=config.seed,
+                ),
+                on_fit=on_fit,
+                progress=config.progress,
+                logger=setup.logger,
+                checkpoint_dir=checkpoint,
+                resume=config.resume,
+            )
+        finally:
+            if isinstance(source, RaySource):
+                source.close()  # the Ray workers, and Ray where the source started it
+        evaluations = [r.info for r in result.rounds]
+        rounds = [
+            {
+                "round": r.round,
+                "rows_trained": r.rows_trained,
+                "final_loss": r.bc.final_loss,
+                "beta_next": r.beta_next,
+                "rows_collected": r.rows_collected,
+                "expert_executed_fraction": r.expert_executed_fraction,
+                "evaluation": ev,
+            }
+            for r, ev in zip(result.rounds, evaluations)
+        ]
+        results = {
+            "command": "dagger",
+            "env": config.env,
+            "learner_loss": setup.loss,
+            "demonstrations": {
+                "source": str(config.dataset) if config.dataset else f"expert {config.expert}",
+                "episodes": demo_episodes,
+                "rows": demo_rows,
+            },
+            "final_loss": result.rounds[-1].bc.final_loss,
+            "expert": expert_ev,
+            "learner": evaluations[-1],
+            "rounds": rounds,
+            "seconds": time.perf_counter() - start,
         }
-        for r, ev in zip(result.rounds, evaluations)
-    ]
-    results = {
-        "command": "dagger",
-        "env": config.env,
-        "learner_loss": setup.loss,
-        "demonstrations": {
-            "source": str(config.dataset) if config.dataset else f"expert {config.expert}",
-            "episodes": demo_episodes,
-            "rows": demo_rows,
-        },
-        "final_loss": result.rounds[-1].bc.final_loss,
-        "expert": expert_ev,
-        "learner": evaluations[-1],
-        "rounds": rounds,
-        "seconds": time.perf_counter() - start,
-    }
-    finish(config, "dagger", result.learner, results, setup)
-    return results
+        finish(config, "dagger", result.learner, results, setup)
+        return results
+    finally:
+        setup.close()  # the env and the logger, whatever happened
 
 
 def episode_source(config: DAggerJob, setup: Setup) -> EnvSource | RaySource:

@@ -15,6 +15,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from imitrl.jobs.limits import MAX_EPISODE_STEPS, MAX_EVAL_EPISODES, MAX_SEED, bounded, check_bounds
+
 if TYPE_CHECKING:  # torch, TorchRL and the rest are imported where used: see imitrl.cli
     from tensordict.nn import TensorDictModuleBase
     from torchrl.envs.utils import ExplorationType
@@ -113,16 +115,16 @@ class EvalJob:
     env: str | None = None
     """gymnasium id or module:Env-v0; none = the checkpoint's env (a checkpoint naming
     module:Env-v0 is refused: imitrl imports only the modules you name here)"""
-    max_episode_steps: int | None = None
+    max_episode_steps: int | None = bounded(None, 1, MAX_EPISODE_STEPS, none_ok=True)
     """override the env's time limit; none = the checkpoint's (or the env's own limit)"""
     env_kwargs: tuple[tuple[str, object], ...] = field(
         default=(), metadata={"repeat": "--env-kwarg"}
     )
     """a keyword argument of the env's constructor, name=value; none given = the
     checkpoint's"""
-    eval_episodes: int = 10
+    eval_episodes: int = bounded(10, 1, MAX_EVAL_EPISODES)
     """evaluation episodes (the default of bc/dagger, so the run's numbers reproduce)"""
-    eval_seed: int = 10_000
+    eval_seed: int = bounded(10_000, 0, MAX_SEED)
     """seed of the evaluation env (the default of bc/dagger)"""
     out: Path | None = None
     """also write eval.json into this directory; none = print only"""
@@ -145,8 +147,7 @@ class EvalJob:
             raise ValueError(
                 f"--expert-kind must be one of {EXPERT_KINDS}, got {self.expert_kind!r}"
             )
-        if self.eval_episodes < 1:
-            raise ValueError(f"--eval-episodes must be >= 1, got {self.eval_episodes}")
+        check_bounds(self)
         from imitrl.jobs.configs import _check_device
 
         _check_device(self.device)
@@ -163,23 +164,26 @@ def run_eval(config: EvalJob) -> dict:
 
     from imitrl.envs import make_env
     from imitrl.jobs.checkpoint import (
+        build_learner,
         checkpoint_env,
         checkpoint_env_kwargs,
-        load_learner,
-        read_config,
+        read_checkpoint,
     )
     from imitrl.jobs.resolve import make_expert
     from imitrl.policies import as_actor
 
     if config.checkpoint is not None:
-        saved = read_config(config.checkpoint)
-        env_id = config.env or checkpoint_env(config.checkpoint, saved)
-        steps = config.max_episode_steps or saved["max_episode_steps"]
-        kwargs = dict(config.env_kwargs) or checkpoint_env_kwargs(saved)
+        # config.json and learner.pt of one checkpoint, even while a writer replaces it
+        saved = read_checkpoint(config.checkpoint)
+        env_id = config.env or checkpoint_env(config.checkpoint, saved.config)
+        steps = config.max_episode_steps or saved.config.get("max_episode_steps")
+        kwargs = dict(config.env_kwargs) or checkpoint_env_kwargs(saved.config)
         # the learner's shapes
         specs = make_env(env_id, seed=0, max_episode_steps=steps, env_kwargs=kwargs)
-        learner = load_learner(config.checkpoint, specs, device=config.device)
-        specs.close()
+        try:
+            learner = build_learner(saved, specs, device=config.device)
+        finally:
+            specs.close()
         policy, exploration, name = learner.policy, learner.exploration, "learner"
     else:
         env_id, steps, kwargs = config.env, config.max_episode_steps, dict(config.env_kwargs)

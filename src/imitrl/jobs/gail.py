@@ -91,51 +91,54 @@ def _run(config: GAILJob, name: str) -> dict:
 def _train(config: GAILJob, name: str, folder: Path) -> dict:
     start = time.perf_counter()
     setup = prepare(config.bc_view(config.loss), name, folder, probabilistic=True)
-    loss = setup.loss  # --loss default: a head with log pi (imitrl.objectives.defaults)
-    bc_view = config.bc_view(loss)
-    learner = _learner(setup)
-    buffer = demonstrations(bc_view, setup)
-    expert_ev = evaluate_expert(bc_view, setup)
-    initial_ev = evaluate_learner(bc_view, learner)
-    log_evaluation(setup.logger, 0, initial_ev, expert_ev)  # env step 0
-    evaluations: list[tuple[int, dict]] = []  # (env steps, evaluation)
-    on_round = _evaluator(config, bc_view, setup, evaluations)
-    absorbing = (
-        demonstrations_terminate(buffer.data) if config.absorbing is None else config.absorbing
-    )
-    training = dataclasses.replace(config.algorithm_config(), absorbing=absorbing)
-    progress, logger = config.progress, setup.logger
-    if name == "gail":
-        result = gail(setup.env, learner, buffer, training, progress=progress, logger=logger,
-                      on_round=on_round)  # fmt: skip
-    else:
-        result, _ = airl(setup.env, learner, buffer, training, progress=progress,
-                         logger=logger, on_round=on_round)  # fmt: skip
-    if not evaluations or evaluations[-1][0] != result.env_steps:  # the last round's
-        ev = evaluate_learner(bc_view, learner)
-        log_evaluation(setup.logger, result.env_steps, ev, None)
-        evaluations.append((result.env_steps, ev))
-    learner_ev = evaluations[-1][1]
-    results = {
-        "command": name,
-        "env": config.env,
-        "learner_loss": loss,
-        "demonstrations": {
-            "source": str(config.dataset) if config.dataset else f"expert {config.expert}",
-            "episodes": buffer.num_episodes,
-            "rows": len(buffer),
-        },
-        "absorbing": {"on": absorbing, "why": _absorbing_why(config, buffer, absorbing)},
-        "env_steps": result.env_steps,
-        "expert_queries": result.expert_queries,
-        "expert": expert_ev,
-        "initial_learner": initial_ev,
-        "learner": learner_ev,
-        "rounds": [dataclasses.asdict(r) for r in result.rounds],
-        "seconds": time.perf_counter() - start,
-    }
-    finish(dataclasses.replace(config, loss=loss), name, learner, results, setup)
-    return results
+    try:
+        loss = setup.loss  # --loss default: a head with log pi (imitrl.objectives.defaults)
+        bc_view = config.bc_view(loss)
+        learner = _learner(setup)
+        buffer = demonstrations(bc_view, setup)
+        expert_ev = evaluate_expert(bc_view, setup)
+        initial_ev = evaluate_learner(bc_view, learner)
+        log_evaluation(setup.logger, 0, initial_ev, expert_ev)  # env step 0
+        evaluations: list[tuple[int, dict]] = []  # (env steps, evaluation)
+        on_round = _evaluator(config, bc_view, setup, evaluations)
+        absorbing = (
+            demonstrations_terminate(buffer.data) if config.absorbing is None else config.absorbing
+        )
+        training = dataclasses.replace(config.algorithm_config(), absorbing=absorbing)
+        progress, logger = config.progress, setup.logger
+        if name == "gail":
+            result = gail(setup.env, learner, buffer, training, progress=progress, logger=logger,
+                          on_round=on_round)  # fmt: skip
+        else:
+            result, _ = airl(setup.env, learner, buffer, training, progress=progress,
+                             logger=logger, on_round=on_round)  # fmt: skip
+        if not evaluations or evaluations[-1][0] != result.env_steps:  # the last round's
+            ev = evaluate_learner(bc_view, learner)
+            log_evaluation(setup.logger, result.env_steps, ev, None)
+            evaluations.append((result.env_steps, ev))
+        learner_ev = evaluations[-1][1]
+        results = {
+            "command": name,
+            "env": config.env,
+            "learner_loss": loss,
+            "demonstrations": {
+                "source": str(config.dataset) if config.dataset else f"expert {config.expert}",
+                "episodes": buffer.num_episodes,
+                "rows": len(buffer),
+            },
+            "absorbing": {"on": absorbing, "why": _absorbing_why(config, buffer, absorbing)},
+            "env_steps": result.env_steps,
+            "expert_queries": result.expert_queries,
+            "expert": expert_ev,
+            "initial_learner": initial_ev,
+            "learner": learner_ev,
+            "rounds": [dataclasses.asdict(r) for r in result.rounds],
+            "seconds": time.perf_counter() - start,
+        }
+        finish(dataclasses.replace(config, loss=loss), name, learner, results, setup)
+        return results
+    finally:
+        setup.close()  # the env and the logger, whatever happened
 
 
 def _absorbing_why(config: GAILJob, buffer, absorbing: bool) -> str:

@@ -40,7 +40,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from imitrl.fs.files import PlantedLinkError
-from imitrl.fs.lock import LOCK_SUFFIX, exclusive
+from imitrl.fs.lock import LOCK_SUFFIX, absolute, exclusive
 from imitrl.fs.publish import OLD, TMP, fsync_dir, recover, swap_in
 from imitrl.fs.write_errors import DiskFullError, reporting_disk_full
 
@@ -155,8 +155,8 @@ def claimed(out: Path, *, overwrite: bool, resume: bool = False) -> Iterator[Pat
         imitrl.fs.DiskFullError, imitrl.fs.NotWritableError: the file system refused the
             run's files; ``out`` is as it was.
     """
-    out = Path(out).expanduser()
-    made = [p for p in (out, *out.absolute().parents) if not p.exists()]  # deepest first
+    out = absolute(out)  # a path this system can write (its length checked)
+    made = [p for p in (out, *out.parents) if not p.exists()]  # deepest first
     stage: Path | None = None
     try:
         with (

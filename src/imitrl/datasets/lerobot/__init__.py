@@ -48,9 +48,15 @@ frames in memory-mapped files instead of memory. A dataset whose only observatio
 camera gives rows with ``PIXELS`` and no ``OBSERVATION``. Nothing is dropped without a
 warning.
 
-Modules, one idea each: ``_layout`` (format constants, reading ``meta/``), ``_locate``
-(:func:`resolve_lerobot_root`: lerobot's folder and the hub caches, offline), ``_hub`` (a folder, a local cache or the Hub: :func:`download_lerobot`,
-with huggingface_hub, into ``$HF_LEROBOT_HOME/hub`` as lerobot 0.6 does), ``_plan`` (feature -> buffer key, and why others are skipped),
+Modules, one idea each: ``_layout`` (format constants, ``meta/info.json`` and its path
+templates), ``_episodes`` (the episode and task tables), ``_files`` (every file of a load
+opened by descriptor inside the dataset folder, pinned; metadata read whole bounded in
+size and nesting), ``_frames`` (the frames read whole and checked against the episode
+table), ``_locate``
+(:func:`resolve_lerobot_root`: lerobot's folder and the hub caches, offline), ``_hub`` (a folder, a local cache or the Hub: :func:`download_lerobot`
+into ``$HF_LEROBOT_HOME/hub`` as lerobot 0.6 does, one downloader at a time per
+repository), ``_hub_http`` (the bounded HTTP client it asks the Hub through:
+:class:`HubLimits`, timeouts, deadlines, size bounds, redirect hosts), ``_plan`` (feature -> buffer key, and why others are skipped),
 ``_read`` (:func:`load_lerobot`), ``_stream`` (``load_lerobot(..., into=buffer)``: a few
 episodes at a time, everything checked before the buffer is extended), ``_video`` (where each episode's camera frames lie in
 which mp4, and decoding them), ``_checks`` (what frames must satisfy: timestamps
@@ -66,6 +72,7 @@ exactly ``lerobot/metaworld_mt50``'s features: :func:`save_metaworld_lerobot`).
 """
 
 from imitrl.datasets.lerobot._hub import download_lerobot
+from imitrl.datasets.lerobot._hub_http import HubLimits
 
 # the format's constants stay importable from here, as before the split into modules
 from imitrl.datasets.lerobot._layout import (  # noqa: F401
@@ -93,6 +100,7 @@ from imitrl.datasets.lerobot._write import save_lerobot
 __all__ = [
     "DEFAULT_KEY_MAP",
     "IMITRL_COLUMNS",
+    "HubLimits",
     "download_lerobot",
     "load_lerobot",
     "resolve_lerobot_root",

@@ -18,14 +18,18 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import warnings
 from pathlib import Path
 from typing import Any
 
 import torch
 
+from imitrl.datasets._common import open_in
+from imitrl.datasets.lerobot._files import holds, list_files, read_json
 from imitrl.datasets.lerobot._layout import IMITRL_COLUMNS, SIDECAR
-from imitrl.fs.contained import inside
+from imitrl.fs.contained import check_relative
+from imitrl.fs.reading import OpenedFolder
 
 TOLERANCE_S = 1e-4
 """LeRobot's timestamp tolerance (``LeRobotDataset``'s ``tolerance_s`` default)"""
@@ -33,11 +37,24 @@ TOLERANCE_S = 1e-4
 
 def file_digest(path: Path) -> dict[str, Any]:
     """``{"size": bytes, "sha256": hex}`` of a file, as ``meta/imitrl.json`` records it."""
-    digest = hashlib.sha256()
     with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            digest.update(block)
-    return {"size": path.stat().st_size, "sha256": digest.hexdigest()}
+        return _digest(f)
+
+
+def _digest(f: Any) -> dict[str, Any]:
+    """:func:`file_digest` of an open file, read from its start."""
+    digest = hashlib.sha256()
+    size = 0
+    for block in iter(lambda: f.read(1 << 20), b""):
+        digest.update(block)
+        size += len(block)
+    return {"size": size, "sha256": digest.hexdigest()}
+
+
+def _folder_digest(folder: OpenedFolder, name: str, named_by: str) -> dict[str, Any]:
+    """:func:`file_digest` of the file ``name`` of the folder, opened inside it."""
+    with os.fdopen(open_in(folder, name, named_by=named_by), "rb") as f:
+        return _digest(f)
 
 
 def sidecar_digest(sidecar: dict) -> str:
@@ -61,9 +78,10 @@ INFO_TOTALS = ("total_episodes", "total_frames", "total_tasks", "splits")
 other entry (``features``, ``fps``, the path templates, ...) it keeps"""
 
 
-def verify_files(root: Path, sidecar: dict) -> list[str]:
-    """``meta/imitrl.json`` is as written (its ``"digest"``) and every file it lists is
-    there with its recorded size and SHA-256, but for LeRobot's own edits in place.
+def verify_files(folder: OpenedFolder, sidecar: object) -> list[str]:
+    """``meta/imitrl.json`` (``sidecar``, as read) is as written (its ``"digest"``) and every
+    file it lists is there with its recorded size and SHA-256, but for LeRobot's own edits
+    in place.
 
     LeRobot leaves ``meta/imitrl.json`` behind when it edits a dataset: it rewrites the
     files of :data:`LEROBOT_REWRITES` and adds files under :data:`LEROBOT_ADDS`. Such a
@@ -72,12 +90,14 @@ def verify_files(root: Path, sidecar: dict) -> list[str]:
     with an ``"info"`` record) and a rewritten ``meta/stats.json`` must be LeRobot's
     statistics; the rest is checked as for any LeRobot dataset. Any other change (a byte
     of a data file, an episode table, a video; the sidecar itself) is refused by name.
+    Every file is read inside ``folder``, opened by descriptor.
 
     Returns:
         the files LeRobot rewrote or added since :func:`save_lerobot` wrote the dataset
         (``[]``: as written). A sidecar with neither ``"files"`` nor ``"digest"`` (imitrl
         before checksums) is not verified.
     """
+    root = folder.root
     where = root / SIDECAR
     if not isinstance(sidecar, dict) or ("files" not in sidecar and "digest" not in sidecar):
         return []  # a sidecar that is not an object is refused where it is read
@@ -91,10 +111,11 @@ def verify_files(root: Path, sidecar: dict) -> list[str]:
         raise ValueError(f"{where}: 'files' must map file names to sizes and checksums")
     rewritten = []
     for name, recorded in files.items():
-        path = inside(root, name, named_by=str(where))
-        if not path.is_file():
+        check_relative(root, name, named_by=str(where))
+        path = root / name
+        if not holds(folder, name):
             raise ValueError(f"{path}: file not found (listed in {where})")
-        if file_digest(path) == recorded:
+        if _folder_digest(folder, name, str(where)) == recorded:
             continue
         if name not in LEROBOT_REWRITES:
             raise ValueError(
@@ -104,26 +125,25 @@ def verify_files(root: Path, sidecar: dict) -> list[str]:
             )
         rewritten.append(name)
     added = [
-        p.relative_to(root).as_posix()
-        for folder in LEROBOT_ADDS
-        if (root / folder).is_dir()
-        for p in sorted((root / folder).rglob("*"))
-        if p.is_file() and p.relative_to(root).as_posix() not in files
+        name
+        for top in LEROBOT_ADDS
+        for name in list_files(folder, top, suffix="", depth=None)
+        if name not in files
     ]
     if "meta/info.json" in rewritten:
-        _check_info_kept(root, sidecar.get("info"))
+        _check_info_kept(folder, sidecar.get("info"))
     if "meta/stats.json" in rewritten:
-        _check_stats(root / "meta" / "stats.json")
+        _check_stats(folder)
     return rewritten + added
 
 
-def _check_info_kept(root: Path, recorded: object) -> None:
+def _check_info_kept(folder: OpenedFolder, recorded: object) -> None:
     """A rewritten ``meta/info.json`` keeps every entry :func:`save_lerobot` recorded but
     :data:`INFO_TOTALS`, as LeRobot keeps them."""
     if not isinstance(recorded, dict):
         return  # a sidecar from before the record: the columns are checked against it on load
-    path = root / "meta" / "info.json"
-    info = json.loads(path.read_text()) if path.is_file() else None
+    path = folder.root / "meta" / "info.json"
+    info = read_json(folder, "meta/info.json")
     if not isinstance(info, dict):
         return  # refused by name where it is read
     for field, was in recorded.items():
@@ -136,19 +156,18 @@ def _check_info_kept(root: Path, recorded: object) -> None:
             what, now, was = f"feature {name!r}", now.get(name), was.get(name)
         raise ValueError(
             f"{path}: {what} is {now!r}, save_lerobot wrote {was!r} (recorded in "
-            f"{root / SIDECAR}); LeRobot changes only {list(INFO_TOTALS)} of an existing "
+            f"{folder.root / SIDECAR}); LeRobot changes only {list(INFO_TOTALS)} of an existing "
             "dataset, so this is not its edit: refusing altered data (delete meta/imitrl.json "
             "to read the folder as any LeRobot dataset)"
         )
 
 
-def _check_stats(path: Path) -> None:
+def _check_stats(folder: OpenedFolder) -> None:
     """``meta/stats.json`` as LeRobot writes it (``write_stats``): feature -> statistic ->
-    a number (or boolean) or a nested list of them."""
-    try:
-        stats = json.loads(path.read_text())
-    except json.JSONDecodeError as err:
-        raise ValueError(f"{path} is not valid JSON: {err}") from err
+    a number (or boolean) or a nested list of them (nested a few levels: its depth is
+    bounded where it is read)."""
+    path = folder.root / "meta" / "stats.json"
+    stats = read_json(folder, "meta/stats.json")
 
     def numbers(value: object) -> bool:
         if isinstance(value, list):

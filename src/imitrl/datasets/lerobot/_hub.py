@@ -11,15 +11,26 @@ HF_LEROBOT_HUB_CACHE)``), in the Hugging Face cache layout::
     datasets--<org>--<name>/snapshots/<commit>/<path>            relative links to blobs/
     datasets--<org>--<name>/refs/<revision>                      the commit a revision names
 
-The Hub is asked through ``huggingface_hub`` (the ``hub`` extra): the revision's commit
+The Hub (``$HF_ENDPOINT``) is asked for the revision's commit
 (``/api/datasets/<repo_id>/revision/<revision>``), its file list
-(``/api/datasets/<repo_id>/tree/<commit>``), and each file
-(``/datasets/<repo_id>/resolve/<commit>/<path>``). Everything the server says is hostile
-until checked, before anything is written: the commit is 40 hex digits, every file name a
-plain relative path (:func:`imitrl.fs.contained.inside`), every blob name a hex digest;
-each file's bytes must hash to the digest the listing gave, and only then does it become
-a blob. Nothing is written outside ``datasets--<org>--<name>/`` of the cache (unlike
-``snapshot_download``, which names blobs after the server's ``ETag`` header).
+(``/api/datasets/<repo_id>/tree/<commit>?recursive=true``, page by page as its ``Link``
+header says), and each file (``/datasets/<repo_id>/resolve/<commit>/<path>``), through
+:class:`~imitrl.datasets.lerobot._hub_http.HubClient`: urllib with connect and read
+timeouts, a deadline over every answer, answers bounded in decoded size and redirects
+only to the endpoint's host (or the official Hub's CDN), all set by
+:class:`~imitrl.datasets.lerobot._hub_http.HubLimits` (its module docstring says why not
+``HfApi``: none of that can be set through it). huggingface_hub (the ``hub`` extra) gives
+the token and the progress bar.
+
+Everything the server says is hostile until checked, before anything is written: the
+commit is 40 hex digits, every file name a plain relative path
+(:func:`imitrl.fs.contained.inside`), every blob name a hex digest; each file's bytes must
+hash to the digest the listing gave, and only then does it become a blob. Nothing is
+written outside ``datasets--<org>--<name>/`` of the cache (unlike ``snapshot_download``,
+which names blobs after the server's ``ETag`` header), nor through a link planted there
+(:mod:`imitrl.fs.files`). Downloads of one dataset into one cache, from any number of
+processes, take turns (:func:`imitrl.fs.lock.exclusive` on its repository folder, as
+huggingface_hub locks its cache): the second finds the first's blobs and fetches nothing.
 """
 
 from __future__ import annotations
@@ -27,13 +38,13 @@ from __future__ import annotations
 import hashlib
 import os
 import re
-import urllib.error
-import urllib.request
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 from urllib.parse import quote
 
+from imitrl.datasets.lerobot._hub_http import HubClient, HubLimits
 from imitrl.datasets.lerobot._locate import (
     check_repo_id,
     is_repo_id,
@@ -41,7 +52,11 @@ from imitrl.datasets.lerobot._locate import (
     resolve_lerobot_root,
 )
 from imitrl.fs.contained import inside, links_stay_inside
+from imitrl.fs.files import create_file, make_folder, replace_file
+from imitrl.fs.lock import exclusive
 from imitrl.fs.publish import OLD
+
+__all__ = ["REVISIONS", "HubLimits", "dataset_root", "download_lerobot", "offline"]
 
 REVISIONS = ("v3.0", "v2.1", "v2.0")
 """the version tags a LeRobot dataset's revision defaults to, best first (lerobot asks for
@@ -49,24 +64,32 @@ its ``CODEBASE_VERSION`` through ``get_safe_version``; imitrl reads these three)
 
 _COMMIT = re.compile(r"[0-9a-f]{40}")
 _DIGEST = re.compile(r"[0-9a-f]{40}|[0-9a-f]{64}")
-TIMEOUT_S = 30.0
-"""seconds a Hub request may stay silent before the download is abandoned"""
+MAX_ENTRIES = 1_000_000
+"""files and folders a dataset's file list may name (the largest LeRobot datasets, v2.1
+with a file per episode and camera, name a few hundred thousand)"""
 
 
 def dataset_root(
-    path_or_repo: str | Path, revision: str | None, cache_dir: str | Path | None
+    path_or_repo: str | Path,
+    revision: str | None,
+    cache_dir: str | Path | None,
+    *,
+    limits: HubLimits | None = None,
 ) -> Path:
     """The dataset directory: ``path_or_repo`` itself, or a ``repo_id`` found locally or,
-    online, downloaded (:func:`download_lerobot`); refused when a symbolic link in it points
-    outside it (:func:`imitrl.fs.contained.links_stay_inside`; a hub snapshot's links into
-    its own ``blobs/`` are its own)."""
-    root = _find_root(path_or_repo, revision, cache_dir)
+    online, downloaded (:func:`download_lerobot`, under ``limits``); refused when a
+    symbolic link in it points outside it (:func:`imitrl.fs.contained.links_stay_inside`;
+    a hub snapshot's links into its own ``blobs/`` are its own)."""
+    root = _find_root(path_or_repo, revision, cache_dir, limits)
     links_stay_inside(root, what="dataset")
     return root
 
 
 def _find_root(
-    path_or_repo: str | Path, revision: str | None, cache_dir: str | Path | None
+    path_or_repo: str | Path,
+    revision: str | None,
+    cache_dir: str | Path | None,
+    limits: HubLimits | None,
 ) -> Path:
     path = Path(path_or_repo).expanduser()
     if path.is_dir():
@@ -80,7 +103,7 @@ def _find_root(
                 raise ValueError(
                     f"{missing}; HF_HUB_OFFLINE is set, so it is not downloaded"
                 ) from None
-            return download_lerobot(text, revision=revision, cache_dir=cache_dir)
+            return download_lerobot(text, revision=revision, cache_dir=cache_dir, limits=limits)
     aside = sorted(path.parent.glob(f".{path.name}{OLD}*")) if path.name else []
     if aside:  # a save_lerobot killed between its two renames (imitrl.fs.publish)
         raise ValueError(
@@ -119,7 +142,11 @@ class _File:
 
 
 def download_lerobot(
-    repo_id: str, *, revision: str | None = None, cache_dir: str | Path | None = None
+    repo_id: str,
+    *,
+    revision: str | None = None,
+    cache_dir: str | Path | None = None,
+    limits: HubLimits | None = None,
 ) -> Path:
     """Download a LeRobot dataset from the Hugging Face Hub (``$HF_ENDPOINT``) and return
     its snapshot folder, as lerobot 0.6 does (see the module docstring for the layout).
@@ -130,139 +157,188 @@ def download_lerobot(
             (``v3.0``, else ``v2.1``, else ``v2.0``, as lerobot's ``get_safe_version``
             would), else ``main``.
         cache_dir: the hub cache to download into; default ``$HF_LEROBOT_HOME/hub``.
+        limits: timeouts, deadlines, the bound on API answers and where redirects may go
+            (:class:`~imitrl.datasets.lerobot._hub_http.HubLimits`); None:
+            ``HubLimits.from_env()`` (connect 10 s, read 30 s or
+            ``$HF_HUB_DOWNLOAD_TIMEOUT``, 120 s per API answer, a file that plus 1 s per
+            32 KiB, answers up to 64 MiB, redirects to the endpoint's host or the official
+            Hub's CDN).
 
     Files already in the cache's ``blobs/`` are not downloaded again; progress is shown
-    with huggingface_hub's progress bar (``HF_HUB_DISABLE_PROGRESS_BARS=1`` hides it).
+    with huggingface_hub's progress bar (``HF_HUB_DISABLE_PROGRESS_BARS=1`` hides it). A
+    second download of the same dataset into the same cache waits for the first (saying
+    so on stderr) and then fetches only what is still missing.
 
     Raises:
         ImportError: huggingface_hub is not installed (the message says how).
-        ValueError: the repository or revision is unknown or unreachable; the server names
-            a commit, file or digest that is not one (refused before anything is written);
-            a file's bytes differ from the digest or size listed.
+        ValueError: the repository or revision is unknown or unreachable; the server stays
+            silent or slow past ``limits``, sends an answer larger than them, or redirects
+            elsewhere; it names a commit, file or digest that is not one (refused before
+            anything is written); a file's bytes differ from the digest or size listed.
     """
     hub = _hub()
     check_repo_id(repo_id)
     endpoint = (os.environ.get("HF_ENDPOINT") or hub.constants.ENDPOINT).rstrip("/")
-    api = hub.HfApi(endpoint=endpoint)
+    limits = limits if limits is not None else HubLimits.from_env()
+    client = HubClient(endpoint, limits, token=hub.get_token())
     where = f"{endpoint}/datasets/{repo_id}"
-    rev = revision if revision is not None else _default_revision(api, repo_id, where)
+    api = f"{endpoint}/api/datasets/{repo_id}"
+    rev = revision if revision is not None else _default_revision(client, api, where)
     try:
-        commit = api.dataset_info(repo_id, revision=rev).sha
-    except Exception as err:  # the Hub's errors: not found, gated, unreachable
-        raise ValueError(f"{where}: cannot resolve revision {rev!r} ({err})") from err
+        info, _ = client.get_json(f"{api}/revision/{quote(rev, safe='')}")
+    except ValueError as err:
+        raise ValueError(f"{where}: cannot resolve revision {rev!r} ({err})") from None
+    commit = info.get("sha") if isinstance(info, dict) else None
     if not isinstance(commit, str) or not _COMMIT.fullmatch(commit):
         raise ValueError(f"{where}: revision {rev!r} names commit {commit!r}, not 40 hex digits")
     cache = Path(cache_dir).expanduser() if cache_dir is not None else lerobot_home() / "hub"
     repo_dir = cache / ("datasets--" + repo_id.replace("/", "--"))
     snapshot = repo_dir / "snapshots" / commit
-    files = _listing(api, repo_id, commit, snapshot, where)
-    _fetch_blobs(hub, endpoint, repo_id, commit, repo_dir / "blobs", files, token=hub.get_token())
-    _link_snapshot(repo_dir, snapshot, files)
-    if rev != commit:
-        ref = inside(repo_dir / "refs", rev, named_by=f"revision {rev!r}")
-        ref.parent.mkdir(parents=True, exist_ok=True)
-        ref.write_text(commit)
+    files = _listing(client, f"{api}/tree/{commit}", commit, snapshot, where)
+    with exclusive(repo_dir, what="downloaded", wait=None):  # one download at a time
+        resolve = f"{endpoint}/datasets/{repo_id}/resolve/{commit}"
+        _fetch_blobs(hub, client, resolve, repo_id, commit, repo_dir / "blobs", files)
+        _link_snapshot(repo_dir, snapshot, files)
+        if rev != commit:
+            ref = inside(repo_dir / "refs", rev, named_by=f"revision {rev!r}")
+            make_folder(ref.parent)
+            replace_file(ref, commit, what=f"the commit of revision {rev!r}")
     return snapshot
 
 
-def _default_revision(api: Any, repo_id: str, where: str) -> str:
+def _default_revision(client: HubClient, api: str, where: str) -> str:
     """The best of :data:`REVISIONS` among the repository's branches and tags, else
     ``main``."""
     try:
-        refs = api.list_repo_refs(repo_id, repo_type="dataset")
-    except Exception as err:  # the Hub's errors: not found, gated, unreachable
-        raise ValueError(f"{where}: cannot list its revisions ({err})") from err
-    names = {r.name for r in [*refs.branches, *refs.tags]}
+        refs, _ = client.get_json(f"{api}/refs")
+    except ValueError as err:
+        raise ValueError(f"{where}: cannot list its revisions ({err})") from None
+    if not isinstance(refs, dict):
+        raise ValueError(f"{where}: its revisions are {type(refs).__name__}, not an object")
+    names = set()
+    for kind in ("branches", "tags"):
+        listed = refs.get(kind, [])
+        if not isinstance(listed, list) or not all(isinstance(r, dict) for r in listed):
+            raise ValueError(f"{where}: its revisions' {kind!r} are not a list of objects")
+        names.update(r.get("name") for r in listed if isinstance(r.get("name"), str))
     return next((v for v in REVISIONS if v in names), "main")
 
 
-def _listing(api: Any, repo_id: str, commit: str, snapshot: Path, where: str) -> list[_File]:
+def _tree_entries(client: HubClient, tree: str, where: str) -> Iterator[dict]:
+    """Every entry of the recursive tree listing, page by page; refused past
+    :data:`MAX_ENTRIES` or when a page comes round again."""
+    url: str | None = f"{tree}?recursive=true&expand=false"
+    seen: set[str] = set()
+    listed = 0
+    while url is not None:
+        if url in seen:
+            raise ValueError(f"{where}: its file list comes back to page {url}; refused")
+        seen.add(url)
+        page, url = client.get_json(url)
+        if not isinstance(page, list) or not all(isinstance(e, dict) for e in page):
+            raise ValueError(f"{where}: its file list is not a list of objects")
+        listed += len(page)
+        if listed > MAX_ENTRIES:
+            raise ValueError(f"{where}: its file list names more than {MAX_ENTRIES} entries")
+        yield from page
+
+
+def _listing(client: HubClient, tree: str, commit: str, snapshot: Path, where: str) -> list[_File]:
     """Every file of the commit, each name and digest checked before anything is written."""
-    try:
-        entries = list(
-            api.list_repo_tree(repo_id, repo_type="dataset", revision=commit, recursive=True)
-        )
-    except Exception as err:  # the Hub's errors: not found, gated, unreachable
-        raise ValueError(f"{where}: cannot list the files of commit {commit} ({err})") from err
     files = []
-    for entry in entries:
-        if not hasattr(entry, "blob_id"):
-            continue  # a folder
-        named_by = f"{where}'s file list"
-        inside(snapshot, entry.path, named_by=named_by)
-        lfs = getattr(entry, "lfs", None)
-        blob = lfs.sha256 if lfs is not None else entry.blob_id
-        size = lfs.size if lfs is not None else entry.size
-        if not isinstance(blob, str) or not _DIGEST.fullmatch(blob):
-            raise ValueError(f"{where}: {entry.path!r} is listed with digest {blob!r}, not hex")
-        if isinstance(size, bool) or not isinstance(size, int) or size < 0:
-            raise ValueError(f"{where}: {entry.path!r} is listed with size {size!r}")
-        files.append(_File(entry.path, size, blob, lfs is not None))
+    entries = _tree_entries(client, tree, where)
+    while True:
+        try:
+            entry = next(entries, None)
+        except ValueError as err:
+            raise ValueError(f"{where}: cannot list the files of commit {commit} ({err})") from None
+        if entry is None:
+            break
+        if entry.get("type") == "file":  # else a folder
+            files.append(_file(entry, snapshot, where))
     if not any(f.path == "meta/info.json" for f in files):
         raise ValueError(f"{where}: commit {commit} holds no meta/info.json: not a LeRobot dataset")
     return files
 
 
+def _file(entry: dict, snapshot: Path, where: str) -> _File:
+    """A file entry of the tree listing, its path, digest and size checked."""
+    path = entry.get("path")
+    if not isinstance(path, str):
+        raise ValueError(f"{where}: a file is listed with path {path!r}")
+    inside(snapshot, path, named_by=f"{where}'s file list")
+    lfs = entry.get("lfs")
+    if lfs is not None and not isinstance(lfs, dict):
+        raise ValueError(f"{where}: {path!r} is listed with lfs {lfs!r}")
+    blob = lfs.get("oid") if lfs is not None else entry.get("oid")
+    size = lfs.get("size") if lfs is not None else entry.get("size")
+    if not isinstance(blob, str) or not _DIGEST.fullmatch(blob):
+        raise ValueError(f"{where}: {path!r} is listed with digest {blob!r}, not hex")
+    if isinstance(size, bool) or not isinstance(size, int) or size < 0:
+        raise ValueError(f"{where}: {path!r} is listed with size {size!r}")
+    return _File(path, size, blob, lfs is not None)
+
+
 def _fetch_blobs(
     hub: Any,
-    endpoint: str,
+    client: HubClient,
+    resolve: str,
     repo_id: str,
     commit: str,
     blobs: Path,
     files: list[_File],
-    *,
-    token: str | None,
 ) -> None:
     """Each file's bytes into ``blobs/<digest>``, once they hash to it (blobs already there
     are kept), with one progress bar over the bytes to fetch."""
-    blobs.mkdir(parents=True, exist_ok=True)
+    make_folder(blobs)
     todo = {f.blob: f for f in files if not (blobs / f.blob).is_file()}
     total = sum(f.size for f in todo.values())
     with hub.utils.tqdm(
         total=total, unit="B", unit_scale=True, desc=f"Downloading {repo_id}"
     ) as bar:
         for blob, f in todo.items():
-            url = f"{endpoint}/datasets/{repo_id}/resolve/{commit}/{quote(f.path)}"
-            _fetch_one(url, f, commit, blobs / blob, token=token, progress=bar.update)
+            url = f"{resolve}/{quote(f.path)}"
+            _fetch_one(client, url, f, commit, blobs / blob, progress=bar.update)
 
 
 def _fetch_one(
-    url: str, f: _File, commit: str, blob: Path, *, token: str | None, progress: Any
+    client: HubClient,
+    url: str,
+    f: _File,
+    commit: str,
+    blob: Path,
+    *,
+    progress: Callable[[int], object],
 ) -> None:
-    """One file into ``blob``: streamed into ``<blob>.incomplete``, hashed on the way,
-    renamed once its size and digest are the listed ones."""
-    request = urllib.request.Request(url, headers={"User-Agent": "imitrl"})
-    if token:  # never sent on to a redirect's host (the Hub's CDN)
-        request.add_unredirected_header("Authorization", f"Bearer {token}")
+    """One file into ``blob``: streamed into ``<blob>.incomplete`` (created new, never
+    through a link), hashed on the way, renamed once its size and digest are the listed
+    ones. The caller holds the repository's lock: an ``.incomplete`` found is a killed
+    download's."""
     digest = hashlib.sha256() if f.lfs else hashlib.sha1(b"blob %d\0" % f.size)
     part = blob.with_name(blob.name + ".incomplete")
+    part.unlink(missing_ok=True)  # a killed download's (unlink removes a link, not its target)
     got = 0
     try:
-        with (
-            urllib.request.urlopen(request, timeout=TIMEOUT_S) as response,
-            open(part, "wb") as out,
-        ):
+        with client.stream(url, f.size) as response:
             served = response.headers.get("X-Repo-Commit")
             if served is not None and served != commit:
                 raise ValueError(f"{url}: served from commit {served!r}, not {commit}")
-            for block in iter(lambda: response.read(1 << 20), b""):
-                got += len(block)
-                if got > f.size:
-                    break
-                digest.update(block)
-                out.write(block)
-                progress(len(block))
-        if got != f.size or digest.hexdigest() != f.blob:
-            raise ValueError(
-                f"{url}: {f.path} arrived with {got} bytes and digest {digest.hexdigest()}, the "
-                f"file list says {f.size} bytes and {f.blob}; refusing altered data"
-            )
-    except (urllib.error.URLError, OSError) as err:
-        raise ValueError(f"{url}: download failed ({err})") from err
+            with os.fdopen(create_file(part, what="a blob being downloaded"), "wb") as out:
+                while block := response.read(1 << 20):
+                    got += len(block)
+                    if got > f.size:
+                        break
+                    digest.update(block)
+                    out.write(block)
+                    progress(len(block))
+            if got != f.size or digest.hexdigest() != f.blob:
+                raise ValueError(
+                    f"{url}: {f.path} arrived with {got} bytes and digest {digest.hexdigest()}, "
+                    f"the file list says {f.size} bytes and {f.blob}; refusing altered data"
+                )
+        os.replace(part, blob)
     finally:
-        if got != f.size or digest.hexdigest() != f.blob:
-            part.unlink(missing_ok=True)  # nothing half-downloaded stays behind
-    os.replace(part, blob)
+        part.unlink(missing_ok=True)  # nothing half-downloaded stays behind
 
 
 def _link_snapshot(repo_dir: Path, snapshot: Path, files: list[_File]) -> None:
@@ -277,7 +353,7 @@ def _link_snapshot(repo_dir: Path, snapshot: Path, files: list[_File]) -> None:
         link = inside(target, f.path, named_by="the Hub's file list")
         if link.is_symlink() or link.exists():
             continue
-        link.parent.mkdir(parents=True, exist_ok=True)
+        make_folder(link.parent)
         link.symlink_to(os.path.relpath(repo_dir / "blobs" / f.blob, link.parent))
     if target != snapshot:
         os.replace(target, snapshot)

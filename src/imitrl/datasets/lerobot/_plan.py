@@ -22,7 +22,6 @@ from imitrl.datasets.lerobot._layout import (
     SIDECAR_FORMAT,
     camera_key,
     feature_name,
-    read_json,
 )
 
 _LEFT_OUT = "left out by key_map"
@@ -43,8 +42,10 @@ def plan_features(
     key_map: Mapping[str, NestedKey | None] | None,
     images: Literal["skip", "load"],
     videos: Literal["decode", "skip"],
+    sidecar: object | None,
 ) -> tuple[dict[str, NestedKey], dict[str, tuple[int, ...]]]:
-    """feature -> buffer key, and the exact per-frame shapes recorded by :func:`save_lerobot`.
+    """feature -> buffer key, and the exact per-frame shapes recorded by :func:`save_lerobot`
+    (``sidecar``: ``meta/imitrl.json`` as read, None where the dataset has none).
 
     Video features map to :func:`~imitrl.datasets.lerobot._layout.camera_key` (under
     ``PIXELS``) unless ``key_map`` says otherwise; with ``videos="skip"`` none is planned.
@@ -53,9 +54,8 @@ def plan_features(
     maps to the nested key ``("observation", *sub.split("."))``: a Dict observation.
     """
     features = info["features"]
-    sidecar = root / SIDECAR
-    if sidecar.is_file():
-        mapping, shapes = _sidecar_mapping(sidecar, features, images)
+    if sidecar is not None:
+        mapping, shapes = _sidecar_mapping(root / SIDECAR, sidecar, features, images)
     else:
         mapping = {k: v for k, v in DEFAULT_KEY_MAP.items() if k in features}
         mapping.update({k: v for k, v in IMITRL_COLUMNS.items() if k in features})
@@ -70,7 +70,7 @@ def plan_features(
                 f"dataset does not declare (features: {sorted(features)})"
             )
         mapping[name] = key
-    if not sidecar.is_file() and not any(
+    if sidecar is None and not any(
         v is not None and _under_observation(v) for v in mapping.values()
     ):
         mapping.update(_observation_group(features, mapping, images))
@@ -84,11 +84,10 @@ def plan_features(
 
 
 def _sidecar_mapping(
-    sidecar: Path, features: dict[str, dict], images: Literal["skip", "load"]
+    sidecar: Path, meta: object, features: dict[str, dict], images: Literal["skip", "load"]
 ) -> tuple[dict[str, NestedKey | None], dict[str, tuple[int, ...]]]:
-    """feature -> key and exact per-frame shape, as ``meta/imitrl.json`` records them
-    (image features only with ``images="load"``)."""
-    meta = read_json(sidecar)
+    """feature -> key and exact per-frame shape, as ``meta/imitrl.json`` (at ``sidecar``,
+    ``meta`` as read) records them (image features only with ``images="load"``)."""
     if not isinstance(meta, dict) or meta.get("format") != SIDECAR_FORMAT:
         got = meta.get("format") if isinstance(meta, dict) else meta
         raise ValueError(f"{sidecar}: unknown format {got!r}")

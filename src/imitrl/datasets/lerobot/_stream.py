@@ -26,19 +26,26 @@ from pathlib import Path
 
 import numpy as np
 import pyarrow as pa
-import pyarrow.parquet as pq
 import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.envs import EnvBase
 
 from imitrl import keys
 from imitrl.data.buffer import DemonstrationBuffer
-from imitrl.datasets._arrow import check_schema, column_to_tensor, decode_images
+from imitrl.datasets._arrow import (
+    check_schema,
+    column_to_tensor,
+    decode_images,
+    parquet_file,
+    read_parquet,
+)
 from imitrl.datasets._common import NestedKey, conform_to_env, key_name, required_rows
 from imitrl.datasets._streaming import check_pieces, extend_pieces
 from imitrl.datasets.lerobot._checks import check_frames
-from imitrl.datasets.lerobot._layout import data_file, episode_dicts
+from imitrl.datasets.lerobot._episodes import episode_dicts
+from imitrl.datasets.lerobot._layout import data_file
 from imitrl.datasets.lerobot._video import decode_videos
+from imitrl.fs.reading import OpenedFolder
 
 PIECE_ROWS = 1 << 17
 """frames read, checked and added to the buffer at once (rounded to whole episodes)"""
@@ -50,13 +57,16 @@ class Source:
     Per episode: a few integers (``ids``, ``lengths``, ``spans``) and the episode table's
     columns (arrow), turned into dicts a piece at a time; nothing per frame."""
 
-    root: Path
+    folder: OpenedFolder
+    """the dataset folder, pinned: every file is opened inside it"""
     info: dict
     major: int
     episodes: pa.Table
-    """the episode table, in episode order (:func:`~imitrl.datasets.lerobot._layout.episode_table`)"""
-    files: list[Path]
-    """the data files, in order"""
+    """the episode table, in episode order (:func:`~imitrl.datasets.lerobot._episodes.episode_table`)"""
+    files: list[str]
+    """the data files (relative to the folder), in order"""
+    named_by: str
+    """who names the data files, for messages"""
     bounds: np.ndarray
     """``[F + 1]`` first frame of each file (and the total) in their concatenation"""
     spans: np.ndarray
@@ -66,24 +76,25 @@ class Source:
     lengths: np.ndarray
     """``[E]`` each episode's ``length``"""
 
+    @property
+    def root(self) -> Path:
+        return self.folder.root
+
     def file_of(self, frame: int) -> Path:
-        return self.files[int(np.searchsorted(self.bounds, frame, side="right")) - 1]
+        return self.root / self.files[int(np.searchsorted(self.bounds, frame, side="right")) - 1]
 
 
-def _footer_rows(path: Path) -> int:
-    try:
-        return pq.read_metadata(path).num_rows
-    except (pa.ArrowException, OSError) as err:
-        raise ValueError(f"{path}: not a readable parquet file ({err})") from err
-
-
-def _runs(files: list[Path], bounds: np.ndarray) -> dict[int, tuple[int, int]]:
+def _runs(
+    folder: OpenedFolder, files: list[str], bounds: np.ndarray, named_by: str
+) -> dict[int, tuple[int, int]]:
     """episode index -> ``[begin, stop)`` from the ``episode_index`` column, read one file at
     a time (v3.0 without ``dataset_from_index``); each episode must be one run of frames."""
     spans: dict[int, tuple[int, int]] = {}
     last = None
-    for path, first in zip(files, bounds[:-1]):
-        column = _read_columns(path, ["episode_index"], None).column("episode_index")
+    for name, first in zip(files, bounds[:-1]):
+        path = folder.root / name
+        table = read_parquet(folder, name, ["episode_index"], named_by=named_by)
+        column = table.column("episode_index")
         ids = column_to_tensor(column, shape=(1,), dtype="int64", where=f"{path}: 'episode_index'")
         ids = ids.reshape(-1).numpy()
         change = np.flatnonzero(np.diff(ids)) + 1
@@ -99,10 +110,19 @@ def _runs(files: list[Path], bounds: np.ndarray) -> dict[int, tuple[int, int]]:
     return spans
 
 
-def locate(root: Path, info: dict, major: int, episodes: pa.Table, files: list[Path]) -> Source:
-    """Every episode's frames in the data files, checked against the metadata (lengths, one
-    episode per frame, ``total_frames``) before any frame is read."""
-    counts = [_footer_rows(f) for f in files]
+def locate(
+    folder: OpenedFolder,
+    info: dict,
+    major: int,
+    episodes: pa.Table,
+    files: list[str],
+    counts: list[int],
+    named_by: str,
+) -> Source:
+    """Every episode's frames in the data ``files`` (relative names, in order, holding the
+    ``counts`` of frames their footers declare), checked against the metadata (lengths,
+    one episode per frame, ``total_frames``) before any frame is read."""
+    root = folder.root
     bounds = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
     total = int(bounds[-1])
     ids = episodes.column("episode_index").to_numpy().astype(np.int64)
@@ -114,7 +134,7 @@ def locate(root: Path, info: dict, major: int, episodes: pa.Table, files: list[P
         spans = np.stack([episodes.column(c).to_numpy() for c in given], axis=1)
         spans = spans.astype(np.int64)
     else:
-        found = _runs(files, bounds)
+        found = _runs(folder, files, bounds, named_by)
         spans = np.array([found.get(e, (0, 0)) for e in ids.tolist()], dtype=np.int64)
         spans = spans.reshape(len(ids), 2)
     bad = np.flatnonzero(
@@ -146,15 +166,7 @@ def locate(root: Path, info: dict, major: int, episodes: pa.Table, files: list[P
             f"{root / 'meta' / 'info.json'} declares {info['total_frames']} frames, the data "
             f"files hold {total}"
         )
-    return Source(root, info, major, episodes, files, bounds, spans, ids, lengths)
-
-
-def _read_columns(path: Path, columns: list[str], declared: list[str] | None) -> pa.Table:
-    check_schema(path, columns, declared)
-    try:
-        return pq.read_table(path, columns=columns)
-    except (pa.ArrowException, OSError) as err:
-        raise ValueError(f"{path}: cannot read the parquet data ({err})") from err
+    return Source(folder, info, major, episodes, files, named_by, bounds, spans, ids, lengths)
 
 
 def _read_span(src: Source, begin: int, stop: int, names: list[str]) -> list[tuple[Path, pa.Table]]:
@@ -172,16 +184,18 @@ def _read_span(src: Source, begin: int, stop: int, names: list[str]) -> list[tup
         lo, hi = int(src.bounds[f]), int(src.bounds[f + 1])
         if lo >= stop:
             break
-        path = src.files[f]
-        check_schema(path, names, declared)
-        try:
-            pf = pq.ParquetFile(path, memory_map=True)
-            sizes = [pf.metadata.row_group(g).num_rows for g in range(pf.num_row_groups)]
-            starts = lo + np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
-            groups = [g for g in range(len(sizes)) if starts[g] < stop and starts[g + 1] > begin]
-            table = pf.read_row_groups(groups, columns=names, use_threads=False)
-        except (pa.ArrowException, OSError) as err:
-            raise ValueError(f"{path}: cannot read the parquet data ({err})") from err
+        path = src.root / src.files[f]
+        with parquet_file(src.folder, src.files[f], named_by=src.named_by, memory_map=True) as pf:
+            check_schema(path, pf.schema_arrow, names, declared)
+            try:
+                sizes = [pf.metadata.row_group(g).num_rows for g in range(pf.num_row_groups)]
+                starts = lo + np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+                groups = [
+                    g for g in range(len(sizes)) if starts[g] < stop and starts[g + 1] > begin
+                ]
+                table = pf.read_row_groups(groups, columns=names, use_threads=False)
+            except (pa.ArrowException, OSError) as err:
+                raise ValueError(f"{path}: cannot read the parquet data ({err})") from err
         skip = max(begin, lo) - int(starts[groups[0]]) if groups else 0
         out.append((path, table.slice(skip, min(stop, hi) - max(begin, lo))))
     return out
@@ -227,7 +241,7 @@ def read_piece(
             ft = features[name]
             if name in plan and ft["dtype"] == "image":
                 value = decode_images(
-                    table.column(name), shape=tuple(ft["shape"]), root=src.root, where=where
+                    table.column(name), shape=tuple(ft["shape"]), folder=src.folder, where=where
                 )
             elif name in plan:
                 value = column_to_tensor(
@@ -321,7 +335,7 @@ def piece_rows(src: Source, first: int, end: int, s: Settings, notes: list[str])
         times = piece.book.get("timestamp")
         times = frame_index.double() / src.info["fps"] if times is None else times.double()
         episodes = episode_dicts(src.episodes.slice(first, end - first))
-        out.update(decode_videos(src.root, src.info, src.major, episodes, s.cameras, times, None))
+        out.update(decode_videos(src.folder, src.info, src.major, episodes, s.cameras, times, None))
     episode = out.pop(keys.EPISODE) if keys.EPISODE in out else piece.book["episode_index"]
     rows = required_rows(out, episode=episode + int(s.first_episode), step=frame_index)
     if s.env is not None:
@@ -332,12 +346,15 @@ def piece_rows(src: Source, first: int, end: int, s: Settings, notes: list[str])
     return rows
 
 
-def stream_into(
-    buffer: DemonstrationBuffer, src: Source, s: Settings
-) -> tuple[TensorDictBase, list[str]]:
-    """Check every piece (the buffer's checks included), then extend ``buffer`` with them;
-    returns the rows added (a view of the buffer) and the notes of :func:`conform_to_env`."""
+def check_stream(buffer: DemonstrationBuffer, src: Source, s: Settings) -> list[str]:
+    """Pass 1: every piece read and checked (the buffer's checks included), nothing added;
+    returns the notes of :func:`conform_to_env`."""
     notes: list[str] = []
     check_pieces(buffer, (piece_rows(src, f, e, s, notes) for f, e in pieces(src)), src.root)
-    view = extend_pieces(buffer, (piece_rows(src, f, e, s, []) for f, e in pieces(src)))
-    return view, notes
+    return notes
+
+
+def extend_stream(buffer: DemonstrationBuffer, src: Source, s: Settings) -> TensorDictBase:
+    """Pass 2: the pieces :func:`check_stream` checked, added to ``buffer``; returns the
+    rows added (a view of the buffer)."""
+    return extend_pieces(buffer, (piece_rows(src, f, e, s, []) for f, e in pieces(src)))

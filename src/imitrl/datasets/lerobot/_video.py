@@ -33,10 +33,13 @@ from typing import Any
 import numpy as np
 import torch
 
+from imitrl.datasets._arrow import MAX_IMAGE_PIXELS
 from imitrl.datasets._common import NestedKey
 from imitrl.datasets.lerobot._checks import TOLERANCE_S
+from imitrl.datasets.lerobot._files import holds, opened
 from imitrl.datasets.lerobot._layout import IMAGE_NAMES, fill_template
 from imitrl.fs.contained import plain_name
+from imitrl.fs.reading import OpenedFolder
 from imitrl.fs.write_errors import reporting_disk_full
 
 INSTALL_HINT = "pip install 'imitrl[datasets]' (or: pip install av)"
@@ -96,10 +99,11 @@ def _locate(
     name: str,
     episodes: list[dict],
     times: torch.Tensor,
-) -> dict[Path, _Wanted]:
-    """video file -> the rows it fills and their timestamps in it, for feature ``name``;
-    ``times`` ``[N]`` is each row's ``timestamp`` (rows are the episodes back to back)."""
-    files: dict[Path, _Wanted] = {}
+) -> dict[str, _Wanted]:
+    """video file (relative to ``root``) -> the rows it fills and their timestamps in it,
+    for feature ``name``; ``times`` ``[N]`` is each row's ``timestamp`` (rows are the
+    episodes back to back)."""
+    files: dict[str, _Wanted] = {}
     begin = 0
     for ep in episodes:
         e, length = int(ep["episode_index"]), int(ep["length"])
@@ -121,7 +125,7 @@ def _locate(
             fields = {"chunk_index": ep[cols[0]], "file_index": ep[cols[1]]}
         else:
             fields = {"episode_chunk": ep["chunk"], "episode_index": e}
-        path = root / fill_template(root, info, "video_path", video_key=name, **fields)
+        path = fill_template(root, info, "video_path", video_key=name, **fields)
         wanted = files.setdefault(path, _Wanted([], [], []))
         wanted.rows.append(torch.arange(begin, begin + length))
         wanted.times.append(times[begin : begin + length].double() + shift)
@@ -175,14 +179,17 @@ class _Frames:
 
 
 def _decode_file(
-    path: Path, name: str, wanted: _Wanted, out: _Frames, size: tuple[int, int]
+    folder: OpenedFolder,
+    relative: str,
+    name: str,
+    wanted: _Wanted,
+    out: _Frames,
+    size: tuple[int, int],
 ) -> None:
-    """Decode ``path`` front to back into the frames' rows (uint8 ``[N, H, W, 3]``), each
-    wanted timestamp taking the frame within :data:`TOLERANCE_S` of it."""
-    if not path.is_file():
-        raise ValueError(
-            f"{path}: file not found (video feature {name!r} of episode(s) {wanted.episodes})"
-        )
+    """Decode the video ``relative`` front to back into the frames' rows (uint8
+    ``[N, H, W, 3]``), each wanted timestamp taking the frame within :data:`TOLERANCE_S`
+    of it."""
+    path = folder.root / relative
     times = torch.cat(wanted.times)
     if len(times) == 0:
         return  # empty episodes only
@@ -192,7 +199,7 @@ def _decode_file(
     owners = [torch.full((len(r),), e) for r, e in zip(wanted.rows, wanted.episodes)]
     owner = torch.cat(owners)[order].tolist()
     j, last, after = 0, None, None
-    with _stream(path, name, size) as (container, stream):
+    with _stream(folder, relative, name, size, wanted.episodes) as (container, stream):
         time_base = float(stream.time_base)
         for frame in container.decode(stream):
             if frame.pts is None:
@@ -223,31 +230,49 @@ def _decode_file(
 
 
 @contextmanager
-def _stream(path: Path, name: str, size: tuple[int, int]) -> Iterator[tuple[Any, Any]]:
-    """``(container, its first video stream)`` of ``path``, open, the stream's frame size
-    checked against ``size`` from its header; PyAV's errors become ValueErrors naming it."""
+def _stream(
+    folder: OpenedFolder, relative: str, name: str, size: tuple[int, int], episodes: list[int]
+) -> Iterator[tuple[Any, Any]]:
+    """``(container, its first video stream)`` of the video ``relative``, opened by
+    descriptor inside the folder (PyAV opens the descriptor's own path, kept open while it
+    reads), the stream's frame size checked against ``size`` from its header; PyAV's
+    errors become ValueErrors naming it."""
     av = import_av()
-    try:
-        with av.open(str(path)) as container:
-            if not container.streams.video:
-                raise ValueError(f"{path}: holds no video stream (video feature {name!r})")
-            stream = container.streams.video[0]
-            _check_size(path, name, (stream.height, stream.width), size)
-            yield container, stream
-    except av.error.FFmpegError as err:
-        raise ValueError(
-            f"{path}: not a readable video (video feature {name!r}; {type(err).__name__}: {err})"
-        ) from err
-
-
-def _probe(path: Path, name: str, size: tuple[int, int], episodes: list[int]) -> None:
-    """The first video stream of ``path`` has frames of ``size`` (read from its header)."""
-    if not path.is_file():
+    path = folder.root / relative
+    if not holds(folder, relative):
         raise ValueError(
             f"{path}: file not found (video feature {name!r} of episode(s) {episodes})"
         )
-    with _stream(path, name, size):
+    named_by = f"meta/info.json's video_path (video feature {name!r})"
+    with opened(folder, relative, named_by=named_by) as source:
+        try:
+            with av.open(source) as container:
+                if not container.streams.video:
+                    raise ValueError(f"{path}: holds no video stream (video feature {name!r})")
+                stream = container.streams.video[0]
+                _check_size(path, name, (stream.height, stream.width), size)
+                yield container, stream
+        except av.error.FFmpegError as err:
+            said = str(err).replace(source, str(path))  # the file, not its descriptor
+            raise ValueError(
+                f"{path}: not a readable video (video feature {name!r}; "
+                f"{type(err).__name__}: {said})"
+            ) from err
+
+
+def _probe(
+    folder: OpenedFolder, relative: str, name: str, size: tuple[int, int], episodes: list[int]
+) -> None:
+    """The first video stream of ``relative`` has frames of ``size`` (read from its
+    header), at most :data:`~imitrl.datasets._arrow.MAX_IMAGE_PIXELS` of them."""
+    with _stream(folder, relative, name, size, episodes):
         pass
+    if size[0] * size[1] > MAX_IMAGE_PIXELS:
+        raise ValueError(
+            f"{folder.root / relative}: frames of {size[0]}x{size[1]} (height x width), more "
+            f"than the {MAX_IMAGE_PIXELS:,} pixels a frame may have (video feature {name!r}); "
+            "refused before memory is taken for them"
+        )
 
 
 def _check_size(path: Path, name: str, got: tuple[int, int], size: tuple[int, int]) -> None:
@@ -259,7 +284,7 @@ def _check_size(path: Path, name: str, got: tuple[int, int], size: tuple[int, in
 
 
 def decode_videos(
-    root: Path,
+    folder: OpenedFolder,
     info: dict,
     major: int,
     episodes: list[dict],
@@ -280,6 +305,7 @@ def decode_videos(
             into an ordinary tensor. A failed decode removes its file.
     """
     import_av()  # a missing PyAV is reported before anything is decoded
+    root = folder.root
     out: dict[NestedKey, torch.Tensor] = {}
     done: list[_Frames] = []
     for name, key in cameras.items():
@@ -292,7 +318,7 @@ def decode_videos(
         located = _locate(root, info, major, name, episodes, times)
         if located:  # the declared size, checked on a file before any memory is taken
             first, wanted = next(iter(located.items()))
-            _probe(first, name, size, wanted.episodes)
+            _probe(folder, first, name, size, wanted.episodes)
         frames = _Frames((len(times), *size, 3), where)
         done.append(frames)
         try:
@@ -300,7 +326,7 @@ def decode_videos(
                 where or Path("."), what="decoded frames", left="the partial file is removed"
             ):
                 for path, wanted in located.items():
-                    _decode_file(path, name, wanted, frames, size)
+                    _decode_file(folder, path, name, wanted, frames, size)
         except BaseException:
             for failed in done:  # nothing is left half-loaded, on disk either
                 failed.close(remove=True)

@@ -9,7 +9,13 @@ inf) and every episode against its own records (:mod:`._episodes`: lengths, bool
 flags, one value of reward per step, unique ids). :mod:`._source` lists the episodes and
 reads them one at a time, whatever the storage; :mod:`._stream` streams them into a
 buffer (``load_minari(..., into=buffer)``); :mod:`._write` writes rows back as an
-``hdf5`` dataset (:func:`save_minari`, checked by :mod:`._write_spaces`). Why not TorchRL's
+``hdf5`` dataset (:func:`save_minari`, checked by :mod:`._write_spaces`).
+
+A downloaded dataset is hostile until checked: the ``data`` folder is pinned by a
+descriptor and every file opened once inside it (:func:`~imitrl.fs.reading.read_whole`:
+no link out, no FIFO, a load that meets a replacement in progress runs again on the new
+dataset), every size a file declares is checked against the bytes it holds before it is
+allocated (:mod:`._bounds`), and JSON too deeply nested is refused by name. Why not TorchRL's
 ``MinariExperienceReplay``: in torchrl 0.14.1 it returns all-zero data for a local
 dataset (see TORCHRL_NOTES.md).
 """
@@ -18,6 +24,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Any
 
 from torchrl.envs import EnvBase
 
@@ -30,6 +37,7 @@ from imitrl.datasets.minari._source import METADATA_FILE, open_episodes
 from imitrl.datasets.minari._stream import stream_into
 from imitrl.datasets.minari._write import save_minari
 from imitrl.fs.contained import links_stay_inside
+from imitrl.fs.reading import OpenedFolder, read_whole
 
 __all__ = ["load_minari", "resolve_minari_root", "save_minari"]
 
@@ -48,7 +56,9 @@ def resolve_minari_root(path_or_id: str | Path) -> Path:
         base = Path(os.environ.get("MINARI_DATASETS_PATH", Path.home() / ".minari" / "datasets"))
         candidates += [base / path / "data"]
     for c in candidates:
-        if (c / MAIN_FILE).is_file() or (c / METADATA_FILE).is_file():
+        # any entry by these names (what it is, is checked when it is opened: a FIFO or a
+        # link out is refused by name then)
+        if os.path.lexists(c / MAIN_FILE) or os.path.lexists(c / METADATA_FILE):
             # every file it reads lies inside the dataset (a link out is refused)
             links_stay_inside(c, what="dataset")
             return c
@@ -122,31 +132,43 @@ def load_minari(
             lengths or shapes, or rewards of more than one value per step; an episode id
             held twice; episode counts or step totals that contradict the metadata; shapes
             that contradict ``env``; with ``into``, rows that do not fit the buffer (its
-            schema, its episode ids). Nothing is returned, or added, half-loaded.
+            schema, its episode ids); a file that is a link out of the dataset, a FIFO or
+            no regular file; a file declaring more values than its bytes can hold
+            (:mod:`._bounds`); JSON nested too deeply. Nothing is returned, or added,
+            half-loaded.
+        imitrl.fs.ReplacedWhileReading: (a ValueError) the dataset was replaced while it
+            was read, every one of the tries.
     """
     data_dir = resolve_minari_root(path_or_id)
-    skipped: dict[str, str] = {}
-    notes: list[str] = []
-    with open_episodes(data_dir, skipped) as src:
-        meta, where = src.meta, src.where
-        if into is not None:
-            rows, notes = stream_into(
-                into,
-                src,
-                first_episode=first_episode,
-                next_observation=next_observation,
-                env=env,
-                names=dict(_SOURCES),
-            )
-        else:
-            episodes = [
-                check_episode(src.read(e), first_episode, next_observation) for e in range(len(src))
-            ]
-            check_steps(sum(len(ep.step) for ep in episodes), meta, where)
-            rows = episode_rows(episodes, next_observation)
-            if env is not None:
-                rows = conform_to_env(rows, env, where=where, notes=notes, names=dict(_SOURCES))
-        num_episodes = len(src)
+
+    def load(folder: OpenedFolder) -> tuple[Any, list[str], dict, int, dict[str, str]]:
+        skipped: dict[str, str] = {}
+        notes: list[str] = []
+        with open_episodes(folder, skipped, pin=into is not None) as src:
+            meta, where = src.meta, src.where
+            if into is not None:
+                rows, notes = stream_into(
+                    into,
+                    src,
+                    first_episode=first_episode,
+                    next_observation=next_observation,
+                    env=env,
+                    names=dict(_SOURCES),
+                )
+            else:
+                episodes = [
+                    check_episode(src.read(e), first_episode, next_observation)
+                    for e in range(len(src))
+                ]
+                check_steps(sum(len(ep.step) for ep in episodes), meta, where)
+                rows = episode_rows(episodes, next_observation)
+                if env is not None:
+                    names = dict(_SOURCES)
+                    rows = conform_to_env(rows, env, where=where, notes=notes, names=names)
+            return rows, notes, meta, len(src), skipped
+
+    # a load that met a replacement in progress runs again on the new dataset
+    rows, notes, meta, num_episodes, skipped = read_whole(data_dir, load, what="dataset")
     warn_skipped(data_dir, skipped, quiet=frozenset())
     return LoadedDemonstrations(
         rows=rows,

@@ -11,20 +11,33 @@ Everything is reached through hard links (:func:`node`): HDF5 can also name data
 other files (external links, virtual datasets, external raw storage), which would make
 a downloaded file read outside its folder, and Minari writes none of them: each is
 refused by name.
+
+The file is opened once, by the descriptor its folder gave (:func:`open_hdf5`), and every
+dataset's declared size is checked against the bytes it stores before it is read
+(:func:`read_dataset`, :mod:`._bounds`).
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterator
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from imitrl.datasets.minari._bounds import check_declared
 from imitrl.datasets.minari._episodes import EpisodeList, Steps, as_count, list_episodes
 from imitrl.datasets.minari._spaces import decode
+from imitrl.fs.reading import fd_path
 
-__all__ = ["MAIN_FILE", "attrs_metadata", "list_groups", "open_hdf5", "read_group"]
+__all__ = [
+    "MAIN_FILE",
+    "attrs_metadata",
+    "list_groups",
+    "open_hdf5",
+    "read_dataset",
+    "read_group",
+]
 
 MAIN_FILE = "main_data.hdf5"
 _FIELDS = ("observations", "actions", "rewards", "terminations", "truncations")
@@ -56,6 +69,40 @@ def node(group: Any, name: str, where: str) -> Any:
     return found
 
 
+_VLEN_REF = 16
+"""bytes a variable-length element's reference takes in its dataset (its values lie in
+the file's global heap)"""
+
+
+def read_dataset(dset: Any, here: str) -> Any:
+    """All of ``dset``'s values, once its declared size fits the bytes it stores
+    (:func:`~imitrl.datasets.minari._bounds.check_declared`); a variable-length dataset
+    (encoded images) as a list of arrays, read one element at a time while their total
+    stays within the file's size (heap values are stored as they are, but many elements
+    may name one)."""
+    import h5py
+
+    count = math.prod(dset.shape or ())  # None: an empty (null) dataspace
+    stored = dset.id.get_storage_size()  # what the file's own records say it stores
+    budget = max(dset.file.id.get_filesize(), 0)
+    check_declared(stored, budget, compressed=False, where=f"{here} (its storage)")
+    compressed = dset.id.get_create_plist().get_nfilters() > 0
+    vlen = h5py.check_vlen_dtype(dset.dtype) is not None
+    itemsize = _VLEN_REF if vlen else dset.dtype.itemsize
+    check_declared(count * itemsize, stored, compressed=compressed, where=here)
+    if not vlen:
+        return dset[()]
+    if len(dset.shape or ()) != 1:  # an element per step, each counted as it is read
+        raise ValueError(f"{here}: variable-length values of shape {dset.shape}, expected [T]")
+    values, total = [], 0
+    for i in range(len(dset)):
+        value = dset[i]
+        total += value.nbytes
+        check_declared(total, budget, compressed=False, where=f"{here} (elements 0..{i})")
+        values.append(value)
+    return values
+
+
 class _Groups:
     """A space's values in HDF5: a group per Dict key / Tuple entry, a dataset per leaf."""
 
@@ -71,19 +118,19 @@ class _Groups:
 
         if not isinstance(node, h5py.Dataset):
             raise ValueError(f"{where} should be a dataset for a {space['type']} space")
-        return node[()]
+        return read_dataset(node, where)
 
 
-def open_hdf5(h5_path: Path):
-    """The Minari HDF5 file, open for reading; ValueError when absent or unreadable."""
+def open_hdf5(fd: int, where: str):
+    """The Minari HDF5 file behind ``fd`` (a regular file its folder opened), open for
+    reading through ``/proc/self/fd`` (the very file checked, whatever its name now
+    names); ValueError when it is no readable HDF5 file."""
     import h5py
 
-    if not h5_path.is_file():
-        raise ValueError(f"{h5_path} not found")
     try:
-        return h5py.File(h5_path, "r")
+        return h5py.File(fd_path(fd), "r")
     except OSError as err:
-        raise ValueError(f"{h5_path}: not a readable HDF5 file ({err})") from err
+        raise ValueError(f"{where}: not a readable HDF5 file ({err})") from err
 
 
 def attrs_metadata(h5file, where: str) -> dict[str, Any]:
@@ -119,7 +166,10 @@ def _array(group, field: str, here: str) -> np.ndarray:
     found = node(group, field, f"{here}/{field}")
     if not isinstance(found, h5py.Dataset):
         raise ValueError(f"{here}/{field} should be a dataset")
-    return np.asarray(found[()])
+    values = read_dataset(found, f"{here}/{field}")
+    if isinstance(values, list):
+        raise ValueError(f"{here}/{field}: variable-length values, expected one number per step")
+    return np.asarray(values)
 
 
 def _infos(group, path: str, here: str) -> list[str]:

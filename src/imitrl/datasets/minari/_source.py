@@ -4,20 +4,27 @@
 root attributes), parses the spaces, lists the episodes (an HDF5 group or an arrow /
 parquet folder each: names only, checked for ids held twice and against
 ``total_episodes``) and gives an :class:`EpisodeSource` that reads any one episode on
-demand (the HDF5 file stays open meanwhile). Both the in-memory load and the streamed
-one (:mod:`._stream`) read through it.
+demand. Both the in-memory load and the streamed one (:mod:`._stream`) read through it.
+
+Every file is opened once, by descriptor, inside the dataset folder pinned by
+:class:`~imitrl.fs.reading.OpenedFolder` (a regular file, never a FIFO, never through a
+link out): the HDF5 file stays open for the whole load; an arrow / parquet episode's
+files are opened when it is read, and, for a streamed load (``pin=True``), kept open for
+its second pass, so both passes read the very files the first one checked even if the
+dataset is replaced meanwhile (up to :data:`PIN_FILES` descriptors; past them an episode
+is opened again by name, inside the pinned folder).
 """
 
 from __future__ import annotations
 
-import json
+import os
+import resource
 from collections.abc import Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass
-from pathlib import Path
+from dataclasses import dataclass, field
 from typing import Any
 
-from imitrl.datasets.minari._arrow import list_folders, read_folder
+from imitrl.datasets.minari._arrow import EpisodeFiles, list_folders, open_episode, read_episode
 from imitrl.datasets.minari._episodes import EpisodeList, Steps
 from imitrl.datasets.minari._hdf5 import (
     MAIN_FILE,
@@ -27,20 +34,31 @@ from imitrl.datasets.minari._hdf5 import (
     read_group,
 )
 from imitrl.datasets.minari._spaces import parse_space
+from imitrl.fs.reading import OpenedFolder, parse_json
 
-__all__ = ["FORMATS", "METADATA_FILE", "EpisodeSource", "open_episodes"]
+__all__ = ["FORMATS", "METADATA_FILE", "METADATA_LIMIT", "EpisodeSource", "open_episodes"]
 
 METADATA_FILE = "metadata.json"
 FORMATS = ("hdf5", "arrow", "parquet")
 
+METADATA_LIMIT = 32 << 20
+"""bytes ``data/metadata.json`` may hold (32 MiB; a Box space's bounds are written out
+value by value, a few MB for a large image space)"""
 
-def _metadata_json(path: Path) -> dict[str, Any]:
-    try:
-        meta = json.loads(path.read_text())
-    except json.JSONDecodeError as err:
-        raise ValueError(f"{path} is not valid JSON: {err}") from err
+PIN_FILES = min(4096, resource.getrlimit(resource.RLIMIT_NOFILE)[0] // 2)
+"""descriptors a streamed arrow / parquet load keeps open between its two passes"""
+
+
+def _metadata_json(folder: OpenedFolder) -> dict[str, Any] | None:
+    """``data/metadata.json``, read whole (at most :data:`METADATA_LIMIT` bytes) through
+    the pinned folder; None when there is none (a Minari < 0.5 HDF5 dataset)."""
+    if not os.path.lexists(folder.root / METADATA_FILE):
+        return None
+    where = str(folder.root / METADATA_FILE)
+    data = folder.read_bytes(METADATA_FILE, named_by="the Minari layout", limit=METADATA_LIMIT)
+    meta = parse_json(data, where=where)
     if not isinstance(meta, dict):
-        raise ValueError(f"{path}: expected a JSON object, got {type(meta).__name__}")
+        raise ValueError(f"{where}: expected a JSON object, got {type(meta).__name__}")
     return meta
 
 
@@ -49,10 +67,10 @@ def _spaces(meta: dict[str, Any], where: str) -> tuple[dict, dict]:
     fmt = meta.get("data_format", "hdf5")
     if fmt not in FORMATS:
         raise ValueError(f"{where}: data_format {fmt!r} is not supported (only {FORMATS})")
-    for field in ("observation_space", "action_space"):
-        if field not in meta:
+    for name in ("observation_space", "action_space"):
+        if name not in meta:
             raise ValueError(
-                f"{where}: no {field!r}; datasets that only record an env_spec are not "
+                f"{where}: no {name!r}; datasets that only record an env_spec are not "
                 "supported (the env would have to be built to learn its spaces)"
             )
     return (
@@ -79,11 +97,19 @@ class EpisodeSource:
     spaces: tuple[dict, dict]
     skipped: dict[str, str]
     """what is not loaded (per-step infos), filled in as episodes are read"""
-    data_dir: Path
-    h5: Any
-    """the open HDF5 file, or None for arrow and parquet storage"""
+    folder: OpenedFolder
+    """the dataset's ``data`` folder, pinned"""
+    h5_fd: int | None = None
+    """the HDF5 file's descriptor (None for arrow and parquet storage)"""
+    h5: Any = None
+    """the open HDF5 file"""
     reads: int = 0
     """episodes read through this handle of the HDF5 file"""
+    pin: bool = False
+    """keep each arrow / parquet episode's files open until :meth:`close`"""
+    pinned: dict[int, EpisodeFiles] = field(default_factory=dict)
+    held: int = 0
+    """descriptors held in ``pinned``"""
 
     def __len__(self) -> int:
         return len(self.episodes)
@@ -91,53 +117,83 @@ class EpisodeSource:
     def read(self, e: int) -> Steps:
         """The ``e``-th episode in id order, its arrays checked against the spaces."""
         jpeg = bool(self.meta.get("jpeg_encoding", False))
-        if self.h5 is None:
-            fmt = self.meta["data_format"]
-            return read_folder(
-                self.data_dir, self.episodes, e, fmt, self.spaces, jpeg, self.skipped
-            )
+        if self.h5_fd is None:
+            return self._read_folder(e, jpeg)
         if self.reads == REOPEN_EVERY:
-            self.close()
-            self.h5 = open_hdf5(self.data_dir / MAIN_FILE)
+            self.h5.close()
+            self.h5, self.reads = open_hdf5(self.h5_fd, self.where), 0  # the same file
         self.reads += 1
         return read_group(self.h5, self.episodes, e, self.spaces, jpeg, self.skipped, self.where)
 
+    def _read_folder(self, e: int, jpeg: bool) -> Steps:
+        fmt = self.meta["data_format"]
+        files = self.pinned.get(e)
+        if files is None:
+            files = open_episode(self.folder, self.episodes.name(e), fmt)
+            if self.pin and self.held + len(files.parts) <= PIN_FILES:
+                self.pinned[e] = files
+                self.held += len(files.parts)
+        try:
+            return read_episode(
+                files, int(self.episodes.ids[e]), fmt, self.spaces, jpeg, self.skipped
+            )
+        finally:
+            if self.pinned.get(e) is not files:
+                files.close()
+
     def close(self) -> None:
-        """Close the HDF5 file, if any."""
+        """Close the HDF5 file and every descriptor held."""
         if self.h5 is not None:
             self.h5.close()
-            self.h5, self.reads = None, 0
+            self.h5 = None
+        if self.h5_fd is not None:
+            os.close(self.h5_fd)
+            self.h5_fd = None
+        for files in self.pinned.values():
+            files.close()
+        self.pinned, self.held = {}, 0
 
 
 @contextmanager
-def open_episodes(data_dir: Path, skipped: dict[str, str]) -> Iterator[EpisodeSource]:
-    """The dataset in ``data_dir`` (its ``data`` folder), listed and ready to read; the
-    HDF5 file, if any, is closed on exit."""
-    meta_path = data_dir / METADATA_FILE
-    meta = _metadata_json(meta_path) if meta_path.is_file() else None
+def open_episodes(
+    folder: OpenedFolder, skipped: dict[str, str], *, pin: bool = False
+) -> Iterator[EpisodeSource]:
+    """The dataset in ``folder`` (its ``data`` folder, pinned), listed and ready to read;
+    every file it opened is closed on exit. ``pin``: keep arrow / parquet episodes' files
+    open for a second pass (module docstring)."""
+    meta = _metadata_json(folder)
+    meta_where = str(folder.root / METADATA_FILE)
     fmt = (meta or {}).get("data_format", "hdf5")
     if fmt != "hdf5":  # arrow / parquet: metadata.json named the format
-        spaces = _spaces(meta, str(meta_path))
-        listing = list_folders(data_dir, fmt, meta)
-        yield EpisodeSource(meta, str(data_dir), listing, spaces, skipped, data_dir, None)
+        spaces = _spaces(meta, meta_where)
+        listing = list_folders(folder, fmt, meta)
+        src = EpisodeSource(meta, str(folder.root), listing, spaces, skipped, folder, pin=pin)
+        try:
+            yield src
+        finally:
+            src.close()
         return
-    where = str(data_dir / MAIN_FILE)
-    h5 = open_hdf5(data_dir / MAIN_FILE)
+    where = str(folder.root / MAIN_FILE)
+    fd = folder.open(MAIN_FILE, named_by="the Minari layout")
+    h5 = None
     try:
+        h5 = open_hdf5(fd, where)
+        spaces_where = meta_where if meta is not None else where
         meta = meta if meta is not None else attrs_metadata(h5, where)
-        spaces = _spaces(meta, str(meta_path) if meta_path.is_file() else where)
+        spaces = _spaces(meta, spaces_where)
         try:
             listing = list_groups(h5, meta, where)
         except (OSError, KeyError, RuntimeError) as err:  # h5py's errors for a damaged file
             raise ValueError(
                 f"{where}: unreadable HDF5 data ({type(err).__name__}: {err})"
             ) from err
-        src = EpisodeSource(meta, where, listing, spaces, skipped, data_dir, h5)
-        h5 = None
-        try:
-            yield src
-        finally:
-            src.close()
-    finally:
+    except BaseException:
         if h5 is not None:
             h5.close()
+        os.close(fd)
+        raise
+    src = EpisodeSource(meta, where, listing, spaces, skipped, folder, h5_fd=fd, h5=h5)
+    try:
+        yield src
+    finally:
+        src.close()

@@ -7,21 +7,28 @@ walks a space over one storage's nodes (an HDF5 group, an arrow struct column: t
 ``Storage`` says how to reach a child and read a leaf) and checks every leaf the same
 way whatever the storage: its per-step shape, a dtype cast that changes no value (an
 ``int64`` Box over float data, float actions in a ``Discrete`` space: refused), actions
-inside a ``Discrete`` space's range, no NaN or inf.
+inside a ``Discrete`` space's range, no NaN or inf. A space's JSON is parsed with
+:func:`~imitrl.fs.reading.parse_json` (too deep a nesting is refused by name) and may
+nest Dict/Tuple spaces :data:`MAX_SPACE_DEPTH` deep; an encoded image's size is read
+from its header and checked against the space before it is decoded.
 """
 
 from __future__ import annotations
 
 import io
-import json
 import math
+from collections.abc import Iterable
 from typing import Any, Protocol
 
 import numpy as np
 
 from imitrl.datasets._common import check_finite, exact_cast
+from imitrl.fs.reading import parse_json
 
-__all__ = ["Storage", "decode", "is_image", "parse_space", "space_shape"]
+__all__ = ["MAX_SPACE_DEPTH", "Storage", "decode", "is_image", "parse_space", "space_shape"]
+
+MAX_SPACE_DEPTH = 32
+"""Dict/Tuple spaces nested deeper than this are refused (Minari's own are a level or two)"""
 
 
 class Storage(Protocol):
@@ -32,17 +39,16 @@ class Storage(Protocol):
         ValueError when it is missing."""
 
     def leaf(self, node: Any, space: dict, jpeg: bool, where: str) -> Any:
-        """A leaf node's ``[T, ...]`` values as numpy (encoded images: a list of bytes)."""
+        """A leaf node's ``[T, ...]`` values as numpy (encoded images: an iterable of
+        bytes, one image at a time)."""
 
 
 def parse_space(text: Any, where: str) -> dict:
     """A space from ``metadata.json`` (a JSON string, or already a mapping), checked."""
-    try:
-        space = json.loads(text) if isinstance(text, str) else text
-    except json.JSONDecodeError as err:
-        raise ValueError(f"{where}: the serialized space is not valid JSON: {err}") from err
-    _check_space(space, where)
-    return space
+    if isinstance(text, bytes | str):
+        text = parse_json(text, where=f"{where} (the serialized space)")
+    _check_space(text, where)
+    return text
 
 
 def _sizes(value: Any) -> bool:
@@ -52,8 +58,10 @@ def _sizes(value: Any) -> bool:
     )
 
 
-def _check_space(space: Any, where: str) -> None:
+def _check_space(space: Any, where: str, depth: int = 0) -> None:
     """What :func:`decode` reads of a space is there and well-formed."""
+    if depth > MAX_SPACE_DEPTH:
+        raise ValueError(f"{where}: spaces nested more than {MAX_SPACE_DEPTH} deep; refused")
     if not isinstance(space, dict) or "type" not in space:
         raise ValueError(f"{where}: not a Minari space description: {space!r}")
     kind = space["type"]
@@ -80,12 +88,12 @@ def _check_space(space: Any, where: str) -> None:
         if not isinstance(space.get("subspaces"), dict):
             raise ValueError(f"{where}: a Dict space needs a 'subspaces' mapping, got {space!r}")
         for name, sub in space["subspaces"].items():
-            _check_space(sub, f"{where}[{name!r}]")
+            _check_space(sub, f"{where}[{name!r}]", depth + 1)
     elif kind == "Tuple":
         if not isinstance(space.get("subspaces"), list):
             raise ValueError(f"{where}: a Tuple space needs a 'subspaces' list, got {space!r}")
         for i, sub in enumerate(space["subspaces"]):
-            _check_space(sub, f"{where}[{i}]")
+            _check_space(sub, f"{where}[{i}]", depth + 1)
 
 
 def space_shape(space: dict) -> tuple[int, ...]:
@@ -118,18 +126,30 @@ def is_image(space: dict) -> bool:
     )
 
 
-def _jpeg_frames(blobs: Any, space: dict, here: str) -> np.ndarray:
+def _jpeg_frames(blobs: Iterable[Any], space: dict, here: str) -> np.ndarray:
+    """Each encoded image decoded, once its header says it has the space's width and
+    height (so a small file declaring a huge image is refused before it is decoded)."""
     from PIL import Image
 
+    shape = space["shape"]
     frames = []
     for i, blob in enumerate(blobs):
         try:
-            frames.append(np.asarray(Image.open(io.BytesIO(bytes(blob)))))
+            image = Image.open(io.BytesIO(bytes(blob)))  # reads the header only
         except Exception as err:  # PIL raises assorted errors for broken images
             raise ValueError(f"{here}: step {i} is not a decodable JPEG image ({err})") from err
-    want = math.prod(space["shape"])
+        if image.size != (shape[1], shape[0]):  # PIL: (width, height)
+            raise ValueError(
+                f"{here}: step {i} is a {image.size[0]}x{image.size[1]} image; the space's "
+                f"shape is {shape}, so an image does not hold the space's shape"
+            )
+        try:
+            frames.append(np.asarray(image))
+        except Exception as err:
+            raise ValueError(f"{here}: step {i} is not a decodable JPEG image ({err})") from err
+    want = math.prod(shape)
     if any(f.size != want or f.dtype != np.uint8 for f in frames):
-        raise ValueError(f"{here}: an image does not hold the space's shape {space['shape']}")
+        raise ValueError(f"{here}: an image does not hold the space's shape {shape}")
     if not frames:
         return np.empty((0, *space["shape"]), dtype=np.uint8)
     return np.stack(frames).reshape(len(frames), *space["shape"])

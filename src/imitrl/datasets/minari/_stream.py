@@ -8,9 +8,15 @@ about :data:`PIECE_ROWS` steps (whole episodes, at least one) that become rows.
 Nothing half-loaded (:mod:`imitrl.datasets._streaming`): the episodes are read twice. The
 first pass runs every check, the dataset's records (``total_steps``; ids held once and
 ``total_episodes`` are checked when the episodes are listed) and the buffer's own; only
-then does the second pass extend the buffer, piece by piece. A damaged episode anywhere, the last one included, leaves the
-buffer as it was. Resident memory: one piece and one integer per episode (its id),
-whatever the dataset's length.
+then does the second pass extend the buffer, piece by piece. A damaged episode anywhere,
+the last one included, leaves the buffer as it was. Resident memory: one piece and one
+integer per episode (its id), whatever the dataset's length.
+
+The second pass reads the files the first one opened (the source keeps them open,
+:mod:`._source`), so a dataset replaced meanwhile cannot change it. Only past the
+descriptors a source may hold does it open an episode again by name; should that find the
+dataset replaced, the load stops with a RuntimeError saying how many rows the buffer took
+(never retried: the buffer already holds them).
 """
 
 from __future__ import annotations
@@ -77,5 +83,13 @@ def stream_into(
         buffer, _pieces(src, first_episode, next_observation, env, names, notes), src.where
     )
     check_steps(frames, src.meta, src.where)
-    view = extend_pieces(buffer, _pieces(src, first_episode, next_observation, env, names, []))
+    before = len(buffer)
+    try:
+        view = extend_pieces(buffer, _pieces(src, first_episode, next_observation, env, names, []))
+    except ValueError as err:  # it passed every check a moment ago: the files changed
+        raise RuntimeError(
+            f"{src.where}: changed while it was loaded into the buffer, after its check "
+            f"({err}); the buffer took {len(buffer) - before} of its rows. Load it again "
+            "into a fresh buffer"
+        ) from err
     return view, notes

@@ -19,7 +19,10 @@ which a TorchRL rollout does not keep: rows without it are refused). The rows ar
 first (keys, contiguous episodes whose ``STEP`` runs 0..T-1, flags that end an episode
 only at its last row), then written an episode at a time, each value checked against its
 space (:mod:`._write_spaces`), into a temporary directory that becomes ``path`` only when
-complete (:func:`~imitrl.fs.publish.publishing`: atomic, one writer per path).
+complete (:func:`~imitrl.fs.publish.publishing`: atomic, one writer per path). A full disk
+is an :class:`imitrl.fs.DiskFullError` naming ``path``, which keeps what it held: HDF5
+writes through :class:`~imitrl.datasets.minari._hdf5_out.HDF5Out`, which never lets a
+failed write reach HDF5 (whose close then crashes the process).
 """
 
 from __future__ import annotations
@@ -40,9 +43,11 @@ from imitrl import keys
 from imitrl.data.buffer import DemonstrationBuffer
 from imitrl.datasets._common import NestedKey, key_name
 from imitrl.datasets.minari._hdf5 import MAIN_FILE
-from imitrl.datasets.minari._source import METADATA_FILE
+from imitrl.datasets.minari._hdf5_out import HDF5Out
+from imitrl.datasets.minari._source import METADATA_FILE, METADATA_LIMIT
 from imitrl.datasets.minari._write_spaces import check_space, serialize_space, space_values
 from imitrl.fs.publish import publishing
+from imitrl.fs.reading import OpenedFolder, parse_json
 
 __all__ = ["MINARI_VERSION", "save_minari"]
 
@@ -141,15 +146,19 @@ def _episodes(rows: TensorDictBase) -> tuple[np.ndarray, np.ndarray]:
 
 def _replaceable(path: Path) -> None:
     """``overwrite=True`` replaces only a Minari dataset: a directory holding nothing but
-    ``data/``, whose ``data/metadata.json`` names a ``data_format``. Else ValueError."""
+    ``data/``, whose ``data/metadata.json`` (a regular file, read by descriptor, JSON not
+    too deeply nested) names a ``data_format``. Else ValueError."""
+    meta, why = None, ""
     try:
-        meta = json.loads((path / "data" / METADATA_FILE).read_text())
-    except (OSError, ValueError):
-        meta = None
+        with OpenedFolder(path / "data") as folder:
+            text = folder.read_bytes(METADATA_FILE, named_by="overwrite", limit=METADATA_LIMIT)
+        meta = parse_json(text, where=str(path / "data" / METADATA_FILE))
+    except ValueError as err:
+        why = f": {err}"
     if not isinstance(meta, dict) or not isinstance(meta.get("data_format"), str):
         raise ValueError(
-            f"{path} is not a Minari dataset (no data/{METADATA_FILE} naming a data_format); "
-            "overwrite=True replaces only a dataset: refusing to delete it"
+            f"{path} is not a Minari dataset (no data/{METADATA_FILE} naming a data_format"
+            f"{why}); overwrite=True replaces only a dataset: refusing to delete it"
         )
     other = sorted(p.name for p in path.iterdir() if p.name != "data")
     if other:
@@ -359,9 +368,8 @@ def save_minari(
             integer space; spaces Minari's JSON cannot hold; ``path`` exists (without
             ``overwrite``), is no replaceable dataset, is or holds the working directory,
             or another process is writing it. Under any error ``path`` keeps what it held.
+        imitrl.fs.DiskFullError: the file system filled up (``path`` as it was).
     """
-    import h5py
-
     rows = _rows_to_write(data, action_key)
     obs_space, act_space, env_spec = _spaces(observation_space, action_space, env_id)
     spaces = (obs_space, act_space)
@@ -372,19 +380,20 @@ def save_minari(
     with publishing(path, overwrite=overwrite, replaceable=_replaceable, what=what) as tmp:
         data_dir = tmp / "data"
         data_dir.mkdir()
-        with h5py.File(data_dir / MAIN_FILE, "w", track_order=True) as h5:
+        out = HDF5Out(data_dir / MAIN_FILE, track_order=True)
+        with out as h5:
             for e, (start, length) in enumerate(zip(starts.tolist(), lengths.tolist())):
                 part = rows[start : start + length]
                 where = f"episode {int(part.get(keys.EPISODE)[0])}"
                 _write_episode(h5, e, part, spaces, action_key, where)
                 unwritten.note(part, action_key)
+                out.check()  # a full disk: stop at the episode that met it
         meta = _metadata(
             data_dir, len(starts), int(lengths.sum()), spaces, env_spec, dataset_id, description
         )
         (data_dir / METADATA_FILE).write_text(json.dumps(meta))
-        for name in (MAIN_FILE, METADATA_FILE):  # on disk before publishing renames the folder
-            with open(data_dir / name, "rb") as f:
-                os.fsync(f.fileno())
+        with open(data_dir / METADATA_FILE, "rb") as f:  # on disk before it is published
+            os.fsync(f.fileno())  # (HDF5Out fsynced the HDF5 file)
     if unwritten.names:
         warnings.warn(
             f"save_minari: Minari has no place for {sorted(unwritten.names)}; they are not "

@@ -1,72 +1,60 @@
-"""Configuration of the FrozenLake study (`imitrl frozenlake`)."""
+"""Configuration of the FrozenLake study (`imitrl frozenlake`).
+
+Every number is range-checked by the :class:`~imitrl.jobs.limits.Bound` its field
+declares (:func:`~imitrl.jobs.limits.bounded`: the range ``--help`` shows, and the one
+line a value out of it is refused with), before any work is done. The upper limits are
+those of every command (:mod:`imitrl.jobs.limits`: seeds, episodes, gradient steps,
+rounds, time limits) and the study's own below.
+"""
 
 from __future__ import annotations
 
-import math
-from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
 from gymnasium.envs.toy_text.frozen_lake import MAPS
 
-__all__ = ["MAP_LETTERS", "PROTOCOLS", "StudyConfig", "check_desc"]
+from imitrl.jobs.limits import (
+    MAX_EPISODE_STEPS,
+    MAX_EPISODES,
+    MAX_EVAL_EPISODES,
+    MAX_ROUNDS,
+    MAX_SEED,
+    MAX_STEPS,
+    Bound,
+    bounded,
+    check_bounds,
+)
+
+__all__ = [
+    "MAP_LETTERS",
+    "MAX_CHAIN_DRAWS",
+    "MAX_DATASETS",
+    "MAX_EVAL_SCALE",
+    "MAX_SWEEPS",
+    "PROTOCOLS",
+    "StudyConfig",
+    "check_desc",
+]
 
 PROTOCOLS = ("faithful", "batched")
 
-
-# integer fields that count something (episodes, datasets, steps, sweeps): each >= 1
-_COUNTS = (
-    "eval_scale",
-    "vi_iters",
-    "demo_episodes",
-    "fit_steps",
-    "eval_episodes",
-    "sweep_datasets",
-    "sweep_fit_steps",
-    "sweep_eval_episodes",
-    "chain_samples",
-    "dagger_rounds",
-    "dagger_episodes",
-    "ex_datasets",
-    "ex_fit_steps",
-    "ex_error_datasets",
-    "irl_steps",
-    "irl_datasets",
-    "airl_rounds",
-)
-_SEEDS = (
-    "demo_seed",
-    "eval_seed",
-    "sweep_seed",
-    "chain_seed",
-    "dagger_seed",
-    "ex_seed",
-    "irl_seed",
-    "airl_seed",
-)
-# tuples of counts, each >= 1 and given once (results are keyed by them)
-_COUNT_TUPLES = ("sweep_sizes", "tv_steps", "ex_demo_counts", "irl_sizes", "airl_sizes")
+MAX_EVAL_SCALE = 1_000
+"""largest ``--eval-scale``: the batched protocol plays that many times each evaluation's
+episodes (1,000 x the default 1,000 is 10^6 episodes per estimate)"""
+MAX_SWEEPS = 100_000
+"""most value-iteration sweeps (``--vi-iters``): every sweep's values are kept, ``[sweeps,
+S]`` float64 (100,000 sweeps of the 8x8 map: 51 MB)"""
+MAX_DATASETS = 1_000
+"""most redrawn datasets per setting (``--sweep-datasets``, ``--ex-datasets``, ...): the
+batched protocol builds the product MDP of that many copies, and each is fitted"""
+MAX_CHAIN_DRAWS = 10_000_000
+"""most coin flips of one compounding-error panel, ``--chain-samples`` x its horizon T:
+they are drawn at once, ``[samples, T]`` (10^7: about 300 MB with the sums over them)"""
 MAP_LETTERS = {"S": "start", "F": "frozen", "H": "hole", "G": "goal"}
 """The letters of a FrozenLake map (``--desc``)."""
-
-
-def _flag(name: str) -> str:
-    return "--" + name.replace("_", "-")
-
-
-def _check_count(name: str, value: object, *, least: int = 1, shown: object = None) -> None:
-    """Raise unless ``value`` is an integer >= ``least``; ``shown`` is the whole flag value."""
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < least:
-        got = value if shown is None else f"{value!r} in {list(shown)}"
-        raise ValueError(f"{_flag(name)} must be an integer >= {least}, got {got}")
-
-
-def _check_real(name: str, value: object, expected: str, ok: Callable[[float], bool]) -> None:
-    """Raise unless ``value`` is a finite real number for which ``ok`` holds."""
-    real = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
-    if not (real and math.isfinite(value) and ok(value)):
-        raise ValueError(f"{_flag(name)} must be {expected}, got {value!r}")
+_EPS = Bound(0, 1, integer=False, low_open=True)
+"""a chain panel's per-step error eps"""
 
 
 def check_desc(desc: tuple[str, ...]) -> None:
@@ -105,7 +93,7 @@ class StudyConfig:
     protocol: str = "faithful"
     """faithful: gymnasium's own random stream, seeded per block (the section's digits);
     batched: independent TabularEnv lanes, replicates vectorised, eval_scale x more episodes"""
-    eval_scale: int = 100
+    eval_scale: int = bounded(100, 1, MAX_EVAL_SCALE)
     """batched protocol: evaluation episodes multiplier"""
     env_id: str = "FrozenLake-v1"
     """gymnasium toy-text env id"""
@@ -115,77 +103,81 @@ class StudyConfig:
     """custom map rows, e.g. SFFF,FHFH,FFFH,HFFG (overrides map_name)"""
     slippery: bool | None = None
     """is_slippery passed to gym.make; None = the env's own default (FrozenLake: slippery)"""
-    max_steps: int | None = field(default=None, metadata={"aliases": ("--max-episode-steps",)})
+    max_steps: int | None = bounded(
+        None, 1, MAX_EPISODE_STEPS, none_ok=True, aliases=("--max-episode-steps",)
+    )
     """episode time limit (--max-episode-steps, as in every other command, or
     --max-steps); None = the env's registered limit (100 for FrozenLake 4x4); needed for
     envs registered without one, such as CliffWalking-v1"""
-    gamma: float = 0.95
+    gamma: float = bounded(0.95, 0, 1, integer=False, low_open=True)
     """discount of the expert's value iteration"""
-    vi_iters: int = 1000
+    vi_iters: int = bounded(1000, 1, MAX_SWEEPS)
     """value-iteration sweeps"""
-    lr: float = 0.1
+    lr: float = bounded(0.1, 0, integer=False, low_open=True)
     """Adam learning rate of the tabular clone"""
-    probe_states: tuple[int, ...] = (9, 3)
+    probe_states: tuple[int, ...] = bounded((9, 3), 0)
     """states whose pi(.|s) is printed after the fit"""
-    demo_episodes: int = 3
+    demo_episodes: int = bounded(3, 1, MAX_EPISODES)
     """expert episodes of the main demonstration set"""
-    demo_seed: int = 0
+    demo_seed: int = bounded(0, 0, MAX_SEED)
     """seed of the demonstration block"""
-    fit_steps: int = 200
+    fit_steps: int = bounded(200, 1, MAX_STEPS)
     """full-batch Adam steps of the main fit and of every DAgger round"""
-    eval_episodes: int = 1000
+    eval_episodes: int = bounded(1000, 1, MAX_EVAL_EPISODES)
     """episodes per success-rate estimate"""
-    eval_seed: int = 1
+    eval_seed: int = bounded(1, 0, MAX_SEED)
     """seed of the expert-vs-clone evaluation block"""
-    sweep_sizes: tuple[int, ...] = (1, 3, 10)
+    sweep_sizes: tuple[int, ...] = bounded((1, 3, 10), 1, MAX_EPISODES)
     """dataset sizes (episodes) of the sweep"""
-    sweep_datasets: int = 10
+    sweep_datasets: int = bounded(10, 1, MAX_DATASETS)
     """datasets per size"""
-    sweep_fit_steps: int = 50
+    sweep_fit_steps: int = bounded(50, 1, MAX_STEPS)
     """Adam steps per sweep fit"""
-    sweep_eval_episodes: int = 300
+    sweep_eval_episodes: int = bounded(300, 1, MAX_EVAL_EPISODES)
     """episodes per sweep evaluation"""
-    sweep_seed: int = 2
+    sweep_seed: int = bounded(2, 0, MAX_SEED)
     """seed of the sweep block"""
-    chain_seed: int = 3
+    chain_seed: int = bounded(3, 0, MAX_SEED)
     """numpy seed of the compounding-error chain (each panel draws from a fresh generator)"""
-    chain_samples: int = 20000
+    chain_samples: int = bounded(20000, 1, MAX_CHAIN_DRAWS)
     """simulated imitators per chain panel"""
     chain_panels: tuple[tuple[float, int], ...] = ((0.05, 10), (0.01, 64))
-    """(per-step error eps, longest horizon T) of each panel"""
-    tv_steps: tuple[int, ...] = (3, 5, 10, 20)
+    """(per-step error eps, longest horizon T) of each panel: eps in (0, 1], T an integer
+    in [1, 1_000_000] (a time limit's range), and --chain-samples x T at most 10_000_000
+    coin flips (MAX_CHAIN_DRAWS: a panel draws them at once)"""
+    tv_steps: tuple[int, ...] = bounded((3, 5, 10, 20), 1, MAX_EPISODE_STEPS)
     """steps at which the total variation between the state distributions is printed"""
-    dagger_rounds: int = 4
+    dagger_rounds: int = bounded(4, 1, MAX_ROUNDS)
     """DAgger fits (a relabel round is collected after each)"""
-    dagger_episodes: int = 3
+    dagger_episodes: int = bounded(3, 1, MAX_EPISODES)
     """relabelled episodes per round"""
-    dagger_seed: int = 4
+    dagger_seed: int = bounded(4, 0, MAX_SEED)
     """seed of the DAgger block"""
     exercises: bool = True
     """run the four exercises"""
-    ex_demo_counts: tuple[int, ...] = (5, 20, 100, 500)
+    ex_demo_counts: tuple[int, ...] = bounded((5, 20, 100, 500), 1, MAX_EPISODES)
     """exercise 2: number of demonstration episodes N"""
-    ex_datasets: int = 10
+    ex_datasets: int = bounded(10, 1, MAX_DATASETS)
     """exercises 2-5: datasets (seeds) per setting"""
-    ex_fit_steps: int = 50
+    ex_fit_steps: int = bounded(50, 1, MAX_STEPS)
     """exercises: Adam steps per fit"""
-    ex_error_datasets: int = 50
+    ex_error_datasets: int = bounded(50, 1, MAX_DATASETS)
     """exercise 3: three-episode datasets pooled for per-state errors"""
-    ex_corruption: float = 0.1
+    ex_corruption: float = bounded(0.1, 0, 1, integer=False)
     """exercise 5: fraction of corrupted expert labels"""
-    ex_seed: int = 5
+    ex_seed: int = bounded(5, 0, MAX_SEED)
     """seed of the exercise blocks (one block per exercise: ex_seed, ex_seed + 1, ...)"""
     irl: bool = True
     """run section 8, maximum-entropy IRL (``--no-irl`` skips it)"""
-    irl_steps: int = 100
+    irl_steps: int = bounded(100, 1, MAX_STEPS)
     """Adam steps of each IRL fit (exact likelihood gradient)"""
-    irl_lr: float = 0.5
+    irl_lr: float = bounded(0.5, 0, integer=False, low_open=True)
     """Adam learning rate of the IRL fits"""
-    irl_sizes: tuple[int, ...] = (1, 3, 10)
+    irl_sizes: tuple[int, ...] = bounded((1, 3, 10), 1, MAX_EPISODES)
     """section 8: demonstration episodes per redrawn dataset"""
-    irl_datasets: int = 10
+    irl_datasets: int = bounded(10, 1, MAX_DATASETS)
     """section 8: redrawn datasets per size (IRL, BC and DAgger from each)"""
-    irl_seed: int = 9
+    irl_seed: int = bounded(9, 0, MAX_SEED)
     """seed of the section 8 block"""
     irl_transfer: tuple[tuple[str, str], ...] | None = None
     """reward-transfer targets as env constructor arguments ``name:value``
@@ -194,18 +186,18 @@ class StudyConfig:
     airl: bool = True
     """with section 8, run 8b: AIRL's reward against MaxEnt IRL's under changed dynamics
     (``--no-airl`` skips it)"""
-    airl_beta: float = 20.0
+    airl_beta: float = bounded(20.0, 0, integer=False, low_open=True)
     """8b: the demonstrator's inverse temperature (soft-optimal for beta x the env's
     reward); AIRL identifies the reward of a Boltzmann-rational demonstrator. From its
     exact occupancy AIRL recovers g to within 1e-10 of the truth plus a constant on the
     4x4 lake at beta 20 (7e-8 at 100); on the 8x8 map at 100 the rarely taken actions are
     too rare to pin it in 200 rounds (error 11). At 20 the demonstrator succeeds with
     probability 0.26 (the greedy expert 0.73) and 1000 of its episodes transfer to every target"""
-    airl_sizes: tuple[int, ...] = (10, 100, 1000)
+    airl_sizes: tuple[int, ...] = bounded((10, 100, 1000), 1, MAX_EPISODES)
     """8b: demonstrated episodes per dataset (besides the unlimited-data limit)"""
-    airl_rounds: int = 200
+    airl_rounds: int = bounded(200, 1, MAX_ROUNDS)
     """8b: generator/discriminator rounds of each AIRL fit"""
-    airl_seed: int = 10
+    airl_seed: int = bounded(10, 0, MAX_SEED)
     """8b: seed of the demonstrator's episodes"""
     progress: bool = True
     """progress bars for the longer blocks"""
@@ -213,30 +205,15 @@ class StudyConfig:
     def __post_init__(self) -> None:
         if self.protocol not in PROTOCOLS:
             raise ValueError(f"protocol must be one of {PROTOCOLS}, got {self.protocol!r}")
-        for name in _COUNTS:
-            _check_count(name, getattr(self, name))
-        for name in _SEEDS:
-            _check_count(name, getattr(self, name), least=0)
-        for name in _COUNT_TUPLES:
-            values = getattr(self, name)
-            for v in values:
-                _check_count(name, v, shown=values)
+        check_bounds(self)  # every number, and each of a tuple's
+        for name in ("sweep_sizes", "tv_steps", "ex_demo_counts", "irl_sizes", "airl_sizes"):
+            values = getattr(self, name)  # results are keyed by them
             if len(set(values)) != len(values):
-                raise ValueError(f"{_flag(name)}: each value once, got {list(values)}")
+                raise ValueError(f"--{name.replace('_', '-')}: each value once, got {list(values)}")
         if not self.tv_steps:
             raise ValueError("--tv-steps: give at least one step (e.g. 3,5,10,20)")
-        for s in self.probe_states:  # the upper bound needs the env: run_study checks it
-            _check_count("probe_states", s, least=0, shown=self.probe_states)
-        if self.max_steps is not None:
-            _check_count("max_steps", self.max_steps)
-        _check_real("gamma", self.gamma, "in (0, 1]", lambda g: 0.0 < g <= 1.0)
-        _check_real("lr", self.lr, "> 0", lambda x: x > 0.0)
-        _check_real("irl_lr", self.irl_lr, "> 0", lambda x: x > 0.0)
-        _check_real("airl_beta", self.airl_beta, "> 0", lambda x: x > 0.0)
-        _check_real("ex_corruption", self.ex_corruption, "in [0, 1]", lambda x: 0.0 <= x <= 1.0)
-        for eps, T in self.chain_panels:
-            _check_real("chain_panels", eps, "eps:T with eps in (0, 1]", lambda e: 0 < e <= 1)
-            _check_count("chain_panels", T, shown=self.chain_panels)
+        # the probe states' upper bound needs the env: run_study checks it
+        self._check_chain_panels()
         if self.map_name is not None and self.map_name not in MAPS:
             raise ValueError(
                 f"--map-name {self.map_name!r} is not a gymnasium FrozenLake map: "
@@ -244,6 +221,24 @@ class StudyConfig:
             )
         if self.desc is not None:
             check_desc(self.desc)
+
+    def _check_chain_panels(self) -> None:
+        """Each ``eps:T`` panel: eps in (0, 1], T a horizon, and ``--chain-samples x T``
+        coin flips at most :data:`MAX_CHAIN_DRAWS`."""
+        for eps, T in self.chain_panels:
+            if not _EPS.holds(eps):
+                raise ValueError(
+                    f"--chain-panels must be eps:T with eps in (0, 1], got {eps!r} in "
+                    f"{list(self.chain_panels)}"
+                )
+            Bound(1, MAX_EPISODE_STEPS).check(T, "--chain-panels", among=self.chain_panels)
+            if self.chain_samples * T > MAX_CHAIN_DRAWS:
+                raise ValueError(
+                    f"--chain-samples {self.chain_samples} x --chain-panels horizon {T} = "
+                    f"{self.chain_samples * T:_} coin flips, more than the {MAX_CHAIN_DRAWS:_} "
+                    "one panel draws at once (imitrl.experiments.frozenlake.config."
+                    "MAX_CHAIN_DRAWS)"
+                )
 
     @property
     def make_kwargs(self) -> dict:
