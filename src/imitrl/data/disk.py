@@ -41,6 +41,7 @@ from tensordict import MemoryMappedTensor, TensorDict
 from torchrl.data.replay_buffers import LazyMemmapStorage
 
 from imitrl.compat import replace_storage_contents
+from imitrl.fs.files import make_folder, open_own, replace_file
 from imitrl.fs.write_errors import DiskFullError, is_disk_full, reporting_disk_full
 
 __all__ = ["LAYOUT", "DiskLayout", "GrowingMemmapStorage"]
@@ -249,8 +250,9 @@ class DiskLayout:
                 f"{self.path} already holds {what}: refusing to overwrite it; pass "
                 "resume=True to continue a disk buffer there, or choose an empty directory"
             )
-        self.path.mkdir(parents=True, exist_ok=True)
-        self._lock = open(self.path / LOCK, "a")
+        make_folder(self.path)
+        # opened without following a link planted at its name (imitrl.fs.files)
+        self._lock = os.fdopen(open_own(self.path / LOCK, what="a disk buffer's lock"), "a")
         try:
             fcntl.flock(self._lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
@@ -287,15 +289,10 @@ class DiskLayout:
         body = {"format": FORMAT, **content}
         if body["schema"] is not None:
             body["schema"] = {k: [d, list(s)] for k, (d, s) in body["schema"].items()}
-        tmp = self.path / f".{LAYOUT}.tmp-{os.getpid()}"
         left = f"{LAYOUT} keeps the previous count of rows"
         with reporting_disk_full(self.path, what=f"a disk buffer's {LAYOUT}", left=left):
-            try:
-                tmp.write_text(json.dumps(body, indent=1, sort_keys=True) + "\n")
-            except BaseException:
-                tmp.unlink(missing_ok=True)
-                raise
-        os.replace(tmp, self.path / LAYOUT)
+            text = json.dumps(body, indent=1, sort_keys=True) + "\n"
+            replace_file(self.path / LAYOUT, text, what=LAYOUT, durable=False)  # never via a link
 
 
 def _schema_from_json(schema: Any) -> Schema | None:

@@ -32,6 +32,7 @@ __all__ = [
     "create_file",
     "make_folder",
     "new_sibling",
+    "open_own",
     "replace_file",
 ]
 
@@ -68,16 +69,20 @@ def check_regular(fd: int, path: Path, what: str) -> os.stat_result:
     )
 
 
-def create_file(path: str | Path, *, what: str = "a file", mode: int = 0o666) -> int:
-    """Open a new file for writing (``O_EXCL | O_NOFOLLOW``); returns its descriptor.
+def create_file(
+    path: str | Path, *, what: str = "a file", mode: int = 0o666, readable: bool = False
+) -> int:
+    """Open a new file for writing (``O_EXCL | O_NOFOLLOW``; ``readable``: for reading
+    too); returns its descriptor.
 
     Raises:
         PlantedLinkError: a symbolic link stands at ``path``.
         FileExistsError: a file (or folder) already has that name.
     """
     path = Path(path)
+    flags = (_CREATE & ~os.O_WRONLY) | os.O_RDWR if readable else _CREATE
     try:
-        return os.open(path, _CREATE, mode)
+        return os.open(path, flags, mode)
     except FileExistsError:
         if path.is_symlink():
             raise _planted(path, what) from None
@@ -88,10 +93,14 @@ def create_file(path: str | Path, *, what: str = "a file", mode: int = 0o666) ->
         raise
 
 
-def replace_file(path: str | Path, data: bytes | str, *, what: str = "a file") -> None:
+def replace_file(
+    path: str | Path, data: bytes | str, *, what: str = "a file", durable: bool = True
+) -> None:
     """Write ``data`` to ``path`` whole: into a fresh sibling (:func:`create_file`),
-    flushed to disk, then renamed over ``path`` (a link at ``path`` is replaced, its target
-    never written). A reader finds the old file or the new one, never half of one."""
+    flushed to disk (``durable``; False where the file describes data that is not flushed
+    either, a disk buffer's row count), then renamed over ``path`` (a link at ``path`` is
+    replaced, its target never written). A reader finds the old file or the new one, never
+    half of one."""
     path = Path(path)
     if isinstance(data, str):
         data = data.encode()
@@ -101,11 +110,28 @@ def replace_file(path: str | Path, data: bytes | str, *, what: str = "a file") -
         with os.fdopen(fd, "wb") as out:
             out.write(data)
             out.flush()
-            os.fsync(out.fileno())
+            if durable:
+                os.fsync(out.fileno())
         os.replace(tmp, path)
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
+
+
+def open_own(path: str | Path, *, what: str = "a file") -> int:
+    """Open (or create) ``path`` for reading and appending without following a link, and
+    only when it is a regular file of one name (:func:`check_regular`): a lock file kept
+    in a folder that may hold planted links."""
+    path = Path(path)
+    flags = os.O_RDWR | os.O_CREAT | os.O_APPEND | os.O_NOFOLLOW | os.O_NONBLOCK
+    try:
+        fd = os.open(path, flags | getattr(os, "O_CLOEXEC", 0), 0o666)
+    except OSError as err:
+        if err.errno == errno.ELOOP:
+            raise _planted(path, what) from None
+        raise
+    check_regular(fd, path, what)
+    return fd
 
 
 def make_folder(path: str | Path) -> Path:

@@ -39,6 +39,7 @@ from imitrl.datasets.lerobot._checks import TOLERANCE_S
 from imitrl.datasets.lerobot._files import holds, opened
 from imitrl.datasets.lerobot._layout import IMAGE_NAMES, fill_template
 from imitrl.fs.contained import plain_name
+from imitrl.fs.files import create_file, make_folder
 from imitrl.fs.reading import OpenedFolder
 from imitrl.fs.write_errors import reporting_disk_full
 
@@ -146,9 +147,10 @@ class _Frames:
         if filename is None:
             self.array = torch.empty(shape, dtype=torch.uint8).numpy()
             return
-        filename.parent.mkdir(parents=True, exist_ok=True)
+        make_folder(filename.parent)
         filename.unlink(missing_ok=True)  # a tensor still mapping an old file keeps it
-        self.fd = os.open(filename, os.O_RDWR | os.O_CREAT | os.O_TRUNC, 0o644)
+        # a new file, never through a link planted at its name (imitrl.fs.files)
+        self.fd = create_file(filename, what="decoded frames", readable=True)
         os.ftruncate(self.fd, shape[0] * self.frame_bytes)
 
     def put(self, row: int, image: Any) -> None:
