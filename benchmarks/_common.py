@@ -22,7 +22,6 @@ from torchrl.envs.utils import ExplorationType
 
 from imitrl import keys
 from imitrl.algorithms import EnvSource
-from imitrl.data import episode_returns, rollout_episodes
 from imitrl.experts import (
     acrobot_expert,
     cartpole_expert,
@@ -32,6 +31,7 @@ from imitrl.experts import (
     pendulum_expert,
 )
 from imitrl.policies import Expert, as_actor
+from imitrl.runtime import episode_returns, rollout_episodes
 from imitrl.tabular import TabularMDP, value_iteration
 
 DET, RND = ExplorationType.DETERMINISTIC, ExplorationType.RANDOM

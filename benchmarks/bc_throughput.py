@@ -34,7 +34,8 @@ from imitrl import keys
 from imitrl.algorithms import BCConfig, DAggerConfig, dagger, fit_bc
 from imitrl.data import DemonstrationBuffer
 from imitrl.envs import GymnasiumStream, GymnasiumStreamSource, TabularEnv
-from imitrl.policies import ActorCritic, BetaMixer, Expert, behaviour_policy
+from imitrl.learners import ActorCritic
+from imitrl.policies import BetaMixer, Expert, behaviour_policy
 from imitrl.tabular import greedy
 
 NAME = "bc_throughput"

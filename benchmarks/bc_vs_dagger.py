@@ -69,7 +69,8 @@ from imitrl.experts import (
     inverted_pendulum_expert,
     pendulum_expert,
 )
-from imitrl.policies import HEADS, ActorCritic
+from imitrl.learners import ActorCritic
+from imitrl.policies import HEADS
 
 NAME = "bc_vs_dagger"
 EVAL_SEED, SOURCE_SEED, MATCHED_SEED, REFERENCE_SEED = 10_000, 1_000, 2_000, 50_000

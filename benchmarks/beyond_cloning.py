@@ -59,7 +59,8 @@ from imitrl.algorithms import Constant, DAggerConfig, dagger
 from imitrl.algorithms.adversarial import AIRLConfig, GAILConfig, airl, gail
 from imitrl.data import DemonstrationBuffer
 from imitrl.envs import make_env
-from imitrl.policies import ActorCritic, as_actor
+from imitrl.learners import ActorCritic
+from imitrl.policies import as_actor
 from imitrl.tabular import success_probability
 from imitrl.tabular.maxent_irl import (
     Demonstrations,

@@ -52,7 +52,7 @@ from imitrl.algorithms import BCConfig, Constant, DAggerConfig, dagger, fit_bc
 from imitrl.data import DemonstrationBuffer
 from imitrl.envs.pixel_tasks import Hilltop, PixelBalanceEnv, balance_expert
 from imitrl.evaluation import t_interval
-from imitrl.policies import ActorCritic
+from imitrl.learners import ActorCritic
 
 NAME = "camera"
 EVAL_SEED, SOURCE_SEED, MATCHED_SEED = 10_000, 1_000, 2_000

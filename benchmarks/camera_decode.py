@@ -50,7 +50,7 @@ from imitrl import keys
 from imitrl.algorithms import BCConfig, fit_bc
 from imitrl.data import DemonstrationBuffer
 from imitrl.datasets import load_lerobot
-from imitrl.policies import ActorCritic
+from imitrl.learners import ActorCritic
 
 NAME = "camera_decode"
 CAMERA = "observation.images.cam"

@@ -50,7 +50,8 @@ from imitrl.algorithms import BCConfig, Constant, DAggerConfig, Exponential, Lin
 from imitrl.data import DemonstrationBuffer
 from imitrl.envs import make_env
 from imitrl.experts import pendulum_expert
-from imitrl.policies import ActorCritic, BetaMixer, behaviour_policy
+from imitrl.learners import ActorCritic
+from imitrl.policies import BetaMixer, behaviour_policy
 
 NAME = "continuous_traps"
 COSTLY_STEP_S = 5e-3

@@ -1,6 +1,6 @@
 """What Diffusion Policy costs on a CPU: a training step, and an action at inference.
 
-For ``diffusion_unet`` (:mod:`imitrl.objectives.diffusion_unet`, the registry's CPU
+For ``diffusion_unet`` (:mod:`imitrl.learners.diffusion_unet`, the registry's CPU
 widths 32-64-128) and the paper's widths (256-512-1024), on Meta-World's shapes (39-d
 state, 4-d action, ``T_o = 2``, ``T_p = 16``, ``T_a = 8``), one torch thread:
 
@@ -38,10 +38,13 @@ from imitrl import keys
 from imitrl.algorithms import BCConfig, fit_bc
 from imitrl.data.chunks import IS_INIT
 from imitrl.data.history import history_key
-from imitrl.objectives import registry
-from imitrl.objectives.diffusion_unet import UnetDiffusionConfig
-from imitrl.objectives.registry import LearnerConfig, TaskSpec
-from imitrl.objectives.registry_chunks import DIFFUSION_UNET, diffusion_unet_learner
+from imitrl.learners import registry
+from imitrl.learners.diffusion_unet import (
+    DIFFUSION_UNET,
+    UnetDiffusionConfig,
+    diffusion_unet_learner,
+)
+from imitrl.learners.registry import LearnerConfig, TaskSpec
 
 NAME = "diffusion_policy"
 TASK = TaskSpec(action=Bounded(-1.0, 1.0, shape=(4,)), observation_dim=39)

@@ -27,8 +27,8 @@ import _report
 from camera import ACTION
 from imitrl import keys
 from imitrl.algorithms import BCConfig, fit_bc
-from imitrl.policies import ActorCritic
-from imitrl.runtime.device import resolve_device
+from imitrl.learners import ActorCritic
+from imitrl.system.device import resolve_device
 
 NAME = "fit_options"
 

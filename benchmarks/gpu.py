@@ -38,14 +38,14 @@ from camera import ACTION, plain_cnn, throughput_data
 from camera import Config as CameraConfig
 from imitrl import keys
 from imitrl.algorithms import BCConfig, DAggerConfig, EnvSource, dagger, fit_bc
-from imitrl.data import DemonstrationBuffer, rollout_episodes
+from imitrl.data import DemonstrationBuffer
 from imitrl.data.chunks import add_chunk_labels
 from imitrl.envs import make_env
 from imitrl.experts import cartpole_expert
-from imitrl.objectives import registry
-from imitrl.objectives.registry import LearnerConfig, TaskSpec
-from imitrl.policies import ActorCritic
-from imitrl.runtime.device import resolve_device
+from imitrl.learners import ActorCritic, registry
+from imitrl.learners.registry import LearnerConfig, TaskSpec
+from imitrl.runtime import rollout_episodes
+from imitrl.system.device import resolve_device
 
 NAME = "gpu"
 

@@ -1,7 +1,7 @@
 """Imitation losses compared: every registered loss x task x seed, BC and DAgger, equal budget.
 
 Which loss, on which kind of task, with what uncertainty. For every task, every loss
-of :mod:`imitrl.objectives.registry` that applies to its action space is trained on
+of :mod:`imitrl.learners.registry` that applies to its action space is trained on
 the same expert demonstrations with the same budget (gradient steps x batch size,
 network size, optimizer, observation normalisation: the library's default), once
 per seed:
@@ -64,7 +64,7 @@ from _loss_functions.merge import merge
 from _loss_functions.report import NAME, report
 from _loss_functions.run import run
 from _loss_functions.tasks import TASKS, parse_task
-from imitrl.objectives import registry
+from imitrl.learners import registry
 
 QUICK_LOSSES = ("cross_entropy", "gaussian_nll", "mse", "flow", "mse_chunk")
 """``--quick``'s default: a loss of each cheap family, one-step and chunked (the smoke run

@@ -48,7 +48,7 @@ from _loss_functions.tasks import Protocol, TaskDef
 from _metaworld_mt10_report import figure, markdown
 from imitrl.algorithms import BCConfig
 from imitrl.envs.metaworld import MT10
-from imitrl.objectives.registry import LearnerConfig
+from imitrl.learners.registry import LearnerConfig
 
 NAME = "metaworld_mt10"
 """(not ``metaworld.py``: run as a script, a file of that name would shadow the

@@ -32,11 +32,12 @@ import _report
 from _common import source
 from imitrl import keys
 from imitrl.algorithms import BCConfig, DAggerConfig, dagger
-from imitrl.data import DemonstrationBuffer, rollout_episodes
+from imitrl.data import DemonstrationBuffer
 from imitrl.envs import make_env
 from imitrl.evaluation import evaluate, wilson_interval
 from imitrl.experts import metaworld_expert
-from imitrl.policies import ActorCritic
+from imitrl.learners import ActorCritic
+from imitrl.runtime import rollout_episodes
 
 NAME = "metaworld_pixels"
 TASK = "reach-v3"

@@ -39,11 +39,12 @@ from torchrl.modules import ProbabilisticActor
 
 import _report
 from _common import DET, lake
-from imitrl.data import rollout_episodes
 from imitrl.envs import make_env
 from imitrl.evaluation import evaluate
 from imitrl.experts import cartpole_expert, pendulum_expert
-from imitrl.policies import ActorCritic, BetaMixer, Expert, behaviour_policy
+from imitrl.learners import ActorCritic
+from imitrl.policies import BetaMixer, Expert, behaviour_policy
+from imitrl.runtime import rollout_episodes
 from imitrl.tabular import greedy
 
 NAME = "per_step"

@@ -35,7 +35,7 @@ import _report
 from imitrl import keys
 from imitrl.algorithms import BCConfig, fit_bc
 from imitrl.data import DemonstrationBuffer
-from imitrl.policies import ActorCritic
+from imitrl.learners import ActorCritic
 
 NAME = "scale_buffer"
 

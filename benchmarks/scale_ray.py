@@ -40,10 +40,11 @@ from torchrl.envs import Transform, TransformedEnv
 import _report
 from imitrl.algorithms import BCConfig, Constant, DAggerConfig, dagger
 from imitrl.algorithms.ray_source import RaySource, init_ray
-from imitrl.data import DemonstrationBuffer, rollout_episodes
+from imitrl.data import DemonstrationBuffer
 from imitrl.envs import make_env
 from imitrl.experts import pendulum_expert
-from imitrl.policies import ActorCritic
+from imitrl.learners import ActorCritic
+from imitrl.runtime import rollout_episodes
 
 NAME = "scale_ray"
 

@@ -1,6 +1,6 @@
 """torch threads: 100 fit_bc steps at 1 and 2 threads, on a quiet machine and beside a busy core.
 
-What ``imitrl.runtime.threads.DEFAULT_THREADS`` (every command's ``--threads``) rests on.
+What ``imitrl.system.threads.DEFAULT_THREADS`` (every command's ``--threads``) rests on.
 Two networks, each trained two ways on the same rows:
 
 * MLP 4-64-64-2 (tanh, observations normalised, cross-entropy) on CartPole-sized rows:
@@ -111,7 +111,7 @@ def learner(cfg: Config, network: str):
     """The library's learner of ``network`` (its defaults but the sizes above)."""
     from torchrl.data import Bounded
 
-    from imitrl.policies import ActorCritic
+    from imitrl.learners import ActorCritic
 
     if network == "mlp":
         return ActorCritic.mlp(4, 2, hidden=(64, 64), lr=1e-3)
@@ -182,7 +182,7 @@ def measure(cfg: Config, threads: int) -> None:
     """One repeat, in this (fresh) process: set the threads, then print one JSON line
     ``{"network/loop": seconds}`` per measurement as it finishes (a stopped repeat
     keeps what it printed)."""
-    from imitrl.runtime import set_threads
+    from imitrl.system import set_threads
 
     set_threads(threads)  # before torch computes anything in this process
     import logging
@@ -305,7 +305,7 @@ def _ratio(a: float | None, b: float | None) -> str:
 
 def markdown(cfg: Config, summ: dict, wall: float) -> str:
     """The README block: medians, the 2-thread / 1-thread ratio, the load, the default."""
-    from imitrl.runtime.threads import DEFAULT_THREADS
+    from imitrl.system.threads import DEFAULT_THREADS
 
     names = {"mlp": "MLP 4-64-64-2", "cnn": f"CNN {cfg.pixels[0]}x{cfg.pixels[1]}x3 16-32"}
     loops = {"plain": "plain torch loop", "fit_bc": "imitrl fit_bc"}

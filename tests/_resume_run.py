@@ -15,10 +15,12 @@ import torch
 from torchrl.envs.utils import ExplorationType
 
 from imitrl.algorithms import BCConfig, Constant, DAggerConfig, EnvSource, dagger
-from imitrl.data import DemonstrationBuffer, rollout_episodes
+from imitrl.data import DemonstrationBuffer
 from imitrl.envs import GymnasiumStream, GymnasiumStreamSource, make_env
 from imitrl.experts import cartpole_expert
-from imitrl.policies import ActorCritic, Expert
+from imitrl.learners import ActorCritic
+from imitrl.policies import Expert
+from imitrl.runtime import rollout_episodes
 from imitrl.tabular import TabularMDP, greedy, value_iteration
 
 ROUNDS = 5

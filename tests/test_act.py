@@ -10,10 +10,10 @@ from torchrl.data import Bounded
 from imitrl import keys
 from imitrl.algorithms import BCConfig, fit_bc
 from imitrl.data.chunks import CHUNK_PAD, EXPERT_CHUNK, IS_INIT
-from imitrl.objectives import registry
-from imitrl.objectives.act import ACTChunkLoss, ACTPolicy
-from imitrl.objectives.registry import LearnerConfig, TaskSpec
-from imitrl.objectives.registry_chunks import CHUNK_HORIZON
+from imitrl.learners import registry
+from imitrl.learners.act import ACTChunkLoss, ACTPolicy
+from imitrl.learners.chunks import CHUNK_HORIZON
+from imitrl.learners.registry import LearnerConfig, TaskSpec
 from imitrl.policies.chunking import ChunkedPolicy
 
 H = CHUNK_HORIZON

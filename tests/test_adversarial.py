@@ -32,14 +32,15 @@ from imitrl.algorithms.adversarial.keys import (
     STATE_FEATURES,
 )
 from imitrl.algorithms.adversarial.transitions import expert_transitions
-from imitrl.data import DemonstrationBuffer, rollout_episodes
-from imitrl.data.returns import episode_returns
+from imitrl.data import DemonstrationBuffer
 from imitrl.envs import make_env
 from imitrl.experts import cartpole_expert
 from imitrl.jobs.checkpoint import load_learner
 from imitrl.jobs.curves import read_scalars, scalars_dir
 from imitrl.jobs.gail import AIRLJob, GAILJob, run_airl, run_gail
-from imitrl.policies import ActorCritic
+from imitrl.learners import ActorCritic
+from imitrl.runtime import rollout_episodes
+from imitrl.runtime.returns import episode_returns
 
 GREEDY = ExplorationType.DETERMINISTIC
 NEXT_OBS, NEXT_TERM = (keys.NEXT, keys.OBSERVATION), (keys.NEXT, keys.TERMINATED)

@@ -33,7 +33,7 @@ from imitrl.algorithms.adversarial.keys import (
     STATE_FEATURES,
 )
 from imitrl.algorithms.adversarial.transitions import expert_transitions
-from imitrl.policies import ActorCritic
+from imitrl.learners import ActorCritic
 from imitrl.policies.normalization import ObservationNormalizer
 
 NEXT_OBS, NEXT_TERM = (keys.NEXT, keys.OBSERVATION), (keys.NEXT, keys.TERMINATED)

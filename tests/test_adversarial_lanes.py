@@ -14,12 +14,12 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from imitrl import keys
 from imitrl.algorithms.adversarial import AIRLConfig, GAILConfig, airl, gail
-from imitrl.data import DemonstrationBuffer, rollout_episodes
+from imitrl.data import DemonstrationBuffer
 from imitrl.envs import make_env
 from imitrl.experts import cartpole_expert, pendulum_expert
 from imitrl.jobs.configs import GAILJob
-from imitrl.policies import ActorCritic
-from imitrl.runtime import paths
+from imitrl.learners import ActorCritic
+from imitrl.runtime import paths, rollout_episodes
 from imitrl.runtime.fast import gae_step
 from imitrl.runtime.fast.gae_step import DistinctRows
 from imitrl.runtime.loop import STEP_ROW_KEYS, play_steps

@@ -19,9 +19,11 @@ from imitrl.algorithms import (
     dagger,
     fit_bc,
 )
-from imitrl.data import DemonstrationBuffer, rollout_episodes
+from imitrl.data import DemonstrationBuffer
 from imitrl.envs import TabularEnv
-from imitrl.policies import ActorCritic, Expert
+from imitrl.learners import ActorCritic
+from imitrl.policies import Expert
+from imitrl.runtime import rollout_episodes
 from imitrl.tabular import success_probability
 
 from ._stats import binomial_band

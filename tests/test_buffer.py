@@ -11,7 +11,8 @@ from imitrl import keys
 from imitrl.algorithms import BCConfig, DAggerConfig, EnvSource, dagger, fit_bc
 from imitrl.data import DemonstrationBuffer
 from imitrl.envs import TabularEnv
-from imitrl.policies import ActorCritic, Expert
+from imitrl.learners import ActorCritic
+from imitrl.policies import Expert
 
 
 def rows(n, first_episode=0, round_index=0, seed=0, obs_dtype=torch.int64):
@@ -82,7 +83,7 @@ def test_fit_and_dagger_extend_the_same_buffer_without_loss(lake, expert_table):
     buf = DemonstrationBuffer(num_states=16, capacity=4, action_spec=Categorical(4))
     from torchrl.envs.utils import ExplorationType
 
-    from imitrl.data import rollout_episodes
+    from imitrl.runtime import rollout_episodes
 
     demos = rollout_episodes(
         env, expert.as_actor(), 3, exploration=ExplorationType.DETERMINISTIC, max_steps=10_000

@@ -23,7 +23,7 @@ from imitrl import keys
 from imitrl.algorithms import BCConfig, fit_bc
 from imitrl.data import DemonstrationBuffer
 from imitrl.fs import publish
-from imitrl.policies import ActorCritic
+from imitrl.learners import ActorCritic
 
 
 # ---------------------------------------------------------------------- helpers

@@ -16,7 +16,7 @@ from imitrl.algorithms import BCConfig, fit_bc
 from imitrl.algorithms.bc import distinct_pairs
 from imitrl.data import DemonstrationBuffer
 from imitrl.data.permutation import LazyPermutation
-from imitrl.policies import ActorCritic
+from imitrl.learners import ActorCritic
 
 
 def cartpole_rows(n: int, first_episode: int = 0, seed: int = 0, length: int = 7) -> TensorDict:

@@ -29,7 +29,7 @@ from imitrl import keys
 from imitrl.algorithms import BCConfig, fit_bc
 from imitrl.compat import writer_cursor
 from imitrl.data import REQUIRED_KEYS, DemonstrationBuffer
-from imitrl.policies import ActorCritic
+from imitrl.learners import ActorCritic
 
 from .test_buffer_checkpoint import checkpoint_tree, demo_rows, same_buffer, same_state
 

@@ -9,10 +9,11 @@ import pytest
 import torch
 
 from imitrl import keys
-from imitrl.data import DemonstrationBuffer, rollout_episodes
+from imitrl.data import DemonstrationBuffer
 from imitrl.data import buffer as buffer_module
 from imitrl.envs import episode_limit
 from imitrl.envs.pixel_tasks import Hilltop, PixelBalanceEnv, balance_expert
+from imitrl.runtime import rollout_episodes
 
 
 def test_pixel_balance_env_rollouts_need_no_max_steps():

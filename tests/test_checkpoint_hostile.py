@@ -32,7 +32,7 @@ import torch
 from imitrl.cli import main
 from imitrl.data import DemonstrationBuffer
 from imitrl.envs import make_env
-from imitrl.policies import ActorCritic
+from imitrl.learners import ActorCritic
 
 from .test_buffer_checkpoint import demo_rows, same_buffer
 

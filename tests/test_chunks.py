@@ -14,7 +14,7 @@ from torchrl.envs.utils import ExplorationType
 
 from imitrl import keys
 from imitrl.algorithms import BCConfig, DAggerConfig, EnvSource, dagger, fit_bc
-from imitrl.data import DemonstrationBuffer, rollout_episodes
+from imitrl.data import DemonstrationBuffer
 from imitrl.data.chunks import (
     ACTION_CHUNK,
     CHUNK_PAD,
@@ -24,10 +24,11 @@ from imitrl.data.chunks import (
     chunk_labels,
 )
 from imitrl.envs import multimodal as mm
-from imitrl.objectives import registry
-from imitrl.objectives.registry import LearnerConfig, TaskSpec
+from imitrl.learners import registry
+from imitrl.learners.registry import LearnerConfig, TaskSpec
 from imitrl.policies.chunking import ChunkedPolicy, ChunkExecution, chunk_env, ensemble_weights
 from imitrl.policies.experts import as_actor
+from imitrl.runtime import rollout_episodes
 
 DET = ExplorationType.DETERMINISTIC
 

@@ -18,11 +18,11 @@ from torchrl.envs.utils import ExplorationType
 
 from imitrl.cli import COMMANDS, main
 from imitrl.cli.flags import field_docs
-from imitrl.data import rollout_episodes
 from imitrl.envs import make_env
 from imitrl.experts import cartpole_expert
 from imitrl.jobs import BCJob, DAggerJob, bench, run_bc
 from imitrl.jobs.curves import read_scalars, scalars_dir
+from imitrl.runtime import rollout_episodes
 
 TINY = [
     "--env", "CartPole-v1", "--expert", "cartpole", "--demos", "1", "--steps", "20",

@@ -235,7 +235,7 @@ def test_eval_and_the_study_meet_them_too():
 
 @pytest.mark.parametrize("command", sorted(BAD))
 def test_help_shows_every_limit(command, capsys):
-    from imitrl.jobs.limits import Bound
+    from imitrl.limits import Bound
 
     with pytest.raises(SystemExit):
         main([command, "--help"])

@@ -23,7 +23,7 @@ from imitrl.algorithms import (
     dagger,
     fit_bc,
 )
-from imitrl.data import DemonstrationBuffer, episode_returns, rollout_episodes
+from imitrl.data import DemonstrationBuffer
 from imitrl.envs import make_env
 from imitrl.evaluation import evaluate
 from imitrl.experts import (
@@ -34,7 +34,8 @@ from imitrl.experts import (
     mountaincar_expert,
     pendulum_expert,
 )
-from imitrl.policies import ActorCritic
+from imitrl.learners import ActorCritic
+from imitrl.runtime import episode_returns, rollout_episodes
 
 from ._readme import run as run_readme
 from ._stats import welch_t

@@ -8,7 +8,6 @@ from tensordict import TensorDict
 from torchrl.envs.utils import ExplorationType, check_env_specs
 
 from imitrl import keys
-from imitrl.data import rollout_episodes
 from imitrl.envs.corridor import (
     OUTCOMES,
     ROUTE,
@@ -25,6 +24,7 @@ from imitrl.envs.corridor import (
 )
 from imitrl.policies import BetaMixer, behaviour_policy
 from imitrl.policies.experts import as_actor
+from imitrl.runtime import rollout_episodes
 
 DET = ExplorationType.DETERMINISTIC
 EPISODES = 400

@@ -18,16 +18,16 @@ from torchrl.envs.utils import ExplorationType
 
 from imitrl import keys
 from imitrl.algorithms import BCConfig, DAggerConfig, EnvSource, dagger, fit_bc
-from imitrl.data import DemonstrationBuffer, rollout_episodes
+from imitrl.data import DemonstrationBuffer
 from imitrl.data.chunks import add_chunk_labels
 from imitrl.envs import make_env
 from imitrl.envs.pixel_tasks import PixelBalanceEnv, balance_expert
 from imitrl.evaluation import evaluate
 from imitrl.experts import cartpole_expert, pendulum_expert
-from imitrl.objectives import registry
-from imitrl.objectives.registry import LearnerConfig
-from imitrl.policies import ActorCritic
-from imitrl.runtime.device import OnDevice, acting, on_cpu, resolve_device
+from imitrl.learners import ActorCritic, registry
+from imitrl.learners.registry import LearnerConfig
+from imitrl.runtime import rollout_episodes
+from imitrl.system.device import OnDevice, acting, on_cpu, resolve_device
 
 from .test_loss_registry import TASKS, _cases, _rows
 

@@ -23,7 +23,7 @@ from imitrl.datasets import load_lerobot, save_lerobot
 from imitrl.envs import make_env
 from imitrl.envs.dict_obs import ENVIRONMENT_STATE
 from imitrl.evaluation.evaluate import evaluate
-from imitrl.policies import ActorCritic
+from imitrl.learners import ActorCritic
 
 torch.set_num_threads(1)
 

@@ -20,9 +20,9 @@ from imitrl.algorithms import BCConfig, fit_bc
 from imitrl.algorithms.bc import _Cosine
 from imitrl.data.chunks import CHUNK_PAD, EXPERT_CHUNK, IS_INIT
 from imitrl.data.history import OBS_HISTORY, add_observation_history
-from imitrl.objectives import registry
-from imitrl.objectives.diffusion_unet import UnetDiffusionConfig
-from imitrl.objectives.registry import LearnerConfig, TaskSpec
+from imitrl.learners import registry
+from imitrl.learners.diffusion_unet import UnetDiffusionConfig
+from imitrl.learners.registry import LearnerConfig, TaskSpec
 from imitrl.policies.chunking import ChunkedPolicy, ChunkExecution
 
 ACTION = Bounded(-2.0, 2.0, shape=(2,))
@@ -287,7 +287,7 @@ def test_rows_that_carry_their_labels_and_histories_are_used_as_they_are():
 
 # --------------------------------------------------------------------- the camera
 def test_the_resnet18_trunk_is_torchvisions_layout_with_groupnorm():
-    from imitrl.policies.resnet_encoder import ResNet18GN
+    from imitrl.learners.diffusion_unet.rgb_encoder import ResNet18GN
 
     trunk = ResNet18GN(3)
     # torchvision's resnet18 without its classifier: 11,689,512 - 513,000 parameters
@@ -299,7 +299,7 @@ def test_the_resnet18_trunk_is_torchvisions_layout_with_groupnorm():
 
 
 def test_spatial_softmax_returns_the_keypoints_expected_coordinates():
-    from imitrl.policies.resnet_encoder import SpatialSoftmax
+    from imitrl.learners.diffusion_unet.rgb_encoder import SpatialSoftmax
 
     pool = SpatialSoftmax(1, 3, 5, keypoints=1)
     with torch.no_grad():
@@ -313,7 +313,7 @@ def test_spatial_softmax_returns_the_keypoints_expected_coordinates():
 
 
 def test_random_crops_take_each_sample_at_its_own_offset_and_acting_the_centre():
-    from imitrl.policies.resnet_encoder import crop
+    from imitrl.learners.diffusion_unet.rgb_encoder import crop
 
     images = torch.arange(2 * 1 * 6 * 6, dtype=torch.float32).reshape(2, 1, 6, 6)
     centre = crop(images, (4, 4), None)
@@ -328,7 +328,7 @@ def test_random_crops_take_each_sample_at_its_own_offset_and_acting_the_centre()
 
 
 def test_a_camera_learner_fits_acts_with_image_histories_and_uses_the_image():
-    from imitrl.objectives.registry_chunks import DIFFUSION_UNET, diffusion_unet_learner
+    from imitrl.learners.diffusion_unet import DIFFUSION_UNET, diffusion_unet_learner
 
     unet = replace(DIFFUSION_UNET, down_dims=(16, 32), step_embed_dim=16, keypoints=4)
     learner = diffusion_unet_learner(TASK, LearnerConfig(seed=0), unet, pixel_shape=(40, 40, 3))
@@ -362,10 +362,11 @@ class _Crash(Exception):
 
 def test_dagger_with_diffusion_policy_resumes_to_the_uninterrupted_run(tmp_path):
     from imitrl.algorithms import DAggerConfig, EnvSource, dagger
-    from imitrl.data import DemonstrationBuffer, rollout_episodes
+    from imitrl.data import DemonstrationBuffer
     from imitrl.envs import make_env
     from imitrl.experts import pendulum_expert
     from imitrl.policies.chunking import chunk_env
+    from imitrl.runtime import rollout_episodes
 
     def run(directory, resume=False, crash_at=None):
         torch.manual_seed(0)

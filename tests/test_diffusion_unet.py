@@ -10,9 +10,9 @@ import pytest
 import torch
 
 from imitrl.data.history import add_observation_history, observation_history
-from imitrl.objectives.noise_schedule import NoiseSchedule
+from imitrl.learners.diffusion_unet.noise_schedule import NoiseSchedule
+from imitrl.learners.diffusion_unet.unet1d import ConditionalUnet1D, SinusoidalStepEmbedding
 from imitrl.policies.ema import EMA
-from imitrl.policies.unet1d import ConditionalUnet1D, SinusoidalStepEmbedding
 
 SMALL = {"down_dims": (16, 32, 64), "kernel_size": 5, "n_groups": 8, "step_embed_dim": 32}
 

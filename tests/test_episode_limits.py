@@ -12,12 +12,13 @@ from torchrl.envs.utils import ExplorationType
 from imitrl import keys
 from imitrl.algorithms import EnvSource
 from imitrl.compat import wrapped_gym_env
-from imitrl.data import episode_returns, rollout_episodes
 from imitrl.envs import TabularEnv, episode_limit, make_env
 from imitrl.envs.multimodal import TwoWayObstacleEnv, two_way_expert
 from imitrl.evaluation import evaluate
 from imitrl.experts import pendulum_expert
-from imitrl.policies import ActorCritic, Expert
+from imitrl.learners import ActorCritic
+from imitrl.policies import Expert
+from imitrl.runtime import episode_returns, rollout_episodes
 
 RANDOM = ExplorationType.RANDOM
 

@@ -15,7 +15,8 @@ from imitrl.algorithms import BCConfig, fit_bc
 from imitrl.envs import TabularEnv
 from imitrl.evaluation import evaluate, mean_ci, tabulate, wilson_interval
 from imitrl.experts import cartpole_expert
-from imitrl.policies import ActorCritic, Expert
+from imitrl.learners import ActorCritic
+from imitrl.policies import Expert
 from imitrl.tabular import expected_episode_length, success_probability
 
 

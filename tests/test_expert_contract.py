@@ -13,13 +13,15 @@ from torchrl.envs.utils import ExplorationType
 
 from imitrl import keys
 from imitrl.algorithms import BCConfig, DAggerConfig, EnvSource, dagger
-from imitrl.data import DemonstrationBuffer, episode_returns, rollout_episodes
+from imitrl.data import DemonstrationBuffer
 from imitrl.envs import TabularEnv
 from imitrl.envs.multimodal import TwoWayObstacleEnv, two_way_expert
 from imitrl.evaluation import evaluate
 from imitrl.experts import acrobot_expert, cartpole_expert, mountaincar_expert, pendulum_expert
-from imitrl.policies import ActorCritic, Expert, as_actor
+from imitrl.learners import ActorCritic
+from imitrl.policies import Expert, as_actor
 from imitrl.policies.action_check import cast_action, check_action
+from imitrl.runtime import episode_returns, rollout_episodes
 
 BOX = Bounded(-2.0, 2.0, shape=(1,), dtype=torch.float32)  # one lane's continuous spec
 DISCRETE = Categorical(4, shape=(), dtype=torch.int64)
@@ -203,9 +205,9 @@ def test_plain_modules_must_state_exploration(lake):
 def test_a_rollout_policy_that_writes_no_expert_label_is_refused():
     from torchrl.envs.utils import ExplorationType
 
-    from imitrl.data import rollout_episodes
     from imitrl.envs import make_env
-    from imitrl.policies import ActorCritic
+    from imitrl.learners import ActorCritic
+    from imitrl.runtime import rollout_episodes
 
     env = make_env("CartPole-v1", seed=0)
     learner = ActorCritic.for_env(env)  # writes "action" only: no label to keep as a row

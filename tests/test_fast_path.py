@@ -32,17 +32,17 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 import imitrl.runtime.fast.toy_text as toy_text_module
 from imitrl import keys
 from imitrl.algorithms import BCConfig, DAggerConfig, EnvSource, dagger, fit_bc
-from imitrl.data import DemonstrationBuffer, episode_returns, rollout_episodes
+from imitrl.data import DemonstrationBuffer
 from imitrl.data.chunks import add_chunk_labels
 from imitrl.envs import TabularEnv, make_env
 from imitrl.envs.pixel_tasks import PixelBalanceEnv, balance_expert
 from imitrl.evaluation import evaluate
 from imitrl.experts import cartpole_expert, pendulum_expert
-from imitrl.objectives import registry
-from imitrl.objectives.registry import LearnerConfig
-from imitrl.policies import ActorCritic, Expert
+from imitrl.learners import ActorCritic, registry
+from imitrl.learners.registry import LearnerConfig
+from imitrl.policies import Expert
 from imitrl.policies.mixture import BetaMixer, behaviour_policy
-from imitrl.runtime import paths
+from imitrl.runtime import episode_returns, paths, rollout_episodes
 from imitrl.runtime.fast.env_steps import direct_steps
 from imitrl.runtime.fast.policy_call import TensorPolicy, direct_call
 from imitrl.tabular import TabularMDP, greedy, value_iteration

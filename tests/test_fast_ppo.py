@@ -22,7 +22,7 @@ from imitrl.algorithms.adversarial.generator import PPOGenerator
 from imitrl.algorithms.adversarial.transitions import sample_rows
 from imitrl.compat import safe_tanh
 from imitrl.envs import make_env
-from imitrl.policies import ActorCritic
+from imitrl.learners import ActorCritic
 from imitrl.runtime import paths
 from imitrl.runtime.fast.adam_step import optimizer_step
 from imitrl.runtime.fast.clip_grad import clip_grad_norm

@@ -12,9 +12,9 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from imitrl import keys
 from imitrl.algorithms import BCConfig, fit_bc
 from imitrl.data.chunks import CHUNK_PAD, EXPERT_CHUNK, IS_INIT
-from imitrl.objectives import registry
-from imitrl.objectives.diffusion import DiffusionPolicy
-from imitrl.objectives.registry import LearnerConfig, TaskSpec
+from imitrl.learners import registry
+from imitrl.learners.diffusion import DiffusionPolicy
+from imitrl.learners.registry import LearnerConfig, TaskSpec
 
 TASK = TaskSpec(action=Bounded(-1.0, 1.0, shape=(1,)), observation_dim=2)
 CONFIG = LearnerConfig(hidden=(64, 64), lr=3e-3, seed=0)

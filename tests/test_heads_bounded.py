@@ -11,10 +11,12 @@ import torch
 from torchrl.envs.utils import ExplorationType
 
 from imitrl.algorithms import BCConfig, fit_bc
-from imitrl.data import DemonstrationBuffer, rollout_episodes
+from imitrl.data import DemonstrationBuffer
 from imitrl.envs import make_env
 from imitrl.evaluation import evaluate
-from imitrl.policies import HEAD_LOSSES, ActorCritic, Expert
+from imitrl.learners import ActorCritic
+from imitrl.policies import HEAD_LOSSES, Expert
+from imitrl.runtime import rollout_episodes
 
 DET = ExplorationType.DETERMINISTIC
 ENV_ID = "imitrl-tests/BoundedPointMass-v0"

@@ -1,4 +1,4 @@
-"""The import-time heap frozen out of the collector's walks (``imitrl.runtime.heap``), and
+"""The import-time heap frozen out of the collector's walks (``imitrl.system.heap``), and
 only by a command that owns its process.
 
 What freezing does is checked in a child process (freezing pytest's own heap would keep
@@ -19,7 +19,7 @@ import imitrl.cli as cli
 CHILD = textwrap.dedent(
     """
     import gc, json, weakref
-    from imitrl.runtime.heap import freeze_imported
+    from imitrl.system.heap import freeze_imported
 
     gc.disable()  # no automatic collection between making a cycle and the freeze
 
@@ -97,7 +97,7 @@ def test_the_command_line_freezes_only_a_process_it_owns(monkeypatch, tmp_path):
 
 
 def test_the_collector_pause_restores_what_it_found_even_on_an_error():
-    from imitrl.runtime.heap import collector_paused
+    from imitrl.system.heap import collector_paused
 
     assert gc.isenabled()
     try:

@@ -123,7 +123,7 @@ def test_lazy_names_are_the_defining_modules_objects():
 
 def test_the_names_help_lists_are_the_registrys_and_the_experts():
     from imitrl.jobs import names, resolve
-    from imitrl.objectives import registry
+    from imitrl.learners import registry
 
     assert names.LOSSES == tuple((e.name, e.actions, e.summary) for e in registry.entries())
     assert list(names.EXPERT_ENVS) == list(resolve.EXPERTS)

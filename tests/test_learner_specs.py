@@ -13,7 +13,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from imitrl import keys
 from imitrl.algorithms import BCConfig, fit_bc
 from imitrl.data import DemonstrationBuffer
-from imitrl.policies import ActorCritic, Learner
+from imitrl.learners import ActorCritic, Learner
 from imitrl.policies.specs import action_space
 
 G = torch.Generator().manual_seed(0)

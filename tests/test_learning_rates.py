@@ -13,9 +13,10 @@ from imitrl.jobs.bc import run_bc
 from imitrl.jobs.checkpoint import CONFIG_FILE, load_learner
 from imitrl.jobs.configs import BCJob
 from imitrl.jobs.resolve import learner_factory
-from imitrl.objectives import defaults as registry_defaults
-from imitrl.objectives import registry
-from imitrl.objectives.registry_chunks import ACT_LR, DIFFUSION_UNET
+from imitrl.learners import defaults as registry_defaults
+from imitrl.learners import registry
+from imitrl.learners.act.entries import ACT_LR
+from imitrl.learners.diffusion_unet import DIFFUSION_UNET
 
 
 def _rate(learner) -> float:

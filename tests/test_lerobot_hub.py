@@ -13,10 +13,10 @@ import pytest
 import torch
 from tensordict.nn.probabilistic import InteractionType as ExplorationType
 
-from imitrl.data import rollout_episodes
 from imitrl.datasets import load_lerobot, resolve_lerobot_root, save_lerobot
 from imitrl.envs import make_env
 from imitrl.experts import cartpole_expert
+from imitrl.runtime import rollout_episodes
 
 from ._lerobot_hub_server import Commit, Repo, hub_server
 from .test_cli import TINY, run

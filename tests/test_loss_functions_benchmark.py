@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import torch
 
-from imitrl.objectives import registry
+from imitrl.learners import registry
 from imitrl.tabular import success_probability
 from tests.test_benchmarks_smoke import committed
 
@@ -240,7 +240,7 @@ def test_no_applicable_loss_is_a_clear_error():
 
 
 def test_relabel_rounds_warm_start_for_the_round_steps_and_act_keeps_its_batch():
-    from imitrl.objectives.registry_chunks import ACT_BATCH
+    from imitrl.learners.act.entries import ACT_BATCH
 
     proto = quick(TASKS["two_way"].protocol)  # 5 BC steps, then 3 per relabel round
     assert TASKS["two_way"].protocol.round_steps is not None

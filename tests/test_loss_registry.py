@@ -11,20 +11,16 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from imitrl import keys
 from imitrl.algorithms import BCConfig, DAggerConfig, EnvSource, dagger, fit_bc
-from imitrl.data import DemonstrationBuffer, rollout_episodes
+from imitrl.algorithms.policy_step import policy_step
+from imitrl.data import DemonstrationBuffer
 from imitrl.data.chunks import EXPERT_CHUNK, IS_INIT
 from imitrl.envs import TabularEnv
-from imitrl.objectives import (
-    AdvantageWeightedLoss,
-    BehaviorCloningLoss,
-    DiffusionBehaviorCloningLoss,
-    DiffusionPolicy,
-    RegularizedBCLoss,
-    policy_step,
-    registry,
-)
-from imitrl.objectives.registry import Learner, LearnerConfig, TaskSpec
-from imitrl.policies import ActorCritic, Expert
+from imitrl.learners import ActorCritic, Learner, registry
+from imitrl.learners.diffusion import DiffusionBehaviorCloningLoss, DiffusionPolicy
+from imitrl.learners.registry import LearnerConfig, TaskSpec
+from imitrl.objectives import AdvantageWeightedLoss, BehaviorCloningLoss, RegularizedBCLoss
+from imitrl.policies import Expert
+from imitrl.runtime import rollout_episodes
 
 SPEC = Bounded(-2.0, 2.0, shape=(1,))
 TASKS = {
@@ -292,7 +288,7 @@ def test_diffusion_keeps_both_modes_where_mse_averages_them():
 def test_a_pixel_learner_given_another_loss_keeps_its_pixel_inputs_and_action_space():
     # registry._with_loss used to rebuild the ActorCritic without pixel_inputs / action
     from imitrl.envs.pixel_tasks import PixelTwoWayEnv
-    from imitrl.objectives.registry import _with_loss
+    from imitrl.learners.actor_critic.entries import _with_loss
 
     spec = Bounded(-1.0, 1.0, shape=(1,))
     ac = ActorCritic.pixels((16, 16, 3), spec, channels=(8, 8), hidden=(32,))

@@ -19,13 +19,13 @@ pytest.importorskip("metaworld")
 
 from imitrl import keys
 from imitrl.cli import main
-from imitrl.data import rollout_episodes
 from imitrl.envs import make_env
 from imitrl.envs.metaworld import MT10, MT50
 from imitrl.envs.success import SuccessInfo
 from imitrl.evaluation import evaluate, wilson_interval
 from imitrl.experts import metaworld_expert
 from imitrl.policies import Expert
+from imitrl.runtime import rollout_episodes
 
 
 def test_the_task_sets_are_metaworlds_own():
@@ -210,7 +210,7 @@ def test_a_recorded_mt10_dataset_has_exactly_lerobots_features_and_trains_a_lear
     from imitrl.datasets import load_lerobot, save_metaworld_lerobot
     from imitrl.envs.metaworld import LEROBOT_FEATURES
     from imitrl.envs.metaworld_tasks import LEROBOT_TASKS
-    from imitrl.policies import ActorCritic
+    from imitrl.learners import ActorCritic
 
     if not _renders():
         pytest.skip("no headless OpenGL (MUJOCO_GL=egl or osmesa) to render camera frames")

@@ -257,8 +257,8 @@ def _taxi_like(tmp_path, rewards):
 def test_integer_rewards_fit_a_float_env_and_share_its_buffer(tmp_path):
     from torchrl.envs.utils import ExplorationType
 
-    from imitrl.data import rollout_episodes
     from imitrl.policies import Expert
+    from imitrl.runtime import rollout_episodes
 
     env = GymEnv("Taxi-v4", categorical_action_encoding=True)
     root = _taxi_like(tmp_path / "ds", [-1, -1, -10, 20])

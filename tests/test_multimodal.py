@@ -9,7 +9,6 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.envs.utils import ExplorationType, check_env_specs
 
 from imitrl import keys
-from imitrl.data import rollout_episodes
 from imitrl.envs.multimodal import (
     INTENT,
     ObstacleGeometry,
@@ -22,6 +21,7 @@ from imitrl.envs.multimodal import (
 )
 from imitrl.policies import BetaMixer, behaviour_policy
 from imitrl.policies.experts import as_actor
+from imitrl.runtime import rollout_episodes
 
 DET = ExplorationType.DETERMINISTIC
 

@@ -19,11 +19,13 @@ from torchrl.envs.utils import ExplorationType
 from imitrl import keys
 from imitrl.algorithms import BCConfig, DAggerConfig, EnvSource, dagger
 from imitrl.cli import main
-from imitrl.data import DemonstrationBuffer, rollout_episodes
+from imitrl.data import DemonstrationBuffer
 from imitrl.envs import make_env
 from imitrl.evaluation import evaluate
 from imitrl.experts import cartpole_expert
-from imitrl.policies import ActorCritic, Expert
+from imitrl.learners import ActorCritic
+from imitrl.policies import Expert
+from imitrl.runtime import rollout_episodes
 
 from .test_buffer_checkpoint import demo_rows
 

@@ -11,8 +11,9 @@ from torchrl.data import Bounded
 
 from imitrl import keys
 from imitrl.algorithms import BCConfig, fit_bc
-from imitrl.objectives import BehaviorCloningLoss, policy_step
-from imitrl.policies import ActorCritic
+from imitrl.algorithms.policy_step import policy_step
+from imitrl.learners import ActorCritic
+from imitrl.objectives import BehaviorCloningLoss
 
 
 def _rows(n=64, S=8, A=3, seed=0):

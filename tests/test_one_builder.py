@@ -1,5 +1,5 @@
 """One builder: every learner ``--loss`` names is a loss-registry entry; ``default`` is a
-name resolved for the env (``imitrl.objectives.defaults``), recorded as resolved, and
+name resolved for the env (``imitrl.learners.defaults``), recorded as resolved, and
 checkpoints saved when ``default`` meant ``ActorCritic.for_env`` still load."""
 
 from __future__ import annotations
@@ -18,9 +18,8 @@ from imitrl.jobs.checkpoint import CONFIG_FILE, WEIGHTS_FILE, load_learner
 from imitrl.jobs.configs import BCJob, GAILJob
 from imitrl.jobs.gail import run_gail
 from imitrl.jobs.resolve import FOR_ENV, learner_factory, resolve_loss, task_spec
-from imitrl.objectives import defaults, registry
-from imitrl.objectives.registry import LearnerConfig, TaskSpec
-from imitrl.policies import ActorCritic
+from imitrl.learners import ActorCritic, defaults, registry
+from imitrl.learners.registry import LearnerConfig, TaskSpec
 
 
 def _rate(learner) -> float:

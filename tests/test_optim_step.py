@@ -89,11 +89,10 @@ def test_other_optimizers_hooks_and_groups_keep_their_own_step():
 
 def test_a_fit_trains_as_plain_adam_steps_do():
     from imitrl.algorithms import BCConfig, fit_bc
-    from imitrl.data import rollout_episodes
     from imitrl.envs import make_env
     from imitrl.experts import pendulum_expert
-    from imitrl.policies import ActorCritic
-    from imitrl.runtime import paths
+    from imitrl.learners import ActorCritic
+    from imitrl.runtime import paths, rollout_episodes
 
     env = make_env("Pendulum-v1", seed=0)
     rows = rollout_episodes(env, pendulum_expert(), 1)

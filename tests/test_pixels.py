@@ -15,7 +15,6 @@ from imitrl import keys
 from imitrl.algorithms.bc import BCConfig, fit_bc
 from imitrl.algorithms.dagger import DAggerConfig, EnvSource, dagger
 from imitrl.data.buffer import DemonstrationBuffer
-from imitrl.data.rollout import rollout_episodes
 from imitrl.envs.multimodal import TwoWayObstacleEnv
 from imitrl.envs.pixel_tasks import (
     Hilltop,
@@ -25,8 +24,9 @@ from imitrl.envs.pixel_tasks import (
     state_expert,
 )
 from imitrl.evaluation.evaluate import evaluate
-from imitrl.policies import ActorCritic, Learner
+from imitrl.learners import ActorCritic, Learner
 from imitrl.policies.encoders import PixelEncoder
+from imitrl.runtime.rollout import rollout_episodes
 
 ACTION = Bounded(-1.0, 1.0, shape=(1,), dtype=torch.float32)
 SMALL = {"channels": (8, 8), "hidden": (32,)}  # fast on 2 CPU cores

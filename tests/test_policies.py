@@ -10,7 +10,8 @@ from torchrl.data import Bounded
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from imitrl import keys
-from imitrl.policies import ActorCritic, BetaMixer, Expert, behaviour_policy
+from imitrl.learners import ActorCritic
+from imitrl.policies import BetaMixer, Expert, behaviour_policy
 
 
 def test_tabular_starts_exactly_uniform_with_zero_values():

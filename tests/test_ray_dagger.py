@@ -20,14 +20,15 @@ from torchrl.envs.utils import ExplorationType
 
 from imitrl import keys
 from imitrl.algorithms import BCConfig, Constant, DAggerConfig, dagger
-from imitrl.data import DemonstrationBuffer, rollout_episodes
+from imitrl.data import DemonstrationBuffer
 from imitrl.data.chunks import IS_INIT
 from imitrl.envs import make_env
 from imitrl.experts import cartpole_expert
-from imitrl.objectives import registry
-from imitrl.objectives.registry import LearnerConfig, TaskSpec
-from imitrl.policies import ActorCritic, BetaMixer, behaviour_policy
-from imitrl.runtime import OnDevice
+from imitrl.learners import ActorCritic, registry
+from imitrl.learners.registry import LearnerConfig, TaskSpec
+from imitrl.policies import BetaMixer, behaviour_policy
+from imitrl.runtime import rollout_episodes
+from imitrl.system import OnDevice
 
 ray = pytest.importorskip("ray")
 from imitrl.algorithms.ray_source import (  # noqa: E402

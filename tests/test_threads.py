@@ -14,10 +14,9 @@ import os
 import pytest
 import torch
 
-from imitrl import runtime
 from imitrl.cli import COMMANDS, build_parser, main
 from imitrl.jobs import bench, evaluate
-from imitrl.runtime import threads
+from imitrl.system import threads
 
 EVAL = [
     "eval", "--expert", "cartpole", "--env", "CartPole-v1", "--eval-episodes", "1",
@@ -141,11 +140,12 @@ def test_worker_threads_refuses_bad_counts():
         threads.worker_threads(1, 0)
 
 
-def test_the_runtime_package_exports_both_modules():
-    from imitrl.runtime import device
+def test_the_system_package_exports_both_modules():
+    from imitrl import system
+    from imitrl.system import device
 
-    assert runtime.set_threads is threads.set_threads
-    assert runtime.worker_threads is threads.worker_threads
-    assert runtime.resolve_device is device.resolve_device
-    assert runtime.OnDevice is device.OnDevice
-    assert {"acting", "module_device", "to_device"} <= set(dir(runtime))
+    assert system.set_threads is threads.set_threads
+    assert system.worker_threads is threads.worker_threads
+    assert system.resolve_device is device.resolve_device
+    assert system.OnDevice is device.OnDevice
+    assert {"acting", "module_device", "to_device"} <= set(dir(system))

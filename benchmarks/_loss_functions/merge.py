@@ -22,7 +22,7 @@ def _with_defaults(protocol: dict) -> dict:
 
     from _loss_functions.tasks import Protocol
     from imitrl.algorithms import BCConfig
-    from imitrl.objectives.registry import LearnerConfig
+    from imitrl.learners.registry import LearnerConfig
 
     out = {f.name: f.default for f in fields(Protocol) if f.default is not MISSING}
     out.update(protocol)

@@ -12,8 +12,8 @@ import _report
 from _loss_functions import aggregate
 from imitrl.envs import corridor, multimodal
 from imitrl.evaluation import t_interval
-from imitrl.objectives import registry
-from imitrl.objectives.registry_chunks import ACT_BATCH, ACT_LR
+from imitrl.learners import registry
+from imitrl.learners.act.entries import ACT_BATCH, ACT_LR
 
 NAME = "loss_functions"
 UNIT_SCORES = ("frozenlake", "two_way")

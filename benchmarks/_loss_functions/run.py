@@ -23,8 +23,7 @@ from _loss_functions.tasks import TaskDef, build
 from imitrl import keys
 from imitrl.algorithms import DAggerConfig, dagger, fit_bc
 from imitrl.data import DemonstrationBuffer
-from imitrl.objectives import registry
-from imitrl.objectives.registry import Learner
+from imitrl.learners import Learner, registry
 from imitrl.policies import as_actor
 
 WORKER_CELLS = 20
@@ -202,7 +201,7 @@ def run(
     if not cells:
         raise ValueError(
             f"none of the losses {losses} applies to the tasks {[d.name for d in tasks]} "
-            "(each loss applies to some action spaces: imitrl.objectives.registry)"
+            "(each loss applies to some action spaces: imitrl.learners.registry)"
         )
     # the longest cells first (a rough cost), so that the last to finish are short; the
     # rows come back in the cells' own order

@@ -35,7 +35,8 @@ from imitrl.envs import TabularEnv, make_env
 from imitrl.envs.success import SUCCESS, reported_success
 from imitrl.evaluation import exact_values
 from imitrl.jobs.resolve import EXPERT_KINDS, load_dataset, make_expert, task_spec
-from imitrl.objectives.registry import Learner, LearnerConfig, TaskSpec
+from imitrl.learners import Learner
+from imitrl.learners.registry import LearnerConfig, TaskSpec
 from imitrl.policies import BetaMixer, Expert, as_actor, behaviour_policy
 from imitrl.policies.chunking import chunk_env
 from imitrl.tabular import TabularMDP, greedy, success_probability, value_iteration

@@ -5,7 +5,7 @@
 ``SPEC_JSON`` is :meth:`gail_tasks.GailTask.spec`. The run is what ``imitrl gail
 --num-envs LANES`` (or ``imitrl airl``, for the task's ``method``) does, through the public API, with the spec's settings (the imports
 run with the garbage collector paused, then the import-time heap is frozen out of its
-walks, as the command does: :mod:`imitrl.runtime.heap`):
+walks, as the command does: :mod:`imitrl.system.heap`):
 
 1. setup: the generator's env (``make_env``, ``lanes`` lanes), ``demo_episodes`` greedy
    episodes of the built-in expert (``rollout_episodes``), the learner
@@ -35,12 +35,13 @@ torch.set_num_threads(1)
 from torchrl.envs.utils import ExplorationType  # noqa: E402
 
 from imitrl.algorithms.adversarial import AIRLConfig, GAILConfig, airl, gail  # noqa: E402
-from imitrl.data import DemonstrationBuffer, rollout_episodes  # noqa: E402
+from imitrl.data import DemonstrationBuffer  # noqa: E402
 from imitrl.envs import make_env  # noqa: E402
 from imitrl.evaluation import evaluate  # noqa: E402
 from imitrl.experts import cartpole_expert, pendulum_expert  # noqa: E402
 from imitrl.jobs.resolve import learner_factory, resolve_loss  # noqa: E402
-from imitrl.runtime.heap import freeze_imported  # noqa: E402
+from imitrl.runtime import rollout_episodes  # noqa: E402
+from imitrl.system.heap import freeze_imported  # noqa: E402
 
 freeze_imported()  # as the imitrl command does once its modules are imported
 gc.enable()

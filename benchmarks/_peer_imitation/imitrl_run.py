@@ -21,7 +21,7 @@ is trained on across rounds (``warm_start=True``), as imitation does. The task's
    ``eval_lanes["imitrl"]`` lanes seeded from ``eval_seed``.
 
 The imports run with the garbage collector paused, then the import-time heap is frozen
-out of its walks, as the ``imitrl`` command does (:mod:`imitrl.runtime.heap`).
+out of its walks, as the ``imitrl`` command does (:mod:`imitrl.system.heap`).
 
 Phases are wall-clock seconds inside this process (``imports`` from the first line of
 this file); the parent measures the whole process.
@@ -42,13 +42,14 @@ import torch  # noqa: E402
 torch.set_num_threads(1)
 
 from imitrl.algorithms import BCConfig, DAggerConfig, EnvSource, dagger, fit_bc  # noqa: E402
-from imitrl.data import DemonstrationBuffer, rollout_episodes  # noqa: E402
+from imitrl.data import DemonstrationBuffer  # noqa: E402
 from imitrl.envs import make_env  # noqa: E402
 from imitrl.evaluation import evaluate  # noqa: E402
 from imitrl.experts import cartpole_expert, pendulum_expert  # noqa: E402
 from imitrl.jobs.resolve import FOR_ENV, builds_table, learner_factory  # noqa: E402
 from imitrl.policies import Expert  # noqa: E402
-from imitrl.runtime.heap import freeze_imported  # noqa: E402
+from imitrl.runtime import rollout_episodes  # noqa: E402
+from imitrl.system.heap import freeze_imported  # noqa: E402
 from imitrl.tabular import TabularMDP, greedy, value_iteration  # noqa: E402
 
 freeze_imported()  # as the imitrl command does once its modules are imported

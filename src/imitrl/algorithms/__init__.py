@@ -1,4 +1,4 @@
-"""Imitation algorithms: behaviour cloning and DAgger."""
+"""Imitation algorithms: behaviour cloning, DAgger, and the section's ``policy_step``."""
 
 from imitrl.algorithms.bc import BCConfig, BCResult, fit_bc
 from imitrl.algorithms.dagger import (
@@ -12,6 +12,7 @@ from imitrl.algorithms.dagger import (
     RoundRecord,
     dagger,
 )
+from imitrl.algorithms.policy_step import policy_step
 
 __all__ = [
     "BCConfig",
@@ -26,4 +27,5 @@ __all__ = [
     "RoundRecord",
     "dagger",
     "fit_bc",
+    "policy_step",
 ]

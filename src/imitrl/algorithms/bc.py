@@ -49,9 +49,9 @@ from tqdm.auto import tqdm
 from imitrl import checks, keys
 from imitrl.data.buffer import CHUNK_BYTES, DemonstrationBuffer
 from imitrl.data.permutation import LazyPermutation
-from imitrl.policies.learner import Learner
+from imitrl.learners.learner import Learner
 from imitrl.runtime import paths
-from imitrl.runtime.device import to_device
+from imitrl.system.device import to_device
 
 __all__ = ["PRECISIONS", "BCConfig", "BCResult", "distinct_pairs", "fit_bc"]
 

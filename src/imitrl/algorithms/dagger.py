@@ -37,14 +37,14 @@ from imitrl.algorithms.dagger_checkpoint import (
     set_generator_state,
 )
 from imitrl.data.buffer import DemonstrationBuffer
-from imitrl.data.rollout import rollout_episodes
 from imitrl.envs.limits import episode_limit
 from imitrl.envs.random_state import env_random_state, set_env_random_state
 from imitrl.fs.lock import exclusive
+from imitrl.learners.learner import Learner
 from imitrl.policies.experts import Expert
-from imitrl.policies.learner import Learner
 from imitrl.policies.mixture import BetaMixer, behaviour_policy
-from imitrl.runtime.device import acting
+from imitrl.runtime.rollout import rollout_episodes
+from imitrl.system.device import acting
 
 __all__ = [
     "Constant",

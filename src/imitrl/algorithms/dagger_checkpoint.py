@@ -27,7 +27,7 @@ import torch
 
 from imitrl.algorithms.bc import BCResult
 from imitrl.data.buffer import DemonstrationBuffer
-from imitrl.policies.learner import Learner
+from imitrl.learners.learner import Learner
 
 __all__ = ["FORMAT", "RunState", "generator_state", "load_run", "save_run", "set_generator_state"]
 

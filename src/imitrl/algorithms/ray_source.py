@@ -85,11 +85,11 @@ from imitrl.algorithms.ray_worker import (
     worker_env,
     worker_policy,
 )
-from imitrl.data.returns import EpisodeSummary
 from imitrl.envs.limits import episode_limit
+from imitrl.learners.learner import Learner
 from imitrl.policies.experts import Expert
-from imitrl.policies.learner import Learner
 from imitrl.policies.mixture import BetaMixer, behaviour_policy
+from imitrl.runtime.returns import EpisodeSummary
 
 __all__ = [
     "RAY_INSTALL_HINT",

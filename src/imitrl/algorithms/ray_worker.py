@@ -26,10 +26,10 @@ from torchrl.envs.utils import ExplorationType
 
 from imitrl import keys
 from imitrl.algorithms.ray_setup import WORKER_THREADS
-from imitrl.data.rollout import NEXT_KEYS, OPTIONAL_ROW_KEYS, ROW_KEYS, init_tracked
 from imitrl.policies.mixture import BetaMixer
-from imitrl.runtime.device import OnDevice
-from imitrl.runtime.threads import set_threads
+from imitrl.runtime.rollout import NEXT_KEYS, OPTIONAL_ROW_KEYS, ROW_KEYS, init_tracked
+from imitrl.system.device import OnDevice
+from imitrl.system.threads import set_threads
 
 __all__ = ["EpisodeCollector", "WorkerFailure", "worker_env", "worker_policy"]
 
@@ -117,7 +117,7 @@ def worker_env(
 ) -> Callable[[], EnvBase]:
     """The ``make_env`` the workers call: ``make_env`` itself, or, when ``policy`` reads
     ``"is_init"`` (a chunked learner) and ``env`` (the driver's copy) does not write it,
-    ``make_env`` followed by :func:`~imitrl.data.rollout.init_tracked`, as a local rollout
+    ``make_env`` followed by :func:`~imitrl.runtime.rollout.init_tracked`, as a local rollout
     wraps it: so DAgger with a chunked learner runs on workers with the user's plain env."""
     if init_tracked(env, policy) is env:
         return make_env

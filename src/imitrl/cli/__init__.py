@@ -20,16 +20,16 @@ frozenlake  ``StudyConfig``          ``experiments.frozenlake.run_study``
 =========== ======================= =========================================
 
 Every command also takes ``--threads N``: torch's CPU threads while it runs (default
-:data:`~imitrl.runtime.threads.DEFAULT_THREADS` = 1, measured in
-``benchmarks/threads.py``; at most :data:`~imitrl.jobs.limits.MAX_THREADS`), set with
-:func:`~imitrl.runtime.threads.set_threads` before the command's function starts;
+:data:`~imitrl.system.threads.DEFAULT_THREADS` = 1, measured in
+``benchmarks/threads.py``; at most :data:`~imitrl.limits.MAX_THREADS`), set with
+:func:`~imitrl.system.threads.set_threads` before the command's function starts;
 ``bench`` hands it to the script's process as ``OMP_NUM_THREADS`` (torch's starting
 thread count there; a benchmark that sets its own keeps its own).
 
 Run as the process's command (the ``imitrl`` script, ``python -m imitrl``), every
 command but ``bench`` (which starts a script in a process of its own) imports its
 modules with the garbage collector paused and freezes the import-time heap out of its
-walks before it runs (:mod:`imitrl.runtime.heap`: the imports no longer run full
+walks before it runs (:mod:`imitrl.system.heap`: the imports no longer run full
 collections over a growing heap, about a second, and the process's exit no longer frees
 300,000 to 430,000 objects one by one, about another, on this project's machines).
 
@@ -61,9 +61,9 @@ from dataclasses import dataclass
 from typing import Any
 
 from imitrl.cli.flags import OneLineParser, add_config_flags, config_from_args
-from imitrl.jobs.limits import MAX_THREADS, Bound
-from imitrl.runtime.heap import collector_paused, freeze_imported
-from imitrl.runtime.threads import DEFAULT_THREADS, set_threads
+from imitrl.limits import MAX_THREADS, Bound
+from imitrl.system.heap import collector_paused, freeze_imported
+from imitrl.system.threads import DEFAULT_THREADS, set_threads
 
 __all__ = ["COMMANDS", "Command", "build_parser", "main"]
 
@@ -285,7 +285,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     ``argv`` None (the ``imitrl`` console script, ``python -m imitrl``): the command owns
     its process: it imports its modules with the garbage collector paused and freezes the
-    import-time heap before it runs (:mod:`imitrl.runtime.heap`); a caller that passes
+    import-time heap before it runs (:mod:`imitrl.system.heap`); a caller that passes
     ``argv`` keeps its collector and heap as they are.
     """
     owns_process = argv is None

@@ -20,7 +20,7 @@ repeatable flag of ``name=value`` pairs (``--env-kwarg obs_type=pixels_agent_pos
 as one (``False``, ``3``, ``0.5``, ``(84, 84)``), else the string.
 
 Defaults are shown in the help as they are typed: ``64,64``, ``0.05:10``, ``none``; a
-field declared with :func:`imitrl.jobs.limits.bounded` shows its range after the default
+field declared with :func:`imitrl.limits.bounded` shows its range after the default
 (``(default: 5); must be an integer in [0, 10_000]``), from the one record its config's
 validation reads.
 
@@ -161,7 +161,7 @@ def add_config_flags(parser: argparse.ArgumentParser, cls: type) -> None:
             continue
         flags = ["--" + f.name.replace("_", "-"), *f.metadata.get("aliases", ())]
         default = f.default
-        bound = f.metadata.get("bound")  # imitrl.jobs.limits.bounded: the range it checks
+        bound = f.metadata.get("bound")  # imitrl.limits.bounded: the range it checks
         ranged = "" if bound is None else f"; must be {bound.help(default)}"
         help_text = f"{doc} (default: {shown(default)}){ranged}"
         if hints[f.name] in (bool, bool | None):

@@ -1,4 +1,5 @@
-"""Demonstration data: the growing buffer (in memory or on disk) and whole-episode rollouts."""
+"""Demonstration data: the growing buffer (in memory or on disk), its checkpoints, and the
+labels a row carries beyond its step (action chunks, observation histories)."""
 
 from imitrl.data.buffer import (
     OBSERVATION_KEYS,
@@ -6,15 +7,10 @@ from imitrl.data.buffer import (
     DemonstrationBuffer,
     GrowingTensorStorage,
 )
-from imitrl.data.returns import EpisodeSummary, episode_returns
-from imitrl.data.rollout import rollout_episodes
 
 __all__ = [
     "OBSERVATION_KEYS",
     "REQUIRED_KEYS",
     "DemonstrationBuffer",
-    "EpisodeSummary",
     "GrowingTensorStorage",
-    "episode_returns",
-    "rollout_episodes",
 ]

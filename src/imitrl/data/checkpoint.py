@@ -46,7 +46,7 @@ import os
 import re
 import sys
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, Protocol, TypeVar, runtime_checkable
 
 import torch
 from tensordict import TensorDict, TensorDictBase
@@ -58,6 +58,7 @@ from imitrl.fs.reading import OpenedFolder, ReplacedWhileReading, fd_path, parse
 __all__ = [
     "MANIFEST",
     "MAX_FILES",
+    "DeclaresOptimizers",
     "decode_rows",
     "encode_rows",
     "learner_components",
@@ -157,12 +158,21 @@ def state_json(state: dict[str, Any] | None) -> str:
 
 
 # ---------------------------------------------------------------------- learner
-def learner_components(learner: torch.nn.Module) -> dict[str, Any]:
-    """The learner's weights and, for an imitrl ``Learner``, every optimizer it declares."""
-    from imitrl.policies.learner import Learner  # policies import the buffer's users, not it
+@runtime_checkable
+class DeclaresOptimizers(Protocol):
+    """A module that names its optimizers (:meth:`imitrl.learners.Learner.optimizers`):
+    a checkpoint saves and restores them with its weights."""
 
+    def optimizers(self) -> dict[str, torch.optim.Optimizer]:
+        """Every optimizer of the module, by name."""
+        ...
+
+
+def learner_components(learner: torch.nn.Module) -> dict[str, Any]:
+    """The learner's weights and every optimizer it declares (:class:`DeclaresOptimizers`:
+    an imitrl ``Learner``)."""
     out: dict[str, Any] = {"learner": learner}
-    if isinstance(learner, Learner):
+    if isinstance(learner, DeclaresOptimizers):
         out.update(learner.optimizers())
     return out
 

@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import difflib
 import importlib
+import weakref
 from functools import partial
 
 import gymnasium
@@ -47,7 +48,6 @@ from imitrl import checks, keys
 from imitrl.compat import wrapped_gym_env
 from imitrl.envs.dict_obs import DictObservation
 from imitrl.envs.success import SuccessInfo, reads_success, success_reader
-from imitrl.runtime.paths import mark_plain_gym
 
 __all__ = ["ResizeFrame", "make_env"]
 
@@ -307,7 +307,7 @@ def make_env(
         env = _single(env_id, frame_skip, max_episode_steps, seed, pixels, env_kwargs, success)
         # rollouts step a plain one directly (imitrl.runtime.paths.stepper): same episodes
         plain = pixels is None and frame_skip == 1 and not (_observes_dict(env) or _reads(env))
-        return mark_plain_gym(env) if plain else env
+        return _mark_plain(env) if plain else env
     if pixels is not None:
         raise ValueError("pixels needs num_envs=1 or parallel=True (one renderer per copy)")
     if frame_skip != 1:
@@ -334,7 +334,25 @@ def make_env(
     if double:
         env = TransformedEnv(env, DoubleToFloat())
     env.set_seed(seed)  # SyncVectorEnv seeds copy i with seed + i
-    return env if observes_dict or reads else mark_plain_gym(env)
+    return env if observes_dict or reads else _mark_plain(env)
+
+
+_PLAIN_GYM: weakref.WeakSet[EnvBase] = weakref.WeakSet()
+"""the envs :func:`make_env` built as a plain GymWrapper (maybe in ``DoubleToFloat``) in
+this process"""
+
+
+def _mark_plain(env: EnvBase) -> EnvBase:
+    _PLAIN_GYM.add(env)
+    return env
+
+
+def built_plain(env: EnvBase) -> bool:
+    """Whether :func:`make_env` built ``env`` in this process as a plain in-process
+    gymnasium wrapper (no pixels, no Dict observation, no success reader, no frame skip;
+    maybe in ``DoubleToFloat``): an env a rollout may step through gymnasium directly
+    (:func:`imitrl.runtime.paths.stepper`), with the same episodes."""
+    return env in _PLAIN_GYM
 
 
 def _check_kwargs(env_kwargs) -> dict:

@@ -17,14 +17,14 @@ from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType
 
 from imitrl import keys
-from imitrl.data.returns import SuccessFn, episode_returns
-from imitrl.data.rollout import policy_errors_named, rollout_policy
 from imitrl.envs.success import SUCCESS, reported_success
 from imitrl.envs.tabular_env import TabularEnv
 from imitrl.evaluation.statistics import t_interval
 from imitrl.evaluation.tabular import exact_values
+from imitrl.learners.learner import Learner
 from imitrl.policies.experts import Expert
-from imitrl.policies.learner import Learner
+from imitrl.runtime.returns import SuccessFn, episode_returns
+from imitrl.runtime.rollout import policy_errors_named, rollout_policy
 
 __all__ = ["Evaluation", "evaluate", "mean_ci", "wilson_interval"]
 

@@ -30,7 +30,7 @@ from torchrl.envs.utils import ExplorationType
 from torchrl.record.loggers import Logger
 
 from imitrl.algorithms import BCConfig, fit_bc
-from imitrl.data import DemonstrationBuffer, rollout_episodes
+from imitrl.data import DemonstrationBuffer
 from imitrl.envs import make_env
 from imitrl.jobs.checkpoint import save_run
 from imitrl.jobs.configs import BCJob
@@ -48,7 +48,9 @@ from imitrl.jobs.resolve import (
     resolve_loss,
     time_limit,
 )
-from imitrl.policies import Learner, as_actor
+from imitrl.learners import Learner
+from imitrl.policies import as_actor
+from imitrl.runtime import rollout_episodes
 
 __all__ = [
     "BCJob",
@@ -151,7 +153,7 @@ def bc_config(config: BCJob) -> BCConfig:
     """The behaviour-cloning fit the flags describe, on the loss's own schedule where its
     recipe has one (``LossEntry.recipe``: Diffusion Policy's warm-up and cosine decay);
     ``--batch-size`` is kept as given."""
-    from imitrl.objectives import registry
+    from imitrl.learners import registry
 
     bc = BCConfig(num_steps=config.steps, batch_size=config.batch_size, seed=config.seed)
     if config.loss not in registry.names():  # for_env's learner: no recipe

@@ -9,7 +9,7 @@ A checkpoint may be downloaded, and replaced by a writer while it is read: it is
 until checked. :func:`read_checkpoint` reads both files from the folder pinned once, each
 opened once by descriptor (a regular file inside the folder: no link out, no FIFO),
 sizes bounded before anything is read; the saved config meets the checks of the flags it
-came from (:mod:`imitrl.jobs.limits`: ``hidden: [65536, 65536]`` asks for more weights
+came from (:mod:`imitrl.limits`: ``hidden: [65536, 65536]`` asks for more weights
 than a network may have); the network it asks for must fit in the weights file before it
 is built (:func:`build_learner`, :func:`check_holds`).
 """
@@ -29,10 +29,9 @@ from torchrl.envs import EnvBase
 
 from imitrl.fs.reading import OpenedFolder, ReplacedWhileReading, parse_json, read_whole
 from imitrl.jobs.configs import BCJob
-from imitrl.jobs.limits import hidden_parameters
 from imitrl.jobs.resolve import FOR_ENV, LEGACY_DEFAULT, builds_table, learner_factory, task_spec
-from imitrl.objectives import registry
-from imitrl.policies import Learner
+from imitrl.learners import Learner, registry
+from imitrl.limits import hidden_parameters
 
 __all__ = [
     "CONFIG_FILE",
@@ -83,7 +82,7 @@ MAX_CONFIG_BYTES = 1 << 20
 it is read"""
 MAX_WEIGHTS_BYTES = 2 << 30
 """largest ``learner.pt`` loaded (2 GiB: the float32 weights of a policy and a value
-network of :data:`~imitrl.jobs.limits.MAX_PARAMETERS` each are 800 MB); a larger one
+network of :data:`~imitrl.limits.MAX_PARAMETERS` each are 800 MB); a larger one
 is refused before it is read"""
 PARAMETER_BYTES = 4
 """bytes a weight takes in ``learner.pt``: float32, what every imitrl learner holds"""
@@ -212,7 +211,7 @@ def _check_stored(f: BinaryIO, where: Path, size: int) -> None:
 def check_holds(where: Path, hidden: tuple[int, ...], size: int, env: EnvBase) -> None:
     """Refuse (ValueError naming both numbers) weights of ``size`` bytes too small for the
     network the hidden widths ask for on ``env``, before it is built: at least
-    :func:`~imitrl.jobs.limits.hidden_parameters` weights of :data:`PARAMETER_BYTES` each,
+    :func:`~imitrl.limits.hidden_parameters` weights of :data:`PARAMETER_BYTES` each,
     with the env's observation and action sizes."""
     inputs, outputs = _env_sizes(env)
     implied = hidden_parameters(tuple(hidden), inputs, outputs)
@@ -239,7 +238,7 @@ def _env_sizes(env: EnvBase) -> tuple[int, int]:
 
 def _field_bound(name: str) -> Any:
     """The limits of ``BCJob``'s field ``name``: a saved config meets the checks the
-    command line's flags meet (:mod:`imitrl.jobs.limits`)."""
+    command line's flags meet (:mod:`imitrl.limits`)."""
     return next(f for f in dataclasses.fields(BCJob) if f.name == name).metadata["bound"]
 
 

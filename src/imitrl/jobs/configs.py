@@ -6,8 +6,8 @@ field's docstring; the classes live here, apart from the functions that run them
 ``imitrl bc --help`` builds its flags without importing torch, TorchRL or the loss
 registry (``tests/test_imports.py``). Each ``__post_init__`` checks what can be checked
 without them; the rest fails when the job starts, naming the flag. Every number is
-range-checked here, by the limits its field declares (:func:`~imitrl.jobs.limits.bounded`,
-:func:`~imitrl.jobs.limits.widths` for ``--hidden``; ``--help`` shows them).
+range-checked here, by the limits its field declares (:func:`~imitrl.limits.bounded`,
+:func:`~imitrl.limits.widths` for ``--hidden``; ``--help`` shows them).
 """
 
 from __future__ import annotations
@@ -16,7 +16,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from imitrl.jobs.limits import (
+from imitrl.jobs.names import EXPERT_KINDS, LOGGERS
+from imitrl.limits import (
     MAX_BATCH,
     MAX_ENV_STEPS,
     MAX_EPISODE_STEPS,
@@ -33,7 +34,6 @@ from imitrl.jobs.limits import (
     check_bounds,
     widths,
 )
-from imitrl.jobs.names import EXPERT_KINDS, LOGGERS
 
 if TYPE_CHECKING:
     from imitrl.algorithms.adversarial import AdversarialConfig
@@ -44,7 +44,7 @@ __all__ = ["AIRLJob", "BCJob", "DAggerJob", "GAILJob"]
 def _check_device(device: str) -> None:
     """``--device`` names a device this machine has (one line naming both otherwise); torch
     is imported here, when a job is configured, never for ``--help``."""
-    from imitrl.runtime.device import resolve_device
+    from imitrl.system.device import resolve_device
 
     try:
         resolve_device(device)

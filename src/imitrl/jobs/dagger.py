@@ -45,7 +45,7 @@ from imitrl.jobs.configs import DAggerJob
 from imitrl.jobs.evaluate import format_return
 from imitrl.jobs.output import claimed
 from imitrl.jobs.resolve import no_expert_message
-from imitrl.policies import Learner
+from imitrl.learners import Learner
 
 __all__ = ["DAggerJob", "report", "run_dagger"]
 

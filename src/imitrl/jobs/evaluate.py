@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from imitrl.jobs.limits import MAX_EPISODE_STEPS, MAX_EVAL_EPISODES, MAX_SEED, bounded, check_bounds
+from imitrl.limits import MAX_EPISODE_STEPS, MAX_EVAL_EPISODES, MAX_SEED, bounded, check_bounds
 
 if TYPE_CHECKING:  # torch, TorchRL and the rest are imported where used: see imitrl.cli
     from tensordict.nn import TensorDictModuleBase

@@ -51,7 +51,7 @@ from imitrl.jobs.bc import (
 from imitrl.jobs.configs import AIRLJob, GAILJob
 from imitrl.jobs.evaluate import format_return
 from imitrl.jobs.output import claimed
-from imitrl.policies import ActorCritic
+from imitrl.learners import ActorCritic
 
 __all__ = ["AIRLJob", "GAILJob", "report", "run_airl", "run_gail"]
 
@@ -92,7 +92,7 @@ def _train(config: GAILJob, name: str, folder: Path) -> dict:
     start = time.perf_counter()
     setup = prepare(config.bc_view(config.loss), name, folder, probabilistic=True)
     try:
-        loss = setup.loss  # --loss default: a head with log pi (imitrl.objectives.defaults)
+        loss = setup.loss  # --loss default: a head with log pi (imitrl.learners.defaults)
         bc_view = config.bc_view(loss)
         learner = _learner(setup)
         buffer = demonstrations(bc_view, setup)

@@ -73,4 +73,4 @@ LOSSES: tuple[tuple[str, str, str], ...] = (
         "Diffusion Policy: U-Net 32-64-128, T_o=2, T_p=16, executes 8; DDPM K=100 squaredcos_cap_v2, DDIM 10 steps; AdamW lr 0.001, EMA",
     ),
 )
-"""(name, actions, summary) of every loss of :mod:`imitrl.objectives.registry`"""
+"""(name, actions, summary) of every loss of :mod:`imitrl.learners.registry`"""

@@ -11,7 +11,7 @@ exit status 2.
   ``function(obs [N, d]) -> action [N] or [N, m]``, a batched policy wrapped with
   :meth:`~imitrl.policies.Expert.from_callable`. A builder's return value is checked
   once, when it is built.
-* ``--loss``: a name of the loss registry (:mod:`imitrl.objectives.registry`), the
+* ``--loss``: a name of the loss registry (:mod:`imitrl.learners.registry`), the
   one builder of learners; ``default`` is resolved to one for the env
   (:func:`resolve_loss`: ``cross_entropy`` for discrete actions, ``mse`` for
   continuous ones, ``gaussian_nll`` where the job needs ``log pi``), or to
@@ -39,9 +39,9 @@ from imitrl import experts, keys
 from imitrl.data.buffer import OBSERVATION_KEYS, REQUIRED_KEYS
 from imitrl.envs.make import METAWORLD_PREFIX
 from imitrl.jobs.names import EXPERT_ENVS, EXPERT_KINDS
-from imitrl.objectives import defaults, registry
-from imitrl.objectives.registry import LearnerConfig, TaskSpec
-from imitrl.policies import ActorCritic, Expert, Learner
+from imitrl.learners import ActorCritic, Learner, defaults, registry
+from imitrl.learners.registry import LearnerConfig, TaskSpec
+from imitrl.policies import Expert
 
 __all__ = [
     "AUTO",
@@ -261,7 +261,7 @@ record: their learner was ``for_env``'s"""
 
 def resolve_loss(loss: str, env: EnvBase, *, probabilistic: bool = False) -> str:
     """``--loss`` as a name :func:`learner_factory` builds: ``default`` becomes the
-    registry entry for the env's actions (:func:`imitrl.objectives.defaults.default_loss`;
+    registry entry for the env's actions (:func:`imitrl.learners.defaults.default_loss`;
     ``probabilistic``: the job needs ``log pi``), or :data:`FOR_ENV` where the registry
     cannot describe the env (image observations, with or without a state beside them;
     specs :func:`task_spec` refuses); any other name is kept."""
@@ -295,7 +295,7 @@ def learner_factory(
     """``() -> Learner``: a fresh learner for ``env`` trained by ``loss``, same init each call.
 
     ``loss``: a registry name, :data:`FOR_ENV`, or ``default`` (:func:`resolve_loss`).
-    ``lr`` None: the learner's own default (:mod:`imitrl.objectives.defaults`: a table's,
+    ``lr`` None: the learner's own default (:mod:`imitrl.learners.defaults`: a table's,
     a network's, or the recipe's rate of an entry with ``own_lr``); a rate an entry with
     ``own_lr`` would not use is refused. ``hidden`` None: the network's own layers; given
     for a logits table (a registry entry on integer states), it is refused. Builds one
@@ -321,7 +321,7 @@ def learner_factory(
     if lr is not None and own is not None and lr != own:
         raise ValueError(
             f"--loss {loss} trains at its recipe's learning rate {own:g}, not --lr {lr:g}: "
-            "leave --lr out (the rate is the loss's, see imitrl.objectives.registry)"
+            "leave --lr out (the rate is the loss's, see imitrl.learners.registry)"
         )
     task = task_spec(env)
     if hidden is not None and task.num_states is not None:

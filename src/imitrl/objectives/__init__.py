@@ -1,34 +1,22 @@
-"""Imitation objectives as TorchRL loss modules, and the registry that names them.
+"""Imitation objectives as TorchRL loss modules over any policy: behaviour cloning's
+likelihood and regression losses, their weighted and regularized forms, chunk losses.
 
-``imitrl.objectives.registry`` (imported on first use: it builds learners, which
-import these losses) names every objective.
+A policy family's own loss (Diffusion Policy's, ACT's, flow matching's) lives in its
+folder under :mod:`imitrl.learners`; the loss registry
+(:mod:`imitrl.learners.registry`) names every objective.
 """
 
 from imitrl.objectives.advantage_weighted import AdvantageWeightedLoss
 from imitrl.objectives.base import ImitationLoss, SummedLoss, sum_losses
 from imitrl.objectives.bc import LOSS_TYPES, BehaviorCloningLoss
-from imitrl.objectives.diffusion import DiffusionBehaviorCloningLoss, DiffusionPolicy
 from imitrl.objectives.regularized import RegularizedBCLoss
-from imitrl.objectives.weighted import policy_step
 
 __all__ = [
     "LOSS_TYPES",
     "AdvantageWeightedLoss",
     "BehaviorCloningLoss",
-    "DiffusionBehaviorCloningLoss",
-    "DiffusionPolicy",
     "ImitationLoss",
     "RegularizedBCLoss",
     "SummedLoss",
-    "policy_step",
-    "registry",
     "sum_losses",
 ]
-
-
-def __getattr__(name: str):
-    if name == "registry":
-        import importlib
-
-        return importlib.import_module("imitrl.objectives.registry")
-    raise AttributeError(f"module 'imitrl.objectives' has no attribute {name!r}")

@@ -11,7 +11,7 @@ The labels are the expert's next ``H`` actions and their padding mask,
   the padded entries hold the episode's last label (``ActionChunkTransform``'s
   padding), so the learner is also taught to hold that action past the end.
 
-:class:`~imitrl.objectives.flow.FlowMatchingLoss` takes chunks itself, with the mask.
+:class:`~imitrl.learners.flow.FlowMatchingLoss` takes chunks itself, with the mask.
 """
 
 from __future__ import annotations

@@ -15,7 +15,7 @@ that rollouts, ``evaluate`` and DAgger's behaviour policy run unchanged:
   (:func:`ensemble_weights`). ACT uses ``m = 0.01``.
 
 * **held noise** (``hold_noise=True``, either mode): a generative network that samples
-  from starting noise (:class:`~imitrl.objectives.flow.FlowPolicy`, which has
+  from starting noise (:class:`~imitrl.learners.flow.FlowPolicy`, which has
   ``draw_noise``) gets one draw per lane at each reset, passed as ``POLICY_NOISE`` to
   every query of that episode. The network's map from noise to chunk is
   deterministic, so the episode keeps the mode its draw chose instead of drawing it
@@ -228,7 +228,7 @@ class ChunkedPolicy(TensorDictModuleBase):
 
     def _reset_state(self, lanes: int, device: torch.device) -> None:
         """Each lane's plan on ``device``: where the lanes' tensordicts are (the env's, or
-        the learner's when :class:`~imitrl.runtime.device.OnDevice` moved them)."""
+        the learner's when :class:`~imitrl.system.device.OnDevice` moved them)."""
         H, m = self.execution.horizon, self.action_dim
         self._plan = torch.zeros(lanes, H, m, device=device)
         self._age = torch.zeros(lanes, dtype=torch.int64, device=device)

@@ -30,7 +30,7 @@ norm`
 On a GPU the CPU tricks step aside for the device's own fast forms: ``optimizer_step``
 returns ``opt.step`` for parameters off the CPU, and a learner placed on CUDA runs fused
 Adam (:meth:`imitrl.policies.Learner.placed`); the policy call crosses devices through
-:class:`~imitrl.runtime.device.OnDevice`, which both steppers run as any module.
+:class:`~imitrl.system.device.OnDevice`, which both steppers run as any module.
 
 The one rollout loop (:func:`imitrl.runtime.loop.play`) runs either stepper.
 
@@ -62,7 +62,6 @@ __all__ = [
     "gae",
     "gail_loss",
     "loss_chain",
-    "mark_plain_gym",
     "network",
     "optimizer_step",
     "ppo_loss",
@@ -87,14 +86,6 @@ def reference() -> Iterator[None]:
         yield
     finally:
         _FAST.reset(token)
-
-
-def mark_plain_gym(env: EnvBase) -> EnvBase:
-    """Mark ``env`` (``make_env``'s in-process GymWrapper, maybe in ``DoubleToFloat``) as
-    one the accelerated stepper may step directly; returns ``env``."""
-    from imitrl.runtime.fast.env_steps import register_plain_gym
-
-    return register_plain_gym(env)
 
 
 def stepper(

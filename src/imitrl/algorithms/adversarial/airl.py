@@ -25,7 +25,7 @@ from imitrl.algorithms.adversarial.loop import (
     train_adversarial,
 )
 from imitrl.data.buffer import DemonstrationBuffer
-from imitrl.policies.actor_critic import ActorCritic
+from imitrl.learners.actor_critic import ActorCritic
 
 __all__ = ["AIRLConfig", "airl"]
 

@@ -38,7 +38,7 @@ from imitrl import keys
 from imitrl.algorithms.adversarial.absorbing import state_features
 from imitrl.algorithms.adversarial.keys import ABSORBING
 from imitrl.algorithms.adversarial.transitions import NEXT_ABSORBING, NEXT_OBS, NEXT_TERMINATED
-from imitrl.policies.actor_critic import ActorCritic
+from imitrl.learners.actor_critic import ActorCritic
 from imitrl.policies.heads import mlp
 
 __all__ = ["AIRLDiscriminator", "ShapedReward", "airl_reward", "shaped_f"]

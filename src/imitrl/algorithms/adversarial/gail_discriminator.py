@@ -46,7 +46,7 @@ from imitrl.algorithms.adversarial.keys import (
     STATE_FEATURES,
 )
 from imitrl.algorithms.adversarial.transitions import action_features
-from imitrl.policies.actor_critic import ActorCritic
+from imitrl.learners.actor_critic import ActorCritic
 from imitrl.policies.heads import mlp
 from imitrl.policies.modules import Module
 from imitrl.runtime import paths

@@ -42,7 +42,7 @@ from torchrl.objectives.value import GAE
 
 from imitrl import keys
 from imitrl.algorithms.adversarial.keys import LEARNED_REWARD
-from imitrl.policies.actor_critic import ActorCritic
+from imitrl.learners.actor_critic import ActorCritic
 from imitrl.runtime import paths
 
 __all__ = ["PPOGenerator"]

@@ -59,10 +59,10 @@ from imitrl.algorithms.adversarial.transitions import (
     sample_rows,
 )
 from imitrl.data.buffer import DemonstrationBuffer
-from imitrl.policies.actor_critic import ActorCritic
+from imitrl.learners.actor_critic import ActorCritic
 from imitrl.runtime import paths
-from imitrl.runtime.device import acting
 from imitrl.runtime.loop import STEP_ROW_KEYS, Stepper, lane_count, play_steps
+from imitrl.system.device import acting
 
 __all__ = [
     "AdversarialConfig",

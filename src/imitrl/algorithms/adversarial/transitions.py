@@ -2,7 +2,7 @@
 
 * :func:`expert_transitions`: the demonstrations' rows (a ``DemonstrationBuffer``, a
   LeRobot or Minari dataset loaded into one). Rows hold no ``("next", OBSERVATION)``
-  (see :mod:`imitrl.data.rollout`): ``s'`` of a row is the observation of the next row
+  (see :mod:`imitrl.runtime.rollout`): ``s'`` of a row is the observation of the next row
   of its episode (``STEP + 1``). An episode's last row has no successor: kept when it
   terminated (its ``s'`` is the end: the absorbing state, or zeroed in AIRL's
   ``h(s')``; never read, it is set to ``s``), dropped when the episode was cut by a

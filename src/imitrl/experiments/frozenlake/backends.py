@@ -23,11 +23,11 @@ from torchrl.envs.utils import ExplorationType
 
 from imitrl import keys
 from imitrl.algorithms.dagger import EnvSource
-from imitrl.data.rollout import rollout_episodes
 from imitrl.envs.gym_stream import GymnasiumStream, GymnasiumStreamSource, play_episodes
 from imitrl.envs.tabular_env import TabularEnv
 from imitrl.policies.experts import Expert
 from imitrl.policies.mixture import BetaMixer, behaviour_policy
+from imitrl.runtime.rollout import rollout_episodes
 from imitrl.tabular.mdp import TabularMDP
 
 __all__ = ["BatchedBackend", "Block", "FaithfulBackend", "split_replicates"]

@@ -1,9 +1,9 @@
 """Configuration of the FrozenLake study (`imitrl frozenlake`).
 
-Every number is range-checked by the :class:`~imitrl.jobs.limits.Bound` its field
-declares (:func:`~imitrl.jobs.limits.bounded`: the range ``--help`` shows, and the one
+Every number is range-checked by the :class:`~imitrl.limits.Bound` its field
+declares (:func:`~imitrl.limits.bounded`: the range ``--help`` shows, and the one
 line a value out of it is refused with), before any work is done. The upper limits are
-those of every command (:mod:`imitrl.jobs.limits`: seeds, episodes, gradient steps,
+those of every command (:mod:`imitrl.limits`: seeds, episodes, gradient steps,
 rounds, time limits) and the study's own below.
 """
 
@@ -14,7 +14,7 @@ from pathlib import Path
 
 from gymnasium.envs.toy_text.frozen_lake import MAPS
 
-from imitrl.jobs.limits import (
+from imitrl.limits import (
     MAX_EPISODE_STEPS,
     MAX_EPISODES,
     MAX_EVAL_EPISODES,

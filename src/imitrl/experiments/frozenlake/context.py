@@ -20,7 +20,7 @@ from imitrl.experiments.frozenlake.backends import BatchedBackend, FaithfulBacke
 from imitrl.experiments.frozenlake.config import StudyConfig
 from imitrl.experiments.frozenlake.outputs import FIGURES
 from imitrl.experiments.frozenlake.report import Report
-from imitrl.policies.actor_critic import ActorCritic
+from imitrl.learners.actor_critic import ActorCritic
 from imitrl.tabular.finite_horizon import state_distributions, success_probability
 from imitrl.tabular.mdp import TabularMDP
 

@@ -6,7 +6,7 @@ from imitrl.algorithms.dagger import dagger
 from imitrl.evaluation.evaluate import wilson_interval
 from imitrl.experiments.frozenlake import figures
 from imitrl.experiments.frozenlake.context import StudyContext
-from imitrl.policies.actor_critic import ActorCritic
+from imitrl.learners.actor_critic import ActorCritic
 from imitrl.policies.experts import Expert
 
 __all__ = ["dagger_rounds"]

@@ -20,9 +20,9 @@ from imitrl.algorithms.bc import BCConfig, distinct_pairs, fit_bc
 from imitrl.algorithms.dagger import EpisodeSource, dagger
 from imitrl.experiments.frozenlake.backends import Block
 from imitrl.experiments.frozenlake.context import StudyContext
+from imitrl.learners.learner import Learner
 from imitrl.objectives.bc import BehaviorCloningLoss
 from imitrl.policies.experts import Expert
-from imitrl.policies.learner import Learner
 from imitrl.tabular.finite_horizon import expected_episode_length
 
 __all__ = [

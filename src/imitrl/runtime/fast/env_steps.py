@@ -32,7 +32,6 @@ it inside :func:`imitrl.runtime.paths.reference`).
 
 from __future__ import annotations
 
-import weakref
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
 from typing import NamedTuple
@@ -45,6 +44,7 @@ from torchrl.envs import Compose, DoubleToFloat, EnvBase, GymWrapper, Transforme
 
 from imitrl import keys
 from imitrl.compat import wrapped_gym_env
+from imitrl.envs.make import built_plain
 from imitrl.envs.tabular_env import TabularEnv
 
 __all__ = [
@@ -52,18 +52,7 @@ __all__ = [
     "GymSteps",
     "RawStep",
     "direct_steps",
-    "register_plain_gym",
 ]
-
-_PLAIN_GYM: weakref.WeakSet[EnvBase] = weakref.WeakSet()
-"""the envs ``make_env`` built as a GymWrapper (+ DoubleToFloat) in this process"""
-
-
-def register_plain_gym(env: EnvBase) -> EnvBase:
-    """Mark ``env`` (``make_env``'s in-process GymWrapper, maybe in ``DoubleToFloat``) as
-    one :func:`direct_steps` may step directly; returns ``env``."""
-    _PLAIN_GYM.add(env)
-    return env
 
 
 class RawStep(NamedTuple):
@@ -244,7 +233,7 @@ def direct_steps(env: EnvBase) -> DirectSteps | None:
     env must be stepped through TorchRL."""
     if type(env) is TabularEnv:
         return _TabularSteps(env)
-    if env not in _PLAIN_GYM:
+    if not built_plain(env):
         return None
     base = env
     if isinstance(env, TransformedEnv):

@@ -298,5 +298,5 @@ def check_hidden(hidden: Any, name: str = "--hidden", *, none: str = "none") -> 
         raise ValueError(
             f"{name} {','.join(map(str, widths))} asks for at least {implied:_} weights, "
             f"more than the {MAX_PARAMETERS:_} a network may have "
-            "(imitrl.jobs.limits.MAX_PARAMETERS)"
+            "(imitrl.limits.MAX_PARAMETERS)"
         )

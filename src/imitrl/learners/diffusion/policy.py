@@ -41,33 +41,25 @@ beta_end, T)``, the actor's own formula; a test checks they agree).
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
 
 import torch
-from tensordict import TensorDict, TensorDictBase
+from tensordict import TensorDictBase
 from tensordict.nn import InteractionType, TensorDictModuleBase
 from tensordict.nn.probabilistic import interaction_type
-from tensordict.utils import NestedKey
 from torch import nn
 from torchrl.data import Bounded
 from torchrl.modules import DiffusionActor
-from torchrl.objectives import DiffusionBCLoss
 
 from imitrl import keys
-from imitrl.objectives.base import ImitationLoss
 from imitrl.rng import rng_from
 
-__all__ = [
-    "SAMPLERS",
-    "DiffusionBehaviorCloningLoss",
-    "DiffusionPolicy",
-    "ScoreNetwork",
-    "ddim_sample",
-]
+__all__ = ["SAMPLERS", "DiffusionPolicy", "ScoreNetwork", "ddim_sample"]
+
 
 SAMPLERS = ("ddpm", "ddim")
 
-_NORMALIZED = "diffusion_action"
+
+NORMALIZED = "diffusion_action"
 """key of the action in ``[-1, 1]``, before it is mapped to the bounds"""
 
 
@@ -165,7 +157,7 @@ class DiffusionPolicy(TensorDictModuleBase):
             raise ValueError(f"num_steps must be positive, got {num_steps}")
         dim = int(action_spec.shape[0])
         self.in_keys = [keys.OBSERVATION]
-        self.out_keys = [_NORMALIZED, keys.ACTION]
+        self.out_keys = [NORMALIZED, keys.ACTION]
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(seed)
             score = ScoreNetwork(dim, int(observation_dim), hidden, num_steps)
@@ -176,7 +168,7 @@ class DiffusionPolicy(TensorDictModuleBase):
             beta_start=beta_start,
             beta_end=beta_end,
             in_keys=[keys.OBSERVATION],
-            out_keys=[_NORMALIZED],
+            out_keys=[NORMALIZED],
         )
         # plain attributes, not registered: the network already belongs to the actor, and
         # the state dict (checkpoints) stays what it was before DDIM
@@ -200,57 +192,10 @@ class DiffusionPolicy(TensorDictModuleBase):
             else:
                 x = torch.randn(shape, generator=self.generator).to(obs.device)
             x = ddim_sample(self._score, obs, x, self._alphas_cumprod, self.sample_steps)
-            tensordict.set(_NORMALIZED, x)
+            tensordict.set(NORMALIZED, x)
         else:
             with rng_from(self.generator):
                 tensordict = self.actor(tensordict)
-        x = tensordict.get(_NORMALIZED).clamp(-1.0, 1.0)
+        x = tensordict.get(NORMALIZED).clamp(-1.0, 1.0)
         tensordict.set(keys.ACTION, self.low + (self.high - self.low) * (x + 1) / 2)
         return tensordict
-
-
-class DiffusionBehaviorCloningLoss(ImitationLoss):
-    """TorchRL's ``DiffusionBCLoss`` on the expert's label, mapped to ``[-1, 1]``.
-
-    Args:
-        policy: the :class:`DiffusionPolicy` being trained.
-        seed: seed of the loss's draws (diffusion steps ``t`` and noise ``eps``).
-
-    Keys (``set_keys``): ``observation`` (``"observation"``), ``label``
-    (``"expert_action"``, float ``[N, m]`` inside the bounds). Returns
-    ``loss_diffusion_bc`` (epsilon-prediction MSE).
-    """
-
-    @dataclass
-    class _AcceptedKeys:
-        observation: NestedKey = keys.OBSERVATION
-        label: NestedKey = keys.EXPERT_ACTION
-
-    default_keys = _AcceptedKeys
-    tensor_keys: _AcceptedKeys
-    out_keys = ["loss_diffusion_bc"]
-
-    def __init__(self, policy: DiffusionPolicy, *, seed: int = 0) -> None:
-        if not isinstance(policy, DiffusionPolicy):
-            raise ValueError(f"expected a DiffusionPolicy, got {type(policy).__name__}")
-        super().__init__()
-        self.policy = policy
-        self.inner = DiffusionBCLoss(policy.actor)
-        self.inner.set_keys(action=_NORMALIZED, observation=keys.OBSERVATION)
-        self.generator = torch.Generator().manual_seed(int(seed))
-
-    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        label = tensordict.get(self.tensor_keys.label)
-        obs = tensordict.get(self.tensor_keys.observation)
-        if not label.dtype.is_floating_point or label.shape[-1:] != self.policy.low.shape:
-            raise ValueError(
-                f"diffusion labels under {self.tensor_keys.label!r} must be float [N, {self.policy.low.shape[0]}], "
-                f"got {label.dtype} {tuple(label.shape)}"
-            )
-        td = TensorDict(
-            {keys.OBSERVATION: obs, _NORMALIZED: self.policy.normalize(label)},
-            batch_size=tensordict.batch_size,
-        )
-        with rng_from(self.generator):
-            out = self.inner(td)
-        return TensorDict({"loss_diffusion_bc": out["loss_diffusion_bc"]}, batch_size=[])

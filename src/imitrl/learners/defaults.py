@@ -1,7 +1,7 @@
 """What an unset choice means: ``--loss default`` and an unset learning rate, in one place.
 
 Every learner the command line builds for integer states or vector observations is a
-loss-registry entry (:mod:`imitrl.objectives.registry`). ``--loss default`` is not a
+loss-registry entry (:mod:`imitrl.learners.registry`). ``--loss default`` is not a
 builder of its own: it is resolved here, for the task, to an entry's name, and the name
 is what a run records (its ``results.json``, its checkpoint):
 
@@ -28,7 +28,7 @@ network                                   rate
 logits table (integer states)             :data:`TABLE_LR` 0.1
 MLP, diffusion and flow networks          :data:`NETWORK_LR` 1e-3
 an entry with its recipe's own rate       ``LossEntry.own_lr`` (ACT's, diffusion_unet's:
-                                          :mod:`~imitrl.objectives.registry_chunks`);
+                                          :mod:`~imitrl.learners.catalogue`);
                                           the CLI refuses another ``--lr``
 ========================================= ============================================
 

@@ -34,10 +34,10 @@ flow                   continuous rectified flow        conditional flow matchin
 
 ``diffusion`` and ``diffusion_ddim`` are MLP baselines (an MLP score network on one
 observation, as TorchRL's ``DiffusionActor``); Diffusion Policy as its paper builds it
-is ``diffusion_unet`` (:mod:`imitrl.objectives.registry_chunks`).
+is ``diffusion_unet`` (:mod:`imitrl.learners.catalogue`).
 
 Chunked entries (``*_chunk``: the learner predicts the expert's next ``H`` actions;
-:mod:`imitrl.objectives.registry_chunks`) carry ``LossEntry.horizon``: their rows need
+:mod:`imitrl.learners.catalogue`) carry ``LossEntry.horizon``: their rows need
 chunk labels (:func:`imitrl.data.chunks.add_chunk_labels`, which ``fit_bc`` adds:
 ``Learner.horizon``) and their envs ``is_init`` (:func:`imitrl.policies.chunking.chunk_env`);
 ``LossEntry.history`` says how many past observations a row must carry (``fit_bc`` adds
@@ -55,22 +55,14 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, fields, replace
 
-import torch
 from torchrl.data import Bounded
-from torchrl.envs.utils import ExplorationType
 
-from imitrl.objectives.advantage_weighted import Advantage, AdvantageWeightedLoss
-from imitrl.objectives.base import ImitationLoss
-from imitrl.objectives.defaults import learning_rate
-from imitrl.objectives.diffusion import DiffusionBehaviorCloningLoss, DiffusionPolicy
-from imitrl.objectives.flow import FlowMatchingLoss, FlowPolicy
-from imitrl.objectives.regularized import RegularizedBCLoss
-from imitrl.policies.actor_critic import ActorCritic
-from imitrl.policies.learner import Learner
+from imitrl.learners.defaults import learning_rate
+from imitrl.learners.learner import Learner
+from imitrl.objectives.advantage_weighted import Advantage
 
 __all__ = [
     "ACTION_KINDS",
-    "Learner",
     "LearnerConfig",
     "LossEntry",
     "TaskSpec",
@@ -78,7 +70,6 @@ __all__ = [
     "entries",
     "fit_config",
     "get",
-    "mlp",
     "names",
     "register",
     "unregister",
@@ -128,7 +119,7 @@ class LearnerConfig:
     """hidden layers of MLP policies (and of the diffusion score network)"""
     lr: float | None = None
     """Adam learning rate of the policy; None: the network's default (a logits table 0.1,
-    any other network 1e-3: :mod:`imitrl.objectives.defaults`). Entries with ``own_lr``
+    any other network 1e-3: :mod:`imitrl.learners.defaults`). Entries with ``own_lr``
     (ACT, diffusion_unet) keep their recipe's. :func:`build` resolves it, so an entry's
     builder always reads a number"""
     seed: int = 0
@@ -137,7 +128,7 @@ class LearnerConfig:
     """MLP learners: normalise observations by the demonstrations' statistics"""
     device: str | None = None
     """where the learner computes: None (the CPU), ``"auto"``, ``"cpu"``, ``"cuda:N"``
-    (:func:`~imitrl.runtime.device.resolve_device`); every entry is built on the CPU with
+    (:func:`~imitrl.system.device.resolve_device`); every entry is built on the CPU with
     its seed, then moved, so every device starts from the same weights"""
 
 
@@ -170,7 +161,7 @@ class LossEntry:
     own_lr: float | None = None
     """the learning rate of the loss's recipe, which ``LearnerConfig.lr`` does not set
     (ACT's, Diffusion Policy's); None: the entry trains at ``LearnerConfig.lr`` (or its
-    default: :func:`imitrl.objectives.defaults.learning_rate`). The CLI
+    default: :func:`imitrl.learners.defaults.learning_rate`). The CLI
     refuses an ``--lr`` such an entry would not use"""
 
     def applies_to(self, task: TaskSpec) -> bool:
@@ -274,211 +265,3 @@ def fit_config(name: str, bc):
     if entry.batch_size is not None and bc.batch_size is not None:
         bc = replace(bc, batch_size=entry.batch_size)
     return bc if entry.recipe is None else entry.recipe(bc)
-
-
-# ----------------------------------------------------------------- policy heads
-def mlp(
-    task: TaskSpec,
-    config: LearnerConfig,
-    *,
-    head: str | None = None,
-    loss: str | ImitationLoss | None = None,
-) -> ActorCritic:
-    """The task's standard learner: a logits table for integer states, else an MLP with
-    ``head``, trained with ``loss`` (a loss type of the head, None = its default), at
-    ``config.lr`` or the network's default rate (:mod:`imitrl.objectives.defaults`)."""
-    lr = learning_rate(None, task.num_states, config.lr)
-    if task.num_states is not None:
-        if task.actions != "discrete" or head not in (None, "categorical"):
-            raise ValueError("integer-state tasks support a categorical policy only")
-        if loss not in (None, "nll"):
-            raise ValueError("a tabular policy is built with its cross-entropy loss")
-        return ActorCritic.tabular(task.num_states, task.action, lr=lr)
-    return ActorCritic.mlp(
-        task.observation_dim,
-        task.action,
-        head=head,
-        loss=loss,
-        hidden=config.hidden,
-        lr=lr,
-        seed=config.seed,
-        normalize=config.normalize,
-    )
-
-
-def _with_loss(ac: ActorCritic, loss: ImitationLoss) -> ActorCritic:
-    """``ac`` trained by ``loss`` (a loss over ``ac.policy``) instead of its default: every
-    constructor argument carried over (a pixel learner's inputs, the action space)."""
-    return ActorCritic(
-        ac.policy,
-        ac.value,
-        head=ac.head,
-        loss=loss,
-        lr=ac.lr,
-        num_states=ac.num_states,
-        observation_shape=ac.observation_shape,
-        normalizer=ac.normalizer,
-        action=ac.action_space,
-        pixel_inputs=ac.pixel_inputs,
-    )
-
-
-# ------------------------------------------------------------- built-in entries
-ENTROPY_COEF = 0.01
-"""weight of the entropy bonus of ``cross_entropy_entropy``"""
-L2_COEF = 1e-4
-"""weight of the L2 penalty of ``mse_l2``"""
-DIFFUSION_STEPS = 50
-"""denoising steps of ``diffusion`` (each action costs this many network calls)"""
-DDIM_STEPS = 8
-"""DDIM sampling steps of ``diffusion_ddim`` (of the ``DIFFUSION_STEPS`` it trains on)"""
-FLOW_STEPS = 8
-"""Euler steps of ``flow``"""
-
-
-@register("cross_entropy", actions="discrete", summary="cross-entropy (categorical NLL)")
-def _cross_entropy(task: TaskSpec, config: LearnerConfig) -> Learner:
-    return mlp(task, config)
-
-
-@register(
-    "cross_entropy_entropy",
-    actions="discrete",
-    summary=f"cross-entropy - {ENTROPY_COEF} x policy entropy",
-)
-def _cross_entropy_entropy(task: TaskSpec, config: LearnerConfig) -> Learner:
-    ac = mlp(task, config)
-    return _with_loss(ac, RegularizedBCLoss(ac.policy, loss_type="nll", entropy_coef=ENTROPY_COEF))
-
-
-@register(
-    "advantage_weighted",
-    actions="discrete",
-    summary="advantage-weighted cross-entropy (policy_step's objective)",
-    requires=("advantage",),
-)
-def _advantage_weighted(task: TaskSpec, config: LearnerConfig) -> Learner:
-    ac = mlp(task, config)
-    return _with_loss(ac, AdvantageWeightedLoss(ac.policy, task.advantage))
-
-
-@register(
-    "gaussian_nll",
-    actions="continuous",
-    summary="tanh-normal NLL with a learned state-independent log-std, acts with tanh(mean)",
-)
-def _gaussian_nll(task: TaskSpec, config: LearnerConfig) -> Learner:
-    """The head chosen by a measured sweep (``benchmarks/README.md``, issue 31): on the
-    loss benchmark's continuous tasks (5 seeds, BC / DAgger mean normalised score)
-    ``tanh_normal_free`` 0.74 / 0.73, ``normal_free`` 0.63 / 0.68, the state-dependent
-    ``tanh_normal`` this entry used before 0.25 / 0.17 and ``normal`` 0.22 / 0.15: a
-    likelihood fit that may shrink its scale state by state chases the labels' noise.
-    Labels on the bounds are refused, as by every tanh head (``normal_free`` takes them)."""
-    return mlp(task, config, head="tanh_normal_free")
-
-
-def _regression(loss_type: str) -> Callable[[TaskSpec, LearnerConfig], Learner]:
-    def build_regression(task: TaskSpec, config: LearnerConfig) -> Learner:
-        return mlp(task, config, head="deterministic", loss=loss_type)
-
-    return build_regression
-
-
-register("mse", actions="continuous", summary="mean squared error")(_regression("mse"))
-register("l1", actions="continuous", summary="mean absolute error")(_regression("l1"))
-register("smooth_l1", actions="continuous", summary="Huber loss (delta 1)")(
-    _regression("smooth_l1")
-)
-
-
-@register("mse_l2", actions="continuous", summary=f"MSE + {L2_COEF} x squared L2 norm of weights")
-def _mse_l2(task: TaskSpec, config: LearnerConfig) -> Learner:
-    ac = mlp(task, config, head="deterministic")
-    return _with_loss(ac, RegularizedBCLoss(ac.policy, loss_type="mse", l2_coef=L2_COEF))
-
-
-@register(
-    "diffusion",
-    actions="continuous",
-    summary=f"diffusion policy (DDPM, {DIFFUSION_STEPS} steps), samples its actions",
-)
-def _diffusion(task: TaskSpec, config: LearnerConfig) -> Learner:
-    policy = diffusion_policy(task.observation_dim, task.action, config, sampler="ddpm")
-    return Learner(
-        policy,
-        DiffusionBehaviorCloningLoss(policy, seed=config.seed),
-        torch.optim.Adam(policy.parameters(), lr=config.lr),
-        exploration=ExplorationType.RANDOM,
-    )
-
-
-@register(
-    "diffusion_ddim",
-    actions="continuous",
-    summary=f"diffusion trained as DDPM ({DIFFUSION_STEPS} steps), sampled by DDIM in {DDIM_STEPS}",
-)
-def _diffusion_ddim(task: TaskSpec, config: LearnerConfig) -> Learner:
-    policy = diffusion_policy(task.observation_dim, task.action, config, sampler="ddim")
-    return Learner(
-        policy,
-        DiffusionBehaviorCloningLoss(policy, seed=config.seed),
-        torch.optim.Adam(policy.parameters(), lr=config.lr),
-        exploration=ExplorationType.RANDOM,
-    )
-
-
-@register(
-    "flow",
-    actions="continuous",
-    summary=f"flow matching (rectified flow), {FLOW_STEPS} Euler steps, samples its actions",
-)
-def _flow(task: TaskSpec, config: LearnerConfig) -> Learner:
-    policy = flow_policy(task.observation_dim, task.action, config)
-    return Learner(
-        policy,
-        FlowMatchingLoss(policy, seed=config.seed),
-        torch.optim.Adam(policy.parameters(), lr=config.lr),
-        exploration=ExplorationType.RANDOM,
-        normalizer=policy.normalizer,
-    )
-
-
-def diffusion_policy(
-    observation_dim: int | None, action: Bounded, config: LearnerConfig, *, sampler: str
-) -> DiffusionPolicy:
-    """The registry's diffusion policy over ``action`` (a task's spec, or a tiled chunk spec)."""
-    if observation_dim is None:
-        raise ValueError("a diffusion policy needs vector observations")
-    return DiffusionPolicy(
-        observation_dim,
-        action,
-        hidden=config.hidden,
-        num_steps=DIFFUSION_STEPS,
-        seed=config.seed,
-        sampler=sampler,
-        sample_steps=DDIM_STEPS,
-    )
-
-
-def flow_policy(
-    observation_dim: int | None,
-    action: Bounded,
-    config: LearnerConfig,
-    *,
-    num_steps: int = FLOW_STEPS,
-) -> FlowPolicy:
-    """The registry's flow policy over ``action`` (a task's spec, or a tiled chunk spec),
-    sampled with ``num_steps`` Euler steps."""
-    if observation_dim is None:
-        raise ValueError("a flow policy needs vector observations")
-    return FlowPolicy(
-        observation_dim,
-        action,
-        hidden=config.hidden,
-        num_steps=num_steps,
-        normalize=config.normalize,
-        seed=config.seed,
-    )
-
-
-import imitrl.objectives.registry_chunks  # noqa: E402, F401  (registers the *_chunk entries)

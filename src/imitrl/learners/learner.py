@@ -40,7 +40,7 @@ from imitrl.data.history import add_observation_history, history_key
 from imitrl.objectives.base import ImitationLoss
 from imitrl.policies.ema import EMA
 from imitrl.policies.normalization import ObservationNormalizer
-from imitrl.runtime.device import module_device, resolve_device
+from imitrl.system.device import module_device, resolve_device
 
 __all__ = ["Learner"]
 
@@ -130,12 +130,12 @@ class Learner(nn.Module):
 
     @property
     def device(self) -> torch.device:
-        """Where the learner computes: its parameters' device (:mod:`imitrl.runtime.device`)."""
+        """Where the learner computes: its parameters' device (:mod:`imitrl.system.device`)."""
         return module_device(self)
 
     def placed(self, device: str | torch.device | None) -> Learner:
         """The learner moved to ``device`` (``"auto"``, ``"cpu"``, ``"cuda:N"``: see
-        :func:`~imitrl.runtime.device.resolve_device`; None: left where it is); returns
+        :func:`~imitrl.system.device.resolve_device`; None: left where it is); returns
         ``self``. Its optimizers keep their parameters (moved in place), so call it
         before the first step, as the builders' ``device=`` does."""
         if device is None:

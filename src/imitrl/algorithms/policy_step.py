@@ -8,17 +8,15 @@ with ``a_t`` the expert's label.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
 
 from imitrl import keys
+from imitrl.learners.actor_critic import ActorCritic
 from imitrl.objectives.bc import BehaviorCloningLoss
-
-if TYPE_CHECKING:  # policies import the losses: no runtime import back
-    from imitrl.policies.actor_critic import ActorCritic
 
 __all__ = ["policy_step"]
 

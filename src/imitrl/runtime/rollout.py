@@ -3,7 +3,7 @@
 :func:`rollout_episodes` plays episodes by the one rollout loop
 (:func:`imitrl.runtime.loop.play`: lanes under round-robin quotas, so that the sample is
 not biased towards short episodes, and a per-episode step bound) and keeps every
-transition as demonstration rows; :func:`~imitrl.data.returns.episode_returns` (its own
+transition as demonstration rows; :func:`~imitrl.runtime.returns.episode_returns` (its own
 module) plays them by the same loop and keeps only per-episode summaries (cheap for 1e5+
 episodes). Both take an :class:`~imitrl.policies.Expert` (it drives the env through
 ``as_actor()``, its labels cast to the env's action spec) or any policy module.
@@ -32,7 +32,6 @@ from imitrl.data.chunks import IS_INIT
 from imitrl.policies.experts import Expert
 from imitrl.rng import rng_from
 from imitrl.runtime import paths
-from imitrl.runtime.device import acting
 from imitrl.runtime.loop import (
     NEXT_KEYS,
     OPTIONAL_ROW_KEYS,
@@ -41,6 +40,7 @@ from imitrl.runtime.loop import (
     play,
     policy_errors_named,
 )
+from imitrl.system.device import acting
 
 __all__ = [
     "NEXT_KEYS",
@@ -68,7 +68,7 @@ def rollout_policy(
     labels are cast to it) and drives the env through ``as_actor()``; it acts
     deterministically, so ``exploration`` None means ``DETERMINISTIC``. Any other
     module runs as given (on another device than the env's: through
-    :class:`~imitrl.runtime.device.OnDevice`) and ``exploration`` must be stated.
+    :class:`~imitrl.system.device.OnDevice`) and ``exploration`` must be stated.
     """
     if isinstance(policy, Expert):
         policy.bind(_action_spec(env))
@@ -83,7 +83,7 @@ def rollout_policy(
             "RANDOM: sampled); only an Expert may leave it out"
         )
     # a learner on another device than the env (a GPU): its inputs cross there and its
-    # actions back, once per step (imitrl.runtime.device); on the CPU the module itself
+    # actions back, once per step (imitrl.system.device); on the CPU the module itself
     return acting(policy, env.device), exploration
 
 

@@ -24,21 +24,18 @@ choosing the same mode at every replan); ``DETERMINISTIC`` starts from ``x_0 = 0
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
 
 import torch
-from tensordict import TensorDict, TensorDictBase
+from tensordict import TensorDictBase
 from tensordict.nn import InteractionType, TensorDictModuleBase
 from tensordict.nn.probabilistic import interaction_type
-from tensordict.utils import NestedKey
 from torch import nn
 from torchrl.data import Bounded
 
 from imitrl import keys
-from imitrl.objectives.base import ImitationLoss
 from imitrl.policies.normalization import ObservationNormalizer
 
-__all__ = ["FlowMatchingLoss", "FlowPolicy", "VelocityNetwork"]
+__all__ = ["FlowPolicy", "VelocityNetwork"]
 
 
 class VelocityNetwork(nn.Module):
@@ -140,60 +137,3 @@ class FlowPolicy(TensorDictModuleBase):
         x = self.sample(obs, x0).clamp(-1.0, 1.0)
         tensordict.set(keys.ACTION, self.low + (self.high - self.low) * (x + 1) / 2)
         return tensordict
-
-
-class FlowMatchingLoss(ImitationLoss):
-    """The conditional flow-matching loss of a :class:`FlowPolicy` (module docstring).
-
-    Args:
-        policy: the flow policy trained.
-        chunked: labels are chunks ``[N, H, m]`` under ``EXPERT_CHUNK`` with the padding
-            mask ``[N, H]`` under ``CHUNK_PAD`` (:func:`imitrl.data.add_chunk_labels`);
-            False: actions ``[N, m]`` under ``EXPERT_ACTION``.
-        seed: seed of the loss's draws (``x_0`` and ``t``).
-
-    Keys (``set_keys``): ``observation``, ``label``, ``pad``. Returns ``loss_flow``.
-    """
-
-    @dataclass
-    class _AcceptedKeys:
-        observation: NestedKey = keys.OBSERVATION
-        label: NestedKey = keys.EXPERT_ACTION
-        pad: NestedKey | None = None
-
-    default_keys = _AcceptedKeys
-    tensor_keys: _AcceptedKeys
-    out_keys = ["loss_flow"]
-
-    def __init__(self, policy: FlowPolicy, *, chunked: bool = False, seed: int = 0) -> None:
-        if not isinstance(policy, FlowPolicy):
-            raise ValueError(f"expected a FlowPolicy, got {type(policy).__name__}")
-        super().__init__()
-        self.policy = policy
-        if chunked:
-            from imitrl.data.chunks import CHUNK_PAD, EXPERT_CHUNK
-
-            self.set_keys(label=EXPERT_CHUNK, pad=CHUNK_PAD)
-        self.generator = torch.Generator().manual_seed(int(seed))
-
-    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        obs = tensordict.get(self.tensor_keys.observation)
-        label = tensordict.get(self.tensor_keys.label)
-        n, d = label.shape[0], self.policy.low.shape[0]
-        if not label.dtype.is_floating_point or label[0].numel() != d:
-            raise ValueError(
-                f"flow labels under {self.tensor_keys.label!r} must be float with {d} entries "
-                f"per row, got {label.dtype} {tuple(label.shape)}"
-            )
-        x1 = self.policy.normalize(label.reshape(n, d))
-        x0 = torch.randn(n, d, generator=self.generator).to(x1.device)  # CPU draws: any device
-        t = torch.rand(n, 1, generator=self.generator).to(x1.device)
-        v = self.policy.velocity((1 - t) * x0 + t * x1, obs, t)
-        err = (v - (x1 - x0)) ** 2  # [N, d]
-        if self.tensor_keys.pad is None:
-            loss = err.mean()
-        else:  # [N, H] -> [N, H * m]: padded entries of a chunk carry no weight
-            keep = (~tensordict.get(self.tensor_keys.pad)).float()
-            keep = keep.repeat_interleave(d // keep.shape[-1], dim=-1)
-            loss = (err * keep).sum() / keep.sum().clamp_min(1.0)
-        return TensorDict({"loss_flow": loss}, batch_size=[])

@@ -37,12 +37,12 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules import ProbabilisticActor
 
 from imitrl import keys
+from imitrl.learners.defaults import NETWORK_LR, TABLE_LR
+from imitrl.learners.learner import Learner
 from imitrl.objectives.base import ImitationLoss
 from imitrl.objectives.bc import BehaviorCloningLoss
-from imitrl.objectives.defaults import NETWORK_LR, TABLE_LR
 from imitrl.policies.distributions import GreedyCategorical
 from imitrl.policies.heads import HEAD_LOSSES, HEADS, OneHotInput, build_head, check_head, mlp
-from imitrl.policies.learner import Learner
 from imitrl.policies.modules import Module, Value
 from imitrl.policies.normalization import ObservationNormalizer
 from imitrl.policies.observations import read_observations
@@ -54,7 +54,7 @@ from imitrl.policies.specs import (
     observation_space,
 )
 from imitrl.rng import rng_from
-from imitrl.runtime.device import to_device
+from imitrl.system.device import to_device
 
 __all__ = ["HEADS", "HEAD_LOSSES", "ActorCritic"]
 
@@ -210,7 +210,7 @@ class ActorCritic(Learner):
             normalize: normalise vector observations by the demonstrations' mean and
                 standard deviation (fitted at the first ``fit_bc``).
             device: where the learner computes (None: the CPU; ``"auto"``, ``"cuda:N"``:
-                :func:`~imitrl.runtime.device.resolve_device`); initialised on the CPU
+                :func:`~imitrl.system.device.resolve_device`); initialised on the CPU
                 with ``seed`` first, so every device starts from the same weights.
         """
         obs, space = observation_space(observation), action_space(action)

@@ -21,11 +21,11 @@ from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from tqdm.auto import tqdm
 
-from imitrl.data.rollout import _seeded, init_tracked, rollout_policy
 from imitrl.policies.experts import Expert
 from imitrl.rng import rng_from
 from imitrl.runtime import paths
 from imitrl.runtime.loop import Lanes, Stepper, play
+from imitrl.runtime.rollout import _seeded, init_tracked, rollout_policy
 
 __all__ = ["EpisodeSummary", "SuccessFn", "episode_returns"]
 
