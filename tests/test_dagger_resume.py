@@ -134,3 +134,21 @@ def test_imitrl_dagger_resume_after_a_kill_gives_the_uninterrupted_results(tmp_p
     resumed = json.loads((killed / "results.json").read_text())
     for key in ("rounds", "learner", "expert", "final_loss"):
         assert resumed[key] == whole[key], key
+
+
+@pytest.mark.parametrize("kind", ["cartpole", "lake"])
+def test_a_finished_run_resumed_with_more_rounds_equals_the_longer_run(tmp_path, kind):
+    """A run saved at its last round (which collects nothing), resumed with more rounds:
+    the missing relabel episodes are played first, so the result is the longer run's,
+    to the bit (was: the grown rounds refitted the same rows)."""
+    import dataclasses
+
+    from imitrl.algorithms import dagger
+
+    ckpt = tmp_path / "run"
+    source, expert, make_learner, buffer, config = _resume_run.build(kind)
+    short = dataclasses.replace(config, rounds=2)
+    dagger(source, expert, make_learner, buffer, short, checkpoint_dir=ckpt)
+    source, expert, make_learner, buffer, config = _resume_run.build(kind)
+    grown = dagger(source, expert, make_learner, buffer, config, checkpoint_dir=ckpt, resume=True)
+    _assert_identical(_fingerprint(kind, grown), _reference(kind))

@@ -256,7 +256,7 @@ def _kill_at(point: str, path: str) -> None:
         "mid write": [(_v3_files, "_write_stats", die)],
         "written, not moved": [(publish, "swap_in", die)],
         "exchanged, old not removed": [(publish, "exchange", exchange_then_die)],
-        "old half removed": [(publish.shutil, "rmtree", rmtree_partly)],
+        "old half removed": [(publish, "remove_tree", rmtree_partly)],
         # where renameat2 is missing: two renames
         "old moved aside": [
             (publish, "exchange", lambda a, b: False),

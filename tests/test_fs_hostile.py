@@ -335,3 +335,118 @@ def test_a_full_disk_or_a_read_only_folder_under_out_is_one_line(tmp_path):
     status, err = got["read_only"]
     assert status == 1 and err.count("\n") == 1 and "read-only file system" in err, err
     assert "read-only file system" in got["save_lerobot"], got["save_lerobot"]
+
+
+# ------------------------------------- the outside review of the first fixes (round 2)
+DAGGER = ["dagger", *TINY, "--episodes-per-round", "1"]
+
+
+@pytest.mark.parametrize("where", ["finished", "unfinished"])
+def test_resume_never_writes_through_a_link_planted_in_the_run(tmp_path, where):
+    """A finished run whose files are links out (copied for --resume), or a staging folder
+    a repository committed with links in it (continued as it is): refused, naming the
+    link; the files the links point to untouched."""
+    out = tmp_path / "d"
+    assert run([*DAGGER, "--rounds", "2", "--out", str(out)])[0] == 0
+    victim = tmp_path / "victim"
+    victim.write_bytes(SECRET)
+    folder = out
+    if where == "unfinished":
+        folder = staging_folder(out)
+        shutil.copytree(out, folder)
+        shutil.rmtree(out)
+        (folder / "results.json").unlink()
+    (folder / "config.json").unlink()
+    os.symlink(victim, folder / "config.json")
+    status, _, err = run([*DAGGER, "--rounds", "3", "--out", str(out), "--resume"])
+    assert status == 2 and "config.json" in err and "symbolic link" in err, err
+    assert victim.read_bytes() == SECRET
+    os.unlink(folder / "config.json")
+    os.mkfifo(folder / "config.json")  # a FIFO is refused the same way (was shutil.Error)
+    status, _, err = run([*DAGGER, "--rounds", "3", "--out", str(out), "--resume"])
+    assert status == 2 and err.count("\n") == 1 and "special file" in err, err
+
+
+@pytest.mark.parametrize(
+    "files", [{"config.json": "{}", "logs/notes.txt": "mine"}, {"eval.json": "{}"}]
+)
+def test_a_folder_without_a_finished_run_is_never_replaced(tmp_path, files):
+    out = tmp_path / "proj"
+    for name, text in files.items():
+        (out / name).parent.mkdir(parents=True, exist_ok=True)
+        (out / name).write_text(text)
+    for extra in ([], ["--overwrite"]):
+        status, _, err = run(["bc", *TINY, "--out", str(out), *extra])
+        assert status == 2 and "never deletes them" in err, err
+    assert {str(p.relative_to(out)): p.read_text() for p in out.rglob("*") if p.is_file()} == files
+
+
+def test_an_older_killed_dagger_run_in_out_is_continued_by_resume_not_discarded(tmp_path):
+    """A DAgger checkpoint ``run/`` left in --out itself (an older imitrl wrote there
+    directly) is refused without --resume and continued by it from its last round."""
+    out = tmp_path / "x"
+    assert run([*DAGGER, "--rounds", "2", "--out", str(out)])[0] == 0
+    for name in ("results.json", "curves.png", "learner.pt", "config.json"):
+        (out / name).unlink()  # what a killed run of the older layout left
+    status, _, err = run([*DAGGER, "--rounds", "3", "--out", str(out)])
+    assert status == 2, err
+    status, _, err = run([*DAGGER, "--rounds", "3", "--out", str(out), "--resume"])
+    assert status == 0, err
+    rounds = json.loads((out / "results.json").read_text())["rounds"]
+    assert [r["round"] for r in rounds] == [0, 1, 2]
+    whole = tmp_path / "whole"
+    assert run([*DAGGER, "--rounds", "3", "--out", str(whole)])[0] == 0
+    assert rounds == json.loads((whole / "results.json").read_text())["rounds"]
+
+
+def test_a_replaced_run_a_kill_left_at_the_staging_name_is_never_resumed(tmp_path, monkeypatch):
+    """Killed right after the exchange: the replaced (older) run lies at the staging
+    name. The next --resume removes it and continues the newer run in --out."""
+    from imitrl.jobs import output
+
+    out = tmp_path / "x"
+    assert run([*DAGGER, "--rounds", "2", "--out", str(out)])[0] == 0
+    older = tmp_path / "older"
+    shutil.copytree(out, older)
+
+    def killed(stage: Path, target: Path) -> None:  # exchanged, then the process "dies"
+        output.swap_in(stage, target)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(output, "_publish", killed)
+    assert run([*DAGGER, "--rounds", "3", "--out", str(out), "--resume"])[0] == 130
+    monkeypatch.undo()
+    assert (staging_folder(out) / "results.json").is_file()  # the older run, 2 rounds
+    status, _, err = run([*DAGGER, "--rounds", "4", "--out", str(out), "--resume"])
+    assert status == 0, err
+    rows = [r["rows_trained"] for r in json.loads((out / "results.json").read_text())["rounds"]]
+    whole = tmp_path / "whole"
+    assert run([*DAGGER, "--rounds", "4", "--out", str(whole)])[0] == 0
+    expected = json.loads((whole / "results.json").read_text())["rounds"]
+    assert rows == [r["rows_trained"] for r in expected]
+    assert not staging_folder(out).exists()
+
+
+def test_planted_leftovers_deep_folders_and_odd_out_paths_are_one_line(tmp_path):
+    from imitrl.fs.contained import links_stay_inside
+
+    out = tmp_path / "out"
+    out.parent.mkdir(exist_ok=True)
+    victim = tmp_path / "victim"
+    victim.mkdir()
+    (victim / "keep").write_text("kept")
+    os.symlink(victim, tmp_path / ".out.imitrl-tmp-abc")  # a link at a leftover's name
+    status, _, err = run(["bc", *TINY, "--out", str(out)])
+    assert status == 2 and err.count("\n") == 1 and ".out.imitrl-tmp-abc" in err, err
+    assert (victim / "keep").read_text() == "kept"
+    deep = tmp_path / "ds"
+    try:
+        subprocess.run(["mkdir", "-p", str(deep / Path(*["d"] * 1500))], check=True)
+        links_stay_inside(deep)  # no RecursionError: the walk is a loop
+    finally:
+        subprocess.run(["rm", "-rf", str(deep)], check=True)
+    (tmp_path / "afile").write_text("x")
+    os.mkfifo(tmp_path / "fifo")
+    for bad in (tmp_path / "afile" / "x", tmp_path / "fifo" / "x", Path("/proc/1/x")):
+        status, _, err = run(["bc", *TINY, "--out", str(bad)])
+        assert status == 2 and err.count("\n") == 1 and "Traceback" not in err, (bad, err)

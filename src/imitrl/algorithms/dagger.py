@@ -337,6 +337,12 @@ def _run(
             record_cls=RoundRecord, mixer_generator=coins, source=source,
         )  # fmt: skip
     learner = run.learner
+    last = run.records[-1] if run.records else None
+    if last is not None and last.beta_next is None and run.next_round < config.rounds:
+        # the saved run ended at its last round, which collects nothing; its rounds grew:
+        # that round's relabel episodes now, as an uninterrupted run would have played them
+        assert learner is not None
+        _collect(run.next_round - 1, learner, expert, mixer, source, buffer, config, last)
     rounds = range(run.next_round, config.rounds)
     for k in tqdm(rounds, desc="dagger", disable=not progress, leave=False):
         if learner is None or not config.warm_start:

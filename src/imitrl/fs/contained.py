@@ -25,7 +25,10 @@ A refusal is a ``ValueError`` naming the folder, the offending name and who name
 from __future__ import annotations
 
 import os
+import stat
 from pathlib import Path, PurePosixPath
+
+from imitrl.fs.files import walk_tree
 
 __all__ = ["check_relative", "inside", "links_stay_inside", "plain_name", "trusted_bases"]
 
@@ -112,15 +115,13 @@ def links_stay_inside(root: str | Path, *, what: str = "dataset") -> None:
     target lies outside it (or outside its hub repository, for a snapshot). Links are not
     followed into folders: each link is checked where it is."""
     bases = trusted_bases(root)
-    for folder, dirs, files in os.walk(root, followlinks=False):
-        for name in (*dirs, *files):
-            path = Path(folder, name)
-            if not path.is_symlink():
-                continue
-            real = Path(os.path.realpath(path))
-            if not _within(real, bases):
-                raise ValueError(
-                    f"{path}: a symbolic link out of the {what} folder (to {real}); a "
-                    f"downloaded {what} may only link to its own files (copy the files in, "
-                    "or point to the folder itself)"
-                )
+    for path, st in walk_tree(root):  # no recursion: any depth of folders
+        if not stat.S_ISLNK(st.st_mode):
+            continue
+        real = Path(os.path.realpath(path))
+        if not _within(real, bases):
+            raise ValueError(
+                f"{path}: a symbolic link out of the {what} folder (to {real}); a "
+                f"downloaded {what} may only link to its own files (copy the files in, "
+                "or point to the folder itself)"
+            )

@@ -24,17 +24,26 @@ import errno
 import os
 import secrets
 import stat
+from collections.abc import Iterator
 from pathlib import Path
 
 __all__ = [
+    "WRITE_REFUSALS",
     "PlantedLinkError",
+    "check_plain_tree",
     "check_regular",
     "create_file",
     "make_folder",
     "new_sibling",
     "open_own",
+    "remove_tree",
     "replace_file",
+    "walk_tree",
 ]
+
+WRITE_REFUSALS = {errno.ENOSPC, getattr(errno, "EDQUOT", errno.ENOSPC), errno.EACCES,
+                   errno.EPERM, errno.EROFS}  # fmt: skip
+"""errors :mod:`imitrl.fs.write_errors` names (a full disk, a folder that cannot be written)"""
 
 _CREATE = os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | getattr(os, "O_CLOEXEC", 0)
 
@@ -136,8 +145,9 @@ def open_own(path: str | Path, *, what: str = "a file") -> int:
 
 def make_folder(path: str | Path) -> Path:
     """``path`` and its missing parents as folders (the user's umask); an existing folder
-    is kept. FileExistsError when ``path`` is a file; PlantedLinkError when it is a link
-    to a folder (a dangling link makes ``mkdir`` fail too)."""
+    is kept. ValueError when ``path`` or a folder above it is a file, or the system cannot
+    make it (``/proc``); PlantedLinkError when it is a link to a folder (a dangling link
+    makes ``mkdir`` fail too); a full disk or a read-only folder raises its ``OSError``."""
     path = Path(path)
     if path.is_symlink():
         raise _planted(path, "a folder")
@@ -151,7 +161,13 @@ def make_folder(path: str | Path) -> Path:
             os.mkdir(folder, 0o777)
         except FileExistsError:
             if not os.path.isdir(folder):
-                raise
+                raise ValueError(
+                    f"{folder} is a file, not a folder: {path} cannot be made"
+                ) from None
+        except OSError as err:
+            if err.errno in WRITE_REFUSALS:
+                raise  # a full disk or a read-only folder: imitrl.fs.write_errors names it
+            raise ValueError(f"cannot create the folder {folder} ({err.strerror})") from None
     return path
 
 
@@ -166,3 +182,57 @@ def new_sibling(target: Path, mark: str) -> Path:
             continue
         return candidate
     raise FileExistsError(errno.EEXIST, "no free name for a staging folder", str(target))
+
+
+def walk_tree(root: str | Path) -> Iterator[tuple[Path, os.stat_result]]:
+    """Every entry under ``root`` (not ``root`` itself), with its ``lstat``, parents before
+    children; links are reported, never followed. Without recursion: a tree thousands of
+    folders deep (a hostile download) is walked like any other (``os.walk`` and
+    ``shutil.rmtree`` recurse per folder on Python 3.11)."""
+    todo = [Path(root)]
+    while todo:
+        folder = todo.pop()
+        with os.scandir(folder) as entries:
+            found = sorted(entries, key=lambda e: e.name)
+        for entry in found:
+            path = Path(entry.path)
+            st = entry.stat(follow_symlinks=False)
+            yield path, st
+            if stat.S_ISDIR(st.st_mode):
+                todo.append(path)
+
+
+def remove_tree(root: str | Path) -> None:
+    """Remove ``root`` and everything under it, without recursion (:func:`walk_tree`) and
+    without following a link (a link is removed itself, never its target); a missing
+    ``root`` is fine, a ``root`` that is a link is refused (:class:`PlantedLinkError`)."""
+    root = Path(root)
+    if not os.path.lexists(root):
+        return
+    if root.is_symlink():
+        raise _planted(root, "a folder it removes")
+    folders = [root]
+    for path, st in walk_tree(root):
+        if stat.S_ISDIR(st.st_mode):
+            folders.append(path)
+        else:
+            path.unlink()
+    for folder in reversed(folders):  # children before their parents
+        os.rmdir(folder)
+
+
+def check_plain_tree(root: str | Path, *, what: str) -> None:
+    """Refuse (:class:`PlantedLinkError`, naming it) a tree under ``root`` that holds a
+    symbolic link, a hard link to another file, a FIFO or a device: a folder imitrl wrote
+    holds plain folders and regular files only, so one it continues (a run resumed, a
+    finished run copied) may be written without any write going through a link."""
+    for path, st in walk_tree(root):
+        if stat.S_ISDIR(st.st_mode) or (stat.S_ISREG(st.st_mode) and st.st_nlink <= 1):
+            continue
+        if stat.S_ISLNK(st.st_mode):
+            raise _planted(path, what)
+        kind = "a hard link to another file" if stat.S_ISREG(st.st_mode) else "a special file"
+        raise PlantedLinkError(
+            f"{path}: {kind} inside {what}; a folder imitrl wrote holds regular files only: "
+            "remove it, or choose another folder"
+        )

@@ -27,7 +27,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-from imitrl.fs.files import PlantedLinkError, check_regular, make_folder
+from imitrl.fs.files import WRITE_REFUSALS, PlantedLinkError, check_regular, make_folder
 from imitrl.fs.write_errors import reporting_disk_full
 
 try:
@@ -113,7 +113,14 @@ def exclusive(
     try:
         with reporting_disk_full(target, what="files", left="nothing was written"):
             make_folder(target.parent)
-            fd = _acquire(target, what, deadline)
+            try:
+                fd = _acquire(target, what, deadline)
+            except OSError as err:
+                if err.errno in WRITE_REFUSALS:
+                    raise
+                raise ValueError(
+                    f"{target} cannot be written there ({err.strerror}: {err.filename})"
+                ) from None
     except BaseException:
         with _guard:
             del _held[target]

@@ -44,13 +44,12 @@ import errno
 import os
 import re
 import secrets
-import shutil
 import warnings
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-from imitrl.fs.files import new_sibling
+from imitrl.fs.files import new_sibling, remove_tree
 from imitrl.fs.lock import absolute, exclusive
 from imitrl.fs.write_errors import reporting_disk_full
 
@@ -79,10 +78,12 @@ def recover(target: Path) -> None:
     """Finish or undo what a killed writer of ``target`` left (the lock is held)."""
     done: list[str] = []
     for tmp in _leftovers(target, TMP):
-        shutil.rmtree(tmp)
+        remove_tree(tmp)  # a link planted at the name is refused (PlantedLinkError)
         done.append(f"removed {tmp.name} (an unfinished write, or what a finished one replaced)")
     olds = _leftovers(target, OLD)
     if olds and not os.path.lexists(target):
+        if olds[0].is_symlink():
+            remove_tree(olds[0])  # refused, naming it
         if len(olds) > 1:
             raise ValueError(
                 f"{target} is missing and several earlier versions lie beside it "
@@ -92,7 +93,7 @@ def recover(target: Path) -> None:
         done.append(f"moved {olds[0].name} back to {target.name} (a replacement cut short)")
     else:
         for old in olds:
-            shutil.rmtree(old)
+            remove_tree(old)
             done.append(f"removed {old.name} (replaced by a finished write)")
     if done:
         warnings.warn(
@@ -166,7 +167,7 @@ def swap_in(tmp: Path, target: Path) -> None:
     except BaseException:
         os.rename(old, target)
         raise
-    shutil.rmtree(old)
+    remove_tree(old)
 
 
 @contextmanager
@@ -209,4 +210,4 @@ def publishing(
             fsync_dir(target.parent)
         finally:
             if tmp.exists():
-                shutil.rmtree(tmp, ignore_errors=True)
+                remove_tree(tmp)

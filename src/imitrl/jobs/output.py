@@ -10,10 +10,14 @@ checkpoint writer of this library does. So:
 * ``--out`` holds only finished runs (``results.json`` is their mark), so a failed or
   killed run never blocks its own rerun;
 * ``--out`` absent or empty: the run is published there;
-* ``--out`` holding a finished run: refused unless ``--overwrite`` (it is replaced when
-  the new run finishes) or, for ``imitrl dagger``, ``--resume`` (the saved run continues);
-* ``--out`` holding anything else (a user's files): refused, with or without
-  ``--overwrite``: a run never deletes what it did not write.
+* ``--out`` holding a finished run (its ``results.json``): refused unless ``--overwrite``
+  (it is replaced when the new run finishes) or, for ``imitrl dagger``, ``--resume`` (the
+  saved run continues);
+* ``--out`` holding anything else (a user's files, an ``eval.json``, a run's files
+  without ``results.json``): refused, with or without ``--overwrite``: a run never
+  deletes what it did not finish. (A DAgger checkpoint ``run/`` left there by a killed
+  run of an older imitrl, which wrote into ``--out`` directly, is continued by
+  ``--resume``.)
 
 The staging folder of a run that did not finish is removed by the next run of the same
 ``--out`` (with a warning), except when it holds a DAgger checkpoint (``run/``): that is
@@ -24,7 +28,11 @@ saved work, so the next run is refused unless ``--resume`` (it continues there) 
 The run holds ``--out``'s lock (:func:`imitrl.fs.exclusive`) from the check to the
 exchange, so a second run given the same ``--out`` is refused at once. The staging
 folder is made with the user's umask; a planted symbolic link at it, at ``--out`` or at
-the lock is refused, naming it (:mod:`imitrl.fs.files`). (``imitrl frozenlake`` stages
+the lock is refused, naming it, and a folder a run continues (``--resume``) must hold
+plain folders and regular files only (:func:`imitrl.fs.files.check_plain_tree`), so none
+of its writes goes through a link. Once exchanged, the replaced run is renamed to a
+temporary name before it is removed: a kill then never leaves it where ``--resume``
+would continue it. (``imitrl frozenlake`` stages
 its output the same way: :mod:`imitrl.experiments.frozenlake.outputs`.)
 """
 
@@ -32,6 +40,7 @@ from __future__ import annotations
 
 import os
 import re
+import secrets
 import shutil
 import sys
 import warnings
@@ -39,7 +48,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-from imitrl.fs.files import PlantedLinkError
+from imitrl.fs.files import PlantedLinkError, check_plain_tree, remove_tree
 from imitrl.fs.lock import LOCK_SUFFIX, absolute, exclusive
 from imitrl.fs.publish import OLD, TMP, fsync_dir, recover, swap_in
 from imitrl.fs.write_errors import DiskFullError, reporting_disk_full
@@ -76,43 +85,51 @@ def _entries(folder: Path, name: str) -> list[str]:
             f"{name} {folder} is a symbolic link (to {os.readlink(folder)}); a run writes "
             "only into a folder of its own: give a folder"
         )
-    if folder.exists() and not folder.is_dir():
+    if os.path.lexists(folder) and not folder.is_dir():
         raise ValueError(f"{name} {folder} is not a folder (a file): give a folder")
     return sorted(os.listdir(folder)) if folder.is_dir() else []
 
 
-def _check(out: Path, overwrite: bool, resume: bool) -> bool:
-    """Apply the module's rule to ``--out``; whether it holds a finished run."""
+def _check(out: Path, overwrite: bool, resume: bool) -> str | None:
+    """Apply the module's rule to ``--out``: what it holds that a run may continue or
+    replace (``"finished"``, ``"unfinished"``: an older imitrl's killed DAgger run), or
+    None (absent or empty)."""
     entries = _entries(out, "--out")
     if not entries:
-        return False
+        return None
     foreign = [e for e in entries if e not in RUN_FILES and not _LEFTOVER.fullmatch(e)]
-    if foreign:
-        raise ValueError(
-            f"--out {out} holds files an imitrl run did not write ({', '.join(foreign[:5])}); "
-            "a run never deletes them: give another --out"
-        )
     finished = FINISHED in entries
+    old_layout = not finished and "run" in entries and resume  # a killed older run
+    if foreign or not (finished or old_layout):
+        shown = ", ".join((foreign or entries)[:5])
+        raise ValueError(
+            f"--out {out} holds files no finished imitrl run left there ({shown}); a run "
+            "never deletes them: give another --out"
+        )
     if finished and not (overwrite or resume):
         more = ", --resume to continue it" if "run" in entries else ""
         raise ValueError(
-            f"--out {out} holds a previous run, finished ({', '.join(entries)}): pass --overwrite to "
-            f"replace it (it stays whole until the new run finishes){more}, or give another "
-            "--out"
+            f"--out {out} holds a previous run, finished ({', '.join(entries)}): pass "
+            f"--overwrite to replace it (it stays whole until the new run finishes){more}, "
+            "or give another --out"
         )
-    return finished
+    return "finished" if finished else "unfinished"
 
 
 def _resumable(stage: Path) -> bool:
     return (stage / "run").is_dir()
 
 
-def _stage(out: Path, overwrite: bool, resume: bool, finished: bool) -> Path:
+def _stage(out: Path, overwrite: bool, resume: bool, held: str | None) -> Path:
     """The folder the run writes into (module docstring)."""
     stage = staging_folder(out)
     left = _entries(stage, "the staging folder")
-    if os.path.lexists(stage):
+    if FINISHED in left:  # a replaced run a kill caught before its removal: never resumed
+        remove_tree(stage)
+        left = []
+    elif os.path.lexists(stage):
         if resume:
+            check_plain_tree(stage, what="the unfinished run")  # no write through a link
             print(f"imitrl: continuing the unfinished run in {stage}", file=sys.stderr)
             return stage
         if _resumable(stage) and not overwrite:
@@ -121,15 +138,16 @@ def _stage(out: Path, overwrite: bool, resume: bool, finished: bool) -> Path:
                 f"lies in {stage}: pass --resume to continue it, --overwrite to discard it, or "
                 "give another --out"
             )
-        shutil.rmtree(stage)
+        remove_tree(stage)
         warnings.warn(
             f"{out}: removed an unfinished run's files ({', '.join(left) or 'empty'}) from "
             f"{stage.name}: it was killed or failed",
             UserWarning,
             stacklevel=4,
         )
-    if resume and finished and (out / "run").is_dir():
-        shutil.copytree(out, stage, symlinks=True)  # the finished run continues, a copy
+    if resume and held is not None and (out / "run").is_dir():
+        check_plain_tree(out, what=f"--out {out}")  # links and FIFOs are never copied
+        shutil.copytree(out, stage)  # the run continues in a copy; --out stays as it is
     else:
         os.mkdir(stage, 0o777)  # the user's umask, as the published run keeps
     return stage
@@ -138,9 +156,18 @@ def _stage(out: Path, overwrite: bool, resume: bool, finished: bool) -> Path:
 def _publish(stage: Path, out: Path) -> None:
     fsync_dir(stage)
     swap_in(stage, out)  # ``out`` absent: a rename; present: an atomic exchange
-    if stage.exists():  # the replaced run, now at the staging name
-        shutil.rmtree(stage)
+    if os.path.lexists(stage):  # the replaced run, now at the staging name: renamed to a
+        gone = out.parent / f".{out.name}{TMP}{secrets.token_hex(6)}"  # name --resume
+        os.rename(stage, gone)  # never continues (publish.recover removes it if killed)
+        remove_tree(gone)
     fsync_dir(out.parent)
+
+
+def _check_parents(out: Path) -> None:
+    """Each existing folder above ``out`` is a folder (one line otherwise, exit 2)."""
+    for parent in reversed(out.parents):
+        if os.path.lexists(parent) and not parent.is_dir():
+            raise ValueError(f"--out {out} is under {parent}, which is not a folder: give a folder")
 
 
 @contextmanager
@@ -156,6 +183,7 @@ def claimed(out: Path, *, overwrite: bool, resume: bool = False) -> Iterator[Pat
             run's files; ``out`` is as it was.
     """
     out = absolute(out)  # a path this system can write (its length checked)
+    _check_parents(out)
     made = [p for p in (out, *out.parents) if not p.exists()]  # deepest first
     stage: Path | None = None
     try:
@@ -164,8 +192,8 @@ def claimed(out: Path, *, overwrite: bool, resume: bool = False) -> Iterator[Pat
             reporting_disk_full(out, what="the run's files", left="--out is as it was"),
         ):
             recover(out)  # a killed exchange of an earlier run (imitrl.fs.publish)
-            finished = _check(out, overwrite, resume)
-            stage = _stage(out, overwrite, resume, finished)
+            held = _check(out, overwrite, resume)
+            stage = _stage(out, overwrite, resume, held)
             yield stage
             _publish(stage, out)
     except BaseException as err:
@@ -176,8 +204,8 @@ def claimed(out: Path, *, overwrite: bool, resume: bool = False) -> Iterator[Pat
 def _clean_up(stage: Path | None, made: list[Path], err: BaseException) -> None:
     """After a failed or refused run: its staging folder goes, unless it holds a DAgger
     checkpoint (saved work, continued by ``--resume``); folders made for it go if empty."""
-    if stage is not None and stage.is_dir() and not _resumable(stage):
-        shutil.rmtree(stage, ignore_errors=True)
+    if stage is not None and stage.is_dir() and not stage.is_symlink() and not _resumable(stage):
+        remove_tree(stage)
     elif stage is not None and stage.is_dir() and not isinstance(err, DiskFullError):
         print(f"imitrl: the unfinished run is kept in {stage} (--resume continues it)",
               file=sys.stderr)  # fmt: skip
