@@ -2,7 +2,7 @@
 
 1. MLP minibatch fit (the target: imitrl >= 0.95x the plain loop's samples/s): a
    categorical MLP on vector observations, Adam, cross-entropy, minibatches drawn
-   without replacement. imitrl runs `fit_bc` with `ActorCritic.mlp` (observations
+   without replacement. imitrl runs `fit_bc` with `build("for_env", ...)`'s MLP (observations
    normalised inside the network, the library's default) through the learner's loss;
    the plain loop is the same network, normalisation included, and optimizer written
    directly.
@@ -34,7 +34,7 @@ from imitrl import keys
 from imitrl.algorithms import BCConfig, DAggerConfig, dagger, fit_bc
 from imitrl.data import DemonstrationBuffer
 from imitrl.envs import GymnasiumStream, GymnasiumStreamSource, TabularEnv
-from imitrl.learners import ActorCritic
+from imitrl.learners import TaskSpec, build
 from imitrl.policies import BetaMixer, Expert, behaviour_policy
 from imitrl.tabular import greedy
 
@@ -116,7 +116,9 @@ def plain_mlp(cfg: Config, data: TensorDict) -> float:
 
 
 def imitrl_mlp(cfg: Config, data: TensorDict) -> float:
-    learner = ActorCritic.mlp(cfg.obs_dim, cfg.num_actions, hidden=cfg.hidden, lr=1e-3)
+    learner = build(
+        "for_env", TaskSpec.from_specs(cfg.obs_dim, cfg.num_actions), hidden=cfg.hidden, lr=1e-3
+    )
     t0 = time.perf_counter()
     fit_bc(learner, data, BCConfig(num_steps=cfg.mlp_steps, batch_size=cfg.batch_size))
     return cfg.mlp_steps * cfg.batch_size / (time.perf_counter() - t0)
@@ -135,7 +137,9 @@ def imitrl_mlp_from_buffer(cfg: Config, data: TensorDict) -> float:
         capacity=n, batch_size=cfg.batch_size, generator=torch.Generator().manual_seed(0)
     )
     buf.extend(rows)
-    learner = ActorCritic.mlp(cfg.obs_dim, cfg.num_actions, hidden=cfg.hidden, lr=1e-3)
+    learner = build(
+        "for_env", TaskSpec.from_specs(cfg.obs_dim, cfg.num_actions), hidden=cfg.hidden, lr=1e-3
+    )
     learner.prepare(rows)  # what fit_bc does first: fit the observation normaliser
     t0 = time.perf_counter()
     for _ in range(cfg.mlp_steps):
@@ -163,7 +167,7 @@ def tabular_fits(cfg: Config) -> tuple[float, float, int]:
         loss.backward()
         opt.step()
     plain = cfg.tabular_steps / (time.perf_counter() - t0)
-    learner = ActorCritic.tabular(16, 4)
+    learner = build("cross_entropy", TaskSpec(action=4, num_states=16))
     t0 = time.perf_counter()
     fit_bc(learner, rows, BCConfig(num_steps=cfg.tabular_steps))
     lib = cfg.tabular_steps / (time.perf_counter() - t0)
@@ -190,7 +194,7 @@ def dagger_rounds(cfg: Config, source_kind: str) -> float:
         res = dagger(
             episodes,
             expert,
-            lambda: ActorCritic.tabular(16, 4),
+            lambda: build("cross_entropy", TaskSpec(action=4, num_states=16)),
             buf,
             DAggerConfig(rounds=4, episodes_per_round=3),
         )

@@ -69,7 +69,7 @@ from imitrl.experts import (
     inverted_pendulum_expert,
     pendulum_expert,
 )
-from imitrl.learners import ActorCritic
+from imitrl.learners import ActorCritic, build
 from imitrl.policies import HEADS
 
 NAME = "bc_vs_dagger"
@@ -156,21 +156,21 @@ def horizon(env_id: str, cfg: Config) -> int:
 
 def make_learner(env: EnvBase, task: Task, cfg: Config, seed: int) -> ActorCritic:
     """Fresh MLP for ``env``'s observation and action specs."""
-    return ActorCritic.for_env(
-        env, head=task.head, loss=task.loss, hidden=cfg.hidden, lr=cfg.lr, seed=seed
+    return build(
+        "for_env", env, head=task.head, loss=task.loss, hidden=cfg.hidden, lr=cfg.lr, seed=seed
     )
 
 
 def expert_table(experts: dict[str, Callable], cfg: Config) -> dict:
     """Expert and uniform-random returns over ``reference_episodes`` (one lane each)."""
     out = {}
-    for env_id, build in experts.items():
+    for env_id, make_expert in experts.items():
         n = cfg.reference_episodes
         env = make_env(
             env_id, seed=REFERENCE_SEED, num_envs=n, max_episode_steps=cfg.max_episode_steps
         )
         ref = reference_returns(
-            env, build(), n, seed=REFERENCE_SEED, max_steps=2 * horizon(env_id, cfg)
+            env, make_expert(), n, seed=REFERENCE_SEED, max_steps=2 * horizon(env_id, cfg)
         )
         env.close()
         out[env_id] = {}

@@ -59,7 +59,7 @@ from imitrl.algorithms import Constant, DAggerConfig, dagger
 from imitrl.algorithms.adversarial import AIRLConfig, GAILConfig, airl, gail
 from imitrl.data import DemonstrationBuffer
 from imitrl.envs import make_env
-from imitrl.learners import ActorCritic
+from imitrl.learners import ActorCritic, TaskSpec, build
 from imitrl.policies import as_actor
 from imitrl.tabular import success_probability
 from imitrl.tabular.maxent_irl import (
@@ -317,7 +317,7 @@ def lake_dagger_cell(seed: int, cfg: Config) -> dict:
     result = dagger(
         source(env, exploration=DET, max_steps=task.max_steps()),
         task.expert(),
-        lambda: ActorCritic.tabular(16, 4, lr=proto.learner.lr),
+        lambda: build("cross_entropy", TaskSpec(action=4, num_states=16), lr=proto.learner.lr),
         buffer,
         DAggerConfig(
             rounds=cfg.relabel_rounds + 1,
@@ -356,8 +356,15 @@ def lake_adversarial(seed: int, cfg: Config, budget: Adversarial) -> Adversarial
     env = TransformedEnv(task.env(seed=ADVERSARIAL_SEED + seed, lanes=1), OneHotObservation(S))
     buffer = DemonstrationBuffer(action_spec=env.action_spec_unbatched)
     buffer.extend(one_hot_rows(lake_demonstration(task, seed).data, S))
-    learner = ActorCritic.mlp(
-        S, 4, head="categorical", hidden=budget.hidden, lr=budget.lr, seed=seed, normalize=False
+    learner = build(
+        "for_env",
+        TaskSpec.from_specs(S, 4),
+        head="categorical",
+        hidden=budget.hidden,
+        lr=budget.lr,
+        seed=seed,
+        normalize=False,
+        value=True,  # PPO's critic
     )
 
     def score(learner: ActorCritic) -> float:
@@ -375,7 +382,9 @@ def gym_adversarial(
     buffer = bvd.demonstration(task, seed, bcfg)
     env = make_env(task_name, seed=ADVERSARIAL_SEED + seed, max_episode_steps=cfg.max_episode_steps)
     head = "categorical" if task.head == "categorical" else "tanh_normal"
-    learner = ActorCritic.for_env(env, head=head, hidden=budget.hidden, lr=budget.lr, seed=seed)
+    learner = build(
+        "for_env", env, head=head, hidden=budget.hidden, lr=budget.lr, seed=seed, value=True
+    )
     n, eval_seed = cfg.eval_episodes, bvd.EVAL_SEED + seed
     eval_env = make_env(
         task_name, seed=eval_seed, num_envs=n, max_episode_steps=cfg.max_episode_steps

@@ -1,6 +1,6 @@
 """Cameras: BC throughput on 84x84 pixels, and BC vs DAgger from pixels with a state expert.
 
-1. Throughput. ``fit_bc`` minibatch steps (batch 256) of ``ActorCritic.pixels`` on
+1. Throughput. ``fit_bc`` minibatch steps (batch 256) of ``build("for_env", ...)``'s CNN on
    uint8 ``[84, 84, 3]`` images (the default Nature CNN 32-64-64, MLP 256, a
    deterministic head on 2 bounded actions, MSE), against a plain torch loop of the same
    network (same layers, uint8 / 255 inside, Adam, MSE) on the same tensors. Samples/s,
@@ -52,7 +52,7 @@ from imitrl.algorithms import BCConfig, Constant, DAggerConfig, dagger, fit_bc
 from imitrl.data import DemonstrationBuffer
 from imitrl.envs.pixel_tasks import Hilltop, PixelBalanceEnv, balance_expert
 from imitrl.evaluation import t_interval
-from imitrl.learners import ActorCritic
+from imitrl.learners import ActorCritic, TaskSpec, build
 
 NAME = "camera"
 EVAL_SEED, SOURCE_SEED, MATCHED_SEED = 10_000, 1_000, 2_000
@@ -172,8 +172,8 @@ def plain_fit(cfg: Config, data: TensorDict) -> float:
 
 
 def imitrl_fit(cfg: Config, data: TensorDict) -> float:
-    """Samples/s of ``fit_bc`` with ``ActorCritic.pixels`` (its defaults) on the same rows."""
-    learner = ActorCritic.pixels((*cfg.image, 3), ACTION, lr=1e-3)
+    """Samples/s of ``fit_bc`` with ``build("for_env", ...)``'s CNN (its defaults) on the same rows."""
+    learner = build("for_env", TaskSpec.from_specs(None, ACTION, pixels=(*cfg.image, 3)), lr=1e-3)
     bc = BCConfig(num_steps=cfg.timed_steps, batch_size=cfg.batch_size)
     t0 = time.perf_counter()
     fit_bc(learner, data, bc)
@@ -198,7 +198,7 @@ def hilltop(cfg: Config, lanes: int, seed: int) -> PixelBalanceEnv:
 
 def make_learner(env: PixelBalanceEnv, cfg: Config, seed: int) -> ActorCritic:
     """A fresh CNN learner of the image alone (the state is the expert's)."""
-    return ActorCritic.for_env(env, channels=cfg.channels, hidden=cfg.hidden, lr=cfg.lr, seed=seed)
+    return build("for_env", env, channels=cfg.channels, hidden=cfg.hidden, lr=cfg.lr, seed=seed)
 
 
 def expert_rows(cfg: Config, seed: int, n: int) -> TensorDict:

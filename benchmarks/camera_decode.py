@@ -17,7 +17,7 @@ episode's `from_timestamp` in the episode table. Measured:
   under pressure; anonymous memory cannot be.
 * training from the `mem_frames`-frame dataset, in a fresh process: `load_lerobot` with
   `decode_dir`, the rows into a disk-backed `DemonstrationBuffer(path=...)`, then
-  `train_steps` minibatch `fit_bc` steps (batch `train_batch`) of `ActorCritic.pixels`
+  `train_steps` minibatch `fit_bc` steps (batch `train_batch`) of `build("for_env", ...)`'s CNN
   (the Nature CNN, a categorical head on the recorded actions) reading
   `("pixels", "cam")`: peak resident set (`VmHWM`) and `RssAnon` / `RssFile` after each
   stage. Target (issue 14): the process stays under 2 GB resident.
@@ -50,7 +50,7 @@ from imitrl import keys
 from imitrl.algorithms import BCConfig, fit_bc
 from imitrl.data import DemonstrationBuffer
 from imitrl.datasets import load_lerobot
-from imitrl.learners import ActorCritic
+from imitrl.learners import TaskSpec, build
 
 NAME = "camera_decode"
 CAMERA = "observation.images.cam"
@@ -263,7 +263,12 @@ def train_child(root: Path, scratch: Path, steps: int, batch: int) -> None:
     del loaded  # the rows now live in the buffer's files
     report["buffered"] = status()
     frame = tuple(buffer.data.get(PIXEL_KEY).shape[1:])
-    learner = ActorCritic.pixels(frame, Categorical(2), pixel_key=PIXEL_KEY, seed=0)
+    learner = build(
+        "for_env",
+        TaskSpec.from_specs(None, Categorical(2), pixels=frame, pixel_key=PIXEL_KEY),
+        pixel_key=PIXEL_KEY,
+        seed=0,
+    )
     t0 = time.perf_counter()
     result = fit_bc(learner, buffer, BCConfig(num_steps=steps, batch_size=batch, seed=0))
     report["train_s"] = time.perf_counter() - t0

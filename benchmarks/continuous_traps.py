@@ -50,7 +50,7 @@ from imitrl.algorithms import BCConfig, Constant, DAggerConfig, Exponential, Lin
 from imitrl.data import DemonstrationBuffer
 from imitrl.envs import make_env
 from imitrl.experts import pendulum_expert
-from imitrl.learners import ActorCritic
+from imitrl.learners import TaskSpec, build
 from imitrl.policies import BetaMixer, behaviour_policy
 
 NAME = "continuous_traps"
@@ -146,7 +146,9 @@ def float64_trap(cfg: Config) -> dict:
         raw.set_seed(0)
         td = raw.reset()
         dim = td.get(keys.OBSERVATION).shape[-1]
-        learner = ActorCritic.mlp(dim, raw.action_spec)  # the action's default head
+        learner = build(
+            "for_env", TaskSpec.from_specs(dim, raw.action_spec)
+        )  # the action's default head
         try:
             learner.policy(td)
             error = None
@@ -268,7 +270,7 @@ def bang_bang_seed(cfg: Config, swing_up: str, beta, per_round: int, seed: int) 
     dagger(
         source(env, exploration=DET, max_steps=1000),
         expert,
-        lambda: ActorCritic.for_env(env, head="deterministic", loss="mse", seed=seed),
+        lambda: build("for_env", env, head="deterministic", loss="mse", seed=seed),
         buffer,
         DAggerConfig(
             rounds=cfg.relabel_rounds + 1,

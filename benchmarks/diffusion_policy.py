@@ -38,13 +38,11 @@ from imitrl import keys
 from imitrl.algorithms import BCConfig, fit_bc
 from imitrl.data.chunks import IS_INIT
 from imitrl.data.history import history_key
-from imitrl.learners import registry
+from imitrl.learners import TaskSpec, build
 from imitrl.learners.diffusion_unet import (
     DIFFUSION_UNET,
     UnetDiffusionConfig,
-    diffusion_unet_learner,
 )
-from imitrl.learners.registry import LearnerConfig, TaskSpec
 
 NAME = "diffusion_policy"
 TASK = TaskSpec(action=Bounded(-1.0, 1.0, shape=(4,)), observation_dim=39)
@@ -91,7 +89,12 @@ def _unet(widths: str, sampler: str, camera: bool = False):
     unet = DIFFUSION_UNET if widths == "cpu" else UnetDiffusionConfig()
     unet = replace(unet, sampler=sampler)
     pixels = CAMERA if camera else None
-    return lambda: diffusion_unet_learner(TASK, LearnerConfig(seed=0), unet, pixel_shape=pixels)
+    task = (
+        TASK
+        if pixels is None
+        else TaskSpec.from_specs(TASK.observation_dim, TASK.action, pixels=pixels)
+    )
+    return lambda: build("diffusion_unet", task, options=unet, seed=0)
 
 
 def _has_camera(learner) -> bool:
@@ -163,7 +166,9 @@ def measure(budget: dict) -> dict:
                 )
                 print(f"query {widths} {sampler} x{lanes}: {seconds * 1e3:.1f} ms", file=sys.stderr)
     others = {
-        name: (lambda name=name: registry.build(name, TASK, LearnerConfig(hidden=(128, 128))))
+        name: (
+            lambda name=name: build(name, TASK, **({} if name == "act" else {"hidden": (128, 128)}))
+        )
         for name in ("mse", "mse_chunk", "flow_chunk", "act")
     }
     camera = _unet("cpu", "ddim", camera=True)  # ResNet-18 (GroupNorm) + spatial softmax

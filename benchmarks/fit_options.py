@@ -27,7 +27,7 @@ import _report
 from camera import ACTION
 from imitrl import keys
 from imitrl.algorithms import BCConfig, fit_bc
-from imitrl.learners import ActorCritic
+from imitrl.learners import ActorCritic, TaskSpec, build
 from imitrl.system.device import resolve_device
 
 NAME = "fit_options"
@@ -65,9 +65,16 @@ def _rows(cfg: Config, kind: str) -> TensorDict:
 
 def _learner(cfg: Config, kind: str, device: torch.device) -> ActorCritic:
     if kind == "mlp":
-        return ActorCritic.mlp(4, ACTION, hidden=(64, 64), seed=0, device=device)
-    return ActorCritic.pixels(
-        (*cfg.image, 3), ACTION, channels=(16, 32), hidden=(64,), seed=0, device=device
+        return build(
+            "for_env", TaskSpec.from_specs(4, ACTION), hidden=(64, 64), seed=0, device=device
+        )
+    return build(
+        "for_env",
+        TaskSpec.from_specs(None, ACTION, pixels=(*cfg.image, 3)),
+        channels=(16, 32),
+        hidden=(64,),
+        seed=0,
+        device=device,
     )
 
 

@@ -4,7 +4,7 @@ On the device named by ``--device`` (default ``auto``: CUDA when present), with 
 learner there and the rows on the CPU as every imitrl fit keeps them:
 
 1. pixel BC, 84x84x3 uint8 images, batch 256, the camera benchmark's Nature CNN
-   (32-64-64, MLP 256): ``fit_bc`` with ``ActorCritic.pixels`` against a plain torch
+   (32-64-64, MLP 256): ``fit_bc`` with ``build("for_env", ...)``'s CNN against a plain torch
    loop of the same network on the same device (rows moved to the device per step in
    both, samples/s; target: imitrl >= 0.9x);
 2. ``flow_chunk``, ``diffusion_chunk`` and ``act`` fits (registry learners, 64-64 MLPs
@@ -42,8 +42,7 @@ from imitrl.data import DemonstrationBuffer
 from imitrl.data.chunks import add_chunk_labels
 from imitrl.envs import make_env
 from imitrl.experts import cartpole_expert
-from imitrl.learners import ActorCritic, registry
-from imitrl.learners.registry import LearnerConfig, TaskSpec
+from imitrl.learners import TaskSpec, build, registry
 from imitrl.runtime import rollout_episodes
 from imitrl.system.device import resolve_device
 
@@ -112,7 +111,12 @@ def pixel_fits(cfg: Config, device: torch.device) -> dict:
         return cfg.timed_steps * cfg.batch_size / (time.perf_counter() - t0)
 
     def imitrl() -> float:
-        learner = ActorCritic.pixels((*cfg.image, 3), ACTION, lr=1e-3, device=device)
+        learner = build(
+            "for_env",
+            TaskSpec.from_specs(None, ACTION, pixels=(*cfg.image, 3)),
+            lr=1e-3,
+            device=device,
+        )
         bc = BCConfig(num_steps=cfg.timed_steps, batch_size=cfg.batch_size)
         _sync(device)
         t0 = time.perf_counter()
@@ -143,7 +147,7 @@ def chunk_fits(cfg: Config, device: torch.device) -> dict:
         labelled = add_chunk_labels(TensorDict(rows, [n]), registry.get(name).horizon)
 
         def fit(name=name, labelled=labelled) -> float:
-            learner = registry.build(name, task, LearnerConfig(seed=0, device=str(device)))
+            learner = build(name, task, seed=0, device=str(device))
             _sync(device)
             t0 = time.perf_counter()
             fit_bc(
@@ -171,7 +175,7 @@ def dagger_round(cfg: Config, device: torch.device) -> dict:
         )
         _sync(device)
         t0 = time.perf_counter()
-        dagger(EnvSource(env), expert, lambda: ActorCritic.for_env(env, seed=0, device=device),
+        dagger(EnvSource(env), expert, lambda: build("for_env", env, seed=0, device=device),
                buffer, config)  # fmt: skip
         _sync(device)
         return time.perf_counter() - t0

@@ -64,7 +64,7 @@ from _loss_functions.merge import merge
 from _loss_functions.report import NAME, report
 from _loss_functions.run import run
 from _loss_functions.tasks import TASKS, parse_task
-from imitrl.learners import registry
+from imitrl.learners import FOR_ENV, registry
 
 QUICK_LOSSES = ("cross_entropy", "gaussian_nll", "mse", "flow", "mse_chunk")
 """``--quick``'s default: a loss of each cheap family, one-step and chunked (the smoke run
@@ -174,7 +174,9 @@ def main(argv: list[str] | None = None) -> None:
         "command": " ".join(["python benchmarks/loss_functions.py", *(argv or sys.argv[1:])]),
     }
     raw["losses"] = {
-        e.name: {"actions": e.actions, "summary": e.summary} for e in registry.entries()
+        e.name: {"actions": e.actions, "summary": e.summary}
+        for e in registry.entries()
+        if e.name != FOR_ENV  # a network, not an objective: never a cell
     }
     # the raw rows first, so that a failing report can be re-rendered (--render)
     raw_path = _report.results_dir(out_dir) / f"{NAME}.json"

@@ -44,11 +44,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import _report
 from _loss_functions.run import run
-from _loss_functions.tasks import Protocol, TaskDef
+from _loss_functions.tasks import LearnerSettings, Protocol, TaskDef
 from _metaworld_mt10_report import figure, markdown
 from imitrl.algorithms import BCConfig
 from imitrl.envs.metaworld import MT10
-from imitrl.learners.registry import LearnerConfig
 
 NAME = "metaworld_mt10"
 """(not ``metaworld.py``: run as a script, a file of that name would shadow the
@@ -60,7 +59,7 @@ PROTOCOL = Protocol(
     rounds=3,
     episodes_per_round=3,
     bc=BCConfig(num_steps=320, batch_size=256),
-    learner=LearnerConfig(hidden=(128, 128), lr=3e-3),
+    learner=LearnerSettings(hidden=(128, 128), lr=3e-3),
     eval_episodes=5,
     max_episode_steps=150,
     round_steps=160,

@@ -9,7 +9,7 @@
    plus the hand's 4-d ``agent_pos``; the expert is the task's scripted policy reading
    the 39-d state the learner does not see (privileged). Per seed: ``demos`` expert
    episodes, then ``dagger`` (round 0 = BC; relabel rounds of the learner's own episodes,
-   beta 0), a fresh Nature-CNN learner (``ActorCritic.for_env``, state beside the image)
+   beta 0), a fresh Nature-CNN learner (``build("for_env", env, state=True)``, state beside the image)
    each round; BC and the last DAgger learner are evaluated on the same held-out
    episodes; success as in ``metaworld_mt10.py``.
 
@@ -36,7 +36,7 @@ from imitrl.data import DemonstrationBuffer
 from imitrl.envs import make_env
 from imitrl.evaluation import evaluate, wilson_interval
 from imitrl.experts import metaworld_expert
-from imitrl.learners import ActorCritic
+from imitrl.learners import build
 from imitrl.runtime import rollout_episodes
 
 NAME = "metaworld_pixels"
@@ -95,7 +95,7 @@ def dagger_cell(seed: int, budget: dict) -> dict:
     out = dagger(
         source(env, exploration=None, max_steps=budget["max_steps"]),
         expert,
-        lambda: ActorCritic.for_env(env, state=True, seed=seed, lr=1e-3),
+        lambda: build("for_env", env, state=True, seed=seed, lr=1e-3),
         buffer,
         DAggerConfig(
             rounds=budget["rounds"],

@@ -43,6 +43,7 @@ from imitrl.envs import make_env
 from imitrl.evaluation import evaluate
 from imitrl.experts import cartpole_expert, pendulum_expert
 from imitrl.learners import ActorCritic
+from imitrl.learners import build as build_learner
 from imitrl.policies import BetaMixer, Expert, behaviour_policy
 from imitrl.runtime import rollout_episodes
 from imitrl.tabular import greedy
@@ -97,7 +98,7 @@ class Task:
 
 def build(cfg: Config, env_id: str, lanes: int) -> Task:
     env = make_env(env_id, seed=cfg.seed, num_envs=lanes, max_episode_steps=cfg.max_episode_steps)
-    learner = ActorCritic.for_env(env, seed=cfg.seed, hidden=cfg.hidden)
+    learner = build_learner("for_env", env, seed=cfg.seed, hidden=cfg.hidden)
     expert = EXPERTS[env_id]().bind(env.action_spec_unbatched)
     steps = cfg.steps if lanes == 1 else cfg.steps_batched
     # the episodes that take about `steps` batched steps (measured on a short rollout)

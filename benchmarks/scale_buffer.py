@@ -35,7 +35,8 @@ import _report
 from imitrl import keys
 from imitrl.algorithms import BCConfig, fit_bc
 from imitrl.data import DemonstrationBuffer
-from imitrl.learners import ActorCritic
+from imitrl.learners import TaskSpec
+from imitrl.learners import build as build_learner
 
 NAME = "scale_buffer"
 
@@ -116,7 +117,9 @@ def build(path: Path, rows: int, cfg: Config) -> tuple[DemonstrationBuffer, dict
 
 
 def fit_throughput(buf: DemonstrationBuffer, cfg: Config) -> float:
-    learner = ActorCritic.mlp(4, 2, hidden=(256, 256), lr=1e-3, seed=cfg.seed)
+    learner = build_learner(
+        "for_env", TaskSpec.from_specs(4, 2), hidden=(256, 256), lr=1e-3, seed=cfg.seed
+    )
     config = BCConfig(num_steps=1, batch_size=cfg.batch_size, seed=cfg.seed)
     fit_bc(learner, buf, config)  # prepare (normaliser, checks) outside the timing
     t0 = time.perf_counter()

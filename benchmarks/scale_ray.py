@@ -43,7 +43,7 @@ from imitrl.algorithms.ray_source import RaySource, init_ray
 from imitrl.data import DemonstrationBuffer
 from imitrl.envs import make_env
 from imitrl.experts import pendulum_expert
-from imitrl.learners import ActorCritic
+from imitrl.learners import build
 from imitrl.runtime import rollout_episodes
 
 NAME = "scale_ray"
@@ -117,9 +117,7 @@ def measure(cfg: Config, workers: int) -> dict:
         bc=BCConfig(num_steps=cfg.fit_steps, batch_size=256),
     )
     try:
-        dagger(
-            source, expert, lambda: ActorCritic.for_env(env, seed=0), buffer, config, on_fit=on_fit
-        )
+        dagger(source, expert, lambda: build("for_env", env, seed=0), buffer, config, on_fit=on_fit)
         startup = {
             "ray_init": ray_init,
             **{k: v for k, v in source.startup.items() if k != "ray_init"},

@@ -4,10 +4,10 @@ What ``imitrl.system.threads.DEFAULT_THREADS`` (every command's ``--threads``) r
 Two networks, each trained two ways on the same rows:
 
 * MLP 4-64-64-2 (tanh, observations normalised, cross-entropy) on CartPole-sized rows:
-  ``ActorCritic.mlp(4, 2)`` (the library's default MLP) through ``fit_bc``, and the same
+  ``build("for_env", TaskSpec.from_specs(4, 2))`` (the library's default MLP) through ``fit_bc``, and the same
   layers in a plain torch loop (Adam, minibatches without replacement);
 * the camera study's small CNN on 32x32x3 uint8 images (conv 16 and 32 channels, kernel
-  3, stride 2; MLP 64; 2 bounded actions, MSE): ``ActorCritic.pixels`` through
+  3, stride 2; MLP 64; 2 bounded actions, MSE): ``build("for_env", ...)``'s CNN through
   ``fit_bc``, and the same layers in a plain torch loop.
 
 Each measurement is ``steps`` (100) minibatch steps, wall time of the whole call
@@ -42,6 +42,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 
 import _report
+from imitrl.learners import TaskSpec, build
 
 NAME = "threads"
 NETWORKS = ("mlp", "cnn")
@@ -111,12 +112,16 @@ def learner(cfg: Config, network: str):
     """The library's learner of ``network`` (its defaults but the sizes above)."""
     from torchrl.data import Bounded
 
-    from imitrl.learners import ActorCritic
-
     if network == "mlp":
-        return ActorCritic.mlp(4, 2, hidden=(64, 64), lr=1e-3)
+        return build("for_env", TaskSpec.from_specs(4, 2), hidden=(64, 64), lr=1e-3)
     action = Bounded(-1.0, 1.0, shape=(2,))
-    return ActorCritic.pixels((*cfg.pixels, 3), action, channels=(16, 32), hidden=(64,), lr=1e-3)
+    return build(
+        "for_env",
+        TaskSpec.from_specs(None, action, pixels=(*cfg.pixels, 3)),
+        channels=(16, 32),
+        hidden=(64,),
+        lr=1e-3,
+    )
 
 
 def plain_net(cfg: Config, network: str, data):

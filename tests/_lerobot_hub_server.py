@@ -22,7 +22,8 @@ has one line per request, ``"<method> <path>"``, with `` +auth`` when it carried
 
 Hostile behaviours, per :class:`Repo`: ``misbehave`` makes one kind of request (``refs``,
 ``revision``, ``tree``, ``resolve``) stall, trickle, answer with a gzip bomb or announce a
-huge body; ``redirects`` answers a file's ``resolve`` with a 302 elsewhere (another
+huge body, or makes the file list never end (``tree``: every page names a next one);
+``redirects`` answers a file's ``resolve`` with a 302 elsewhere (another
 scheme: :func:`tcp_listener` counts who connects; another host: ``localhost``, whose
 ``/elsewhere/<org>/<name>/<rev>/<path>`` serves the file's right bytes).
 """
@@ -41,10 +42,10 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
-from urllib.parse import unquote, urlsplit
+from urllib.parse import parse_qs, unquote, urlsplit
 
 LFS_SUFFIXES = (".parquet", ".mp4", ".png")
-MISBEHAVIOURS = ("stall", "trickle", "gzip-bomb", "huge")
+MISBEHAVIOURS = ("stall", "trickle", "gzip-bomb", "huge", "endless", "empty-pages")
 BOMB_BYTES = 1 << 30
 """what the gzip bomb inflates to: 1 GiB of zeros, in about 1 MB"""
 
@@ -91,7 +92,10 @@ class Repo:
     """request kind (``refs``, ``revision``, ``tree``, ``resolve``) -> how it is answered
     (hostile servers): ``stall`` (nothing, until the server stops), ``trickle`` (headers at
     once, then the body a byte per ``trickle_s``), ``gzip-bomb`` (``Content-Encoding:
-    gzip``, :data:`BOMB_BYTES` of zeros), ``huge`` (``Content-Length: 2**40``, no body)"""
+    gzip``, :data:`BOMB_BYTES` of zeros), ``huge`` (``Content-Length: 2**40``, no body);
+    for ``tree`` only, pages that never end, each naming the next (``?cursor=<n + 1>``)
+    after the first (the real entries): ``endless`` (a new folder a page), ``empty-pages``
+    (no entry)"""
     trickle_s: float = 0.2
     redirects: dict[str, str] = field(default_factory=dict)
     """path -> the ``Location`` its ``resolve`` answers with a 302 (``{port}``: this
@@ -234,7 +238,7 @@ class _Handler(BaseHTTPRequestHandler):
                 }
             )
         if what == "tree":
-            return self._json(self._tree(repo, commit))
+            return self._tree_page(repo, commit)
         path = "/".join(rest[1:])
         if what == "resolve" and path in repo.redirects:
             where = repo.redirects[path].format(port=self.server.server_address[1])
@@ -242,6 +246,24 @@ class _Handler(BaseHTTPRequestHandler):
         if what in ("resolve", "elsewhere"):
             return self._file(repo, commit, path, head)
         return self._missing("EntryNotFound")
+
+    def _tree_page(self, repo: Repo, commit: Commit) -> None:
+        """The whole list in one page, or (``endless``, ``empty-pages``) page ``cursor`` of
+        a list that never ends."""
+        entries = self._tree(repo, commit)
+        how = self.misbehaving
+        if how not in ("endless", "empty-pages"):
+            return self._json(entries)
+        url = urlsplit(self.path)
+        n = int(parse_qs(url.query).get("cursor", ["0"])[0])
+        if n == 0:
+            page = entries
+        elif how == "endless":
+            page = [{"type": "directory", "oid": "0" * 40, "path": f"more/{n}"}]
+        else:
+            page = []
+        link = f'<{url.path}?recursive=true&expand=false&cursor={n + 1}>; rel="next"'
+        return self._json(page, headers={"Link": link})
 
     def _tree(self, repo: Repo, commit: Commit) -> list[dict]:
         folders = sorted(

@@ -18,7 +18,8 @@ from imitrl.algorithms import BCConfig, Constant, DAggerConfig, EnvSource, dagge
 from imitrl.data import DemonstrationBuffer
 from imitrl.envs import GymnasiumStream, GymnasiumStreamSource, make_env
 from imitrl.experts import cartpole_expert
-from imitrl.learners import ActorCritic
+from imitrl.learners import TaskSpec
+from imitrl.learners import build as build_learner
 from imitrl.policies import Expert
 from imitrl.runtime import rollout_episodes
 from imitrl.tabular import TabularMDP, greedy, value_iteration
@@ -44,14 +45,26 @@ def build(kind: str):
             beta=Constant(0.5),
             bc=BCConfig(num_steps=30, batch_size=32),
         )
-        return source, expert, lambda: ActorCritic.for_env(env, hidden=(16, 16)), buffer, config
+        return (
+            source,
+            expert,
+            lambda: build_learner("for_env", env, hidden=(16, 16)),
+            buffer,
+            config,
+        )
     mdp = TabularMDP.from_gym("FrozenLake-v1", gamma=0.95)
     expert = Expert.from_table(greedy(mdp.backup(value_iteration(mdp, 1000)[-1])))
     source = GymnasiumStreamSource(mdp, GymnasiumStream(4))
     buffer = DemonstrationBuffer(num_states=mdp.num_states)
     buffer.extend(source.collect(expert.as_actor(), 3, round_index=0, first_episode=0))
     config = DAggerConfig(rounds=ROUNDS, episodes_per_round=3, bc=BCConfig(num_steps=50))
-    return source, expert, lambda: ActorCritic.tabular(16, 4), buffer, config
+    return (
+        source,
+        expert,
+        lambda: build_learner("cross_entropy", TaskSpec(action=4, num_states=16)),
+        buffer,
+        config,
+    )
 
 
 def run(kind: str, checkpoint_dir=None, *, resume: bool = False, on_fit=None):

@@ -10,10 +10,10 @@ from torchrl.data import Bounded
 from imitrl import keys
 from imitrl.algorithms import BCConfig, fit_bc
 from imitrl.data.chunks import CHUNK_PAD, EXPERT_CHUNK, IS_INIT
-from imitrl.learners import registry
+from imitrl.learners import build
 from imitrl.learners.act import ACTChunkLoss, ACTPolicy
 from imitrl.learners.chunks import CHUNK_HORIZON
-from imitrl.learners.registry import LearnerConfig, TaskSpec
+from imitrl.learners.task import TaskSpec
 from imitrl.policies.chunking import ChunkedPolicy
 
 H = CHUNK_HORIZON
@@ -38,7 +38,7 @@ def _toy(n: int = 256, seed: int = 0) -> TensorDict:
 
 def test_act_learns_a_toy_chunk_map_to_a_stated_error():
     rows = _toy()
-    learner = registry.build("act", TASK, LearnerConfig(lr=2e-3, seed=0))
+    learner = build("act", TASK, shared=dict(lr=2e-3, seed=0))
     assert isinstance(learner.policy, ChunkedPolicy) and learner.policy.execution.ensemble
     fit_bc(learner, rows, BCConfig(num_steps=120, batch_size=64, seed=0))
     pred = learner.policy.predict(rows.select(keys.OBSERVATION))  # [n, H, 1], z = 0

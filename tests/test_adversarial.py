@@ -38,7 +38,7 @@ from imitrl.experts import cartpole_expert
 from imitrl.jobs.checkpoint import load_learner
 from imitrl.jobs.curves import read_scalars, scalars_dir
 from imitrl.jobs.gail import AIRLJob, GAILJob, run_airl, run_gail
-from imitrl.learners import ActorCritic
+from imitrl.learners import ActorCritic, TaskSpec, build
 from imitrl.runtime import rollout_episodes
 from imitrl.runtime.returns import episode_returns
 
@@ -73,7 +73,9 @@ def _separable(n: int = 64, seed: int = 0) -> tuple[TensorDict, TensorDict]:
 
 
 def _learner() -> ActorCritic:
-    return ActorCritic.mlp(2, 2, hidden=(16,), normalize=False, seed=0)
+    return build(
+        "for_env", TaskSpec.from_specs(2, 2), hidden=(16,), normalize=False, seed=0, value=True
+    )
 
 
 def _mann_whitney_p(after: torch.Tensor, before: torch.Tensor) -> float:
@@ -98,7 +100,7 @@ def _cartpole(seed: int):
     env = make_env("CartPole-v1", seed=seed)
     buffer = DemonstrationBuffer(action_spec=env.action_spec_unbatched)
     buffer.extend(rollout_episodes(env, cartpole_expert(), 1))
-    return env, buffer, ActorCritic.for_env(env, lr=3e-4, seed=seed)
+    return env, buffer, build("for_env", env, lr=3e-4, seed=seed, value=True)
 
 
 TINY = dict(total_steps=256, rollout_steps=128, ppo_epochs=2, minibatch_size=64,
@@ -273,10 +275,10 @@ def test_configs_and_learners_are_checked():
         GAILConfig(normalizer_warmup=-1)
     env, buffer, _ = _cartpole(0)
     with pytest.raises(ValueError, match="GAILConfig"):
-        gail(env, ActorCritic.for_env(env), buffer, AIRLConfig())
+        gail(env, build("for_env", env, value=True), buffer, AIRLConfig())
     pend = make_env("Pendulum-v1", seed=0)
     with pytest.raises(ValueError, match="probabilistic"):
-        AIRLDiscriminator(ActorCritic.for_env(pend), gamma=0.9)  # deterministic head
+        AIRLDiscriminator(build("for_env", pend, value=True), gamma=0.9)  # deterministic head
 
 
 # --------------------------------------------------- learning and reproducibility
@@ -398,7 +400,7 @@ def _retrained(config) -> ActorCritic:
     env = make_env("CartPole-v1", seed=config.seed, max_episode_steps=50)
     buffer = DemonstrationBuffer(action_spec=env.action_spec_unbatched)
     buffer.extend(rollout_episodes(env, cartpole_expert(), 1))
-    learner = ActorCritic.for_env(env, lr=config.lr, seed=config.seed)
+    learner = build("for_env", env, lr=config.lr, seed=config.seed, value=True)
     train = gail if isinstance(config, GAILJob) and not isinstance(config, AIRLJob) else airl
     train(env, learner, buffer, config.algorithm_config())
     return learner

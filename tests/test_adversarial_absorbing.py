@@ -33,7 +33,7 @@ from imitrl.algorithms.adversarial.keys import (
     STATE_FEATURES,
 )
 from imitrl.algorithms.adversarial.transitions import expert_transitions
-from imitrl.learners import ActorCritic
+from imitrl.learners import ActorCritic, TaskSpec, build
 from imitrl.policies.normalization import ObservationNormalizer
 
 NEXT_OBS, NEXT_TERM = (keys.NEXT, keys.OBSERVATION), (keys.NEXT, keys.TERMINATED)
@@ -57,7 +57,9 @@ def _demo_rows() -> TensorDict:
 
 
 def _learner() -> ActorCritic:
-    return ActorCritic.mlp(2, 2, hidden=(8,), normalize=False, seed=0)
+    return build(
+        "for_env", TaskSpec.from_specs(2, 2), hidden=(8,), normalize=False, seed=0, value=True
+    )
 
 
 # ------------------------------------------------------------------- the rows

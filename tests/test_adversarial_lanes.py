@@ -18,7 +18,7 @@ from imitrl.data import DemonstrationBuffer
 from imitrl.envs import make_env
 from imitrl.experts import cartpole_expert, pendulum_expert
 from imitrl.jobs.configs import GAILJob
-from imitrl.learners import ActorCritic
+from imitrl.learners import build
 from imitrl.runtime import paths, rollout_episodes
 from imitrl.runtime.fast import gae_step
 from imitrl.runtime.fast.gae_step import DistinctRows
@@ -35,7 +35,7 @@ def _setup(env_id: str, lanes: int, seed: int = 0):
     buffer = DemonstrationBuffer(action_spec=demo.action_spec_unbatched)
     buffer.extend(rollout_episodes(demo, expert, 1))
     head = "categorical" if env_id == "CartPole-v1" else "tanh_normal"
-    return env, buffer, ActorCritic.for_env(demo, head=head, hidden=(16,), seed=seed)
+    return env, buffer, build("for_env", demo, head=head, hidden=(16,), seed=seed, value=True)
 
 
 def _run(method: str, env_id: str, lanes: int):
@@ -98,7 +98,7 @@ def test_play_steps_continues_every_lane_across_calls(fast):
 
     def batches(sizes):
         env = make_env("CartPole-v1", seed=3, num_envs=3, max_episode_steps=4)
-        learner = ActorCritic.for_env(env, hidden=(8,), seed=0)
+        learner = build("for_env", env, hidden=(8,), seed=0, value=True)
         torch.manual_seed(0)
         with set_exploration_type(ExplorationType.RANDOM), torch.no_grad():
             stepper = paths.stepper(env, learner.policy, record=True, fast_path=fast,

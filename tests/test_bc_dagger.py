@@ -21,7 +21,7 @@ from imitrl.algorithms import (
 )
 from imitrl.data import DemonstrationBuffer
 from imitrl.envs import TabularEnv
-from imitrl.learners import ActorCritic
+from imitrl.learners import TaskSpec, build
 from imitrl.policies import Expert
 from imitrl.runtime import rollout_episodes
 from imitrl.tabular import success_probability
@@ -47,7 +47,7 @@ def demonstrations(lake, expert_table, seed, episodes=3):
 def test_clone_is_perfect_on_its_pairs_and_uniform_elsewhere(lake, expert_table):
     for seed in range(5):
         _, buf = demonstrations(lake, expert_table, seed)
-        clone = ActorCritic.tabular(16, 4)
+        clone = build("cross_entropy", TaskSpec(action=4, num_states=16))
         fit_bc(clone, buf, BCConfig(num_steps=200))
         data = buf.data
         assert (clone.act_greedy(data[keys.OBSERVATION]) == data[keys.EXPERT_ACTION]).all()
@@ -65,7 +65,7 @@ def _run(lake, expert_table, seed, beta=None, rounds=4, episodes=3, demo_episode
     res = dagger(
         EnvSource(env, exploration=ExplorationType.DETERMINISTIC),
         Expert.from_table(expert_table),
-        lambda: ActorCritic.tabular(16, 4),
+        lambda: build("cross_entropy", TaskSpec(action=4, num_states=16)),
         buf,
         DAggerConfig(rounds=rounds, episodes_per_round=episodes, beta=beta, seed=seed),
         on_fit=lambda k, learner: tables.__setitem__(k, learner.greedy_table()),
@@ -129,18 +129,26 @@ def test_fit_rejects_a_loss_the_head_cannot_take_and_foreign_observations():
         [16],
     )
     with pytest.raises(ValueError, match="loss 'nll' does not fit a 'deterministic' head"):
-        ActorCritic.mlp(3, spec, head="deterministic", loss="nll")
+        build("for_env", TaskSpec.from_specs(3, spec), head="deterministic", loss="nll")
     with pytest.raises(ValueError, match="loss 'mse' does not fit a 'tanh_normal' head"):
-        ActorCritic.mlp(3, spec, head="tanh_normal", loss="mse")
+        build("for_env", TaskSpec.from_specs(3, spec), head="tanh_normal", loss="mse")
     with pytest.raises(ValueError, match=r"trailing shape \(5,\), got shape \(16, 3\)"):
-        fit_bc(ActorCritic.mlp(5, spec, head="deterministic"), cont, BCConfig(num_steps=1))
+        fit_bc(
+            build("for_env", TaskSpec.from_specs(5, spec), head="deterministic"),
+            cont,
+            BCConfig(num_steps=1),
+        )
     states = TensorDict(
         {keys.OBSERVATION: torch.tensor([0, 5, 20]), keys.EXPERT_ACTION: torch.tensor([0, 1, 1])},
         [3],
     )
     for batch_size in (None, 2):
         with pytest.raises(ValueError, match=r"state observation outside \[0, 16\)"):
-            fit_bc(ActorCritic.tabular(16, 2), states, BCConfig(num_steps=1, batch_size=batch_size))
+            fit_bc(
+                build("cross_entropy", TaskSpec(action=2, num_states=16)),
+                states,
+                BCConfig(num_steps=1, batch_size=batch_size),
+            )
 
 
 def test_sampled_dagger_rounds_are_seeded_by_the_source_generator(lake, expert_table):
@@ -158,7 +166,7 @@ def test_sampled_dagger_rounds_are_seeded_by_the_source_generator(lake, expert_t
         res = dagger(
             source,
             Expert.from_table(expert_table),
-            lambda: ActorCritic.tabular(16, 4),
+            lambda: build("cross_entropy", TaskSpec(action=4, num_states=16)),
             buf,
             DAggerConfig(rounds=3, episodes_per_round=4, bc=BCConfig(num_steps=10)),
         )
@@ -178,7 +186,7 @@ def test_dagger_beats_bc_from_the_same_demonstrations(lake, expert_table):
     bc_success, dagger_success = [], []
     for seed in range(10):
         _, buf = demonstrations(lake, expert_table, seed, episodes=1)
-        clone = ActorCritic.tabular(16, 4)
+        clone = build("cross_entropy", TaskSpec(action=4, num_states=16))
         fit_bc(clone, buf, BCConfig(num_steps=200))
         bc_success.append(success_probability(lake, clone.greedy_table()))
         res, _ = _run(lake, expert_table, seed, demo_episodes=1)
@@ -224,7 +232,7 @@ def test_minibatch_fit_is_seeded():
     rows = _random_rows(300, 4)
 
     def run(seed):
-        ac = ActorCritic.mlp(4, 2, hidden=(16,))
+        ac = build("for_env", TaskSpec.from_specs(4, 2), hidden=(16,))
         return fit_bc(ac, rows, BCConfig(num_steps=30, batch_size=32, seed=seed)).losses
 
     assert torch.equal(run(0), run(0)) and not torch.equal(run(0), run(1))
@@ -238,7 +246,7 @@ def test_warm_start_keeps_one_learner_and_scratch_refits(lake, expert_table):
         dagger(
             EnvSource(env),
             Expert.from_table(expert_table),
-            lambda: ActorCritic.tabular(16, 4),
+            lambda: build("cross_entropy", TaskSpec(action=4, num_states=16)),
             buf,
             DAggerConfig(rounds=3, warm_start=warm, bc=BCConfig(num_steps=20)),
             on_fit=lambda k, learner: seen.append(
@@ -254,7 +262,7 @@ def test_warm_start_keeps_one_learner_and_scratch_refits(lake, expert_table):
 
 def test_cosine_schedule_decays_each_fit_from_the_optimizers_rate_and_restores_it():
     rows = _random_rows(64, 3)
-    ac = ActorCritic.mlp(3, 2, hidden=(8,), lr=0.01)
+    ac = build("for_env", TaskSpec.from_specs(3, 2), hidden=(8,), lr=0.01)
     seen: list[float] = []
     step = ac.opt_pi.step
 

@@ -11,7 +11,7 @@ from imitrl import keys
 from imitrl.algorithms import BCConfig, DAggerConfig, EnvSource, dagger, fit_bc
 from imitrl.data import DemonstrationBuffer
 from imitrl.envs import TabularEnv
-from imitrl.learners import ActorCritic
+from imitrl.learners import TaskSpec, build
 from imitrl.policies import Expert
 
 
@@ -62,10 +62,10 @@ def test_k_rounds_hold_exactly_their_union_and_reload_identically(tmp_path):
     assert len(buf) == union.shape[0] == 68
     assert (buf.data == union).all()
     assert list(buf.rounds()) == list(range(6))
-    learner = ActorCritic.tabular(16, 4)
+    learner = build("cross_entropy", TaskSpec(action=4, num_states=16))
     fit_bc(learner, buf, BCConfig(num_steps=5))
     buf.save(tmp_path / "demo", learner=learner, state={"round": 5, "beta": 0.25})
-    twin = ActorCritic.tabular(16, 4)
+    twin = build("cross_entropy", TaskSpec(action=4, num_states=16))
     again, state = DemonstrationBuffer.load(tmp_path / "demo", learner=twin)
     assert state == {"round": 5, "beta": 0.25}
     for a, b in zip(learner.state_dict().values(), twin.state_dict().values()):
@@ -93,7 +93,7 @@ def test_fit_and_dagger_extend_the_same_buffer_without_loss(lake, expert_table):
     res = dagger(
         EnvSource(env),
         expert,
-        lambda: ActorCritic.tabular(16, 4),
+        lambda: build("cross_entropy", TaskSpec(action=4, num_states=16)),
         buf,
         DAggerConfig(rounds=3, bc=BCConfig(num_steps=50)),
     )
@@ -120,12 +120,12 @@ def test_empty_buffer_errors(lake):
     with pytest.raises(ValueError, match="empty"):
         buf.sample(4)
     with pytest.raises(ValueError, match="empty"):
-        fit_bc(ActorCritic.tabular(16, 4), buf)
+        fit_bc(build("cross_entropy", TaskSpec(action=4, num_states=16)), buf)
     with pytest.raises(ValueError, match="empty"):
         dagger(
             EnvSource(TabularEnv(lake)),
             Expert.from_table(torch.zeros(16, dtype=torch.long)),
-            lambda: ActorCritic.tabular(16, 4),
+            lambda: build("cross_entropy", TaskSpec(action=4, num_states=16)),
             buf,
         )
     with pytest.raises(ValueError, match="zero rows"):
@@ -190,7 +190,9 @@ def test_load_errors(tmp_path):
     buf.extend(rows(6))
     buf.save(tmp_path / "ok")
     with pytest.raises(ValueError, match="cannot load"):  # no learner was saved
-        DemonstrationBuffer.load(tmp_path / "ok", learner=ActorCritic.tabular(16, 4))
+        DemonstrationBuffer.load(
+            tmp_path / "ok", learner=build("cross_entropy", TaskSpec(action=4, num_states=16))
+        )
     (tmp_path / "ok" / "manifest.json").write_text("{not json")
     with pytest.raises(ValueError, match=r"manifest\.json: not JSON"):
         DemonstrationBuffer.load(tmp_path / "ok")

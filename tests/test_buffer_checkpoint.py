@@ -23,7 +23,7 @@ from imitrl import keys
 from imitrl.algorithms import BCConfig, fit_bc
 from imitrl.data import DemonstrationBuffer
 from imitrl.fs import publish
-from imitrl.learners import ActorCritic
+from imitrl.learners import TaskSpec, build
 
 
 # ---------------------------------------------------------------------- helpers
@@ -108,11 +108,11 @@ def test_rows_learner_optimizer_and_state_round_trip(tmp_path):
     buf = DemonstrationBuffer(capacity=8, action_spec=Categorical(4), num_states=16)
     for k in range(3):
         buf.extend(demo_rows(7 + k, buf.next_episode, seed=k))
-    learner = ActorCritic.tabular(16, 4)
+    learner = build("cross_entropy", TaskSpec(action=4, num_states=16))
     fit_bc(learner, buf, BCConfig(num_steps=3))
     path = buf.save(tmp_path / "ck", learner=learner, state={"round": 2, "beta": [0.5, None]})
     assert path == (tmp_path / "ck").absolute()
-    twin = ActorCritic.tabular(16, 4, lr=0.3)
+    twin = build("cross_entropy", TaskSpec(action=4, num_states=16), lr=0.3)
     before = checkpoint_tree(path)
     again, state = DemonstrationBuffer.load(path, learner=twin, action_spec=Categorical(4))
     assert checkpoint_tree(path) == before  # loading writes nothing
@@ -194,7 +194,7 @@ def test_stored_rows_pass_the_buffers_checks(saved):
 def test_a_damaged_or_mismatched_learner_is_refused_and_left_unchanged(tmp_path):
     buf = DemonstrationBuffer()
     buf.extend(demo_rows(20))
-    learner = ActorCritic.tabular(16, 4)
+    learner = build("cross_entropy", TaskSpec(action=4, num_states=16))
     fit_bc(learner, buf, BCConfig(num_steps=2))
     path = buf.save(tmp_path / "ck", learner=learner)
     plain = buf.save(tmp_path / "plain")
@@ -206,13 +206,21 @@ def test_a_damaged_or_mismatched_learner_is_refused_and_left_unchanged(tmp_path)
         assert same_state(target.opt_pi.state_dict(), opt)
 
     check(
-        ActorCritic.tabular(16, 4),
+        build("cross_entropy", TaskSpec(action=4, num_states=16)),
         plain,
         "cannot load the learner: the checkpoint was saved without",
     )
-    check(ActorCritic.tabular(16, 3), path, r"learner\.pt: cannot load learner into the given")
+    check(
+        build("cross_entropy", TaskSpec(action=3, num_states=16)),
+        path,
+        r"learner\.pt: cannot load learner into the given",
+    )
     (path / "opt_pi.pt").write_bytes(_flip((path / "opt_pi.pt").read_bytes(), 40))
-    check(ActorCritic.tabular(16, 4), path, r"opt_pi\.pt: SHA-256 does not match")
+    check(
+        build("cross_entropy", TaskSpec(action=4, num_states=16)),
+        path,
+        r"opt_pi\.pt: SHA-256 does not match",
+    )
 
 
 # ------------------------------------------------------------------------ save

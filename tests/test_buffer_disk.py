@@ -16,7 +16,7 @@ from imitrl.algorithms import BCConfig, fit_bc
 from imitrl.algorithms.bc import distinct_pairs
 from imitrl.data import DemonstrationBuffer
 from imitrl.data.permutation import LazyPermutation
-from imitrl.learners import ActorCritic
+from imitrl.learners import TaskSpec, build
 
 
 def cartpole_rows(n: int, first_episode: int = 0, seed: int = 0, length: int = 7) -> TensorDict:
@@ -137,7 +137,7 @@ def test_camera_only_rows_extend_a_buffer(tmp_path):
 
 def test_full_batch_is_refused_on_disk_and_past_the_row_limit(tmp_path):
     disk, mem = fill_both(tmp_path, [100])
-    learner = ActorCritic.mlp(4, 2, hidden=(8,))
+    learner = build("for_env", TaskSpec.from_specs(4, 2), hidden=(8,))
     with pytest.raises(ValueError, match=r"pass BCConfig\(batch_size=...\)"):
         fit_bc(learner, disk, BCConfig(num_steps=1))
     with pytest.raises(ValueError, match="more than full_batch_max_rows = 50"):
@@ -147,7 +147,10 @@ def test_full_batch_is_refused_on_disk_and_past_the_row_limit(tmp_path):
 
 def test_disk_fit_matches_in_memory_checks_and_normaliser(tmp_path):
     disk, mem = fill_both(tmp_path, [300])
-    a, b = ActorCritic.mlp(4, 2, hidden=(8,)), ActorCritic.mlp(4, 2, hidden=(8,))
+    a, b = (
+        build("for_env", TaskSpec.from_specs(4, 2), hidden=(8,)),
+        build("for_env", TaskSpec.from_specs(4, 2), hidden=(8,)),
+    )
     ra = fit_bc(a, disk, BCConfig(num_steps=20, batch_size=32))
     fit_bc(b, mem, BCConfig(num_steps=20, batch_size=32))
     assert torch.equal(a.normalizer.loc, b.normalizer.loc)  # every row fits in one slice
@@ -155,7 +158,11 @@ def test_disk_fit_matches_in_memory_checks_and_normaliser(tmp_path):
     bad = DemonstrationBuffer(path=tmp_path / "bad")
     bad.extend(cartpole_rows(10).set(keys.EXPERT_ACTION, torch.full((10,), 5)))
     with pytest.raises(ValueError, match="expert_action"):
-        fit_bc(ActorCritic.mlp(4, 2, hidden=(8,)), bad, BCConfig(num_steps=1, batch_size=4))
+        fit_bc(
+            build("for_env", TaskSpec.from_specs(4, 2), hidden=(8,)),
+            bad,
+            BCConfig(num_steps=1, batch_size=4),
+        )
 
 
 def test_a_million_cartpole_rows_round_trip_and_fit(tmp_path):
@@ -167,7 +174,7 @@ def test_a_million_cartpole_rows_round_trip_and_fit(tmp_path):
     loaded, state = DemonstrationBuffer.load(saved, into=tmp_path / "loaded")
     assert state == {"round": 1} and len(loaded) == n and loaded.path is not None
     assert bool((loaded.data == disk.data).all()) and loaded.num_episodes == n // 500
-    learner = ActorCritic.mlp(4, 2, hidden=(16,))
+    learner = build("for_env", TaskSpec.from_specs(4, 2), hidden=(16,))
     result = fit_bc(learner, loaded, BCConfig(num_steps=5, batch_size=256))
     assert result.num_rows == n and torch.isfinite(result.losses).all()
     with pytest.raises(ValueError, match="already holds a disk buffer"):

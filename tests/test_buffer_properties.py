@@ -29,7 +29,7 @@ from imitrl import keys
 from imitrl.algorithms import BCConfig, fit_bc
 from imitrl.compat import writer_cursor
 from imitrl.data import REQUIRED_KEYS, DemonstrationBuffer
-from imitrl.learners import ActorCritic
+from imitrl.learners import TaskSpec, build
 
 from .test_buffer_checkpoint import checkpoint_tree, demo_rows, same_buffer, same_state
 
@@ -240,7 +240,7 @@ def saved_checkpoint(tmp_path_factory):
     buf = DemonstrationBuffer(capacity=4)
     for k in range(3):
         buf.extend(demo_rows(6 + k, buf.next_episode, seed=k))
-    learner = ActorCritic.tabular(16, 4)
+    learner = build("cross_entropy", TaskSpec(action=4, num_states=16))
     fit_bc(learner, buf, BCConfig(num_steps=2))
     state = {"round": 2, "beta": [1.0, 0.5]}
     path = buf.save(tmp_path_factory.mktemp("ck") / "ck", learner=learner, state=state)
@@ -308,7 +308,7 @@ def test_a_damaged_checkpoint_loads_identically_or_is_refused_by_name(saved_chec
         shutil.copytree(original, path)
         name = _damage(path, how, data.draw)
         before = checkpoint_tree(path)
-        twin = ActorCritic.tabular(16, 4)
+        twin = build("cross_entropy", TaskSpec(action=4, num_states=16))
         weights = {k: v.clone() for k, v in twin.state_dict().items()}
         try:
             loaded, loaded_state = DemonstrationBuffer.load(path, learner=twin)

@@ -32,7 +32,7 @@ import torch
 from imitrl.cli import main
 from imitrl.data import DemonstrationBuffer
 from imitrl.envs import make_env
-from imitrl.learners import ActorCritic
+from imitrl.learners import TaskSpec, build
 
 from .test_buffer_checkpoint import demo_rows, same_buffer
 
@@ -63,7 +63,7 @@ def _write_run(folder: Path, config: dict, state: dict) -> Path:
 
 
 def _real_run(folder: Path, hidden: tuple[int, ...], seed: int) -> tuple[Path, dict]:
-    learner = ActorCritic.for_env(make_env(ENV, seed=0), hidden=hidden, seed=seed)
+    learner = build("for_env", make_env(ENV, seed=0), hidden=hidden, seed=seed)
     state = learner.state_dict()
     return _write_run(folder, _config(list(hidden), seed=seed), state), state
 
@@ -343,7 +343,7 @@ def _dagger_checkpoint(path: Path, **state):
     config = DAggerConfig(rounds=2)
     buf = DemonstrationBuffer()
     buf.extend(demo_rows(10))
-    learner = ActorCritic.tabular(16, 4)
+    learner = build("cross_entropy", TaskSpec(action=4, num_states=16))
     saved = {"format": FORMAT, "next_round": 1, "config": config_summary(config), "records": [],
              "bc_step": 0, "mixer": None, "source": {}, "torch": torch.get_rng_state().tolist(),
              **state}  # fmt: skip
@@ -359,7 +359,7 @@ def _dagger_checkpoint(path: Path, **state):
     fresh = DemonstrationBuffer()
     fresh.extend(demo_rows(10))
     return lambda: load_run(
-        path, fresh, lambda: ActorCritic.tabular(16, 4), config=config, record_cls=RoundRecord,
+        path, fresh, lambda: build("cross_entropy", TaskSpec(action=4, num_states=16)), config=config, record_cls=RoundRecord,
         mixer_generator=None, source=Source(),
     )  # fmt: skip
 

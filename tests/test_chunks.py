@@ -24,8 +24,8 @@ from imitrl.data.chunks import (
     chunk_labels,
 )
 from imitrl.envs import multimodal as mm
-from imitrl.learners import registry
-from imitrl.learners.registry import LearnerConfig, TaskSpec
+from imitrl.learners import build, registry
+from imitrl.learners.task import TaskSpec
 from imitrl.policies.chunking import ChunkedPolicy, ChunkExecution, chunk_env, ensemble_weights
 from imitrl.policies.experts import as_actor
 from imitrl.runtime import rollout_episodes
@@ -210,7 +210,7 @@ def test_dagger_with_chunks_labels_each_visited_state_and_chunks_the_relabelled_
     out = dagger(
         EnvSource(env, exploration=None, max_steps=200),
         expert,
-        lambda: registry.build("mse_chunk", task, LearnerConfig(hidden=(16,))),
+        lambda: build("mse_chunk", task, shared=dict(hidden=(16,))),
         buffer,
         DAggerConfig(rounds=2, episodes_per_round=2, bc=bc, seed=0),
         train=lambda learner, buf: fit_bc(learner, add_chunk_labels(buf.data, horizon), bc),

@@ -34,7 +34,7 @@ from imitrl.experts import (
     mountaincar_expert,
     pendulum_expert,
 )
-from imitrl.learners import ActorCritic
+from imitrl.learners import ActorCritic, TaskSpec, build
 from imitrl.runtime import episode_returns, rollout_episodes
 
 from ._readme import run as run_readme
@@ -51,7 +51,7 @@ def learner_for(
     env, *, head: str | None = None, loss: str | None = None, seed: int = 0, hidden=(64, 64)
 ) -> ActorCritic:
     """An MLP for ``env``'s spaces; the same function serves every env."""
-    return ActorCritic.for_env(env, head=head, loss=loss, hidden=hidden, seed=seed)
+    return build("for_env", env, head=head, loss=loss, hidden=hidden, seed=seed)
 
 
 # ------------------------------------------------------------------------ make_env
@@ -109,7 +109,10 @@ def test_make_env_rejects_bad_input():
     with pytest.raises(ValueError, match="must be a Box or Discrete"):
         make_env("Blackjack-v1", seed=0)
     with pytest.raises(ValueError, match=r"action_spec_unbatched"):
-        ActorCritic.mlp(3, make_env("Pendulum-v1", seed=0, num_envs=2).action_spec)
+        build(
+            "for_env",
+            TaskSpec.from_specs(3, make_env("Pendulum-v1", seed=0, num_envs=2).action_spec),
+        )
 
 
 class _F64Actions:

@@ -24,8 +24,7 @@ from imitrl.envs import make_env
 from imitrl.envs.pixel_tasks import PixelBalanceEnv, balance_expert
 from imitrl.evaluation import evaluate
 from imitrl.experts import cartpole_expert, pendulum_expert
-from imitrl.learners import ActorCritic, registry
-from imitrl.learners.registry import LearnerConfig
+from imitrl.learners import TaskSpec, build, registry
 from imitrl.runtime import rollout_episodes
 from imitrl.system.device import OnDevice, acting, on_cpu, resolve_device
 
@@ -65,15 +64,15 @@ def test_every_command_refuses_a_device_it_cannot_use_in_one_line(capsys):
 @pytest.mark.parametrize(("name", "tname"), list(_cases()))
 def test_every_registry_loss_fits_on_the_device(name, tname, device):
     task = TASKS[tname]
-    config = LearnerConfig(hidden=(16, 16), lr=1e-2, seed=0, device=device)
-    learner = registry.build(name, task, config)
+    config = dict(hidden=(16, 16), lr=1e-2, seed=0, device=device)
+    learner = build(name, task, shared=config)
     assert learner.device.type == device
     horizon = registry.get(name).horizon
     rows = _rows(task) if horizon is None else add_chunk_labels(_rows(task), horizon)
     result = fit_bc(learner, rows, BCConfig(num_steps=5, batch_size=16, seed=0))  # rows on CPU
     assert torch.isfinite(result.losses).all()
     if device == "cpu":  # the same digits as a learner built without device=
-        plain = registry.build(name, task, LearnerConfig(hidden=(16, 16), lr=1e-2, seed=0))
+        plain = build(name, task, shared=dict(hidden=(16, 16), lr=1e-2, seed=0))
         again = fit_bc(plain, rows, BCConfig(num_steps=5, batch_size=16, seed=0))
         assert torch.equal(result.losses, again.losses)
 
@@ -82,7 +81,7 @@ def test_every_registry_loss_fits_on_the_device(name, tname, device):
 def test_a_pixel_learner_fits_and_acts_on_the_device(device):
     env = PixelBalanceEnv(pixels=(16, 16), batch_size=(2,), seed=0)
     rows = rollout_episodes(env, balance_expert(), 2)
-    learner = ActorCritic.for_env(env, channels=(4,), hidden=(16,), seed=0, device=device)
+    learner = build("for_env", env, channels=(4,), hidden=(16,), seed=0, device=device)
     fit_bc(learner, rows, BCConfig(num_steps=3, batch_size=32))  # CPU rows, batches moved
     ev = evaluate(env, learner, 2, seed=1)  # CPU env, the policy on the device
     assert ev.num_episodes == 2 and ev.mean_return == ev.mean_return  # played, finite
@@ -96,7 +95,7 @@ def test_a_dagger_round_and_evaluate_with_the_learner_on_the_device(device):
     buffer.extend(rollout_episodes(env, expert, 1))
 
     def make():
-        return ActorCritic.for_env(env, hidden=(16,), seed=0, device=device)
+        return build("for_env", env, hidden=(16,), seed=0, device=device)
 
     config = DAggerConfig(rounds=2, episodes_per_round=1, bc=BCConfig(num_steps=10, batch_size=16))
     result = dagger(EnvSource(env), expert, make, buffer, config)
@@ -120,7 +119,9 @@ def test_gail_and_airl_steps_with_the_learner_on_the_device(device, algorithm):
     env = make_env("Pendulum-v1", seed=0, max_episode_steps=20)
     buffer = DemonstrationBuffer(action_spec=env.action_spec_unbatched)
     buffer.extend(rollout_episodes(env, pendulum_expert(), 2))
-    learner = ActorCritic.for_env(env, head="tanh_normal", hidden=(16,), seed=0, device=device)
+    learner = build(
+        "for_env", env, head="tanh_normal", hidden=(16,), seed=0, device=device, value=True
+    )
     small = dict(total_steps=64, rollout_steps=32, ppo_epochs=1, minibatch_size=16,
                  discriminator_updates=1, discriminator_batch=16, normalizer_warmup=0)  # fmt: skip
     if algorithm == "gail":
@@ -159,7 +160,7 @@ def test_a_policy_holding_a_wrapped_learner_acts_as_it_is():
 
 
 def test_on_device_reads_its_keys_there_and_writes_its_outputs_back():
-    policy = ActorCritic.mlp(3, 2, hidden=(8,), seed=0).policy
+    policy = build("for_env", TaskSpec.from_specs(3, 2), hidden=(8,), seed=0).policy
     wrapped = OnDevice(policy, torch.device("cpu"))
     td = TensorDict({keys.OBSERVATION: torch.randn(4, 3), "other": torch.zeros(4)}, [4])
     out = wrapped(td.clone())
@@ -188,7 +189,7 @@ def test_a_checkpoint_saved_on_a_gpu_loads_on_this_machine(tmp_path):
     from imitrl.jobs.checkpoint import load_learner
 
     env = make_env("CartPole-v1", seed=0)
-    learner = ActorCritic.for_env(env, hidden=(8,), seed=3)
+    learner = build("for_env", env, hidden=(8,), seed=3)
     learner.prepare(rollout_episodes(env, cartpole_expert(), 1))
     raw = _as_if_saved_on_cuda(learner.state_dict())
     if not torch.cuda.is_available():  # what a plain torch.load of it does here
@@ -211,7 +212,7 @@ def test_a_buffer_checkpoint_with_a_gpu_learner_loads_its_weights_on_the_cpu(tmp
     from imitrl.data import checkpoint as ckpt
 
     env = make_env("CartPole-v1", seed=0)
-    learner = ActorCritic.for_env(env, hidden=(8,), seed=3)
+    learner = build("for_env", env, hidden=(8,), seed=3)
     buffer = DemonstrationBuffer(action_spec=env.action_spec_unbatched)
     buffer.extend(rollout_episodes(env, cartpole_expert(), 1))
     fit_bc(learner, buffer, BCConfig(num_steps=3, batch_size=8))  # optimizer state too
@@ -225,11 +226,11 @@ def test_a_buffer_checkpoint_with_a_gpu_learner_loads_its_weights_on_the_cpu(tmp
         path = buffer.save(tmp_path / "ck", learner=learner)
     finally:
         torch.save = real
-    fresh = ActorCritic.for_env(env, hidden=(8,), seed=99)
+    fresh = build("for_env", env, hidden=(8,), seed=99)
     DemonstrationBuffer.load(path, learner=fresh)
     for k, v in learner.state_dict().items():
         assert torch.equal(fresh.state_dict()[k], v), k
-    assert set(ckpt.learner_components(fresh)) == {"learner", "opt_pi", "opt_v"}
+    assert set(ckpt.learner_components(fresh)) == {"learner", "opt_pi"}  # no value head
 
 
 def test_weights_that_cannot_be_read_are_named_in_one_line(tmp_path):
@@ -247,8 +248,8 @@ def test_weights_that_cannot_be_read_are_named_in_one_line(tmp_path):
 
 def test_the_evaluation_of_a_cpu_learner_is_unchanged_by_the_device_layer():
     env = make_env("CartPole-v1", seed=0, max_episode_steps=50)
-    learner = ActorCritic.for_env(env, hidden=(8,), seed=1)
-    placed = ActorCritic.for_env(env, hidden=(8,), seed=1, device="cpu")
+    learner = build("for_env", env, hidden=(8,), seed=1)
+    placed = build("for_env", env, hidden=(8,), seed=1, device="cpu")
     a = evaluate(env, learner, 4, seed=3, exploration=ExplorationType.RANDOM)
     b = evaluate(env, placed, 4, seed=3, exploration=ExplorationType.RANDOM)
     assert (a.mean_return, a.return_ci, a.mean_length) == (
@@ -272,7 +273,9 @@ def test_a_bf16_fit_keeps_float32_weights_and_learns_as_fp32_does(device):
     spec = Bounded(-1.0, 1.0, shape=(1,))
     runs = {}
     for precision in ("fp32", "bf16"):
-        learner = ActorCritic.mlp(4, spec, hidden=(32,), seed=0, device=device)
+        learner = build(
+            "for_env", TaskSpec.from_specs(4, spec), hidden=(32,), seed=0, device=device
+        )
         config = BCConfig(num_steps=150, batch_size=32, seed=0, precision=precision)
         runs[precision] = fit_bc(learner, _mlp_rows(), config)
         assert all(p.dtype == torch.float32 for p in learner.parameters())
@@ -290,7 +293,7 @@ def test_a_compiled_fit_gives_the_eager_fits_losses():
     spec = Bounded(-1.0, 1.0, shape=(1,))
     out = []
     for compile_ in (False, True):
-        learner = ActorCritic.mlp(4, spec, hidden=(16,), seed=0)
+        learner = build("for_env", TaskSpec.from_specs(4, spec), hidden=(16,), seed=0)
         config = BCConfig(num_steps=20, batch_size=32, seed=0, compile=compile_)
         out.append(fit_bc(learner, _mlp_rows(), config).losses)
     torch.testing.assert_close(out[1], out[0], rtol=1e-4, atol=1e-6)

@@ -23,7 +23,7 @@ from imitrl.datasets import load_lerobot, save_lerobot
 from imitrl.envs import make_env
 from imitrl.envs.dict_obs import ENVIRONMENT_STATE
 from imitrl.evaluation.evaluate import evaluate
-from imitrl.learners import ActorCritic
+from imitrl.learners import build
 
 torch.set_num_threads(1)
 
@@ -141,7 +141,7 @@ def test_a_dict_of_cameras_nests_under_pixels_and_environment_state_keeps_its_na
         (keys.PIXELS, "top"): (torch.uint8, (2, SIDE, SIDE, 3)),
         (keys.PIXELS, "wrist"): (torch.uint8, (2, 8, 8, 3)),
     }
-    learner = ActorCritic.for_env(env, pixel_key=(keys.PIXELS, "top"), **SMALL)
+    learner = build("for_env", env, pixel_key=(keys.PIXELS, "top"), **SMALL)
     assert learner.policy.in_keys == [(keys.PIXELS, "top")]
     assert np.isfinite(evaluate(env, learner, 2, seed=0).mean_return)
 
@@ -238,7 +238,7 @@ def test_bc_on_a_lerobot_dataset_evaluates_in_the_matching_dict_env(tmp_path):
     for key in (keys.OBSERVATION, keys.PIXELS):
         assert rows.get(key).dtype == env.observation_spec[key].dtype
         assert rows.get(key).shape[1:] == env.observation_spec[key].shape
-    learner = ActorCritic.for_env(env, state=True, head="deterministic", loss="mse", **SMALL)
+    learner = build("for_env", env, state=True, head="deterministic", loss="mse", **SMALL)
     assert learner.policy.in_keys == [keys.PIXELS, keys.OBSERVATION]
     fit_bc(learner, rows, BCConfig(num_steps=300, batch_size=64))
 

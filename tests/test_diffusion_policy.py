@@ -20,9 +20,9 @@ from imitrl.algorithms import BCConfig, fit_bc
 from imitrl.algorithms.bc import _Cosine
 from imitrl.data.chunks import CHUNK_PAD, EXPERT_CHUNK, IS_INIT
 from imitrl.data.history import OBS_HISTORY, add_observation_history
-from imitrl.learners import registry
+from imitrl.learners import build, registry
 from imitrl.learners.diffusion_unet import UnetDiffusionConfig
-from imitrl.learners.registry import LearnerConfig, TaskSpec
+from imitrl.learners.task import TaskSpec
 from imitrl.policies.chunking import ChunkedPolicy, ChunkExecution
 
 ACTION = Bounded(-2.0, 2.0, shape=(2,))
@@ -41,7 +41,7 @@ def _rows(n: int = 64, episodes: int = 4, seed: int = 0) -> TensorDict:
 
 
 def _learner(seed: int = 0):
-    return registry.build("diffusion_unet", TASK, LearnerConfig(seed=seed))
+    return build("diffusion_unet", TASK, shared=dict(seed=seed))
 
 
 # --------------------------------------------------------------- the registry entry
@@ -328,10 +328,11 @@ def test_random_crops_take_each_sample_at_its_own_offset_and_acting_the_centre()
 
 
 def test_a_camera_learner_fits_acts_with_image_histories_and_uses_the_image():
-    from imitrl.learners.diffusion_unet import DIFFUSION_UNET, diffusion_unet_learner
+    from imitrl.learners.diffusion_unet import DIFFUSION_UNET
 
     unet = replace(DIFFUSION_UNET, down_dims=(16, 32), step_embed_dim=16, keypoints=4)
-    learner = diffusion_unet_learner(TASK, LearnerConfig(seed=0), unet, pixel_shape=(40, 40, 3))
+    camera = TaskSpec.from_specs(TASK.observation_dim, TASK.action, pixels=(40, 40, 3))
+    learner = build("diffusion_unet", camera, options=unet, seed=0)
     assert learner.history_keys == (keys.OBSERVATION, keys.PIXELS)
     rows = _rows()
     g = torch.Generator().manual_seed(1)
@@ -353,7 +354,11 @@ def test_a_camera_learner_fits_acts_with_image_histories_and_uses_the_image():
     with set_exploration_type(ExplorationType.RANDOM), torch.no_grad():
         assert learner.policy(td).get(keys.ACTION).shape == (2, 2)
     with pytest.raises(ValueError, match="1x1 feature map"):
-        diffusion_unet_learner(TASK, LearnerConfig(), unet, pixel_shape=(24, 24, 3))
+        build(
+            "diffusion_unet",
+            TaskSpec.from_specs(TASK.observation_dim, TASK.action, pixels=(24, 24, 3)),
+            options=unet,
+        )
 
 
 class _Crash(Exception):
@@ -383,7 +388,7 @@ def test_dagger_with_diffusion_policy_resumes_to_the_uninterrupted_run(tmp_path)
         return dagger(
             EnvSource(env, exploration=None, max_steps=12),
             pendulum_expert(),
-            lambda: registry.build("diffusion_unet", task, LearnerConfig(seed=0)),
+            lambda: build("diffusion_unet", task, shared=dict(seed=0)),
             buffer,
             DAggerConfig(
                 rounds=3,
@@ -414,13 +419,13 @@ def test_a_chunked_learner_acts_in_an_env_without_an_init_tracker_and_on_the_cli
 
     env = make_env("Pendulum-v1", seed=0, num_envs=2, max_episode_steps=10)
     task = TaskSpec(action=env.action_spec_unbatched, observation_dim=3)
-    learner = registry.build("diffusion_unet", task, LearnerConfig(seed=0))
+    learner = build("diffusion_unet", task, shared=dict(seed=0))
     assert IS_INIT not in env.observation_spec.keys()
     first = evaluate(env, learner, 2, seed=2)
     assert first.num_episodes == 2 and first.mean_length == 10
     # samples come from the learner's own seeded generator (as flow's): a fresh learner
     # of the same seed, evaluated on the same seed, plays the same episodes
-    twin = registry.build("diffusion_unet", task, LearnerConfig(seed=0))
+    twin = build("diffusion_unet", task, shared=dict(seed=0))
     assert evaluate(env, twin, 2, seed=2).mean_return == first.mean_return
     out = tmp_path / "run"
     args = ["bc", "--env", "Pendulum-v1", "--expert", "pendulum", "--loss", "diffusion_unet",

@@ -16,7 +16,7 @@ from imitrl.envs import TabularEnv, episode_limit, make_env
 from imitrl.envs.multimodal import TwoWayObstacleEnv, two_way_expert
 from imitrl.evaluation import evaluate
 from imitrl.experts import pendulum_expert
-from imitrl.learners import ActorCritic
+from imitrl.learners import TaskSpec, build
 from imitrl.policies import Expert
 from imitrl.runtime import episode_returns, rollout_episodes
 
@@ -128,7 +128,9 @@ def test_evaluate_with_a_seed_repeats_its_digits(lake, expert_table):
     runs = [evaluate(env, expert, 64, seed=5) for _ in range(2)]
     assert runs[0] == runs[1]
     assert evaluate(env, expert, 64) != evaluate(env, expert, 64)  # the env's stream goes on
-    learner = ActorCritic.tabular(16, 4)  # uniform: every step samples
+    learner = build(
+        "cross_entropy", TaskSpec(action=4, num_states=16)
+    )  # uniform: every step samples
     sampled = [evaluate(env, learner, 64, exploration=RANDOM, seed=9) for _ in range(2)]
     assert sampled[0] == sampled[1]
     assert sampled[0] != evaluate(env, learner, 64, exploration=RANDOM, seed=10)

@@ -15,7 +15,7 @@ from imitrl.algorithms import BCConfig, fit_bc
 from imitrl.envs import TabularEnv
 from imitrl.evaluation import evaluate, mean_ci, tabulate, wilson_interval
 from imitrl.experts import cartpole_expert
-from imitrl.learners import ActorCritic
+from imitrl.learners import TaskSpec, build
 from imitrl.policies import Expert
 from imitrl.tabular import expected_episode_length, success_probability
 
@@ -55,7 +55,7 @@ def test_batched_estimate_agrees_with_exact_value(lake, expert_table, lanes):
 
 
 def test_sampled_policy_has_exact_value_from_its_probabilities(lake):
-    learner = ActorCritic.tabular(16, 4)  # uniform random policy
+    learner = build("cross_entropy", TaskSpec(action=4, num_states=16))  # uniform random policy
     env = TabularEnv(lake, batch_size=(5000,), seed=3)
     ev = evaluate(env, learner.policy, 20_000, exploration=ExplorationType.RANDOM, confidence=0.999)
     probs = tabulate(learner.policy, 16, ExplorationType.RANDOM)
@@ -138,7 +138,7 @@ def test_student_t_quantiles_and_intervals():
 
 def test_sampled_evaluation_of_trained_and_deterministic_policies(lake, expert_table):
     """float32 probabilities (rows off 1 by ~1e-7) and policies without get_dist are priced exactly."""
-    learner = ActorCritic.tabular(16, 4)
+    learner = build("cross_entropy", TaskSpec(action=4, num_states=16))
     g = torch.Generator().manual_seed(0)
     states = torch.randint(0, 16, (200,), generator=g)
     fit_bc(
@@ -162,7 +162,9 @@ def test_sampled_evaluation_of_trained_and_deterministic_policies(lake, expert_t
 
 def test_sampled_rollouts_follow_an_explicit_generator(lake):
     """RANDOM mode draws from the generator given (same seed, same digits) and leaves the global RNG alone."""
-    learner = ActorCritic.tabular(16, 4)  # uniform: every step samples
+    learner = build(
+        "cross_entropy", TaskSpec(action=4, num_states=16)
+    )  # uniform: every step samples
     runs = []
     for _ in range(2):
         torch.manual_seed(123)
@@ -192,7 +194,10 @@ def test_sampled_rollouts_follow_an_explicit_generator(lake):
 def test_one_episode_has_no_interval_and_policies_must_match_the_action_spec(lake):
     env = TabularEnv(lake, seed=0)
     ev = evaluate(
-        env, ActorCritic.tabular(16, 4).policy, 1, exploration=ExplorationType.DETERMINISTIC
+        env,
+        build("cross_entropy", TaskSpec(action=4, num_states=16)).policy,
+        1,
+        exploration=ExplorationType.DETERMINISTIC,
     )
     assert math.isnan(ev.return_ci[0]) and math.isnan(ev.return_ci[1])
     wide = Expert.from_callable(lambda obs: torch.zeros(*obs.shape, 2, dtype=torch.int64))

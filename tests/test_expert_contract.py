@@ -18,7 +18,7 @@ from imitrl.envs import TabularEnv
 from imitrl.envs.multimodal import TwoWayObstacleEnv, two_way_expert
 from imitrl.evaluation import evaluate
 from imitrl.experts import acrobot_expert, cartpole_expert, mountaincar_expert, pendulum_expert
-from imitrl.learners import ActorCritic
+from imitrl.learners import TaskSpec, build
 from imitrl.policies import Expert, as_actor
 from imitrl.policies.action_check import cast_action, check_action
 from imitrl.runtime import episode_returns, rollout_episodes
@@ -125,7 +125,7 @@ def test_one_action_check_for_dtype_shape_and_range():
 
 # ---------------------------------------------------------------------- the one type
 def test_every_builder_returns_an_expert(lake):
-    learner = ActorCritic.tabular(4, 2)
+    learner = build("cross_entropy", TaskSpec(action=2, num_states=4))
     built = [
         Expert.from_table(torch.tensor([0, 1])),
         Expert.from_q(torch.eye(2)),
@@ -145,7 +145,7 @@ def test_every_builder_returns_an_expert(lake):
 
 def test_from_policy_expert_drives_an_env_bare(lake):
     env = TabularEnv(lake, batch_size=(4,), seed=0)
-    learner = ActorCritic.tabular(16, 4)  # greedy: LEFT everywhere
+    learner = build("cross_entropy", TaskSpec(action=4, num_states=16))  # greedy: LEFT everywhere
     rows = rollout_episodes(env, Expert.from_policy(learner.policy), 4)
     assert (rows[keys.ACTION] == 0).all() and rows[keys.EXPERT_EXECUTED].all()
 
@@ -167,7 +167,7 @@ def test_the_same_expert_in_rollouts_evaluation_and_dagger(lake, expert_table):
     res = dagger(
         source,
         expert,
-        lambda: ActorCritic.tabular(16, 4),
+        lambda: build("cross_entropy", TaskSpec(action=4, num_states=16)),
         buffer,
         DAggerConfig(rounds=2, episodes_per_round=2, bc=BCConfig(num_steps=20)),
     )
@@ -198,7 +198,9 @@ def test_plain_modules_must_state_exploration(lake):
         rollout_episodes(env, Expert.from_table(torch.zeros(16, dtype=torch.long)).as_actor(), 1)
     with pytest.raises(ValueError, match="Expert or a TensorDict module"):
         rollout_episodes(env, lambda td: td, 1, exploration=ExplorationType.DETERMINISTIC)
-    learner = ActorCritic.tabular(16, 4)  # a Learner acts as its exploration says
+    learner = build(
+        "cross_entropy", TaskSpec(action=4, num_states=16)
+    )  # a Learner acts as its exploration says
     assert evaluate(env, learner, 3).exploration == "deterministic"
 
 
@@ -206,10 +208,9 @@ def test_a_rollout_policy_that_writes_no_expert_label_is_refused():
     from torchrl.envs.utils import ExplorationType
 
     from imitrl.envs import make_env
-    from imitrl.learners import ActorCritic
     from imitrl.runtime import rollout_episodes
 
     env = make_env("CartPole-v1", seed=0)
-    learner = ActorCritic.for_env(env)  # writes "action" only: no label to keep as a row
+    learner = build("for_env", env)  # writes "action" only: no label to keep as a row
     with pytest.raises(ValueError, match="must write 'expert_action'"):
         rollout_episodes(env, learner.policy, 1, exploration=ExplorationType.DETERMINISTIC)

@@ -38,8 +38,7 @@ from imitrl.envs import TabularEnv, make_env
 from imitrl.envs.pixel_tasks import PixelBalanceEnv, balance_expert
 from imitrl.evaluation import evaluate
 from imitrl.experts import cartpole_expert, pendulum_expert
-from imitrl.learners import ActorCritic, registry
-from imitrl.learners.registry import LearnerConfig
+from imitrl.learners import ActorCritic, TaskSpec, build, registry
 from imitrl.policies import Expert
 from imitrl.policies.mixture import BetaMixer, behaviour_policy
 from imitrl.runtime import episode_returns, paths, rollout_episodes
@@ -116,7 +115,7 @@ def lake_q(lake: TabularMDP) -> torch.Tensor:
 
 
 def _learner(env, head=None, exploration=DET) -> ActorCritic:
-    learner = ActorCritic.for_env(env, seed=1, hidden=(16, 16), head=head)
+    learner = build("for_env", env, seed=1, hidden=(16, 16), head=head)
     learner.exploration = exploration
     return learner
 
@@ -185,7 +184,7 @@ def test_tabular_env_direct_path_equals_torchrl(lake, lake_q, rng, lanes):
         return TabularEnv(lake, batch_size=lanes, seed=3, rng=rng)
 
     expert = Expert.from_q(lake_q)
-    learner = ActorCritic.tabular(16, 4)
+    learner = build("cross_entropy", TaskSpec(action=4, num_states=16))
     learner.exploration = RND
 
     def run(env, fast_path):
@@ -285,7 +284,7 @@ def _policies():
     lake_env = make_env("FrozenLake-v1", seed=0, num_envs=2)
     yield cart, _learner(cart).policy
     yield lake_env, _learner(lake_env).policy
-    yield lake_env, ActorCritic.tabular(16, 4).policy
+    yield lake_env, build("cross_entropy", TaskSpec(action=4, num_states=16)).policy
     for head in ("deterministic", "normal", "tanh_normal", "normal_free", "tanh_normal_free"):
         yield pend, _learner(pend, head=head).policy
     expert = cartpole_expert()
@@ -596,7 +595,7 @@ def test_every_registry_loss_fits_to_the_bit_on_both_paths(name, tname):
     rows = _rows(task) if horizon is None else add_chunk_labels(_rows(task), horizon)
 
     def fit() -> tuple[torch.Tensor, list[torch.Tensor]]:
-        learner = registry.build(name, task, LearnerConfig(hidden=(16, 16), lr=1e-2, seed=0))
+        learner = build(name, task, shared=dict(hidden=(16, 16), lr=1e-2, seed=0))
         result = fit_bc(learner, rows, BCConfig(num_steps=6, batch_size=16, seed=0))
         return result.losses, [p.detach().clone() for p in learner.policy.parameters()]
 
@@ -612,7 +611,7 @@ def test_a_pixel_fit_is_the_same_on_both_paths():
     rows = rollout_episodes(env, balance_expert(), 2)
 
     def fit():
-        learner = ActorCritic.for_env(env, channels=(4,), hidden=(16,), seed=0)
+        learner = build("for_env", env, channels=(4,), hidden=(16,), seed=0)
         losses = fit_bc(learner, rows, BCConfig(num_steps=3, batch_size=32, seed=0)).losses
         return losses, episode_returns(env, learner.policy, 2, exploration=DET, seed=1).returns
 

@@ -22,7 +22,7 @@ from imitrl.algorithms.adversarial.generator import PPOGenerator
 from imitrl.algorithms.adversarial.transitions import sample_rows
 from imitrl.compat import safe_tanh
 from imitrl.envs import make_env
-from imitrl.learners import ActorCritic
+from imitrl.learners import build
 from imitrl.runtime import paths
 from imitrl.runtime.fast.adam_step import optimizer_step
 from imitrl.runtime.fast.clip_grad import clip_grad_norm
@@ -102,7 +102,7 @@ def test_the_loss_on_tensors_is_clip_ppo_loss_for_every_head(env_id, head):
     losses and every parameter's gradient."""
     batch, _ = _round_batch(env_id, 2)
     env = make_env(env_id, seed=0)
-    learner = ActorCritic.for_env(env, head=head, hidden=(16, 16), seed=0)
+    learner = build("for_env", env, head=head, hidden=(16, 16), seed=0, value=True)
     generator = PPOGenerator(learner, gamma=0.99, gae_lambda=0.95, clip_epsilon=0.2,
                              entropy_coeff=0.0, epochs=1, minibatch_size=32,
                              max_grad_norm=0.5)  # fmt: skip

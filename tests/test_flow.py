@@ -12,12 +12,12 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from imitrl import keys
 from imitrl.algorithms import BCConfig, fit_bc
 from imitrl.data.chunks import CHUNK_PAD, EXPERT_CHUNK, IS_INIT
-from imitrl.learners import registry
+from imitrl.learners import build, registry
 from imitrl.learners.diffusion import DiffusionPolicy
-from imitrl.learners.registry import LearnerConfig, TaskSpec
+from imitrl.learners.task import TaskSpec
 
 TASK = TaskSpec(action=Bounded(-1.0, 1.0, shape=(1,)), observation_dim=2)
-CONFIG = LearnerConfig(hidden=(64, 64), lr=3e-3, seed=0)
+CONFIG = dict(hidden=(64, 64), lr=3e-3, seed=0)
 N = 512
 
 
@@ -44,7 +44,7 @@ def _act(learner, obs: torch.Tensor, exploration=ExplorationType.RANDOM) -> torc
 @pytest.mark.parametrize(("name", "tol"), [("flow", 0.05), ("diffusion_ddim", 0.08)])
 def test_few_step_generative_losses_fit_a_linear_expert(name, tol):
     rows = _toy()
-    learner = registry.build(name, TASK, CONFIG)
+    learner = build(name, TASK, shared=CONFIG)
     fit_bc(learner, rows, BCConfig(num_steps=800, batch_size=128))
     obs = rows.get(keys.OBSERVATION)[:200]
     err = (_act(learner, obs) - 0.5 * obs[:, :1]).abs().mean()
@@ -53,7 +53,7 @@ def test_few_step_generative_losses_fit_a_linear_expert(name, tol):
 
 def test_flow_keeps_both_modes_of_a_bimodal_expert():
     rows = _toy(bimodal=True)
-    learner = registry.build("flow", TASK, CONFIG)
+    learner = build("flow", TASK, shared=CONFIG)
     fit_bc(learner, rows, BCConfig(num_steps=800, batch_size=128))
     a = _act(learner, rows.get(keys.OBSERVATION)[:400])[:, 0]
     below, above = ((a + 0.5).abs() < 0.2).float().mean(), ((a - 0.5).abs() < 0.2).float().mean()
@@ -91,12 +91,12 @@ def _chunk_rows(horizon: int, pad_value: float) -> TensorDict:
 @pytest.mark.parametrize(("name", "tol"), [("mse_chunk", 0.05), ("flow_chunk", 0.08)])
 def test_chunk_losses_fit_the_unpadded_entries_and_ignore_the_padding(name, tol):
     horizon = registry.get(name).horizon
-    learner = registry.build(name, TASK, CONFIG)
+    learner = build(name, TASK, shared=CONFIG)
     rows = _chunk_rows(horizon, 0.9)
     if name == "mse_chunk":  # the padding's values do not move the loss
         # (flow: padded entries still enter x_t, as the label given there; only their
         # error carries no weight)
-        other = registry.build(name, TASK, CONFIG).loss.objective(_chunk_rows(horizon, -0.9))
+        other = build(name, TASK, shared=CONFIG).loss.objective(_chunk_rows(horizon, -0.9))
         assert learner.loss.objective(rows).item() == other.item()
     fit_bc(learner, rows, BCConfig(num_steps=800, batch_size=128))
     obs = rows.get(keys.OBSERVATION)[:200]
@@ -116,7 +116,7 @@ def _predict_sampled(learner, obs: torch.Tensor) -> torch.Tensor:
 
 
 def test_a_flow_policy_samples_from_the_noise_it_is_given():
-    learner = registry.build("flow", TASK, CONFIG)
+    learner = build("flow", TASK, shared=CONFIG)
     fit_bc(learner, _toy(bimodal=True), BCConfig(num_steps=200, batch_size=128))
     policy = learner.policy
     obs = torch.rand(6, 2)

@@ -14,7 +14,7 @@ from imitrl.algorithms import BCConfig, fit_bc
 from imitrl.data import DemonstrationBuffer
 from imitrl.envs import make_env
 from imitrl.evaluation import evaluate
-from imitrl.learners import ActorCritic
+from imitrl.learners import build
 from imitrl.policies import HEAD_LOSSES, Expert
 from imitrl.runtime import rollout_episodes
 
@@ -69,7 +69,7 @@ def _score(expert_fn, head: str | None, loss: str | None) -> float:
     env = make_env(ENV_ID, seed=0, num_envs=4)
     buffer = DemonstrationBuffer(action_spec=env.action_spec_unbatched)
     buffer.extend(rollout_episodes(env, expert.as_actor(), 4, exploration=DET, max_steps=1000))
-    learner = ActorCritic.for_env(env, head=head, loss=loss, hidden=(32, 32), lr=3e-3, seed=0)
+    learner = build("for_env", env, head=head, loss=loss, hidden=(32, 32), lr=3e-3, seed=0)
     fit_bc(learner, buffer, BCConfig(num_steps=400, batch_size=64, seed=0))
     eval_env = make_env(ENV_ID, seed=1, num_envs=16)
 

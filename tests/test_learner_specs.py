@@ -13,7 +13,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from imitrl import keys
 from imitrl.algorithms import BCConfig, fit_bc
 from imitrl.data import DemonstrationBuffer
-from imitrl.learners import ActorCritic, Learner
+from imitrl.learners import ActorCritic, Learner, TaskSpec, build
 from imitrl.policies.specs import action_space
 
 G = torch.Generator().manual_seed(0)
@@ -54,7 +54,9 @@ def test_an_mlp_learner_from_every_action_spec_clones_its_labels(kind):
         torch.arange(4) == 3
     )
     label = rule(obs).to(spec.dtype)
-    learner = ActorCritic.mlp(obs_spec, spec, hidden=(64, 64), lr=3e-3, seed=0)
+    learner = build(
+        "for_env", TaskSpec.from_specs(obs_spec, spec), hidden=(64, 64), lr=3e-3, seed=0
+    )
     fit = fit_bc(learner, _rows(obs, label), BCConfig(num_steps=800, batch_size=64))
     assert torch.isfinite(fit.losses).all()
     pred = _greedy(learner, obs)
@@ -68,7 +70,7 @@ def test_an_mlp_learner_from_every_action_spec_clones_its_labels(kind):
 
 
 def test_integer_state_observations_feed_the_mlp_one_hot():
-    learner = ActorCritic.mlp(Categorical(5), 2, seed=0, lr=1e-2)
+    learner = build("for_env", TaskSpec.from_specs(Categorical(5), 2), seed=0, lr=1e-2)
     obs = torch.arange(5).repeat(20)
     label = (obs % 2).long()
     fit_bc(learner, _rows(obs, label), BCConfig(num_steps=200))
@@ -87,7 +89,7 @@ def test_integer_state_observations_feed_the_mlp_one_hot():
 )
 def test_action_specs_that_do_not_fit_are_refused_by_name(bad, match):
     with pytest.raises(ValueError, match=match):
-        ActorCritic.mlp(4, bad)
+        ActorCritic.mlp(4, bad)  # the class's own check of the action spec
 
 
 def test_heads_that_do_not_fit_the_action_are_refused_naming_the_valid_ones():
@@ -103,7 +105,7 @@ def test_heads_that_do_not_fit_the_action_are_refused_naming_the_valid_ones():
 def test_the_normaliser_is_fitted_once_from_the_first_fit_and_is_then_frozen():
     obs = torch.randn(200, 3, generator=G) * torch.tensor([100.0, 1.0, 0.001]) + 7.0
     rows = _rows(obs, torch.zeros(200, dtype=torch.long))
-    learner = ActorCritic.mlp(3, 2, seed=0)
+    learner = build("for_env", TaskSpec.from_specs(3, 2), seed=0)
     assert not learner.normalizer.is_fitted
     fit_bc(learner, rows, BCConfig(num_steps=1))
     assert torch.allclose(learner.normalizer.loc, obs.double().mean(0).float())
@@ -119,10 +121,10 @@ def test_the_normaliser_is_saved_with_the_learner(tmp_path):
     rows.set(keys.ACTION, rows.get(keys.EXPERT_ACTION))
     buffer = DemonstrationBuffer()
     buffer.extend(_with_episode_keys(rows))
-    learner = ActorCritic.mlp(3, 2, seed=0)
+    learner = build("for_env", TaskSpec.from_specs(3, 2), seed=0)
     fit_bc(learner, buffer, BCConfig(num_steps=5))
     buffer.save(tmp_path / "ckpt", learner=learner)
-    fresh = ActorCritic.mlp(3, 2, seed=1)
+    fresh = build("for_env", TaskSpec.from_specs(3, 2), seed=1)
     DemonstrationBuffer.load(tmp_path / "ckpt", learner=fresh)
     assert fresh.normalizer.is_fitted
     assert torch.equal(fresh.normalizer.loc, learner.normalizer.loc)
@@ -145,7 +147,7 @@ def _with_episode_keys(rows: TensorDict) -> TensorDict:
 
 def test_the_policy_never_writes_normalised_observations_into_the_tensordict():
     obs = torch.randn(32, 3, generator=G) * 50.0
-    learner = ActorCritic.mlp(3, 2, seed=0)
+    learner = build("for_env", TaskSpec.from_specs(3, 2), seed=0)
     fit_bc(learner, _rows(obs, torch.zeros(32, dtype=torch.long)), BCConfig(num_steps=1))
     td = TensorDict({keys.OBSERVATION: obs.clone()}, [32])
     out = learner.policy(td)
@@ -157,9 +159,12 @@ def test_fit_bc_refuses_non_finite_observations_naming_them():
     obs = torch.randn(8, 3, generator=G)
     obs[3, 1] = float("inf")
     with pytest.raises(ValueError, match="NaN or inf"):
-        fit_bc(ActorCritic.mlp(3, 2), _rows(obs, torch.zeros(8, dtype=torch.long)))
+        fit_bc(
+            build("for_env", TaskSpec.from_specs(3, 2)),
+            _rows(obs, torch.zeros(8, dtype=torch.long)),
+        )
     with pytest.raises(ValueError, match="NaN or inf"):
-        ActorCritic.mlp(3, 2).act(obs)
+        build("for_env", TaskSpec.from_specs(3, 2)).act(obs)
 
 
 # ------------------------------------------------------------ learner vs env
@@ -167,18 +172,30 @@ def test_a_learner_that_does_not_fit_the_env_is_refused_naming_both():
     from imitrl.envs import make_env
 
     cartpole, pendulum = make_env("CartPole-v1", seed=0), make_env("Pendulum-v1", seed=0)
-    ActorCritic.for_env(cartpole).check_env(cartpole)
-    ActorCritic.for_env(pendulum).check_env(pendulum)
+    build("for_env", cartpole).check_env(cartpole)
+    build("for_env", pendulum).check_env(pendulum)
     cases = [
-        (ActorCritic.mlp(4, 3), cartpole, "writes 3 discrete actions; the env takes 2"),
-        (ActorCritic.mlp(5, 2), cartpole, r"shape \(5,\); the env gives shape \(4,\)"),
-        (ActorCritic.for_env(cartpole), pendulum, r"shape \(4,\); the env gives shape \(3,\)"),
+        (
+            build("for_env", TaskSpec.from_specs(4, 3)),
+            cartpole,
+            "writes 3 discrete actions; the env takes 2",
+        ),
+        (
+            build("for_env", TaskSpec.from_specs(5, 2)),
+            cartpole,
+            r"shape \(5,\); the env gives shape \(4,\)",
+        ),
+        (build("for_env", cartpole), pendulum, r"shape \(4,\); the env gives shape \(3,\)"),
         (
             ActorCritic.mlp(3, Bounded(-1.0, 1.0, shape=(1,))),
             pendulum,
             r"in \[\[-1.0\], \[1.0\]\]; the env takes continuous actions of size 1 in \[\[-2.0\]",
         ),
-        (ActorCritic.tabular(15, 4), _lake_env(), "15 states; the env gives 16 states"),
+        (
+            build("cross_entropy", TaskSpec(action=4, num_states=15)),
+            _lake_env(),
+            "15 states; the env gives 16 states",
+        ),
     ]
     for learner, env, match in cases:
         with pytest.raises(ValueError, match=match):
@@ -198,6 +215,6 @@ def test_evaluate_refuses_a_learner_that_does_not_fit_the_env_before_any_step():
 
     env = make_env("CartPole-v1", seed=0)
     with pytest.raises(ValueError, match=r"shape \(5,\); the env gives shape \(4,\)"):
-        evaluate(env, ActorCritic.mlp(5, 2), 1)
+        evaluate(env, build("for_env", TaskSpec.from_specs(5, 2)), 1)
     with pytest.raises(ValueError, match="writes 3 discrete actions; the env takes 2"):
-        evaluate(env, ActorCritic.mlp(4, 3), 1)
+        evaluate(env, build("for_env", TaskSpec.from_specs(4, 3)), 1)

@@ -29,9 +29,11 @@ def test_entries_with_their_own_rate_refuse_another_and_take_theirs_by_default()
     assert registry.get("diffusion_unet").own_lr == DIFFUSION_UNET.lr
     for name, own in (("act", ACT_LR), ("diffusion_unet", DIFFUSION_UNET.lr)):
         with pytest.raises(ValueError, match=f"--loss {name} trains at its recipe's learning"):
-            learner_factory(name, env, hidden=(8,), lr=own * 10, seed=0)
+            learner_factory(name, env, hidden=None, lr=own * 10, seed=0)
+        with pytest.raises(ValueError, match=f"--loss {name} has no hidden layers"):
+            learner_factory(name, env, hidden=(8,), lr=None, seed=0)  # its widths: its own
         for lr in (None, own):  # no --lr, or the recipe's own: built at the recipe's rate
-            assert _rate(learner_factory(name, env, hidden=(8,), lr=lr, seed=0)()) == own
+            assert _rate(learner_factory(name, env, hidden=None, lr=lr, seed=0)()) == own
 
 
 def test_every_other_entry_honours_lr_and_defaults_to_the_learner_config():

@@ -189,6 +189,62 @@ def test_a_png_holding_less_than_its_header_declares_is_refused_unread(tmp_path)
         _load(root, images="load")
 
 
+def _inflate_rows(path: Path, rows: int) -> None:
+    """``path``'s parquet rewritten as ``rows`` copies of its first row, in row groups of a
+    million: a few hundred KB of zstd pages whose columns decode to ``rows`` * ~100
+    bytes."""
+    small = pq.read_table(path)
+    group = small.slice(0, 1).take(pa.array(np.zeros(1 << 20, np.int64)))
+    with pq.ParquetWriter(path.with_suffix(".new"), small.schema, compression="zstd") as out:
+        for start in range(0, rows, 1 << 20):
+            out.write_table(group.slice(0, min(1 << 20, rows - start)))
+    path.with_suffix(".new").replace(path)
+
+
+@pytest.mark.parametrize("version", ["v3.0", "v2.1"])
+def test_a_data_file_of_millions_more_rows_than_the_metadata_is_refused_unread(tmp_path, version):
+    """Twelve million rows of one value in a few hundred KB of parquet, where the
+    metadata (``info.json``, the episode table) says 5 frames, and no ``meta/imitrl.json``
+    to check it by its checksum (any dataset imitrl did not write): on 7278396 the load
+    read the whole file before it compared the counts (20 million rows: 4.6 GB; here past
+    the cap, or long). Its footer is checked against the metadata first now."""
+    if version == "v3.0":
+        root = write_v30(tmp_path / "ds", episodes_data([3, 2]), files=[(0, 0), (0, 0)])
+        data = root / V3_DATA
+    else:
+        root = write_v21(tmp_path / "ds", episodes_data([3, 2]))
+        data = root / EPISODE_1
+    _inflate_rows(data, 12_000_000)
+    assert data.stat().st_size < 2_000_000 and not (root / "meta/imitrl.json").exists()
+    out = _capped_load(root)
+    assert out["error"] == "ValueError", out
+    said = out["message"]
+    if version == "v3.0":
+        assert said.startswith(f"{root / 'data'}: the data files hold 12,000,000 frames"), out
+        assert "the episode table covers 5; refused before reading them" in said, out
+    else:
+        assert said.startswith(f"{data}: episode 1 has 12000000 frames (its footer says)"), out
+        assert "the episode metadata says 2; refused before reading it" in said, out
+    assert out["seconds"] < 5, out
+
+
+def test_the_footer_row_count_must_be_the_row_groups(tmp_path):
+    """A footer is read as it declares (:func:`~imitrl.datasets._arrow.checked_rows`): the
+    rows it declares must be its row groups' (each read as many as it declares)."""
+    from imitrl.datasets._arrow import checked_rows
+
+    class Meta:  # a footer declaring 5 rows over row groups of 3 and 20 million
+        num_rows, num_row_groups = 5, 2
+
+        def row_group(self, g):
+            return type("Group", (), {"num_rows": (3, 20_000_000)[g]})
+
+    hostile = type("File", (), {"metadata": Meta()})
+    with pytest.raises(ValueError, match=r"x\.parquet: its footer declares 5 rows, its row groups "
+                       r"20,000,003; refused before reading"):  # fmt: skip
+        checked_rows(hostile, Path("x.parquet"))
+
+
 # --------------------------------------- finding 6: files that change during a load
 _FLIP = r"""
 import os, sys

@@ -15,9 +15,8 @@ from imitrl.algorithms.policy_step import policy_step
 from imitrl.data import DemonstrationBuffer
 from imitrl.data.chunks import EXPERT_CHUNK, IS_INIT
 from imitrl.envs import TabularEnv
-from imitrl.learners import ActorCritic, Learner, registry
+from imitrl.learners import ActorCritic, Learner, TaskSpec, build, registry
 from imitrl.learners.diffusion import DiffusionBehaviorCloningLoss, DiffusionPolicy
-from imitrl.learners.registry import LearnerConfig, TaskSpec
 from imitrl.objectives import AdvantageWeightedLoss, BehaviorCloningLoss, RegularizedBCLoss
 from imitrl.policies import Expert
 from imitrl.runtime import rollout_episodes
@@ -55,13 +54,13 @@ def _cases():
                 yield pytest.param(entry.name, tname, id=f"{entry.name}-{tname}")
 
 
-CONFIG = LearnerConfig(hidden=(16, 16), lr=1e-2, seed=0)
+CONFIG = dict(hidden=(16, 16), lr=1e-2, seed=0)
 
 
 @pytest.mark.parametrize(("name", "tname"), list(_cases()))
 def test_every_entry_builds_acts_and_trains(name, tname):
     task = TASKS[tname]
-    learner = registry.build(name, task, CONFIG)
+    learner = build(name, task, shared=CONFIG)
     assert isinstance(learner, Learner)
     horizon = registry.get(name).horizon
     assert learner.horizon == horizon and learner.history == registry.get(name).history
@@ -91,11 +90,11 @@ def test_every_entry_builds_acts_and_trains(name, tname):
 
 def test_entries_that_do_not_apply_are_refused_with_the_reason():
     with pytest.raises(ValueError, match="continuous"):
-        registry.build("mse", TASKS["discrete_vector"])
+        build("mse", TASKS["discrete_vector"])
     with pytest.raises(ValueError, match="advantage"):
-        registry.build("advantage_weighted", TASKS["discrete_vector"])
+        build("advantage_weighted", TASKS["discrete_vector"])
     with pytest.raises(ValueError, match="unknown loss 'nope'"):
-        registry.build("nope", TASKS["continuous"])
+        build("nope", TASKS["continuous"])
     assert "advantage_weighted" not in registry.names(TASKS["discrete_vector"])
     assert "advantage_weighted" in registry.names(TASKS["discrete_table"])
     assert set(registry.names(TASKS["continuous"])) >= {
@@ -120,11 +119,13 @@ def test_register_rejects_duplicates_and_unknown_requirements():
 
     @registry.register("test_bad_return", actions="discrete", summary="returns the wrong type")
     def _(task, config):
-        return ActorCritic.tabular(2, 2).policy  # a policy module, not a Learner
+        return build(
+            "cross_entropy", TaskSpec(action=2, num_states=2)
+        ).policy  # a policy module, not a Learner
 
     try:
         with pytest.raises(ValueError, match="expected a Learner"):
-            registry.build("test_bad_return", TaskSpec(action=2, num_states=2))
+            build("test_bad_return", TaskSpec(action=2, num_states=2))
     finally:
         registry.unregister("test_bad_return")
     assert "test_bad_return" not in registry.names()
@@ -134,7 +135,7 @@ def test_register_rejects_duplicates_and_unknown_requirements():
 
 # ------------------------------------------------------------------ exact values
 def test_advantage_weighted_loss_is_policy_steps_objective():
-    ac = ActorCritic.tabular(6, 4)
+    ac = build("cross_entropy", TaskSpec(action=4, num_states=6))
     with torch.no_grad():
         ac.policy.module[0].module.weight.copy_(
             torch.randn(6, 4, generator=torch.Generator().manual_seed(1))
@@ -158,7 +159,7 @@ def test_advantage_weighted_loss_is_policy_steps_objective():
 
 
 def test_regularized_loss_terms_are_exact():
-    ac = ActorCritic.mlp(4, 3, hidden=(8,), seed=0)
+    ac = build("for_env", TaskSpec.from_specs(4, 3), hidden=(8,), seed=0)
     rows = _rows(TASKS["discrete_vector"])
     plain = BehaviorCloningLoss(ac.policy, loss_type="nll")(rows)["loss_bc"]
     none = RegularizedBCLoss(ac.policy, loss_type="nll")(rows)
@@ -171,7 +172,7 @@ def test_regularized_loss_terms_are_exact():
     assert torch.allclose(out["loss_entropy"], -0.1 * entropy, atol=1e-6)
     assert torch.allclose(out["loss_l2"], 0.01 * l2, atol=1e-6)
     with pytest.raises(ValueError, match="probabilistic"):
-        det = ActorCritic.mlp(3, SPEC, head="deterministic", hidden=(8,))
+        det = build("for_env", TaskSpec.from_specs(3, SPEC), head="deterministic", hidden=(8,))
         RegularizedBCLoss(det.policy, loss_type="mse", entropy_coef=0.1)
 
 
@@ -207,8 +208,8 @@ def test_diffusion_policy_maps_bounds_and_is_reproducible():
 def test_a_learner_given_its_default_loss_explicitly_fits_identically():
     rows = _rows(TASKS["discrete_vector"], n=128)
     cfg = BCConfig(num_steps=30, batch_size=32, seed=4)
-    a = ActorCritic.mlp(4, 3, seed=0)
-    policy_b = ActorCritic.mlp(4, 3, seed=0)
+    a = build("for_env", TaskSpec.from_specs(4, 3), seed=0)
+    policy_b = build("for_env", TaskSpec.from_specs(4, 3), seed=0)
     b = ActorCritic(
         policy_b.policy,
         policy_b.value,
@@ -247,7 +248,7 @@ def test_dagger_trains_registry_learners_through_the_fit_hook(lake, expert_table
     result = dagger(
         EnvSource(env),
         expert,
-        lambda: registry.build("cross_entropy_entropy", task, LearnerConfig(lr=0.1)),
+        lambda: build("cross_entropy_entropy", task, shared=dict(lr=0.1)),
         buffer,
         DAggerConfig(rounds=3, episodes_per_round=3),
         train=train,
@@ -267,12 +268,12 @@ def test_diffusion_keeps_both_modes_where_mse_averages_them():
     label = torch.where(torch.rand(n, 1, generator=g) < 0.5, 0.5, -0.5)
     rows = TensorDict({keys.OBSERVATION: obs, keys.EXPERT_ACTION: label}, [n])
     task = TaskSpec(action=Bounded(-1.0, 1.0, shape=(1,)), observation_dim=1)
-    cfg = LearnerConfig(hidden=(32, 32), lr=1e-2, seed=0)
+    cfg = dict(hidden=(32, 32), lr=1e-2, seed=0)
     fit = BCConfig(num_steps=1200, batch_size=256, seed=0)
     test_obs = TensorDict({keys.OBSERVATION: torch.rand(2000, 1, generator=g)}, [2000])
     fractions = {}
     for name in ("mse", "diffusion"):
-        learner = registry.build(name, task, cfg)
+        learner = build(name, task, shared=cfg)
         fit_bc(learner, rows, fit)
         with torch.no_grad(), set_exploration_type(learner.exploration):
             a = learner.policy(test_obs.clone())[keys.ACTION]

@@ -24,6 +24,7 @@ from imitrl.envs.metaworld import MT10, MT50
 from imitrl.envs.success import SuccessInfo
 from imitrl.evaluation import evaluate, wilson_interval
 from imitrl.experts import metaworld_expert
+from imitrl.learners import build
 from imitrl.policies import Expert
 from imitrl.runtime import rollout_episodes
 
@@ -210,7 +211,6 @@ def test_a_recorded_mt10_dataset_has_exactly_lerobots_features_and_trains_a_lear
     from imitrl.datasets import load_lerobot, save_metaworld_lerobot
     from imitrl.envs.metaworld import LEROBOT_FEATURES
     from imitrl.envs.metaworld_tasks import LEROBOT_TASKS
-    from imitrl.learners import ActorCritic
 
     if not _renders():
         pytest.skip("no headless OpenGL (MUJOCO_GL=egl or osmesa) to render camera frames")
@@ -248,7 +248,7 @@ def test_a_recorded_mt10_dataset_has_exactly_lerobots_features_and_trains_a_lear
         max_episode_steps=20,
         env_kwargs={"obs_type": "environment_state_agent_pos"},
     )
-    learner = ActorCritic.for_env(state_env, hidden=(32,), seed=0)
+    learner = build("for_env", state_env, hidden=(32,), seed=0)
     fit_bc(learner, rows, BCConfig(num_steps=20, batch_size=16, seed=0))
     ev = evaluate(state_env, learner, 2, seed=1)
     assert ev.num_episodes == 2 and ev.success_rate is not None

@@ -23,7 +23,7 @@ from imitrl.data import DemonstrationBuffer
 from imitrl.envs import make_env
 from imitrl.evaluation import evaluate
 from imitrl.experts import cartpole_expert
-from imitrl.learners import ActorCritic
+from imitrl.learners import build
 from imitrl.policies import Expert
 from imitrl.runtime import rollout_episodes
 
@@ -200,7 +200,7 @@ def test_a_train_callback_returning_none_is_named():
     buffer = DemonstrationBuffer(action_spec=env.action_spec_unbatched)
     buffer.extend(rollout_episodes(env, cartpole_expert(), 1))
     with pytest.raises(ValueError, match=r"train callback must return the fit's BCResult"):
-        dagger(EnvSource(env), cartpole_expert(), lambda: ActorCritic.for_env(env, hidden=(8,)),
+        dagger(EnvSource(env), cartpole_expert(), lambda: build("for_env", env, hidden=(8,)),
                buffer, DAggerConfig(rounds=1), train=lambda learner, buf: None)  # fmt: skip
 
 

@@ -12,7 +12,7 @@ from torchrl.data import Bounded
 from imitrl import keys
 from imitrl.algorithms import BCConfig, fit_bc
 from imitrl.algorithms.policy_step import policy_step
-from imitrl.learners import ActorCritic
+from imitrl.learners import TaskSpec, build
 from imitrl.objectives import BehaviorCloningLoss
 
 
@@ -34,7 +34,7 @@ def _randomise(ac, seed=0):
 
 
 def test_nll_equals_cross_entropy():
-    ac = ActorCritic.tabular(8, 3)
+    ac = build("cross_entropy", TaskSpec(action=3, num_states=8))
     _randomise(ac)
     rows = _rows()
     out = BehaviorCloningLoss(ac.policy, loss_type="nll", report_accuracy=True)(rows)
@@ -48,7 +48,7 @@ def test_nll_equals_cross_entropy():
 @pytest.mark.parametrize("loss_type", ["mse", "l1", "smooth_l1"])
 def test_regression_losses_equal_torch_functional(loss_type):
     spec = Bounded(-1.0, 1.0, shape=(2,))
-    ac = ActorCritic.mlp(3, spec, head="deterministic", hidden=(8,))
+    ac = build("for_env", TaskSpec.from_specs(3, spec), head="deterministic", hidden=(8,))
     g = torch.Generator().manual_seed(0)
     obs, label = torch.randn(32, 3, generator=g), torch.rand(32, 2, generator=g) * 2 - 1
     out = BehaviorCloningLoss(ac.policy, loss_type=loss_type)(
@@ -63,7 +63,7 @@ def test_regression_losses_equal_torch_functional(loss_type):
 
 def test_tanh_normal_nll_is_minus_log_prob():
     spec = Bounded(-2.0, 2.0, shape=(1,))
-    ac = ActorCritic.mlp(3, spec, head="tanh_normal", hidden=(8,))
+    ac = build("for_env", TaskSpec.from_specs(3, spec), head="tanh_normal", hidden=(8,))
     obs = torch.randn(16, 3, generator=torch.Generator().manual_seed(1))
     label = torch.rand(16, 1, generator=torch.Generator().manual_seed(2)) * 3.8 - 1.9
     out = BehaviorCloningLoss(ac.policy, loss_type="nll")(
@@ -73,7 +73,7 @@ def test_tanh_normal_nll_is_minus_log_prob():
 
 
 def test_label_key_is_separate_from_the_learner_action():
-    ac = ActorCritic.tabular(8, 3)
+    ac = build("cross_entropy", TaskSpec(action=3, num_states=8))
     rows = _rows()
     rows.set(keys.ACTION, torch.zeros(64, dtype=torch.long))
     before = rows.clone()
@@ -82,7 +82,7 @@ def test_label_key_is_separate_from_the_learner_action():
 
 
 def test_bad_loss_arguments():
-    ac = ActorCritic.tabular(8, 3)
+    ac = build("cross_entropy", TaskSpec(action=3, num_states=8))
     with pytest.raises(ValueError, match="loss_type must be one of"):
         BehaviorCloningLoss(ac.policy, loss_type="hinge")
     rows = _rows()
@@ -93,7 +93,10 @@ def test_bad_loss_arguments():
 
 def test_policy_step_with_unit_weights_equals_one_bc_step():
     rows = _rows(n=40)
-    a, b = ActorCritic.tabular(8, 3), ActorCritic.tabular(8, 3)
+    a, b = (
+        build("cross_entropy", TaskSpec(action=3, num_states=8)),
+        build("cross_entropy", TaskSpec(action=3, num_states=8)),
+    )
     _randomise(a, 3)
     _randomise(b, 3)
     loss_a = policy_step(a, rows, np.ones(40), action_key=keys.EXPERT_ACTION)
@@ -104,7 +107,10 @@ def test_policy_step_with_unit_weights_equals_one_bc_step():
 
 def test_deduplicated_full_batch_fit_is_the_same_objective():
     rows = _rows(n=500, S=8, A=3)  # many repeated (state, label) pairs
-    a, b = ActorCritic.tabular(8, 3), ActorCritic.tabular(8, 3)
+    a, b = (
+        build("cross_entropy", TaskSpec(action=3, num_states=8)),
+        build("cross_entropy", TaskSpec(action=3, num_states=8)),
+    )
     fa = fit_bc(a, rows, BCConfig(num_steps=60, deduplicate=True))
     fb = fit_bc(b, rows, BCConfig(num_steps=60, deduplicate=False))
     assert torch.allclose(fa.losses, fb.losses, atol=1e-5)
@@ -115,7 +121,7 @@ def test_deduplicated_full_batch_fit_is_the_same_objective():
     assert torch.equal(a.greedy_table(), b.greedy_table())
     with pytest.raises(ValueError, match="deduplicate=True needs integer"):
         fit_bc(
-            ActorCritic.mlp(2, 3),
+            build("for_env", TaskSpec.from_specs(2, 3)),
             TensorDict(
                 {
                     keys.OBSERVATION: torch.zeros(4, 2),
@@ -132,7 +138,7 @@ def test_policy_step_accepts_obs_act_objects_and_treats_weights_as_data():
         obs = np.array([0, 1, 2, 1])
         act = np.array([1, 1, 0, 2])
 
-    ac = ActorCritic.tabular(3, 3)
+    ac = build("cross_entropy", TaskSpec(action=3, num_states=3))
     adv = torch.tensor([1.0, -2.0, 0.5, 3.0], requires_grad=True)
     policy_step(ac, Batch(), adv)
     assert adv.grad is None  # no gradient reached the weights
@@ -160,7 +166,7 @@ def test_fit_rejects_bad_categorical_labels(label, match):
     )
     for cfg in (BCConfig(num_steps=1), BCConfig(num_steps=1, batch_size=2)):
         with pytest.raises(ValueError, match=match):
-            fit_bc(ActorCritic.tabular(8, 3), rows, cfg)
+            fit_bc(build("cross_entropy", TaskSpec(action=3, num_states=8)), rows, cfg)
 
 
 def test_fit_rejects_non_finite_continuous_labels():
@@ -174,19 +180,21 @@ def test_fit_rejects_non_finite_continuous_labels():
     )
     with pytest.raises(ValueError, match="NaN or inf"):
         fit_bc(
-            ActorCritic.mlp(4, spec, head="deterministic", loss="mse"), rows, BCConfig(num_steps=1)
+            build("for_env", TaskSpec.from_specs(4, spec), head="deterministic", loss="mse"),
+            rows,
+            BCConfig(num_steps=1),
         )
 
 
 def test_log_prob_rejects_out_of_range_actions():
-    ac = ActorCritic.tabular(4, 3)
+    ac = build("cross_entropy", TaskSpec(action=3, num_states=4))
     with pytest.raises(ValueError, match=r"lie in \[0, 3\)"):
         ac.log_prob(np.array([0, 1]), np.array([0, 7]))
 
 
 def test_tanh_normal_nll_of_labels_on_the_bounds_is_finite_and_pulls_towards_them():
     spec = Bounded(-2.0, 2.0, shape=(1,))
-    ac = ActorCritic.mlp(3, spec, head="tanh_normal", hidden=(8,), lr=1e-2)
+    ac = build("for_env", TaskSpec.from_specs(3, spec), head="tanh_normal", hidden=(8,), lr=1e-2)
     rows = TensorDict(
         {keys.OBSERVATION: torch.zeros(64, 3), keys.EXPERT_ACTION: torch.full((64, 1), 2.0)}, [64]
     )

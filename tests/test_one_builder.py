@@ -5,6 +5,7 @@ checkpoints saved when ``default`` meant ``ActorCritic.for_env`` still load."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import gymnasium
 import numpy as np
@@ -17,9 +18,9 @@ from imitrl.jobs.bc import run_bc
 from imitrl.jobs.checkpoint import CONFIG_FILE, WEIGHTS_FILE, load_learner
 from imitrl.jobs.configs import BCJob, GAILJob
 from imitrl.jobs.gail import run_gail
-from imitrl.jobs.resolve import FOR_ENV, learner_factory, resolve_loss, task_spec
-from imitrl.learners import ActorCritic, defaults, registry
-from imitrl.learners.registry import LearnerConfig, TaskSpec
+from imitrl.jobs.resolve import FOR_ENV, learner_factory, resolve_loss
+from imitrl.learners import ActorCritic, TaskSpec, build, defaults, registry
+from imitrl.learners.registry import LearnerConfig
 
 
 def _rate(learner) -> float:
@@ -49,7 +50,7 @@ def test_on_vector_observations_the_entry_is_the_network_default_built_before(en
     # same loss, so runs recorded with "default" reproduce
     env = make_env(env_id, seed=0)
     for seed in (0, 3):
-        old = ActorCritic.for_env(env, hidden=(16, 8), lr=1e-3, seed=seed)
+        old = build("for_env", env, hidden=(16, 8), lr=1e-3, seed=seed)
         new = learner_factory("default", env, hidden=(16, 8), lr=None, seed=seed)()
         assert _same_weights(old, new)
         assert (_rate(new), new.head, type(new.loss)) == (1e-3, old.head, type(old.loss))
@@ -70,12 +71,12 @@ def test_on_integer_states_default_and_cross_entropy_build_the_same_table():
 def test_default_learning_rates_are_one_per_network():
     table = TaskSpec(action=4, num_states=16)
     vector = TaskSpec(action=2, observation_dim=4)
-    assert _rate(registry.build("cross_entropy", table)) == defaults.TABLE_LR == 0.1
-    assert _rate(registry.build("cross_entropy", vector)) == defaults.NETWORK_LR == 1e-3
-    assert _rate(registry.build("cross_entropy", table, LearnerConfig(lr=0.3))) == 0.3
+    assert _rate(build("cross_entropy", table)) == defaults.TABLE_LR == 0.1
+    assert _rate(build("cross_entropy", vector)) == defaults.NETWORK_LR == 1e-3
+    assert _rate(build("cross_entropy", table, shared=dict(lr=0.3))) == 0.3
     assert LearnerConfig().lr is None  # unset: the network's own, resolved by build
     with pytest.raises(ValueError, match="must be positive"):
-        registry.build("cross_entropy", vector, LearnerConfig(lr=0.0))
+        build("cross_entropy", vector, shared=dict(lr=0.0))
     with pytest.raises(ValueError, match="actions must be one of"):
         defaults.default_loss("hybrid")
 
@@ -95,8 +96,7 @@ def test_a_table_at_its_default_rate_fits_its_demonstrations():
     rows = TensorDict({keys.OBSERVATION: obs, keys.EXPERT_ACTION: label}, [200])
     sure = {}
     for lr in (None, 1e-3):
-        learner = registry.build("cross_entropy", TaskSpec(action=4, num_states=16),
-                                 LearnerConfig(lr=lr))  # fmt: skip
+        learner = build("cross_entropy", TaskSpec(action=4, num_states=16), lr=lr)
         fit_bc(learner, rows, BCConfig(num_steps=1000, batch_size=64, seed=0))
         logits = learner.policy(rows.select(keys.OBSERVATION)).get(keys.LOGITS).detach()
         sure[lr] = float(torch.softmax(logits, -1).gather(-1, label[:, None]).mean())
@@ -119,14 +119,15 @@ class _MultiDiscreteEnv(gymnasium.Env):
 
 def test_where_the_registry_builds_nothing_default_is_for_envs_network():
     with pytest.raises(ValueError, match=r"MultiOneHot actions .* categorical_action_encoding"):
-        ActorCritic.for_env(GymWrapper(_MultiDiscreteEnv()))
+        build("for_env", GymWrapper(_MultiDiscreteEnv()))
     env = GymWrapper(_MultiDiscreteEnv(), categorical_action_encoding=True)
-    with pytest.raises(ValueError, match="Categorical or Bounded actions"):
-        task_spec(env)
+    assert not TaskSpec.from_env(env).described  # multi-discrete: no registry entry but for_env
+    with pytest.raises(ValueError, match="does not apply to this task"):
+        build("cross_entropy", env)
     assert resolve_loss("default", env) == FOR_ENV
     learner = learner_factory("default", env, hidden=(8,), lr=None, seed=0)()
-    assert _same_weights(learner, ActorCritic.for_env(env, hidden=(8,), lr=1e-3, seed=0))
-    with pytest.raises(ValueError, match="unknown loss 'tabel'; choose default, for_env"):
+    assert _same_weights(learner, build("for_env", env, hidden=(8,), lr=1e-3, seed=0))
+    with pytest.raises(ValueError, match="unknown loss 'tabel'; choose default or one of: cross"):
         learner_factory("tabel", env, hidden=(8,), lr=None, seed=0)
 
 
@@ -152,7 +153,7 @@ def test_a_checkpoint_saved_when_default_meant_for_env_still_loads(tmp_path):
     # what imitrl bc --loss default wrote on FrozenLake before: for_env's one-hot MLP,
     # recorded as "default"; it rebuilds as that network, not as today's table
     env = make_env("FrozenLake-v1", seed=0)
-    old = ActorCritic.for_env(env, hidden=(64, 64), lr=1e-3, seed=5)
+    old = build("for_env", env, hidden=(64, 64), lr=1e-3, seed=5)
     with torch.no_grad():
         for p in old.parameters():
             p.add_(0.25)  # trained weights, not the initialisation
@@ -173,13 +174,13 @@ def _config_of(job: BCJob) -> dict:
 
 def test_hidden_is_refused_for_a_table_and_honoured_for_networks():
     lake = make_env("FrozenLake-v1", seed=0)
-    with pytest.raises(ValueError, match=r"--hidden 32: --loss cross_entropy on 16 integer"):
+    with pytest.raises(ValueError, match=r"--hidden 32: on 16 integer states this entry builds a"):
         learner_factory("default", lake, hidden=(32,), lr=None, seed=0)
     mlp = learner_factory(FOR_ENV, lake, hidden=(32,), lr=None, seed=0)()
-    assert [p.shape[0] for p in mlp.value.parameters()][:2] == [32, 32]  # weight, bias
+    assert [p.shape[0] for p in mlp.policy.parameters()][:2] == [32, 32]  # weight, bias
     cart = make_env("CartPole-v1", seed=0)
     default = learner_factory("default", cart, hidden=None, lr=None, seed=0)()
-    assert _same_weights(default, ActorCritic.for_env(cart, hidden=(64, 64), seed=0))
+    assert _same_weights(default, build("for_env", cart, hidden=(64, 64), seed=0))
     narrow = learner_factory("default", cart, hidden=(8,), lr=None, seed=0)()
     assert sum(p.numel() for p in narrow.policy.parameters()) < 100
     assert BCJob().hidden is None and GAILJob().hidden is None
@@ -223,9 +224,10 @@ def test_on_images_default_is_for_envs_cnn_with_or_without_a_state():
         assert resolve_loss("default", env, probabilistic=True) == FOR_ENV
         learner = learner_factory("default", env, hidden=None, lr=None, seed=0)()
         assert learner.pixel_inputs is not None  # a CNN that reads the image
-        assert _same_weights(learner, ActorCritic.for_env(env, seed=0))
-    with pytest.raises(ValueError, match="needs an 'observation' observation"):
-        task_spec(alone)
+        assert _same_weights(learner, build("for_env", env, seed=0))
+    assert not TaskSpec.from_env(alone).described  # images alone: for_env's CNN
+    with pytest.raises(ValueError, match="does not apply to this task"):
+        build("mse", alone)
 
 
 def test_gail_refuses_an_integer_state_learner_saying_what_to_do():
@@ -239,3 +241,37 @@ def test_gail_refuses_an_integer_state_learner_saying_what_to_do():
     ):
         with pytest.raises(ValueError, match=r"reads 16 integer states .* one-hot the env"):
             gail(env, learner, DemonstrationBuffer(num_states=16), GAILConfig())
+
+
+@pytest.mark.parametrize(
+    "env_id, kwargs",
+    [
+        ("FrozenLake-v1", ()),
+        ("CartPole-v1", ()),
+        ("Pendulum-v1", ()),
+        ("metaworld/reach-v3", (("obs_type", "pixels_agent_pos"), ("width", 32), ("height", 32))),
+    ],
+    ids=["frozenlake", "cartpole", "pendulum", "pixels"],
+)
+def test_the_clis_default_learner_is_builds_default_bit_for_bit(tmp_path, env_id, kwargs):
+    """What ``imitrl bc --env ...`` trains (its preparation, flags as given) and
+    ``build("default", env)``: the same entry, the same parameters to the bit."""
+    from imitrl.jobs.bc import prepare
+
+    if env_id.startswith("metaworld"):
+        pytest.importorskip("metaworld")
+    config = BCJob(env=env_id, env_kwargs=kwargs, expert=None, dataset=Path("org/name"),
+                   out=tmp_path / "out", progress=False, seed=7)  # fmt: skip
+    setup = prepare(config, "bc", tmp_path / "run")
+    try:
+        cli = setup.make_learner()
+        mine = build("default", setup.env, seed=7)
+        assert setup.loss == ("for_env" if env_id.startswith("metaworld") else setup.loss)
+        assert type(cli) is type(mine)
+        cli_state, my_state = cli.state_dict(), mine.state_dict()
+        assert cli_state.keys() == my_state.keys()
+        for key in cli_state:
+            assert torch.equal(cli_state[key], my_state[key]), key
+        assert cli.opt_pi.param_groups[0]["lr"] == mine.opt_pi.param_groups[0]["lr"]
+    finally:
+        setup.close()

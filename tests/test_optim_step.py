@@ -7,6 +7,7 @@ import copy
 import pytest
 import torch
 
+from imitrl.learners import build
 from imitrl.runtime.fast.adam_step import optimizer_step
 
 
@@ -91,12 +92,11 @@ def test_a_fit_trains_as_plain_adam_steps_do():
     from imitrl.algorithms import BCConfig, fit_bc
     from imitrl.envs import make_env
     from imitrl.experts import pendulum_expert
-    from imitrl.learners import ActorCritic
     from imitrl.runtime import paths, rollout_episodes
 
     env = make_env("Pendulum-v1", seed=0)
     rows = rollout_episodes(env, pendulum_expert(), 1)
-    fast = ActorCritic.for_env(env, hidden=(16, 16), seed=0)
+    fast = build("for_env", env, hidden=(16, 16), seed=0, value=True)
     plain = copy.deepcopy(fast)
     fit_bc(fast, rows, BCConfig(40, batch_size=16, seed=0))
     with paths.reference():  # opt.step (and the loss's reference form)

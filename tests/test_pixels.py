@@ -24,7 +24,7 @@ from imitrl.envs.pixel_tasks import (
     state_expert,
 )
 from imitrl.evaluation.evaluate import evaluate
-from imitrl.learners import ActorCritic, Learner
+from imitrl.learners import ActorCritic, Learner, TaskSpec, build
 from imitrl.policies.encoders import PixelEncoder
 from imitrl.runtime.rollout import rollout_episodes
 
@@ -42,7 +42,7 @@ def _demos(env, episodes: int = 2, seed: int = 0):
 
 
 def test_cnn_learner_shapes_and_uint8_scaling():
-    learner = ActorCritic.pixels((16, 16, 3), ACTION, **SMALL)
+    learner = ActorCritic.pixels((16, 16, 3), ACTION, value=True, **SMALL)
     assert learner.policy.in_keys == [keys.PIXELS]
     assert keys.PIXELS in learner.loss.in_keys  # fit_bc's rows carry the images
     action = learner.act_greedy(_images(5))
@@ -76,7 +76,7 @@ def test_frame_stacking_reads_frames_on_the_channel_axis():
         PixelTwoWayEnv(pixels=(16, 16), seed=0),
         CatFrames(N=2, dim=-1, in_keys=[keys.PIXELS]),
     )
-    stacked = ActorCritic.for_env(env, **SMALL)
+    stacked = build("for_env", env, **SMALL)
     assert stacked.pixel_shape == (16, 16, 6)
     rows = rollout_episodes(env, state_expert(), 1, max_steps=60, seed=0)
     assert rows.get(keys.PIXELS).shape[1:] == (16, 16, 6)
@@ -85,7 +85,7 @@ def test_frame_stacking_reads_frames_on_the_channel_axis():
 
 def test_pixel_learner_with_state_reads_both_and_normalises_the_state():
     env = PixelTwoWayEnv(pixels=(16, 16), seed=0)
-    learner = ActorCritic.for_env(env, state=True, **SMALL)
+    learner = build("for_env", env, state=True, **SMALL)
     assert learner.policy.in_keys == [keys.PIXELS, keys.OBSERVATION]
     assert learner.observation_shape == (2,) and learner.normalizer is not None
     rows = _demos(env)
@@ -96,7 +96,7 @@ def test_pixel_learner_with_state_reads_both_and_normalises_the_state():
     assert learner.act_greedy(inputs).shape == (3, 1)
     with pytest.raises(ValueError, match="reads the state"):
         learner.act_greedy({keys.PIXELS: rows.get(keys.PIXELS)[:3]})
-    pixels_only = ActorCritic.for_env(env, **SMALL)  # the state stays the expert's
+    pixels_only = build("for_env", env, **SMALL)  # the state stays the expert's
     assert pixels_only.policy.in_keys == [keys.PIXELS] and pixels_only.normalizer is None
 
 
@@ -118,7 +118,7 @@ def test_privileged_expert_dagger_runs_end_to_end_with_both_keys(tmp_path):
     result = dagger(
         EnvSource(env, max_steps=60),
         expert,
-        lambda: ActorCritic.for_env(env, **SMALL),
+        lambda: build("for_env", env, **SMALL),
         buffer,
         DAggerConfig(rounds=2, episodes_per_round=2, bc=BCConfig(num_steps=5)),
     )
@@ -161,7 +161,7 @@ def test_make_env_renders_cartpole_as_uint8_hwc():
     spec = env.observation_spec_unbatched
     assert spec[keys.PIXELS].shape == (24, 36, 3) and spec[keys.PIXELS].dtype == torch.uint8
     assert spec[keys.OBSERVATION].shape == (4,)
-    learner = ActorCritic.for_env(env, **SMALL)
+    learner = build("for_env", env, **SMALL)
     assert learner.pixel_shape == (24, 36, 3)
     summary = evaluate(env, learner, 1, exploration=ExplorationType.DETERMINISTIC)
     assert summary.mean_length >= 1
@@ -216,7 +216,7 @@ TOP = ("pixels", "top")
 
 
 def test_a_nested_camera_key_is_read_by_the_policy_the_value_and_the_loss():
-    learner = ActorCritic.pixels((16, 16, 3), ACTION, pixel_key=TOP, **SMALL)
+    learner = ActorCritic.pixels((16, 16, 3), ACTION, pixel_key=TOP, value=True, **SMALL)
     assert learner.pixel_key == TOP and learner.policy.in_keys == [TOP]
     assert TOP in learner.loss.in_keys and keys.PIXELS not in learner.loss.in_keys
     images = _images(4)
@@ -246,8 +246,8 @@ def test_a_camera_key_the_env_lacks_is_refused_naming_it():
     with pytest.raises(ValueError, match=r"no \('pixels', 'top'\) observation"):
         learner.check_env(env)
     with pytest.raises(ValueError, match=r"reads \[\('pixels', 'top'\)\]"):
-        ActorCritic.for_env(env, pixel_key=TOP)
-    assert ActorCritic.for_env(env, pixel_key=keys.PIXELS, **SMALL).pixel_key == keys.PIXELS
+        build("for_env", env, pixel_key=TOP)
+    assert build("for_env", env, pixel_key=keys.PIXELS, **SMALL).pixel_key == keys.PIXELS
 
 
 def test_camera_only_rows_pass_prepare_when_the_state_is_not_read():
@@ -258,7 +258,7 @@ def test_camera_only_rows_pass_prepare_when_the_state_is_not_read():
     with_state = ActorCritic.pixels((16, 16, 3), ACTION, state=2, **SMALL)
     with pytest.raises(ValueError, match="reads the state 'observation'"):
         with_state.prepare(rows)
-    mlp = ActorCritic.mlp(2, ACTION, hidden=(8,))
+    mlp = build("for_env", TaskSpec.from_specs(2, ACTION), hidden=(8,))
     with pytest.raises(ValueError, match="rows lack 'observation', which the policy reads"):
         mlp.prepare(rows)
     # the base contract too: a user's Learner of images alone takes camera-only rows

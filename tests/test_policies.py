@@ -10,12 +10,12 @@ from torchrl.data import Bounded
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from imitrl import keys
-from imitrl.learners import ActorCritic
+from imitrl.learners import TaskSpec, build
 from imitrl.policies import BetaMixer, Expert, behaviour_policy
 
 
 def test_tabular_starts_exactly_uniform_with_zero_values():
-    ac = ActorCritic.tabular(16, 4)
+    ac = build("cross_entropy", TaskSpec(action=4, num_states=16), value=True)
     p = ac.probs(torch.arange(16))
     assert torch.equal(p, torch.full((16, 4), 0.25))
     assert torch.equal(ac.values(torch.arange(16)), torch.zeros(16))
@@ -23,7 +23,7 @@ def test_tabular_starts_exactly_uniform_with_zero_values():
 
 
 def test_array_boundary_types():
-    ac = ActorCritic.tabular(16, 4)
+    ac = build("cross_entropy", TaskSpec(action=4, num_states=16), value=True)
     assert isinstance(ac.act_greedy(3), int)
     assert isinstance(ac.act_greedy(np.int64(3)), int)
     out = ac.act_greedy(np.array([1, 2]))
@@ -37,7 +37,7 @@ def test_array_boundary_types():
 
 
 def test_log_prob_is_log_softmax_of_the_table():
-    ac = ActorCritic.tabular(5, 3)
+    ac = build("cross_entropy", TaskSpec(action=3, num_states=5))
     with torch.no_grad():
         ac.policy.module[0].module.weight.copy_(
             torch.randn(5, 3, generator=torch.Generator().manual_seed(0))
@@ -48,7 +48,7 @@ def test_log_prob_is_log_softmax_of_the_table():
 
 
 def test_greedy_is_argmax_of_logits_with_lowest_ties():
-    ac = ActorCritic.tabular(3, 4)
+    ac = build("cross_entropy", TaskSpec(action=4, num_states=3))
     with torch.no_grad():
         ac.policy.module[0].module.weight.copy_(
             torch.tensor([[0.0, 2.0, 2.0, 1.0], [5.0, 5.0, 5.0, 5.0], [-1.0, -1.0, 0.0, -3.0]])
@@ -57,7 +57,7 @@ def test_greedy_is_argmax_of_logits_with_lowest_ties():
 
 
 def test_sampling_reproducible_with_a_generator_and_matches_probs():
-    ac = ActorCritic.tabular(2, 3)
+    ac = build("cross_entropy", TaskSpec(action=3, num_states=2))
     with torch.no_grad():
         ac.policy.module[0].module.weight.copy_(
             torch.log(torch.tensor([[0.2, 0.3, 0.5], [1.0, 1.0, 1.0]]))
@@ -79,13 +79,13 @@ def test_sampling_reproducible_with_a_generator_and_matches_probs():
     ],
 )
 def test_tabular_bad_observations(obs, match):
-    ac = ActorCritic.tabular(16, 4)
+    ac = build("cross_entropy", TaskSpec(action=4, num_states=16))
     with pytest.raises(ValueError, match=match):
         ac.act_greedy(obs)
 
 
 def test_mlp_bad_observations():
-    ac = ActorCritic.mlp(4, 2)
+    ac = build("for_env", TaskSpec.from_specs(4, 2))
     with pytest.raises(ValueError, match="NaN"):
         ac.act_greedy(np.array([[0.0, np.nan, 0.0, 0.0]], dtype=np.float32))
     with pytest.raises(ValueError, match="trailing shape"):
@@ -96,15 +96,17 @@ def test_mlp_heads_respect_bounds_and_seed():
     spec = Bounded(-2.0, 3.0, shape=(2,))
     x = np.random.default_rng(0).normal(size=(256, 5)).astype(np.float32) * 10
     for head in ("tanh_normal", "deterministic"):
-        ac = ActorCritic.mlp(5, spec, head=head, hidden=(16,))
+        ac = build("for_env", TaskSpec.from_specs(5, spec), head=head, hidden=(16,))
         for a in (ac.act(x, torch.Generator().manual_seed(0)), ac.act_greedy(x)):
             assert a.shape == (256, 2) and (a >= -2.0).all() and (a <= 3.0).all()
-        twin = ActorCritic.mlp(5, spec, head=head, hidden=(16,))
+        twin = build("for_env", TaskSpec.from_specs(5, spec), head=head, hidden=(16,))
         assert np.array_equal(ac.act_greedy(x), twin.act_greedy(x))  # init is seeded
     with pytest.raises(ValueError, match="no action distribution"):
-        ActorCritic.mlp(5, spec, head="deterministic").log_prob(x, np.zeros((256, 2), np.float32))
+        build("for_env", TaskSpec.from_specs(5, spec), head="deterministic").log_prob(
+            x, np.zeros((256, 2), np.float32)
+        )
     with pytest.raises(ValueError, match="head"):
-        ActorCritic.mlp(5, 3, head="tanh_normal")
+        build("for_env", TaskSpec.from_specs(5, 3), head="tanh_normal")
 
 
 def test_expert_writes_only_its_own_key():
@@ -131,7 +133,7 @@ def test_expert_constructors():
     fn = Expert.from_callable(lambda obs: (obs.sum(-1) > 0).long())
     td = TensorDict({keys.OBSERVATION: torch.tensor([[1.0, 1.0], [-1.0, -2.0]])}, [2])
     assert fn(td)[keys.EXPERT_ACTION].tolist() == [1, 0]
-    learner = ActorCritic.tabular(4, 2)
+    learner = build("cross_entropy", TaskSpec(action=2, num_states=4))
     wrapped = Expert.from_policy(learner.policy)
     out = wrapped(TensorDict({keys.OBSERVATION: torch.arange(4)}, [4]))
     assert out[keys.EXPERT_ACTION].tolist() == [0, 0, 0, 0] and keys.ACTION not in out.keys()
@@ -145,7 +147,7 @@ def test_expert_constructors():
 
 def test_beta_mixer_extremes_and_validation():
     expert = Expert.from_table(torch.ones(8, dtype=torch.long))
-    learner = ActorCritic.tabular(8, 2)  # greedy action 0 everywhere
+    learner = build("cross_entropy", TaskSpec(action=2, num_states=8))  # greedy action 0 everywhere
     td = TensorDict({keys.OBSERVATION: torch.arange(8)}, [8])
     with set_exploration_type(ExplorationType.DETERMINISTIC):
         for beta, want in ((1.0, 1), (0.0, 0)):
@@ -168,7 +170,7 @@ def test_free_heads_keep_one_learned_scale_for_every_state(head):
 
     spec = Bounded(-2.0, 2.0, shape=(2,))
     obs = torch.randn(64, 3, generator=torch.Generator().manual_seed(0))
-    ac = ActorCritic.mlp(3, spec, head=head, hidden=(16,), seed=0)
+    ac = build("for_env", TaskSpec.from_specs(3, spec), head=head, hidden=(16,), seed=0)
     params = ac.policy.module[0](TensorDict({keys.OBSERVATION: obs}, [64]))
     assert torch.equal(params[keys.SCALE], torch.ones(64, 2))
     label = (obs[:, :2] * 0.5).clamp(-1.5, 1.5)
@@ -178,6 +180,27 @@ def test_free_heads_keep_one_learned_scale_for_every_state(head):
     assert bool((after == after[0]).all()) and bool((after[0] < 0.9).all())  # shrunk
     (free,) = [p for n, p in ac.policy.named_parameters() if "state_independent_scale" in n]
     assert free.shape == (2,) and torch.equal(after[0], free.exp())
-    other = ActorCritic.mlp(3, spec, head=head.removesuffix("_free"), hidden=(16,), seed=0)
+    other = build(
+        "for_env",
+        TaskSpec.from_specs(3, spec),
+        head=head.removesuffix("_free"),
+        hidden=(16,),
+        seed=0,
+    )
     varying = other.policy.module[0](TensorDict({keys.OBSERVATION: obs}, [64]))[keys.SCALE]
     assert not bool((varying == varying[0]).all())
+
+
+def test_a_learner_carries_a_value_head_only_when_asked_for():
+    """BC builds none (and no opt_v); GAIL and AIRL ask for one; the policy is the same
+    either way, weight for weight (the value's weights are drawn after the policy's)."""
+    for task in (TaskSpec(action=4, num_states=16), TaskSpec.from_specs(5, 3)):
+        plain, critic = build("default", task, seed=3), build("default", task, seed=3, value=True)
+        assert plain.value is None and set(plain.optimizers()) == {"opt_pi"}
+        assert critic.value is not None and set(critic.optimizers()) == {"opt_pi", "opt_v"}
+        for a, b in zip(plain.policy.parameters(), critic.policy.parameters(), strict=True):
+            assert torch.equal(a, b)
+        with pytest.raises(ValueError, match="no value head"):
+            plain.values(torch.zeros(2, dtype=torch.long) if task.num_states else torch.zeros(2, 5))
+    with pytest.raises(ValueError, match="builds no value head"):
+        build("flow", TaskSpec.from_specs(5, Bounded(-1.0, 1.0, shape=(2,))), value=True)

@@ -24,8 +24,6 @@ from imitrl.data import DemonstrationBuffer
 from imitrl.data.chunks import IS_INIT
 from imitrl.envs import make_env
 from imitrl.experts import cartpole_expert
-from imitrl.learners import ActorCritic, registry
-from imitrl.learners.registry import LearnerConfig, TaskSpec
 from imitrl.policies import BetaMixer, behaviour_policy
 from imitrl.runtime import rollout_episodes
 from imitrl.system import OnDevice
@@ -42,6 +40,7 @@ from imitrl.cli import build_parser  # noqa: E402
 from imitrl.cli.flags import config_from_args  # noqa: E402
 from imitrl.jobs.dagger import DAggerJob  # noqa: E402
 from imitrl.jobs.dagger import run_dagger as run_dagger_job  # noqa: E402
+from imitrl.learners import TaskSpec, build  # noqa: E402
 
 WORKERS = 2
 
@@ -77,7 +76,7 @@ def cartpole_with_fault(armed: str, fired: str, *, seed: int):
 
 
 def _learner(env):
-    learner = ActorCritic.for_env(env, hidden=(16,), seed=0)
+    learner = build("for_env", env, hidden=(16,), seed=0)
     learner.exploration = ExplorationType.RANDOM  # the workers' torch RNG is exercised
     return learner
 
@@ -218,9 +217,9 @@ def test_a_chunked_learner_runs_on_workers_with_the_users_plain_env(ray_session,
     env_fn = functools.partial(make_env, "Pendulum-v1", seed=0)
     plain = make_env("Pendulum-v1", seed=0)
     task = TaskSpec(action=plain.action_spec_unbatched, observation_dim=3)
-    chunked = registry.build("mse_chunk", task, LearnerConfig(hidden=(8,)))
+    chunked = build("mse_chunk", task, shared=dict(hidden=(8,)))
 
-    flat = registry.build("mse", task, LearnerConfig(hidden=(8,)))
+    flat = build("mse", task, shared=dict(hidden=(8,)))
     assert worker_env(env_fn, plain, flat.policy) is env_fn
     tracked = worker_env(env_fn, plain, chunked.policy)()
     assert bool(tracked.reset().get(IS_INIT).all())

@@ -13,18 +13,21 @@ import shutil
 import signal
 import subprocess
 import sys
+import textwrap
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+import imitrl
 from imitrl.cli import main
 from imitrl.evaluation.evaluate import wilson_interval
 from imitrl.experiments.frozenlake import figures, figures_irl, outputs, study
 from imitrl.tabular import TabularMDP
 
 UNREACHABLE = "SFFF,FFFF,FFHH,FFHG"  # the goal is walled off by holes
+SRC = str(Path(imitrl.__file__).resolve().parents[1])
 
 # (flags, what the one line on stderr says)
 BAD_FLAGS = [
@@ -163,6 +166,79 @@ def test_bad_out_refused_and_left_alone(tmp_path, capsys, monkeypatch):
         _refused(capsys, ["frozenlake", "--out", str(out)], expected)
     assert {p: _files(p) if p.is_dir() else p.read_bytes() for p in (user, a_file)} == before
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a_file", "link", "user"]
+
+
+_HOSTILE_OUT = r"""
+import contextlib, io, json, resource, sys, warnings
+sys.path.insert(0, sys.argv[1])
+warnings.simplefilter("ignore")
+from imitrl.cli import main
+import imitrl.experiments.frozenlake.study  # the command's imports, mapped before the limit
+with open("/proc/self/status") as f:
+    held = next(int(line.split()[1]) << 10 for line in f if line.startswith("VmSize:"))
+resource.setrlimit(resource.RLIMIT_AS, (held + (1 << 30),) * 2)  # the imports + 1 GiB
+out = {}
+for path in sys.argv[2:]:
+    err = io.StringIO()
+    try:
+        with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+            out[path] = [main(["frozenlake", "--out", path, "--no-progress"]), err.getvalue()]
+    except BaseException as exc:  # MemoryError is what this test exists to catch
+        out[path] = [None, f"{type(exc).__name__}: {exc}"]
+print(json.dumps(out))
+"""
+
+
+def test_a_fifo_or_a_link_at_results_json_is_refused_at_once(tmp_path):
+    """A FIFO at ``--out``'s results.json blocked the run forever, a link to /dev/zero
+    read it until memory ran out: neither is a study's output (nor is a file past
+    ``outputs.RESULTS_LIMIT``, refused before it is read)."""
+    fifo, zero, big = tmp_path / "fifo", tmp_path / "zero", tmp_path / "big"
+    for out in (fifo, zero, big):
+        out.mkdir()
+    os.mkfifo(fifo / "results.json")
+    os.symlink("/dev/zero", zero / "results.json")
+    with open(big / "results.json", "wb") as f:
+        f.truncate((16 << 20) + 1)  # sparse, past outputs.RESULTS_LIMIT
+    done = subprocess.run(
+        [sys.executable, "-c", textwrap.dedent(_HOSTILE_OUT), SRC, str(fifo), str(zero), str(big)],
+        capture_output=True, text=True, timeout=30,
+        env={**os.environ, "OMP_NUM_THREADS": "1"},
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr[-3000:]
+    got = json.loads(done.stdout.strip().splitlines()[-1])
+    for out in (fifo, zero, big):
+        refused = f"--out {out} has no results.json of the study: choose another --out"
+        assert got[str(out)] == [2, f"imitrl frozenlake: {refused}\n"], (out.name, got)
+    assert os.path.islink(zero / "results.json") and (big / "results.json").stat().st_size > 0
+
+
+def test_a_read_only_folder_under_out_is_one_line_and_exit_1(tmp_path):
+    """A read-only file system at ``--out``'s parent is a folder that cannot be written,
+    as for every other command: exit 1, one line naming it (was exit 2)."""
+    read_only = tmp_path / "read_only"
+    read_only.mkdir()
+    unshare = shutil.which("unshare")
+    if unshare is None:
+        pytest.skip("no unshare(1) to mount a read-only file system")
+    inner = (
+        f"mount -t tmpfs -o size=64k tmpfs {read_only} && "
+        f"mount -o remount,ro {read_only} && "
+        f"{sys.executable} -m imitrl frozenlake --out {read_only}/x --no-progress"
+    )
+    done = subprocess.run(
+        [unshare, "-m", "sh", "-c", inner],
+        capture_output=True, text=True, timeout=120,
+        env={**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": SRC},
+    )  # fmt: skip
+    if done.returncode != 0 and "mount" in done.stderr[-300:] and "imitrl" not in done.stderr:
+        pytest.skip(f"cannot mount a tmpfs here: {done.stderr[-300:]}")
+    assert done.returncode == 1, (done.returncode, done.stderr[-3000:])
+    err = done.stderr
+    assert err.startswith("imitrl frozenlake: cannot write the study's results to ")
+    assert err.count("\n") == 1 and "Traceback" not in err, err
+    assert f"{read_only} is on a read-only file system" in err, err
+    assert list(read_only.iterdir()) == []  # outside the namespace: the folder as it was
 
 
 def test_unreachable_goal_scores_zero_and_draws_every_figure(tmp_path):

@@ -20,15 +20,17 @@ def _with_defaults(protocol: dict) -> dict:
     recorded before a field existed trained as its default says)."""
     from dataclasses import MISSING, asdict, fields
 
-    from _loss_functions.tasks import Protocol
+    from _loss_functions.tasks import LearnerSettings, Protocol
     from imitrl.algorithms import BCConfig
-    from imitrl.learners.registry import LearnerConfig
 
     out = {f.name: f.default for f in fields(Protocol) if f.default is not MISSING}
     out.update(protocol)
     out["bc"] = {**asdict(BCConfig()), **protocol.get("bc", {})}
     out["learner"] = {
-        **{k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(LearnerConfig()).items()},
+        **{
+            k: (list(v) if isinstance(v, tuple) else v)
+            for k, v in asdict(LearnerSettings()).items()
+        },
         **protocol.get("learner", {}),
     }
     return out

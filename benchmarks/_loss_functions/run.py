@@ -23,7 +23,7 @@ from _loss_functions.tasks import TaskDef, build
 from imitrl import keys
 from imitrl.algorithms import DAggerConfig, dagger, fit_bc
 from imitrl.data import DemonstrationBuffer
-from imitrl.learners import Learner, registry
+from imitrl.learners import FOR_ENV, Learner, registry
 from imitrl.policies import as_actor
 
 WORKER_CELLS = 20
@@ -97,7 +97,7 @@ def loss_cell(defn: TaskDef, loss: str, seed: int, quick_mode: bool) -> list[dic
             results[k] = result
 
     if expert is None:  # a dataset alone: BC only
-        learner = registry.build(loss, spec, config)
+        learner = config.build(loss, spec)
         fit = timed_fit(learner, buffer)
         on_fit(0, learner)
         records = [(learner, len(buffer), fit)]
@@ -105,7 +105,7 @@ def loss_cell(defn: TaskDef, loss: str, seed: int, quick_mode: bool) -> list[dic
         out = dagger(
             source(env, exploration=None, max_steps=task.max_steps()),  # as each learner acts
             expert,
-            lambda: registry.build(loss, spec, config),
+            lambda: config.build(loss, spec),
             buffer,
             DAggerConfig(
                 rounds=proto.rounds,
@@ -121,7 +121,7 @@ def loss_cell(defn: TaskDef, loss: str, seed: int, quick_mode: bool) -> list[dic
         records = [(learner, r.rows_trained, r.bc) for r in out.rounds]
     if proto.matched and expert is not None and proto.rounds > 1:
         steps = sum(c.num_steps for c in fit_configs) if warm else fit_configs[-1].num_steps
-        learner_m = registry.build(loss, spec, config)
+        learner_m = config.build(loss, spec)
         matched = _expert_rows(env, expert, records[-1][1], task.max_steps(), seed)
         t = time.perf_counter()
         config_m = registry.fit_config(loss, replace(bc, num_steps=steps))
@@ -195,8 +195,8 @@ def run(
         spec = build(defn, quick_mode).spec()
         for seed in seed_list:
             refs.append((defn, seed, quick_mode))
-            for loss in registry.names(spec):
-                if losses is None or loss in losses:
+            for loss in registry.names(spec):  # for_env: a network, not an objective
+                if loss != FOR_ENV and (losses is None or loss in losses):
                     cells.append((defn, loss, seed, quick_mode))
     if not cells:
         raise ValueError(

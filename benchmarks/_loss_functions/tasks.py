@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import importlib
 from collections.abc import Callable
-from dataclasses import dataclass, fields, replace
+from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
 
 import torch
@@ -34,9 +34,10 @@ from imitrl.data.chunks import IS_INIT
 from imitrl.envs import TabularEnv, make_env
 from imitrl.envs.success import SUCCESS, reported_success
 from imitrl.evaluation import exact_values
-from imitrl.jobs.resolve import EXPERT_KINDS, load_dataset, make_expert, task_spec
-from imitrl.learners import Learner
-from imitrl.learners.registry import LearnerConfig, TaskSpec
+from imitrl.jobs.resolve import EXPERT_KINDS, load_dataset, make_expert
+from imitrl.learners import Learner, TaskSpec
+from imitrl.learners import build as build_learner
+from imitrl.learners.defaults import HIDDEN
 from imitrl.policies import BetaMixer, Expert, as_actor, behaviour_policy
 from imitrl.policies.chunking import chunk_env
 from imitrl.tabular import TabularMDP, greedy, success_probability, value_iteration
@@ -50,6 +51,28 @@ its MDP"""
 
 # --------------------------------------------------------------------- protocol
 @dataclass(frozen=True)
+class LearnerSettings:
+    """What a protocol sets of every loss's learner (``imitrl.learners.build``'s shared
+    settings): each loss takes the ones it has, as the registry documents (a table has no
+    hidden layers; ACT and Diffusion Policy train at their recipe's rate and widths)."""
+
+    hidden: tuple[int, ...] = HIDDEN
+    """hidden layers of the MLPs (the library's default width unless a task says)"""
+    lr: float | None = None
+    """Adam's rate (None: the network's default)"""
+    seed: int = 0
+    """initialisation seed (set per cell)"""
+    normalize: bool = True
+    """observations normalised by the demonstrations' statistics"""
+    device: str | None = None
+    """where the learner computes (None: the CPU)"""
+
+    def build(self, loss: str, spec: TaskSpec) -> Learner:
+        """``build(loss, spec, ...)`` with these settings where the loss takes them."""
+        return build_learner(loss, spec, shared=asdict(self))
+
+
+@dataclass(frozen=True)
 class Protocol:
     """One task's data and training budget (the same for every loss)."""
 
@@ -61,7 +84,7 @@ class Protocol:
     """learner episodes relabelled by the expert per DAgger round"""
     bc: BCConfig
     """every fit: gradient steps, batch size (the loss comes with the registry's learner)"""
-    learner: LearnerConfig
+    learner: LearnerSettings
     """network size, learning rate, normalisation shared by every loss (seeded per cell)"""
     eval_episodes: int
     """evaluation episodes per learner (0 for ``exact``)"""
@@ -168,15 +191,15 @@ def register_task(defn: TaskDef) -> TaskDef:
 # train at lr 1e-2: at 3e-3 a flow-matching chunk policy was still underfitted after
 # 2000 x 256 steps (two-way success 0.87 against 0.93 at 1e-2, 5 seeds; 1200 steps:
 # 0.70-0.79; benchmarks/README.md).
-_WIDE = LearnerConfig(hidden=(128, 128), lr=3e-3)
-_FAST = LearnerConfig(hidden=(128, 128), lr=1e-2)
+_WIDE = LearnerSettings(hidden=(128, 128), lr=3e-3)
+_FAST = LearnerSettings(hidden=(128, 128), lr=1e-2)
 register_task(
     TaskDef(
         "frozenlake",
         env="FrozenLake-v1",
         score="exact",
         max_steps=100_000,
-        protocol=Protocol(1, 4, 3, BCConfig(num_steps=200), LearnerConfig(lr=0.1), 0),
+        protocol=Protocol(1, 4, 3, BCConfig(num_steps=200), LearnerSettings(lr=0.1), 0),
     )
 )
 register_task(
@@ -189,7 +212,7 @@ register_task(
             4,
             2,
             BCConfig(num_steps=1000, batch_size=256),
-            LearnerConfig((64, 64), 1e-3),
+            LearnerSettings((64, 64), 1e-3),
             10,
             round_steps=300,
         ),
@@ -411,7 +434,7 @@ class EnvTask(Task):
         super().__init__(defn, protocol)
         self._class = _env_class(defn.env)
         probe = self.env(seed=0, lanes=1)
-        self._spec = task_spec(probe)
+        self._spec = TaskSpec.from_env(probe)
         probe.close()
         self._probe = _import(defn.probe, "probe") if defn.probe else None
         self._outcome = _import(defn.outcome, "outcome") if defn.outcome else None

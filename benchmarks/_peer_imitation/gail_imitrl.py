@@ -39,7 +39,7 @@ from imitrl.data import DemonstrationBuffer  # noqa: E402
 from imitrl.envs import make_env  # noqa: E402
 from imitrl.evaluation import evaluate  # noqa: E402
 from imitrl.experts import cartpole_expert, pendulum_expert  # noqa: E402
-from imitrl.jobs.resolve import learner_factory, resolve_loss  # noqa: E402
+from imitrl.learners import build  # noqa: E402
 from imitrl.runtime import rollout_episodes  # noqa: E402
 from imitrl.system.heap import freeze_imported  # noqa: E402
 
@@ -58,8 +58,8 @@ def run(spec: dict) -> dict:
     demo_env = make_env(env_id, seed=seed)
     buffer = DemonstrationBuffer(action_spec=demo_env.action_spec_unbatched)
     buffer.extend(rollout_episodes(demo_env, EXPERTS[env_id](), spec["demo_episodes"]))
-    loss = resolve_loss("default", demo_env, probabilistic=True)  # imitrl gail's default
-    learner = learner_factory(loss, demo_env, hidden=(64, 64), lr=s["lr"], seed=seed)()
+    # imitrl gail's default learner: a head with log pi, and a value head for PPO
+    learner = build("default", demo_env, hidden=(64, 64), lr=s["lr"], seed=seed, value=True)
     fields = dict(
         total_steps=spec["total_steps"], rollout_steps=spec["rollout_steps"],
         ppo_epochs=s["ppo_epochs"], minibatch_size=s["minibatch_size"],

@@ -46,7 +46,7 @@ from imitrl.data import DemonstrationBuffer  # noqa: E402
 from imitrl.envs import make_env  # noqa: E402
 from imitrl.evaluation import evaluate  # noqa: E402
 from imitrl.experts import cartpole_expert, pendulum_expert  # noqa: E402
-from imitrl.jobs.resolve import FOR_ENV, builds_table, learner_factory  # noqa: E402
+from imitrl.learners import FOR_ENV, TaskSpec, build, registry, resolve  # noqa: E402
 from imitrl.policies import Expert  # noqa: E402
 from imitrl.runtime import rollout_episodes  # noqa: E402
 from imitrl.system.heap import freeze_imported  # noqa: E402
@@ -82,7 +82,18 @@ def _loss(spec: dict) -> str:
 def _hidden(spec: dict, env, hidden: tuple[int, ...]) -> tuple[int, ...] | None:
     """The task's layers, except for a registry entry's logits table (integer states),
     which has none and refuses them."""
-    return None if builds_table(_loss(spec), env) else hidden
+    loss, task = _loss(spec), TaskSpec.from_env(env)
+    table = loss != FOR_ENV and registry.get(resolve(loss, task)).tables and task.num_states
+    return None if table else hidden
+
+
+def _learner(spec: dict, env, hidden: tuple[int, ...], seed: int):
+    """``() -> Learner``: the task's learner, as ``imitrl dagger --loss ...`` builds it."""
+    settings = {"lr": 1e-3, "seed": seed}
+    layers = _hidden(spec, env, hidden)
+    if layers is not None:
+        settings["hidden"] = layers
+    return lambda: build(_loss(spec), env, **settings)
 
 
 def run(spec: dict) -> dict:
@@ -141,7 +152,7 @@ def run(spec: dict) -> dict:
     result = dagger(
         EnvSource(env),
         expert,
-        learner_factory(_loss(spec), env, hidden=_hidden(spec, env, hidden), lr=1e-3, seed=seed),
+        _learner(spec, env, hidden, seed),
         buffer,
         config,
         train=train,

@@ -52,7 +52,7 @@ class Task:
     def spec(self, seed: int, protocol: str = "own", imitrl_loss: str = "default") -> dict:
         """What a child process reads: the task, the training and evaluation seeds, the
         protocol, each library's evaluation lanes and imitrl's learner (``default``: the
-        one ``ActorCritic.for_env`` builds, ``--loss for_env``; else a loss-registry name)."""
+        one ``build("for_env", env)`` builds, ``--loss for_env``; else a loss-registry name)."""
         if protocol not in PROTOCOLS:
             raise ValueError(f"protocol must be one of {PROTOCOLS}, got {protocol!r}")
         return {

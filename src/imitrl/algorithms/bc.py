@@ -2,7 +2,7 @@
 
 ``fit_bc(learner, data, config)`` runs ``config.num_steps`` steps of
 ``learner.opt_pi`` on ``learner.loss`` (the loss was chosen when the learner was
-built; see :class:`~imitrl.policies.Learner`):
+built; see :class:`~imitrl.learners.Learner`):
 
 * full batch (``batch_size=None``): every step sees every row, as the section's
   ``clone`` does; deterministic given the data;
@@ -383,7 +383,7 @@ def fit_bc(
     """Fit ``learner``'s policy to the labels in ``data`` with ``learner.loss``.
 
     Args:
-        learner: any :class:`~imitrl.policies.Learner` (``ActorCritic``, a registry
+        learner: any :class:`~imitrl.learners.Learner` (``ActorCritic``, a registry
             learner); its ``opt_pi`` takes the steps.
         data: a demonstration buffer or a TensorDict of rows with what the loss reads.
         config: steps, batch size, seed.

@@ -289,7 +289,7 @@ def dagger(
     Args:
         source: plays the behaviour policy (an :class:`EnvSource` or a faithful stream).
         expert: writes ``EXPERT_ACTION`` for any observation.
-        make_learner: builds a fresh :class:`~imitrl.policies.Learner` (``ActorCritic``,
+        make_learner: builds a fresh :class:`~imitrl.learners.Learner` (``ActorCritic``,
             a registry learner; called once with ``warm_start``). Each round's learner
             acts in the rollouts as its ``exploration`` says.
         buffer: demonstrations (round 0), extended with every relabel round.

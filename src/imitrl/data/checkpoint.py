@@ -167,6 +167,10 @@ class DeclaresOptimizers(Protocol):
         """Every optimizer of the module, by name."""
         ...
 
+    def migrated_state(self, states: dict[str, dict]) -> dict[str, dict]:
+        """Saved states as the module holds them (an older checkpoint's, migrated)."""
+        ...
+
 
 def learner_components(learner: torch.nn.Module) -> dict[str, Any]:
     """The learner's weights and every optimizer it declares (:class:`DeclaresOptimizers`:
@@ -188,11 +192,6 @@ def restore_learner(
     components = learner_components(learner)
     if saved is None:
         raise ValueError(f"{path}: cannot load the learner: the checkpoint was saved without one")
-    if set(saved) != set(components):
-        raise ValueError(
-            f"{path}: cannot load the learner: the checkpoint holds {sorted(saved)}, "
-            f"the given learner has {sorted(components)}"
-        )
     states = {}
     for component, name in saved.items():
         try:
@@ -203,6 +202,13 @@ def restore_learner(
             )
         except Exception as err:  # torch.load raises assorted errors on a bad archive
             raise ValueError(f"{path / name}: cannot load {component} ({err})") from None
+    if isinstance(learner, DeclaresOptimizers):
+        states = learner.migrated_state(states)  # an older imitrl's checkpoint
+    if set(states) != set(components):
+        raise ValueError(
+            f"{path}: cannot load the learner: the checkpoint holds {sorted(saved)}, "
+            f"the given learner has {sorted(components)}"
+        )
     backup = {c: copy.deepcopy(obj.state_dict()) for c, obj in components.items()}
     for component, obj in components.items():
         try:

@@ -24,6 +24,17 @@ Crash safety: rows are written into the files first and counted in
 ``imitrl_buffer.json`` after, so a process killed mid-extend leaves the previous rows
 and count; the rows past the count are ignored on resume. Nothing is fsynced: the files
 survive the process, not a power cut.
+
+Resume trusts nothing the directory holds (it may have been copied from elsewhere, or
+edited): ``imitrl_buffer.json`` is read by descriptor, a regular file of at most
+:data:`LAYOUT_LIMIT` bytes (no link, no FIFO); each column's ``file`` must be
+``storage/`` followed by plain names (a nested key's folders, then the file: no absolute
+path, no ``..``); every file is opened one name at a time without following a link
+(:func:`open_column`), must be a regular file of one name (not a hard link to a file
+elsewhere), and is mapped through its descriptor (``/proc/self/fd/N``), so the file
+mapped is the file checked. ``rows`` and ``capacity`` must fit in the bytes each file
+holds (a file of N bytes holds N // row_bytes rows): resuming never lengthens a file.
+Growth and the regular remaps open the files the same way.
 """
 
 from __future__ import annotations
@@ -41,10 +52,19 @@ from tensordict import MemoryMappedTensor, TensorDict
 from torchrl.data.replay_buffers import LazyMemmapStorage
 
 from imitrl.compat import replace_storage_contents
-from imitrl.fs.files import make_folder, open_own, replace_file
+from imitrl.fs.contained import plain_name
+from imitrl.fs.files import PlantedLinkError, check_regular, make_folder, open_own, replace_file
+from imitrl.fs.reading import OpenedFolder, fd_path, parse_json
 from imitrl.fs.write_errors import DiskFullError, is_disk_full, reporting_disk_full
 
-__all__ = ["LAYOUT", "DiskLayout", "GrowingMemmapStorage"]
+__all__ = [
+    "LAYOUT",
+    "LAYOUT_LIMIT",
+    "DiskLayout",
+    "GrowingMemmapStorage",
+    "check_columns",
+    "open_column",
+]
 
 LAYOUT = "imitrl_buffer.json"
 LOCK = "imitrl_buffer.lock"
@@ -54,6 +74,15 @@ REMAP_BYTES = 64 << 20
 """written bytes after which the files are mapped again (bounds this process's RssFile)"""
 FAULT_AROUND_BYTES = 64 << 10
 """what one page fault may map of a file in the page cache (Linux ``fault_around_bytes``)"""
+LAYOUT_LIMIT = 16 << 20
+"""bytes ``imitrl_buffer.json`` may hold on resume (a buffer of a few dozen keys writes a
+few kB); a larger file is refused before it is read"""
+MAX_COUNT = 2**63 - 1
+"""the largest ``rows``, ``capacity`` or episode id a layout may name (int64)"""
+
+_CLOEXEC = getattr(os, "O_CLOEXEC", 0)
+_FOLDER = os.O_RDONLY | os.O_DIRECTORY | os.O_NOFOLLOW | _CLOEXEC
+_COLUMN = os.O_RDWR | os.O_NOFOLLOW | os.O_NONBLOCK | _CLOEXEC
 
 Schema = dict[str, tuple[str, tuple[int, ...]]]
 
@@ -136,9 +165,10 @@ class GrowingMemmapStorage(LazyMemmapStorage):
         :class:`imitrl.fs.DiskFullError` naming the buffer, its rows untouched."""
         if n <= 0 or not hasattr(os, "posix_fallocate"):
             return
-        for tensor in self._storage.values(True, True):
-            row = tensor[0].nbytes
-            fd = os.open(tensor.filename, os.O_RDWR)
+        root = Path(self.scratch_dir).parent
+        for column in self.columns(root):
+            row = _row_bytes(column)
+            fd = open_column(root, column["file"])
             try:
                 os.posix_fallocate(fd, first * row, n * row)
             except OSError as err:
@@ -183,11 +213,14 @@ class GrowingMemmapStorage(LazyMemmapStorage):
         """(Re)map every file at ``capacity`` rows, lengthening files that are shorter.
 
         Without ``columns``: the storage's own files, keeping its rows. With ``columns``
-        (entries of :meth:`columns`, relative to the buffer's directory) and ``rows``:
-        open the files a previous process wrote (resume); a file too short for the
-        ``rows`` it should hold is refused.
+        (entries of :meth:`columns`, relative to the buffer's directory, checked by
+        :func:`check_columns`) and ``rows``: open the files a previous process wrote
+        (resume); a file too short for the ``rows`` or the ``capacity`` it should hold
+        is refused (resuming never lengthens a file). Every file is opened by
+        :func:`open_column` and mapped through that descriptor.
         """
         root = Path(self.scratch_dir).parent
+        resume = columns is not None
         if columns is None:
             if not self.initialized:
                 self.max_size = int(capacity)
@@ -198,13 +231,22 @@ class GrowingMemmapStorage(LazyMemmapStorage):
             shape = torch.Size(column["shape"])
             dtype = getattr(torch, column["dtype"])
             filename = root / column["file"]
-            row = shape.numel() * torch.empty((), dtype=dtype).element_size()
-            size = filename.stat().st_size
-            if size < rows * row:
-                raise ValueError(f"{filename}: {size} bytes, {rows} rows need {rows * row}")
-            if size < capacity * row:
-                os.truncate(filename, capacity * row)  # sparse: no disk used until written
-            tensor = MemoryMappedTensor.from_filename(filename, dtype, (capacity, *shape))
+            row = _row_bytes(column)
+            fd = open_column(root, column["file"])
+            try:
+                size = os.fstat(fd).st_size
+                if size < rows * row:
+                    raise ValueError(f"{filename}: {size} bytes, {rows} rows need {rows * row}")
+                if resume and size < capacity * row:
+                    raise ValueError(
+                        f"{filename}: {size} bytes, a capacity of {capacity} rows needs "
+                        f"{capacity * row}; a disk buffer's files hold their capacity"
+                    )
+                if size < capacity * row:  # sparse: no disk used until written
+                    os.ftruncate(fd, capacity * row)
+                tensor = _map_descriptor(fd, filename, dtype, torch.Size([capacity, *shape]))
+            finally:
+                os.close(fd)
             parts = column["key"]
             contents.set(tuple(parts) if len(parts) > 1 else parts[0], tensor)
         replace_storage_contents(self, contents, rows)
@@ -225,6 +267,97 @@ class GrowingMemmapStorage(LazyMemmapStorage):
                 }
             )
         return out
+
+
+def _map_descriptor(
+    fd: int, filename: Path, dtype: torch.dtype, shape: torch.Size
+) -> MemoryMappedTensor:
+    """The file open at ``fd`` mapped read-write (shared) as a tensor of ``shape``, its
+    ``filename`` the name it is recorded under (``columns``, pickling).
+
+    What ``MemoryMappedTensor.from_filename(filename, dtype, shape)`` does (tensordict
+    0.14.3: ``torch.from_file``, then the same attributes), except that the file mapped
+    is opened through ``/proc/self/fd/<fd>``: the very file :func:`open_column` checked,
+    whatever ``filename`` names by now. ``from_filename`` itself records the path it
+    opened, which names the descriptor, closed once mapped."""
+    flat = torch.from_file(
+        fd_path(fd), shared=True, dtype=dtype, size=shape.numel(), device=torch.device("cpu")
+    )
+    tensor = MemoryMappedTensor(flat.view(shape))
+    tensor.filename = str(filename)
+    tensor.index, tensor.parent_shape = None, shape
+    return tensor
+
+
+def _row_bytes(column: dict[str, Any]) -> int:
+    """Bytes one row of ``column`` takes in its file."""
+    dtype = getattr(torch, column["dtype"])
+    return torch.Size(column["shape"]).numel() * torch.empty((), dtype=dtype).element_size()
+
+
+def open_column(root: Path, file: str) -> int:
+    """A read-write descriptor of the column file ``root/file`` (``file``: ``storage/``
+    then plain names, see :func:`check_columns`), opened one name at a time without
+    following a link (``O_NOFOLLOW``; a FIFO never blocks the open) and checked to be a
+    regular file of one name (:func:`imitrl.fs.files.check_regular`). The caller closes it.
+
+    Raises:
+        PlantedLinkError: a link, a FIFO, a device, a folder or a hard link at a name.
+        ValueError: the file is missing.
+    """
+    path = root / file
+    parts = file.split("/")
+    what = "a disk buffer's column file"
+    fd = os.open(root, os.O_RDONLY | os.O_DIRECTORY | _CLOEXEC)  # the directory given
+    try:
+        for name in parts[:-1]:
+            folder = os.open(name, _FOLDER, dir_fd=fd)
+            os.close(fd)
+            fd = folder
+        column = os.open(parts[-1], _COLUMN, dir_fd=fd)
+    except OSError as err:
+        if err.errno in (errno.ELOOP, errno.ENOTDIR):  # a link (or a file) at a folder's name
+            raise PlantedLinkError(
+                f"{path}: a symbolic link or another file stands on the way to {what}; "
+                "a disk buffer holds its own regular files only"
+            ) from None
+        if err.errno == errno.ENOENT:
+            raise ValueError(f"{path}: missing ({what})") from None
+        raise
+    finally:
+        os.close(fd)
+    check_regular(column, path, what)
+    return column
+
+
+def check_columns(columns: Any, *, where: str) -> list[dict[str, Any]]:
+    """``columns`` as a layout may hold them: a list of ``{"key": [str, ...], "dtype":
+    a torch dtype's name, "shape": [int >= 0, ...], "file": "storage/<name>[/<name>...]"}``,
+    keys and files distinct, the files inside ``storage/`` (plain names, no ``..``)."""
+    if not isinstance(columns, list):
+        raise ValueError("columns must be a list")
+    files, keys = set(), set()
+    for column in columns:
+        if not isinstance(column, dict) or set(column) != {"key", "dtype", "shape", "file"}:
+            raise ValueError(f"a column must hold key, dtype, shape and file, got {column!r}")
+        key, shape, file = column["key"], column["shape"], column["file"]
+        if not isinstance(key, list) or not key or not all(isinstance(k, str) for k in key):
+            raise ValueError(f"a column's key must be a list of strings, got {key!r}")
+        dtype = column["dtype"]
+        if not isinstance(dtype, str) or not isinstance(getattr(torch, dtype, None), torch.dtype):
+            raise ValueError(f"{dtype!r} is not a torch dtype")
+        if not isinstance(shape, list) or not all(type(d) is int and d >= 0 for d in shape):
+            raise ValueError(f"a column's shape must be a list of integers >= 0, got {shape!r}")
+        parts = file.split("/") if isinstance(file, str) else []
+        if len(parts) < 2 or parts[0] != STORAGE:
+            raise ValueError(f"a column's file must lie in {STORAGE}/ of the buffer, got {file!r}")
+        for part in parts[1:]:
+            plain_name(part, what=f"the column file {file!r}'s part", where=where)
+        if tuple(key) in keys or file in files:
+            raise ValueError(f"two columns name the key {key!r} or the file {file!r}")
+        keys.add(tuple(key))
+        files.add(file)
+    return columns
 
 
 class DiskLayout:
@@ -269,18 +402,27 @@ class DiskLayout:
         return self.path / STORAGE
 
     def _read(self) -> dict[str, Any]:
+        """The layout a previous buffer wrote, checked (module docstring: the files it
+        names are checked when they are opened, :meth:`GrowingMemmapStorage.map`)."""
         where = self.path / LAYOUT
-        try:
-            stored = json.loads(where.read_text())
+        try:  # by descriptor: no link followed, a FIFO never waited on, the size bounded
+            with OpenedFolder(self.path, what="disk buffer", links=False) as folder:
+                data = folder.read_bytes(LAYOUT, named_by=LAYOUT, limit=LAYOUT_LIMIT)
+            stored = parse_json(data, where=str(where))
             if stored["format"] != FORMAT:
                 raise ValueError(f"format {stored['format']!r}, expected {FORMAT!r}")
             for name in ("rows", "capacity", "next_episode", "num_episodes"):
-                if type(stored[name]) is not int or stored[name] < 0:
-                    raise ValueError(f"{name} must be a non-negative integer")
+                if type(stored[name]) is not int or not 0 <= stored[name] <= MAX_COUNT:
+                    raise ValueError(f"{name} must be an integer in [0, {MAX_COUNT}]")
             if stored["rows"] > stored["capacity"]:
                 raise ValueError("more rows than capacity")
+            stored["columns"] = check_columns(stored["columns"], where=str(where))
+            if (stored["rows"] or stored["columns"]) and not any(
+                _row_bytes(c) for c in stored["columns"]
+            ):  # rows and capacity are bounded by the bytes of the files that hold them
+                raise ValueError(f"{stored['rows']} rows, but no column file holds them")
             stored["schema"] = _schema_from_json(stored["schema"])
-        except (OSError, KeyError, TypeError, ValueError) as err:
+        except (OSError, KeyError, TypeError, ValueError, AttributeError) as err:
             raise ValueError(f"{where}: not a readable disk buffer layout ({err})") from None
         return stored
 

@@ -40,6 +40,7 @@ from imitrl.fs.reading import OpenedFolder, fd_path
 __all__ = [
     "array_shape",
     "check_schema",
+    "checked_rows",
     "column_to_tensor",
     "decode_images",
     "encode_images",
@@ -110,11 +111,33 @@ def _named(err: Exception, fd: int, where: Path) -> str:
     return str(err).replace(fd_path(fd), str(where))
 
 
+def checked_rows(pf: pq.ParquetFile, where: Path, expected: int | None = None) -> int:
+    """The rows a parquet file's footer declares, once its row groups' rows add up to them
+    (a read takes each group's own count: a footer declaring 5 rows over a group of 20
+    million would read the 20 million) and, when given, they are the ``expected`` rows;
+    ValueError naming the file otherwise, before a value is read. A few hundred KB of
+    zstd can declare tens of millions of rows of one value."""
+    meta = pf.metadata
+    groups = sum(meta.row_group(g).num_rows for g in range(meta.num_row_groups))
+    if groups != meta.num_rows:
+        raise ValueError(
+            f"{where}: its footer declares {meta.num_rows:,} rows, its row groups "
+            f"{groups:,}; refused before reading it (a damaged or hostile file)"
+        )
+    if expected is not None and meta.num_rows != expected:
+        raise ValueError(
+            f"{where}: its footer declares {meta.num_rows:,} rows, the metadata "
+            f"{expected:,}; refused before reading it"
+        )
+    return meta.num_rows
+
+
 def footer_rows(folder: OpenedFolder, relative: str, *, named_by: str) -> int:
-    """Rows of a parquet file, from its footer; ValueError naming the file when it is not
-    a readable parquet file (a truncated file is named, not blamed on what counts it)."""
+    """Rows of a parquet file, from its footer (:func:`checked_rows`); ValueError naming
+    the file when it is not a readable parquet file (a truncated file is named, not
+    blamed on what counts it)."""
     with parquet_file(folder, relative, named_by=named_by) as pf:
-        return pf.metadata.num_rows
+        return checked_rows(pf, folder.root / relative)
 
 
 def read_parquet(
@@ -123,6 +146,7 @@ def read_parquet(
     columns: list[str] | None = None,
     *,
     declared: list[str] | None = None,
+    rows: int | None = None,
     named_by: str,
 ) -> pa.Table:
     """Read a parquet file of ``folder`` (:func:`parquet_file`), naming the file (and missing
@@ -132,10 +156,13 @@ def read_parquet(
         columns: the columns to read (all when None).
         declared: the columns the file must hold, no more and no fewer (a pandas index
             column aside): a name that differs between a file and its metadata is refused.
+        rows: the rows the file must hold, checked on its footer before a value is read
+            (:func:`checked_rows`; its row groups' counts are checked whatever ``rows``).
     """
     where = folder.root / relative
     with parquet_file(folder, relative, named_by=named_by) as pf:
         check_schema(where, pf.schema_arrow, columns, declared)
+        checked_rows(pf, where, rows)
         try:
             return pf.read(columns=columns)
         except (pa.ArrowException, OSError) as err:

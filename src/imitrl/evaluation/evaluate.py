@@ -124,7 +124,7 @@ def evaluate(
 
     Args:
         env: any TorchRL env (batched envs play ``num_episodes / lanes`` episodes per lane).
-        policy: a :class:`~imitrl.policies.Learner` (its ``policy`` acts), an
+        policy: a :class:`~imitrl.learners.Learner` (its ``policy`` acts), an
             :class:`~imitrl.policies.Expert` (drives the env, its labels cast to the
             env's action spec), or a module writing ``ACTION``.
         exploration: ``DETERMINISTIC`` (greedy) or ``RANDOM`` (sampled). None: the

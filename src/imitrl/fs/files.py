@@ -186,17 +186,24 @@ def new_sibling(target: Path, mark: str) -> Path:
 
 def walk_tree(root: str | Path) -> Iterator[tuple[Path, os.stat_result]]:
     """Every entry under ``root`` (not ``root`` itself), with its ``lstat``, parents before
-    children; links are reported, never followed. Without recursion: a tree thousands of
+    children; links are reported, never followed; an entry removed while it is walked is
+    passed over. Without recursion: a tree thousands of
     folders deep (a hostile download) is walked like any other (``os.walk`` and
     ``shutil.rmtree`` recurse per folder on Python 3.11)."""
     todo = [Path(root)]
     while todo:
         folder = todo.pop()
-        with os.scandir(folder) as entries:
-            found = sorted(entries, key=lambda e: e.name)
+        try:
+            with os.scandir(folder) as entries:
+                found = sorted(entries, key=lambda e: e.name)
+        except (FileNotFoundError, NotADirectoryError):
+            continue  # gone (or replaced) since it was listed: nothing left to walk
         for entry in found:
             path = Path(entry.path)
-            st = entry.stat(follow_symlinks=False)
+            try:
+                st = entry.stat(follow_symlinks=False)
+            except FileNotFoundError:
+                continue  # removed since it was listed
             yield path, st
             if stat.S_ISDIR(st.st_mode):
                 todo.append(path)

@@ -111,8 +111,9 @@ def prepare(
     the run will write into ``folder`` (:func:`imitrl.jobs.output.claimed`'s).
 
     ``keep_logs``: append to the command's earlier CSV logs (a resumed run) instead of
-    starting them afresh; ``probabilistic``: the job needs ``log pi`` (``--loss default``
-    resolves to a head with an action distribution)."""
+    starting them afresh; ``probabilistic``: the job needs ``log pi`` and a value head
+    (GAIL's and AIRL's PPO generator: ``--loss default`` resolves to a head with an action
+    distribution, and the learner is built with ``value=True``)."""
     env = make_env(
         config.env,
         seed=config.seed,
@@ -130,8 +131,9 @@ def prepare(
         check_expert_fits(expert, expert_name, config.env, env)  # observations it can read
     loss = resolve_loss(config.loss, env, probabilistic=probabilistic)
     make_learner = learner_factory(
-        loss, env, hidden=config.hidden, lr=config.lr, seed=config.seed, device=config.device
-    )
+        loss, env, hidden=config.hidden, lr=config.lr, seed=config.seed, device=config.device,
+        value=probabilistic,
+    )  # fmt: skip
     if config.dataset is not None:
         dataset_format(config.dataset)
     logger = make_logger(config.logger, folder, name, fresh=not keep_logs)

@@ -29,8 +29,8 @@ from torchrl.envs import EnvBase
 
 from imitrl.fs.reading import OpenedFolder, ReplacedWhileReading, parse_json, read_whole
 from imitrl.jobs.configs import BCJob
-from imitrl.jobs.resolve import FOR_ENV, LEGACY_DEFAULT, builds_table, learner_factory, task_spec
-from imitrl.learners import Learner, registry
+from imitrl.jobs.resolve import FOR_ENV, LEGACY_DEFAULT, learner_factory
+from imitrl.learners import Learner, TaskSpec, registry, resolve
 from imitrl.limits import hidden_parameters
 
 __all__ = [
@@ -227,13 +227,20 @@ def check_holds(where: Path, hidden: tuple[int, ...], size: int, env: EnvBase) -
 def _env_sizes(env: EnvBase) -> tuple[int, int]:
     """The observation and action sizes an MLP on ``env`` reads and writes (1 and 1
     where the env is not one the registry describes: a lower bound for any network)."""
-    try:
-        task = task_spec(env)
-    except ValueError:
+    task = TaskSpec.from_env(env)
+    if not task.described:
         return 1, 1
     inputs = task.observation_dim if task.num_states is None else task.num_states
     outputs = task.action if isinstance(task.action, int) else int(task.action.shape[0])
     return int(inputs), int(outputs)
+
+
+def _builds_table(loss: str, env: EnvBase) -> bool:
+    """Whether ``loss`` (resolved for ``env``) builds a logits table: an entry that does
+    on integer states (``LossEntry.tables``), which has no hidden layers."""
+    task = TaskSpec.from_env(env)
+    name = resolve(loss, task)
+    return name in registry.names() and registry.get(name).tables and task.num_states is not None
 
 
 def _field_bound(name: str) -> Any:
@@ -309,6 +316,13 @@ def _saved_lr(config: dict) -> float | None:
     return config.get("lr")
 
 
+def migrated(state: dict[str, Any], learner: Learner) -> dict[str, Any]:
+    """``state`` (a learner's saved weights) as ``learner`` holds them
+    (:meth:`~imitrl.learners.Learner.migrated_state`: a checkpoint of imitrl up to
+    d6e5639 keeps the ``value.*`` weights every ``ActorCritic`` had then)."""
+    return learner.migrated_state({"learner": state})["learner"]
+
+
 def load_learner(checkpoint: Path, env: EnvBase, *, device: str | None = None) -> Learner:
     """The learner saved in ``checkpoint``, rebuilt for ``env`` on ``device`` (None: the
     CPU; the checkpoint may have been saved on another device) and loaded with its weights
@@ -324,7 +338,7 @@ def build_learner(saved: SavedRun, env: EnvBase, *, device: str | None = None) -
     loss = config["loss"]
     loss = FOR_ENV if loss == LEGACY_DEFAULT else loss  # saved when default meant for_env
     hidden = None if config.get("hidden") is None else tuple(config["hidden"])
-    if hidden is not None and builds_table(loss, env):
+    if hidden is not None and _builds_table(loss, env):
         hidden = None  # a table: runs before --hidden was optional recorded the default
     if hidden is not None:
         check_holds(saved.path / WEIGHTS_FILE, hidden, saved.weights_bytes, env)
@@ -338,7 +352,7 @@ def build_learner(saved: SavedRun, env: EnvBase, *, device: str | None = None) -
     )
     learner = make()
     try:
-        learner.load_state_dict(saved.state)
+        learner.load_state_dict(migrated(saved.state, learner))
     except RuntimeError as err:  # shapes or names that do not match the rebuilt learner
         raise ValueError(
             f"{saved.path}: the weights do not fit the rebuilt learner on {learner.device} ({err})"

@@ -72,5 +72,11 @@ LOSSES: tuple[tuple[str, str, str], ...] = (
         "continuous",
         "Diffusion Policy: U-Net 32-64-128, T_o=2, T_p=16, executes 8; DDPM K=100 squaredcos_cap_v2, DDIM 10 steps; AdamW lr 0.001, EMA",
     ),
+    (
+        "for_env",
+        "any",
+        "the network the env's specs call for: a CNN on images, an MLP (one-hot on integer "
+        "states); any action spec, its head's default loss",
+    ),
 )
 """(name, actions, summary) of every loss of :mod:`imitrl.learners.registry`"""

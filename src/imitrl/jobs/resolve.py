@@ -11,11 +11,11 @@ exit status 2.
   ``function(obs [N, d]) -> action [N] or [N, m]``, a batched policy wrapped with
   :meth:`~imitrl.policies.Expert.from_callable`. A builder's return value is checked
   once, when it is built.
-* ``--loss``: a name of the loss registry (:mod:`imitrl.learners.registry`), the
-  one builder of learners; ``default`` is resolved to one for the env
-  (:func:`resolve_loss`: ``cross_entropy`` for discrete actions, ``mse`` for
-  continuous ones, ``gaussian_nll`` where the job needs ``log pi``), or to
-  :data:`FOR_ENV` where the registry builds nothing (image observations).
+* ``--loss``: a name of the loss registry (:mod:`imitrl.learners.registry`), built by
+  the one builder of learners (:func:`imitrl.learners.build`); ``default`` is resolved
+  to one for the env (:func:`resolve_loss`: ``cross_entropy`` for discrete actions,
+  ``mse`` for continuous ones, ``gaussian_nll`` where the job needs ``log pi``, and
+  ``for_env`` where no other entry describes the env: image observations).
 * ``--dataset``: a directory; its files say its format (``meta/info.json``: LeRobot;
   ``main_data.hdf5`` / ``metadata.json``, or a ``data/`` folder holding them: Minari).
 """
@@ -26,21 +26,18 @@ import importlib
 import inspect
 import re
 from collections.abc import Callable
-from dataclasses import replace
 from pathlib import Path
 
 import gymnasium
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
-from torchrl.data import Bounded, Categorical, MultiCategorical
 from torchrl.envs import EnvBase
 
 from imitrl import experts, keys
 from imitrl.data.buffer import OBSERVATION_KEYS, REQUIRED_KEYS
 from imitrl.envs.make import METAWORLD_PREFIX
 from imitrl.jobs.names import EXPERT_ENVS, EXPERT_KINDS
-from imitrl.learners import ActorCritic, Learner, defaults, registry
-from imitrl.learners.registry import LearnerConfig, TaskSpec
+from imitrl.learners import FOR_ENV, Learner, TaskSpec, build, resolve
 from imitrl.policies import Expert
 
 __all__ = [
@@ -50,7 +47,6 @@ __all__ = [
     "EXPERT_KINDS",
     "FOR_ENV",
     "LEGACY_DEFAULT",
-    "builds_table",
     "check_expert_fits",
     "dataset_format",
     "expert_for_env",
@@ -58,7 +54,6 @@ __all__ = [
     "load_dataset",
     "make_expert",
     "resolve_loss",
-    "task_spec",
     "time_limit",
 ]
 
@@ -223,64 +218,17 @@ def time_limit(env_id: str, override: int | None) -> int:
     return int(limit)
 
 
-def task_spec(env: EnvBase) -> TaskSpec:
-    """The registry's view of ``env``: action count or ``Bounded`` spec, observation size."""
-    spec = env.observation_spec_unbatched
-    if keys.OBSERVATION not in spec.keys():
-        raise ValueError(
-            f"the loss registry needs an {keys.OBSERVATION!r} observation, got keys "
-            f"{list(spec.keys())}"
-        )
-    obs = spec[keys.OBSERVATION]
-    action = env.action_spec_unbatched
-    if isinstance(action, Categorical) and not isinstance(action, MultiCategorical):
-        act: int | Bounded = int(action.space.n)
-    elif isinstance(action, Bounded):
-        act = action
-    else:
-        raise ValueError(
-            f"the loss registry needs Categorical or Bounded actions, got {type(action).__name__}"
-        )
-    if isinstance(obs, Categorical):
-        return TaskSpec(action=act, num_states=int(obs.space.n))
-    if len(obs.shape) != 1:
-        raise ValueError(f"the loss registry needs vector observations [d], got {tuple(obs.shape)}")
-    return TaskSpec(action=act, observation_dim=int(obs.shape[0]))
-
-
-FOR_ENV = "for_env"
-"""``--loss for_env``: the network :meth:`ActorCritic.for_env` builds for the env (a
-one-hot MLP on integer states, a CNN on images), with its default head. What ``--loss
-default`` resolves to where the registry builds nothing (image observations;
-multi-discrete, one-hot or unbounded actions), and what a checkpoint saved when
-``default`` meant ``for_env`` everywhere is rebuilt as (:data:`LEGACY_DEFAULT`)."""
 LEGACY_DEFAULT = "default"
 """the loss name checkpoints saved before ``default`` was resolved to a registry entry
 record: their learner was ``for_env``'s"""
 
 
 def resolve_loss(loss: str, env: EnvBase, *, probabilistic: bool = False) -> str:
-    """``--loss`` as a name :func:`learner_factory` builds: ``default`` becomes the
-    registry entry for the env's actions (:func:`imitrl.learners.defaults.default_loss`;
-    ``probabilistic``: the job needs ``log pi``), or :data:`FOR_ENV` where the registry
-    cannot describe the env (image observations, with or without a state beside them;
-    specs :func:`task_spec` refuses); any other name is kept."""
-    if loss != "default":
-        return loss
-    if keys.PIXELS in env.observation_spec_unbatched.keys():
-        return FOR_ENV  # images (with or without a state): for_env's CNN reads them
-    try:
-        task = task_spec(env)
-    except ValueError:
-        return FOR_ENV
-    return defaults.default_loss(task.actions, probabilistic=probabilistic)
-
-
-def builds_table(loss: str, env: EnvBase) -> bool:
-    """Whether ``loss`` (resolved for ``env``) builds a logits table: a registry entry on
-    integer states, which has no hidden layers (``learner_factory`` refuses ``hidden``)."""
-    loss = resolve_loss(loss, env)
-    return loss in registry.names() and task_spec(env).num_states is not None
+    """``--loss`` as the registry entry it names for ``env``
+    (:func:`imitrl.learners.resolve`: ``default`` is ``cross_entropy``, ``mse``, or
+    ``gaussian_nll`` where the job needs ``log pi``; ``for_env`` on images); what a run
+    records and a checkpoint rebuilds."""
+    return resolve(loss, TaskSpec.from_env(env), value=probabilistic)
 
 
 def learner_factory(
@@ -291,54 +239,35 @@ def learner_factory(
     lr: float | None,
     seed: int,
     device: str | None = None,
+    value: bool = False,
 ) -> Callable[[], Learner]:
-    """``() -> Learner``: a fresh learner for ``env`` trained by ``loss``, same init each call.
-
-    ``loss``: a registry name, :data:`FOR_ENV`, or ``default`` (:func:`resolve_loss`).
-    ``lr`` None: the learner's own default (:mod:`imitrl.learners.defaults`: a table's,
-    a network's, or the recipe's rate of an entry with ``own_lr``); a rate an entry with
-    ``own_lr`` would not use is refused. ``hidden`` None: the network's own layers; given
-    for a logits table (a registry entry on integer states), it is refused. Builds one
-    learner right away, so that an unknown loss, or a loss for the other kind of action,
-    fails here.
-    """
-    loss = resolve_loss(loss, env)
-    if loss == FOR_ENV:
-        rate = defaults.learning_rate(None, None, lr)
-
-        def make() -> Learner:
-            return ActorCritic.for_env(env, hidden=hidden, lr=rate, seed=seed, device=device)
-
-        make()
-        return make
-
-    if loss not in registry.names():
-        raise ValueError(
-            f"unknown loss {loss!r}; choose default, {FOR_ENV} or one of: "
-            f"{', '.join(registry.names())}"
-        )
-    own = registry.get(loss).own_lr
-    if lr is not None and own is not None and lr != own:
-        raise ValueError(
-            f"--loss {loss} trains at its recipe's learning rate {own:g}, not --lr {lr:g}: "
-            "leave --lr out (the rate is the loss's, see imitrl.learners.registry)"
-        )
-    task = task_spec(env)
-    if hidden is not None and task.num_states is not None:
-        raise ValueError(
-            f"--hidden {','.join(map(str, hidden))}: --loss {loss} on {task.num_states} "
-            f"integer states builds a logits table, which has no hidden layers; leave "
-            f"--hidden out, or take --loss {FOR_ENV} (an MLP on one-hot states)"
-        )
-    config = LearnerConfig(lr=lr, seed=seed, device=device)
+    """``() -> Learner``: a fresh :func:`imitrl.learners.build` ``(loss, env, ...)`` each
+    call, the same initialisation each time, from the flags (``hidden``, ``lr`` None: the
+    entry's own; ``value``: a value head, for GAIL and AIRL). Builds one learner right
+    away, so that an unknown loss or a flag the loss refuses fails here, naming the flag."""
+    settings: dict = {"seed": seed, "device": device, "value": value}
     if hidden is not None:
-        config = replace(config, hidden=tuple(hidden))
+        settings["hidden"] = tuple(hidden)
+    if lr is not None:
+        settings["lr"] = lr
 
     def make() -> Learner:
-        return registry.build(loss, task, config)
+        return build(loss, env, **settings)
 
-    make()
+    try:
+        make()
+    except ValueError as err:  # the library's words for the flags: --loss, --lr, --hidden
+        text = str(err).replace(f"loss {loss} ", f"--loss {loss} ", 1)
+        text = re.sub(r"(\bnot lr\b|\bleave lr\b|\bleave hidden\b|^hidden\b)", _flag, text)
+        text = text.replace("; registered:", "; choose default or one of:")
+        raise ValueError(text) from None
     return make
+
+
+def _flag(match: re.Match) -> str:
+    words = match.group(0).split(" ")
+    words[-1] = "--" + words[-1]
+    return " ".join(words)
 
 
 def dataset_format(path: Path) -> str:

@@ -15,10 +15,12 @@ from imitrl.learners.act.entries import ACT_BATCH, ACT_LR, act
 from imitrl.learners.actor_critic.entries import (
     ENTROPY_COEF,
     L2_COEF,
+    ForEnvOptions,
     advantage_weighted,
     chunk_regression,
     cross_entropy,
     cross_entropy_entropy,
+    for_env,
     gaussian_nll,
     gaussian_nll_chunk,
     mse_l2,
@@ -42,27 +44,35 @@ _H, _K = CHUNK_HORIZON, CHUNK_EXECUTE
 _C, _D = "continuous", "discrete"
 
 # ------------------------------------------------------------------ one action a step
-register("cross_entropy", actions=_D, summary="cross-entropy (categorical NLL)")(cross_entropy)
+_AC = {"value": True}  # ActorCritic: a value head when a job asks for one
+register("cross_entropy", actions=_D, summary="cross-entropy (categorical NLL)", **_AC)(
+    cross_entropy
+)
 register(
     "cross_entropy_entropy",
     actions=_D,
     summary=f"cross-entropy - {ENTROPY_COEF} x policy entropy",
+    **_AC,
 )(cross_entropy_entropy)
 register(
     "advantage_weighted",
     actions=_D,
     summary="advantage-weighted cross-entropy (policy_step's objective)",
     requires=("advantage",),
+    **_AC,
 )(advantage_weighted)
 register(
     "gaussian_nll",
     actions=_C,
     summary="tanh-normal NLL with a learned state-independent log-std, acts with tanh(mean)",
+    **_AC,
 )(gaussian_nll)
-register("mse", actions=_C, summary="mean squared error")(regression("mse"))
-register("l1", actions=_C, summary="mean absolute error")(regression("l1"))
-register("smooth_l1", actions=_C, summary="Huber loss (delta 1)")(regression("smooth_l1"))
-register("mse_l2", actions=_C, summary=f"MSE + {L2_COEF} x squared L2 norm of weights")(mse_l2)
+register("mse", actions=_C, summary="mean squared error", **_AC)(regression("mse"))
+register("l1", actions=_C, summary="mean absolute error", **_AC)(regression("l1"))
+register("smooth_l1", actions=_C, summary="Huber loss (delta 1)", **_AC)(regression("smooth_l1"))
+register("mse_l2", actions=_C, summary=f"MSE + {L2_COEF} x squared L2 norm of weights", **_AC)(
+    mse_l2
+)
 register(
     "diffusion",
     actions=_C,
@@ -132,6 +142,7 @@ register(
     horizon=_H,
     batch_size=ACT_BATCH,
     own_lr=ACT_LR,
+    hidden=False,
 )(act)
 register(
     "diffusion_unet",
@@ -141,4 +152,18 @@ register(
     history=DIFFUSION_UNET.obs_horizon,
     recipe=fit_recipe(DIFFUSION_UNET),
     own_lr=DIFFUSION_UNET.lr,
+    options=DIFFUSION_UNET,
+    hidden=False,
+    pixels=True,
 )(diffusion_unet)
+
+# ------------------------------------------------------------------ any env
+register(
+    "for_env",
+    actions="any",
+    summary="the network the env's specs call for: a CNN on images, an MLP (one-hot on "
+    "integer states); any action spec, its head's default loss",
+    options=ForEnvOptions(),
+    value=True,
+    tables=False,
+)(for_env)

@@ -16,7 +16,7 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.envs.utils import ExplorationType
 
 from imitrl.learners.learner import Learner
-from imitrl.learners.registry import TaskSpec
+from imitrl.learners.task import TaskSpec
 from imitrl.objectives.base import ImitationLoss
 from imitrl.policies.chunking import ChunkedPolicy, ChunkExecution, tile_spec
 from imitrl.policies.normalization import ObservationNormalizer

@@ -49,13 +49,24 @@ from __future__ import annotations
 
 __all__ = [
     "DEFAULT_LOSS",
+    "HIDDEN",
     "NETWORK_LR",
+    "PIXEL_CHANNELS",
+    "PIXEL_HIDDEN",
     "PROBABILISTIC_LOSS",
     "TABLE_LR",
     "default_loss",
     "learning_rate",
 ]
 
+HIDDEN = (64, 64)
+"""hidden layers of every MLP the registry builds (policy heads, the diffusion score
+network, the flow velocity network): one width for all, so that objectives are compared
+at equal capacity"""
+PIXEL_CHANNELS = (32, 64, 64)
+"""the convolutions of a CNN learner (``for_env`` on images): the Nature CNN's"""
+PIXEL_HIDDEN = (256,)
+"""the MLP after a CNN learner's convolutions"""
 TABLE_LR = 0.1
 """Adam's rate for a logits table (integer states) when none is given"""
 NETWORK_LR = 1e-3

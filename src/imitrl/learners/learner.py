@@ -19,7 +19,7 @@ A :class:`Learner` holds
   ``fit_bc`` adds both, from the rows' episodes (:meth:`Learner.training_rows`), so DAgger's
   relabelled rounds get them the same way as the demonstrations.
 
-:class:`~imitrl.policies.ActorCritic` is a Learner with a value head; the loss
+:class:`~imitrl.learners.ActorCritic` is a Learner with a value head; the loss
 registry builds Learners; any user policy becomes one with ``Learner(policy, loss,
 opt)``.
 """
@@ -128,6 +128,12 @@ class Learner(nn.Module):
         """Every optimizer of the learner by name (saved and restored with it)."""
         return {"opt_pi": self.opt_pi}
 
+    def migrated_state(self, states: dict[str, dict]) -> dict[str, dict]:
+        """Saved states (``"learner"``: the weights, and each optimizer's by name) as this
+        learner holds them: where a checkpoint of an older imitrl holds what this learner
+        no longer carries, it is dropped here (the base learner changes nothing)."""
+        return states
+
     @property
     def device(self) -> torch.device:
         """Where the learner computes: its parameters' device (:mod:`imitrl.system.device`)."""
@@ -159,7 +165,7 @@ class Learner(nn.Module):
         """Raise ``ValueError`` (naming both) when the learner cannot act in ``env``.
 
         The base class knows nothing of its policy's spaces and accepts every env;
-        :class:`~imitrl.policies.ActorCritic` compares its observation and action spaces.
+        :class:`~imitrl.learners.ActorCritic` compares its observation and action spaces.
         """
 
     def prepare(self, rows: TensorDictBase) -> None:

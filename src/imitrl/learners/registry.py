@@ -4,7 +4,7 @@ An entry says, for a task's observation and action spaces, how to build the poli
 that is trained and the TorchRL ``LossModule`` that trains it. Everything that
 compares objectives (``benchmarks/loss_functions.py``, your own study) builds
 learners through :func:`build` and trains them with
-``fit_bc(learner, rows, config)`` (a :class:`~imitrl.policies.Learner` carries its
+``fit_bc(learner, rows, config)`` (a :class:`~imitrl.learners.Learner` carries its
 loss), so adding an objective is one registered function::
 
     @register("mse_wd", actions="continuous", summary="MSE with an L2 penalty 1e-3")
@@ -53,75 +53,42 @@ heads above, a sample for diffusion.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, fields, replace
+from typing import Any
 
-from torchrl.data import Bounded
-
-from imitrl.learners.defaults import learning_rate
+from imitrl.learners.defaults import HIDDEN, learning_rate
 from imitrl.learners.learner import Learner
-from imitrl.objectives.advantage_weighted import Advantage
+from imitrl.learners.task import ACTION_KINDS, TaskSpec
 
 __all__ = [
-    "ACTION_KINDS",
     "LearnerConfig",
     "LossEntry",
-    "TaskSpec",
-    "build",
     "entries",
     "fit_config",
     "get",
+    "make",
     "names",
     "register",
     "unregister",
 ]
 
-ACTION_KINDS = ("discrete", "continuous")
-
-
-@dataclass(frozen=True)
-class TaskSpec:
-    """What a loss entry may know about a task."""
-
-    action: int | Bounded
-    """number of discrete actions, or the ``Bounded`` spec ``[m]`` of a continuous action"""
-    observation_dim: int | None = None
-    """length of vector observations ``[..., d]`` (None for integer states)"""
-    num_states: int | None = None
-    """number of integer states ``0 .. S-1`` (None for vector observations)"""
-    advantage: Advantage | None = field(default=None, compare=False)
-    """optional ``A(observation, action) -> [N]`` for advantage-weighted losses"""
-
-    def __post_init__(self) -> None:
-        if (self.observation_dim is None) == (self.num_states is None):
-            raise ValueError(
-                "give exactly one of observation_dim (vectors) or num_states (integers)"
-            )
-        if isinstance(self.action, bool) or not isinstance(self.action, (int, Bounded)):
-            raise ValueError(
-                f"action must be a number of actions or a Bounded spec, got {self.action!r}"
-            )
-        if isinstance(self.action, Bounded) and len(self.action.shape) != 1:
-            raise ValueError(
-                f"a continuous action spec must have shape [m], got {tuple(self.action.shape)}"
-            )
-
-    @property
-    def actions(self) -> str:
-        """``"discrete"`` or ``"continuous"``."""
-        return "discrete" if isinstance(self.action, int) else "continuous"
-
 
 @dataclass(frozen=True)
 class LearnerConfig:
-    """Shared by every entry, so that objectives are compared at equal capacity."""
+    """What :func:`imitrl.learners.build` hands an entry's builder: the settings every
+    entry shares (so that objectives are compared at equal capacity), and the entry's own
+    (``options``)."""
 
-    hidden: tuple[int, ...] = (64, 64)
-    """hidden layers of MLP policies (and of the diffusion score network)"""
+    hidden: tuple[int, ...] | None = None
+    """hidden layers of MLP policies (and of the diffusion and flow networks); None: the
+    network's default (:data:`~imitrl.learners.defaults.HIDDEN`). An entry whose network
+    has no hidden layers (a logits table, ACT's transformer, Diffusion Policy's U-Net)
+    refuses a given one"""
     lr: float | None = None
     """Adam learning rate of the policy; None: the network's default (a logits table 0.1,
-    any other network 1e-3: :mod:`imitrl.learners.defaults`). Entries with ``own_lr``
-    (ACT, diffusion_unet) keep their recipe's. :func:`build` resolves it, so an entry's
-    builder always reads a number"""
+    any other network 1e-3: :mod:`imitrl.learners.defaults`). An entry with ``own_lr``
+    (ACT, diffusion_unet) trains at its recipe's and refuses another. The registry
+    resolves it, so an entry's builder always reads a number"""
     seed: int = 0
     """initialisation seed (and the seed of any sampling the learner does)"""
     normalize: bool = True
@@ -130,6 +97,17 @@ class LearnerConfig:
     """where the learner computes: None (the CPU), ``"auto"``, ``"cpu"``, ``"cuda:N"``
     (:func:`~imitrl.system.device.resolve_device`); every entry is built on the CPU with
     its seed, then moved, so every device starts from the same weights"""
+    value: bool = False
+    """a value head beside the policy (GAIL's and AIRL's PPO generator need one): only the
+    table, MLP and CNN entries (:class:`~imitrl.learners.ActorCritic`) build one"""
+    options: Any = None
+    """the entry's own settings (``LossEntry.options``' type: ``for_env``'s head and
+    convolutions, Diffusion Policy's U-Net); None: the entry's defaults"""
+
+    @property
+    def width(self) -> tuple[int, ...]:
+        """``hidden``, or the default widths when it is None."""
+        return HIDDEN if self.hidden is None else self.hidden
 
 
 @dataclass(frozen=True)
@@ -161,13 +139,30 @@ class LossEntry:
     own_lr: float | None = None
     """the learning rate of the loss's recipe, which ``LearnerConfig.lr`` does not set
     (ACT's, Diffusion Policy's); None: the entry trains at ``LearnerConfig.lr`` (or its
-    default: :func:`imitrl.learners.defaults.learning_rate`). The CLI
-    refuses an ``--lr`` such an entry would not use"""
+    default: :func:`imitrl.learners.defaults.learning_rate`). :func:`make` refuses a rate
+    such an entry would not use"""
+    options: Any = None
+    """the entry's own settings, a frozen dataclass with its defaults (None: it has none);
+    ``build(name, env, field=value)`` replaces a field, ``build(..., options=...)`` all"""
+    hidden: bool = True
+    """whether ``LearnerConfig.hidden`` shapes its network (False: a given one is refused)"""
+    value: bool = False
+    """whether it builds a value head when ``LearnerConfig.value`` asks for one"""
+    tables: bool = True
+    """whether it builds a logits table on integer states, which trains at a table's
+    default rate (False: ``for_env``'s one-hot MLP, at a network's)"""
+    pixels: bool = False
+    """whether it reads an env's image beside the state (``diffusion_unet``'s camera
+    encoder); the other entries apply to envs without images only"""
 
     def applies_to(self, task: TaskSpec) -> bool:
         """Whether this objective can train a policy for ``task``."""
-        return task.actions == self.actions and all(
-            getattr(task, name) is not None for name in self.requires
+        if self.actions == "any":
+            return True
+        return (
+            (task.observes if self.pixels else task.described)
+            and task.actions == self.actions
+            and all(getattr(task, name) is not None for name in self.requires)
         )
 
 
@@ -186,6 +181,11 @@ def register(
     history: int | None = None,
     recipe: Callable | None = None,
     own_lr: float | None = None,
+    options: Any = None,
+    hidden: bool = True,
+    value: bool = False,
+    tables: bool = True,
+    pixels: bool = False,
 ) -> Callable[[Callable[[TaskSpec, LearnerConfig], Learner]], Callable]:
     """Decorator: register ``build(task, config) -> Learner`` under ``name``
     (``horizon``: the chunk length of a chunked learner; ``batch_size``: the minibatch of
@@ -195,8 +195,8 @@ def register(
         ValueError: the name is taken, ``actions`` is not one of :data:`ACTION_KINDS`,
             or ``requires`` names a field ``TaskSpec`` does not have.
     """
-    if actions not in ACTION_KINDS:
-        raise ValueError(f"actions must be one of {ACTION_KINDS}, got {actions!r}")
+    if actions not in (*ACTION_KINDS, "any"):
+        raise ValueError(f"actions must be one of {(*ACTION_KINDS, 'any')}, got {actions!r}")
     unknown = set(requires) - _TASK_FIELDS
     if unknown:
         raise ValueError(f"requires names unknown TaskSpec fields {sorted(unknown)}")
@@ -214,7 +214,7 @@ def register(
             raise ValueError(f"a loss named {name!r} is already registered")
         _REGISTRY[name] = LossEntry(
             name, actions, fn, summary, tuple(requires), horizon, batch_size, history, recipe,
-            own_lr,
+            own_lr, options, hidden, value, tables, pixels,
         )  # fmt: skip
         return fn
 
@@ -244,14 +244,37 @@ def names(task: TaskSpec | None = None) -> list[str]:
     return [e.name for e in _REGISTRY.values() if task is None or e.applies_to(task)]
 
 
-def build(name: str, task: TaskSpec, config: LearnerConfig = LearnerConfig()) -> Learner:
-    """Build entry ``name``'s learner for ``task`` (ValueError if it does not apply)."""
+def make(name: str, task: TaskSpec, config: LearnerConfig) -> Learner:
+    """Entry ``name``'s learner for ``task`` as ``config`` says, on ``config.device``;
+    what :func:`imitrl.learners.build` calls once it has resolved the name and the
+    settings. ValueError, naming the entry, when it does not apply to ``task``, or
+    ``config`` asks for what it does not have (a rate besides its recipe's, hidden layers,
+    a value head)."""
     entry = get(name)
     if not entry.applies_to(task):
         missing = [r for r in entry.requires if getattr(task, r) is None]
-        why = f"it needs {', '.join(missing)}" if missing else f"it is for {entry.actions} actions"
+        if missing:
+            why = f"it needs {', '.join(missing)}"
+        elif not task.described:
+            why = "its observations or actions are not integer states or vectors with "
+            why += "discrete or Bounded actions (images: loss for_env builds a CNN)"
+        else:
+            why = f"it is for {entry.actions} actions"
         raise ValueError(f"loss {name!r} does not apply to this task: {why}")
-    config = replace(config, lr=learning_rate(entry.own_lr, task.num_states, config.lr))
+    if config.lr is not None and entry.own_lr is not None and config.lr != entry.own_lr:
+        raise ValueError(
+            f"loss {name} trains at its recipe's learning rate {entry.own_lr:g}, not lr "
+            f"{config.lr:g}: leave lr out"
+        )
+    if config.hidden is not None and not entry.hidden:
+        raise ValueError(f"loss {name} has no hidden layers to set: leave hidden out")
+    if config.value and not entry.value:
+        raise ValueError(
+            f"loss {name} builds no value head: GAIL and AIRL need one (take default, "
+            "cross_entropy, gaussian_nll or for_env)"
+        )
+    states = task.num_states if entry.tables else None
+    config = replace(config, lr=learning_rate(entry.own_lr, states, config.lr))
     learner = entry.build(task, config)
     if not isinstance(learner, Learner):
         raise ValueError(f"loss {name!r} built a {type(learner).__name__}, expected a Learner")

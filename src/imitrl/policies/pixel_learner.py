@@ -45,8 +45,8 @@ __all__ = [
     "PixelInputs",
     "PixelNetworks",
     "check_pixel_key",
-    "env_pixel_specs",
     "pixel_networks",
+    "spec_pixel_inputs",
 ]
 
 
@@ -189,13 +189,13 @@ class PixelInputs:
             check_same_actions(actions, action_space(env.action_spec_unbatched))
 
 
-def env_pixel_specs(
-    env: EnvBase, pixel_key: NestedKey | None, *, state: bool
+def spec_pixel_inputs(
+    spec: Composite, pixel_key: NestedKey | None, *, state: bool
 ) -> tuple[TensorSpec, TensorSpec | None, NestedKey]:
-    """``(image spec, state spec or None, pixel key)`` of a pixel learner of ``env``:
-    the image under ``pixel_key`` (None: ``keys.PIXELS``), the state ``OBSERVATION``
-    when ``state``; ``ValueError`` naming the env's keys when one is missing."""
-    spec = env.observation_spec_unbatched
+    """``(image spec, state spec or None, pixel key)`` of a pixel learner of an env whose
+    (unbatched) observation spec is ``spec``: the image under ``pixel_key`` (None:
+    ``keys.PIXELS``), the state ``OBSERVATION`` when ``state``; ``ValueError`` naming the
+    env's keys when one is missing."""
     key = check_pixel_key(keys.PIXELS if pixel_key is None else pixel_key)
     if _lookup(spec, key) is None or (state and keys.OBSERVATION not in spec.keys()):
         wanted = [key, keys.OBSERVATION] if state else [key]
@@ -211,7 +211,8 @@ class PixelNetworks:
     """What :func:`pixel_networks` builds for ``ActorCritic.pixels``."""
 
     policy: TensorDictModuleBase
-    value: Value
+    value: Value | None
+    """None unless asked for (``value=True``)"""
     normalizer: ObservationNormalizer | None
     head: str
     space: ActionSpace
@@ -234,6 +235,7 @@ def pixel_networks(
     activation: type[nn.Module],
     seed: int,
     normalize: bool,
+    value: bool = False,
 ) -> PixelNetworks:
     """The policy and value of a pixel learner (arguments: ``ActorCritic.pixels``).
 
@@ -271,6 +273,8 @@ def pixel_networks(
         torch.manual_seed(seed)
         layers, width = trunk()
         policy = build_head(layers, width, space, head, in_keys=inputs.in_keys)
-        layers, width = trunk()
-        value = Value(Chain(*layers, nn.Linear(width, 1)), in_keys=inputs.in_keys)
-    return PixelNetworks(policy, value, normalizer, head, space, inputs)
+        critic = None
+        if value:  # drawn after the policy: the policy is the same with or without it
+            layers, width = trunk()
+            critic = Value(Chain(*layers, nn.Linear(width, 1)), in_keys=inputs.in_keys)
+    return PixelNetworks(policy, critic, normalizer, head, space, inputs)

@@ -29,7 +29,7 @@ norm`
 
 On a GPU the CPU tricks step aside for the device's own fast forms: ``optimizer_step``
 returns ``opt.step`` for parameters off the CPU, and a learner placed on CUDA runs fused
-Adam (:meth:`imitrl.policies.Learner.placed`); the policy call crosses devices through
+Adam (:meth:`imitrl.learners.Learner.placed`); the policy call crosses devices through
 :class:`~imitrl.system.device.OnDevice`, which both steppers run as any module.
 
 The one rollout loop (:func:`imitrl.runtime.loop.play`) runs either stepper.

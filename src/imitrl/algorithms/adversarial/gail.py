@@ -11,7 +11,7 @@ Example (CartPole from one demonstration episode)::
     env = make_env("CartPole-v1", seed=0)
     buffer = DemonstrationBuffer(action_spec=env.action_spec_unbatched)
     buffer.extend(rollout_episodes(env, cartpole_expert(), 1))
-    learner = ActorCritic.for_env(env, lr=3e-4)
+    learner = build("default", env, lr=3e-4, value=True)  # a value head for PPO
     result = gail(env, learner, buffer, GAILConfig(total_steps=50_000))
     evaluate(env, learner, 20, seed=1)
 """

@@ -197,7 +197,7 @@ class GAILDiscriminator:
 def _probe_action(space) -> torch.Tensor:
     """One action of ``space`` (to size the action features)."""
     if space is None:
-        raise ValueError("the learner has no action space (build it with ActorCritic.for_env/mlp)")
+        raise ValueError("the learner has no action space (build it with imitrl.learners.build)")
     if space.kind == "discrete":
         return torch.zeros((1, space.n) if space.one_hot else (1,), dtype=torch.int64)
     if space.kind == "continuous":

@@ -4,7 +4,7 @@ the discriminator's reward.
 Why PPO, not SAC, for discrete *and* continuous actions: the reward is re-learned every
 round (GAIL's ``D`` moves; AIRL's reward contains ``-log pi`` of the current policy), so
 an off-policy learner would have to relabel its whole replay buffer each round, and the
-learner (:class:`~imitrl.policies.ActorCritic`) carries a state-value head ``V(s)``, what
+learner (:class:`~imitrl.learners.ActorCritic`) carries a state-value head ``V(s)``, what
 GAE needs, not the twin ``Q(s, a)`` heads SAC needs. PPO trains the same object
 :func:`~imitrl.evaluation.evaluate` evaluates and the checkpoint saves. (This choice was
 made on these grounds, not measured against SAC.)

@@ -218,7 +218,12 @@ def check_inputs(env: EnvBase, learner: ActorCritic, buffer: DemonstrationBuffer
     if not isinstance(learner, ActorCritic) or learner.observation_shape is None:
         raise ValueError(
             "adversarial imitation trains an ActorCritic over vector observations "
-            f"(ActorCritic.for_env / mlp), got {type(learner).__name__}"
+            f"(build('default', env, value=True)), got {type(learner).__name__}"
+        )
+    if learner.value is None:
+        raise ValueError(
+            "adversarial imitation's PPO generator needs a value head: build the learner "
+            "with value=True (build('default', env, value=True))"
         )
     if learner.pixel_shape is not None:
         raise ValueError("adversarial imitation on pixel observations is not supported")

@@ -55,8 +55,9 @@ size and nesting), ``_frames`` (the frames read whole and checked against the ep
 table), ``_locate``
 (:func:`resolve_lerobot_root`: lerobot's folder and the hub caches, offline), ``_hub`` (a folder, a local cache or the Hub: :func:`download_lerobot`
 into ``$HF_LEROBOT_HOME/hub`` as lerobot 0.6 does, one downloader at a time per
-repository), ``_hub_http`` (the bounded HTTP client it asks the Hub through:
-:class:`HubLimits`, timeouts, deadlines, size bounds, redirect hosts), ``_plan`` (feature -> buffer key, and why others are skipped),
+repository), ``_hub_http`` (the bounded HTTP client it asks the Hub through),
+``_hub_limits`` (:class:`HubLimits`: timeouts, deadlines, size bounds, redirect hosts,
+the file list's bounds, the wait for another download), ``_plan`` (feature -> buffer key, and why others are skipped),
 ``_read`` (:func:`load_lerobot`), ``_stream`` (``load_lerobot(..., into=buffer)``: a few
 episodes at a time, everything checked before the buffer is extended), ``_video`` (where each episode's camera frames lie in
 which mp4, and decoding them), ``_checks`` (what frames must satisfy: timestamps
@@ -72,7 +73,7 @@ exactly ``lerobot/metaworld_mt50``'s features: :func:`save_metaworld_lerobot`).
 """
 
 from imitrl.datasets.lerobot._hub import download_lerobot
-from imitrl.datasets.lerobot._hub_http import HubLimits
+from imitrl.datasets.lerobot._hub_limits import HubLimits
 
 # the format's constants stay importable from here, as before the split into modules
 from imitrl.datasets.lerobot._layout import (  # noqa: F401

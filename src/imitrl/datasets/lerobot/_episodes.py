@@ -17,7 +17,13 @@ from pathlib import Path
 import numpy as np
 import pyarrow as pa
 
-from imitrl.datasets._arrow import check_schema, footer_rows, parquet_file, read_parquet
+from imitrl.datasets._arrow import (
+    check_schema,
+    checked_rows,
+    footer_rows,
+    parquet_file,
+    read_parquet,
+)
 from imitrl.datasets.lerobot._files import (
     LAYOUT,
     holds,
@@ -135,7 +141,8 @@ def _episodes_v3(folder: OpenedFolder, held: int | None) -> pa.Table:
             stack.enter_context(parquet_file(folder, f, named_by=LAYOUT, pre_buffer=False))
             for f in files
         ]
-        _too_many(ep_dir, sum(pf.metadata.num_rows for pf in opened), held, "frames")
+        listed = sum(checked_rows(pf, folder.root / f) for f, pf in zip(files, opened))
+        _too_many(ep_dir, listed, held, "frames")
         for f, pf in zip(files, opened):
             tables.append(_episode_columns(folder.root / f, pf))
     try:

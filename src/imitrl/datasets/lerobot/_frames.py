@@ -18,7 +18,7 @@ import pyarrow as pa
 import torch
 
 from imitrl import keys
-from imitrl.datasets._arrow import column_to_tensor, decode_images, read_parquet
+from imitrl.datasets._arrow import column_to_tensor, decode_images, footer_rows, read_parquet
 from imitrl.datasets._common import NestedKey, key_name
 from imitrl.datasets.lerobot._checks import check_frames
 from imitrl.datasets.lerobot._episodes import LISTED, episode_dicts, episode_table, v3_data_files
@@ -65,7 +65,12 @@ def data_files(
     messages): v3.0's sorted ``data/*/*.parquet`` (``v3_files``:
     :func:`~imitrl.datasets.lerobot._episodes.v3_data_files`; a missing file the episode
     table names is reported when frames are missing), v2.x's one per episode (``table``:
-    :func:`~imitrl.datasets.lerobot._episodes.episode_table`)."""
+    :func:`~imitrl.datasets.lerobot._episodes.episode_table`).
+
+    v3.0: before any file is read, the frames their footers declare must be the episodes'
+    frames, and ``info.json``'s ``total_frames`` (where it has one) too
+    (:func:`check_total_frames`): a data file declaring millions of frames more than the
+    metadata is refused, not read (v2.x: :func:`footer_frames`)."""
     root = folder.root
     if major != 3:
         named_by = f"meta/info.json's data_path {info['data_path']!r}"
@@ -86,18 +91,62 @@ def data_files(
             )
     if not files:
         raise ValueError(f"{root / 'data'}: no data files (data/chunk-*/file-*.parquet)")
+    if held != expected:
+        raise ValueError(
+            f"{root / 'data'}: the data files hold {held:,} frames (their footers say), the "
+            f"episode table covers {expected:,}; refused before reading them"
+        )
+    check_total_frames(root, info, held)
     return files, LISTED
+
+
+def check_total_frames(root: Path, info: dict, frames: int) -> None:
+    """``info.json``'s ``total_frames``, where it has one, is the ``frames`` the data files
+    hold."""
+    total = info.get("total_frames")
+    if total is not None and total != frames:
+        raise ValueError(
+            f"{root / 'meta' / 'info.json'} declares {total} frames, the data files hold {frames}"
+        )
+
+
+def footer_frames(
+    folder: OpenedFolder,
+    info: dict,
+    major: int,
+    files: list[str],
+    named_by: str,
+    v3_files: dict[str, int] | None,
+    episodes: list[dict],
+) -> list[int]:
+    """The frames each data file holds by its footer, before any is read: v3.0's as
+    :func:`data_files` checked them; v2.x's (one file per episode) each its episode's
+    length, and together ``info.json``'s ``total_frames``."""
+    if major == 3:
+        return [(v3_files or {})[f] for f in files]
+    rows = [footer_rows(folder, f, named_by=named_by) for f in files]
+    for f, n, ep in zip(files, rows, episodes):
+        if n != int(ep["length"]):
+            raise ValueError(
+                f"{folder.root / f}: episode {int(ep['episode_index'])} has {n} frames (its "
+                f"footer says), the episode metadata says {int(ep['length'])}; refused before "
+                "reading it"
+            )
+    check_total_frames(folder.root, info, sum(rows))
+    return rows
 
 
 def _read_frames(
     folder: OpenedFolder,
     files: list[str],
+    rows: list[int],
     named_by: str,
     plan: Mapping[str, NestedKey],
     features: dict[str, dict],
 ) -> _Frames:
     """The planned features and the bookkeeping columns of every file, as tensors; each
-    file opened inside the folder (``named_by`` names them, for messages)."""
+    file opened inside the folder (``named_by`` names them, for messages) and read once
+    its footer declares its ``rows``."""
     book_names = ["episode_index", "frame_index"]
     book_names += [c for c in ("timestamp", "task_index") if c in features]
     columns: dict[str, list[torch.Tensor]] = {name: [] for name in plan}
@@ -105,10 +154,10 @@ def _read_frames(
     bounds = []
     total = 0
     declared = [name for name, ft in features.items() if ft["dtype"] != "video"]
-    for name in files:
+    for name, count in zip(files, rows):
         path = folder.root / name
         wanted = list(dict.fromkeys([*plan, *book_names]))
-        table = read_parquet(folder, name, wanted, declared=declared, named_by=named_by)
+        table = read_parquet(folder, name, wanted, declared=declared, rows=count, named_by=named_by)
         for feature in plan:
             ft = features[feature]
             where = f"{path}: feature {feature!r}"
@@ -189,11 +238,7 @@ def _frame_order(
             f"{root / 'data'}: the data files hold {frames.total} frames, the episode table covers "
             f"{len(index.unique())} of them"
         )
-    total_frames = info.get("total_frames")
-    if total_frames is not None and total_frames != n:
-        raise ValueError(
-            f"{root / 'meta' / 'info.json'} declares {total_frames} frames, the data files hold {n}"
-        )
+    check_total_frames(root, info, n)
     return index
 
 
@@ -236,7 +281,8 @@ def checked_frames(
         raise ValueError(f"{root / 'meta'}: the dataset has no episodes (nothing to load)")
     episodes = episode_dicts(table)
     files, named_by = data_files(folder, info, major, table, v3_files)
-    frames = _read_frames(folder, files, named_by, plan, info["features"])
+    rows = footer_frames(folder, info, major, files, named_by, v3_files, episodes)
+    frames = _read_frames(folder, files, rows, named_by, plan, info["features"])
     index = _frame_order(root, info, episodes, major, frames)
     step = torch.cat([torch.arange(int(ep["length"])) for ep in episodes])
     book = {k: v[index] for k, v in frames.book.items() if k != "episode_index"}

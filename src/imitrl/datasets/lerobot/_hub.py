@@ -31,6 +31,10 @@ which names blobs after the server's ``ETag`` header), nor through a link plante
 (:mod:`imitrl.fs.files`). Downloads of one dataset into one cache, from any number of
 processes, take turns (:func:`imitrl.fs.lock.exclusive` on its repository folder, as
 huggingface_hub locks its cache): the second finds the first's blobs and fetches nothing.
+It waits at most ``HubLimits.lock_wait_s`` (by default as long as the files it lacks may
+take to download), then gives up naming the process that holds the lock (a stopped
+download, say). The file list is bounded in pages and in time, each file's listed size
+in bytes (and, all together, by the cache's free disk space) before any is fetched.
 """
 
 from __future__ import annotations
@@ -38,13 +42,17 @@ from __future__ import annotations
 import hashlib
 import os
 import re
+import shutil
+import time
 from collections.abc import Callable, Iterator
+from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 from urllib.parse import quote
 
-from imitrl.datasets.lerobot._hub_http import HubClient, HubLimits
+from imitrl.datasets.lerobot._hub_http import HubClient
+from imitrl.datasets.lerobot._hub_limits import MAX_EMPTY_PAGES, HubLimits
 from imitrl.datasets.lerobot._locate import (
     check_repo_id,
     is_repo_id,
@@ -52,7 +60,7 @@ from imitrl.datasets.lerobot._locate import (
     resolve_lerobot_root,
 )
 from imitrl.fs.contained import inside, links_stay_inside
-from imitrl.fs.files import create_file, make_folder, replace_file
+from imitrl.fs.files import PlantedLinkError, create_file, make_folder, replace_file
 from imitrl.fs.lock import exclusive
 from imitrl.fs.publish import OLD
 
@@ -157,24 +165,31 @@ def download_lerobot(
             (``v3.0``, else ``v2.1``, else ``v2.0``, as lerobot's ``get_safe_version``
             would), else ``main``.
         cache_dir: the hub cache to download into; default ``$HF_LEROBOT_HOME/hub``.
-        limits: timeouts, deadlines, the bound on API answers and where redirects may go
-            (:class:`~imitrl.datasets.lerobot._hub_http.HubLimits`); None:
+        limits: timeouts, deadlines, the bounds on API answers, the file list and file
+            sizes, where redirects may go and how long to wait for another download
+            (:class:`~imitrl.datasets.lerobot._hub_limits.HubLimits`); None:
             ``HubLimits.from_env()`` (connect 10 s, read 30 s or
             ``$HF_HUB_DOWNLOAD_TIMEOUT``, 120 s per API answer, a file that plus 1 s per
-            32 KiB, answers up to 64 MiB, redirects to the endpoint's host or the official
+            32 KiB and at most 24 h, the file list 30 min and 10,000 pages, answers up to
+            64 MiB, files up to 50 GiB, redirects to the endpoint's host or the official
             Hub's CDN).
 
     Files already in the cache's ``blobs/`` are not downloaded again; progress is shown
     with huggingface_hub's progress bar (``HF_HUB_DISABLE_PROGRESS_BARS=1`` hides it). A
     second download of the same dataset into the same cache waits for the first (saying
-    so on stderr) and then fetches only what is still missing.
+    so on stderr), at most ``limits.lock_wait_s``, and then fetches only what is still
+    missing.
 
     Raises:
         ImportError: huggingface_hub is not installed (the message says how).
         ValueError: the repository or revision is unknown or unreachable; the server stays
-            silent or slow past ``limits``, sends an answer larger than them, or redirects
-            elsewhere; it names a commit, file or digest that is not one (refused before
-            anything is written); a file's bytes differ from the digest or size listed.
+            silent or slow past ``limits``, sends an answer larger than them, a file list
+            longer than them, or redirects elsewhere; it names a commit, file or digest
+            that is not one, or a file larger than ``limits.max_file_bytes`` (refused
+            before anything is written); the files need more than the cache's disk has
+            free; another download into the cache holds its lock past
+            ``limits.lock_wait_s`` (the message names its process); a file's bytes differ
+            from the digest or size listed.
     """
     hub = _hub()
     check_repo_id(repo_id)
@@ -195,15 +210,45 @@ def download_lerobot(
     repo_dir = cache / ("datasets--" + repo_id.replace("/", "--"))
     snapshot = repo_dir / "snapshots" / commit
     files = _listing(client, f"{api}/tree/{commit}", commit, snapshot, where)
-    with exclusive(repo_dir, what="downloaded", wait=None):  # one download at a time
+    with _repository_lock(repo_dir, files, limits, where):  # one download at a time
         resolve = f"{endpoint}/datasets/{repo_id}/resolve/{commit}"
-        _fetch_blobs(hub, client, resolve, repo_id, commit, repo_dir / "blobs", files)
+        _fetch_blobs(hub, client, resolve, repo_id, commit, repo_dir / "blobs", files, where)
         _link_snapshot(repo_dir, snapshot, files)
         if rev != commit:
             ref = inside(repo_dir / "refs", rev, named_by=f"revision {rev!r}")
             make_folder(ref.parent)
             replace_file(ref, commit, what=f"the commit of revision {rev!r}")
     return snapshot
+
+
+def _missing(blobs: Path, files: list[_File]) -> dict[str, _File]:
+    """blob -> a file stored as it, for each blob not yet in ``blobs``."""
+    return {f.blob: f for f in files if not (blobs / f.blob).is_file()}
+
+
+@contextmanager
+def _repository_lock(
+    repo_dir: Path, files: list[_File], limits: HubLimits, where: str
+) -> Iterator[None]:
+    """The cache's lock on ``repo_dir``, waited for at most ``limits.lock_wait_s`` (None:
+    ``deadline_s`` plus the deadline of each file the cache lacks, what another download
+    of them may take); ValueError naming the process that holds it past that."""
+    wait = limits.lock_wait_s
+    if wait is None:
+        todo = _missing(repo_dir / "blobs", files).values()
+        wait = limits.deadline_s + sum(limits.file_deadline_s(f.size) for f in todo)
+    with ExitStack() as stack:
+        try:
+            stack.enter_context(exclusive(repo_dir, what="downloaded", wait=wait))
+        except PlantedLinkError:
+            raise
+        except ValueError as err:
+            raise ValueError(
+                f"{where}: gave up after waiting {wait:g} s for another download into the same "
+                f"cache: {err} (a stopped or hung download holds it: end that process, or "
+                "wait longer with HubLimits(lock_wait_s=...))"
+            ) from None
+        yield
 
 
 def _default_revision(client: HubClient, api: str, where: str) -> str:
@@ -226,20 +271,44 @@ def _default_revision(client: HubClient, api: str, where: str) -> str:
 
 def _tree_entries(client: HubClient, tree: str, where: str) -> Iterator[dict]:
     """Every entry of the recursive tree listing, page by page; refused past
-    :data:`MAX_ENTRIES` or when a page comes round again."""
+    :data:`MAX_ENTRIES`, past ``max_pages`` pages or :data:`MAX_EMPTY_PAGES` empty ones in
+    a row, past ``listing_deadline_s`` for them all, or when a page comes round again."""
+    limits = client.limits
     url: str | None = f"{tree}?recursive=true&expand=false"
     seen: set[str] = set()
-    listed = 0
+    listed = empty = 0
+    end = time.monotonic() + limits.listing_deadline_s
+    rule = (
+        f"{limits.listing_deadline_s:g} s for the whole file list; set "
+        "HubLimits(listing_deadline_s=...) to wait longer"
+    )
     while url is not None:
         if url in seen:
             raise ValueError(f"{where}: its file list comes back to page {url}; refused")
+        if len(seen) == limits.max_pages:
+            raise ValueError(
+                f"{where}: its file list goes on past {limits.max_pages} pages ({listed} "
+                "entries so far; HubLimits(max_pages=...)); refused"
+            )
+        left = end - time.monotonic()
+        if left <= 0:
+            raise ValueError(
+                f"{where}: its file list is not over after {len(seen)} pages ({listed} entries) "
+                f"in {limits.listing_deadline_s:g} s (deadline: {rule})"
+            )
         seen.add(url)
-        page, url = client.get_json(url)
+        page, url = client.get_json(url, within=(left, rule))
         if not isinstance(page, list) or not all(isinstance(e, dict) for e in page):
             raise ValueError(f"{where}: its file list is not a list of objects")
         listed += len(page)
         if listed > MAX_ENTRIES:
             raise ValueError(f"{where}: its file list names more than {MAX_ENTRIES} entries")
+        empty = empty + 1 if not page and url is not None else 0
+        if empty > MAX_EMPTY_PAGES:
+            raise ValueError(
+                f"{where}: its file list sends {empty} empty pages in a row, each naming a next "
+                f"page (at most {MAX_EMPTY_PAGES}); refused"
+            )
         yield from page
 
 
@@ -255,14 +324,15 @@ def _listing(client: HubClient, tree: str, commit: str, snapshot: Path, where: s
         if entry is None:
             break
         if entry.get("type") == "file":  # else a folder
-            files.append(_file(entry, snapshot, where))
+            files.append(_file(entry, snapshot, client.limits.max_file_bytes, where))
     if not any(f.path == "meta/info.json" for f in files):
         raise ValueError(f"{where}: commit {commit} holds no meta/info.json: not a LeRobot dataset")
     return files
 
 
-def _file(entry: dict, snapshot: Path, where: str) -> _File:
-    """A file entry of the tree listing, its path, digest and size checked."""
+def _file(entry: dict, snapshot: Path, max_bytes: int, where: str) -> _File:
+    """A file entry of the tree listing, its path, digest and size (at most ``max_bytes``)
+    checked."""
     path = entry.get("path")
     if not isinstance(path, str):
         raise ValueError(f"{where}: a file is listed with path {path!r}")
@@ -276,6 +346,11 @@ def _file(entry: dict, snapshot: Path, where: str) -> _File:
         raise ValueError(f"{where}: {path!r} is listed with digest {blob!r}, not hex")
     if isinstance(size, bool) or not isinstance(size, int) or size < 0:
         raise ValueError(f"{where}: {path!r} is listed with size {size!r}")
+    if size > max_bytes:
+        raise ValueError(
+            f"{where}: {path!r} is listed with {size:,} bytes, more than the {max_bytes:,} a "
+            "file may hold (HubLimits(max_file_bytes=...)); refused before downloading"
+        )
     return _File(path, size, blob, lfs is not None)
 
 
@@ -287,12 +362,20 @@ def _fetch_blobs(
     commit: str,
     blobs: Path,
     files: list[_File],
+    where: str,
 ) -> None:
     """Each file's bytes into ``blobs/<digest>``, once they hash to it (blobs already there
-    are kept), with one progress bar over the bytes to fetch."""
+    are kept), with one progress bar over the bytes to fetch; refused before any is
+    fetched when they need more than the cache's disk has free."""
     make_folder(blobs)
-    todo = {f.blob: f for f in files if not (blobs / f.blob).is_file()}
+    todo = _missing(blobs, files)
     total = sum(f.size for f in todo.values())
+    free = shutil.disk_usage(blobs).free
+    if total > free:
+        raise ValueError(
+            f"{where}: its files take {total:,} bytes, the disk of {blobs} has {free:,} free; "
+            "refused before downloading"
+        )
     with hub.utils.tqdm(
         total=total, unit="B", unit_scale=True, desc=f"Downloading {repo_id}"
     ) as bar:

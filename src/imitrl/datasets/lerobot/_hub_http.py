@@ -21,8 +21,17 @@ The rules, with :class:`HubLimits`' defaults:
 * **a deadline over each whole answer**, headers and body: ``deadline_s`` (120 s) for an
   API answer; for a file, ``deadline_s`` plus one second per ``min_bytes_per_s`` (32 KiB,
   a 256 kbit/s link) of its listed size, so a 2 GB file gets 17 hours and a trickle is
-  cut at the pace of the slowest link the limits allow. A timer shuts the request's
-  socket down when its deadline passes, so a read blocked on a stall returns at once;
+  cut at the pace of the slowest link the limits allow, and never more than
+  ``max_file_s`` (24 h). A timer shuts the request's socket down when its deadline
+  passes, so a read blocked on a stall returns at once;
+* **a deadline over the whole file list**, every page of it: ``listing_deadline_s``
+  (30 min; the Hub lists 1000 entries a page, a few hundred pages for the largest
+  datasets), at most ``max_pages`` pages (10,000) and
+  :data:`~imitrl.datasets.lerobot._hub_limits.MAX_EMPTY_PAGES` empty pages in a row that
+  name a next page (the Hub's never do), so that a list that never ends is refused,
+  whatever its pages look like;
+* **a file's listed size** is at most ``max_file_bytes`` (50 GiB: the Hub documents 50 GB
+  as its maximum per file), so its deadline is bounded too;
 * **size**: an API answer may not decode to more than ``max_answer_bytes`` (64 MiB); its
   ``Content-Length`` is checked before a byte is read and a ``gzip`` body (the only
   encoding asked for) is inflated a block at a time, each bounded by the room left
@@ -46,8 +55,6 @@ expected (the command line prints it as one line).
 from __future__ import annotations
 
 import http.client
-import math
-import os
 import re
 import socket
 import threading
@@ -60,6 +67,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from urllib.parse import SplitResult, urljoin, urlsplit
 
+from imitrl.datasets.lerobot._hub_limits import HubLimits
 from imitrl.fs.reading import parse_json
 
 __all__ = ["HUB_CDN_DOMAINS", "MAX_REDIRECTS", "OFFICIAL_HOSTS", "HubClient", "HubLimits"]
@@ -73,68 +81,6 @@ storage bridge (``cas-bridge.xethub.hf.co``)"""
 MAX_REDIRECTS = 5
 """redirects followed for one request (the Hub uses one: resolve -> CDN)"""
 USER_AGENT = "imitrl"
-
-
-@dataclass(frozen=True)
-class HubLimits:
-    """How long and how much a Hub download may take (see the module docstring).
-
-    ``download_lerobot(..., limits=HubLimits(...))`` sets them; without it,
-    :meth:`from_env` gives these defaults with ``read_s`` from ``$HF_HUB_DOWNLOAD_TIMEOUT``.
-    """
-
-    connect_s: float = 10.0
-    """seconds to wait for a connection (TCP and TLS)"""
-    read_s: float = 30.0
-    """seconds any read may stay silent"""
-    deadline_s: float = 120.0
-    """seconds a whole API answer may take; a file gets this plus its size's share"""
-    min_bytes_per_s: float = 32 * 1024
-    """the slowest pace a file may arrive at: its deadline grows by 1 s per this many bytes"""
-    max_answer_bytes: int = 64 << 20
-    """bytes an API answer may decode to (a tree page, the refs, a revision)"""
-    redirect_hosts: tuple[str, ...] | None = None
-    """hosts (a domain: its subdomains too) a redirect may lead to besides the endpoint's;
-    None: :data:`HUB_CDN_DOMAINS` for the official Hub, none for any other endpoint"""
-
-    def __post_init__(self) -> None:
-        for name in ("connect_s", "read_s", "deadline_s", "min_bytes_per_s"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, float)):
-                raise ValueError(f"HubLimits.{name} must be a number of seconds, got {value!r}")
-            if not (math.isfinite(value) and value > 0):
-                raise ValueError(f"HubLimits.{name} must be positive and finite, got {value!r}")
-        size = self.max_answer_bytes
-        if isinstance(size, bool) or not isinstance(size, int) or size < 1:
-            raise ValueError(f"HubLimits.max_answer_bytes must be a positive int, got {size!r}")
-        hosts = self.redirect_hosts
-        if hosts is not None and (
-            isinstance(hosts, str) or not all(isinstance(h, str) and h for h in hosts)
-        ):
-            raise ValueError(
-                f"HubLimits.redirect_hosts must be a tuple of host names, got {hosts!r}"
-            )
-        if hosts is not None:  # a list given: kept as a tuple, the dataclass stays hashable
-            object.__setattr__(self, "redirect_hosts", tuple(hosts))
-
-    @classmethod
-    def from_env(cls) -> HubLimits:
-        """The defaults, with ``read_s`` from ``$HF_HUB_DOWNLOAD_TIMEOUT`` when it is set
-        (huggingface_hub's timeout of a download's reads); ValueError when it is not a
-        positive number."""
-        text = os.environ.get("HF_HUB_DOWNLOAD_TIMEOUT", "").strip()
-        if not text:
-            return cls()
-        try:
-            return cls(read_s=float(text))
-        except ValueError:
-            raise ValueError(
-                f"HF_HUB_DOWNLOAD_TIMEOUT={text!r}: expected a positive number of seconds"
-            ) from None
-
-    def file_deadline_s(self, size: int) -> float:
-        """Seconds a file of ``size`` bytes may take: ``deadline_s + size / min_bytes_per_s``."""
-        return self.deadline_s + size / self.min_bytes_per_s
 
 
 def check_redirect(endpoint: str, source: str, target: str, limits: HubLimits) -> None:
@@ -314,11 +260,20 @@ class HubClient:
                 f"HF_ENDPOINT={self.endpoint!r}: expected http(s)://<host>, the Hub's address"
             )
 
-    def get_json(self, url: str) -> tuple[object, str | None]:
+    def get_json(
+        self, url: str, *, within: tuple[float, str] | None = None
+    ) -> tuple[object, str | None]:
         """An API answer's JSON (at most ``max_answer_bytes`` decoded) and the next page's
-        URL from its ``Link`` header (on the endpoint's host, else refused), or None."""
-        rule = f"{self.limits.deadline_s:g} s for an API answer"
-        with self._open(url, self.limits.deadline_s, rule, encoding="gzip") as response:
+        URL from its ``Link`` header (on the endpoint's host, else refused), or None.
+
+        ``within``: ``(seconds, rule)``, a shorter deadline than ``deadline_s`` for this
+        answer (what is left of the file list's) and the rule that sets it, for messages.
+        """
+        seconds = self.limits.deadline_s
+        rule = f"{seconds:g} s for an API answer; set HubLimits(deadline_s=...) to wait longer"
+        if within is not None and within[0] < seconds:
+            seconds, rule = within
+        with self._open(url, seconds, rule, encoding="gzip") as response:
             body = _bounded_body(response, url, self.limits.max_answer_bytes)
             link = _next_link(response.headers.get_all("Link") or [])
         if link is not None:
@@ -331,10 +286,14 @@ class HubClient:
     def stream(self, url: str, size: int) -> Iterator[http.client.HTTPResponse]:
         """The open answer to a file of ``size`` bytes, unencoded, to be read within
         :meth:`HubLimits.file_deadline_s`; errors while it is read are explained too."""
-        seconds = self.limits.file_deadline_s(size)
+        limits = self.limits
+        seconds = limits.file_deadline_s(size)
         rule = (
-            f"{self.limits.deadline_s:g} s + 1 s per {self.limits.min_bytes_per_s:g} bytes "
-            f"of a {size}-byte file"
+            f"{limits.deadline_s:g} s + 1 s per {limits.min_bytes_per_s:g} bytes of a "
+            f"{size}-byte file"
+            + (f", at most {limits.max_file_s:g} s" if seconds == limits.max_file_s else "")
+            + "; set HubLimits(deadline_s=..., min_bytes_per_s=..., max_file_s=...) to wait "
+            "longer"
         )
         with self._open(url, seconds, rule, encoding="identity") as response:
             coding = (response.headers.get("Content-Encoding") or "identity").strip().lower()
@@ -381,10 +340,7 @@ class HubClient:
         reason = err.reason if isinstance(err, urllib.error.URLError) else err
         if deadline.expired:
             seconds = round(deadline.seconds, 2)
-            return ValueError(
-                f"{url}: not received in {seconds:g} s (deadline: {deadline.rule}; set "
-                "HubLimits(deadline_s=..., min_bytes_per_s=...) to wait longer)"
-            )
+            return ValueError(f"{url}: not received in {seconds:g} s (deadline: {deadline.rule})")
         if isinstance(err, _NoConnection):
             return ValueError(
                 f"{url}: no answer in {limits.connect_s:g} s (connect timeout; set "

@@ -36,7 +36,7 @@ from imitrl.datasets.lerobot._episodes import episode_table, read_tasks, v3_data
 from imitrl.datasets.lerobot._files import holds, read_json
 from imitrl.datasets.lerobot._frames import checked_frames, columns_in_order, data_files, timestamps
 from imitrl.datasets.lerobot._hub import dataset_root
-from imitrl.datasets.lerobot._hub_http import HubLimits
+from imitrl.datasets.lerobot._hub_limits import HubLimits
 from imitrl.datasets.lerobot._layout import SIDECAR, read_info
 from imitrl.datasets.lerobot._plan import plan_features, settle_features
 from imitrl.datasets.lerobot._stream import (

@@ -34,6 +34,7 @@ from imitrl import keys
 from imitrl.data.buffer import DemonstrationBuffer
 from imitrl.datasets._arrow import (
     check_schema,
+    checked_rows,
     column_to_tensor,
     decode_images,
     parquet_file,
@@ -91,9 +92,10 @@ def _runs(
     a time (v3.0 without ``dataset_from_index``); each episode must be one run of frames."""
     spans: dict[int, tuple[int, int]] = {}
     last = None
-    for name, first in zip(files, bounds[:-1]):
+    for name, first, end in zip(files, bounds[:-1], bounds[1:]):
         path = folder.root / name
-        table = read_parquet(folder, name, ["episode_index"], named_by=named_by)
+        rows = int(end - first)  # as its footer was counted
+        table = read_parquet(folder, name, ["episode_index"], rows=rows, named_by=named_by)
         column = table.column("episode_index")
         ids = column_to_tensor(column, shape=(1,), dtype="int64", where=f"{path}: 'episode_index'")
         ids = ids.reshape(-1).numpy()
@@ -187,6 +189,7 @@ def _read_span(src: Source, begin: int, stop: int, names: list[str]) -> list[tup
         path = src.root / src.files[f]
         with parquet_file(src.folder, src.files[f], named_by=src.named_by, memory_map=True) as pf:
             check_schema(path, pf.schema_arrow, names, declared)
+            checked_rows(pf, path, hi - lo)  # as counted when the episodes were located
             try:
                 sizes = [pf.metadata.row_group(g).num_rows for g in range(pf.num_row_groups)]
                 starts = lo + np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)

@@ -15,7 +15,8 @@ A downloaded dataset is hostile until checked: the ``data`` folder is pinned by 
 descriptor and every file opened once inside it (:func:`~imitrl.fs.reading.read_whole`:
 no link out, no FIFO, a load that meets a replacement in progress runs again on the new
 dataset), every size a file declares is checked against the bytes it holds before it is
-allocated (:mod:`._bounds`), and JSON too deeply nested is refused by name. Why not TorchRL's
+allocated, what the whole load declares beyond them against one floor (:mod:`._bounds`),
+and JSON too deeply nested is refused by name. Why not TorchRL's
 ``MinariExperienceReplay``: in torchrl 0.14.1 it returns all-zero data for a local
 dataset (see TORCHRL_NOTES.md).
 """

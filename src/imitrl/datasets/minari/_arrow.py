@@ -27,7 +27,7 @@ from typing import Any
 import pyarrow as pa
 import pyarrow.compute as pc
 
-from imitrl.datasets.minari._bounds import check_declared, step_bytes
+from imitrl.datasets.minari._bounds import Floor, check_declared, step_bytes
 from imitrl.datasets.minari._episodes import EpisodeList, Steps, as_count, list_episodes
 from imitrl.datasets.minari._ipc import declared_sizes, read_ipc
 from imitrl.datasets.minari._spaces import decode, is_image, space_shape
@@ -85,7 +85,9 @@ def _rows_of(where: str, rows: int) -> str:
 _LEAF_BYTES = {"BOOLEAN": 1, "INT32": 4, "INT64": 8, "INT96": 12, "FLOAT": 4, "DOUBLE": 8}
 
 
-def _parquet_table(fd: int, where: str, row_bytes: int, size: int) -> tuple[pa.Table, pa.Schema]:
+def _parquet_table(
+    fd: int, where: str, row_bytes: int, size: int, floor: Floor
+) -> tuple[pa.Table, pa.Schema]:
     """A parquet part file's five step columns, once its footer's sizes fit its bytes: the
     rows times the bytes a step loads into, and the leaf values times their width (a
     run-length or dictionary page can declare millions of values in a few bytes); binary
@@ -95,8 +97,9 @@ def _parquet_table(fd: int, where: str, row_bytes: int, size: int) -> tuple[pa.T
 
     pf = pq.ParquetFile(fd_path(fd))
     meta = pf.metadata
+    rows = meta.num_rows
     check_declared(
-        meta.num_rows * row_bytes, size, compressed=True, where=_rows_of(where, meta.num_rows)
+        rows * row_bytes, size, compressed=True, where=_rows_of(where, rows), floor=floor
     )
     leaves, binary = 0, set()
     for g in range(meta.num_row_groups):
@@ -111,7 +114,9 @@ def _parquet_table(fd: int, where: str, row_bytes: int, size: int) -> tuple[pa.T
                 leaves += column.total_uncompressed_size
             else:
                 leaves += column.num_values * width
-    check_declared(leaves, size, compressed=True, where=f"{where}: its columns' values")
+    check_declared(
+        leaves, size, compressed=True, where=f"{where}: its columns' values", floor=floor
+    )
     missing = [f for f in _FIELDS if f not in pf.schema_arrow.names]
     if missing:
         raise ValueError(f"{where}: no {missing} (an episode has T + 1 rows)")
@@ -120,24 +125,29 @@ def _parquet_table(fd: int, where: str, row_bytes: int, size: int) -> tuple[pa.T
     return pf.read(columns=list(_FIELDS)), schema
 
 
-def _arrow_table(fd: int, where: str, row_bytes: int, size: int) -> tuple[pa.Table, pa.Schema]:
+def _arrow_table(
+    fd: int, where: str, row_bytes: int, size: int, floor: Floor
+) -> tuple[pa.Table, pa.Schema]:
     """An Arrow IPC part file, read whole (its own size), once the rows and the
     uncompressed bytes its messages declare fit its bytes (:mod:`._ipc`)."""
     with pa.OSFile(fd_path(fd), "rb") as f:
         data = f.read_buffer(size)
     rows, unpacked = declared_sizes(data)
-    check_declared(rows * row_bytes, size, compressed=True, where=_rows_of(where, rows))
-    check_declared(unpacked, size, compressed=True, where=f"{where}: its compressed buffers")
+    check_declared(
+        rows * row_bytes, size, compressed=True, where=_rows_of(where, rows), floor=floor
+    )
+    buffers = f"{where}: its compressed buffers"
+    check_declared(unpacked, size, compressed=True, where=buffers, floor=floor)
     table = read_ipc(data)
     return table.select([f for f in _FIELDS if f in table.column_names]), table.schema
 
 
 def _read_table(
-    parts: list[tuple[str, int]], fmt: str, row_bytes: int, here: str, ep_id: int
+    parts: list[tuple[str, int]], fmt: str, row_bytes: int, here: str, ep_id: int, floor: Floor
 ) -> tuple[pa.Table, pa.Schema]:
     """Episode ``ep_id``'s part files (``(name, descriptor)``, in name order) as one table,
     and the first one's schema; ``row_bytes``: what one step of the five columns loads
-    into."""
+    into; the sizes they declare within the load's ``floor``."""
     if not parts:
         raise ValueError(f"{here}: no {fmt} file (part-0.{fmt})")
     read = _parquet_table if fmt == "parquet" else _arrow_table
@@ -145,7 +155,7 @@ def _read_table(
     for name, fd in parts:
         try:
             where = f"{name} (episode {ep_id})"
-            table, schema = read(fd, where, row_bytes, os.fstat(fd).st_size)
+            table, schema = read(fd, where, row_bytes, os.fstat(fd).st_size, floor)
         except (pa.ArrowException, OSError) as err:
             raise ValueError(f"{name}: not a readable {fmt} file ({err})") from err
         tables.append(table)
@@ -218,13 +228,14 @@ def read_episode(
     spaces: tuple[dict, dict],
     jpeg: bool,
     skipped: dict[str, str],
+    floor: Floor,
 ) -> Steps:
-    """Episode ``ep_id`` from its opened files, its sizes checked before it is read
-    (per-step infos are listed in ``skipped``, not read)."""
+    """Episode ``ep_id`` from its opened files, its sizes checked before it is read, within
+    the load's ``floor`` (per-step infos are listed in ``skipped``, not read)."""
     here = f"{files.folder}/part-*.{fmt}"
     declared = _episode_meta(files.meta, str(files.folder / "metadata.json"), ep_id)
     row_bytes = step_bytes(spaces[0], jpeg) + step_bytes(spaces[1], jpeg) + 8 + 1 + 1
-    table, schema = _read_table(files.parts, fmt, row_bytes, here, ep_id)
+    table, schema = _read_table(files.parts, fmt, row_bytes, here, ep_id, floor)
     missing = [f for f in _FIELDS if f not in table.column_names]
     if missing or table.num_rows == 0:
         raise ValueError(f"{here}: no {missing or 'rows'} (an episode has T + 1 rows)")

@@ -13,7 +13,8 @@ a downloaded file read outside its folder, and Minari writes none of them: each 
 refused by name.
 
 The file is opened once, by the descriptor its folder gave (:func:`open_hdf5`), and every
-dataset's declared size is checked against the bytes it stores before it is read
+dataset's declared size is checked against the bytes it stores before it is read, and
+what the file's datasets declare beyond them against the load's floor, all together
 (:func:`read_dataset`, :mod:`._bounds`).
 """
 
@@ -25,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from imitrl.datasets.minari._bounds import check_declared
+from imitrl.datasets.minari._bounds import Floor, check_declared
 from imitrl.datasets.minari._episodes import EpisodeList, Steps, as_count, list_episodes
 from imitrl.datasets.minari._spaces import decode
 from imitrl.fs.reading import fd_path
@@ -74,37 +75,42 @@ _VLEN_REF = 16
 the file's global heap)"""
 
 
-def read_dataset(dset: Any, here: str) -> Any:
-    """All of ``dset``'s values, once its declared size fits the bytes it stores
-    (:func:`~imitrl.datasets.minari._bounds.check_declared`); a variable-length dataset
-    (encoded images) as a list of arrays, read one element at a time while their total
-    stays within the file's size (heap values are stored as they are, but many elements
-    may name one)."""
+def read_dataset(dset: Any, here: str, floor: Floor) -> Any:
+    """All of ``dset``'s values, once its declared size fits the bytes it stores or what
+    is left of the load's ``floor`` (:func:`~imitrl.datasets.minari._bounds.check_declared`);
+    a variable-length dataset (encoded images) as a list of arrays, read one element at a
+    time, each within what is left of the file's size (heap values are stored as they
+    are, but many elements may name one) or of the floor."""
     import h5py
 
     count = math.prod(dset.shape or ())  # None: an empty (null) dataspace
     stored = dset.id.get_storage_size()  # what the file's own records say it stores
     budget = max(dset.file.id.get_filesize(), 0)
-    check_declared(stored, budget, compressed=False, where=f"{here} (its storage)")
+    check_declared(stored, budget, compressed=False, where=f"{here} (its storage)", floor=floor)
     compressed = dset.id.get_create_plist().get_nfilters() > 0
     vlen = h5py.check_vlen_dtype(dset.dtype) is not None
     itemsize = _VLEN_REF if vlen else dset.dtype.itemsize
-    check_declared(count * itemsize, stored, compressed=compressed, where=here)
+    check_declared(count * itemsize, stored, compressed=compressed, where=here, floor=floor)
     if not vlen:
         return dset[()]
     if len(dset.shape or ()) != 1:  # an element per step, each counted as it is read
         raise ValueError(f"{here}: variable-length values of shape {dset.shape}, expected [T]")
-    values, total = [], 0
+    values, room = [], budget
     for i in range(len(dset)):
         value = dset[i]
-        total += value.nbytes
-        check_declared(total, budget, compressed=False, where=f"{here} (elements 0..{i})")
+        where = f"{here} (element {i}, after {budget - room:,} bytes of elements before it)"
+        check_declared(value.nbytes, room, compressed=False, where=where, floor=floor)
+        room = max(room - value.nbytes, 0)
         values.append(value)
     return values
 
 
 class _Groups:
-    """A space's values in HDF5: a group per Dict key / Tuple entry, a dataset per leaf."""
+    """A space's values in HDF5: a group per Dict key / Tuple entry, a dataset per leaf,
+    read within the load's ``floor``."""
+
+    def __init__(self, floor: Floor) -> None:
+        self.floor = floor
 
     def child(self, parent: Any, name: str, kind: str, where: str) -> Any:
         import h5py
@@ -118,7 +124,7 @@ class _Groups:
 
         if not isinstance(node, h5py.Dataset):
             raise ValueError(f"{where} should be a dataset for a {space['type']} space")
-        return read_dataset(node, where)
+        return read_dataset(node, where, self.floor)
 
 
 def open_hdf5(fd: int, where: str):
@@ -160,13 +166,13 @@ def list_groups(h5, meta: dict[str, Any], where: str) -> EpisodeList:
     return listing
 
 
-def _array(group, field: str, here: str) -> np.ndarray:
+def _array(group, field: str, here: str, floor: Floor) -> np.ndarray:
     import h5py
 
     found = node(group, field, f"{here}/{field}")
     if not isinstance(found, h5py.Dataset):
         raise ValueError(f"{here}/{field} should be a dataset")
-    values = read_dataset(found, f"{here}/{field}")
+    values = read_dataset(found, f"{here}/{field}", floor)
     if isinstance(values, list):
         raise ValueError(f"{here}/{field}: variable-length values, expected one number per step")
     return np.asarray(values)
@@ -187,9 +193,17 @@ def _infos(group, path: str, here: str) -> list[str]:
 
 
 def _read_group(
-    group, name: str, ep_id: int, spaces: tuple[dict, dict], jpeg: bool, skipped: dict, where: str
+    group,
+    name: str,
+    ep_id: int,
+    spaces: tuple[dict, dict],
+    jpeg: bool,
+    skipped: dict,
+    floor: Floor,
+    where: str,
 ) -> Steps:
-    """One ``episode_<id>`` group (per-step infos are listed in ``skipped``)."""
+    """One ``episode_<id>`` group (per-step infos are listed in ``skipped``), its arrays
+    within the load's ``floor``."""
     here = f"{where}: {name}"
     for field in _FIELDS:
         if field not in group:
@@ -198,7 +212,7 @@ def _read_group(
     if recorded is not None and as_count(recorded, "attrs id", here) != ep_id:
         raise ValueError(f"{here}: attrs id={int(recorded)} contradicts the group's name")
     declared = group.attrs.get("total_steps")
-    common = {"storage": _Groups(), "jpeg": jpeg, "skipped": skipped, "where": here}
+    common = {"storage": _Groups(floor), "jpeg": jpeg, "skipped": skipped, "where": here}
     obs = decode(
         node(group, "observations", f"{here}/observations"), spaces[0], "observations", **common
     )
@@ -213,9 +227,9 @@ def _read_group(
         id=ep_id,
         observations=obs,
         actions=act,
-        rewards=_array(group, "rewards", here),
-        terminations=_array(group, "terminations", here),
-        truncations=_array(group, "truncations", here),
+        rewards=_array(group, "rewards", here, floor),
+        terminations=_array(group, "terminations", here, floor),
+        truncations=_array(group, "truncations", here, floor),
         declared_steps=None if declared is None else as_count(declared, "attrs total_steps", here),
     )
 
@@ -227,12 +241,15 @@ def read_group(
     spaces: tuple[dict, dict],
     jpeg: bool,
     skipped: dict[str, str],
+    floor: Floor,
     where: str,
 ) -> Steps:
-    """The ``e``-th episode group of the open file (one group read: its datasets only)."""
+    """The ``e``-th episode group of the open file (one group read: its datasets only,
+    within the load's ``floor``)."""
     name = listing.name(e)
     try:
         group = node(h5, name, f"{where}: {name}")
-        return _read_group(group, name, int(listing.ids[e]), spaces, jpeg, skipped, where)
+        ep_id = int(listing.ids[e])
+        return _read_group(group, name, ep_id, spaces, jpeg, skipped, floor, where)
     except (OSError, KeyError, RuntimeError) as err:  # h5py's errors for a damaged file
         raise ValueError(f"{where}: unreadable HDF5 data ({type(err).__name__}: {err})") from err

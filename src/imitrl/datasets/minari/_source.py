@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from imitrl.datasets.minari._arrow import EpisodeFiles, list_folders, open_episode, read_episode
+from imitrl.datasets.minari._bounds import Floor
 from imitrl.datasets.minari._episodes import EpisodeList, Steps
 from imitrl.datasets.minari._hdf5 import (
     MAIN_FILE,
@@ -110,9 +111,17 @@ class EpisodeSource:
     pinned: dict[int, EpisodeFiles] = field(default_factory=dict)
     held: int = 0
     """descriptors held in ``pinned``"""
+    floor: Floor = field(default_factory=Floor)
+    """what the pass over the episodes may still declare beyond its files' bytes
+    (:mod:`._bounds`)"""
 
     def __len__(self) -> int:
         return len(self.episodes)
+
+    def new_pass(self) -> None:
+        """A new pass over the episodes (a streamed load's second): it reads what the
+        first read, so it starts with a whole floor again."""
+        self.floor = Floor()
 
     def read(self, e: int) -> Steps:
         """The ``e``-th episode in id order, its arrays checked against the spaces."""
@@ -123,7 +132,9 @@ class EpisodeSource:
             self.h5.close()
             self.h5, self.reads = open_hdf5(self.h5_fd, self.where), 0  # the same file
         self.reads += 1
-        return read_group(self.h5, self.episodes, e, self.spaces, jpeg, self.skipped, self.where)
+        return read_group(
+            self.h5, self.episodes, e, self.spaces, jpeg, self.skipped, self.floor, self.where
+        )
 
     def _read_folder(self, e: int, jpeg: bool) -> Steps:
         fmt = self.meta["data_format"]
@@ -134,9 +145,8 @@ class EpisodeSource:
                 self.pinned[e] = files
                 self.held += len(files.parts)
         try:
-            return read_episode(
-                files, int(self.episodes.ids[e]), fmt, self.spaces, jpeg, self.skipped
-            )
+            ep_id = int(self.episodes.ids[e])
+            return read_episode(files, ep_id, fmt, self.spaces, jpeg, self.skipped, self.floor)
         finally:
             if self.pinned.get(e) is not files:
                 files.close()

@@ -48,7 +48,8 @@ def _pieces(
     notes: list[str],
 ) -> Iterator[TensorDict]:
     """The rows of the episodes, a piece at a time, in id order (fitted to ``env``); a
-    piece's episodes with no step give no rows."""
+    piece's episodes with no step give no rows. One pass over ``src``."""
+    src.new_pass()
     piece: list[Episode] = []
     steps = 0
     for e in range(len(src)):

@@ -20,6 +20,7 @@ from imitrl.experiments.frozenlake.backends import BatchedBackend, FaithfulBacke
 from imitrl.experiments.frozenlake.config import StudyConfig
 from imitrl.experiments.frozenlake.outputs import FIGURES
 from imitrl.experiments.frozenlake.report import Report
+from imitrl.learners import TaskSpec, build
 from imitrl.learners.actor_critic import ActorCritic
 from imitrl.tabular.finite_horizon import state_distributions, success_probability
 from imitrl.tabular.mdp import TabularMDP
@@ -84,7 +85,9 @@ class StudyContext:
 
     def learner(self, copies: int = 1) -> ActorCritic:
         """A zero-initialised tabular actor-critic over ``copies * S`` states."""
-        return ActorCritic.tabular(self.S * copies, self.A, lr=self.config.lr)
+        return build(
+            "cross_entropy", TaskSpec(action=self.A, num_states=self.S * copies), lr=self.config.lr
+        )
 
     def dagger_config(self, episodes_per_round: int, fit_steps: int) -> DAggerConfig:
         """The study's DAgger: ``config.dagger_rounds`` full-batch fits of ``fit_steps``."""

@@ -8,13 +8,17 @@ kill) leaves the previous results whole and nothing at ``--out`` that looks fini
 and a second run given the same ``--out`` while one runs is refused at once.
 
 Only a folder the study wrote (its file names, a ``results.json`` with the study's
-config) or an empty one is ever replaced; anything else at ``--out`` is refused.
+config) or an empty one is ever replaced; anything else at ``--out`` is refused. That
+``results.json`` is read through the folder's descriptor, as a regular file of at most
+:data:`RESULTS_LIMIT` bytes (:class:`imitrl.fs.reading.OpenedFolder`): a link there (to
+``/dev/zero``, say) or a FIFO makes the folder not a study's output, read no further.
+A folder that cannot be written (read-only, not this user's) is a
+:class:`imitrl.fs.NotWritableError` before any work, as for every other command.
 The next run removes what a killed run left beside ``--out`` (with a warning).
 """
 
 from __future__ import annotations
 
-import json
 import os
 import tempfile
 from collections.abc import Iterator
@@ -22,8 +26,10 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from imitrl.fs.publish import publishing
+from imitrl.fs.reading import OpenedFolder, parse_json
+from imitrl.fs.write_errors import NotWritableError, not_writable
 
-__all__ = ["FIGURES", "OUTPUT_FILES", "is_study_output", "staged"]
+__all__ = ["FIGURES", "OUTPUT_FILES", "RESULTS_LIMIT", "is_study_output", "staged"]
 
 FIGURES = (
     "chain",
@@ -41,6 +47,8 @@ FIGURES = (
 """The figures a run may draw, each ``<name>.png``."""
 OUTPUT_FILES = frozenset({"report.txt", "results.json", *(f"{f}.png" for f in FIGURES)})
 """Every file name a run writes into ``--out``."""
+RESULTS_LIMIT = 16 << 20
+"""bytes a previous run's ``results.json`` may hold (a run writes tens of kB)"""
 
 
 def _refusal(out: Path) -> str | None:
@@ -61,8 +69,10 @@ def _refusal(out: Path) -> str | None:
             f"--out {out} holds files the study did not write ({shown}); the study replaces "
             "only its own output: choose another --out"
         )
-    try:
-        config = json.loads((out / "results.json").read_text()).get("config", {})
+    try:  # by descriptor, no link followed, a FIFO never waited on, the size bounded
+        with OpenedFolder(out, what="study output", links=False) as folder:
+            data = folder.read_bytes("results.json", named_by="results.json", limit=RESULTS_LIMIT)
+        config = parse_json(data, where=str(out / "results.json")).get("config", {})
     except (OSError, ValueError, AttributeError):
         config = {}
     if not isinstance(config, dict) or "protocol" not in config:
@@ -90,6 +100,8 @@ def staged(out: Path) -> Iterator[Path]:
         ValueError: ``out`` is a file, a link, a folder the study did not write, the
             working directory (or holds it), no folder can be created beside it, or
             another run is writing it.
+        imitrl.fs.NotWritableError: the folder beside ``out`` is read-only or not this
+            user's to write.
     """
     out = Path(out)
     if out.resolve() in (Path.cwd(), *Path.cwd().parents):
@@ -104,6 +116,10 @@ def staged(out: Path) -> Iterator[Path]:
         out.parent.mkdir(parents=True, exist_ok=True)
         os.rmdir(tempfile.mkdtemp(prefix=f".{out.name}.probe-", dir=out.parent))
     except OSError as err:
+        refused = not_writable(err)  # read-only, not this user's: exit 1 like every command
+        if refused is not None:
+            folder = OSError(refused.errno, refused.strerror, str(out.parent.absolute()))
+            raise NotWritableError(out.absolute(), "the study's results", folder) from err
         raise ValueError(
             f"--out {out}: cannot create the output folder beside it "
             f"({err.strerror or err}: {err.filename or out.parent})"

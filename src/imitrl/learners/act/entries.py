@@ -11,7 +11,8 @@ from imitrl.learners.act.loss import ACTChunkLoss
 from imitrl.learners.act.policy import ACTPolicy
 from imitrl.learners.chunks import CHUNK_HORIZON, ENSEMBLE, chunked_learner
 from imitrl.learners.learner import Learner
-from imitrl.learners.registry import LearnerConfig, TaskSpec
+from imitrl.learners.registry import LearnerConfig
+from imitrl.learners.task import TaskSpec
 
 __all__ = ["ACT_BATCH", "ACT_LR", "act"]
 

@@ -11,14 +11,19 @@ tiled action spec (:mod:`imitrl.learners.chunks`).
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 
+from tensordict.utils import NestedKey
+from torch import nn
 from torchrl.envs.utils import ExplorationType
 
+from imitrl import keys
 from imitrl.learners.actor_critic.learner import ActorCritic
 from imitrl.learners.chunks import CHUNK_HORIZON, RECEDING, chunk_task, chunked_learner
-from imitrl.learners.defaults import learning_rate
+from imitrl.learners.defaults import PIXEL_CHANNELS, PIXEL_HIDDEN, learning_rate
 from imitrl.learners.learner import Learner
-from imitrl.learners.registry import LearnerConfig, TaskSpec
+from imitrl.learners.registry import LearnerConfig
+from imitrl.learners.task import TaskSpec
 from imitrl.objectives.advantage_weighted import AdvantageWeightedLoss
 from imitrl.objectives.base import ImitationLoss
 from imitrl.objectives.bc import BehaviorCloningLoss
@@ -29,10 +34,12 @@ from imitrl.policies.chunking import ChunkExecution
 __all__ = [
     "ENTROPY_COEF",
     "L2_COEF",
+    "ForEnvOptions",
     "advantage_weighted",
     "chunk_regression",
     "cross_entropy",
     "cross_entropy_entropy",
+    "for_env",
     "gaussian_nll",
     "gaussian_nll_chunk",
     "mlp",
@@ -57,23 +64,76 @@ def mlp(
 ) -> ActorCritic:
     """The task's standard learner: a logits table for integer states, else an MLP with
     ``head``, trained with ``loss`` (a loss type of the head, None = its default), at
-    ``config.lr`` or the network's default rate (:mod:`imitrl.learners.defaults`)."""
+    ``config.lr`` or the network's default rate (:mod:`imitrl.learners.defaults`); a value
+    head beside it when ``config.value``."""
     lr = learning_rate(None, task.num_states, config.lr)
     if task.num_states is not None:
         if task.actions != "discrete" or head not in (None, "categorical"):
             raise ValueError("integer-state tasks support a categorical policy only")
         if loss not in (None, "nll"):
             raise ValueError("a tabular policy is built with its cross-entropy loss")
-        return ActorCritic.tabular(task.num_states, task.action, lr=lr)
+        if config.hidden is not None:
+            raise ValueError(
+                f"hidden {','.join(map(str, config.hidden))}: on {task.num_states} integer "
+                "states this entry builds a logits table, which has no hidden layers; leave "
+                "hidden out, or take loss for_env (an MLP on one-hot states)"
+            )
+        return ActorCritic.tabular(task.num_states, task.action, lr=lr, value=config.value)
     return ActorCritic.mlp(
         task.observation_dim,
         task.action,
         head=head,
         loss=loss,
-        hidden=config.hidden,
+        hidden=config.width,
         lr=lr,
         seed=config.seed,
         normalize=config.normalize,
+        value=config.value,
+    )
+
+
+@dataclass(frozen=True)
+class ForEnvOptions:
+    """``for_env``'s own settings: the head and, on images, the convolutions."""
+
+    head: str | None = None
+    """one of :data:`~imitrl.policies.heads.HEADS` that fits the action (None: its default:
+    categorical, multi, or deterministic for continuous actions)"""
+    loss: str | None = None
+    """the head's loss type (None: its default, :data:`~imitrl.policies.heads.HEAD_LOSSES`)"""
+    activation: type[nn.Module] | None = None
+    """hidden activation (None: ``Tanh`` for an MLP, ``ReLU`` for a CNN)"""
+    channels: tuple[int, ...] = PIXEL_CHANNELS
+    """a CNN's convolutions (images)"""
+    state: bool = False
+    """a CNN learner reads the state beside the image (by default the state is the
+    privileged expert's, and the learner sees the image alone)"""
+    pixel_key: NestedKey | None = None
+    """the image a CNN learner reads (None: ``pixels``; a nested camera key)"""
+
+
+def for_env(task: TaskSpec, config: LearnerConfig) -> Learner:
+    """``for_env``: the network the env's specs call for (a CNN on images, a one-hot MLP on
+    integer states, an MLP on vectors; any action spec: categorical, one-hot,
+    multi-discrete, bounded or unbounded), with its head's default loss (or
+    ``ForEnvOptions``')."""
+    options = config.options if config.options is not None else ForEnvOptions()
+    observation, action = task.env_specs()
+    pixels = options.pixel_key is not None or keys.PIXELS in observation.keys()
+    return ActorCritic.for_specs(
+        observation,
+        action,
+        head=options.head,
+        loss=options.loss,
+        hidden=config.hidden if config.hidden is not None else (PIXEL_HIDDEN if pixels else None),
+        activation=options.activation,
+        lr=config.lr,
+        seed=config.seed,
+        normalize=config.normalize,
+        state=options.state,
+        channels=options.channels,
+        pixel_key=options.pixel_key,
+        value=config.value,
     )
 
 

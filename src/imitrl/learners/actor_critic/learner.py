@@ -1,17 +1,20 @@
-"""`ActorCritic`: the section's container, a policy and a value head, as a :class:`Learner`.
+"""`ActorCritic`: the section's container, a policy and (when a job needs one) a value head,
+as a :class:`Learner`.
 
 The policy is a TorchRL actor reading ``OBSERVATION`` and writing ``ACTION`` (see
-:mod:`imitrl.policies.heads` for the heads and the losses each takes); the value is
-a ``ValueOperator`` writing ``STATE_VALUE``. Behaviour cloning trains only the
-policy (``opt_pi``, on the learner's ``loss``); the value head and its optimizer
-(``opt_v``) are carried so that an actor-critic method needs no new class.
+:mod:`imitrl.policies.heads` for the heads and the losses each takes); the value, when
+asked for (``value=True``: GAIL's and AIRL's PPO generator), is a ``ValueOperator``
+writing ``STATE_VALUE`` with its own optimizer ``opt_v``. Behaviour cloning trains only
+the policy (``opt_pi``, on the learner's ``loss``) and builds no value head.
 
-Build one with :meth:`ActorCritic.tabular` (the section's zero-initialised table),
+The constructors :meth:`ActorCritic.tabular` (the section's zero-initialised table),
 :meth:`ActorCritic.mlp` (any observation and action spec), :meth:`ActorCritic.pixels`
 (a CNN over uint8 images under a pixel key, and optionally the state:
-:mod:`imitrl.policies.pixel_learner` holds what it reads and builds) or
-:meth:`ActorCritic.for_env` (the specs read off an env). MLP learners normalise
-observations with the demonstrations' mean and standard deviation by default
+:mod:`imitrl.policies.pixel_learner` holds what it reads and builds) and
+:meth:`ActorCritic.for_specs` (the specs of an env) are the registry's building blocks:
+a learner is built by :func:`imitrl.learners.build`, which names them by entry
+(``cross_entropy``, ``mse``, ``for_env``, ...). MLP learners normalise observations
+with the demonstrations' mean and standard deviation by default
 (:class:`~imitrl.policies.normalization.ObservationNormalizer`, inside the networks).
 
 Every method takes tensors, numpy arrays or Python scalars. Tensors in give tensors
@@ -31,7 +34,7 @@ from tensordict.nn import TensorDictModule
 from tensordict.utils import NestedKey
 from torch import nn
 from torchrl.data import Categorical as CategoricalSpec
-from torchrl.data import TensorSpec
+from torchrl.data import Composite, TensorSpec
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules import ProbabilisticActor
@@ -46,7 +49,7 @@ from imitrl.policies.heads import HEAD_LOSSES, HEADS, OneHotInput, build_head, c
 from imitrl.policies.modules import Module, Value
 from imitrl.policies.normalization import ObservationNormalizer
 from imitrl.policies.observations import read_observations
-from imitrl.policies.pixel_learner import PixelInputs, env_pixel_specs, pixel_networks
+from imitrl.policies.pixel_learner import PixelInputs, pixel_networks, spec_pixel_inputs
 from imitrl.policies.specs import (
     ActionSpace,
     action_space,
@@ -80,13 +83,14 @@ def _adam(module: nn.Module, lr: float) -> torch.optim.Adam:
 
 
 class ActorCritic(Learner):
-    """A policy and a value function, each with its own Adam optimizer, and the policy's loss.
+    """A policy (and, when asked for, a value function), each with its own Adam optimizer,
+    and the policy's loss.
 
-    Use :meth:`tabular`, :meth:`mlp` or :meth:`for_env` rather than the constructor.
+    Build one with :func:`imitrl.learners.build` rather than the constructor.
 
     Args:
         policy: actor module, ``OBSERVATION -> ACTION`` (TensorDict in, TensorDict out).
-        value: ``ValueOperator``, ``OBSERVATION -> STATE_VALUE``.
+        value: ``ValueOperator``, ``OBSERVATION -> STATE_VALUE``, or None (no value head).
         head: one of :data:`HEADS`.
         loss: a loss type of the head (:data:`HEAD_LOSSES`; None = its default) or an
             ``ImitationLoss`` over ``policy``.
@@ -102,7 +106,7 @@ class ActorCritic(Learner):
     def __init__(
         self,
         policy: TensorDictModule,
-        value: TensorDictModule,
+        value: TensorDictModule | None,
         *,
         head: str,
         loss: str | ImitationLoss | None = None,
@@ -130,7 +134,7 @@ class ActorCritic(Learner):
         self.observation_shape = None if observation_shape is None else tuple(observation_shape)
         self.pixel_inputs = pixel_inputs
         self.lr = float(lr)
-        self.opt_v = _adam(value, lr)
+        self.opt_v = None if value is None else _adam(value, lr)
         self.action_space = action
 
     # ------------------------------------------------------------ constructors
@@ -141,13 +145,15 @@ class ActorCritic(Learner):
         num_actions: int,
         *,
         lr: float = TABLE_LR,
+        value: bool = False,
         device: str | torch.device | None = None,
     ) -> ActorCritic:
         """One preference ``theta[s, a]`` per pair: zero-initialised embedding tables.
 
         At initialisation the policy is exactly uniform and every value is 0; the loss
-        is the cross-entropy. ``device``: where it computes (None: the CPU; see
-        :meth:`~imitrl.policies.Learner.placed`).
+        is the cross-entropy. ``value``: a value table beside it (zeros too);
+        ``device``: where it computes (None: the CPU; see
+        :meth:`~imitrl.learners.Learner.placed`).
         """
         if num_states < 1 or num_actions < 1:
             raise ValueError(
@@ -166,10 +172,9 @@ class ActorCritic(Learner):
             distribution_class=GreedyCategorical,
             spec=CategoricalSpec(num_actions, dtype=torch.int64),
         )
-        value = Value(value_table, in_keys=[keys.OBSERVATION])
         return cls(
             policy,
-            value,
+            Value(value_table, in_keys=[keys.OBSERVATION]) if value else None,
             head="categorical",
             lr=lr,
             num_states=num_states,
@@ -189,9 +194,11 @@ class ActorCritic(Learner):
         lr: float = NETWORK_LR,
         seed: int = 0,
         normalize: bool = True,
+        value: bool = False,
         device: str | torch.device | None = None,
     ) -> ActorCritic:
-        """MLP policy and value over any observation and action spec.
+        """MLP policy (and, with ``value``, a value network) over any observation and
+        action spec.
 
         Args:
             observation: width of vector observations, or the env's (unbatched)
@@ -209,6 +216,8 @@ class ActorCritic(Learner):
             seed: initialisation seed (the global RNG is left untouched).
             normalize: normalise vector observations by the demonstrations' mean and
                 standard deviation (fitted at the first ``fit_bc``).
+            value: build a value network beside the policy (its weights drawn after the
+                policy's, so the policy is the same with or without it).
             device: where the learner computes (None: the CPU; ``"auto"``, ``"cuda:N"``:
                 :func:`~imitrl.system.device.resolve_device`); initialised on the CPU
                 with ``seed`` first, so every device starts from the same weights.
@@ -228,13 +237,16 @@ class ActorCritic(Learner):
             torch.manual_seed(seed)
             trunk = [first, *mlp(sizes, activation), activation()] if hidden else [first]
             policy = build_head(trunk, body_width, space, head)
-            value_trunk = [first, *mlp(sizes, activation), activation()] if hidden else [first]
-            value = Value(
-                nn.Sequential(*value_trunk, nn.Linear(body_width, 1)), in_keys=[keys.OBSERVATION]
-            )
+            critic = None
+            if value:
+                value_trunk = [first, *mlp(sizes, activation), activation()] if hidden else [first]
+                critic = Value(
+                    nn.Sequential(*value_trunk, nn.Linear(body_width, 1)),
+                    in_keys=[keys.OBSERVATION],
+                )
         return cls(
             policy,
-            value,
+            critic,
             head=head,
             loss=loss,
             lr=lr,
@@ -263,9 +275,10 @@ class ActorCritic(Learner):
         seed: int = 0,
         normalize: bool = True,
         pixel_key: NestedKey = keys.PIXELS,
+        value: bool = False,
         device: str | torch.device | None = None,
     ) -> ActorCritic:
-        """CNN policy and value over uint8 images ``[H, W, C * frames]`` under ``pixel_key``,
+        """CNN policy (and, with ``value``, a value network) over uint8 images ``[H, W, C * frames]`` under ``pixel_key``,
         any head (:mod:`imitrl.policies.encoders`: layout, scaling, conv defaults).
 
         ``pixels``: ``(H, W, C)`` of one frame or the env's unbatched uint8 pixel spec;
@@ -280,7 +293,7 @@ class ActorCritic(Learner):
         net = pixel_networks(
             pixels, action, pixel_key=pixel_key, state=state, frames=frames, head=head,
             channels=channels, kernels=kernels, strides=strides, hidden=hidden,
-            activation=activation, seed=seed, normalize=normalize,
+            activation=activation, seed=seed, normalize=normalize, value=value,
         )  # fmt: skip
         return cls(
             net.policy, net.value, head=net.head, loss=loss, lr=lr, normalizer=net.normalizer,
@@ -288,9 +301,10 @@ class ActorCritic(Learner):
         ).placed(device)  # fmt: skip
 
     @classmethod
-    def for_env(
+    def for_specs(
         cls,
-        env: EnvBase,
+        observation_spec: Composite,
+        action_spec: TensorSpec,
         *,
         head: str | None = None,
         loss: str | ImitationLoss | None = None,
@@ -302,29 +316,32 @@ class ActorCritic(Learner):
         state: bool = False,
         channels: Sequence[int] = (32, 64, 64),
         pixel_key: NestedKey | None = None,
+        value: bool = False,
         device: str | torch.device | None = None,
     ) -> ActorCritic:
-        """:meth:`mlp` with the observation and action specs read off ``env`` (batched or not);
-        :meth:`pixels` when the env has a ``PIXELS`` observation or ``pixel_key`` names
-        one (reading the state beside it only when ``state``: by default the state is the
-        privileged expert's). ``hidden``/``activation`` None: each builder's default;
-        ``device``: where the learner computes (the env stays where it is)."""
-        spec = env.observation_spec_unbatched
-        if pixel_key is not None or keys.PIXELS in spec.keys():
-            pixels, state_spec, pixel_key = env_pixel_specs(env, pixel_key, state=state)
+        """:meth:`mlp` over an env's (unbatched) observation and action specs; :meth:`pixels`
+        when the observations hold ``PIXELS`` or ``pixel_key`` names an image (reading the
+        state beside it only when ``state``: by default the state is the privileged
+        expert's). ``hidden``/``activation`` None: each builder's default; ``device``:
+        where the learner computes."""
+        if pixel_key is not None or keys.PIXELS in observation_spec.keys():
+            pixels, state_spec, pixel_key = spec_pixel_inputs(
+                observation_spec, pixel_key, state=state
+            )
             return cls.pixels(
-                pixels, env.action_spec_unbatched, head=head, loss=loss, state=state_spec,
+                pixels, action_spec, head=head, loss=loss, state=state_spec,
                 channels=channels, hidden=(256,) if hidden is None else hidden,
                 activation=activation or nn.ReLU, lr=lr, seed=seed, normalize=normalize,
-                pixel_key=pixel_key, device=device,
+                pixel_key=pixel_key, value=value, device=device,
             )  # fmt: skip
-        if keys.OBSERVATION not in spec.keys():
+        if keys.OBSERVATION not in observation_spec.keys():
             raise ValueError(
-                f"the env has no {keys.OBSERVATION!r} observation (keys {list(spec.keys())})"
+                f"the env has no {keys.OBSERVATION!r} observation (keys "
+                f"{list(observation_spec.keys())})"
             )
         return cls.mlp(
-            spec[keys.OBSERVATION],
-            env.action_spec_unbatched,
+            observation_spec[keys.OBSERVATION],
+            action_spec,
             head=head,
             loss=loss,
             hidden=(64, 64) if hidden is None else hidden,
@@ -332,6 +349,7 @@ class ActorCritic(Learner):
             lr=lr,
             seed=seed,
             normalize=normalize,
+            value=value,
             device=device,
         )
 
@@ -355,8 +373,21 @@ class ActorCritic(Learner):
             check_same_actions(self.action_space, action_space(env.action_spec_unbatched))
 
     def optimizers(self) -> dict[str, torch.optim.Optimizer]:
-        """``opt_pi`` (the policy's) and ``opt_v`` (the value head's)."""
+        """``opt_pi`` (the policy's) and, with a value head, ``opt_v`` (its)."""
+        if self.opt_v is None:
+            return {"opt_pi": self.opt_pi}
         return {"opt_pi": self.opt_pi, "opt_v": self.opt_v}
+
+    def migrated_state(self, states: dict[str, dict]) -> dict[str, dict]:
+        """A checkpoint of imitrl up to d6e5639, when every ``ActorCritic`` carried a value
+        head, holds ``value.*`` weights and ``opt_v``: a learner built without a value head
+        (no job of it needs one) drops them; everything else loads as saved."""
+        if self.value is not None:
+            return states
+        out = {k: v for k, v in states.items() if k != "opt_v"}
+        if "learner" in out:
+            out["learner"] = {k: v for k, v in out["learner"].items() if not k.startswith("value.")}
+        return out
 
     @property
     def loss_type(self) -> str | None:
@@ -467,7 +498,10 @@ class ActorCritic(Learner):
         return self._out(p, kind)
 
     def values(self, obs: Any) -> Any:
-        """``V(s)`` from the value head, with the trailing singleton removed."""
+        """``V(s)`` from the value head, with the trailing singleton removed (ValueError
+        for a learner built without one)."""
+        if self.value is None:
+            raise ValueError("this learner has no value head (build it with value=True)")
         t, kind = self._obs(obs)
         with torch.set_grad_enabled(kind == "tensor" and torch.is_grad_enabled()):
             v = self.value(self._td(t)).get(keys.STATE_VALUE).squeeze(-1)

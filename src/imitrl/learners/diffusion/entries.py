@@ -15,7 +15,8 @@ from imitrl.learners.chunks import CHUNK_HORIZON, RECEDING, chunk_task, chunked_
 from imitrl.learners.diffusion.loss import DiffusionBehaviorCloningLoss
 from imitrl.learners.diffusion.policy import DiffusionPolicy
 from imitrl.learners.learner import Learner
-from imitrl.learners.registry import LearnerConfig, TaskSpec
+from imitrl.learners.registry import LearnerConfig
+from imitrl.learners.task import TaskSpec
 from imitrl.objectives.chunked import FLAT_CHUNK, FlatChunkLoss
 
 __all__ = ["DDIM_STEPS", "DIFFUSION_STEPS", "diffusion", "diffusion_chunk", "diffusion_policy"]
@@ -37,7 +38,7 @@ def diffusion_policy(
     return DiffusionPolicy(
         observation_dim,
         action,
-        hidden=config.hidden,
+        hidden=config.width,
         num_steps=DIFFUSION_STEPS,
         seed=config.seed,
         sampler=sampler,

@@ -14,7 +14,8 @@ from imitrl.learners.diffusion_unet.config import UnetDiffusionConfig
 from imitrl.learners.diffusion_unet.loss import UnetDiffusionLoss
 from imitrl.learners.diffusion_unet.policy import UnetDiffusionPolicy
 from imitrl.learners.learner import Learner
-from imitrl.learners.registry import LearnerConfig, TaskSpec
+from imitrl.learners.registry import LearnerConfig
+from imitrl.learners.task import TaskSpec
 from imitrl.policies.chunking import ChunkedPolicy, ChunkExecution
 from imitrl.policies.ema import EMA
 
@@ -90,5 +91,14 @@ def unet_summary(unet: UnetDiffusionConfig) -> str:
 
 
 def diffusion_unet(task: TaskSpec, config: LearnerConfig) -> Learner:
-    """``diffusion_unet``: :func:`diffusion_unet_learner` at :data:`DIFFUSION_UNET`."""
-    return diffusion_unet_learner(task, config, DIFFUSION_UNET)
+    """``diffusion_unet``: :func:`diffusion_unet_learner` at ``config.options`` (None:
+    :data:`DIFFUSION_UNET`, the CPU widths), reading the env's camera beside the state
+    when the env has one (``task.pixels``)."""
+    unet = DIFFUSION_UNET if config.options is None else config.options
+    if not isinstance(unet, UnetDiffusionConfig):
+        raise ValueError(f"diffusion_unet's options are a UnetDiffusionConfig, got {unet!r}")
+    camera = task.pixels
+    if camera is None:
+        return diffusion_unet_learner(task, config, unet)
+    shape, key = camera
+    return diffusion_unet_learner(task, config, unet, pixel_shape=shape, pixel_key=key)

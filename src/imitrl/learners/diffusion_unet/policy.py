@@ -11,7 +11,7 @@ executes it with a receding horizon. The pieces, each in its own module:
   flattened into FiLM's conditioning vector; with a camera (``pixel_shape``), each step's
   image is encoded by a ResNet-18 with GroupNorm and a spatial softmax, trained on random
   crops (:mod:`imitrl.learners.diffusion_unet.rgb_encoder`), and its features join the state's; rows carry the history
-  (:meth:`~imitrl.policies.Learner.training_rows`), and the acting policy builds it
+  (:meth:`~imitrl.learners.Learner.training_rows`), and the acting policy builds it
   from what each lane has seen since its reset
   (:class:`~imitrl.policies.chunking.ChunkedPolicy` ``history=``);
 * the prediction horizon ``T_p`` (16) and action horizon ``T_a`` (8): the network predicts

@@ -12,7 +12,8 @@ from imitrl.learners.chunks import RECEDING_HELD, chunk_task, chunked_learner
 from imitrl.learners.flow.loss import FlowMatchingLoss
 from imitrl.learners.flow.policy import FlowPolicy
 from imitrl.learners.learner import Learner
-from imitrl.learners.registry import LearnerConfig, TaskSpec
+from imitrl.learners.registry import LearnerConfig
+from imitrl.learners.task import TaskSpec
 
 __all__ = ["FLOW_CHUNK_STEPS", "FLOW_STEPS", "flow", "flow_chunk", "flow_policy"]
 
@@ -38,7 +39,7 @@ def flow_policy(
     return FlowPolicy(
         observation_dim,
         action,
-        hidden=config.hidden,
+        hidden=config.width,
         num_steps=num_steps,
         normalize=config.normalize,
         seed=config.seed,

@@ -1,0 +1,165 @@
+"""What a learner is built for: a task's observation and action spaces (:class:`TaskSpec`).
+
+A :class:`TaskSpec` is read off an env (:meth:`TaskSpec.from_env`) or written by hand
+(a benchmark's synthetic task, the study's tabular MDP). The registry's entries read its
+plain fields: the number of discrete actions or the ``Bounded`` action spec, and the
+observations as integer states or vectors ``[d]``. An env the plain fields cannot
+describe (images, multi-discrete, one-hot or unbounded actions) keeps its specs
+(``TaskSpec.specs``): the ``for_env`` entry builds from them (a CNN on images).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import torch
+from tensordict.utils import NestedKey
+from torchrl.data import Bounded, Categorical, Composite, MultiCategorical, TensorSpec, Unbounded
+from torchrl.envs import EnvBase
+
+from imitrl import keys
+
+__all__ = ["ACTION_KINDS", "Advantage", "TaskSpec"]
+
+ACTION_KINDS = ("discrete", "continuous")
+"""the action kinds an entry may declare (``for_env`` takes any action spec: ``"any"``)"""
+
+Advantage = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
+"""``A(observation, action) -> [N]``, the weights of an advantage-weighted loss"""
+
+
+@dataclass(frozen=True)
+class TaskSpec:
+    """A task's observation and action spaces, as the loss registry reads them."""
+
+    action: int | TensorSpec
+    """number of discrete actions, or the ``Bounded`` spec ``[m]`` of a continuous action
+    (another action spec only with ``specs``: ``for_env`` builds for it)"""
+    observation_dim: int | None = None
+    """length of vector observations ``[..., d]`` (the state beside an image too; None
+    for integer states, or images alone)"""
+    num_states: int | None = None
+    """number of integer states ``0 .. S-1`` (None for vector observations or images)"""
+    advantage: Advantage | None = field(default=None, compare=False)
+    """optional ``A(observation, action) -> [N]`` for advantage-weighted losses"""
+    specs: tuple[Composite, TensorSpec] | None = field(default=None, compare=False)
+    """the env's unbatched observation and action specs, when read off an env"""
+
+    def __post_init__(self) -> None:
+        if self.observation_dim is not None and self.num_states is not None:
+            raise ValueError(
+                "give exactly one of observation_dim (vectors) or num_states (integers)"
+            )
+        if self.specs is None and self.observation_dim is None and self.num_states is None:
+            raise ValueError(
+                "give exactly one of observation_dim (vectors) or num_states (integers)"
+            )
+        if isinstance(self.action, bool) or not isinstance(self.action, int | TensorSpec):
+            raise ValueError(
+                f"action must be a number of actions or a Bounded spec, got {self.action!r}"
+            )
+        if self.specs is None and isinstance(self.action, TensorSpec):
+            if not isinstance(self.action, Bounded) or len(self.action.shape) != 1:
+                raise ValueError(
+                    "a continuous action spec must be Bounded with shape [m], got "
+                    f"{type(self.action).__name__} {tuple(self.action.shape)}"
+                )
+
+    @property
+    def actions(self) -> str:
+        """``"discrete"``, ``"continuous"`` (a ``Bounded [m]``), or ``"other"`` (an action
+        spec only ``for_env`` builds for)."""
+        if isinstance(self.action, int):
+            return "discrete"
+        if isinstance(self.action, Bounded) and len(self.action.shape) == 1:
+            return "continuous"
+        return "other"
+
+    @property
+    def described(self) -> bool:
+        """Whether the plain fields describe the task (integer states or vectors, and
+        discrete or ``Bounded`` actions, no image): what every entry but ``for_env``
+        needs (an entry that reads images too, ``diffusion_unet``, asks for
+        :attr:`observes` and reads :attr:`pixels`)."""
+        return self.observes and self.pixels is None
+
+    @property
+    def observes(self) -> bool:
+        """Whether the plain fields describe the state and the actions (images or not)."""
+        observes = self.observation_dim is not None or self.num_states is not None
+        return observes and self.actions in ACTION_KINDS
+
+    @property
+    def pixels(self) -> tuple[tuple[int, ...], str] | None:
+        """``(shape, key)`` of the env's image ``PIXELS`` (``[H, W, C]``), or None."""
+        if self.specs is None or keys.PIXELS not in self.specs[0].keys():
+            return None
+        return tuple(self.specs[0][keys.PIXELS].shape), keys.PIXELS
+
+    def env_specs(self) -> tuple[Composite, TensorSpec]:
+        """The observation and action specs: the env's, or built from the plain fields
+        (integer states ``Categorical(S)``, vectors ``Unbounded([d])``, actions
+        ``Categorical(n)`` or the ``Bounded`` spec)."""
+        if self.specs is not None:
+            return self.specs
+        if self.num_states is not None:
+            obs: TensorSpec = Categorical(self.num_states, dtype=torch.int64)
+        else:
+            obs = Unbounded((int(self.observation_dim),))  # type: ignore[arg-type]
+        action = self.action
+        if isinstance(action, int):
+            action = Categorical(action, dtype=torch.int64)
+        return Composite({keys.OBSERVATION: obs}), action
+
+    @classmethod
+    def from_env(cls, env: EnvBase) -> TaskSpec:
+        """The task of ``env`` (batched or not): :meth:`from_specs` of its unbatched
+        observation and action specs."""
+        return cls.from_specs(env.observation_spec_unbatched, env.action_spec_unbatched)
+
+    @classmethod
+    def from_specs(
+        cls,
+        observation: int | TensorSpec | None,
+        action: int | TensorSpec,
+        *,
+        pixels: tuple[int, ...] | TensorSpec | None = None,
+        pixel_key: NestedKey = keys.PIXELS,
+    ) -> TaskSpec:
+        """The task of these spaces: ``observation`` a ``Composite`` (an env's observation
+        spec), the ``OBSERVATION`` spec alone, a vector width ``d``, or None (images
+        alone); ``action`` a number of discrete actions or an action spec; ``pixels``
+        ``(H, W, C)`` (or a uint8 spec) of an image under ``pixel_key`` beside it. The plain
+        fields are filled where they describe the task (integer states or ``[d]``
+        vectors; a ``Categorical`` or ``Bounded [m]`` action)."""
+        if isinstance(observation, Composite):
+            spec = observation.clone()
+        else:
+            spec = Composite({})
+            if isinstance(observation, int):
+                spec[keys.OBSERVATION] = Unbounded((observation,))
+            elif observation is not None:
+                spec[keys.OBSERVATION] = observation
+        if pixels is not None:
+            image = pixels if isinstance(pixels, TensorSpec) else None
+            if image is None:
+                image = Bounded(0, 255, tuple(int(x) for x in pixels), dtype=torch.uint8)
+            spec[pixel_key] = image
+        if isinstance(action, int):
+            action = Categorical(action, dtype=torch.int64)
+        obs = spec.get(keys.OBSERVATION, None)
+        dim = states = None
+        if isinstance(obs, Categorical) and not isinstance(obs, MultiCategorical):
+            states = int(obs.space.n)
+        elif obs is not None and len(obs.shape) == 1 and not isinstance(obs, Categorical):
+            dim = int(obs.shape[0])
+        act: int | TensorSpec = action
+        if isinstance(action, Categorical) and not isinstance(action, MultiCategorical):
+            act = int(action.space.n)
+        return cls(
+            action=act,
+            observation_dim=dim,
+            num_states=states,
+            specs=(spec, action),
+        )
