@@ -169,7 +169,7 @@ def tabular_fits(cfg: Config) -> tuple[float, float, int]:
     plain = cfg.tabular_steps / (time.perf_counter() - t0)
     learner = build("cross_entropy", TaskSpec(action=4, num_states=16))
     t0 = time.perf_counter()
-    fit_bc(learner, rows, BCConfig(num_steps=cfg.tabular_steps))
+    fit_bc(learner, rows, BCConfig(num_steps=cfg.tabular_steps, batch_size=None))
     lib = cfg.tabular_steps / (time.perf_counter() - t0)
     return plain, lib, rows.shape[0]
 
@@ -196,7 +196,9 @@ def dagger_rounds(cfg: Config, source_kind: str) -> float:
             expert,
             lambda: build("cross_entropy", TaskSpec(action=4, num_states=16)),
             buf,
-            DAggerConfig(rounds=4, episodes_per_round=3),
+            DAggerConfig(
+                rounds=4, episodes_per_round=3, bc=BCConfig(num_steps=200, batch_size=None)
+            ),
         )
         rounds += len(res.rounds)
     return rounds / (time.perf_counter() - t0)

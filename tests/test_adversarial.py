@@ -431,8 +431,8 @@ def test_absorbing_states_default_to_whether_a_demonstration_ends_by_termination
 def test_job_flags_are_checked(tmp_path):
     with pytest.raises(ValueError, match="demos"):
         GAILJob(demos=0)
-    with pytest.raises(ValueError, match="total_steps"):
-        AIRLJob(total_steps=0)
+    with pytest.raises(ValueError, match="--total-steps must be an integer >= 1"):
+        AIRLJob(total_steps=0)  # the library's field, checked as the job's flag
     with pytest.raises(ValueError, match="log pi"):
         run_gail(
             GAILJob(env="Pendulum-v1", expert="pendulum", loss="mse", progress=False, out=tmp_path)

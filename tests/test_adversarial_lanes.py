@@ -125,7 +125,7 @@ def test_round_sizes_must_split_over_the_lanes():
         gail(env, learner, buffer, GAILConfig(**TINY))
     with pytest.raises(ValueError, match=r"--rollout-steps .* multiple of --num-envs"):
         GAILJob(num_envs=3)
-    with pytest.raises(ValueError, match="--num-envs must be a positive integer"):
+    with pytest.raises(ValueError, match="--num-envs must be an integer >= 1"):
         GAILJob(num_envs=0)
     assert GAILConfig().total_steps % GAILConfig().rollout_steps == 0  # whole rounds
 

@@ -22,6 +22,7 @@ from imitrl.envs import make_env
 from imitrl.experts import cartpole_expert
 from imitrl.jobs import BCJob, DAggerJob, bench, run_bc
 from imitrl.jobs.curves import read_scalars, scalars_dir
+from imitrl.limits import flag_of
 from imitrl.runtime import rollout_episodes
 
 TINY = [
@@ -83,7 +84,7 @@ def test_every_config_field_is_a_documented_flag(name, capsys):
             f.name.upper() if f.metadata.get("positional") or f.metadata.get("remainder") else None
         )
         flag = flag or f.metadata.get("repeat")  # a repeatable flag: its own name
-        assert (flag or "--" + f.name.replace("_", "-")) in flat
+        assert (flag or flag_of(f)) in flat
         assert "".join(docs[f.name].split()) in flat, f"{name} --help lacks {f.name}'s doc"
 
 
@@ -158,7 +159,7 @@ def test_eval_of_an_expert(tmp_path):
 
 
 def test_run_bc_is_a_function_of_its_config(tmp_path):
-    config = BCJob(demos=1, steps=5, batch_size=8, hidden=(8,), eval_episodes=2,
+    config = BCJob(demos=1, num_steps=5, batch_size=8, hidden=(8,), eval_episodes=2,
                    max_episode_steps=20, progress=False, out=tmp_path / "a")  # fmt: skip
     first = run_bc(config)
     second = run_bc(dataclasses.replace(config, out=tmp_path / "b"))

@@ -20,6 +20,7 @@ import io
 import pytest
 
 from imitrl.cli import COMMANDS, main
+from imitrl.limits import flag_of
 
 HUGE = str(10**30)
 """an integer no count of this library reaches"""
@@ -54,6 +55,8 @@ BC = {
     "--lr": ["0", "-1", "nan", "inf", "-inf"],
     "--steps": ["-1", "10000001", "1000000000000000", "1e15", "2.5"],
     "--batch-size": ["0", "-1", "1048577", HUGE],
+    "--warmup-steps": ["-1", "10000001", "2.5"],
+    "--full-batch-max-rows": ["0", "-1", "2.5"],
     "--eval-episodes": ["0", "-1", "100001", "1000000000000", "1e12"],
     "--eval-seed": SEEDS,
     "--seed": SEEDS,
@@ -83,6 +86,9 @@ GAIL = {
     "--gamma": ["-0.5", "1.5", "nan"],
     "--gae-lambda": ["-0.5", "1.5", "nan"],
     "--entropy-coeff": ["-1", "nan", "inf"],
+    "--clip-epsilon": ["0", "-1", "nan", "inf"],
+    "--max-grad-norm": ["0", "-1", "nan", "inf"],
+    "--discriminator-hidden": ["0", "16384,16384"],
     "--normalizer-warmup": ["-1", "1048577", HUGE],
     "--eval-episodes": ["0", "100001", HUGE],
     "--eval-seed": SEEDS,
@@ -161,8 +167,8 @@ def test_the_table_names_every_numeric_flag_of_every_command():
     for name, flags in BAD.items():
         cls = COMMANDS[name].config
         hints = typing.get_type_hints(cls)
-        fields = {"--" + f.name.replace("_", "-") for f in dataclasses.fields(cls)}
-        wanted = {f for f in fields if numeric(hints[f[2:].replace("-", "_")])} | {"--threads"}
+        fields = {flag_of(f): f.name for f in dataclasses.fields(cls)}
+        wanted = {f for f, name in fields.items() if numeric(hints[name])} | {"--threads"}
         assert wanted == set(flags), (name, wanted ^ set(flags))
 
 
@@ -198,7 +204,7 @@ def test_every_bad_number_is_one_line_exit_2_and_nothing_runs(
 @pytest.mark.parametrize(
     ("make", "message"),
     [
-        (lambda c: c.BCJob(steps=10**15), r"--steps must be an integer in \[0, 10_000_000\]"),
+        (lambda c: c.BCJob(num_steps=10**15), r"--steps must be an integer in \[0, 10_000_000\]"),
         (lambda c: c.BCJob(demos=10**12), r"--demos must be an integer in \[0, 10_000\]"),
         (lambda c: c.BCJob(seed=-1), r"--seed must be an integer >= 0, got -1"),
         (lambda c: c.BCJob(eval_episodes=2.0), r"--eval-episodes must be an integer"),

@@ -48,7 +48,7 @@ def test_every_other_entry_honours_lr_and_defaults_to_the_learner_config():
 
 
 def test_a_checkpoint_rebuilds_without_a_recorded_rate_and_from_an_older_act_run(tmp_path):
-    config = BCJob(env="Pendulum-v1", loss="act", demos=1, steps=2, eval_episodes=1,
+    config = BCJob(env="Pendulum-v1", loss="act", demos=1, num_steps=2, eval_episodes=1,
                    out=tmp_path, progress=False)  # fmt: skip
     run_bc(config)
     saved = json.loads((tmp_path / CONFIG_FILE).read_text())

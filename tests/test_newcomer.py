@@ -183,8 +183,14 @@ def test_a_buffer_prints_nothing_on_its_first_write(capfd):
 @pytest.mark.parametrize(
     ("make", "message"),
     [
-        (lambda: BCConfig(batch_size=2.5), r"BCConfig.batch_size must be an integer >= 1 or None"),
-        (lambda: BCConfig(num_steps=10.0), r"BCConfig.num_steps must be an integer >= 0"),
+        (
+            lambda: BCConfig(batch_size=2.5),
+            r"BCConfig.batch_size must be an integer in \[1, 1_048_576\] or none",
+        ),
+        (
+            lambda: BCConfig(num_steps=10.0),
+            r"BCConfig.num_steps must be an integer in \[0, 10_000_000\]",
+        ),
         (lambda: DAggerConfig(rounds=2.5), r"DAggerConfig.rounds must be an integer >= 1"),
         (lambda: DAggerConfig(beta=0.5), r"DAggerConfig.beta must be a schedule"),
         (lambda: make_env("CartPole-v1", seed=None), r"seed must be an integer"),

@@ -132,7 +132,7 @@ def test_where_the_registry_builds_nothing_default_is_for_envs_network():
 
 
 def test_a_run_records_the_resolved_name_and_reloads_from_it(tmp_path):
-    config = BCJob(env="CartPole-v1", demos=1, steps=2, eval_episodes=1, out=tmp_path,
+    config = BCJob(env="CartPole-v1", demos=1, num_steps=2, eval_episodes=1, out=tmp_path,
                    progress=False)  # fmt: skip
     results = run_bc(config)
     saved = json.loads((tmp_path / CONFIG_FILE).read_text())["config"]

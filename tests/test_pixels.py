@@ -60,12 +60,17 @@ def test_cnn_learner_shapes_and_uint8_scaling():
 
 
 def test_default_convolutions_fit_small_and_nature_sized_images():
-    small = PixelEncoder((32, 32, 3))  # kernel 3, stride 2: 32 -> 16 -> 8 -> 4
+    small = PixelEncoder(
+        (32, 32, 3), channels=(32, 64, 64)
+    )  # kernel 3, stride 2: 32 -> 16 -> 8 -> 4
     assert small.out_features == 64 * 4 * 4
-    nature = PixelEncoder((84, 84, 3))  # 8/4, 4/2, 3/1: 84 -> 20 -> 9 -> 7
+    nature = PixelEncoder((84, 84, 3), channels=(32, 64, 64))  # 8/4, 4/2, 3/1: 84 -> 20 -> 9 -> 7
     assert nature.out_features == 64 * 7 * 7
     with pytest.raises(ValueError, match="too small"):
-        PixelEncoder((4, 4, 3), kernels=(3, 3, 3), strides=(1, 1, 1), paddings=(0, 0, 0))
+        PixelEncoder(
+            (4, 4, 3), channels=(32, 64, 64), kernels=(3, 3, 3), strides=(1, 1, 1),
+            paddings=(0, 0, 0),
+        )  # fmt: skip
 
 
 def test_frame_stacking_reads_frames_on_the_channel_axis():

@@ -198,7 +198,7 @@ def test_a_worker_dying_mid_round_replays_its_slot(source, clean_rows, fault_fil
 
 def test_the_cli_job_runs_dagger_on_workers(ray_session, tmp_path):
     job = DAggerJob(
-        env="CartPole-v1", demos=1, rounds=2, episodes_per_round=2, steps=5, hidden=(8,),
+        env="CartPole-v1", demos=1, rounds=2, episodes_per_round=2, num_steps=5, hidden=(8,),
         eval_episodes=2, out=tmp_path, progress=False, workers=1,
     )  # fmt: skip
     results = run_dagger_job(job)
@@ -225,7 +225,7 @@ def test_a_chunked_learner_runs_on_workers_with_the_users_plain_env(ray_session,
     assert bool(tracked.reset().get(IS_INIT).all())
     job = DAggerJob(
         env="Pendulum-v1", loss="mse_chunk", demos=1, rounds=2, episodes_per_round=1,
-        steps=5, hidden=(8,), eval_episodes=1, out=tmp_path, progress=False, workers=1,
+        num_steps=5, hidden=(8,), eval_episodes=1, out=tmp_path, progress=False, workers=1,
     )  # fmt: skip
     results = run_dagger_job(job)
     # round 0 relabels one whole episode (200 steps) the initial fit drove; the last fits only

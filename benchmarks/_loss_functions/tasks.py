@@ -199,7 +199,9 @@ register_task(
         env="FrozenLake-v1",
         score="exact",
         max_steps=100_000,
-        protocol=Protocol(1, 4, 3, BCConfig(num_steps=200), LearnerSettings(lr=0.1), 0),
+        protocol=Protocol(
+            1, 4, 3, BCConfig(num_steps=200, batch_size=None), LearnerSettings(lr=0.1), 0
+        ),
     )
 )
 register_task(

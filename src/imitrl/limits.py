@@ -30,6 +30,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import numbers
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -56,6 +57,7 @@ __all__ = [
     "check_bounds",
     "check_hidden",
     "flag",
+    "flag_of",
     "hidden_parameters",
     "widths",
 ]
@@ -256,14 +258,22 @@ def flag(name: str) -> str:
     return "--" + name.replace("_", "-")
 
 
-def check_bounds(config: Any) -> None:
+def flag_of(f: dataclasses.Field) -> str:
+    """The command-line flag of the dataclass field ``f``: its metadata's ``flag`` where
+    it names one (``BCConfig.num_steps`` is ``--steps``), else :func:`flag` of its name."""
+    return f.metadata.get("flag") or flag(f.name)
+
+
+def check_bounds(config: Any, *, name: Callable[[str], str] | None = None) -> None:
     """Check every :func:`bounded` (and :func:`widths`) field of the dataclass instance
     ``config`` (a tuple field: each of its values), in field order; ValueError naming the
-    first flag out of range."""
+    first out of range: by its flag (a command's config), or as ``name`` says (``str``:
+    by the field's own name, a library config's)."""
     for f in dataclasses.fields(config):
         bound = f.metadata.get("bound")
         if bound is not None:
-            bound.check_field(getattr(config, f.name), flag(f.name))
+            shown = flag_of(f) if name is None else name(f.name)
+            bound.check_field(getattr(config, f.name), shown)
 
 
 def hidden_parameters(hidden: tuple[int, ...], inputs: int = 1, outputs: int = 1) -> int:

@@ -1,6 +1,6 @@
 """Imitation algorithms: behaviour cloning, DAgger, and the section's ``policy_step``."""
 
-from imitrl.algorithms.bc import BCConfig, BCResult, fit_bc
+from imitrl.algorithms.bc import BCResult, fit_bc
 from imitrl.algorithms.dagger import (
     Constant,
     DAggerConfig,
@@ -13,6 +13,7 @@ from imitrl.algorithms.dagger import (
     dagger,
 )
 from imitrl.algorithms.policy_step import policy_step
+from imitrl.configs.bc import BCConfig
 
 __all__ = [
     "BCConfig",

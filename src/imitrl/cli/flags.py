@@ -12,7 +12,9 @@ underscores) with the field's docstring and default as help text. Types:
 Two field metadata switches serve commands that wrap another program
 (``imitrl bench NAME [args...]``): ``{"positional": True}`` makes the field a
 positional argument, ``{"remainder": True}`` collects every argument after the
-positionals (``tuple[str, ...]``). ``{"aliases": ("--other-name",)}`` adds flag names
+positionals (``tuple[str, ...]``). ``{"flag": "--name"}`` names the flag otherwise than
+the field (``BCConfig.num_steps`` is ``--steps``: :func:`imitrl.limits.flag_of`);
+``{"aliases": ("--other-name",)}`` adds flag names
 (one name for one idea across commands: ``--max-episode-steps`` everywhere).
 ``{"repeat": "--env-kwarg"}`` makes a ``tuple[tuple[str, object], ...]`` field a
 repeatable flag of ``name=value`` pairs (``--env-kwarg obs_type=pixels_agent_pos
@@ -38,6 +40,8 @@ import itertools
 import types
 import typing
 from pathlib import Path
+
+from imitrl.limits import flag_of
 
 __all__ = ["OneLineParser", "add_config_flags", "config_from_args", "field_docs"]
 
@@ -159,11 +163,11 @@ def add_config_flags(parser: argparse.ArgumentParser, cls: type) -> None:
                 metavar="NAME=VALUE",
             )
             continue
-        flags = ["--" + f.name.replace("_", "-"), *f.metadata.get("aliases", ())]
+        flags = [flag_of(f), *f.metadata.get("aliases", ())]
         default = f.default
         bound = f.metadata.get("bound")  # imitrl.limits.bounded: the range it checks
         ranged = "" if bound is None else f"; must be {bound.help(default)}"
-        help_text = f"{doc} (default: {shown(default)}){ranged}"
+        help_text = f"{doc} (default: {shown(default)}){ranged}".replace("%", "%%")  # argparse
         if hints[f.name] in (bool, bool | None):
             parser.add_argument(
                 *flags,

@@ -157,7 +157,7 @@ def bc_config(config: BCJob) -> BCConfig:
     ``--batch-size`` is kept as given."""
     from imitrl.learners import registry
 
-    bc = BCConfig(num_steps=config.steps, batch_size=config.batch_size, seed=config.seed)
+    bc = config.fit()
     if config.loss not in registry.names():  # for_env's learner: no recipe
         return bc
     recipe = registry.get(config.loss).recipe

@@ -42,7 +42,8 @@ steps a fit) the exact greedy success of BC and of DAgger is the same at every r
 from 1e-3 to 0.5.
 A table fitted at 1e-3 acts far from its data when it samples (PPO, a ``RANDOM``
 evaluation). 0.1 is the FrozenLake study's rate and the loss benchmark's.
-The GAIL/AIRL generator's PPO rate is the job's own (``GAILJob.lr``, 3e-4).
+The GAIL/AIRL generator's PPO rate is the job's own (``imitrl gail --lr``:
+:data:`imitrl.configs.adversarial.ADVERSARIAL_LR`).
 """
 
 from __future__ import annotations

@@ -112,7 +112,7 @@ class PixelEncoder(nn.Module):
         self,
         shape: tuple[int, int, int],
         *,
-        channels: Sequence[int] = (32, 64, 64),
+        channels: Sequence[int],
         kernels: Sequence[int] | None = None,
         strides: Sequence[int] | None = None,
         paddings: Sequence[int] | None = None,

@@ -9,27 +9,34 @@ module                       holds
 ``gail_discriminator``       ``D(s, a)`` on TorchRL's ``GAILLoss``; reward ``-log(1 - D)``
 ``airl_discriminator``       ``D = sigmoid(f - log pi)``, ``f = g(s) + gamma h(s') - h(s)``
 ``generator``                PPO (``ClipPPOLoss`` + ``GAE``) on the learner, and why PPO
-``loop``                     collect -> discriminate -> reinforce; config and results
+``loop``                     collect -> discriminate -> reinforce, and its results
+(the configs)                ``imitrl.configs.adversarial`` (no torch: the CLI extends them)
 ``gail`` / ``airl``          the two algorithms: a config and one function each
 ============================ ===============================================================
 """
 
-from imitrl.algorithms.adversarial.airl import AIRLConfig, airl
+from imitrl.algorithms.adversarial.airl import airl
 from imitrl.algorithms.adversarial.airl_discriminator import (
     AIRLDiscriminator,
     airl_reward,
     shaped_f,
 )
-from imitrl.algorithms.adversarial.gail import GAILConfig, gail
+from imitrl.algorithms.adversarial.gail import gail
 from imitrl.algorithms.adversarial.gail_discriminator import GAILDiscriminator, gail_reward
 from imitrl.algorithms.adversarial.loop import (
-    AdversarialConfig,
     AdversarialResult,
     RoundRecord,
     train_adversarial,
 )
+from imitrl.configs.adversarial import (
+    ADVERSARIAL_LR,
+    AdversarialConfig,
+    AIRLConfig,
+    GAILConfig,
+)
 
 __all__ = [
+    "ADVERSARIAL_LR",
     "AIRLConfig",
     "AIRLDiscriminator",
     "AdversarialConfig",

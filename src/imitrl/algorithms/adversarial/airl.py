@@ -12,39 +12,21 @@ discriminator is :class:`~imitrl.algorithms.adversarial.airl_discriminator.AIRLD
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
 
 from torchrl.envs import EnvBase
 from torchrl.record.loggers import Logger
 
 from imitrl.algorithms.adversarial.airl_discriminator import AIRLDiscriminator
 from imitrl.algorithms.adversarial.loop import (
-    AdversarialConfig,
     AdversarialResult,
     check_inputs,
     train_adversarial,
 )
+from imitrl.configs.adversarial import AIRLConfig
 from imitrl.data.buffer import DemonstrationBuffer
 from imitrl.learners.actor_critic import ActorCritic
 
 __all__ = ["AIRLConfig", "airl"]
-
-
-@dataclass(frozen=True)
-class AIRLConfig(AdversarialConfig):
-    """AIRL: every field of :class:`AdversarialConfig`; ``gamma`` also discounts ``h(s')``."""
-
-    entropy_weight: float = 1.0
-    """weight ``w`` of ``-log pi`` in the generator's reward ``f - w log pi``: 1 is the
-    paper's ``log D - log(1 - D)`` (a soft-RL generator at temperature 1); 0 trains the
-    generator on ``f`` alone. The discriminator's logit is ``f - log pi`` either way."""
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        if not (self.entropy_weight >= 0 and self.entropy_weight < float("inf")):
-            raise ValueError(
-                f"entropy_weight must be a finite number >= 0, got {self.entropy_weight}"
-            )
 
 
 def airl(

@@ -38,6 +38,7 @@ from imitrl import keys
 from imitrl.algorithms.adversarial.absorbing import state_features
 from imitrl.algorithms.adversarial.keys import ABSORBING
 from imitrl.algorithms.adversarial.transitions import NEXT_ABSORBING, NEXT_OBS, NEXT_TERMINATED
+from imitrl.configs.adversarial import ADVERSARIAL_LR, DISCRIMINATOR_HIDDEN
 from imitrl.learners.actor_critic import ActorCritic
 from imitrl.policies.heads import mlp
 
@@ -96,8 +97,8 @@ class AIRLDiscriminator:
         learner: ActorCritic,
         *,
         gamma: float,
-        hidden: Sequence[int] = (64, 64),
-        lr: float = 3e-4,
+        hidden: Sequence[int] = DISCRIMINATOR_HIDDEN,
+        lr: float = ADVERSARIAL_LR,
         grad_penalty: float = 0.0,
         seed: int = 0,
         entropy_weight: float = 1.0,

@@ -11,7 +11,7 @@ Example (CartPole from one demonstration episode)::
     env = make_env("CartPole-v1", seed=0)
     buffer = DemonstrationBuffer(action_spec=env.action_spec_unbatched)
     buffer.extend(rollout_episodes(env, cartpole_expert(), 1))
-    learner = build("default", env, lr=3e-4, value=True)  # a value head for PPO
+    learner = build("default", env, lr=ADVERSARIAL_LR, value=True)  # a value head for PPO
     result = gail(env, learner, buffer, GAILConfig(total_steps=50_000))
     evaluate(env, learner, 20, seed=1)
 """
@@ -19,27 +19,21 @@ Example (CartPole from one demonstration episode)::
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
 
 from torchrl.envs import EnvBase
 from torchrl.record.loggers import Logger
 
 from imitrl.algorithms.adversarial.gail_discriminator import GAILDiscriminator
 from imitrl.algorithms.adversarial.loop import (
-    AdversarialConfig,
     AdversarialResult,
     check_inputs,
     train_adversarial,
 )
+from imitrl.configs.adversarial import GAILConfig
 from imitrl.data.buffer import DemonstrationBuffer
 from imitrl.learners.actor_critic import ActorCritic
 
 __all__ = ["GAILConfig", "gail"]
-
-
-@dataclass(frozen=True)
-class GAILConfig(AdversarialConfig):
-    """GAIL: every field of :class:`AdversarialConfig` (budget, PPO, discriminator)."""
 
 
 def gail(

@@ -46,6 +46,7 @@ from imitrl.algorithms.adversarial.keys import (
     STATE_FEATURES,
 )
 from imitrl.algorithms.adversarial.transitions import action_features
+from imitrl.configs.adversarial import ADVERSARIAL_LR, DISCRIMINATOR_HIDDEN
 from imitrl.learners.actor_critic import ActorCritic
 from imitrl.policies.heads import mlp
 from imitrl.policies.modules import Module
@@ -88,8 +89,8 @@ class GAILDiscriminator:
         self,
         learner: ActorCritic,
         *,
-        hidden: Sequence[int] = (64, 64),
-        lr: float = 3e-4,
+        hidden: Sequence[int] = DISCRIMINATOR_HIDDEN,
+        lr: float = ADVERSARIAL_LR,
         grad_penalty: float = 0.0,
         seed: int = 0,
     ) -> None:

@@ -15,7 +15,7 @@ Round after round, until ``total_steps`` environment steps:
    the generator (:class:`~imitrl.algorithms.adversarial.generator.PPOGenerator`) takes
    its PPO epochs on the batch.
 
-With ``config.absorbing`` (off by default) both sides' transitions carry DAC's absorbing
+With ``config.absorbing`` (by default on where a demonstration ends by termination) both sides' transitions carry DAC's absorbing
 state and a terminated step's reward carries its value
 (:mod:`~imitrl.algorithms.adversarial.absorbing`: why, and what changes); truncated
 steps are bootstrapped by GAE either way.
@@ -38,7 +38,7 @@ the env is seeded by whoever built it. Same seed, same env seed: same numbers.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Protocol
 
 import torch
@@ -49,7 +49,12 @@ from torchrl.record.loggers import Logger
 from tqdm.auto import tqdm
 
 from imitrl import keys
-from imitrl.algorithms.adversarial.absorbing import absorbing_rows, absorbing_tail, with_absorbing
+from imitrl.algorithms.adversarial.absorbing import (
+    absorbing_rows,
+    absorbing_tail,
+    demonstrations_terminate,
+    with_absorbing,
+)
 from imitrl.algorithms.adversarial.generator import PPOGenerator
 from imitrl.algorithms.adversarial.keys import LEARNED_REWARD
 from imitrl.algorithms.adversarial.transitions import (
@@ -58,6 +63,7 @@ from imitrl.algorithms.adversarial.transitions import (
     policy_transitions,
     sample_rows,
 )
+from imitrl.configs.adversarial import AdversarialConfig
 from imitrl.data.buffer import DemonstrationBuffer
 from imitrl.learners.actor_critic import ActorCritic
 from imitrl.runtime import paths
@@ -65,99 +71,12 @@ from imitrl.runtime.loop import STEP_ROW_KEYS, Stepper, lane_count, play_steps
 from imitrl.system.device import acting
 
 __all__ = [
-    "AdversarialConfig",
     "AdversarialResult",
     "Discriminator",
     "RoundRecord",
     "check_inputs",
     "train_adversarial",
 ]
-
-
-@dataclass(frozen=True)
-class AdversarialConfig:
-    """What GAIL and AIRL share: budget, generator (PPO + GAE), discriminator schedule.
-
-    The generator's learning rate is the learner's own (its ``opt_pi`` / ``opt_v``, set
-    when it is built), scaled round by round when ``anneal_lr``."""
-
-    total_steps: int = 102_400
-    """environment steps of the whole run (50 rounds of 2048; rounded up to whole rounds)"""
-    rollout_steps: int = 2048
-    """environment steps collected per round, all lanes together (a multiple of them)"""
-    ppo_epochs: int = 10
-    """PPO passes over each round's batch"""
-    minibatch_size: int = 256
-    """rows per PPO gradient step"""
-    discriminator_updates: int = 10
-    """discriminator Adam steps per round"""
-    discriminator_batch: int = 256
-    """expert (and as many policy) transitions per discriminator step"""
-    discriminator_lr: float = 3e-4
-    """Adam learning rate of the discriminator"""
-    discriminator_hidden: tuple[int, ...] = (64, 64)
-    """hidden layer sizes of the discriminator's networks"""
-    grad_penalty: float = 0.0
-    """weight of the discriminator's gradient penalty (GAILLoss's gp_lambda); 0 = none"""
-    gamma: float = 0.99
-    """discount of GAE (and of AIRL's shaping, and of the absorbing state's value)"""
-    gae_lambda: float = 0.95
-    """GAE's lambda"""
-    clip_epsilon: float = 0.2
-    """PPO's ratio clip"""
-    entropy_coeff: float = 0.0
-    """weight of PPO's entropy bonus"""
-    max_grad_norm: float = 0.5
-    """gradient-norm clip of each PPO step"""
-    anneal_lr: bool = False
-    """the generator's learning rates fall linearly over the rounds: round ``k`` of ``K``
-    (``k`` from 0) steps at ``1 - k / K`` times the learner's own, the first at the
-    learner's rate, the last at ``1 / K`` of it (CleanRL's PPO schedule); the
-    discriminator's rate stays constant, and the learner's optimizers keep their own
-    rates after the run. False: constant"""
-    absorbing: bool = False
-    """absorbing-state handling (DAC) of terminated episodes, for tasks whose episodes end
-    at a goal; False: a terminal step ends the learned reward, and GAIL's ``-log(1 - D) >
-    0`` pays for living (a prior that suits tasks whose only end is failure: see
-    :mod:`~imitrl.algorithms.adversarial.absorbing`)"""
-    normalizer_warmup: int = 0
-    """environment steps of the untrained learner whose observations join the
-    demonstrations' in the normaliser's statistics (counted as env steps); 0: the
-    demonstrations' alone. Ignored when the normaliser is already fitted or absent"""
-    seed: int = 0
-    """seeds the policy's samples, the discriminator's initialisation and every minibatch"""
-
-    def __post_init__(self) -> None:
-        for name in ("total_steps", "rollout_steps", "ppo_epochs", "minibatch_size",
-                     "discriminator_batch"):  # fmt: skip
-            value = getattr(self, name)
-            if int(value) != value or value < 1:
-                raise ValueError(f"{name} must be a positive integer, got {value!r}")
-        if (
-            int(self.discriminator_updates) != self.discriminator_updates
-            or self.discriminator_updates < 0
-        ):
-            raise ValueError(
-                f"discriminator_updates must be an integer >= 0, got {self.discriminator_updates!r}"
-            )
-        if not 0.0 <= self.gamma <= 1.0 or not 0.0 <= self.gae_lambda <= 1.0:
-            raise ValueError(
-                f"gamma and gae_lambda must be in [0, 1], got {self.gamma}, {self.gae_lambda}"
-            )
-        for name in ("discriminator_lr", "clip_epsilon", "max_grad_norm"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
-        if self.grad_penalty < 0 or self.entropy_coeff < 0:
-            raise ValueError("grad_penalty and entropy_coeff must be >= 0")
-        if int(self.normalizer_warmup) != self.normalizer_warmup or self.normalizer_warmup < 0:
-            raise ValueError(
-                f"normalizer_warmup must be an integer >= 0, got {self.normalizer_warmup!r}"
-            )
-        if self.absorbing and self.gamma >= 1.0:
-            raise ValueError(
-                "absorbing states need gamma < 1 (the absorbing state's value is "
-                "r_abs / (1 - gamma)); set absorbing=False for gamma = 1"
-            )
 
 
 class Discriminator(Protocol):
@@ -260,6 +179,8 @@ def train_adversarial(
     """
     check_inputs(env, learner, demonstrations)
     rows = demonstrations.data
+    if config.absorbing is None:  # decided from the demonstrations: a goal, or survival
+        config = replace(config, absorbing=demonstrations_terminate(rows))
     device = learner.device  # discriminator and PPO train there; the env stays where it is
     expert = expert_transitions(rows).to(device)
     n_expert = expert.shape[0]

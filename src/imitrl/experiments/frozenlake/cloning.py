@@ -19,7 +19,7 @@ def behaviour_cloning(ctx: StudyContext) -> None:
     rep.section("2. Behaviour cloning")
     buffer = ctx.buffer(ctx.demos)
     clone = ctx.learner()
-    fit = fit_bc(clone, buffer, BCConfig(num_steps=cfg.fit_steps))
+    fit = fit_bc(clone, buffer, BCConfig(num_steps=cfg.fit_steps, batch_size=None))  # full batch
     ctx.clone = clone
     rep.line(f"cross-entropy on the demonstrations after the fit: {fit.final_loss:.3f}")
     rep.set("bc.cross_entropy", fit.final_loss)

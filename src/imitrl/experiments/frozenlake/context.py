@@ -94,7 +94,7 @@ class StudyContext:
         return DAggerConfig(
             rounds=self.config.dagger_rounds,
             episodes_per_round=episodes_per_round,
-            bc=BCConfig(num_steps=fit_steps),
+            bc=BCConfig(num_steps=fit_steps, batch_size=None),  # the section's full batch
         )
 
     def bar(self, iterable, desc: str, total: int | None = None):

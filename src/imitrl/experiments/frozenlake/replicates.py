@@ -63,14 +63,14 @@ def fit_tables(
     S, K = ctx.S, len(rows)
     if K == 1:
         learner = ctx.learner()
-        fit = fit_bc(learner, rows[0], BCConfig(num_steps=steps))
+        fit = fit_bc(learner, rows[0], BCConfig(num_steps=steps, batch_size=None))
         return learner.greedy_table()[None], [fit.final_loss]
     union = _joint_pairs(rows, S)
     table = ctx.learner(K)
     # the same table trained on the weighted pairs (the WEIGHT column is read as data)
     weighted = BehaviorCloningLoss(table.policy, loss_type="nll", weighted=True)
     learner = Learner(table.policy, weighted, table.opt_pi)
-    fit = fit_bc(learner, union, BCConfig(num_steps=steps))
+    fit = fit_bc(learner, union, BCConfig(num_steps=steps, batch_size=None))
     return table.greedy_table().reshape(K, S), [fit.final_loss] * K
 
 

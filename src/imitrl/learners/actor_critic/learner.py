@@ -40,7 +40,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules import ProbabilisticActor
 
 from imitrl import keys
-from imitrl.learners.defaults import NETWORK_LR, TABLE_LR
+from imitrl.learners.defaults import HIDDEN, NETWORK_LR, PIXEL_CHANNELS, PIXEL_HIDDEN, TABLE_LR
 from imitrl.learners.learner import Learner
 from imitrl.objectives.base import ImitationLoss
 from imitrl.objectives.bc import BehaviorCloningLoss
@@ -189,7 +189,7 @@ class ActorCritic(Learner):
         *,
         head: str | None = None,
         loss: str | ImitationLoss | None = None,
-        hidden: Sequence[int] = (64, 64),
+        hidden: Sequence[int] = HIDDEN,
         activation: type[nn.Module] = nn.Tanh,
         lr: float = NETWORK_LR,
         seed: int = 0,
@@ -266,10 +266,10 @@ class ActorCritic(Learner):
         frames: int = 1,
         head: str | None = None,
         loss: str | ImitationLoss | None = None,
-        channels: Sequence[int] = (32, 64, 64),
+        channels: Sequence[int] = PIXEL_CHANNELS,
         kernels: Sequence[int] | None = None,
         strides: Sequence[int] | None = None,
-        hidden: Sequence[int] = (256,),
+        hidden: Sequence[int] = PIXEL_HIDDEN,
         activation: type[nn.Module] = nn.ReLU,
         lr: float = NETWORK_LR,
         seed: int = 0,
@@ -314,7 +314,7 @@ class ActorCritic(Learner):
         seed: int = 0,
         normalize: bool = True,
         state: bool = False,
-        channels: Sequence[int] = (32, 64, 64),
+        channels: Sequence[int] = PIXEL_CHANNELS,
         pixel_key: NestedKey | None = None,
         value: bool = False,
         device: str | torch.device | None = None,
@@ -330,7 +330,7 @@ class ActorCritic(Learner):
             )
             return cls.pixels(
                 pixels, action_spec, head=head, loss=loss, state=state_spec,
-                channels=channels, hidden=(256,) if hidden is None else hidden,
+                channels=channels, hidden=PIXEL_HIDDEN if hidden is None else hidden,
                 activation=activation or nn.ReLU, lr=lr, seed=seed, normalize=normalize,
                 pixel_key=pixel_key, value=value, device=device,
             )  # fmt: skip
@@ -344,7 +344,7 @@ class ActorCritic(Learner):
             action_spec,
             head=head,
             loss=loss,
-            hidden=(64, 64) if hidden is None else hidden,
+            hidden=HIDDEN if hidden is None else hidden,
             activation=activation or nn.Tanh,
             lr=lr,
             seed=seed,

@@ -51,6 +51,7 @@ from torchrl.data import Bounded
 from torchrl.modules import DiffusionActor
 
 from imitrl import keys
+from imitrl.learners.defaults import HIDDEN
 from imitrl.rng import rng_from
 
 __all__ = ["SAMPLERS", "DiffusionPolicy", "ScoreNetwork", "ddim_sample"]
@@ -133,7 +134,7 @@ class DiffusionPolicy(TensorDictModuleBase):
         observation_dim: int,
         action_spec: Bounded,
         *,
-        hidden: Sequence[int] = (128, 128),
+        hidden: Sequence[int] = HIDDEN,
         num_steps: int = 50,
         beta_start: float = 1e-4,
         beta_end: float = 0.2,

@@ -33,6 +33,7 @@ from torch import nn
 from torchrl.data import Bounded
 
 from imitrl import keys
+from imitrl.learners.defaults import HIDDEN
 from imitrl.policies.normalization import ObservationNormalizer
 
 __all__ = ["FlowPolicy", "VelocityNetwork"]
@@ -80,7 +81,7 @@ class FlowPolicy(TensorDictModuleBase):
         observation_dim: int,
         action_spec: Bounded,
         *,
-        hidden: Sequence[int] = (128, 128),
+        hidden: Sequence[int] = HIDDEN,
         num_steps: int = 8,
         normalize: bool = True,
         seed: int = 0,
