@@ -11,7 +11,7 @@ and the library's expert, whole episodes kept as rows. Three ways of doing that 
   flags kept, finished lanes reset, everything stacked at the end;
 * imitrl: ``rollout_episodes(env, behaviour, n)`` on ``make_env``'s env (its direct path:
   the env stepped directly, the policy called on a dict of tensors);
-* TorchRL: the same call with ``fast_path=False`` (``env.step_and_maybe_reset`` and
+* TorchRL: the same call inside ``paths.reference("stepper")`` (``env.step_and_maybe_reset`` and
   ``policy(td)`` at every step): the cost of the layers the direct path skips.
 
 Each repeat runs the three back to back; per-step time = wall time / batched steps (the
@@ -26,6 +26,7 @@ stream player; the TorchRL path per episode, on fewer episodes).
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import statistics
@@ -45,7 +46,7 @@ from imitrl.experts import cartpole_expert, pendulum_expert
 from imitrl.learners import ActorCritic
 from imitrl.learners import build as build_learner
 from imitrl.policies import BetaMixer, Expert, behaviour_policy
-from imitrl.runtime import rollout_episodes
+from imitrl.runtime import paths, rollout_episodes
 from imitrl.tabular import greedy
 
 NAME = "per_step"
@@ -124,7 +125,8 @@ def run_imitrl(task: Task, cfg: Config, fast_path: bool) -> tuple[float, int]:
     )
     policy = behaviour(task.learner, task.expert)
     t0 = time.perf_counter()
-    rows = rollout_episodes(env, policy, task.episodes, exploration=DET, fast_path=fast_path)
+    with contextlib.nullcontext() if fast_path else paths.reference("stepper"):
+        rows = rollout_episodes(env, policy, task.episodes, exploration=DET)
     return time.perf_counter() - t0, batched_steps(rows, task.lanes)
 
 
@@ -218,7 +220,8 @@ def frozenlake_evaluation(cfg: Config) -> dict:
         ev = evaluate(env, expert, cfg.lake_episodes, seed=1)
         fast.append(time.perf_counter() - t0)
         t0 = time.perf_counter()
-        evaluate(env, expert, cfg.lake_torchrl_episodes, seed=1, fast_path=False)
+        with paths.reference("stepper", "table_returns"):
+            evaluate(env, expert, cfg.lake_torchrl_episodes, seed=1)
         slow.append((time.perf_counter() - t0) * 1000 / cfg.lake_torchrl_episodes)
     row = {
         "episodes": cfg.lake_episodes,

@@ -7,6 +7,8 @@ run depends on (seed, lanes) only.
 
 from __future__ import annotations
 
+import contextlib
+
 import pytest
 import torch
 from tensordict import TensorDict
@@ -100,9 +102,10 @@ def test_play_steps_continues_every_lane_across_calls(fast):
         env = make_env("CartPole-v1", seed=3, num_envs=3, max_episode_steps=4)
         learner = build("for_env", env, hidden=(8,), seed=0, value=True)
         torch.manual_seed(0)
-        with set_exploration_type(ExplorationType.RANDOM), torch.no_grad():
-            stepper = paths.stepper(env, learner.policy, record=True, fast_path=fast,
-                                    row_keys=STEP_ROW_KEYS, next_observation=True)  # fmt: skip
+        path = contextlib.nullcontext() if fast else paths.reference("stepper")
+        with set_exploration_type(ExplorationType.RANDOM), torch.no_grad(), path:
+            stepper = paths.stepper(env, learner.policy, record=True, row_keys=STEP_ROW_KEYS,
+                                    next_observation=True)  # fmt: skip
             stepper.reset()
             return [play_steps(stepper, n) for n in sizes]
 

@@ -7,7 +7,7 @@ calls both ways and ask for identical results (values, dtypes, shapes):
 * rollouts and evaluations: the accelerated stepper (the simulator stepped directly,
   ``imitrl.runtime.fast.env_steps``; the policy called on a dict of tensors,
   ``TensorPolicy``) and, for evaluations of gymnasium's toy-text envs, the stream player,
-  against ``fast_path=False`` (every step through ``env.step_and_maybe_reset`` and
+  against the same calls inside ``paths.reference()`` (every step through ``env.step_and_maybe_reset`` and
   ``policy(td)``), including the episodes played next: the env's random state must end
   where TorchRL's path leaves it;
 * fits: every registry loss (discrete, continuous, chunked, pixel) fitted with the
@@ -19,6 +19,7 @@ calls both ways and ask for identical results (values, dtypes, shapes):
 from __future__ import annotations
 
 import ast
+import contextlib
 from pathlib import Path
 
 import gymnasium as gym
@@ -120,12 +121,18 @@ def _learner(env, head=None, exploration=DET) -> ActorCritic:
     return learner
 
 
+def _on(fast: bool, run, *args):
+    """``run(*args)`` on the accelerated paths, or inside ``paths.reference()``."""
+    with contextlib.nullcontext() if fast else paths.reference():
+        return run(*args)
+
+
 def _rollouts_on_both_paths(make, run) -> None:
-    """``run(env, fast_path)`` on two fresh copies of an env, twice each (the second
-    call continues from the random state the first left): identical results."""
+    """``run(env)`` on two fresh copies of an env, each path on one, twice each (the
+    second call continues from the random state the first left): identical results."""
     fast_env, slow_env = make(), make()
     for _ in range(2):
-        assert_same(run(fast_env, True), run(slow_env, False))
+        assert_same(_on(True, run, fast_env), _on(False, run, slow_env))
 
 
 # ------------------------------------------------------------------ the env step
@@ -140,13 +147,11 @@ def test_direct_rows_equal_torchrl_rows(env_id, make_expert, limit, lanes):
     expert = make_expert()
     learner = _learner(env)
 
-    def run(env, fast_path):
+    def run(env):
         mixer = BetaMixer(0.5, generator=torch.Generator().manual_seed(4))
         behaviour = behaviour_policy(expert, learner.policy, mixer)
-        demos = rollout_episodes(env, expert, 3, fast_path=fast_path)
-        rows = rollout_episodes(
-            env, behaviour, 4, exploration=DET, round_index=1, fast_path=fast_path
-        )
+        demos = rollout_episodes(env, expert, 3)
+        rows = rollout_episodes(env, behaviour, 4, exploration=DET, round_index=1)
         return TensorDict({"demos": demos, "rows": rows}, batch_size=[])
 
     _rollouts_on_both_paths(make, run)
@@ -163,13 +168,12 @@ def test_float64_observations_take_the_direct_path_and_agree():
         assert direct_steps(make()) is not None
         expert = _f64_expert().bind(make().action_spec_unbatched)
 
-        def run(env, fast_path, learner=learner, expert=expert):
+        def run(env, learner=learner, expert=expert):
             rows = rollout_episodes(
                 env,
                 behaviour_policy(expert, learner.policy, BetaMixer(0.0)),
                 3,
                 exploration=DET,
-                fast_path=fast_path,
             )
             assert rows.get(keys.OBSERVATION).dtype == torch.float32
             return rows
@@ -187,7 +191,7 @@ def test_tabular_env_direct_path_equals_torchrl(lake, lake_q, rng, lanes):
     learner = build("cross_entropy", TaskSpec(action=4, num_states=16))
     learner.exploration = RND
 
-    def run(env, fast_path):
+    def run(env):
         mixer = BetaMixer(0.3, generator=torch.Generator().manual_seed(1))
         rows = rollout_episodes(
             env,
@@ -195,9 +199,8 @@ def test_tabular_env_direct_path_equals_torchrl(lake, lake_q, rng, lanes):
             5,
             exploration=RND,
             generator=torch.Generator().manual_seed(2),
-            fast_path=fast_path,
         )
-        ev = evaluate(env, expert, 9, fast_path=fast_path)  # success_fn: the goal states
+        ev = evaluate(env, expert, 9)  # success_fn: the goal states
         return TensorDict(
             {"rows": rows, "success": ev.success_rate, "ret": ev.mean_return}, batch_size=[]
         )
@@ -218,7 +221,7 @@ def test_sampled_and_success_returns_equal_torchrl(lanes):
     def success(out):
         return out.get((keys.NEXT, keys.OBSERVATION))[..., 0] > 0
 
-    def run(env, fast_path):
+    def run(env):
         return episode_returns(
             env,
             learner.policy,
@@ -226,26 +229,25 @@ def test_sampled_and_success_returns_equal_torchrl(lanes):
             exploration=RND,
             success_fn=success,
             generator=torch.Generator().manual_seed(9),
-            fast_path=fast_path,
         )
 
     _rollouts_on_both_paths(make, run)
 
 
 def test_dagger_rounds_equal_torchrl():
-    def run(fast_path):
+    def run():
         env = make_env("CartPole-v1", seed=0, num_envs=2, max_episode_steps=30)
         expert = cartpole_expert()
         buffer = DemonstrationBuffer(action_spec=env.action_spec)
-        buffer.extend(rollout_episodes(env, expert, 2, fast_path=fast_path))
+        buffer.extend(rollout_episodes(env, expert, 2))
         config = DAggerConfig(
             rounds=3, episodes_per_round=2, beta=lambda k: 0.5, bc=BCConfig(num_steps=20)
         )
-        source = EnvSource(env, fast_path=fast_path)
+        source = EnvSource(env)
         result = dagger(source, expert, lambda: _learner(env), buffer, config)
         return result.buffer.data, result.learner.state_dict()
 
-    (fast, fast_weights), (slow, slow_weights) = run(True), run(False)
+    (fast, fast_weights), (slow, slow_weights) = _on(True, run), _on(False, run)
     assert_same(fast, slow)
     assert all(torch.equal(fast_weights[k], slow_weights[k]) for k in fast_weights)
 
@@ -264,18 +266,18 @@ def _step_counter():
 
 def test_errors_are_the_same_on_both_paths():
     env = make_env("CartPole-v1", seed=0, max_episode_steps=50)
-    for fast_path in (True, False):
-        with pytest.raises(ValueError, match="ran past max_steps=5 steps"):
-            episode_returns(env, cartpole_expert(), 2, max_steps=5, fast_path=fast_path)
-        with pytest.raises(ValueError, match="must write 'expert_action'"):
-            rollout_episodes(env, _learner(env).policy, 1, exploration=DET, fast_path=fast_path)
-        bad = TensorDictModule(
-            lambda o: torch.zeros(2, dtype=torch.int64), ["observation"], ["action"]
-        )
-        with pytest.raises(
-            ValueError, match=r"the policy's action has dtype torch\.int64, shape \(2,\)"
-        ):
-            episode_returns(env, bad, 1, exploration=DET, fast_path=fast_path)
+    bad = TensorDictModule(lambda o: torch.zeros(2, dtype=torch.int64), ["observation"], ["action"])
+    calls = [
+        ("ran past max_steps=5 steps", lambda: episode_returns(env, cartpole_expert(), 2, max_steps=5)),
+        ("must write 'expert_action'",
+         lambda: rollout_episodes(env, _learner(env).policy, 1, exploration=DET)),
+        (r"the policy's action has dtype torch\.int64, shape \(2,\)",
+         lambda: episode_returns(env, bad, 1, exploration=DET)),
+    ]  # fmt: skip
+    for fast in (True, False):
+        for match, call in calls:
+            with pytest.raises(ValueError, match=match):
+                _on(fast, call)
 
 
 # ------------------------------------------------------------------ the policy call
@@ -364,19 +366,20 @@ def test_toy_text_evaluation_by_the_stream_equals_stepping(env_id, limit, lanes,
         toy_text_module, "play_lanes", lambda *a: streamed.append(1) or play_lanes(*a)
     )
 
-    def run(env, fast_path):
+    def run(env):
         out = [
-            episode_returns(env, Expert.from_table(table), 11, seed=1, fast_path=fast_path),
-            episode_returns(env, learner.policy, 4, exploration=DET, fast_path=fast_path),
-            episode_returns(env, Expert.from_table(table), 5, fast_path=fast_path),
+            episode_returns(env, Expert.from_table(table), 11, seed=1),
+            episode_returns(env, learner.policy, 4, exploration=DET),
+            episode_returns(env, Expert.from_table(table), 5),
         ]
         # the episodes a step-by-step rollout plays next, from the generators left behind
-        rows = rollout_episodes(env, Expert.from_table(table), 2, fast_path=False)
+        with paths.reference():
+            rows = rollout_episodes(env, Expert.from_table(table), 2)
         return [*out, rows]
 
     fast_env, slow_env = make(), make()
     for _ in range(2):
-        for a, b in zip(run(fast_env, True), run(slow_env, False)):
+        for a, b in zip(_on(True, run, fast_env), _on(False, run, slow_env)):
             assert_same(a, b)
     assert len(streamed) == 6  # every fast evaluation went through the stream
 
@@ -446,10 +449,10 @@ def test_a_one_step_trajectory_keeps_its_time_dimension_on_both_paths(lanes):
 
     expert = cartpole_expert()
 
-    def run(env, fast_path):
-        return rollout_episodes(env, expert, lanes, fast_path=fast_path)
+    def run(env):
+        return rollout_episodes(env, expert, lanes)
 
-    rows = run(make(), True)
+    rows = run(make())
     assert rows.shape == (lanes,) and rows[keys.NEXT, keys.REWARD].shape == (lanes, 1)
     _rollouts_on_both_paths(make, run)
 
@@ -561,9 +564,9 @@ def test_the_reference_context_takes_every_reference_path():
     policy = cartpole_expert().as_actor()
     with set_exploration_type(DET):
         assert type(paths.stepper(env, policy, record=False)).__name__ == "DirectStepper"
-        assert type(paths.stepper(env, policy, record=False, fast_path=False)).__name__ == (
-            "TorchRLStepper"
-        )
+        with paths.reference("stepper"):
+            assert type(paths.stepper(env, policy, record=False)).__name__ == "TorchRLStepper"
+            assert paths.fast_enabled("network") and not paths.fast_enabled()
         with paths.reference():
             assert not paths.fast_enabled()
             assert type(paths.stepper(env, policy, record=False)).__name__ == "TorchRLStepper"

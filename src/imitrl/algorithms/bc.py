@@ -36,7 +36,6 @@ that size; distinct pairs are counted slice by slice.
 
 from __future__ import annotations
 
-import functools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -245,22 +244,6 @@ def _check_full_batch(n: int, on_disk: bool, config: BCConfig) -> None:
         )
 
 
-def _zero_grad(opt: torch.optim.Optimizer) -> Callable[[], None]:
-    """``opt.zero_grad(set_to_none=True)`` as a function of no argument. For torch's own
-    ``Optimizer.zero_grad`` (not overridden) it is that method's assignment, ``p.grad =
-    None`` for every parameter, without the profiler range the method opens at each call
-    (a large part of a tabular step)."""
-    if type(opt).zero_grad is not torch.optim.Optimizer.zero_grad:
-        return functools.partial(opt.zero_grad, set_to_none=True)
-    params = [p for group in opt.param_groups for p in group["params"]]
-
-    def zero_grad() -> None:
-        for p in params:
-            p.grad = None
-
-    return zero_grad
-
-
 class _Cosine:
     """One fit's schedule over ``opt``'s own learning rates (``BCConfig.lr_schedule`` and
     ``warmup_steps``): a linear warm-up from 0, then constant or the cosine decay over the
@@ -353,7 +336,8 @@ def fit_bc(
         rows, weights = _dedup(learner, rows, config)
         if weights is None:
             _check_full_batch(n, on_disk, config)
-    objective, opt, zero_grad = learner.loss.objective, learner.opt_pi, _zero_grad(learner.opt_pi)
+    objective, opt = learner.loss.objective, learner.opt_pi
+    zero_grad = paths.zero_grad(opt)  # the seam's: its assignment without the method's range
     if config.compile:
         objective = torch.compile(objective)
     opt_step = paths.optimizer_step(opt)  # on the CPU: Adam's update without its wrapper

@@ -144,15 +144,12 @@ class EnvSource:
             the source refuses to be built otherwise.
         generator: source of the learner's sampling when ``exploration`` is
             ``RANDOM`` (seed it for reproducible rounds); None: torch's global RNG.
-        fast_path: step a plain gymnasium env or a TabularEnv directly
-            (:func:`~imitrl.data.rollout_episodes`); False: through TorchRL, the same rows.
     """
 
     env: EnvBase
     exploration: ExplorationType | None = None
     max_steps: int | None = None
     generator: torch.Generator | None = None
-    fast_path: bool = True
     _episode_steps: int = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -204,7 +201,6 @@ class EnvSource:
             round_index=round_index,
             first_episode=first_episode,
             generator=self.generator,
-            fast_path=self.fast_path,
         )
 
 

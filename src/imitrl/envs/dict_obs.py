@@ -30,7 +30,7 @@ from typing import Any
 
 import gymnasium
 import numpy as np
-from gymnasium.spaces import Box, Dict
+from gymnasium.spaces import Box, Dict, Space
 
 from imitrl import keys
 
@@ -76,7 +76,7 @@ def _pixels_space(space: Any, where: str) -> Box | Dict:
         return _image_box(space, "pixels", where)
     if not space.spaces:
         raise ValueError(f"{where}: Dict entry 'pixels' holds no camera")
-    cameras = {}
+    cameras: dict[str, Space] = {}
     for cam, sub in space.spaces.items():
         if not isinstance(cam, str) or not cam or "." in cam or "/" in cam:
             raise ValueError(

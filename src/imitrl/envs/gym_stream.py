@@ -50,7 +50,7 @@ class GymnasiumStream:
     def __init__(self, seed: int) -> None:
         if not isinstance(seed, (int, np.integer)) or seed < 0:
             raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
-        self.seed = int(seed)
+        self.seed: int | None = int(seed)  # None: a stream following a generator
         self._generator = seeding.np_random(self.seed)[0]
         self._drawn = torch.empty(0, dtype=torch.float64)  # uniforms drawn so far
         self.position = 1  # the seeded reset's uniform
@@ -255,7 +255,8 @@ def play_episodes(
         window = math.ceil((n - len(starts)) * (1.0 + mean_len) * 1.05) + 64
         uniforms = stream.window(pos + window + T + 1)[pos:]
         lens, rets, succ = _simulate_offsets(sampler, table, uniforms, window, T, mdp.goal)
-        lens_list, local, chosen = lens.tolist(), 0, []
+        lens_list, local = lens.tolist(), 0
+        chosen: list[int] = []
         while len(starts) + len(chosen) < n and local < window:
             chosen.append(local)
             local += 1 + lens_list[local]
@@ -349,8 +350,11 @@ def _play_scalar(
     act, is_goal = table.tolist(), goal.tolist()
     buf: list[float] = stream.window(max(64, 64 * n)).tolist()
     i = 0
-    out = {k: [] for k in _SCALAR_KEYS} if record else None
-    starts, lengths, returns, success = [], [], [], []
+    out: dict[str, list] | None = {k: [] for k in _SCALAR_KEYS} if record else None
+    starts: list[int] = []
+    lengths: list[int] = []
+    returns: list[float] = []
+    success: list[bool] = []
     for e in range(n):
         starts.append(i)
         if i + T + 1 >= len(buf):
@@ -362,7 +366,7 @@ def _play_scalar(
     stream.advance(i)
     ep_len = torch.tensor(lengths, dtype=torch.int64)
     transitions = None
-    if record:
+    if out is not None:  # record
         dtypes = {"reward": torch.float32, "terminated": torch.bool}
         transitions = {k: torch.tensor(v, dtype=dtypes.get(k, torch.int64)) for k, v in out.items()}
     base = stream.position - i
@@ -469,8 +473,10 @@ class GymnasiumStreamSource:
         action_table, expert_table = out.get(keys.ACTION).long(), out.get(keys.EXPERT_ACTION).long()
         eps = play_episodes(self.mdp, action_table, self.stream, num_episodes, record=True)
         tr = eps.transitions
+        assert tr is not None  # record=True
         n = tr["observation"].numel()
         T = self.mdp.max_steps
+        assert T is not None  # play_episodes refused an MDP without a time limit
         truncated = (tr["step"] + 1) == T
         return TensorDict(
             {

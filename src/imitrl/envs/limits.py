@@ -47,17 +47,19 @@ def _step_counters(transform) -> list[int | None]:
 def _gym_limit(gym_env) -> int | None:
     """``spec.max_episode_steps`` of a gymnasium env; of every copy of a vector env."""
     if isinstance(gym_env, gymnasium.vector.VectorEnv):
-        specs = gym_env.get_attr("spec")
+        # gymnasium declares get_attr on SyncVectorEnv and AsyncVectorEnv, not on their base
+        specs = gym_env.get_attr("spec")  # type: ignore[attr-defined]
     else:
         specs = [gym_env.spec]
     limits = [None if s is None else s.max_episode_steps for s in specs]
-    if not limits or any(x is None for x in limits):
+    found = [x for x in limits if x is not None]
+    if not limits or len(found) < len(limits):
         return None
-    return max(limits)
+    return max(found)
 
 
 def _batched_limit(env: BatchedEnvBase) -> int | None:
-    limits = []
+    limits: list[int | None] = []
     for i, (fn, kwargs) in enumerate(zip(env.create_env_fn, env.create_env_kwargs)):
         if i and fn is env.create_env_fn[0] and kwargs == env.create_env_kwargs[0]:
             limits.append(limits[0])  # SerialEnv(n, fn): one copy tells for all
@@ -65,9 +67,10 @@ def _batched_limit(env: BatchedEnvBase) -> int | None:
         copy = fn(**kwargs)
         limits.append(episode_limit(copy))
         copy.close()
-    if not limits or any(x is None for x in limits):
+    found = [x for x in limits if x is not None]
+    if not limits or len(found) < len(limits):
         return None
-    return max(limits)
+    return max(found)
 
 
 def episode_limit(env: EnvBase) -> int | None:

@@ -116,7 +116,9 @@ def _gym(
         except ValueError:
             env.close()
             raise
-        if render and keys.PIXELS in env.observation_space.spaces:
+        renamed = env.observation_space
+        assert isinstance(renamed, gymnasium.spaces.Dict)  # mapped_space's
+        if render and keys.PIXELS in renamed.spaces:
             env.close()
             raise ValueError(
                 f"{env_id}: its Dict observation already holds 'pixels'; pixels=(H, W) "

@@ -39,11 +39,15 @@ from __future__ import annotations
 
 import os
 import pickle
+from typing import TYPE_CHECKING, Literal, cast
 
 import gymnasium
 import numpy as np
 
 from imitrl.envs.success import SuccessInfo
+
+if TYPE_CHECKING:
+    from metaworld.sawyer_xyz_env import SawyerXYZEnv
 
 __all__ = [
     "CAMERA",
@@ -130,6 +134,11 @@ def task_of(env_id: str) -> str:
     return task
 
 
+def _sawyer(env: gymnasium.Env) -> SawyerXYZEnv:
+    """The raw Meta-World env under ``env`` (gymnasium types ``unwrapped`` as a plain Env)."""
+    return cast("SawyerXYZEnv", env.unwrapped)
+
+
 class _MetaWorldTask(gymnasium.Wrapper):
     """One task, varied per episode by the env's generator (module docstring)."""
 
@@ -140,12 +149,12 @@ class _MetaWorldTask(gymnasium.Wrapper):
         if obs_type == "state":
             self.observation_space = state
         else:
-            spaces = {
+            spaces: dict[str, gymnasium.spaces.Space] = {
                 "agent_pos": gymnasium.spaces.Box(-np.inf, np.inf, (4,), np.float64),
                 "environment_state": state,
             }
             if obs_type == "pixels_agent_pos":
-                h, w = env.unwrapped.height, env.unwrapped.width
+                h, w = _sawyer(env).height, _sawyer(env).width
                 spaces["pixels"] = gymnasium.spaces.Box(0, 255, (h, w, 3), np.uint8)
             self.observation_space = gymnasium.spaces.Dict(spaces)
 
@@ -159,7 +168,7 @@ class _MetaWorldTask(gymnasium.Wrapper):
 
     def reset(self, *, seed: int | None = None, options=None):
         if seed is not None:
-            self.env.unwrapped.seed(int(seed))  # the raw env ignores reset(seed=)
+            _sawyer(self.env).seed(int(seed))  # the raw env ignores reset(seed=)
         obs, info = self.env.reset(options=options)
         return self._observe(obs), info
 
@@ -173,7 +182,8 @@ class _MetaWorldTask(gymnasium.Wrapper):
             return None
         if self._fast_render:
             _shadows_off(self.env.unwrapped)
-        if self.env.unwrapped.camera_name == CAMERA:
+        if _sawyer(self.env).camera_name == CAMERA:
+            assert isinstance(frame, np.ndarray)  # an rgb_array (or depth_array) frame
             frame = np.ascontiguousarray(np.flip(frame, (0, 1)))  # as LeRobot's env
         return frame
 
@@ -195,7 +205,7 @@ def make_task(
     *,
     obs_type: str = "state",
     terminate_on_success: bool = True,
-    render_mode: str | None = None,
+    render_mode: Literal["human", "rgb_array", "depth_array"] | None = None,
     camera_name: str = CAMERA,
     width: int = 480,
     height: int = 480,
@@ -231,6 +241,7 @@ def make_task(
     # so the middle of the task's range serves (metaworld.MT1 would simulate 50 resets to
     # pick one: 0.7 s an env). The task data is what MT1 builds (its _make_tasks).
     space = raw._random_reset_space
+    assert space is not None  # every v3 task sets its reset range
     first = {
         "env_cls": cls,
         "rand_vec": (space.low + space.high) / 2,

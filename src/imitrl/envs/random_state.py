@@ -35,6 +35,7 @@ def _gym_envs(env: GymWrapper) -> list:
             f"cannot read the random state of a {type(inner).__name__} (its envs live in "
             "other processes): use make_env(..., num_envs=N) without parallel=True"
         )
+    assert isinstance(inner, gymnasium.Env)  # GymWrapper wraps a gymnasium env or vector env
     return [inner.unwrapped]
 
 

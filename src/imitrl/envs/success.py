@@ -63,7 +63,7 @@ class SuccessInfo(gymnasium.Wrapper):
         return obs, reward, terminated, truncated, info
 
 
-def reads_success(env: gymnasium.Env) -> bool:
+def reads_success(env: object) -> bool:
     """Whether ``env`` (or an env it wraps) is a :class:`SuccessInfo`."""
     while isinstance(env, gymnasium.Wrapper):
         if isinstance(env, SuccessInfo):

@@ -140,15 +140,19 @@ class TabularEnv(EnvBase):
     def random_state(self) -> dict:
         """The lanes' random state (JSON-able): what the next ``reset``/``step`` will draw."""
         if self.rng_kind == "torch":
+            assert self._generator is not None  # _set_seed made it
             return {"torch": self._generator.get_state().tolist()}
+        assert self._np_generators is not None  # _set_seed made them
         return {"numpy": [g.bit_generator.state for g in self._np_generators]}
 
     def set_random_state(self, state: dict) -> None:
         """Restore a :meth:`random_state` (ValueError if it is of another kind or size)."""
         if self.rng_kind == "torch" and "torch" in state:
+            assert self._generator is not None  # _set_seed made it
             self._generator.set_state(torch.tensor(state["torch"], dtype=torch.uint8))
             return
         if self.rng_kind == "gymnasium" and len(state.get("numpy", ())) == self._n:
+            assert self._np_generators is not None  # _set_seed made them
             for g, st in zip(self._np_generators, state["numpy"]):
                 g.bit_generator.state = st
             return

@@ -117,7 +117,6 @@ def evaluate(
     success_fn: SuccessFn | None = None,
     confidence: float = 0.95,
     generator: torch.Generator | None = None,
-    fast_path: bool = True,
     progress: bool = False,
 ) -> Evaluation:
     """Evaluate ``policy`` over ``num_episodes`` whole episodes.
@@ -142,10 +141,6 @@ def evaluate(
         confidence: level of the intervals.
         generator: source of the policy's sampling in ``RANDOM`` mode (seed it for
             reproducible sampled evaluations); None: torch's global RNG (or ``seed``'s).
-        fast_path: step a plain gymnasium env or a TabularEnv directly, and play a
-            gymnasium toy-text env's episodes by the stream player when the policy is a
-            fixed table of states (:func:`~imitrl.data.episode_returns`); False: every
-            step through TorchRL. The same episodes either way.
         progress: a progress bar over the episodes on stderr.
     """
     if num_episodes < 1:
@@ -170,7 +165,6 @@ def evaluate(
             seed=seed,
             success_fn=success_fn,
             generator=generator,
-            fast_path=fast_path,
             progress=progress,
         )
     mean, lo, hi = mean_ci(summary.returns, confidence)

@@ -11,6 +11,8 @@ fit need (``horizon``, ``history``, ``batch_size``, ``recipe``, ``own_lr``:
 
 from __future__ import annotations
 
+from typing import TypedDict
+
 from imitrl.learners.act.entries import ACT_BATCH, ACT_LR, act
 from imitrl.learners.actor_critic.entries import (
     ENTROPY_COEF,
@@ -43,8 +45,15 @@ __all__: list[str] = []
 _H, _K = CHUNK_HORIZON, CHUNK_EXECUTE
 _C, _D = "continuous", "discrete"
 
+
+class _Flags(TypedDict):
+    """``register``'s keyword flags shared by several entries."""
+
+    value: bool
+
+
 # ------------------------------------------------------------------ one action a step
-_AC = {"value": True}  # ActorCritic: a value head when a job asks for one
+_AC: _Flags = {"value": True}  # ActorCritic: a value head when a job asks for one
 register("cross_entropy", actions=_D, summary="cross-entropy (categorical NLL)", **_AC)(
     cross_entropy
 )

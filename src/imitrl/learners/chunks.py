@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import torch
 from tensordict.nn import TensorDictModuleBase
+from torchrl.data import Bounded
 from torchrl.envs.utils import ExplorationType
 
 from imitrl.learners.learner import Learner
@@ -71,6 +72,7 @@ def chunked_learner(
     normalizer: ObservationNormalizer | None = None,
 ) -> Learner:
     """A :class:`Learner` acting through ``network``'s chunks as ``execution`` says."""
+    assert isinstance(task.action, Bounded)  # a continuous entry's task: a Bounded [m] spec
     m = int(task.action.shape[0])
     policy = ChunkedPolicy(network, m, execution)
     return Learner(

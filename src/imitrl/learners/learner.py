@@ -27,6 +27,7 @@ opt)``.
 from __future__ import annotations
 
 import contextlib
+from typing import TYPE_CHECKING
 
 import torch
 from tensordict import TensorDictBase
@@ -41,6 +42,9 @@ from imitrl.objectives.base import ImitationLoss
 from imitrl.policies.ema import EMA
 from imitrl.policies.normalization import ObservationNormalizer
 from imitrl.system.device import module_device, resolve_device
+
+if TYPE_CHECKING:
+    from typing_extensions import Self
 
 __all__ = ["Learner"]
 
@@ -139,7 +143,7 @@ class Learner(nn.Module):
         """Where the learner computes: its parameters' device (:mod:`imitrl.system.device`)."""
         return module_device(self)
 
-    def placed(self, device: str | torch.device | None) -> Learner:
+    def placed(self, device: str | torch.device | None) -> Self:
         """The learner moved to ``device`` (``"auto"``, ``"cpu"``, ``"cuda:N"``: see
         :func:`~imitrl.system.device.resolve_device`; None: left where it is); returns
         ``self``. Its optimizers keep their parameters (moved in place), so call it

@@ -106,7 +106,8 @@ class TaskSpec:
         if self.num_states is not None:
             obs: TensorSpec = Categorical(self.num_states, dtype=torch.int64)
         else:
-            obs = Unbounded((int(self.observation_dim),))  # type: ignore[arg-type]
+            assert self.observation_dim is not None  # __post_init__: one of the two is set
+            obs = Unbounded((int(self.observation_dim),))
         action = self.action
         if isinstance(action, int):
             action = Categorical(action, dtype=torch.int64)

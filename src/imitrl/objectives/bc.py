@@ -117,7 +117,7 @@ class BehaviorCloningLoss(ImitationLoss):
         """Within: :meth:`row_losses` calls its networks without ``nn.Module.__call__``
         per layer where the seam's fast paths run (built on entry; the same operations,
         so the same bits and gradients; hooks registered inside are not seen)."""
-        if self._chain is None or not paths.fast_enabled():
+        if self._chain is None or not paths.fast_enabled("loss_chain"):
             yield
             return
         with self._chain.direct():
@@ -217,7 +217,7 @@ class BehaviorCloningLoss(ImitationLoss):
         directly: no TensorDict is built, and the digits are those of :meth:`per_row`,
         the reference (what runs otherwise, and inside ``paths.reference()``).
         """
-        chain = self._chain if paths.fast_enabled() else None
+        chain = self._chain if paths.fast_enabled("loss_chain") else None
         if chain is None:
             return self.per_row(tensordict)[0]
         label = tensordict.get(self.tensor_keys.label)

@@ -34,7 +34,7 @@ The first loss of each row is the default; the default continuous head is
 from __future__ import annotations
 
 import itertools
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 
 import torch
 from tensordict.nn import (
@@ -94,13 +94,6 @@ class Squash(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         # 0-d tensor constants: the values of ``+ 1`` and ``/ 2``, at half their cost per call
         return self.low + (self.high - self.low) * (torch.tanh(x) + _ONE) / _TWO
-
-    def bound_forward(self) -> Callable[[torch.Tensor], torch.Tensor]:
-        """:meth:`forward` with the bounds and their span read now (a rollout's policy
-        call, :func:`imitrl.runtime.paths.network`): the same operations on the
-        same values, one fewer per call; bounds changed afterwards are not seen."""
-        low, span = self.low, self.high - self.low
-        return lambda x: low + span * (torch.tanh(x) + _ONE) / _TWO
 
 
 class OneHotInput(nn.Module):

@@ -12,8 +12,6 @@ that the normaliser is the identity.
 
 from __future__ import annotations
 
-from collections.abc import Callable
-
 import torch
 from torch import nn
 
@@ -64,13 +62,6 @@ class ObservationNormalizer(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return (x - self.loc) / self.scale
-
-    def bound_forward(self) -> Callable[[torch.Tensor], torch.Tensor]:
-        """:meth:`forward` with the statistics read now (a rollout's policy call,
-        :func:`imitrl.runtime.paths.network`); they are updated in place, so a
-        refit during the rollout is still seen."""
-        loc, scale = self.loc, self.scale
-        return lambda x: (x - loc) / scale
 
     def extra_repr(self) -> str:
         return f"shape={self.shape}, fitted={self.is_fitted}"

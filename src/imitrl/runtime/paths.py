@@ -34,16 +34,19 @@ Adam (:meth:`imitrl.learners.Learner.placed`); the policy call crosses devices t
 
 The one rollout loop (:func:`imitrl.runtime.loop.play`) runs either stepper.
 
-**Choosing.** Accelerated paths run by default. Inside :func:`reference` (a context
-manager, per thread and task) every piece takes its reference path: to check a result
-against public TorchRL, or to rule the fast paths out when something looks wrong. A
-rollout's ``fast_path=False`` does the same for that rollout's stepper.
+**Choosing: one switch.** Accelerated paths run by default. Inside :func:`reference` (a
+context manager, per thread and task) every piece, or the pieces named, takes its
+reference path: to check a result against public TorchRL, or to rule the fast paths out
+when something looks wrong. ``IMITRL_REFERENCE`` (``all``, or a comma-separated list of
+:data:`PIECES`) does the same for a whole process: what ``benchmarks/seam.py`` measures
+each piece's gain with.
 """
 
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Callable, Iterator, Sequence
+import os
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from contextvars import ContextVar
 from typing import TYPE_CHECKING
 
@@ -57,6 +60,7 @@ if TYPE_CHECKING:  # imported when used: envs and objectives import this module
     from imitrl.runtime.loop import Lanes, Stepper
 
 __all__ = [
+    "PIECES",
     "clip_grad_norm",
     "fast_enabled",
     "gae",
@@ -68,24 +72,63 @@ __all__ = [
     "reference",
     "stepper",
     "table_returns",
+    "zero_grad",
 ]
 
-_FAST: ContextVar[bool] = ContextVar("imitrl_fast_paths", default=True)
+PIECES = (
+    "stepper",
+    "table_returns",
+    "network",
+    "loss_chain",
+    "optimizer_step",
+    "zero_grad",
+    "clip_grad_norm",
+    "ppo_loss",
+    "gail_loss",
+    "gae",
+)
+"""every accelerated piece, by the name :func:`reference` and ``IMITRL_REFERENCE`` take"""
 
 
-def fast_enabled() -> bool:
-    """Whether accelerated paths run here (False inside :func:`reference`)."""
-    return _FAST.get()
+def _pieces(names: Iterable[str], where: str) -> frozenset[str]:
+    names = [n.strip() for n in names if n.strip()]
+    if names == ["all"]:
+        return frozenset(PIECES)
+    unknown = sorted(set(names) - set(PIECES))
+    if unknown:
+        raise ValueError(
+            f"{where}: no accelerated piece {unknown}; the pieces: {', '.join(PIECES)}"
+        )
+    return frozenset(names)
+
+
+_FROM_ENVIRONMENT = _pieces(os.environ.get("IMITRL_REFERENCE", "").split(","), "IMITRL_REFERENCE")
+_REFERENCE: ContextVar[frozenset[str]] = ContextVar(
+    "imitrl_reference_pieces", default=_FROM_ENVIRONMENT
+)
+"""the pieces on their reference path here: :func:`reference`'s, or the environment's
+``IMITRL_REFERENCE`` (``all``, or a comma-separated list of :data:`PIECES`: how a whole
+process is measured without one piece, ``benchmarks/seam.py``)"""
+
+
+def fast_enabled(piece: str | None = None) -> bool:
+    """Whether the accelerated path of ``piece`` (None: of every piece) runs here (False
+    inside :func:`reference` of it)."""
+    off = _REFERENCE.get()
+    return not off if piece is None else piece not in off
 
 
 @contextlib.contextmanager
-def reference() -> Iterator[None]:
-    """Within: every piece of this seam takes its reference path (module docstring)."""
-    token = _FAST.set(False)
+def reference(*pieces: str) -> Iterator[None]:
+    """Within: the named pieces (none named: every piece, :data:`PIECES`) take their
+    reference path (module docstring); the one switch, for a check against public TorchRL
+    or to rule an accelerated piece out."""
+    names = frozenset(PIECES) if not pieces else _pieces(pieces, "paths.reference")
+    token = _REFERENCE.set(_REFERENCE.get() | names)
     try:
         yield
     finally:
-        _FAST.reset(token)
+        _REFERENCE.reset(token)
 
 
 def stepper(
@@ -93,20 +136,19 @@ def stepper(
     policy: TensorDictModuleBase,
     *,
     record: bool,
-    fast_path: bool = True,
     row_keys: tuple | None = None,
     next_observation: bool = False,
 ) -> Stepper:
     """The stepper of ``env`` driven by ``policy`` for :func:`~imitrl.runtime.loop.play`
     (or :func:`~imitrl.runtime.loop.play_steps`): the accelerated one where it knows the
-    env and ``fast_path`` and :func:`fast_enabled` allow, else the reference one. Build it
+    env (outside :func:`reference`), else the reference one. Build it
     inside the rollout's exploration type. ``row_keys``: the root entries a recording
     keeps (None: :data:`~imitrl.runtime.loop.ROW_KEYS`); ``next_observation``: keep
     ``("next", "observation")`` too."""
     from imitrl.runtime.loop import ROW_KEYS
 
     extra = (ROW_KEYS if row_keys is None else tuple(row_keys), next_observation)
-    if fast_path and fast_enabled():
+    if fast_enabled("stepper"):
         from imitrl.runtime.fast.env_steps import direct_steps
 
         direct = direct_steps(env)
@@ -120,13 +162,13 @@ def stepper(
 
 
 def table_returns(
-    env: EnvBase, policy: TensorDictModuleBase, book: Lanes, *, fast_path: bool = True
+    env: EnvBase, policy: TensorDictModuleBase, book: Lanes
 ) -> tuple[np.ndarray, np.ndarray] | None:
     """Returns and lengths ``[n]`` of ``book``'s episodes by the toy-text stream player
     (:mod:`imitrl.runtime.fast.toy_text`) when ``env`` is a plain gymnasium toy-text env
     with a time limit and ``policy`` a fixed table of states; None (nothing played)
     otherwise, or on the reference path: then the step loop plays them."""
-    if not (fast_path and fast_enabled()):
+    if not fast_enabled("table_returns"):
         return None
     from imitrl.runtime.fast.toy_text import table_returns as played
 
@@ -136,7 +178,7 @@ def table_returns(
 def network(module: nn.Module) -> Callable[..., torch.Tensor]:
     """``module``'s call: without ``nn.Module.__call__``'s hook bookkeeping where it has
     no hooks (the same bits), or ``module`` itself on the reference path."""
-    if not fast_enabled():
+    if not fast_enabled("network"):
         return module
     from imitrl.runtime.fast.policy_call import direct_call
 
@@ -157,7 +199,7 @@ def ppo_loss(loss, batch=None):
     (its losses on a minibatch's tensors, the same bits), or None on the reference path
     and wherever it would compute anything else (a configuration it does not replay, a
     ``batch`` carrying a loss mask): then call ``loss`` on the TensorDict."""
-    if not fast_enabled():
+    if not fast_enabled("ppo_loss"):
         return None
     from imitrl.runtime.fast.ppo_step import TensorPPO
 
@@ -168,7 +210,7 @@ def gail_loss(loss, batch=None):
     """A :class:`~imitrl.runtime.fast.gail_step.TensorGAILLoss` of the ``GAILLoss``
     ``loss`` (its loss from the four feature tensors, the same bits), or None on the
     reference path and wherever it would compute anything else: then call ``loss``."""
-    if not fast_enabled():
+    if not fast_enabled("gail_loss"):
         return None
     from imitrl.runtime.fast.gail_step import TensorGAILLoss
 
@@ -179,7 +221,7 @@ def gae(module, batch):
     """``module`` (a TorchRL ``GAE``) as a callable on ``batch``: a
     :class:`~imitrl.runtime.fast.gae_step.TensorGAE` (the same bits) where it replays the
     module's configuration, the module itself on the reference path and elsewhere."""
-    if not fast_enabled():
+    if not fast_enabled("gae"):
         return module
     from imitrl.runtime.fast.gae_step import TensorGAE
 
@@ -191,7 +233,7 @@ def optimizer_step(*opts: torch.optim.Optimizer) -> Callable[[], None]:
     the optimizers' own state on the CPU, one call for all of them while their settings
     agree (the same kernels, so the same bits), ``opt.step`` everywhere else and on the
     reference path."""
-    if not fast_enabled():
+    if not fast_enabled("optimizer_step"):
         if len(opts) == 1:
             return opts[0].step
 
@@ -209,8 +251,31 @@ def clip_grad_norm(params: Sequence[torch.Tensor], max_norm: float) -> torch.Ten
     """``torch.nn.utils.clip_grad_norm_(params, max_norm)``: its four calls without its
     wrapper where it would take its foreach path on the CPU (the same bits), the function
     itself elsewhere and on the reference path."""
-    if not fast_enabled():
+    if not fast_enabled("clip_grad_norm"):
         return torch.nn.utils.clip_grad_norm_(params, max_norm)
     from imitrl.runtime.fast.clip_grad import clip_grad_norm as fast_clip
 
     return fast_clip(params, max_norm)
+
+
+def zero_grad(*opts: torch.optim.Optimizer) -> Callable[[], None]:
+    """``opt.zero_grad(set_to_none=True)`` of each of ``opts`` as a function of no
+    argument: for torch's own ``Optimizer.zero_grad`` (not overridden) that method's
+    assignment, ``p.grad = None`` for every parameter, without the profiler range the
+    method opens at each call; the method itself elsewhere and on the reference path."""
+    if not fast_enabled("zero_grad") or any(
+        type(o).zero_grad is not torch.optim.Optimizer.zero_grad for o in opts
+    ):
+
+        def each() -> None:
+            for opt in opts:
+                opt.zero_grad(set_to_none=True)
+
+        return each
+    params = [p for opt in opts for group in opt.param_groups for p in group["params"]]
+
+    def assign() -> None:
+        for p in params:
+            p.grad = None
+
+    return assign

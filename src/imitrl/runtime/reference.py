@@ -4,8 +4,8 @@ Each step is ``td = policy(td)`` then ``out, td = env.step_and_maybe_reset(td)``
 as TorchRL's own ``env.rollout`` steps: any env (batched, parallel, transformed, pixels,
 your own ``EnvBase``) and any policy module. The accelerated stepper
 (:mod:`imitrl.runtime.fast.stepper`) is tested against this one, digit for digit; it is
-what runs on every env the accelerated one does not know, with ``fast_path=False``, and
-inside :func:`imitrl.runtime.paths.reference`.
+what runs on every env the accelerated one does not know, and inside
+:func:`imitrl.runtime.paths.reference`.
 """
 
 from __future__ import annotations

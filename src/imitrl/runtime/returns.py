@@ -54,7 +54,6 @@ def episode_returns(
     seed: int | None = None,
     success_fn: SuccessFn | None = None,
     generator: torch.Generator | None = None,
-    fast_path: bool = True,
     progress: bool = False,
 ) -> EpisodeSummary:
     """Play ``num_episodes`` whole episodes, keeping only returns, lengths and success.
@@ -63,11 +62,6 @@ def episode_returns(
         policy: an :class:`~imitrl.policies.Expert` or a module writing ``ACTION``.
         success_fn: maps the step tensordict at an episode's end to a ``[lanes]``
             bool (e.g. "the next observation is a goal state"); None for no success.
-        fast_path: as in :func:`rollout_episodes`; besides, on a gymnasium toy-text env
-            (FrozenLake, Taxi, CliffWalking with a time limit) without ``success_fn``,
-            a policy that is a fixed table of states plays its episodes by the stream
-            player (:func:`imitrl.runtime.paths.table_returns`): the same episodes, no
-            step loop.
         progress: a progress bar on stderr, one tick per finished episode.
         (others as in :func:`rollout_episodes`)
     """
@@ -83,13 +77,11 @@ def episode_returns(
     with torch.no_grad(), set_exploration_type(exploration), rng_from(generator):
         table = None
         if success_fn is None:
-            table = paths.table_returns(env, actor, book, fast_path=fast_path)
+            table = paths.table_returns(env, actor, book)
         if table is not None:
             tally.returns[:], tally.lengths[:] = table
         else:
-            stepper = paths.stepper(
-                init_tracked(env, actor), actor, record=False, fast_path=fast_path
-            )
+            stepper = paths.stepper(init_tracked(env, actor), actor, record=False)
             tally.stepper = stepper
             play(stepper, book, labels=False, on_reward=tally.add, on_end=tally.end)
     if bar is not None:

@@ -12,8 +12,7 @@ episodes). Both take an :class:`~imitrl.policies.Expert` (it drives the env thro
 chooses (:func:`imitrl.runtime.paths.stepper`): on a plain gymnasium env from
 :func:`~imitrl.envs.make_env` and on a :class:`~imitrl.envs.TabularEnv` the accelerated
 one (the simulator stepped directly, the policy called on a dict of tensors), on every
-other env, with ``fast_path=False`` and inside :func:`imitrl.runtime.paths.reference`
-TorchRL's own ``env.step_and_maybe_reset`` and ``policy(td)``: the reference the
+other env and inside :func:`imitrl.runtime.paths.reference` (``"stepper"``, or all) TorchRL's own ``env.step_and_maybe_reset`` and ``policy(td)``: the reference the
 accelerated path is tested against, digit for digit (``tests/test_fast_path.py``).
 """
 
@@ -131,7 +130,6 @@ def rollout_episodes(
     round_index: int = 0,
     first_episode: int = 0,
     generator: torch.Generator | None = None,
-    fast_path: bool = True,
 ) -> TensorDict:
     """Play ``num_episodes`` whole episodes and return their transitions as rows.
 
@@ -154,8 +152,6 @@ def rollout_episodes(
         generator: source of the policy's sampling in ``RANDOM`` mode (torch
             distributions draw from the global RNG; this runs them on ``generator``
             instead and advances it). None: torch's global RNG (or ``seed``'s).
-        fast_path: the stepper the seam chooses (module docstring); False: through
-            TorchRL (the same rows, slower).
 
     Returns:
         rows ``[R]`` with ``OBSERVATION, ACTION, EXPERT_ACTION, EXPERT_EXECUTED,
@@ -170,7 +166,7 @@ def rollout_episodes(
     actor, exploration = rollout_policy(env, policy, exploration)
     generator = _seeded(env, seed, generator)
     with torch.no_grad(), set_exploration_type(exploration), rng_from(generator):
-        stepper = paths.stepper(init_tracked(env, actor), actor, record=True, fast_path=fast_path)
+        stepper = paths.stepper(init_tracked(env, actor), actor, record=True)
         play(stepper, book, labels=True)
         traj = stepper.trajectory()
     if traj is None:

@@ -119,7 +119,7 @@ class GAILDiscriminator:
         )
         self.optimizer = torch.optim.Adam(self.loss.parameters(), lr=lr)
         self.params = [p for g in self.optimizer.param_groups for p in g["params"]]
-        self._steps: dict[bool, Callable[[], None]] = {}
+        self._calls: dict[tuple[str, bool], Callable[[], None]] = {}
 
     def pairs(self, transitions: TensorDictBase) -> TensorDict:
         """``STATE_FEATURES`` and ``ACTION_FEATURES`` ``[N]`` of transitions ``[N]``."""
@@ -162,10 +162,9 @@ class GAILDiscriminator:
         else:
             loss = fast(*(side.get(k) for side in sides for k in self.module.in_keys))
             gp = torch.zeros(())
-        for p in self.params:  # the optimizer's zero_grad(set_to_none=True)
-            p.grad = None
+        self._optimizer_call("zero_grad")()
         loss.backward()
-        self._step()
+        self._optimizer_call("optimizer_step")()
         with torch.no_grad():  # each side's pairs through D after the step
             if fast is None:
                 logits = [self.module(side).get(DISCRIMINATOR_LOGIT) for side in sides]
@@ -181,13 +180,15 @@ class GAILDiscriminator:
             "policy_accuracy": float(policy_acc),
         }
 
-    def _step(self) -> None:
-        """The optimizer's step through the seam (Adam's functional form on the CPU, the
-        same bits), made once per path."""
-        key = paths.fast_enabled()
-        if key not in self._steps:
-            self._steps[key] = paths.optimizer_step(self.optimizer)
-        self._steps[key]()
+    def _optimizer_call(self, piece: str) -> Callable[[], None]:
+        """The optimizer's ``zero_grad`` or ``step`` through the seam (``piece``: the
+        parameters' assignment, Adam's functional form on the CPU; the same bits), made
+        once per path."""
+        key = (piece, paths.fast_enabled(piece))
+        if key not in self._calls:
+            make = paths.zero_grad if piece == "zero_grad" else paths.optimizer_step
+            self._calls[key] = make(self.optimizer)
+        return self._calls[key]
 
     def reward(self, transitions: TensorDictBase) -> torch.Tensor:
         """``[N, 1]`` ``-log(1 - D(s, a))``, without gradient."""

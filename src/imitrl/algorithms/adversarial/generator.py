@@ -103,10 +103,10 @@ class PPOGenerator:
         n = batch.numel()
         sums: dict[str, float] = {}
         opts = (self.learner.opt_pi, self.learner.opt_v)
-        owned = [p for o in opts for g in o.param_groups for p in g["params"]]
         # Adam's step through the seam (its functional form on the CPU, both optimizers
         # in one call: the same bits), the clip likewise
         optimizer_step = paths.optimizer_step(*opts)
+        zero_grad = paths.zero_grad(*opts)  # both optimizers' zero_grad(set_to_none=True)
         fast = paths.ppo_loss(self.loss, batch)  # the loss on tensors (same bits), or None
         gae = paths.gae(self.gae, batch)  # GAE on tensors (same bits), or the module
         for _ in range(self.epochs):
@@ -124,8 +124,7 @@ class PPOGenerator:
                 else:
                     losses = fast(*(c[rows] for c in columns))
                 total = sum(losses.values())
-                for p in owned:  # both optimizers' zero_grad(set_to_none=True)
-                    p.grad = None
+                zero_grad()
                 total.backward()
                 paths.clip_grad_norm(self.params, self.max_grad_norm)
                 optimizer_step()

@@ -57,6 +57,7 @@ def _datasets(
             )
         )
     T = mdp.max_steps
+    assert T is not None  # airl_transfer skips an MDP without a time limit
     exact = _irl.occupancy_measure(mdp, demonstrator[None].expand(T, -1, -1))
     out.append(
         (
@@ -171,6 +172,7 @@ def airl_transfer(ctx: StudyContext) -> None:
         return
     demonstrator = _airl.boltzmann_policy(mdp, cfg.airl_beta)
     T = mdp.max_steps
+    assert T is not None  # refused above (why)
     demo_success = float(
         _irl.time_indexed_state_distributions(mdp, demonstrator[None].expand(T, -1, -1))[-1][
             mdp.goal

@@ -33,6 +33,7 @@ def evaluation(ctx: StudyContext) -> None:
     """Success rates of the expert and of the greedy clone (``ctx.clone_table``), exact beside."""
     cfg, rep = ctx.config, ctx.report
     rep.section("3. Acting on its own")
+    assert ctx.clone is not None and ctx.demos is not None  # sections 1 and 2 set them
     clone_table = ctx.clone.greedy_table()
     ctx.clone_table = clone_table
     demos = ctx.demos

@@ -85,9 +85,11 @@ class StudyContext:
 
     def learner(self, copies: int = 1) -> ActorCritic:
         """A zero-initialised tabular actor-critic over ``copies * S`` states."""
-        return build(
+        learner = build(
             "cross_entropy", TaskSpec(action=self.A, num_states=self.S * copies), lr=self.config.lr
         )
+        assert isinstance(learner, ActorCritic)  # cross_entropy on integer states: a table
+        return learner
 
     def dagger_config(self, episodes_per_round: int, fit_steps: int) -> DAggerConfig:
         """The study's DAgger: ``config.dagger_rounds`` full-batch fits of ``fit_steps``."""

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
-from imitrl.algorithms.dagger import dagger
+from imitrl.algorithms.dagger import EpisodeSource, dagger
 from imitrl.evaluation.evaluate import wilson_interval
 from imitrl.experiments.frozenlake import figures
+from imitrl.experiments.frozenlake.backends import _BatchedBlock
 from imitrl.experiments.frozenlake.context import StudyContext
 from imitrl.learners.actor_critic import ActorCritic
+from imitrl.learners.learner import Learner
 from imitrl.policies.experts import Expert
 
 __all__ = ["dagger_rounds"]
@@ -18,10 +20,12 @@ def dagger_rounds(ctx: StudyContext) -> None:
     rep.section("7. DAgger: relabel the learner's states, aggregate, refit")
     block = ctx.backend.block(cfg.dagger_seed)
     n = ctx.eval_episodes(cfg.eval_episodes)
+    assert ctx.demos is not None  # section 1 set them
     buffer = ctx.buffer(ctx.demos.clone())
     rounds: list[dict] = []
 
-    def on_fit(k: int, learner: ActorCritic) -> None:
+    def on_fit(k: int, learner: Learner) -> None:
+        assert isinstance(learner, ActorCritic)  # ctx.learner's table
         table = learner.greedy_table()
         rate = float(block.evaluate(table[None], n)[0])
         exact = ctx.exact(table)
@@ -40,7 +44,12 @@ def dagger_rounds(ctx: StudyContext) -> None:
             }
         )
 
-    source = block.source() if not ctx.backend.vectorised else block.source(1, cfg.dagger_episodes)
+    source: EpisodeSource
+    if ctx.backend.vectorised:
+        assert isinstance(block, _BatchedBlock)  # the batched backend's
+        source = block.source(1, cfg.dagger_episodes)
+    else:
+        source = block.source()
     dagger(
         source,
         Expert.from_table(ctx.expert_table),

@@ -16,6 +16,7 @@ def divergence(ctx: StudyContext) -> None:
     cfg, mdp, rep = ctx.config, ctx.mdp, ctx.report
     rep.section("6. The divergence of the state distributions (exact kernel evolution)")
     H = max(cfg.tv_steps)
+    assert ctx.clone_table is not None  # section 3 set it
     d_exp = state_distributions(mdp, ctx.expert_table, H)  # [H + 1, S]
     d_clo = state_distributions(mdp, ctx.clone_table, H)
     for t in cfg.tv_steps:

@@ -32,15 +32,17 @@ def _dagger_and_equal_budget(
         demos = block.demonstrations(cfg.demo_episodes, K)
         dagger_tables, budgets = replicated_dagger(ctx, block, demos, cfg.ex_fit_steps)
         return demos, dagger_tables, budgets, demos_with_budget(ctx, block, budgets)
-    demos, dagger_tables, budgets, bc_rows = [], [], [], []
+    demos, bc_rows = [], []
+    table_each: list[torch.Tensor] = []
+    budget_each: list[torch.Tensor] = []
     for _ in ctx.bar(range(K), "budget"):  # stream order: demos, DAgger, budgeted demos
         d = block.demonstrations(cfg.demo_episodes)[0]
         t, b = replicated_dagger(ctx, block, [d], cfg.ex_fit_steps)
         bc_rows += demos_with_budget(ctx, block, b)
         demos.append(d)
-        dagger_tables.append(t[0])
-        budgets.append(b[0])
-    return demos, torch.stack(dagger_tables), torch.stack(budgets), bc_rows
+        table_each.append(t[0])
+        budget_each.append(b[0])
+    return demos, torch.stack(table_each), torch.stack(budget_each), bc_rows
 
 
 def ex_budget(ctx: StudyContext) -> None:

@@ -96,15 +96,15 @@ def _dagger_clean_and_corrupted(
         clean_tables = replicated_dagger(ctx, block, demos, cfg.ex_fit_steps)[0]
         bad_tables = replicated_dagger(ctx, block, bad, cfg.ex_fit_steps, bad_expert)[0]
         return demos, bad, clean_tables, bad_tables
-    demos, bad, clean_tables, bad_tables = [], [], [], []
+    demos, bad = [], []
+    clean_each: list[torch.Tensor] = []
+    bad_each: list[torch.Tensor] = []
     for _ in ctx.bar(range(K), "corruption"):  # stream order: demos, clean DAgger, noisy DAgger
         demos.append(block.demonstrations(cfg.demo_episodes)[0])
         bad.append(corrupt_labels(demos[-1], cfg.ex_corruption, ctx.A, generator))
-        clean_tables.append(replicated_dagger(ctx, block, demos[-1:], cfg.ex_fit_steps)[0][0])
-        bad_tables.append(
-            replicated_dagger(ctx, block, bad[-1:], cfg.ex_fit_steps, bad_expert)[0][0]
-        )
-    return demos, bad, torch.stack(clean_tables), torch.stack(bad_tables)
+        clean_each.append(replicated_dagger(ctx, block, demos[-1:], cfg.ex_fit_steps)[0][0])
+        bad_each.append(replicated_dagger(ctx, block, bad[-1:], cfg.ex_fit_steps, bad_expert)[0][0])
+    return demos, bad, torch.stack(clean_each), torch.stack(bad_each)
 
 
 def _degrades_more(clean: np.ndarray, bad: np.ndarray, K: int) -> tuple[str, str]:

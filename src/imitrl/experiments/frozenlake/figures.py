@@ -144,7 +144,9 @@ def plot_occupancy(
     """
     if desc is None and shape is None:
         return _occupancy_curves(occupancies, titles, path)
-    rows, cols = desc.shape if desc is not None else shape
+    grid_shape = desc.shape if desc is not None else shape
+    assert grid_shape is not None  # returned above without either
+    rows, cols = grid_shape
     n = len(occupancies)
     wide = cols > 1.5 * rows  # CliffWalking's 4 x 12: the maps one above the other
     grid = (n, 1) if wide else (1, n)
@@ -158,6 +160,7 @@ def plot_occupancy(
             im = _grid(ax, desc, occ, pol, title, vmax)
         else:
             im = _plain_grid(ax, (rows, cols), occ, title, vmax)
+    assert im is not None  # one map at least (max() above refuses none)
     fig.colorbar(im, ax=fig.axes, label="average state occupancy", shrink=0.8)
     return save_figure(fig, path, dpi=120)
 

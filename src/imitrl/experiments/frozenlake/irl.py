@@ -21,6 +21,7 @@ from __future__ import annotations
 import ast
 import importlib
 import inspect
+from typing import TYPE_CHECKING, Any
 
 import gymnasium as gym
 import numpy as np
@@ -39,6 +40,9 @@ from imitrl.tabular.finite_horizon import (
 )
 from imitrl.tabular.mdp import TabularMDP
 
+if TYPE_CHECKING:
+    from imitrl.tabular.maxent_irl import IRLResult
+
 # the module, not the function of the same name that imitrl.tabular re-exports
 _irl = importlib.import_module("imitrl.tabular.maxent_irl")
 
@@ -51,6 +55,8 @@ _DEFAULT_TRANSFER = (("is_slippery", "False"), ("success_rate", "0.5"), ("succes
 def _env_arguments(env_id: str) -> set[str] | None:
     """Names the env's constructor takes (None: unknown, e.g. a function entry point)."""
     entry = gym.spec(env_id).entry_point
+    if entry is None:
+        return None  # no entry point to read
     if not isinstance(entry, str):
         entry_obj = entry
     else:
@@ -91,7 +97,7 @@ def transfer_mdps(config: StudyConfig) -> list[tuple[str, TabularMDP]]:
     return out
 
 
-def _fit(ctx: StudyContext, rows: list) -> _irl.IRLResult:
+def _fit(ctx: StudyContext, rows: list) -> IRLResult:
     """IRL on each row set at once (a batch of fits, each its own)."""
     mdp, cfg = ctx.mdp, ctx.config
     demos = _irl.Demonstrations.stack([_irl.Demonstrations.from_rows(mdp, r) for r in rows])
@@ -104,14 +110,18 @@ def _soft_success(mdp: TabularMDP, policy: torch.Tensor) -> float:
     return float(_irl.time_indexed_state_distributions(mdp, policy)[-1][mdp.goal].sum())
 
 
-def _main_fit(ctx: StudyContext) -> _irl.IRLResult:
+def _main_fit(ctx: StudyContext) -> IRLResult:
     """The fit from section 1's demonstrations, reported next to the expert and the clone."""
     mdp, rep = ctx.mdp, ctx.report
+    assert ctx.demos is not None  # section 1 set them
     res = _fit(ctx, [ctx.demos])
     theta, table = res.theta[0], res.greedy()[0]
     uniform = -float(ctx.demos.shape[0]) / ctx.config.demo_episodes * np.log(ctx.A)
     ll = float(res.log_likelihood[0, -1])
-    exact = {"expert": ctx.exact(ctx.expert_table), "irl": ctx.exact(table)}
+    exact: dict[str, float | None] = {
+        "expert": ctx.exact(ctx.expert_table),
+        "irl": ctx.exact(table),
+    }
     exact["clone"] = ctx.exact(ctx.clone_table) if ctx.clone_table is not None else None
     soft = _soft_success(mdp, res.policy[0])
     rep.line(
@@ -155,8 +165,9 @@ def _main_fit(ctx: StudyContext) -> _irl.IRLResult:
     return res
 
 
-def _argmax_fraction(ctx: StudyContext, res: _irl.IRLResult) -> float:
+def _argmax_fraction(ctx: StudyContext, res: IRLResult) -> float:
     """Fraction of demonstrated decisions that are the soft-optimal policy's most likely action."""
+    assert ctx.demos is not None  # section 1 set them
     t = ctx.demos.get(keys.STEP).long()
     s = ctx.demos.get(keys.OBSERVATION).long()
     a = ctx.demos.get(keys.EXPERT_ACTION).long()
@@ -195,10 +206,10 @@ def _sweep(ctx: StudyContext) -> dict[int, dict[str, np.ndarray]]:
     return out
 
 
-def _transfer(ctx: StudyContext, res: _irl.IRLResult) -> list[dict]:
+def _transfer(ctx: StudyContext, res: IRLResult) -> list[dict]:
     """The recovered reward planned against under each target's dynamics."""
     cfg, rep = ctx.config, ctx.report
-    rows = []
+    rows: list[dict[str, Any]] = []
     targets = transfer_mdps(cfg)
     if not targets:
         rep.line("reward transfer: no target dynamics for this env (--irl-transfer)")

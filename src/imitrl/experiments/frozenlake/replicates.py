@@ -18,8 +18,9 @@ from tensordict import TensorDict
 from imitrl import keys
 from imitrl.algorithms.bc import BCConfig, distinct_pairs, fit_bc
 from imitrl.algorithms.dagger import EpisodeSource, dagger
-from imitrl.experiments.frozenlake.backends import Block
+from imitrl.experiments.frozenlake.backends import Block, _BatchedBlock
 from imitrl.experiments.frozenlake.context import StudyContext
+from imitrl.learners.actor_critic import ActorCritic
 from imitrl.learners.learner import Learner
 from imitrl.objectives.bc import BehaviorCloningLoss
 from imitrl.policies.experts import Expert
@@ -43,7 +44,9 @@ def _joint_pairs(rows: list[TensorDict], S: int) -> TensorDict:
     obs = torch.cat([r.get(keys.OBSERVATION) + k * S for k, r in enumerate(rows)])
     label = torch.cat([r.get(keys.EXPERT_ACTION) for r in rows])
     union = TensorDict({keys.OBSERVATION: obs, keys.EXPERT_ACTION: label}, [obs.shape[0]])
-    pairs, counts = distinct_pairs(union)
+    distinct = distinct_pairs(union)
+    assert distinct is not None  # integer states and actions
+    pairs, counts = distinct
     per_copy = torch.tensor([r.shape[0] for r in rows], dtype=torch.float32)
     state = pairs.get(keys.OBSERVATION)
     pairs.set(keys.WEIGHT, counts.float() * pairs.shape[0] / per_copy[state // S])
@@ -62,9 +65,9 @@ def fit_tables(
     """
     S, K = ctx.S, len(rows)
     if K == 1:
-        learner = ctx.learner()
-        fit = fit_bc(learner, rows[0], BCConfig(num_steps=steps, batch_size=None))
-        return learner.greedy_table()[None], [fit.final_loss]
+        clone = ctx.learner()
+        fit = fit_bc(clone, rows[0], BCConfig(num_steps=steps, batch_size=None))
+        return clone.greedy_table()[None], [fit.final_loss]
     union = _joint_pairs(rows, S)
     table = ctx.learner(K)
     # the same table trained on the weighted pairs (the WEIGHT column is read as data)
@@ -100,14 +103,16 @@ def replicated_clones(
         # nothing but the demonstrations touches the stream: draw them in order, fit jointly
         rows = [block.demonstrations(n_demos)[0] for _ in ctx.bar(range(K), desc)]
         return fit_tables(ctx, rows, fit_steps)[0], None, rows
-    tables, rates, rows = [], [], []
+    each_table: list[torch.Tensor] = []
+    each_rate: list[torch.Tensor] = []
+    rows = []
     for _ in ctx.bar(range(K), desc):  # each evaluation reads the stream the next demos use
         r = block.demonstrations(n_demos)[0]
         t = fit_tables(ctx, [r], fit_steps)[0][0]
-        rates.append(block.evaluate(t[None], eval_episodes)[0])
-        tables.append(t)
+        each_rate.append(block.evaluate(t[None], eval_episodes)[0])
+        each_table.append(t)
         rows.append(r)
-    return torch.stack(tables), torch.stack(rates), rows
+    return torch.stack(each_table), torch.stack(each_rate), rows
 
 
 def product_rows(rows: list[TensorDict], S: int) -> TensorDict:
@@ -145,6 +150,7 @@ def replicated_dagger(
         return source if wrap_source is None else wrap_source(source)
 
     if ctx.backend.vectorised:
+        assert isinstance(block, _BatchedBlock)  # the batched backend's
         buf = ctx.buffer(product_rows(demos, S), num_states=K * S)
         source = wrap(block.source(K, cfg.dagger_episodes))
         res = dagger(
@@ -152,16 +158,19 @@ def replicated_dagger(
         )
         copy = buf.data.get(keys.OBSERVATION) // S
         budgets = torch.bincount(copy, minlength=K)
+        assert isinstance(res.learner, ActorCritic)  # ctx.learner's table
         return res.learner.greedy_table().reshape(K, S), budgets
-    tables, budgets = [], []
+    tables: list[torch.Tensor] = []
+    counts: list[int] = []
     for d in demos:
         buf = ctx.buffer(d)
         res = dagger(
             wrap(block.source()), Expert.from_table(ctx.expert_table), ctx.learner, buf, dcfg
         )
+        assert isinstance(res.learner, ActorCritic)  # ctx.learner's table
         tables.append(res.learner.greedy_table())
-        budgets.append(len(buf))
-    return torch.stack(tables), torch.tensor(budgets)
+        counts.append(len(buf))
+    return torch.stack(tables), torch.tensor(counts)
 
 
 def demos_with_budget(ctx: StudyContext, block: Block, budgets: torch.Tensor) -> list[TensorDict]:

@@ -19,10 +19,11 @@ def sweep(ctx: StudyContext) -> None:
     n_eval = ctx.eval_episodes(cfg.sweep_eval_episodes)
     all_rates, all_exact = [], []
     for n in cfg.sweep_sizes:
-        tables, rates, _ = replicated_clones(
+        tables, measured, _ = replicated_clones(
             ctx, block, cfg.sweep_datasets, n, cfg.sweep_fit_steps, n_eval, f"sweep {n} ep"
         )
-        rates = rates.double().numpy()
+        assert measured is not None  # n_eval >= 1 (StudyConfig's bounds)
+        rates = measured.double().numpy()
         exact = ctx.exact_each(tables)
         order = np.sort(rates)
         rep.line(

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 from tensordict.utils import NestedKey
 from torch import nn
+from torchrl.data import Bounded
 from torchrl.envs.utils import ExplorationType
 
 from imitrl import keys
@@ -120,6 +121,7 @@ def for_env(task: TaskSpec, config: LearnerConfig) -> Learner:
     options = config.options if config.options is not None else ForEnvOptions()
     observation, action = task.env_specs()
     pixels = options.pixel_key is not None or keys.PIXELS in observation.keys()
+    assert config.lr is not None  # registry.make resolved it
     return ActorCritic.for_specs(
         observation,
         action,
@@ -169,6 +171,7 @@ def cross_entropy_entropy(task: TaskSpec, config: LearnerConfig) -> Learner:
 def advantage_weighted(task: TaskSpec, config: LearnerConfig) -> Learner:
     """``advantage_weighted``: ``-A(s, a*) log pi(a*|s)`` (``task.advantage``)."""
     ac = mlp(task, config)
+    assert task.advantage is not None  # the entry requires it (registry.make checked)
     return _with_loss(ac, AdvantageWeightedLoss(ac.policy, task.advantage))
 
 
@@ -221,6 +224,7 @@ def gaussian_nll_chunk(task: TaskSpec, config: LearnerConfig) -> Learner:
     ac = mlp(chunk_task(task), config, head="tanh_normal_free")
     inner = BehaviorCloningLoss(ac.policy, loss_type="nll")
     inner.set_keys(label=FLAT_CHUNK)
+    assert isinstance(task.action, Bounded)  # a continuous entry's task: a Bounded [m] spec
     loss = FlatChunkLoss(inner, dim=CHUNK_HORIZON * int(task.action.shape[0]))
     det = ExplorationType.DETERMINISTIC
     return chunked_learner(

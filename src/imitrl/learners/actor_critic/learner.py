@@ -25,7 +25,7 @@ give numpy or Python values out, computed without gradients.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 import torch
@@ -58,6 +58,9 @@ from imitrl.policies.specs import (
 )
 from imitrl.rng import rng_from
 from imitrl.system.device import to_device
+
+if TYPE_CHECKING:
+    from torch import distributions as D
 
 __all__ = ["HEADS", "HEAD_LOSSES", "ActorCritic"]
 
@@ -225,9 +228,11 @@ class ActorCritic(Learner):
         obs, space = observation_space(observation), action_space(action)
         head = check_head(space, head)
         if obs.kind == "states":
+            assert obs.num_states is not None  # a "states" space has its count
             first: nn.Module = OneHotInput(obs.num_states)
             width, normalizer, shape = obs.num_states, None, None
         else:
+            assert obs.shape is not None  # a "vector" space has its shape
             (width,) = obs.shape
             normalizer = ObservationNormalizer(obs.shape) if normalize else None
             first, shape = normalizer or nn.Identity(), obs.shape
@@ -449,8 +454,8 @@ class ActorCritic(Learner):
     def _out(x: torch.Tensor, kind: str) -> Any:
         if kind == "tensor":
             return x
-        x = x.detach().cpu().numpy()
-        return x.item() if kind == "scalar" and x.ndim == 0 else x
+        arr = x.detach().cpu().numpy()
+        return arr.item() if kind == "scalar" and arr.ndim == 0 else arr
 
     def act(self, obs: Any, generator: torch.Generator | None = None) -> Any:
         """Sample ``a ~ pi(.|s)`` (``generator`` makes the draw reproducible)."""
@@ -494,7 +499,9 @@ class ActorCritic(Learner):
             raise ValueError("probs() is defined for the categorical head only")
         t, kind = self._obs(obs)
         with torch.set_grad_enabled(kind == "tensor" and torch.is_grad_enabled()):
-            p = self.get_dist(self._td(t)).probs
+            # get_dist gives a Distribution; a categorical head's is a (one-hot) Categorical
+            dist = cast("D.Categorical | D.OneHotCategorical", self.get_dist(self._td(t)))
+            p = dist.probs
         return self._out(p, kind)
 
     def values(self, obs: Any) -> Any:

@@ -51,6 +51,7 @@ def diffusion(sampler: str) -> Build:
 
     def build(task: TaskSpec, config: LearnerConfig) -> Learner:
         policy = diffusion_policy(task.observation_dim, task.action, config, sampler=sampler)
+        assert config.lr is not None  # registry.make resolved it
         return Learner(
             policy,
             DiffusionBehaviorCloningLoss(policy, seed=config.seed),
@@ -69,7 +70,9 @@ def diffusion_chunk(sampler: str) -> Build:
         policy = diffusion_policy(task.observation_dim, action, config, sampler=sampler)
         inner = DiffusionBehaviorCloningLoss(policy, seed=config.seed)
         inner.set_keys(label=FLAT_CHUNK)
+        assert isinstance(task.action, Bounded)  # a continuous entry's task: a Bounded [m] spec
         loss = FlatChunkLoss(inner, dim=CHUNK_HORIZON * int(task.action.shape[0]))
+        assert config.lr is not None  # registry.make resolved it
         opt = torch.optim.Adam(policy.parameters(), lr=config.lr)
         return chunked_learner(
             task, policy, loss, opt, RECEDING, exploration=ExplorationType.RANDOM

@@ -7,6 +7,7 @@ from __future__ import annotations
 from dataclasses import replace
 
 import torch
+from torchrl.data import Bounded
 from torchrl.envs.utils import ExplorationType
 
 from imitrl import keys
@@ -61,6 +62,7 @@ def diffusion_unet_learner(
     )
     seen = (keys.OBSERVATION,) if pixel_shape is None else (keys.OBSERVATION, pixel_key)
     execution = ChunkExecution(unet.horizon, execute=unet.action_steps)
+    assert isinstance(task.action, Bounded)  # UnetDiffusionPolicy refused any other action
     m = int(task.action.shape[0])
     policy = ChunkedPolicy(network, m, execution, history=unet.obs_horizon, history_keys=seen)
     opt = torch.optim.AdamW(
@@ -100,5 +102,5 @@ def diffusion_unet(task: TaskSpec, config: LearnerConfig) -> Learner:
     camera = task.pixels
     if camera is None:
         return diffusion_unet_learner(task, config, unet)
-    shape, key = camera
-    return diffusion_unet_learner(task, config, unet, pixel_shape=shape, pixel_key=key)
+    (h, w, c), key = camera  # an image [H, W, C]
+    return diffusion_unet_learner(task, config, unet, pixel_shape=(h, w, c), pixel_key=key)

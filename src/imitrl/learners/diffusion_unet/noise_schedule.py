@@ -99,6 +99,7 @@ class NoiseSchedule:
         ) * x
         if k == 0:
             return mean
+        assert noise is not None  # the caller draws z for every k > 0
         variance = ((1 - abar_prev) / (1 - abar) * beta).clamp_min(1e-20)
         return mean + variance.sqrt() * noise
 

@@ -105,9 +105,9 @@ class UnetDiffusionPolicy(TensorDictModuleBase):
             torch.manual_seed(int(seed))
             self.rgb = None
             if pixel_shape is not None:
-                h, w, _ = pixel_shape
+                h, w, c = pixel_shape
                 crop = config.crop_shape or (round(h * 76 / 84), round(w * 76 / 84))
-                self.rgb = RgbEncoder(tuple(pixel_shape), crop, config.keypoints)
+                self.rgb = RgbEncoder((h, w, c), crop, config.keypoints)
             per_step = self.observation_dim + (0 if self.rgb is None else self.rgb.features)
             self.unet = ConditionalUnet1D(
                 self.action_dim,

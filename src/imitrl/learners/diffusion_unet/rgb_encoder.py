@@ -73,6 +73,8 @@ class SpatialSoftmax(nn.Module):
     """``[B, C, H, W] -> [B, 2K]``: the expected ``(x, y)`` in ``[-1, 1]`` of ``K`` softmax
     keypoint maps (a 1x1 convolution makes them from the ``C`` features)."""
 
+    grid: torch.Tensor  # [HW, 2], a buffer
+
     def __init__(self, channels: int, height: int, width: int, keypoints: int = 32) -> None:
         super().__init__()
         self.keypoints = nn.Conv2d(channels, keypoints, 1)
@@ -98,10 +100,10 @@ def crop(images: torch.Tensor, size: tuple[int, int], generator: torch.Generator
         top, left = (h - ch) // 2, (w - cw) // 2
         return images[..., top : top + ch, left : left + cw]
     n = images.shape[0]
-    top = torch.randint(0, h - ch + 1, (n,), generator=generator)
-    left = torch.randint(0, w - cw + 1, (n,), generator=generator)
-    rows = (top[:, None] + torch.arange(ch)).to(images.device)  # [B, ch]
-    cols = (left[:, None] + torch.arange(cw)).to(images.device)  # [B, cw]
+    tops = torch.randint(0, h - ch + 1, (n,), generator=generator)
+    lefts = torch.randint(0, w - cw + 1, (n,), generator=generator)
+    rows = (tops[:, None] + torch.arange(ch)).to(images.device)  # [B, ch]
+    cols = (lefts[:, None] + torch.arange(cw)).to(images.device)  # [B, cw]
     b = torch.arange(n, device=images.device)[:, None, None]
     out = images.permute(0, 2, 3, 1)[b, rows[:, :, None], cols[:, None, :]]  # [B, ch, cw, C]
     return out.permute(0, 3, 1, 2)
@@ -126,7 +128,8 @@ class RgbEncoder(nn.Module):
         super().__init__()
         h, w, c = (int(s) for s in image_shape)
         self.image_shape = (h, w, c)
-        self.crop_shape = (h, w) if crop_shape is None else tuple(int(s) for s in crop_shape)
+        ch, cw = (h, w) if crop_shape is None else (int(s) for s in crop_shape)
+        self.crop_shape = (ch, cw)
         if not (0 < self.crop_shape[0] <= h and 0 < self.crop_shape[1] <= w):
             raise ValueError(f"crop_shape {self.crop_shape} must fit the image {(h, w)}")
         self.backbone = ResNet18GN(c)

@@ -23,7 +23,8 @@ channels over ``T`` time steps; the output is the predicted noise of the same sh
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
+from typing import cast
 
 import torch
 from torch import nn
@@ -175,13 +176,14 @@ class ConditionalUnet1D(nn.Module):
         cond = torch.cat([self.step_encoder(k), global_cond.to(x.dtype)], dim=-1)
         h = x.transpose(-1, -2)  # [B, m, T]
         skips = []
-        for first, second, halve in self.down:
+        # torch's ModuleList is not generic: each level is a ModuleList (block, block, resample)
+        for first, second, halve in cast("Iterable[nn.ModuleList]", self.down):
             h = second(first(h, cond), cond)
             skips.append(h)
             h = halve(h)
         for block in self.mid:
             h = block(h, cond)
-        for first, second, double in self.up:
+        for first, second, double in cast("Iterable[nn.ModuleList]", self.up):
             h = torch.cat([h, skips.pop()], dim=1)
             h = double(second(first(h, cond), cond))
         return self.final(h).transpose(-1, -2)

@@ -49,6 +49,7 @@ def flow_policy(
 def flow(task: TaskSpec, config: LearnerConfig) -> Learner:
     """``flow``: rectified flow over one action, sampled."""
     policy = flow_policy(task.observation_dim, task.action, config)
+    assert config.lr is not None  # registry.make resolved it
     return Learner(
         policy,
         FlowMatchingLoss(policy, seed=config.seed),
@@ -65,6 +66,7 @@ def flow_chunk(task: TaskSpec, config: LearnerConfig) -> Learner:
         task.observation_dim, chunk_task(task).action, config, num_steps=FLOW_CHUNK_STEPS
     )
     loss = FlowMatchingLoss(policy, chunked=True, seed=config.seed)
+    assert config.lr is not None  # registry.make resolved it
     opt = torch.optim.Adam(policy.parameters(), lr=config.lr)
     return chunked_learner(
         task,

@@ -26,8 +26,8 @@ it mirrors, so the values, dtypes and shapes are TorchRL's: rollouts on either p
 the same episodes digit for digit (``tests/test_fast_path.py`` runs both side by side).
 The rollout's first reset still goes through TorchRL's ``env.reset()``; a ``set_seed``
 too. Do not use the direct path on an env you compiled (``env.compile()``) or gave
-post-step hooks: it does not see them (pass ``fast_path=False`` to the rollout, or run
-it inside :func:`imitrl.runtime.paths.reference`).
+post-step hooks: it does not see them (run the rollout inside
+``imitrl.runtime.paths.reference("stepper")``).
 """
 
 from __future__ import annotations

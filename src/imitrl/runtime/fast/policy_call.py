@@ -94,8 +94,8 @@ def direct_call(module: nn.Module) -> Callable[..., torch.Tensor]:
     an ``nn.Sequential`` of such modules, or a ``Chain`` (its first child may take several
     inputs), as its children's direct calls in order; ``nn.Linear`` as ``F.linear`` with
     its parameters, ``nn.Tanh`` as ``torch.tanh``, a ``Squash`` or an
-    ``ObservationNormalizer`` (exactly those classes) as its ``bound_forward()``, its
-    forward with its buffers read once. The same code on the same tensors, so the same
+    ``ObservationNormalizer`` (exactly those classes) as its forward with its buffers read
+    once (:func:`_bound_forward`). The same code on the same tensors, so the same
     bits. Anything with a hook is called as ``module`` itself. Decided when called: hooks
     registered afterwards are not seen (build it per rollout, or per fit).
     """
@@ -121,7 +121,7 @@ def direct_call(module: nn.Module) -> Callable[..., torch.Tensor]:
     if type(module) is nn.Tanh:
         return torch.tanh  # nn.Tanh.forward is torch.tanh(input)
     if type(module) in (Squash, ObservationNormalizer):  # exactly: not a subclass's forward
-        return module.bound_forward()  # its forward with its buffers read once
+        return _bound_forward(module)
     if type(module) is nn.Linear and not parametrize.is_parametrized(module):
         # Linear.forward is F.linear(x, self.weight, self.bias): the same call with the
         # parameters bound (the optimizer updates them in place; a rollout builds its
@@ -129,6 +129,23 @@ def direct_call(module: nn.Module) -> Callable[..., torch.Tensor]:
         weight, bias = module.weight, module.bias
         return lambda x: F.linear(x, weight, bias)
     return module.forward
+
+
+_ONE, _TWO = torch.ones(()), torch.full((), 2.0)  # Squash.forward's constants, the same values
+
+
+def _bound_forward(module: nn.Module) -> Callable[[torch.Tensor], torch.Tensor]:
+    """A ``Squash``'s or an ``ObservationNormalizer``'s forward with its buffers read now:
+    the same operations on the same values (a ``Squash``'s span computed once, so one fewer
+    per call). A normaliser's statistics are updated in place, so a refit during the
+    rollout is still seen; a ``Squash``'s bounds replaced afterwards are not."""
+    from imitrl.policies.heads import Squash
+
+    if type(module) is Squash:
+        low, span = module.low, module.high - module.low
+        return lambda x: low + span * (torch.tanh(x) + _ONE) / _TWO
+    loc, scale = module.loc, module.scale
+    return lambda x: (x - loc) / scale
 
 
 Values = dict
