@@ -7,20 +7,42 @@ and gamma 0.9 on both sides, where both libraries' untuned defaults fail), 10 gr
 expert demonstrations (the same scripted experts as ``peer_imitation.py``, checked
 there), 8 lanes on both sides, greedy evaluation of 20 episodes on 10 vector envs.
 
-Each (task, seed) runs three fresh processes in turn, 1 torch thread each: imitrl under
-the ``own`` protocol, imitation, imitrl under ``matched`` (what each protocol sets:
-``_peer_imitation/gail_tasks.py``). Every ratio is imitrl / imitation of the same seed,
-whole process (launch to exit, measured here) and by phase (imports, setup, train,
-evaluation, measured in the child), labelled with its protocol. The target (issue 31):
-imitrl's whole-process wall time <= 0.5x imitation's with returns at least imitation's.
+Each (task, seed) runs five fresh processes in turn (:data:`PLAN`), 1 torch thread each:
 
-    python benchmarks/peer_gail.py --imitrl-python /work/imitrl_venv/bin/python
+1. imitrl under the ``own`` protocol, a plain Python script (``_peer_imitation/
+   gail_imitrl.py``: the public API as a user's script calls it, the garbage collector
+   as Python starts it), the **headline** row;
+2. imitation (``_peer_imitation/gail_peer.py``, a plain script too);
+3. imitrl under ``matched``, a plain script;
+4. imitrl ``own`` with the ``imitrl`` command's collector trick (the imports with the
+   collector paused, the import-time heap frozen out of its walks, as the command does in
+   the process it owns: :mod:`imitrl.system.heap`), the row ``own, collector trick``;
+5. the shipped command itself, ``imitrl gail`` (``imitrl airl``) with the ``own``
+   script's settings (``gail_tasks.command_flags``), the row ``own, command as shipped``:
+   its wall time is the whole command's, measured here, with all it does beyond the
+   script (the expert's and the untrained learner's evaluations, the logger,
+   results.json, the checkpoint, curves.png); its return is ``learner.mean_return`` of
+   the results.json it writes (evaluated on ``min(episodes, 16)`` lanes, as its own jobs
+   evaluate, so not the script's 10).
+
+What each protocol sets: ``_peer_imitation/gail_tasks.py``. Every ratio is imitrl /
+imitation of the same seed, whole process (launch to exit, measured here) and by phase
+(imports, setup, train, evaluation, measured in the child; the command reports none),
+labelled with its protocol and, beside the plain scripts, its process. The target
+(issue 31): imitrl's whole-process wall time <= 0.5x imitation's with returns at least
+imitation's, judged on the headline rows.
+
+    export IMITRL_PEER_PYTHON=$PEER_VENV/bin/python
+    python benchmarks/peer_gail.py --imitrl-python $IMITRL_VENV/bin/python
                                                     # full run, refreshes the README block
     python benchmarks/peer_gail.py --out /tmp/peer  # full run elsewhere, README untouched
     python benchmarks/peer_gail.py --quick          # imitrl's side, tiny budgets, at once
 
-The peer's venv is ``peer_imitation.py``'s, and so is imitrl's (``--imitrl-python``; its
-docstring says how to build both).
+The peer's venv is ``peer_imitation.py``'s, and so is imitrl's (``--peer-python`` or
+``$IMITRL_PEER_PYTHON``, ``--imitrl-python``: its docstring says how to build both;
+``$PEER_VENV`` and ``$IMITRL_VENV`` stand for folders of your choice). ``--quick`` runs
+imitrl's four processes per (task, seed) alone, the command's on the same tiny budgets,
+``runs.QUICK_WORKERS`` at once (timings moot).
 """
 
 from __future__ import annotations
@@ -38,74 +60,125 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _report
 from _peer_imitation import runs
 from _peer_imitation.gail_report import NAME, markdown, summarise
-from _peer_imitation.gail_tasks import PROTOCOLS, TASKS, quick
+from _peer_imitation.gail_tasks import TASKS, GailTask, command_flags, quick
+from imitrl.jobs.checkpoint import RESULTS_FILE
 
 HERE = Path(__file__).resolve().parent / "_peer_imitation"
 CHILD = {"imitrl": HERE / "gail_imitrl.py", "imitation": HERE / "gail_peer.py"}
-PEER_PYTHON = "/work/peer_venv/bin/python"
+PLAN = (
+    ("imitrl", "own", "plain"),
+    ("imitation", None, "plain"),
+    ("imitrl", "matched", "plain"),
+    ("imitrl", "own", "collector_trick"),
+    ("imitrl", "own", "command"),
+)
+"""(library, protocol, process) of one (task, seed), in the order they run (imitation's
+protocol None: it runs the same under both, once); ``command`` is the shipped ``imitrl
+gail`` / ``imitrl airl``, the others scripts (``tasks.PROCESSES``)"""
 
 
-def order(quick_run: bool) -> list[tuple[str, str | None]]:
-    """(library, protocol) of one (task, seed), in the order they run."""
-    if quick_run:
-        return [("imitrl", p) for p in PROTOCOLS]
-    return [("imitrl", "own"), ("imitation", None), ("imitrl", "matched")]
+def plan(quick_run: bool) -> tuple[tuple[str, str | None, str], ...]:
+    """:data:`PLAN`, or its imitrl runs alone (``--quick``: no peer venv)."""
+    return tuple(job for job in PLAN if job[0] == "imitrl") if quick_run else PLAN
 
 
-def run_one(task, seed, library, protocol, *, peer_python, imitrl_python, workdir, timeout) -> dict:
-    spec = json.dumps(task.spec(seed, library, protocol or "own"))
-    result = workdir / f"{task.name}-{library}-{protocol}-{seed}.json"
+def run_one(
+    task: GailTask, seed: int, library: str, protocol: str | None, process: str = "plain",
+    *, peer_python: str | None, imitrl_python: str, workdir: Path, timeout: float,
+) -> dict:  # fmt: skip
+    """One (task, seed, library, protocol, process) as a fresh process: its wall time
+    (measured here) and the child's report."""
+    if process == "command":
+        return run_command(
+            task, seed, imitrl_python=imitrl_python, workdir=workdir, timeout=timeout
+        )
+    spec = json.dumps(task.spec(seed, library, protocol or "own", process))
+    result = workdir / f"{task.name}-{library}-{protocol}-{process}-{seed}.json"
     python = imitrl_python if library == "imitrl" else peer_python
+    if python is None:
+        raise ValueError("imitation's run needs the peer venv's python")
     wall, out = runs._call([python, str(CHILD[library]), spec, str(result)], library, timeout)
     return {"task": task.name, "library": library, "protocol": protocol, "seed": seed,
-            "wall": wall, **out}  # fmt: skip
+            "wall": wall, **out, "process": process}  # fmt: skip
 
 
-def main(argv: list[str] | None = None) -> None:
-    parser = _report.parser(__doc__)
-    parser.add_argument("--peer-python", default=PEER_PYTHON)
-    parser.add_argument(
-        "--imitrl-python", default=sys.executable,
-        help="python of the venv that runs imitrl's children (default: this one; see "
-        "peer_imitation.py's docstring for the recommended one)",
-    )  # fmt: skip
-    parser.add_argument("--seeds", type=int, default=None, help="default 3; 1 with --quick")
-    parser.add_argument("--tasks", nargs="+", default=list(TASKS), choices=list(TASKS))
-    parser.add_argument("--timeout", type=float, default=1800.0)
-    args = parser.parse_args(argv)
-    out_dir = _report.destination(NAME, quick=args.quick, out=args.out)
-    torch.set_num_threads(1)
-    seeds = args.seeds if args.seeds is not None else (1 if args.quick else 3)
-    tasks = [quick(TASKS[t]) if args.quick else TASKS[t] for t in args.tasks]
-    peer_versions = None
-    if not args.quick:
-        if not Path(args.peer_python).exists():
-            raise SystemExit(f"no python at {args.peer_python}: see peer_imitation.py's docstring")
-        peer_versions = runs.peer_versions(args.peer_python)
-    install = runs.imitrl_install(args.imitrl_python)
-    bytecode = None if args.quick else runs.byte_compile_imitrl()
-    t0 = time.perf_counter()
-    jobs = [(t, s, lib, p) for t in tasks for s in range(seeds) for lib, p in order(args.quick)]
+def run_command(
+    task: GailTask, seed: int, *, imitrl_python: str, workdir: Path, timeout: float
+) -> dict:
+    """The shipped ``imitrl gail`` (``imitrl airl``) of ``imitrl_python``'s venv with the
+    ``own`` script's settings, as a whole process: its wall time measured here, its
+    final return, env steps and demonstration rows from the results.json it writes."""
+    out_dir = workdir / f"{task.name}-command-{seed}"
+    cmd = [*runs.imitrl_command(imitrl_python), *command_flags(task, seed, str(out_dir))]
+    wall, results = runs._call(cmd, "imitrl", timeout, result=out_dir / RESULTS_FILE)
+    return {
+        "task": task.name, "library": "imitrl", "protocol": "own", "seed": seed,
+        "wall": wall, "process": "command", "argv": cmd,
+        "phases": {"job": float(results["seconds"])},  # the job's clock, imports excluded
+        "returns": {"final": float(results["learner"]["mean_return"])},
+        "env_steps": int(results["env_steps"]),
+        "demo_rows": int(results["demonstrations"]["rows"]),
+    }  # fmt: skip
+
+
+def run_jobs(tasks, seeds: int, jobs, args, peer_python: str | None) -> list[dict]:
+    """Every (task, seed) and, for each, ``jobs`` in turn, one process at a time;
+    ``--quick``: :data:`runs.QUICK_WORKERS` at once (the smoke run, timings moot)."""
+    order = [(t, s, *job) for t in tasks for s in range(seeds) for job in jobs]
     with tempfile.TemporaryDirectory(prefix="peer-gail-") as tmp:
 
         def one(job) -> dict:
-            task, seed, library, protocol = job
-            r = run_one(task, seed, library, protocol, peer_python=args.peer_python,
+            task, seed, library, protocol, process = job
+            r = run_one(task, seed, library, protocol, process, peer_python=peer_python,
                         imitrl_python=args.imitrl_python, workdir=Path(tmp),
                         timeout=args.timeout)  # fmt: skip
+            train = r["phases"].get("train")
             print(
-                f"{task.name} seed {seed} {library:9s} {protocol or '':7s} wall "
-                f"{r['wall']:.2f} s, train {r['phases']['train']:.2f} s, return "
-                f"{r['returns']['final']:.1f}",
+                f"{task.name} seed {seed} {library:9s} {protocol or '':7s} {process:15s} wall "
+                f"{r['wall']:.2f} s, train {'-' if train is None else f'{train:.2f}'} s, "
+                f"return {r['returns']['final']:.1f}",
                 file=sys.stderr,
             )
             return r
 
-        if args.quick:  # the smoke run: every process at once (timings moot)
-            with ThreadPoolExecutor(len(jobs)) as pool:
-                results = list(pool.map(one, jobs))
-        else:  # one process at a time, in turn
-            results = [one(job) for job in jobs]
+        if args.quick:
+            with ThreadPoolExecutor(min(len(order), runs.QUICK_WORKERS)) as pool:
+                return list(pool.map(one, order))
+        return [one(job) for job in order]
+
+
+def build_parser():
+    parser = _report.parser(__doc__)
+    parser.add_argument(
+        "--peer-python", default=None,
+        help=f"python of the venv with imitation (default: ${runs.PEER_ENV}; one of the two "
+        "is needed unless --quick; see peer_imitation.py's docstring)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--imitrl-python", default=sys.executable,
+        help="python of the venv that runs imitrl's children and its command (default: "
+        "this one; see peer_imitation.py's docstring for the recommended one)",
+    )  # fmt: skip
+    parser.add_argument("--seeds", type=int, default=None, help="default 3; 1 with --quick")
+    parser.add_argument("--tasks", nargs="+", default=list(TASKS), choices=list(TASKS))
+    parser.add_argument("--timeout", type=float, default=1800.0)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> None:
+    args = build_parser().parse_args(argv)
+    # the peer's python first: a full run without one stops before anything is written
+    peer_python = None if args.quick else runs.peer_python(args.peer_python)
+    out_dir = _report.destination(NAME, quick=args.quick, out=args.out)
+    torch.set_num_threads(1)
+    seeds = args.seeds if args.seeds is not None else (1 if args.quick else 3)
+    tasks = [quick(TASKS[t]) if args.quick else TASKS[t] for t in args.tasks]
+    peer_versions = None if peer_python is None else runs.peer_versions(peer_python)
+    install = runs.imitrl_install(args.imitrl_python)
+    bytecode = None if args.quick else runs.byte_compile_imitrl()
+    jobs = plan(args.quick)
+    t0 = time.perf_counter()
+    results = run_jobs(tasks, seeds, jobs, args, peer_python)
     raw = {
         "config": {
             "seeds": seeds,
@@ -115,11 +188,14 @@ def main(argv: list[str] | None = None) -> None:
                     "imitrl own": t.spec(0, "imitrl", "own")["settings"],
                     "imitrl matched": t.spec(0, "imitrl", "matched")["settings"],
                     "imitation": t.spec(0, "imitation", "own")["settings"],
+                    "imitrl command (seed 0)": command_flags(t, 0, "OUT"),
                 }
                 for t in tasks
             },
+            "plan": [list(job) for job in jobs],
             "quick": args.quick,
             "bytecode": bytecode,
+            "peer_python": peer_python,
             "imitrl_install": install,
             "command": " ".join(["python benchmarks/peer_gail.py", *(argv or sys.argv[1:])]),
         },

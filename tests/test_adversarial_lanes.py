@@ -75,15 +75,17 @@ def test_the_generator_takes_the_tensor_ppo_step_where_it_computes_the_same():
               max_grad_norm=0.5)  # fmt: skip
     for env_id in ("CartPole-v1", "Pendulum-v1"):
         _, _, learner = _setup(env_id, 1)
-        assert paths.ppo_loss(PPOGenerator(learner, entropy_coeff=0.0, **kw).loss) is not None
-        assert paths.ppo_loss(PPOGenerator(learner, entropy_coeff=0.01, **kw).loss) is None
+        assert paths.ppo_loss(PPOGenerator(learner, entropy_coeff=0.0, **kw).loss).accelerated
+        assert not paths.ppo_loss(PPOGenerator(learner, entropy_coeff=0.01, **kw).loss).accelerated
         with paths.reference():
-            assert paths.ppo_loss(PPOGenerator(learner, entropy_coeff=0.0, **kw).loss) is None
+            plain = PPOGenerator(learner, entropy_coeff=0.0, **kw).loss
+            assert not paths.ppo_loss(plain).accelerated
         # a batch with an entry ClipPPOLoss reads as a loss mask: the module itself
         masked = TensorDict({"shifted_valid": torch.ones(4, dtype=torch.bool)}, [4])
         loss = PPOGenerator(learner, entropy_coeff=0.0, **kw).loss
-        assert paths.ppo_loss(loss, masked) is None and paths.ppo_loss(loss, masked[:0]) is None
-        assert paths.ppo_loss(loss, TensorDict({}, [4])) is not None
+        assert not paths.ppo_loss(loss, masked).accelerated
+        assert not paths.ppo_loss(loss, masked[:0]).accelerated
+        assert paths.ppo_loss(loss, TensorDict({}, [4])).accelerated
 
 
 def test_other_lane_counts_play_other_episodes():

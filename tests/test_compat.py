@@ -216,3 +216,84 @@ def test_a_reloaded_full_buffer_extends_after_its_old_rows(tmp_path):
     index = loaded.extend(_rows(3, loaded.next_episode))
     assert torch.equal(index, torch.arange(8, 11))
     _assert_same_tensordict(loaded.data[:8], buf.data)
+
+
+# ------------------------------------------------- the private queries compat.py makes
+def test_the_hook_queries_see_each_public_registration():
+    from imitrl.compat import forward_hooked, global_module_hooks, hooked
+
+    for register in ("register_forward_hook", "register_forward_pre_hook",
+                     "register_full_backward_hook", "register_full_backward_pre_hook"):  # fmt: skip
+        m = nn.Linear(2, 2)
+        assert not hooked(m) and not forward_hooked(m)
+        handle = getattr(m, register)(lambda *a: None)
+        assert hooked(m)
+        assert forward_hooked(m) == ("forward" in register)
+        handle.remove()
+        assert not hooked(m)
+    assert not global_module_hooks()
+    handle = nn.modules.module.register_module_forward_hook(lambda *a: None)
+    try:
+        assert global_module_hooks()
+    finally:
+        handle.remove()
+    assert not global_module_hooks()
+
+
+def test_the_optimizer_hook_query_sees_its_own_and_global_hooks():
+    from torch.optim.optimizer import (
+        register_optimizer_step_post_hook,
+        register_optimizer_step_pre_hook,
+    )
+
+    from imitrl.compat import optimizer_hooked
+
+    opt = torch.optim.Adam(nn.Linear(2, 2).parameters())
+    assert not optimizer_hooked(opt)
+    for register in (
+        opt.register_step_pre_hook,
+        opt.register_step_post_hook,
+        register_optimizer_step_pre_hook,
+        register_optimizer_step_post_hook,
+    ):
+        handle = register(lambda *a: None)
+        assert optimizer_hooked(opt)
+        handle.remove()
+        assert not optimizer_hooked(opt)
+
+
+def test_the_foreach_kernels_equal_their_loops():
+    from imitrl import compat
+
+    g = torch.Generator().manual_seed(0)
+    xs = [torch.randn(5, generator=g), torch.randn(3, 2, generator=g)]
+    ys = [torch.randn_like(x) for x in xs]
+    norms = compat.foreach_norm(xs, 2.0)
+    assert all(torch.equal(n, torch.linalg.vector_norm(x, 2.0)) for n, x in zip(norms, xs))
+    for name, loop in (
+        ("foreach_add_", lambda x, y: x.add_(1)),
+        ("foreach_mul_", lambda x, y: x.mul_(0.5)),
+        ("foreach_copy_", lambda x, y: x.copy_(y)),
+        ("foreach_lerp_", lambda x, y: x.lerp_(y, 0.25)),
+    ):
+        a, b = [x.clone() for x in xs], [x.clone() for x in xs]
+        arg = {"foreach_add_": (1,), "foreach_mul_": (0.5,), "foreach_copy_": (ys,),
+               "foreach_lerp_": (ys, 0.25)}[name]  # fmt: skip
+        getattr(compat, name)(a, *arg)
+        for x, y in zip(b, ys):
+            loop(x, y)
+        assert all(torch.equal(u, v) for u, v in zip(a, b)), name
+
+
+def test_loss_mask_keys_and_validate_args_read_what_the_public_api_set():
+    from torchrl.objectives import ClipPPOLoss
+
+    from imitrl.compat import loss_mask_keys, validates_args
+    from imitrl.learners import TaskSpec, build
+
+    learner = build("default", TaskSpec.from_specs(3, 2), value=True)
+    loss = ClipPPOLoss(learner.policy, learner.value)
+    # the entry a TorchRL collector writes to mark padded steps masks the loss
+    assert ("collector", "mask") in loss_mask_keys(loss)
+    assert validates_args(torch.distributions.Normal(0.0, 1.0, validate_args=True))
+    assert not validates_args(torch.distributions.Normal(0.0, 1.0, validate_args=False))

@@ -113,19 +113,17 @@ def test_the_loss_on_tensors_is_clip_ppo_loss_for_every_head(env_id, head):
         generator.gae(batch)
     flat = batch.reshape(-1)
     fast = paths.ppo_loss(loss, flat)
-    assert fast is not None
-    columns = fast.columns(flat)
+    assert fast.accelerated
+    with paths.reference("ppo_loss"):
+        reference = paths.ppo_loss(loss, flat)
+    assert not reference.accelerated
     assert (fast.tanh_normal is not None) == head.startswith("tanh_normal")
     rows = torch.randperm(flat.numel(), generator=torch.Generator().manual_seed(2))[:32]
     params = generator.params
     results = []
-    for tensors in (False, True):
-        if tensors:
-            out = fast(*(c[rows] for c in columns))
-        else:
-            out = {
-                k: v for k, v in loss(flat[rows]).items() if k in ("loss_objective", "loss_critic")
-            }
+    for piece in (reference, fast):
+        out = piece.on_rows(piece.prepare(flat), rows)
+        assert sorted(out) == ["loss_critic", "loss_objective"]
         sum(out.values()).backward()
         results.append(([out[k].detach() for k in sorted(out)], [p.grad for p in params]))
         for p in params:
@@ -292,14 +290,14 @@ def test_the_discriminator_step_is_the_same_on_both_paths(env_id):
         disc = GAILDiscriminator(learner, hidden=(16, 16), seed=1)
         g = torch.Generator().manual_seed(4)
         with contextlib.nullcontext() if fast else paths.reference():
-            assert (paths.gail_loss(disc.loss) is not None) == fast
+            assert paths.gail_loss(disc.loss).accelerated == fast
             metrics = [disc.update(sample_rows(expert, 32, g), sample_rows(rows, 32, g))
                        for _ in range(10)]  # fmt: skip
         runs.append((metrics, [p.detach().clone() for p in disc.params]))
     (m_fast, w_fast), (m_ref, w_ref) = runs
     assert m_fast == m_ref and all(torch.equal(a, b) for a, b in zip(w_fast, w_ref))
     penalised = GAILDiscriminator(learner, hidden=(16, 16), grad_penalty=1.0)
-    assert paths.gail_loss(penalised.loss) is None
+    assert not paths.gail_loss(penalised.loss).accelerated
 
 
 def test_safe_tanh_is_torchrls_with_and_without_a_gradient():

@@ -1,4 +1,6 @@
-"""The GAIL peer harness: each protocol's settings, and every ratio labelled with its protocol."""
+"""The GAIL peer harness: each protocol's settings, the plan of processes (plain scripts,
+the collector trick and the shipped command as rows of their own), the command's flags
+as imitrl's own parser reads them, and every ratio labelled with its protocol and process."""
 
 from __future__ import annotations
 
@@ -10,13 +12,19 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
+import peer_gail  # noqa: E402
+from _peer_imitation import runs  # noqa: E402
 from _peer_imitation.gail_report import markdown, summarise  # noqa: E402
 from _peer_imitation.gail_tasks import (  # noqa: E402
+    EVAL_SEED,
     IMITATION,
     IMITATION_AIRL,
     IMITRL,
     IMITRL_AIRL,
+    LEARNER_HIDDEN,
     TASKS,
+    command_flags,
+    quick,
     settings,
 )
 
@@ -59,11 +67,14 @@ def test_airl_rows_take_imitations_airl_tutorial_and_imitrls_airl_defaults():
     assert pend.demo_episodes * 200 >= IMITATION_AIRL["discriminator_batch"]
 
 
-def _run(library, protocol, seed, wall, ret):
+def _run(library, protocol, seed, wall, ret, process=None):
     phases = {"imports": 1.0, "setup": 0.5, "train": wall - 2.0, "evaluation": 0.5,
               "in_process": wall - (0.25 if library == "imitrl" else 1.25)}  # fmt: skip
-    return {"task": "cartpole", "library": library, "protocol": protocol, "seed": seed,
-            "wall": wall, "phases": phases, "returns": {"final": ret}}  # fmt: skip
+    if process == "command":  # the shipped command reports its job's clock alone
+        phases = {"job": wall - 3.0}
+    run = {"task": "cartpole", "library": library, "protocol": protocol, "seed": seed,
+           "wall": wall, "phases": phases, "returns": {"final": ret}}  # fmt: skip
+    return run if process is None else {**run, "process": process}
 
 
 def test_every_ratio_is_labelled_with_its_protocol_and_judged_per_seed():
@@ -83,7 +94,8 @@ def test_every_ratio_is_labelled_with_its_protocol_and_judged_per_seed():
     raw = {"config": {"seeds": 2}, "imitrl_versions": {}, "peer_versions": None,
            "summary": summarise(runs), "wall_seconds": 1.0}  # fmt: skip
     lines = [line for line in markdown(raw).splitlines() if line.startswith("| cartpole")]
-    assert [line.split("|")[2].strip() for line in lines] == ["own", "matched"]
+    # the headline (own, the plain script) in bold
+    assert [line.split("|")[2].strip() for line in lines] == ["**own**", "matched"]
     assert "0.40 / 0.45" in lines[0] and "**no**" in lines[1]
     # the process outside the child's clock (start and exit), each side's own
     assert summary["own"]["phases"]["outside"]["imitrl"] == [0.25, 0.25]
@@ -100,5 +112,129 @@ def test_every_ratio_is_labelled_with_its_protocol_and_judged_per_seed():
            "wall_seconds": 1.0}  # fmt: skip
     text = markdown(raw)
     assert "Bytecode: imitrl's modules byte-compiled." in text
-    (line,) = [x for x in text.splitlines() if x.startswith("| cartpole | own")]
+    (line,) = [x for x in text.splitlines() if x.startswith("| cartpole | **own**")]
     assert line.split("|")[-4:-1] == [" yes ", " **no** ", " yes "]
+
+
+def test_the_plan_runs_plain_scripts_the_collector_trick_and_the_command():
+    assert peer_gail.PLAN == (
+        ("imitrl", "own", "plain"),
+        ("imitation", None, "plain"),
+        ("imitrl", "matched", "plain"),
+        ("imitrl", "own", "collector_trick"),
+        ("imitrl", "own", "command"),
+    )
+    assert peer_gail.plan(False) == peer_gail.PLAN
+    quick_plan = peer_gail.plan(True)  # imitrl's side alone, its command included
+    assert [job[0] for job in quick_plan] == ["imitrl"] * 4
+    assert ("imitrl", "own", "command") in quick_plan
+    spec = TASKS["cartpole"].spec(0, "imitrl", "own", "collector_trick")
+    assert spec["process"] == "collector_trick" and spec["learner_hidden"] == [64, 64]
+    with pytest.raises(ValueError, match="process must be one of"):
+        TASKS["cartpole"].spec(0, "imitrl", "own", "command")  # the command reads no spec
+
+
+def test_the_trick_and_the_command_are_rows_of_their_own_beside_the_headline():
+    runs_ = []
+    for seed, peer in enumerate((20.0, 10.0)):
+        runs_ += [
+            _run("imitrl", "own", seed, 8.0, 500.0, "plain"),
+            _run("imitation", None, seed, peer, 480.0, "plain"),
+            _run("imitrl", "matched", seed, 12.0, 470.0, "plain"),
+            _run("imitrl", "own", seed, 6.0, 500.0, "collector_trick"),
+            _run("imitrl", "own", seed, 16.0, 490.0, "command"),
+        ]
+    summary = summarise(runs_)["cartpole"]
+    assert list(summary) == ["own", "matched", "own, collector trick", "own, command as shipped"]
+    assert [k for k, v in summary.items() if v["headline"]] == ["own"]
+    assert summary["own"]["phases"]["wall"]["ratios"] == [0.4, 0.8]
+    trick, command = summary["own, collector trick"], summary["own, command as shipped"]
+    assert trick["phases"]["wall"]["ratios"] == [0.3, 0.6]  # over imitation's same seed
+    assert command["phases"]["wall"]["ratios"] == [0.8, 1.6]
+    assert (
+        command["phases"]["train"]["ratios"] == [] and command["phases"]["outside"]["imitrl"] == []
+    )
+    assert command["returns_met"] is True and command["wall_met"] is False
+    raw = {"config": {"seeds": 2, "plan": [list(j) for j in peer_gail.PLAN]},
+           "imitrl_versions": {}, "peer_versions": None, "summary": summarise(runs_),
+           "wall_seconds": 1.0}  # fmt: skip
+    text = markdown(raw)
+    lines = [line for line in text.splitlines() if line.startswith("| cartpole")]
+    names = [line.split("|")[2].strip() for line in lines]
+    assert names == ["**own**", "matched", "own, collector trick", "own, command as shipped"]
+    assert "| 0.80 / 1.60 | 1.20 | - | - | 1.2 / 1.2 |" in lines[3]  # no phases, no start + exit
+    assert "5 fresh processes in turn" in text and "the shipped `imitrl gail`" in text
+    assert "plain Python script" in text
+
+
+def test_results_without_a_process_read_as_plain_scripts():
+    runs_ = [_run("imitrl", "own", 0, 8.0, 500.0), _run("imitation", None, 0, 20.0, 480.0)]
+    summary = summarise(runs_)["cartpole"]
+    assert list(summary) == ["own"] and summary["own"]["process"] == "plain"
+    raw = {"config": {"seeds": 1}, "imitrl_versions": {}, "peer_versions": None,
+           "summary": summarise(runs_), "wall_seconds": 1.0}  # fmt: skip
+    text = markdown(raw)  # a results file of before: what its children did, not "plain"
+    assert "three fresh processes in turn" in text and "predate issue 43" in text
+    assert "plain Python script" not in text
+
+
+@pytest.mark.parametrize("name", list(TASKS))
+def test_the_command_flags_are_the_own_scripts_settings_as_imitrls_parser_reads_them(name):
+    """``imitrl gail`` / ``imitrl airl``'s own parser takes every flag of
+    ``command_flags`` (its ``ValueError`` checks included) and describes the training
+    config the ``own`` script builds, the same learner, lanes, demonstrations and
+    evaluation."""
+    from _peer_imitation.gail_imitrl import algorithm_config
+    from imitrl.cli import COMMANDS, build_parser
+    from imitrl.cli.flags import config_from_args
+
+    for task in (TASKS[name], quick(TASKS[name])):
+        argv = command_flags(task, 3, "/tmp/out")
+        assert argv[0] == task.method
+        args = build_parser(flags_for=[argv[0]]).parse_args(argv)
+        job = config_from_args(COMMANDS[argv[0]].config, args)
+        spec = task.spec(3, "imitrl", "own")
+        assert job.algorithm_config() == algorithm_config(spec)
+        s = settings(task, "imitrl", "own")
+        assert (job.env, job.num_envs, job.demos) == (task.env_id, task.lanes, task.demo_episodes)
+        assert (job.lr, job.hidden, job.loss) == (s["lr"], LEARNER_HIDDEN, "default")
+        assert (job.eval_episodes, job.eval_seed) == (task.eval_episodes, EVAL_SEED + 3)
+        assert (job.eval_every, job.device, job.progress, args.threads) == (0, "cpu", False, 1)
+        assert str(job.out) == "/tmp/out"
+
+
+def test_a_full_run_without_a_peer_python_stops_before_anything_is_written(monkeypatch, tmp_path):
+    monkeypatch.delenv(runs.PEER_ENV, raising=False)
+    monkeypatch.setattr(peer_gail, "run_jobs", lambda *a: pytest.fail("ran without a peer"))
+    with pytest.raises(SystemExit, match=r"--peer-python.*IMITRL_PEER_PYTHON"):
+        peer_gail.main(["--out", str(tmp_path / "out")])
+    assert not (tmp_path / "out").exists()
+    assert peer_gail.build_parser().parse_args([]).peer_python is None
+    assert "/work/" not in peer_gail.__doc__
+
+
+def test_the_command_row_runs_the_shipped_command_and_reads_its_results(tmp_path):
+    """The ``command`` row is ``imitrl gail ...`` as a whole process of its own: its wall
+    time measured around the command, its return the one its results.json records, and
+    the run it records the ``own`` settings."""
+    import json
+
+    task = quick(TASKS["pendulum"])
+    row = peer_gail.run_one(
+        task, 1, "imitrl", "own", "command", peer_python=None,
+        imitrl_python=sys.executable, workdir=tmp_path, timeout=600,
+    )  # fmt: skip
+    out = tmp_path / "pendulum-command-1"
+    results = json.loads((out / "results.json").read_text())
+    assert row["returns"]["final"] == results["learner"]["mean_return"]
+    assert row["wall"] > row["phases"]["job"] == results["seconds"] > 0
+    assert row["env_steps"] == task.total_steps and row["demo_rows"] == 200
+    assert (row["process"], row["protocol"], row["library"]) == ("command", "own", "imitrl")
+    assert row["argv"][: len(runs.imitrl_command(sys.executable))] == runs.imitrl_command(
+        sys.executable
+    )
+    config = json.loads((out / "config.json").read_text())["config"]
+    s = settings(task, "imitrl", "own")
+    assert (config["lr"], config["gamma"], config["seed"]) == (s["lr"], s["gamma"], 1)
+    assert (config["num_envs"], config["total_steps"]) == (task.lanes, task.total_steps)
+    assert config["eval_seed"] == EVAL_SEED + 1 and config["hidden"] == list(LEARNER_HIDDEN)

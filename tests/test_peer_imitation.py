@@ -1,10 +1,15 @@
-"""benchmarks/peer_imitation.py (parts in benchmarks/_peer_imitation/): the summary's
-ratios and medians, the tables with one library only, and - where the peer's venv exists -
-the peer script's experts against imitrl's. test_benchmarks_smoke runs ``--quick``."""
+"""benchmarks/peer_imitation.py (parts in benchmarks/_peer_imitation/): the plan of
+processes (plain scripts, and the collector trick as a row of its own), the summary's
+ratios and medians, the tables with one library only, the peer's python (a flag or
+``$IMITRL_PEER_PYTHON``, no default path), and - where ``$IMITRL_PEER_PYTHON`` names the
+peer's venv - the peer script's experts against imitrl's. test_benchmarks_smoke runs
+``--quick``."""
 
 from __future__ import annotations
 
+import os
 import sys
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import pytest
@@ -14,9 +19,10 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from _peer_imitation import runs  # noqa: E402
 from _peer_imitation.report import markdown, summarise  # noqa: E402
-from _peer_imitation.tasks import TASKS  # noqa: E402
+from _peer_imitation.tasks import PROCESSES, TASKS, quick  # noqa: E402
 
-PEER_PYTHON = Path("/work/peer_venv/bin/python")
+PEER_PYTHON = os.environ.get(runs.PEER_ENV)
+"""the peer's venv's python where the environment names one (peer_imitation.py's docstring)"""
 
 
 def fake_run(task, library, seed, wall, bc, final, tables=None):
@@ -94,9 +100,12 @@ def test_tables_render_with_imitrl_alone():
 
 
 @pytest.mark.slow  # a process in the peer's venv; peer_imitation.py runs this check first
-@pytest.mark.skipif(not PEER_PYTHON.exists(), reason="no peer venv (see peer_imitation.py)")
+@pytest.mark.skipif(
+    not PEER_PYTHON or not Path(PEER_PYTHON).exists(),
+    reason=f"no peer venv: set {runs.PEER_ENV} (see peer_imitation.py)",
+)
 def test_peer_experts_label_like_imitrl():
-    report = runs.check_experts(str(PEER_PYTHON), timeout=600)
+    report = runs.check_experts(runs.peer_python(None), timeout=600)
     assert set(report) == {t.env_id for t in TASKS.values()}
     assert report["CartPole-v1"]["max_difference"] == 0
     assert report["FrozenLake-v1"]["max_difference"] == 0
@@ -167,3 +176,153 @@ def test_the_gail_rows_run_from_peer_imitation(monkeypatch):
     peer_imitation.main(["--seeds", "5", "--gail", "--imitrl-python", "/x/python"])
     assert seen == [["--seeds", "5", "--imitrl-python", "/x/python"]]
     assert "--gail" in peer_imitation.__doc__ and "peer_gail.py" in peer_imitation.__doc__
+
+
+def test_the_plan_runs_plain_scripts_beside_imitation_and_the_trick_as_its_own_row():
+    """Per (task, seed): both libraries under both protocols as plain scripts, then imitrl
+    ``own`` with the command's collector trick; ``--quick`` runs imitrl's side alone."""
+    assert runs.PLAN[0] == ("imitrl", "own", "plain")  # the headline's imitrl run first
+    assert set(runs.PLAN) == {
+        (lib, protocol, "plain") for lib in runs.LIBRARIES for protocol in ("own", "matched")
+    } | {("imitrl", "own", "collector_trick")}
+    assert all(process in PROCESSES for _, _, process in runs.PLAN)
+    assert all(p == "plain" for lib, _, p in runs.PLAN if lib == "imitation")
+    assert runs.plan(False) == runs.PLAN
+    assert runs.plan(True) == tuple(job for job in runs.PLAN if job[0] == "imitrl")
+    assert len(runs.plan(True)) == 3
+    spec = TASKS["cartpole"].spec(1, "own", "default", "collector_trick")
+    assert spec["process"] == "collector_trick" and TASKS["cartpole"].spec(1)["process"] == "plain"
+    with pytest.raises(ValueError, match="process must be one of"):
+        TASKS["cartpole"].spec(1, "own", "default", "gc_off")
+
+
+def _planned_runs(walls: dict, seeds=(0, 1)) -> list[dict]:
+    """Fake reports of :data:`runs.PLAN` in its order; ``walls[(library, protocol,
+    process)]`` the wall seconds of each seed."""
+    out = []
+    for seed in seeds:
+        for library, protocol, process in runs.PLAN:
+            wall = walls[library, protocol, process][seed]
+            run = fake_run("cartpole", library, seed, wall, 20.0, 100.0 + seed)
+            out.append({**run, "protocol": protocol, "process": process, "gc_frozen": 0})
+    return out
+
+
+def test_the_collector_trick_row_pairs_with_imitations_own_run_of_the_same_seed():
+    walls = {
+        ("imitrl", "own", "plain"): [2.0, 3.0],
+        ("imitation", "own", "plain"): [8.0, 4.0],
+        ("imitrl", "matched", "plain"): [3.0, 3.0],
+        ("imitation", "matched", "plain"): [6.0, 12.0],
+        ("imitrl", "own", "collector_trick"): [1.0, 2.0],
+    }
+    runs_ = _planned_runs(walls)
+    runs_[-1]["gc_frozen"] = 600_000  # seed 1's collector-trick run
+    s = summarise(runs_, {"cartpole": [500.0, 500.0]})
+    assert list(s) == ["cartpole, own", "cartpole, matched", "cartpole, own, collector trick"]
+    assert s["cartpole, own"]["phases"]["wall"]["ratios"] == [0.25, 0.75]
+    assert s["cartpole, matched"]["phases"]["wall"]["ratios"] == [0.5, 0.25]
+    trick = s["cartpole, own, collector trick"]
+    assert trick["phases"]["wall"]["ratios"] == [0.125, 0.5]  # over imitation's own runs
+    assert trick["phases"]["wall"]["median_seconds"] == {"imitrl": 1.5, "imitation": 6.0}
+    assert trick["process"] == "collector_trick" and trick["protocol"] == "own"
+    assert [k for k, v in s.items() if v["headline"]] == ["cartpole, own"]
+    assert trick["expert"] == [500.0, 500.0] and trick["returns_met"] is True
+    raw = {
+        "config": {"seeds": 2},
+        "summary": s,
+        "wall_seconds": 30.0,
+        "imitrl_versions": {},
+        "peer_versions": {"imitation": "1.0.1"},
+    }
+    text = markdown(raw)
+    assert "| cartpole, own, collector trick | whole process | 1.50 | 6.00 | 0.12 / 0.50 |" in text
+    assert "| cartpole, own | whole process | 2.50 | 6.00 | 0.25 / 0.75 | 0.50 |" in text
+    assert "plain Python scripts" in text and "`<task>, own, collector trick`" in text
+    assert "300,000 objects frozen" in text  # the median over the trick's seeds
+    # without a collector-trick run the head names no such row
+    plain_only = [r for r in runs_ if r["process"] == "plain"]
+    text = markdown({**raw, "summary": summarise(plain_only, {})})
+    assert "plain Python scripts" in text and "collector trick" not in text
+
+
+def test_results_without_a_process_read_as_plain_scripts():
+    """Results from before the field (every imitrl child then took the collector trick
+    unasked, unrecorded) read as ``plain``: one row per (task, protocol), as they did."""
+    runs_ = [
+        {**fake_run("pendulum", lib, 0, wall, -900.0, -300.0), "protocol": "own"}
+        for lib, wall in (("imitrl", 1.0), ("imitation", 4.0))
+    ]
+    assert all("process" not in r for r in runs_)
+    s = summarise(runs_, {})
+    assert list(s) == ["pendulum, own"] and s["pendulum, own"]["process"] == "plain"
+    assert s["pendulum, own"]["phases"]["wall"]["ratios"] == [0.25]
+    assert s["pendulum, own"]["gc_frozen"] == [None]
+    raw = {"config": {"seeds": 1}, "summary": s, "wall_seconds": 1.0,
+           "imitrl_versions": {}, "peer_versions": None}  # fmt: skip
+    text = markdown(raw)  # the head does not call them plain scripts: they were not
+    assert "predate issue 43" in text and "plain Python scripts" not in text
+
+
+def test_the_peer_python_comes_from_the_flag_or_the_environment(monkeypatch, tmp_path):
+    """No default path: ``--peer-python``, else ``$IMITRL_PEER_PYTHON``; with neither, or
+    a path with no python, ``SystemExit`` naming both ways before anything runs."""
+    monkeypatch.delenv(runs.PEER_ENV, raising=False)
+    with pytest.raises(SystemExit, match=r"--peer-python.*IMITRL_PEER_PYTHON"):
+        runs.peer_python(None)
+    missing = str(tmp_path / "venv" / "bin" / "python")
+    with pytest.raises(SystemExit, match=r"no python at .*\(--peer-python\).*IMITRL_PEER_PYTHON"):
+        runs.peer_python(missing)
+    monkeypatch.setenv(runs.PEER_ENV, missing)
+    with pytest.raises(SystemExit, match=r"no python at .*\(\$IMITRL_PEER_PYTHON\)"):
+        runs.peer_python(None)
+    python = tmp_path / "python"
+    python.touch()
+    assert runs.peer_python(str(python)) == str(python)  # the flag over the variable
+    monkeypatch.setenv(runs.PEER_ENV, str(python))
+    assert runs.peer_python(None) == str(python)
+    import peer_imitation
+
+    assert peer_imitation.build_parser().parse_args([]).peer_python is None
+    assert "/work/" not in peer_imitation.__doc__  # no machine's path: $PEER_VENV
+
+
+def test_a_full_run_without_a_peer_python_stops_before_anything_is_written(monkeypatch, tmp_path):
+    import peer_imitation
+
+    monkeypatch.delenv(runs.PEER_ENV, raising=False)
+    started = []
+    monkeypatch.setattr(runs, "run_all", lambda *a, **k: started.append(a))
+    with pytest.raises(SystemExit, match="IMITRL_PEER_PYTHON"):
+        peer_imitation.main(["--out", str(tmp_path / "out"), "--tasks", "cartpole"])
+    assert started == [] and not (tmp_path / "out").exists()
+
+
+def test_the_imitrl_command_is_the_console_script_beside_the_python(tmp_path):
+    python = tmp_path / "bin" / "python"
+    assert runs.imitrl_command(str(python)) == [str(python), "-m", "imitrl"]
+    python.parent.mkdir()
+    (python.parent / "imitrl").touch()
+    assert runs.imitrl_command(str(python)) == [str(python.parent / "imitrl")]
+
+
+def test_imitrl_children_are_plain_scripts_unless_asked_for_the_collector_trick(tmp_path):
+    """A real child of each process kind, on FrozenLake's smoke budget: the plain one
+    freezes nothing, the collector-trick one freezes its import-time heap, and both
+    train the same learner (the trick touches no number)."""
+    task = quick(TASKS["frozenlake"])
+
+    def one(process: str) -> dict:
+        return runs.run_once(
+            task, 0, "imitrl", peer_python=None, workdir=tmp_path, timeout=600,
+            process=process,
+        )  # fmt: skip
+
+    with ThreadPoolExecutor(2) as pool:
+        plain, trick = pool.map(one, PROCESSES)
+    assert (plain["process"], trick["process"]) == PROCESSES
+    assert plain["gc_frozen"] == 0 and trick["gc_frozen"] > 10_000
+    assert plain["returns"] == trick["returns"]
+    assert plain["greedy_tables"] == trick["greedy_tables"]
+    with pytest.raises(ValueError, match="peer venv"):
+        runs.run_once(task, 0, "imitation", peer_python=None, workdir=tmp_path, timeout=1)

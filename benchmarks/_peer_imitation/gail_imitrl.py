@@ -3,30 +3,43 @@
     python benchmarks/_peer_imitation/gail_imitrl.py SPEC_JSON RESULT_JSON
 
 ``SPEC_JSON`` is :meth:`gail_tasks.GailTask.spec`. The run is what ``imitrl gail
---num-envs LANES`` (or ``imitrl airl``, for the task's ``method``) does, through the public API, with the spec's settings (the imports
-run with the garbage collector paused, then the import-time heap is frozen out of its
-walks, as the command does: :mod:`imitrl.system.heap`):
+--num-envs LANES`` (or ``imitrl airl``, for the task's ``method``) trains, through the
+public API, with the spec's settings, as a user's Python script: the process is a plain
+script unless the spec's ``process`` is ``collector_trick``, which does what the ``imitrl``
+command does in the process it owns (:func:`imitrl.cli.main`, :mod:`imitrl.system.heap`):
+the imports with the garbage collector paused, then the import-time heap frozen out of
+its walks, then the collector on again. What the command does beyond this script (the
+expert's and the untrained learner's evaluations, the logger, results.json, the
+checkpoint, curves.png) is ``peer_gail.py``'s ``command`` row, the shipped command itself.
 
 1. setup: the generator's env (``make_env``, ``lanes`` lanes), ``demo_episodes`` greedy
    episodes of the built-in expert (``rollout_episodes``), the learner
    (as ``imitrl gail`` builds it by default: ``cross_entropy``'s categorical MLP for
    discrete actions,
    ``gaussian_nll``, a tanh-normal with a learned state-independent log-std, for
-   continuous ones; hidden 64, 64);
+   continuous ones; hidden layers ``learner_hidden``, 64, 64);
 2. train: :func:`imitrl.algorithms.adversarial.gail` (or ``airl``) for ``total_steps``;
 3. evaluation: the learner greedy (``evaluate``) on ``eval_lanes`` lanes seeded
    ``eval_seed``, ``eval_episodes`` episodes.
 """
 
-import gc
 import time
 
 T_START = time.perf_counter()
-gc.disable()  # as the imitrl command imports its modules: the collector paused (runtime.heap)
 
+import gc  # noqa: E402
 import json  # noqa: E402
 import sys  # noqa: E402
 from pathlib import Path  # noqa: E402
+
+PROCESS = json.loads(sys.argv[1]).get("process", "plain") if __name__ == "__main__" else "plain"
+"""the spec's process kind: ``plain`` or ``collector_trick``"""
+if PROCESS not in ("plain", "collector_trick"):
+    raise SystemExit(f"unknown process {PROCESS!r}: plain or collector_trick")
+if PROCESS == "collector_trick":  # the imitrl command imports this first (no torch) ...
+    from imitrl.system.heap import freeze_imported
+
+    gc.disable()  # ... then imports its modules with the collector paused
 
 import torch  # noqa: E402
 
@@ -41,13 +54,32 @@ from imitrl.evaluation import evaluate  # noqa: E402
 from imitrl.experts import cartpole_expert, pendulum_expert  # noqa: E402
 from imitrl.learners import build  # noqa: E402
 from imitrl.runtime import rollout_episodes  # noqa: E402
-from imitrl.system.heap import freeze_imported  # noqa: E402
 
-freeze_imported()  # as the imitrl command does once its modules are imported
-gc.enable()
-
+if PROCESS == "collector_trick":
+    freeze_imported()  # as the imitrl command does once its modules are imported
+    gc.enable()
+FROZEN = gc.get_freeze_count()
 T_IMPORTED = time.perf_counter()
 EXPERTS = {"CartPole-v1": cartpole_expert, "Pendulum-v1": pendulum_expert}
+
+
+def algorithm_config(spec: dict) -> GAILConfig | AIRLConfig:
+    """The training config the spec's settings give (``imitrl gail``'s, or ``imitrl
+    airl``'s, ``algorithm_config()`` with :func:`gail_tasks.command_flags`: a test holds
+    the two equal)."""
+    s, seed = spec["settings"], spec["seed"]
+    fields = dict(
+        total_steps=spec["total_steps"], rollout_steps=spec["rollout_steps"],
+        ppo_epochs=s["ppo_epochs"], minibatch_size=s["minibatch_size"],
+        discriminator_updates=s["discriminator_updates"],
+        discriminator_batch=s["discriminator_batch"], discriminator_lr=s["discriminator_lr"],
+        discriminator_hidden=tuple(s["discriminator_hidden"]), gamma=s["gamma"], seed=seed,
+    )  # fmt: skip
+    if spec["method"] == "airl":
+        return AIRLConfig(
+            **fields, clip_epsilon=s["clip_epsilon"], entropy_weight=s["entropy_weight"]
+        )
+    return GAILConfig(**fields)
 
 
 def run(spec: dict) -> dict:
@@ -59,20 +91,9 @@ def run(spec: dict) -> dict:
     buffer = DemonstrationBuffer(action_spec=demo_env.action_spec_unbatched)
     buffer.extend(rollout_episodes(demo_env, EXPERTS[env_id](), spec["demo_episodes"]))
     # imitrl gail's default learner: a head with log pi, and a value head for PPO
-    learner = build("default", demo_env, hidden=(64, 64), lr=s["lr"], seed=seed, value=True)
-    fields = dict(
-        total_steps=spec["total_steps"], rollout_steps=spec["rollout_steps"],
-        ppo_epochs=s["ppo_epochs"], minibatch_size=s["minibatch_size"],
-        discriminator_updates=s["discriminator_updates"],
-        discriminator_batch=s["discriminator_batch"], discriminator_lr=s["discriminator_lr"],
-        discriminator_hidden=tuple(s["discriminator_hidden"]), gamma=s["gamma"], seed=seed,
-    )  # fmt: skip
-    if spec["method"] == "airl":
-        config = AIRLConfig(
-            **fields, clip_epsilon=s["clip_epsilon"], entropy_weight=s["entropy_weight"]
-        )
-    else:
-        config = GAILConfig(**fields)
+    hidden = tuple(spec["learner_hidden"])
+    learner = build("default", demo_env, hidden=hidden, lr=s["lr"], seed=seed, value=True)
+    config = algorithm_config(spec)
     setup = now() - t0
 
     t0 = now()
@@ -100,6 +121,8 @@ def run(spec: dict) -> dict:
         "returns": {"final": float(ev.mean_return)},
         "env_steps": int(result.env_steps),
         "demo_rows": len(buffer),
+        "process": PROCESS,
+        "gc_frozen": FROZEN,
     }
 
 

@@ -39,8 +39,12 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, replace
 
+from _peer_imitation.tasks import check_process
+
 EVAL_SEED = 10_000
 PROTOCOLS = ("own", "matched")
+LEARNER_HIDDEN = (64, 64)
+"""imitrl's learner's hidden layers (``imitrl gail``'s default MLP), script and command"""
 
 IMITATION = {
     "lr": 4e-4, "gamma": 0.95, "ppo_epochs": 5, "minibatch_size": 64,
@@ -84,14 +88,17 @@ class GailTask:
     eval_episodes: int = 20
     eval_lanes: int = 10
 
-    def spec(self, seed: int, library: str, protocol: str) -> dict:
-        """What a child reads: the task, seeds and the resolved settings of its side."""
+    def spec(self, seed: int, library: str, protocol: str, process: str = "plain") -> dict:
+        """What a child reads: the task, seeds, the resolved settings of its side and how
+        imitrl's child runs its process (``tasks.PROCESSES``; the peer's ignores it)."""
         return {
             **asdict(self),
             "seed": seed,
             "eval_seed": EVAL_SEED + seed,
             "protocol": protocol,
             "settings": settings(self, library, protocol),
+            "learner_hidden": list(LEARNER_HIDDEN),
+            "process": check_process(process),
         }
 
 
@@ -110,6 +117,45 @@ def settings(task: GailTask, library: str, protocol: str) -> dict:
     if task.gamma is not None:
         out["gamma"] = task.gamma
     return out
+
+
+def command_flags(task: GailTask, seed: int, out: str) -> list[str]:
+    """The arguments of the shipped ``imitrl gail`` (``imitrl airl``) that run ``task``'s
+    seed as imitrl's ``own``-protocol script does: the same env, lanes, budget, rounds,
+    demonstrations, learner layers and every hyperparameter of :func:`settings` (the
+    command's defaults, given explicitly so that the two cannot drift apart), the same
+    evaluation episodes and seed, CPU, 1 thread, no progress bars; ``--eval-every 0``
+    evaluates the learner after the last round only, as the script does. What the command
+    adds is its own: the expert's and the untrained learner's evaluations, the CSV
+    logger, results.json, the checkpoint and curves.png in ``out``, and its evaluations
+    on ``min(episodes, 16)`` lanes (``imitrl.jobs.evaluate.EVAL_LANES``)."""
+    s = settings(task, "imitrl", "own")
+    flags: dict[str, object] = {
+        "env": task.env_id, "num-envs": task.lanes, "total-steps": task.total_steps,
+        "rollout-steps": task.rollout_steps, "demos": task.demo_episodes,
+        "hidden": _widths(LEARNER_HIDDEN), "lr": s["lr"], "gamma": s["gamma"],
+        "ppo-epochs": s["ppo_epochs"], "minibatch-size": s["minibatch_size"],
+        "discriminator-updates": s["discriminator_updates"],
+        "discriminator-batch": s["discriminator_batch"],
+        "discriminator-lr": s["discriminator_lr"],
+        "discriminator-hidden": _widths(s["discriminator_hidden"]),
+    }  # fmt: skip
+    if task.method == "airl":
+        flags["clip-epsilon"] = s["clip_epsilon"]
+        flags["entropy-weight"] = s["entropy_weight"]
+    flags.update({
+        "eval-episodes": task.eval_episodes, "eval-seed": EVAL_SEED + seed, "eval-every": 0,
+        "seed": seed, "device": "cpu", "threads": 1, "out": out,
+    })  # fmt: skip
+    return [
+        task.method,
+        *(a for k, v in flags.items() for a in (f"--{k}", str(v))),
+        "--no-progress",
+    ]
+
+
+def _widths(layers) -> str:
+    return ",".join(str(w) for w in layers)
 
 
 TASKS = {

@@ -20,22 +20,35 @@ is trained on across rounds (``warm_start=True``), as imitation does. The task's
 4. evaluation: the BC learner and the final learner, ``eval_episodes`` each, on
    ``eval_lanes["imitrl"]`` lanes seeded from ``eval_seed``.
 
-The imports run with the garbage collector paused, then the import-time heap is frozen
-out of its walks, as the ``imitrl`` command does (:mod:`imitrl.system.heap`).
+The process is a plain Python script by default (the spec's ``process`` is ``plain``:
+what a user's script does, the garbage collector as Python starts it). With ``process``
+``collector_trick`` it does what the ``imitrl`` command does in the process it owns
+(:func:`imitrl.cli.main`, :mod:`imitrl.system.heap`): the imports with the collector
+paused, then the import-time heap frozen out of its walks, then the collector on again;
+``peer_imitation.py`` runs that as a row of its own. The result names the process kind
+and ``gc.get_freeze_count()`` once imported (0 in a plain script).
 
 Phases are wall-clock seconds inside this process (``imports`` from the first line of
 this file); the parent measures the whole process.
 """
 
-import gc
 import time
 
 T_START = time.perf_counter()
-gc.disable()  # as the imitrl command imports its modules: the collector paused (runtime.heap)
 
+import gc  # noqa: E402
 import json  # noqa: E402
 import sys  # noqa: E402
 from pathlib import Path  # noqa: E402
+
+PROCESS = json.loads(sys.argv[1]).get("process", "plain") if __name__ == "__main__" else "plain"
+"""the spec's process kind (``plain`` when imported, as ``runs`` imports ``EXPERTS``)"""
+if PROCESS not in ("plain", "collector_trick"):
+    raise SystemExit(f"unknown process {PROCESS!r}: plain or collector_trick")
+if PROCESS == "collector_trick":  # the imitrl command imports this first (no torch) ...
+    from imitrl.system.heap import freeze_imported
+
+    gc.disable()  # ... then imports its modules with the collector paused
 
 import torch  # noqa: E402
 
@@ -49,12 +62,12 @@ from imitrl.experts import cartpole_expert, pendulum_expert  # noqa: E402
 from imitrl.learners import FOR_ENV, TaskSpec, build, registry, resolve  # noqa: E402
 from imitrl.policies import Expert  # noqa: E402
 from imitrl.runtime import rollout_episodes  # noqa: E402
-from imitrl.system.heap import freeze_imported  # noqa: E402
 from imitrl.tabular import TabularMDP, greedy, value_iteration  # noqa: E402
 
-freeze_imported()  # as the imitrl command does once its modules are imported
-gc.enable()
-
+if PROCESS == "collector_trick":
+    freeze_imported()  # as the imitrl command does once its modules are imported
+    gc.enable()
+FROZEN = gc.get_freeze_count()
 T_IMPORTED = time.perf_counter()
 
 
@@ -149,15 +162,8 @@ def run(spec: dict) -> dict:
         seed=seed,
     )
     t0 = now()
-    result = dagger(
-        EnvSource(env),
-        expert,
-        _learner(spec, env, hidden, seed),
-        buffer,
-        config,
-        train=train,
-        on_fit=on_fit,
-    )
+    new_learner = _learner(spec, env, hidden, seed)  # () -> a fresh learner
+    result = dagger(EnvSource(env), expert, new_learner, buffer, config, train=train, on_fit=on_fit)
     loop = now() - t0
     bc = fit_seconds[0]
     dagger_s = loop - bc - eval_seconds
@@ -181,7 +187,7 @@ def run(spec: dict) -> dict:
 
 def main() -> None:
     spec = json.loads(sys.argv[1])
-    out = run(spec)
+    out = {**run(spec), "process": PROCESS, "gc_frozen": FROZEN}
     out["phases"]["in_process"] = time.perf_counter() - T_START
     Path(sys.argv[2]).write_text(json.dumps(out))
 

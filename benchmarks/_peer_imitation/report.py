@@ -5,6 +5,7 @@ from __future__ import annotations
 import statistics
 
 import _report
+from _peer_imitation.tasks import PROCESS_LABELS
 
 NAME = "peer_imitation"
 
@@ -57,34 +58,71 @@ def _per_stage(by: dict[str, dict[int, dict]], field: str) -> dict:
     }
 
 
+def process_of(run: dict) -> str:
+    """How a run's process ran (``tasks.PROCESSES``): results from before the field read
+    as ``plain``, and so does every imitation run (its children are always plain)."""
+    return "plain" if run["library"] == "imitation" else run.get("process", "plain")
+
+
 def label(run: dict) -> str:
-    """A run's row label: its task and protocol (``cartpole, matched``)."""
+    """A run's row label: its task and protocol (``cartpole, matched``), and for an
+    imitrl run that was not a plain script its process too (``cartpole, own, collector
+    trick``); imitation's runs carry the label of the plain row they pair with."""
     protocol = run.get("protocol")
-    return run["task"] if protocol is None else f"{run['task']}, {protocol}"
+    base = run["task"] if protocol is None else f"{run['task']}, {protocol}"
+    process = process_of(run)
+    return base if process == "plain" else f"{base}, {PROCESS_LABELS[process]}"
+
+
+def _pairs(runs: list[dict]) -> dict[str, dict[str, dict[int, dict]]]:
+    """Row label -> ``{library: {seed: run}}``: each imitrl (task, protocol, process)
+    with imitation's runs of the same task and protocol (a collector-trick row shares
+    imitation's runs with the plain row of its protocol). Rows in the order imitrl's
+    runs first appear (imitation's alone where imitrl has none)."""
+    peers = {}
+    for r in runs:
+        if r["library"] == "imitation":
+            peers.setdefault(label(r), {})[r["seed"]] = r
+    rows: dict[str, dict[str, dict[int, dict]]] = {}
+    for r in runs:
+        if r["library"] == "imitrl":
+            plain = label({**r, "process": "plain"})
+            row = rows.setdefault(label(r), {"imitrl": {}, "imitation": peers.get(plain, {})})
+            row["imitrl"][r["seed"]] = r
+    for name, by_seed in peers.items():
+        rows.setdefault(name, {"imitrl": {}, "imitation": by_seed})
+    return rows
 
 
 def summarise(runs: list[dict], references: dict[str, list[float]]) -> dict:
-    """Per task: every phase's per-seed seconds of both libraries, per-pair ratios,
+    """Per row (task, protocol and, beside the plain scripts, imitrl's process: see
+    :func:`label`): every phase's per-seed seconds of both libraries, per-pair ratios,
     medians; the BC and final returns per seed (FrozenLake: also the exact success of
     each greedy policy, on which it is judged); whether each target is met."""
     out = {}
-    for task in dict.fromkeys(label(r) for r in runs):
-        by = {
-            lib: {r["seed"]: r for r in runs if label(r) == task and r["library"] == lib}
-            for lib in ("imitrl", "imitation")
-        }
+    for row, by in _pairs(runs).items():
+        first = next(iter({**by["imitation"], **by["imitrl"]}.values()))
         returns = _per_stage(by, "returns")
-        tabular = all("exact_success" in r for r in by["imitrl"].values())
+        tabular = bool(by["imitrl"]) and all("exact_success" in r for r in by["imitrl"].values())
         exact = _per_stage(by, "exact_success") if tabular else None
         ours, theirs = ((exact or returns)[lib]["final"] for lib in ("imitrl", "imitation"))
-        out[task] = {
+        process = process_of(next(iter(by["imitrl"].values()), first))
+        out[row] = {
+            "task": first["task"],
+            "protocol": first.get("protocol"),
+            "process": process,
+            "headline": process == "plain" and (first.get("protocol") or "own") == "own",
             "seeds": sorted(by["imitrl"]),
             "phases": {key: _phase(by, key, target) for key, _, target in PHASES},
             "returns": returns,
             "exact_success": exact,
-            "expert": references.get(task.split(",")[0]),
+            "expert": references.get(first["task"]),
             "rows": {lib: [by[lib][s]["rows"] for s in sorted(by[lib])] for lib in by},
-            "returns_met": bool(_median(ours) >= _median(theirs) - 1e-9) if theirs else None,
+            "gc_frozen": [by["imitrl"][s].get("gc_frozen") for s in sorted(by["imitrl"])],
+            "process_recorded": all("process" in r for r in by["imitrl"].values()),
+            "returns_met": (
+                bool(_median(ours) >= _median(theirs) - 1e-9) if ours and theirs else None
+            ),
         }
     return out
 
@@ -157,6 +195,34 @@ def install_line(install: dict | None) -> str:
     return f" imitrl's children ran on `{install['python']}` ({held})."
 
 
+def process_note(summary: dict) -> str:
+    """What the head says of the processes: plain scripts on both sides, the headline
+    rows, and the collector-trick rows where the summary has any; for results that
+    predate the field (read as plain), what their imitrl children did instead."""
+    if not all(s.get("process_recorded", False) for s in summary.values()):
+        return (
+            "These results do not record how imitrl's children ran their processes: they "
+            "predate issue 43, when every imitrl child paused and froze the garbage "
+            "collector at import as the `imitrl` command does; read here as plain rows."
+        )
+    note = (
+        "Both libraries' children are plain Python scripts, as a user runs them (the "
+        "garbage collector as Python starts it); the headline ratios are the `own` rows."
+    )
+    trick = [s for s in summary.values() if s.get("process") == "collector_trick"]
+    if trick:
+        frozen = [n for s in trick for n in s.get("gc_frozen", []) if n is not None]
+        held = f", {statistics.median(frozen):,.0f} objects frozen" if frozen else ""
+        note += (
+            " The row `<task>, own, collector trick` is imitrl's `own` run again with what "
+            "the `imitrl` command does in the process it owns (imports with the collector "
+            f"paused, the import-time heap frozen out of its walks{held}), paired with "
+            "imitation's `own` run of the same seed: what the trick is worth, not what a "
+            "script gets."
+        )
+    return note
+
+
 def markdown(raw: dict) -> str:
     """The README block: how it was run, the phase table, the returns table."""
     cfg, ours, peer = raw["config"], raw["imitrl_versions"], raw.get("peer_versions")
@@ -169,10 +235,11 @@ def markdown(raw: dict) -> str:
         f"{n} {ours.get(n, '-')}" for n in ("torch", "torchrl", "tensordict", "gymnasium")
     )
     head = (
-        f"{cfg['seeds']} seed(s) per task, each (task, library, seed) a fresh process, the "
-        "libraries alternating (imitrl, imitation, imitrl, ...), 1 torch thread each; total "
+        f"{cfg['seeds']} seed(s) per task, each (task, library, protocol, process, seed) a "
+        "fresh process, one after another, 1 torch thread each; total "
         f"{raw['wall_seconds']:.0f} s. imitrl: {ours}. Peer venv: {versions}. Seconds are "
-        "medians over seeds; ratios imitrl / imitation per seed, then their median."
+        "medians over seeds; ratios imitrl / imitation per seed, then their median. "
+        + process_note(raw["summary"])
     )
     if cfg.get("imitrl_loss", "default") != "default":
         head += f" imitrl's learner: the `{cfg['imitrl_loss']}` registry entry."

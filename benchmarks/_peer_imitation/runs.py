@@ -25,6 +25,46 @@ from imitrl import keys
 HERE = Path(__file__).resolve().parent
 IMITRL_RUN, PEER_RUN = HERE / "imitrl_run.py", HERE / "peer_run.py"
 LIBRARIES = ("imitrl", "imitation")
+PLAN = (
+    ("imitrl", "own", "plain"),
+    ("imitation", "own", "plain"),
+    ("imitrl", "matched", "plain"),
+    ("imitation", "matched", "plain"),
+    ("imitrl", "own", "collector_trick"),
+)
+"""(library, protocol, process) of one (task, seed), in the order they run, each a fresh
+process: imitrl's children plain scripts (as a user runs imitrl from Python) beside
+imitation's under both protocols, then imitrl ``own`` with the ``imitrl`` command's
+collector trick, a row of its own (``tasks.PROCESSES``)"""
+QUICK_WORKERS = 8
+"""processes at once in a ``--quick`` run (the smoke run: timings moot)"""
+PEER_ENV = "IMITRL_PEER_PYTHON"
+"""the environment variable naming the peer venv's python (``--peer-python`` overrides it)"""
+
+
+def peer_python(given: str | None) -> str:
+    """The peer venv's python: ``--peer-python`` if given, else ``$IMITRL_PEER_PYTHON``;
+    ``SystemExit`` naming both when neither names an existing file."""
+    path = given or os.environ.get(PEER_ENV)
+    if not path:
+        raise SystemExit(
+            f"no peer python: pass --peer-python $PEER_VENV/bin/python or set {PEER_ENV} "
+            "(peer_imitation.py's docstring says how to build the peer's venv)"
+        )
+    if not Path(path).exists():
+        source = "--peer-python" if given else f"${PEER_ENV}"
+        raise SystemExit(
+            f"no python at {path} ({source}): build the peer's venv as peer_imitation.py's "
+            f"docstring says, then pass --peer-python or set {PEER_ENV}"
+        )
+    return path
+
+
+def imitrl_command(python: str) -> list[str]:
+    """The shipped ``imitrl`` command of ``python``'s venv: its console script (beside
+    ``python``, as pip installs it), else ``python -m imitrl`` (the same ``main``)."""
+    script = Path(python).parent / "imitrl"
+    return [str(script)] if script.exists() else [python, "-m", "imitrl"]
 
 
 def byte_compile_imitrl() -> str:
@@ -105,8 +145,11 @@ def imitrl_install(python: str, *, timeout: float = 120) -> dict:
     }
 
 
-def _call(cmd: list[str], library: str, timeout: float) -> tuple[float, dict]:
-    """Run ``cmd`` (its last argument is the result file it writes); ``(wall s, result)``."""
+def _call(
+    cmd: list[str], library: str, timeout: float, result: Path | None = None
+) -> tuple[float, dict]:
+    """Run ``cmd``; ``(wall s, the JSON it wrote to result)`` (``result`` None: ``cmd``'s
+    last argument)."""
     t0 = time.perf_counter()
     proc = subprocess.run(
         cmd, capture_output=True, text=True, timeout=timeout, env=_child_env(library)
@@ -117,7 +160,7 @@ def _call(cmd: list[str], library: str, timeout: float) -> tuple[float, dict]:
             f"{library} child failed ({proc.returncode}): {' '.join(cmd[:3])} ...\n"
             f"{proc.stderr[-3000:]}"
         )
-    return wall, json.loads(Path(cmd[-1]).read_text())
+    return wall, json.loads(Path(cmd[-1] if result is None else result).read_text())
 
 
 def run_once(
@@ -125,63 +168,70 @@ def run_once(
     seed: int,
     library: str,
     *,
-    peer_python: str,
+    peer_python: str | None,
     workdir: Path,
     timeout: float,
     protocol: str = "own",
     imitrl_loss: str = "default",
     imitrl_python: str = sys.executable,
+    process: str = "plain",
 ) -> dict:
-    """One (task, protocol, library, seed) run as a fresh process: its wall time and report."""
-    result = workdir / f"{task.name}-{protocol}-{library}-{seed}.json"
-    spec = json.dumps(task.spec(seed, protocol, imitrl_loss))
+    """One (task, protocol, library, process, seed) run as a fresh process: its wall
+    time and report (``process``: how imitrl's child runs, ``tasks.PROCESSES``)."""
+    result = workdir / f"{task.name}-{protocol}-{library}-{process}-{seed}.json"
+    spec = json.dumps(task.spec(seed, protocol, imitrl_loss, process))
     if library == "imitrl":
         cmd = [imitrl_python, str(IMITRL_RUN), spec, str(result)]
+    elif peer_python is None:
+        raise ValueError("imitation's run needs the peer venv's python")
     else:
         cmd = [peer_python, str(PEER_RUN), "run", spec, str(result)]
     wall, out = _call(cmd, library, timeout)
     return {
         "task": task.name, "protocol": protocol, "library": library, "seed": seed,
-        "wall": wall, **out,
+        "wall": wall, **out, "process": process,
     }  # fmt: skip
+
+
+def plan(quick: bool) -> tuple[tuple[str, str, str], ...]:
+    """:data:`PLAN`, or its imitrl runs alone (``--quick``: no peer venv)."""
+    return tuple(job for job in PLAN if job[0] == "imitrl") if quick else PLAN
 
 
 def run_all(
     tasks: list[Task],
     seeds: int,
-    libraries: tuple[str, ...],
+    jobs: tuple[tuple[str, str, str], ...] = PLAN,
     *,
-    peer_python: str,
+    peer_python: str | None,
     timeout: float,
     concurrent: bool = False,
-    protocols: tuple[str, ...] = ("own",),
     imitrl_loss: str = "default",
     imitrl_python: str = sys.executable,
     log=print,
 ) -> list[dict]:
-    """Every (task, seed, protocol), the libraries alternating (imitrl, imitation, imitrl,
-    ...), one process at a time; ``concurrent``: all at once (the smoke run, timings moot)."""
-    order = [
-        (t, s, p, lib) for t in tasks for s in range(seeds) for p in protocols for lib in libraries
-    ]
+    """Every (task, seed), and for each the (library, protocol, process) ``jobs`` in
+    turn (:data:`PLAN`), one process at a time; ``concurrent``: :data:`QUICK_WORKERS`
+    at once (the smoke run, timings moot)."""
+    order = [(t, s, *job) for t in tasks for s in range(seeds) for job in jobs]
     with tempfile.TemporaryDirectory(prefix="peer-imitation-") as tmp:
 
-        def one(job: tuple[Task, int, str, str]) -> dict:
-            task, seed, protocol, library = job
+        def one(job: tuple[Task, int, str, str, str]) -> dict:
+            task, seed, library, protocol, process = job
             r = run_once(
                 task, seed, library, peer_python=peer_python, workdir=Path(tmp),
                 timeout=timeout, protocol=protocol, imitrl_loss=imitrl_loss,
-                imitrl_python=imitrl_python,
+                imitrl_python=imitrl_python, process=process,
             )  # fmt: skip
             phases = ", ".join(f"{k} {v:.2f}" for k, v in r["phases"].items())
             log(
-                f"{task.name} {protocol} seed {seed} {library:9s} wall {r['wall']:.2f} s "
-                f"({phases}); returns {r['returns']}"
+                f"{task.name} {protocol} seed {seed} {library:9s} {process:15s} wall "
+                f"{r['wall']:.2f} s ({phases}); returns {r['returns']}"
             )
             return r
 
         if concurrent:
-            with ThreadPoolExecutor(len(order)) as pool:
+            with ThreadPoolExecutor(min(len(order), QUICK_WORKERS)) as pool:
                 return list(pool.map(one, order))
         return [one(job) for job in order]
 

@@ -13,6 +13,20 @@ PROTOCOLS = ("own", "matched")
 """``own``: each library's defaults (imitrl refits a fresh learner every round with beta 0;
 imitation trains one policy on with ``LinearBetaSchedule(15)``); ``matched``: both train
 one policy on (imitrl ``warm_start=True``) with beta 0 (imitation ``beta_schedule=0``)"""
+PROCESSES = ("plain", "collector_trick")
+"""how an imitrl child runs its process (the spec's ``process``): ``plain``, as a user's
+Python script runs (the garbage collector as Python starts it, nothing else touched);
+``collector_trick``, as the ``imitrl`` command runs its own process
+(:mod:`imitrl.system.heap`): the imports with the collector paused, then the import-time
+heap frozen out of its walks (``freeze_imported``), then the collector on again. The
+peer's children are always plain scripts"""
+PROCESS_LABELS = {
+    "plain": "plain script",
+    "collector_trick": "collector trick",
+    "command": "command as shipped",
+}
+"""each process kind as the reports name it (``command``: the shipped ``imitrl gail`` /
+``imitrl airl`` command, ``peer_gail.py`` only)"""
 EVAL_LANES = {"imitrl": 16, "imitation": 50}
 """vector envs each library evaluates on, as its own code does (imitrl's jobs: at most 16
 lanes; imitation's scripts: 50)"""
@@ -49,12 +63,20 @@ class Task:
     hidden: tuple[int, ...] = (32, 32)
     """hidden layers of the tanh MLP (imitation's default ``FeedForward32Policy``)"""
 
-    def spec(self, seed: int, protocol: str = "own", imitrl_loss: str = "default") -> dict:
+    def spec(
+        self,
+        seed: int,
+        protocol: str = "own",
+        imitrl_loss: str = "default",
+        process: str = "plain",
+    ) -> dict:
         """What a child process reads: the task, the training and evaluation seeds, the
-        protocol, each library's evaluation lanes and imitrl's learner (``default``: the
-        one ``build("for_env", env)`` builds, ``--loss for_env``; else a loss-registry name)."""
+        protocol, each library's evaluation lanes, imitrl's learner (``default``: the
+        one ``build("for_env", env)`` builds, ``--loss for_env``; else a loss-registry
+        name) and how imitrl's child runs its process (:data:`PROCESSES`)."""
         if protocol not in PROTOCOLS:
             raise ValueError(f"protocol must be one of {PROTOCOLS}, got {protocol!r}")
+        check_process(process)
         return {
             **asdict(self),
             "hidden": list(self.hidden),
@@ -63,7 +85,15 @@ class Task:
             "protocol": protocol,
             "eval_lanes": dict(EVAL_LANES),
             "imitrl_loss": imitrl_loss,
+            "process": process,
         }
+
+
+def check_process(process: str) -> str:
+    """``process`` if it is one of :data:`PROCESSES`, else ``ValueError``."""
+    if process not in PROCESSES:
+        raise ValueError(f"process must be one of {PROCESSES}, got {process!r}")
+    return process
 
 
 TASKS: dict[str, Task] = {

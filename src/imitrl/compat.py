@@ -35,6 +35,22 @@ _standard_normal``, torchrl's       (``imitrl.runtime.fast.tanh_normal``, a tanh
 _sum_rightmost``, torchrl's         (``imitrl.runtime.fast.tanh_normal.TanhNormalLogProb``,
 ``_SafeTanhNoEps``/``_SafeaTanhNoEps PPO's log-probability of a tanh-normal), :func:`safe_tanh`
 .forward``
+``Distribution._validate_args``     :func:`validates_args` (``imitrl.runtime.fast.tanh_normal``)
+``nn.Module._forward_hooks``,       :func:`forward_hooked`, :func:`hooked`,
+``_forward_pre_hooks``,             :func:`global_module_hooks` (the seam's direct calls of a
+``_backward_hooks``,                module: ``imitrl.runtime.fast``)
+``_backward_pre_hooks``, torch's
+``_global_*_hooks``
+``Optimizer._optimizer_step_pre_    :func:`optimizer_hooked` (``imitrl.runtime.fast.adam_step``)
+hooks``/``post_hooks``, torch's
+``_global_optimizer_*_hooks``
+``torch._foreach_add_``, ``_copy_``, :data:`foreach_add_`, :data:`foreach_copy_`,
+``_norm``, ``_mul_``, ``_lerp_``    :data:`foreach_norm`, :data:`foreach_mul_`,
+                                    :data:`foreach_lerp_` (Adam's flat step, the gradient
+                                    clip, the EMA)
+``LossModule._loss_mask_keys()``    :func:`loss_mask_keys` (``imitrl.runtime.fast.gail_step``)
+Meta-World's ``SawyerXYZEnv.        :func:`random_reset_space` (``imitrl.envs.metaworld``)
+_random_reset_space``
 =================================== ==========================================================
 """
 
@@ -43,28 +59,47 @@ from __future__ import annotations
 import logging
 from collections.abc import Iterable, Iterator, Sequence
 from contextlib import contextmanager
+from typing import TYPE_CHECKING, Any, cast
 
 import torch
 from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
+from torch import nn
 from torchrl.data import LazyTensorStorage, ReplayBuffer
+
+if TYPE_CHECKING:  # the mixin's partner in the bases, for its attributes and ``super()``
+    from tensordict.nn import TensorDictModule as _WriteBase
+else:
+    _WriteBase = object
 
 __all__ = [
     "DirectWriteMixin",
+    "foreach_add_",
+    "foreach_copy_",
+    "foreach_lerp_",
+    "foreach_mul_",
+    "foreach_norm",
+    "forward_hooked",
+    "global_module_hooks",
     "grow_tensor_storage",
+    "hooked",
+    "loss_mask_keys",
+    "optimizer_hooked",
     "plain_module",
     "plain_sampler",
     "plain_sequence",
     "quiet_torchrl_info",
     "raise_ray_weight_sync_wait",
+    "random_reset_space",
     "replace_storage_contents",
     "set_writer_cursor",
+    "validates_args",
     "wrapped_gym_env",
     "writer_cursor",
 ]
 
 
-class DirectWriteMixin:
+class DirectWriteMixin(_WriteBase):
     """Mixin for ``TensorDictModule`` subclasses: tensor outputs are set directly.
 
     Why: tensordict 0.14.3 writes every output of a ``TensorDictModule`` in its
@@ -94,10 +129,14 @@ class DirectWriteMixin:
             and isinstance(tensordict, TensorDictBase)
             and all(isinstance(t, torch.Tensor) for t in tensors)
         ):
-            out_keys = self.out_keys_source if out_keys is None else out_keys
-            if len(tensors) != len(out_keys):
-                raise RuntimeError(f"{len(tensors)} outputs for out_keys {out_keys}")
-            for key, value in zip(out_keys, tensors):
+            # tensordict types out_keys as an Iterable, yet takes its len() as we do (a
+            # string: this is the per-step path, and cast evaluates its first argument)
+            written = cast(
+                "Sequence[NestedKey]", self.out_keys_source if out_keys is None else out_keys
+            )
+            if len(tensors) != len(written):
+                raise RuntimeError(f"{len(tensors)} outputs for out_keys {written}")
+            for key, value in zip(written, tensors):
                 if key != "_":  # tensordict's placeholder for an output to drop
                     tensordict.set(key, value)
             return tensordict
@@ -287,7 +326,7 @@ def plain_clip_ppo(loss, batch: TensorDictBase | None = None) -> bool:
     """
     if loss.functional or loss.delay_actor or getattr(loss, "_asymmetric_clip", False):
         return False
-    if batch is not None and any(k in batch.keys(True) for k in loss._loss_mask_keys()):
+    if batch is not None and any(k in batch.keys(True) for k in loss_mask_keys(loss)):
         return False
     return not (
         loss.entropy_bonus
@@ -351,3 +390,74 @@ def sum_rightmost(value: torch.Tensor, dim: int) -> torch.Tensor:
     from torch.distributions.utils import _sum_rightmost
 
     return _sum_rightmost(value, dim)
+
+
+def loss_mask_keys(loss) -> list[NestedKey]:
+    """The batch entries a TorchRL ``LossModule`` reads as a loss mask. Why: the list is
+    the private ``_loss_mask_keys()``; a replay of the loss on tensors computes something
+    else where the batch holds one, so it steps aside."""
+    return list(loss._loss_mask_keys())
+
+
+def validates_args(dist: torch.distributions.Distribution) -> bool:
+    """Whether ``dist`` checks its arguments and samples (``validate_args``). Why: the
+    instance's setting is the private ``_validate_args``; a replay that skips the
+    distribution must not skip a check it would have made."""
+    return bool(dist._validate_args)
+
+
+def forward_hooked(*modules: nn.Module) -> bool:
+    """Whether any of ``modules`` has a forward or forward-pre hook of its own. Why:
+    torch keeps them in the private ``_forward_hooks`` and ``_forward_pre_hooks`` and has
+    no public query; a direct call of ``forward`` would skip them."""
+    return any(m._forward_hooks or m._forward_pre_hooks for m in modules)
+
+
+def hooked(module: nn.Module) -> bool:
+    """Whether ``module`` has a hook of its own (forward, forward-pre, backward or
+    backward-pre; the private dicts, as :func:`forward_hooked`)."""
+    return forward_hooked(module) or bool(module._backward_hooks or module._backward_pre_hooks)
+
+
+def global_module_hooks() -> bool:
+    """Whether a global module hook is registered (``register_module_forward_hook`` and
+    kin). Why: torch keeps them in ``torch.nn.modules.module``'s private
+    ``_global_*_hooks``; a direct call of ``forward`` would skip them."""
+    from torch.nn.modules import module as torch_module
+
+    names = ("forward_hooks", "forward_pre_hooks", "backward_hooks", "backward_pre_hooks")
+    return any(getattr(torch_module, f"_global_{n}", None) for n in names)
+
+
+def optimizer_hooked(opt: torch.optim.Optimizer) -> bool:
+    """Whether ``opt.step`` would run a step hook (its own or a global one). Why: torch
+    keeps them in the private ``_optimizer_step_pre_hooks``/``_post_hooks`` and
+    ``torch.optim.optimizer._global_optimizer_*_hooks``; Adam's functional step skips them."""
+    from torch.optim import optimizer as torch_optimizer
+
+    return bool(
+        opt._optimizer_step_pre_hooks
+        or opt._optimizer_step_post_hooks
+        or torch_optimizer._global_optimizer_pre_hooks
+        or torch_optimizer._global_optimizer_post_hooks
+    )
+
+
+foreach_add_ = torch._foreach_add_
+"""``torch._foreach_add_``: one kernel over a list of tensors (what ``torch.optim`` and
+``clip_grad_norm_`` call on the CPU; private by name, used throughout torch itself)"""
+foreach_copy_ = torch._foreach_copy_
+"""``torch._foreach_copy_`` (as :data:`foreach_add_`)"""
+foreach_norm = torch._foreach_norm
+"""``torch._foreach_norm`` (as :data:`foreach_add_`)"""
+foreach_mul_ = torch._foreach_mul_
+"""``torch._foreach_mul_`` (as :data:`foreach_add_`)"""
+foreach_lerp_ = torch._foreach_lerp_
+"""``torch._foreach_lerp_`` (as :data:`foreach_add_`; what ``AveragedModel``'s EMA calls)"""
+
+
+def random_reset_space(env: object) -> Any:
+    """A Meta-World v3 env's box of task placements (``rand_vec``'s bounds). Why: it is
+    the private ``_random_reset_space`` of ``SawyerXYZEnv``; ``metaworld.MT1`` reads it the
+    same way to build its tasks."""
+    return env._random_reset_space  # type: ignore[attr-defined]

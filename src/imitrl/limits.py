@@ -30,7 +30,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import numbers
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -212,7 +212,9 @@ class Bound:
             return isinstance(value, numbers.Integral)
         return isinstance(value, numbers.Real) and math.isfinite(value)
 
-    def _above(self, value: float) -> bool:
+    def _above(self, value: Any) -> bool:
+        # ``value``: any real number (an int, a float, a numpy scalar); typeshed's
+        # ``numbers.Real`` declares no reflected comparison with a float
         return value > self.low if self.low_open else value >= self.low
 
 
@@ -276,7 +278,7 @@ def check_bounds(config: Any, *, name: Callable[[str], str] | None = None) -> No
             bound.check_field(getattr(config, f.name), shown)
 
 
-def hidden_parameters(hidden: tuple[int, ...], inputs: int = 1, outputs: int = 1) -> int:
+def hidden_parameters(hidden: Sequence[int], inputs: int = 1, outputs: int = 1) -> int:
     """The weights an MLP with hidden layers ``hidden`` has at least: ``inputs x h_0 +
     sum_i h_i x h_(i+1) + h_last x outputs`` plus a bias per unit (``inputs`` = 1 and
     ``outputs`` = 1 when the env is not known: a lower bound for any env)."""
@@ -295,7 +297,7 @@ def check_hidden(hidden: Any, name: str = "--hidden", *, none: str = "none") -> 
         widths is None
         or len(widths) > MAX_LAYERS
         or not all(
-            isinstance(h, numbers.Integral) and not isinstance(h, bool) and 1 <= h <= MAX_WIDTH
+            isinstance(h, numbers.Integral) and not isinstance(h, bool) and 1 <= int(h) <= MAX_WIDTH
             for h in widths
         )
     ):

@@ -11,15 +11,24 @@ draw every figure and assert it returns nothing.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Protocol, cast
 
 from matplotlib.artist import Artist
-from matplotlib.backend_bases import FigureCanvasBase
+from matplotlib.backend_bases import FigureCanvasBase, RendererBase
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.legend import Legend
 from matplotlib.text import Text
 
 __all__ = ["outside_canvas", "save_figure"]
+
+
+class _Rendering(Protocol):
+    """A canvas that draws (Agg's, which :func:`_with_canvas` gives a figure without one,
+    and each interactive backend's): matplotlib types ``Figure.canvas`` as the base
+    class, which has no ``get_renderer``."""
+
+    def get_renderer(self) -> RendererBase: ...
 
 
 def _with_canvas(fig: Figure) -> Figure:
@@ -49,7 +58,8 @@ def _tick_labels(fig: Figure) -> tuple[list[Text], set[Text]]:
     An axis keeps tick objects beyond its view limits (not drawn, positions stale):
     they are left out of the check.
     """
-    drawn, every = [], set()
+    drawn: list[Text] = []
+    every: set[Text] = set()
     for ax in fig.axes:
         for axis in (ax.xaxis, ax.yaxis):
             lo, hi = sorted(axis.get_view_interval())
@@ -72,7 +82,7 @@ def outside_canvas(fig: Figure, *, tolerance: float = 1.0) -> list[Artist]:
     """
     _with_canvas(fig)
     fig.draw_without_rendering()
-    renderer = fig.canvas.get_renderer()
+    renderer = cast(_Rendering, fig.canvas).get_renderer()
     drawn, ticks = _tick_labels(fig)
     hidden = set()
     for ax in fig.axes:

@@ -112,8 +112,8 @@ def distinct_pairs(
     if any(int(o.min()) < 0 or int(a.min()) < 0 for o, a in parts):
         return None
     base = max(int(a.max()) for _, a in parts) + 1  # one integer per pair: a 1-D unique
-    codes, counts = zip(*(torch.unique(o * base + a, return_counts=True) for o, a in parts))
-    codes, counts = torch.cat(codes), torch.cat(counts)
+    uniques = [torch.unique(o * base + a, return_counts=True) for o, a in parts]
+    codes, counts = torch.cat([c for c, _ in uniques]), torch.cat([k for _, k in uniques])
     if len(parts) > 1:  # merge the slices' pairs, adding their counts
         codes, inverse = torch.unique(codes, return_inverse=True)
         counts = torch.zeros_like(codes).scatter_add_(0, inverse, counts)
@@ -328,6 +328,7 @@ def fit_bc(
     minibatch = config.batch_size is not None and config.batch_size < n
     weights = None
     if minibatch:
+        assert config.batch_size is not None  # minibatch: a batch size below n
         source = data if on_disk else rows
         batches = _Minibatches(source, reads if on_disk else [], config.batch_size, config.seed)
     else:
@@ -375,11 +376,11 @@ def fit_bc(
     return _result(losses.cpu(), n, logger, log_name, log_step)
 
 
-def _placement(opt: torch.optim.Optimizer) -> tuple[torch.device | None, bool]:
+def _placement(opt: torch.optim.Optimizer) -> tuple[torch.device, bool]:
     """``(device, cross)``: the parameters' device, and whether batches cross to it (rows
     stay on the CPU or disk; a minibatch crosses each step, pinned and without blocking)."""
-    device = next((p.device for g in opt.param_groups for p in g["params"]), None)
-    return device, device is not None and device.type != "cpu"
+    device = next((p.device for g in opt.param_groups for p in g["params"]), torch.device("cpu"))
+    return device, device.type != "cpu"
 
 
 def _result(losses: torch.Tensor, n: int, logger, log_name: str, log_step: int) -> BCResult:

@@ -327,7 +327,7 @@ def _run(
     coins = torch.Generator().manual_seed(config.seed)
     mixer = BetaMixer(0.0, generator=coins)
     run = RunState(next_round=0, records=[], bc_step=0, learner=None)
-    if resume and _holds_run(checkpoint_dir):
+    if resume and checkpoint_dir is not None and _holds_run(checkpoint_dir):
         run = load_run(
             checkpoint_dir, buffer, make_learner, config=config,
             record_cls=RoundRecord, mixer_generator=coins, source=source,

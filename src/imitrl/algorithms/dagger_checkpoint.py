@@ -123,7 +123,8 @@ class RunState:
     next_round: int
     records: list
     bc_step: int
-    learner: Learner
+    learner: Learner | None
+    """the saved learner; None before the first round's fit"""
 
 
 def save_run(

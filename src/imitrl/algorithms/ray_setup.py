@@ -61,7 +61,7 @@ def init_ray(
     if runtime_env is None:
         paths = [os.path.abspath(p or os.curdir) for p in sys.path]
         runtime_env = {"env_vars": {"PYTHONPATH": os.pathsep.join(dict.fromkeys(paths))}}
-    options = {"runtime_env": runtime_env, "logging_level": "warning"}
+    options: dict[str, object] = {"runtime_env": runtime_env, "logging_level": "warning"}
     if address is None:
         options.update(num_cpus=num_cpus, include_dashboard=False)
         # Ray puts its AF_UNIX sockets under <tempdir>/ray/session_<time>_<pid>/sockets/,

@@ -59,6 +59,7 @@ already running in this process; workers import imitrl and the user's modules th
 from __future__ import annotations
 
 import time
+import typing
 import warnings
 from collections import deque
 from collections.abc import Callable
@@ -163,7 +164,9 @@ class RaySource:
     """seconds of ``ray_init``, ``actors`` (building the collectors), ``first_weights``"""
     last_timing: RoundTiming | None = field(default=None, init=False)
     _env: EnvBase = field(init=False, repr=False)
-    _collector: object = field(default=None, init=False, repr=False)
+    _collector: typing.Any = field(
+        default=None, init=False, repr=False
+    )  # a RayCollector, once started
     _weight_keys: set = field(default_factory=set, init=False, repr=False)
     _alive: list[int] = field(default_factory=list, init=False, repr=False)
     _owns_ray: bool = field(default=False, init=False, repr=False)
@@ -240,7 +243,7 @@ class RaySource:
         for w, traj in slots.items():
             rows.append(_episode_rows(traj, counts[w], first_episode=first, slot=w))
             first += counts[w]
-        out = torch.cat(rows)
+        out = TensorDict.cat(rows)
         out.set(keys.ROUND, torch.full((out.shape[0],), int(round_index), dtype=torch.int64))
         return out
 
@@ -301,8 +304,10 @@ class RaySource:
         slot goes back to the queue. Returns the slots' episodes and the slowest slot's time."""
         ray = import_ray()
         actors = self._collector.remote_collectors
-        queue, free, pending = deque(tasks), list(self._alive), {}
-        slots, slowest = {}, 0.0
+        queue, free = deque(tasks), list(self._alive)
+        pending: dict[typing.Any, tuple[int, tuple]] = {}  # a Ray reference -> (worker, task)
+        slots: dict[int, TensorDict] = {}
+        slowest = 0.0
         while queue or pending:
             while queue and free:
                 actor, task = free.pop(0), queue.popleft()

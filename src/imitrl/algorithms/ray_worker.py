@@ -61,7 +61,7 @@ class EpisodeCollector(Collector):
             self.reset()  # a fresh initial state; drops episodes left from the last call
             torch.manual_seed(torch_seed)  # this process: the learner's and mixer's draws
             episodes = [self.next() for _ in range(num_episodes)]
-            rows = torch.cat(episodes).select(*_KEEP, *OPTIONAL_ROW_KEYS, strict=False)
+            rows = TensorDict.cat(episodes).select(*_KEEP, *OPTIONAL_ROW_KEYS, strict=False)
         except Exception as err:
             return WorkerFailure.of(err), time.perf_counter() - start
         return rows, time.perf_counter() - start

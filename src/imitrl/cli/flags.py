@@ -66,7 +66,9 @@ def field_docs(cls: type) -> dict[str, str]:
         if not dataclasses.is_dataclass(klass):
             continue
         tree = ast.parse(inspect.getsource(klass))
-        body = tree.body[0].body
+        definition = tree.body[0]
+        assert isinstance(definition, ast.ClassDef)  # the source of a class: its definition
+        body = definition.body
         for node, nxt in itertools.pairwise(body):
             if isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name):
                 if (

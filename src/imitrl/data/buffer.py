@@ -161,10 +161,13 @@ class DemonstrationBuffer:
         self._permutation: LazyPermutation | None = None  # a disk buffer's sampling order
         if self._layout is not None:
             if resume:
-                self._resume(self._layout.stored)
+                stored = self._layout.stored
+                assert stored is not None  # DiskLayout(resume=True) read it
+                self._resume(stored)
             self._commit()
 
     def _resume(self, stored: dict[str, Any]) -> None:
+        assert self._layout is not None  # only a disk buffer resumes
         if self.num_states is not None and stored["num_states"] != self.num_states:
             raise ValueError(
                 f"{self._layout.path}: stored num_states {stored['num_states']}, given {self.num_states}"
@@ -178,6 +181,7 @@ class DemonstrationBuffer:
 
     def _commit(self) -> None:
         """Record a disk buffer's rows and state (after the rows are written)."""
+        assert self._layout is not None  # called for a disk buffer only
         self._layout.write(
             {
                 "rows": len(self),
@@ -473,6 +477,7 @@ class DemonstrationBuffer:
 
     def _discard(self) -> Path:
         """Remove a disk buffer's directory (one this object created; see ``load``)."""
+        assert self._layout is not None  # called for a disk buffer only
         where = self._layout.path
         self._layout.close()
         shutil.rmtree(where)

@@ -435,7 +435,7 @@ def _open_listed(folder: OpenedFolder, name: str, size: int, present: bool) -> i
 
 def _read_verified(fd: int, where: Path, size: int, sha256: str) -> torch.Tensor:
     out = torch.empty(size, dtype=torch.uint8)
-    view = memoryview(out.numpy())
+    view = out.numpy().data  # memoryview(array), typed (numpy types __buffer__ from 3.12)
     with os.fdopen(fd, "rb", buffering=0, closefd=False) as f:
         got = 0
         while got < size:

@@ -354,6 +354,7 @@ def conform_to_env(
         return spec.shape[batch:], spec.dtype
 
     checks: list[tuple[NestedKey, Any]] = []
+    key: NestedKey  # a name here, a nested key below
     for key in (keys.OBSERVATION, keys.PIXELS):  # the state, the camera: either or both
         spec = env.observation_spec.get(key, None)
         if spec is not None:

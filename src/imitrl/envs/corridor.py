@@ -155,11 +155,6 @@ class CorridorGeometry:
         """steps from the start to the goal line"""
         return math.ceil(self.goal_x / self.dx - 1e-9)
 
-    def lane_centres(self) -> torch.Tensor:
-        """``[4]`` the lanes' centre lines, from below."""
-        b, w = self.branch, self.lane
-        return torch.tensor([-b - w, -b + w, b - w, b + w])
-
 
 class ForkingCorridorEnv(SteeringEnv):
     """Batched simulator of the forking corridor (torch only, no gymnasium).

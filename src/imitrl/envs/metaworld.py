@@ -44,6 +44,7 @@ from typing import TYPE_CHECKING, Literal, cast
 import gymnasium
 import numpy as np
 
+from imitrl.compat import random_reset_space
 from imitrl.envs.success import SuccessInfo
 
 if TYPE_CHECKING:
@@ -240,7 +241,7 @@ def make_task(
     # set_task needs a first placement; every reset draws its own below (seeded_rand_vec),
     # so the middle of the task's range serves (metaworld.MT1 would simulate 50 resets to
     # pick one: 0.7 s an env). The task data is what MT1 builds (its _make_tasks).
-    space = raw._random_reset_space
+    space = random_reset_space(raw)
     assert space is not None  # every v3 task sets its reset range
     first = {
         "env_cls": cls,

@@ -282,11 +282,6 @@ class TabularEnv(EnvBase):
             raise ValueError(f"TabularEnv action {bad} is outside [0, {self.mdp.num_actions})")
         return action
 
-    @property
-    def lane_starts(self) -> torch.Tensor | None:
-        """The pinned start state of every lane (``initial_state``), or None."""
-        return None if self._lane_start is None else self._lane_start.clone()
-
     def start_distribution(self, num_episodes: int) -> torch.Tensor:
         """``[S]`` start distribution of ``num_episodes`` whole episodes played round-robin over the lanes.
 

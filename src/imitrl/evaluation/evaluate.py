@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 from tensordict.nn import TensorDictModuleBase
@@ -83,6 +84,7 @@ class Evaluation:
         """One line: episodes, exploration, success and return with intervals and exact values."""
         parts = [f"{self.num_episodes} episodes ({self.exploration})"]
         if self.success_rate is not None:
+            assert self.success_ci is not None  # evaluate() sets both or neither
             lo, hi = self.success_ci
             s = f"success {self.success_rate:.1%} [{lo:.1%}, {hi:.1%}]"
             if self.exact_success is not None:
@@ -168,7 +170,7 @@ def evaluate(
             progress=progress,
         )
     mean, lo, hi = mean_ci(summary.returns, confidence)
-    result = {
+    result: dict[str, Any] = {
         "num_episodes": int(num_episodes),
         "exploration": str(exploration).split(".")[-1].lower(),
         "mean_return": mean,

@@ -120,6 +120,8 @@ class PendulumSwingUp(nn.Module):
     ``[..., 3]`` = (cos th, sin th, w); output float32 ``[..., 1]`` in ``[-2, 2]``.
     """
 
+    gain: torch.Tensor  # the buffer registered in __init__
+
     def __init__(
         self, *, swing_up: str = "energy", energy_gain: float = 1.0, lqr_cos: float = 0.9
     ) -> None:

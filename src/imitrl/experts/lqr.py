@@ -90,6 +90,11 @@ class LinearFeedback(nn.Module):
     Input ``[..., d]`` (any float dtype); output float32 ``[..., m]``.
     """
 
+    gain: torch.Tensor  # the buffers registered in __init__
+    low: torch.Tensor
+    high: torch.Tensor
+    setpoint: torch.Tensor
+
     def __init__(
         self,
         gain: torch.Tensor,

@@ -16,6 +16,8 @@ the env executes, the one a learner bounded by the action spec can imitate.
 from __future__ import annotations
 
 import warnings
+from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -23,6 +25,9 @@ from torchrl.data import Bounded
 
 from imitrl import keys
 from imitrl.policies.experts import Expert
+
+if TYPE_CHECKING:
+    from metaworld.policies.policy import Policy
 
 __all__ = ["metaworld_expert"]
 
@@ -37,7 +42,9 @@ class _LanePolicy:
         from metaworld.policies import ENV_POLICY_MAP
 
         self.task = task_of(task)
-        self.policy = ENV_POLICY_MAP[self.task]()
+        # each a concrete policy class: mypy reads the map as of the abstract Policy
+        make: Callable[[], Policy] = ENV_POLICY_MAP[self.task]
+        self.policy = make()
         # its move() warns at every call whose gain exceeds the bounds: the labels are
         # clipped on purpose (module docstring)
         warnings.filterwarnings(

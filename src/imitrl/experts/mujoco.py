@@ -102,7 +102,9 @@ def linearize_mujoco(env_id: str, *, action_repeat: int = 1, eps: float = 1e-6) 
         d[j] = eps
         B[:, j] = (step(x0, u0 + d) - step(x0, u0 - d)) / (2 * eps)
     drift = step(x0, u0) - x0
-    low, high = env.action_space.low, env.action_space.high
+    space = env.action_space
+    assert isinstance(space, gymnasium.spaces.Box)  # a MuJoCo env's: the actuators' ctrlrange
+    low, high = space.low, space.high
     dt = float(env.dt) * int(action_repeat)
     env.close()
     return Linearization(

@@ -26,10 +26,12 @@ import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from types import ModuleType
 
 from imitrl.fs.files import WRITE_REFUSALS, PlantedLinkError, check_regular, make_folder
 from imitrl.fs.write_errors import reporting_disk_full
 
+fcntl: ModuleType | None  # None where it is missing (not POSIX)
 try:
     import fcntl
 except ImportError:  # pragma: no cover - not POSIX

@@ -89,14 +89,15 @@ def not_writable(err: BaseException) -> OSError | None:
 def is_disk_full(err: BaseException) -> bool:
     """Whether ``err`` (or an exception it was raised from) reports a full file system."""
     seen: set[int] = set()
-    while err is not None and id(err) not in seen:
-        seen.add(id(err))
-        if isinstance(err, OSError) and err.errno in _CODES:
+    current: BaseException | None = err
+    while current is not None and id(current) not in seen:
+        seen.add(id(current))
+        if isinstance(current, OSError) and current.errno in _CODES:
             return True
-        text = str(err).lower()
-        if isinstance(err, OSError | RuntimeError) and any(t in text for t in _TEXTS):
+        text = str(current).lower()
+        if isinstance(current, OSError | RuntimeError) and any(t in text for t in _TEXTS):
             return True
-        err = err.__cause__ or err.__context__
+        current = current.__cause__ or current.__context__
     return False
 
 

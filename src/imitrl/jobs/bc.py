@@ -33,7 +33,7 @@ from imitrl.algorithms import BCConfig, fit_bc
 from imitrl.data import DemonstrationBuffer
 from imitrl.envs import make_env
 from imitrl.jobs.checkpoint import save_run
-from imitrl.jobs.configs import BCJob
+from imitrl.jobs.configs import BCJob, GAILJob
 from imitrl.jobs.curves import make_logger, plot_curves, scalars_dir
 from imitrl.jobs.evaluate import evaluate_returns, format_return
 from imitrl.jobs.output import claimed
@@ -204,7 +204,9 @@ def log_evaluation(logger: Logger, round_index: int, ev: dict, expert: dict | No
         logger.log_scalar("eval/expert_return", expert["mean_return"], step=0)
 
 
-def finish(config: BCJob, name: str, learner: Learner, results: dict, setup: Setup) -> None:
+def finish(
+    config: BCJob | GAILJob, name: str, learner: Learner, results: dict, setup: Setup
+) -> None:
     """Write results.json, the checkpoint and curves.png into the run's folder (they
     name their place in ``--out``, where the run is published); close the env and the
     logger."""

@@ -231,6 +231,7 @@ def _env_sizes(env: EnvBase) -> tuple[int, int]:
     if not task.described:
         return 1, 1
     inputs = task.observation_dim if task.num_states is None else task.num_states
+    assert inputs is not None  # a described task has one of the two (TaskSpec.observes)
     outputs = task.action if isinstance(task.action, int) else int(task.action.shape[0])
     return int(inputs), int(outputs)
 

@@ -73,6 +73,7 @@ def evaluate_returns(
         env.close()
     success = {}
     if ev.success_rate is not None:
+        assert ev.success_ci is not None  # evaluate() sets both or neither
         success = {"success_rate": ev.success_rate, "success_ci": list(ev.success_ci)}
     return {
         **success,
@@ -186,6 +187,8 @@ def run_eval(config: EvalJob) -> dict:
             specs.close()
         policy, exploration, name = learner.policy, learner.exploration, "learner"
     else:
+        # EvalJob.__post_init__: --expert when no --checkpoint, with --env
+        assert config.expert is not None and config.env is not None
         env_id, steps, kwargs = config.env, config.max_episode_steps, dict(config.env_kwargs)
         expert = make_expert(config.expert, config.expert_kind, env_id=env_id)
         policy, exploration = as_actor(expert), ExplorationType.DETERMINISTIC

@@ -38,6 +38,7 @@ from imitrl.algorithms.adversarial import (
 )
 from imitrl.algorithms.adversarial.absorbing import demonstrations_terminate
 from imitrl.algorithms.adversarial.transitions import NEXT_TERMINATED
+from imitrl.configs.adversarial import AIRLConfig
 from imitrl.jobs.bc import (
     BCJob,
     Setup,
@@ -110,6 +111,7 @@ def _train(config: GAILJob, name: str, folder: Path) -> dict:
             result = gail(setup.env, learner, buffer, training, progress=progress, logger=logger,
                           on_round=on_round)  # fmt: skip
         else:
+            assert isinstance(training, AIRLConfig)  # an AIRLJob's (run_airl)
             result, _ = airl(setup.env, learner, buffer, training, progress=progress,
                              logger=logger, on_round=on_round)  # fmt: skip
         if not evaluations or evaluations[-1][0] != result.env_steps:  # the last round's

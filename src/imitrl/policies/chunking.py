@@ -237,7 +237,10 @@ class ChunkedPolicy(TensorDictModuleBase):
         self._noise = None
         self._seen = {}
 
-    def _receding_step(self, td: TensorDictBase, init: torch.Tensor):
+    def _receding_step(
+        self, td: TensorDictBase, init: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        assert self._plan is not None and self._age is not None  # forward set the state
         replan = init | (self._age >= self.execution.replan_every)
         if bool(replan.any()):
             fresh = self.predict(td[replan], None if self._noise is None else self._noise[replan])
@@ -248,7 +251,12 @@ class ChunkedPolicy(TensorDictModuleBase):
         self._age += 1
         return self._plan.clone(), action
 
-    def _ensemble_step(self, td: TensorDictBase, init: torch.Tensor):
+    def _ensemble_step(
+        self, td: TensorDictBase, init: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        assert self._history is not None and self._count is not None  # forward set the state
+        ensemble = self.execution.ensemble
+        assert ensemble is not None  # forward takes this step only with an ensemble
         H = self.execution.horizon
         chunk = self.predict(td, self._noise)  # [L, H, m]
         history = torch.roll(self._history.to(chunk.dtype), 1, dims=1)
@@ -260,7 +268,7 @@ class ChunkedPolicy(TensorDictModuleBase):
         j = torch.arange(H, device=chunk.device)
         preds = history[:, j, j]  # [L, H, m]
         valid = j[None, :] < self._count[:, None]
-        logw = -self.execution.ensemble * (self._count[:, None] - 1 - j[None, :]).to(chunk.dtype)
+        logw = -ensemble * (self._count[:, None] - 1 - j[None, :]).to(chunk.dtype)
         w = torch.where(valid, torch.exp(logw), 0.0)
         w = w / w.sum(-1, keepdim=True)
         return chunk, (w[..., None] * preds).sum(1)

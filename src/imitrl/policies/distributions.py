@@ -14,6 +14,8 @@ from torch import distributions as D
 
 __all__ = ["ClippedNormal", "GreedyCategorical", "GreedyOneHotCategorical", "MultiCategoricalDist"]
 
+_Shape = torch.Size | list[int] | tuple[int, ...]  # a sample shape, as torch's Distribution takes
+
 
 class GreedyCategorical(D.Categorical):
     """Categorical over the last dimension of ``logits``; greedy = ``logits.argmax(-1)``."""
@@ -53,7 +55,7 @@ class GreedyOneHotCategorical(D.OneHotCategorical):
         self._raw_logits, self._dtype = logits, dtype
         super().__init__(logits=logits, validate_args=validate_args)
 
-    def sample(self, sample_shape: torch.Size | tuple = ()) -> torch.Tensor:
+    def sample(self, sample_shape: _Shape = ()) -> torch.Tensor:
         return super().sample(sample_shape).to(self._dtype)
 
     def log_prob(self, value: torch.Tensor) -> torch.Tensor:
@@ -88,7 +90,7 @@ class MultiCategoricalDist(D.Distribution):
         self.parts = [GreedyCategorical(x) for x in logits.split(self.nvec, dim=-1)]
         super().__init__(batch_shape=logits.shape[:-1], validate_args=validate_args)
 
-    def sample(self, sample_shape: torch.Size | tuple = ()) -> torch.Tensor:
+    def sample(self, sample_shape: _Shape = ()) -> torch.Tensor:
         return torch.stack([p.sample(sample_shape) for p in self.parts], -1).to(self._dtype)
 
     def log_prob(self, value: torch.Tensor) -> torch.Tensor:
@@ -130,12 +132,13 @@ class ClippedNormal(D.Independent):
     def _clip(self, x: torch.Tensor) -> torch.Tensor:
         if self.clip_low is None:
             return x
+        assert self.clip_high is not None  # the bounds come together (an ActionSpace's)
         return torch.maximum(torch.minimum(x, self.clip_high), self.clip_low)
 
-    def sample(self, sample_shape: torch.Size | tuple = ()) -> torch.Tensor:
+    def sample(self, sample_shape: _Shape = ()) -> torch.Tensor:
         return self._clip(super().sample(sample_shape))
 
-    def rsample(self, sample_shape: torch.Size | tuple = ()) -> torch.Tensor:
+    def rsample(self, sample_shape: _Shape = ()) -> torch.Tensor:
         return self._clip(super().rsample(sample_shape))
 
     @property

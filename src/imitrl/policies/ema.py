@@ -22,6 +22,8 @@ from collections.abc import Iterator
 import torch
 from torch import nn
 
+from imitrl.compat import foreach_lerp_
+
 __all__ = ["EMA"]
 
 
@@ -38,6 +40,9 @@ class EMA(nn.Module):
     :meth:`trained_weights`); both are saved with the learner's state dict, and ``step`` counts
     the updates (a buffer): checkpoints and DAgger's resume carry all three.
     """
+
+    step: torch.Tensor
+    _model: nn.Module
 
     def __init__(
         self,
@@ -83,7 +88,8 @@ class EMA(nn.Module):
     def update(self) -> None:
         """Average the model's current weights in (after an optimiser step)."""
         d = self.decay()
-        avgs, ws = [], []
+        avgs: list[torch.Tensor] = []
+        ws: list[torch.Tensor] = []
         for avg, w in zip(self.averaged.parameters(), self._model.parameters(), strict=True):
             if avg.is_floating_point() and avg.dtype == w.dtype:
                 avgs.append(avg)
@@ -91,9 +97,9 @@ class EMA(nn.Module):
             else:
                 avg.copy_(w)
         if avgs:  # ema + (1 - d) (w - ema) = d ema + (1 - d) w, in one pass over the list
-            torch._foreach_lerp_(avgs, ws, 1.0 - d)
-        for avg, b in zip(self.averaged.buffers(), self._model.buffers(), strict=True):
-            avg.copy_(b)
+            foreach_lerp_(avgs, ws, 1.0 - d)
+        for ba, b in zip(self.averaged.buffers(), self._model.buffers(), strict=True):
+            ba.copy_(b)
         self.step += 1
         self._updates += 1
 

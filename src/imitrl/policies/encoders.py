@@ -55,7 +55,7 @@ def pixel_shape(pixels: Sequence[int] | TensorSpec) -> tuple[int, int, int]:
             f"a pixel shape is (H, W, C) with positive sizes, got {shape} (for a batched env "
             "pass env.observation_spec_unbatched['pixels'])"
         )
-    return shape  # type: ignore[return-value]
+    return shape
 
 
 def conv_layout(

@@ -42,6 +42,8 @@ __all__ = ["Expert", "TableLookup", "as_actor"]
 class TableLookup(nn.Module):
     """``obs -> table[obs]`` for integer observations, with a range check."""
 
+    table: torch.Tensor
+
     def __init__(self, table: torch.Tensor) -> None:
         super().__init__()
         table = torch.as_tensor(table)

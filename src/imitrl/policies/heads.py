@@ -86,6 +86,9 @@ _ONE, _TWO = torch.ones(()), torch.full((), 2.0)
 class Squash(nn.Module):
     """``low + (high - low) * (tanh(x) + 1) / 2``: a deterministic action inside the bounds."""
 
+    low: torch.Tensor
+    high: torch.Tensor
+
     def __init__(self, low: torch.Tensor, high: torch.Tensor) -> None:
         super().__init__()
         self.register_buffer("low", low.clone().float())
@@ -172,6 +175,7 @@ def build_head(
     """
     in_keys = list(in_keys)
     if head == "categorical":
+        assert space.n is not None  # action_space gives a discrete space its n
         net = Chain(*trunk, nn.Linear(width, space.n))
         if space.one_hot:
             return _probabilistic(
@@ -187,12 +191,17 @@ def build_head(
         spec = space.spec or Categorical(space.n, dtype=torch.int64)
         return _probabilistic(net, [keys.LOGITS], GreedyCategorical, {}, spec, in_keys)
     if head == "multi":
+        assert space.nvec is not None  # action_space gives a multi-discrete space its nvec
         net = Chain(*trunk, nn.Linear(width, sum(space.nvec)))
-        kwargs = {"nvec": space.nvec, "dtype": space.dtype}
-        return _probabilistic(net, [keys.LOGITS], MultiCategoricalDist, kwargs, space.spec, in_keys)
+        multi = {"nvec": space.nvec, "dtype": space.dtype}
+        return _probabilistic(net, [keys.LOGITS], MultiCategoricalDist, multi, space.spec, in_keys)
     dim = space.dim
+    assert dim is not None  # the heads left are continuous ones: action_space gives dim
     if head == "deterministic":
-        last: list[nn.Module] = [] if space.low is None else [Squash(space.low, space.high)]
+        last: list[nn.Module] = []
+        if space.low is not None:
+            assert space.high is not None  # _continuous sets the bounds together
+            last = [Squash(space.low, space.high)]
         net = Chain(*trunk, nn.Linear(width, dim), *last)
         return Module(net, in_keys=in_keys, out_keys=[keys.ACTION])
     if head.endswith("_free"):  # loc from the network, one learned log-std per dimension

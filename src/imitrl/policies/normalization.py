@@ -27,6 +27,10 @@ class ObservationNormalizer(nn.Module):
             (a constant feature would otherwise be divided by ~0).
     """
 
+    loc: torch.Tensor
+    scale: torch.Tensor
+    fitted: torch.Tensor
+
     def __init__(self, shape: tuple[int, ...], *, min_scale: float = 1e-6) -> None:
         super().__init__()
         if min_scale <= 0:

@@ -40,6 +40,7 @@ def read_observations(
         if t.numel() and (int(t.min()) < 0 or int(t.max()) >= num_states):
             raise ValueError(f"state observation outside [0, {num_states})")
         return t, kind
+    assert shape is not None  # a learner reads integer states or vectors of a shape
     if t.shape[-1:] != shape[-1:]:
         raise ValueError(
             f"this policy expects observations of trailing shape {shape}, "

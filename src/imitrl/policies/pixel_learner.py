@@ -149,10 +149,12 @@ class PixelInputs:
     def _state(self, found: Any, batch: torch.Size) -> torch.Tensor:
         if found is None:
             raise ValueError(f"this learner reads the state {keys.OBSERVATION!r} beside the pixels")
+        shape = self.state_shape
+        assert shape is not None  # read reads the state only when the learner has one
         state, _ = _tensor(found, keys.OBSERVATION)
-        if tuple(state.shape) != (*batch, *self.state_shape):
+        if tuple(state.shape) != (*batch, *shape):
             raise ValueError(
-                f"the state must be [..., {', '.join(map(str, self.state_shape))}] with the "
+                f"the state must be [..., {', '.join(map(str, shape))}] with the "
                 f"pixels' batch {tuple(batch)}, got {tuple(state.shape)}"
             )
         state = state.to(torch.float32)
@@ -248,13 +250,14 @@ def pixel_networks(
     obs = None if state is None else observation_space(state)
     if obs is not None and obs.kind != "vector":
         raise ValueError("a pixel learner reads a vector state [d] beside its images")
-    inputs = PixelInputs(
-        pixel_key, (height, width, c * int(frames)), None if obs is None else obs.shape
-    )
+    state_shape = None if obs is None else obs.shape  # a vector space always has its shape
+    inputs = PixelInputs(pixel_key, (height, width, c * int(frames)), state_shape)
     space = action_space(action)
     head = check_head(space, head)
-    normalizer = ObservationNormalizer(obs.shape) if obs is not None and normalize else None
-    state_in = None if obs is None else (normalizer or nn.Identity(), obs.shape[0])
+    normalizer = (
+        ObservationNormalizer(state_shape) if state_shape is not None and normalize else None
+    )
+    state_in = None if state_shape is None else (normalizer or nn.Identity(), state_shape[0])
 
     def trunk() -> tuple[list[nn.Module], int]:
         encoder = PixelEncoder(

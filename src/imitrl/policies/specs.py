@@ -152,8 +152,12 @@ def describe_actions(space: ActionSpace) -> str:
     if space.kind == "discrete":
         return f"{space.n} discrete actions" + (" (one-hot)" if space.one_hot else "")
     if space.kind == "multi_discrete":
+        assert space.nvec is not None  # action_space gives a multi-discrete space its nvec
         return f"multi-discrete actions {list(space.nvec)}"
-    bounds = "" if space.low is None else f" in [{space.low.tolist()}, {space.high.tolist()}]"
+    bounds = ""
+    if space.low is not None:
+        assert space.high is not None  # _continuous sets the bounds together
+        bounds = f" in [{space.low.tolist()}, {space.high.tolist()}]"
     return f"continuous actions of size {space.dim}{bounds}"
 
 
@@ -162,6 +166,7 @@ def check_same_actions(mine: ActionSpace, env: ActionSpace) -> None:
     same = (mine.kind, mine.n, mine.nvec, mine.dim) == (env.kind, env.n, env.nvec, env.dim)
     same = same and (mine.kind != "discrete" or mine.one_hot == env.one_hot)
     if same and mine.low is not None and env.low is not None:
+        assert mine.high is not None and env.high is not None  # _continuous sets both bounds
         same = torch.equal(mine.low, env.low) and torch.equal(mine.high, env.high)
     if not same:
         raise ValueError(

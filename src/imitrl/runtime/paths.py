@@ -48,16 +48,27 @@ import contextlib
 import os
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from contextvars import ContextVar
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Union
 
 import numpy as np
 import torch
+from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torch import nn
 from torchrl.envs import EnvBase
+from torchrl.objectives import LossModule
+
+from imitrl.runtime.losses import GAILReference, PPOReference
 
 if TYPE_CHECKING:  # imported when used: envs and objectives import this module
+    from imitrl.runtime.fast.gail_step import TensorGAILLoss
+    from imitrl.runtime.fast.ppo_step import TensorPPO
     from imitrl.runtime.loop import Lanes, Stepper
+
+PPOLossPiece = Union["TensorPPO", PPOReference]
+"""what :func:`ppo_loss` returns: either path, the same methods"""
+GAILLossPiece = Union["TensorGAILLoss", GAILReference]
+"""what :func:`gail_loss` returns: either path, the same methods"""
 
 __all__ = [
     "PIECES",
@@ -194,27 +205,35 @@ def loss_chain(modules: list[nn.Module] | None):
     return TensorChain.of(modules)
 
 
-def ppo_loss(loss, batch=None):
-    """A :class:`~imitrl.runtime.fast.ppo_step.TensorPPO` of the ``ClipPPOLoss`` ``loss``
-    (its losses on a minibatch's tensors, the same bits), or None on the reference path
-    and wherever it would compute anything else (a configuration it does not replay, a
-    ``batch`` carrying a loss mask): then call ``loss`` on the TensorDict."""
-    if not fast_enabled("ppo_loss"):
-        return None
-    from imitrl.runtime.fast.ppo_step import TensorPPO
+def ppo_loss(loss: LossModule, batch: TensorDictBase | None = None) -> PPOLossPiece:
+    """The ``ClipPPOLoss`` ``loss`` on a minibatch's rows (``prepare(flat)`` once per
+    epoch, ``on_rows(prepared, rows)`` per minibatch): a
+    :class:`~imitrl.runtime.fast.ppo_step.TensorPPO` (its arithmetic on the batch's
+    tensors, the same bits) where it replays ``loss``, else, and on the reference path,
+    :class:`~imitrl.runtime.losses.PPOReference` (the module on the rows). ``batch``: one
+    the loss will see (a loss mask in it keeps the module)."""
+    if fast_enabled("ppo_loss"):
+        from imitrl.runtime.fast.ppo_step import TensorPPO
 
-    return TensorPPO.of(loss, batch)
+        fast = TensorPPO.of(loss, batch)
+        if fast is not None:
+            return fast
+    return PPOReference(loss)
 
 
-def gail_loss(loss, batch=None):
-    """A :class:`~imitrl.runtime.fast.gail_step.TensorGAILLoss` of the ``GAILLoss``
-    ``loss`` (its loss from the four feature tensors, the same bits), or None on the
-    reference path and wherever it would compute anything else: then call ``loss``."""
-    if not fast_enabled("gail_loss"):
-        return None
-    from imitrl.runtime.fast.gail_step import TensorGAILLoss
+def gail_loss(loss: LossModule, batch: TensorDictBase | None = None) -> GAILLossPiece:
+    """The ``GAILLoss`` ``loss`` (``loss_and_penalty(batch, sides)``) and its
+    discriminator's output on each side (``logits(sides, key)``): a
+    :class:`~imitrl.runtime.fast.gail_step.TensorGAILLoss` (its arithmetic on the four
+    feature tensors, the same bits) where it replays ``loss``, else, and on the reference
+    path, :class:`~imitrl.runtime.losses.GAILReference` (the modules as they are)."""
+    if fast_enabled("gail_loss"):
+        from imitrl.runtime.fast.gail_step import TensorGAILLoss
 
-    return TensorGAILLoss.of(loss, batch)
+        fast = TensorGAILLoss.of(loss, batch)
+        if fast is not None:
+            return fast
+    return GAILReference(loss, loss.discriminator_network)
 
 
 def gae(module, batch):

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 import torch
-from tensordict import TensorDictBase
+from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase
 
@@ -45,7 +45,9 @@ class TorchRLStepper(Stepper):
         self._keys, self._next_observation = tuple(row_keys), next_observation
         self._steps: list[TensorDictBase] = []
         self._row_keys: list | None = None
-        self._td = self._out = self._next = None
+        self._td: TensorDictBase = TensorDict()  # the env's reset replaces it
+        self._out: TensorDictBase | None = None
+        self._next: TensorDictBase | None = None
 
     def reset(self) -> None:
         self._td = self.env.reset()
@@ -62,17 +64,21 @@ class TorchRLStepper(Stepper):
             if self._next_observation:
                 after.append(keys.OBSERVATION)
             self._row_keys = [*self._keys, *present, *[(keys.NEXT, k) for k in after]]
-        self._out, self._next = self.env.step_and_maybe_reset(self._td)
+        out, after_reset = self.env.step_and_maybe_reset(self._td)
+        self._out, self._next = out, after_reset
         if self._record:
-            self._steps.append(self._out.select(*self._row_keys))
-        nxt = self._out.get(keys.NEXT)
+            assert self._row_keys is not None  # set above, at the first step
+            self._steps.append(out.select(*self._row_keys))
+        nxt = out.get(keys.NEXT)
         reward = nxt.get(keys.REWARD).reshape(-1).cpu().numpy()
         return reward, nxt.get(keys.DONE).reshape(-1).cpu().numpy()
 
     def advance(self, done: np.ndarray | None) -> None:
+        assert self._next is not None  # advance follows a step
         self._td = self._next  # step_and_maybe_reset has reset the finished lanes
 
     def step_tensordict(self) -> TensorDictBase:
+        assert self._out is not None  # asked for after a step
         return self._out
 
     def trajectory(self) -> TensorDictBase | None:

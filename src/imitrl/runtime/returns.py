@@ -120,6 +120,8 @@ class _Tally:
             self.returns[ids] = self.running[lanes]
             self.lengths[ids] = lengths
             if self.success is not None:
+                # a success criterion plays the step loop, which sets the stepper first
+                assert self.stepper is not None and self.success_fn is not None
                 out = self.stepper.step_tensordict()
                 self.success[ids] = self.success_fn(out).reshape(-1).cpu().numpy()[lanes]
             if self.on_end is not None:

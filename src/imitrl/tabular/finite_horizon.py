@@ -26,7 +26,8 @@ __all__ = [
 ]
 
 
-def _horizon(mdp: TabularMDP, horizon: int | None) -> int:
+def _horizon(mdp: TabularMDP, horizon: float | None) -> int:
+    """``horizon`` (an integer, or a whole float) or the MDP's time limit, as an int."""
     T = mdp.max_steps if horizon is None else horizon
     if T is None:
         raise ValueError(f"no horizon given and {mdp.name!r} has no time limit (max_steps)")
@@ -68,7 +69,7 @@ def success_probability(
     """
     if horizon == float("inf"):
         return _absorption_probability(mdp, pi, initial)
-    d = state_distributions(mdp, pi, horizon, initial=initial)
+    d = state_distributions(mdp, pi, _horizon(mdp, horizon), initial=initial)
     return float(d[-1][mdp.goal].sum())
 
 

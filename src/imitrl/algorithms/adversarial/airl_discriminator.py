@@ -37,7 +37,12 @@ from torch import nn
 from imitrl import keys
 from imitrl.algorithms.adversarial.absorbing import state_features
 from imitrl.algorithms.adversarial.keys import ABSORBING
-from imitrl.algorithms.adversarial.transitions import NEXT_ABSORBING, NEXT_OBS, NEXT_TERMINATED
+from imitrl.algorithms.adversarial.transitions import (
+    NEXT_ABSORBING,
+    NEXT_OBS,
+    NEXT_TERMINATED,
+    learner_inputs,
+)
 from imitrl.configs.adversarial import ADVERSARIAL_LR, DISCRIMINATOR_HIDDEN
 from imitrl.learners.actor_critic import ActorCritic
 from imitrl.policies.heads import mlp
@@ -111,7 +116,7 @@ class AIRLDiscriminator:
             raise ValueError("AIRL needs log pi(a|s): build the learner with a probabilistic head")
         self.learner, self.grad_penalty = learner, float(grad_penalty)
         self.entropy_weight = float(entropy_weight)
-        (obs_dim,) = learner.observation_shape
+        obs_dim, _ = learner_inputs(learner)
         self.normalizer = learner.normalizer if learner.normalizer is not None else nn.Identity()
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(seed)

@@ -45,7 +45,7 @@ from imitrl.algorithms.adversarial.keys import (
     POLICY,
     STATE_FEATURES,
 )
-from imitrl.algorithms.adversarial.transitions import action_features
+from imitrl.algorithms.adversarial.transitions import action_features, learner_inputs
 from imitrl.configs.adversarial import ADVERSARIAL_LR, DISCRIMINATOR_HIDDEN
 from imitrl.learners.actor_critic import ActorCritic
 from imitrl.policies.heads import mlp
@@ -96,9 +96,8 @@ class GAILDiscriminator:
     ) -> None:
         if grad_penalty < 0:
             raise ValueError(f"grad_penalty must be >= 0, got {grad_penalty}")
-        self.space = learner.action_space
+        obs_dim, self.space = learner_inputs(learner)
         features = action_features(_probe_action(self.space), self.space).shape[-1]
-        (obs_dim,) = learner.observation_shape
         self.normalizer = learner.normalizer if learner.normalizer is not None else nn.Identity()
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(seed)
@@ -155,22 +154,13 @@ class GAILDiscriminator:
         returns the loss (penalty included), the penalty and each side's accuracy."""
         batch = self.batch(expert, policy)
         sides = (batch.exclude(POLICY), batch.get(POLICY))  # each side's pairs
-        fast = paths.gail_loss(self.loss, batch)  # the loss on tensors (same bits), or None
-        if fast is None:
-            out = self.loss(batch)
-            loss, gp = out.get("loss"), out.get("gp_loss", torch.zeros(()))
-        else:
-            loss = fast(*(side.get(k) for side in sides for k in self.module.in_keys))
-            gp = torch.zeros(())
+        gail_loss = paths.gail_loss(self.loss, batch)  # on the batch's tensors (same bits)
+        loss, gp = gail_loss.loss_and_penalty(batch, sides)
         self._optimizer_call("zero_grad")()
         loss.backward()
         self._optimizer_call("optimizer_step")()
         with torch.no_grad():  # each side's pairs through D after the step
-            if fast is None:
-                logits = [self.module(side).get(DISCRIMINATOR_LOGIT) for side in sides]
-            else:  # the module's network on the same tensors: its logit output
-                net, names = self.module.module, self.module.in_keys
-                logits = [net(*(side.get(k) for k in names))[0] for side in sides]
+            logits = gail_loss.logits(sides, DISCRIMINATOR_LOGIT)
             expert_acc = (logits[0] > 0).float().mean()
             policy_acc = (logits[1] < 0).float().mean()
         return {

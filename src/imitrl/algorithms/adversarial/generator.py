@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import contextlib
 from collections.abc import Iterator
+from typing import cast
 
 import torch
 from tensordict import TensorDictBase
@@ -77,11 +78,17 @@ class PPOGenerator:
                 "PPO needs a probabilistic policy: build the learner with head categorical, "
                 "normal or tanh_normal (a deterministic head has no log pi)"
             )
+        if learner.value is None or learner.opt_v is None:
+            raise ValueError(
+                "PPO needs a value head: build the learner with value=True "
+                "(build('default', env, value=True))"
+            )
         self.learner, self.epochs, self.minibatch_size = learner, epochs, minibatch_size
+        self.value, self.opts = learner.value, (learner.opt_pi, learner.opt_v)
         self.max_grad_norm = max_grad_norm
         self.loss = ClipPPOLoss(
             learner.policy,
-            learner.value,
+            self.value,
             clip_epsilon=clip_epsilon,
             entropy_bonus=entropy_coeff > 0,
             entropy_coeff=entropy_coeff if entropy_coeff > 0 else None,
@@ -91,9 +98,9 @@ class PPOGenerator:
             functional=False,
         )
         self.loss.set_keys(reward=LEARNED_REWARD)
-        self.gae = GAE(gamma=gamma, lmbda=gae_lambda, value_network=learner.value)
+        self.gae = GAE(gamma=gamma, lmbda=gae_lambda, value_network=self.value)
         self.gae.set_keys(reward=LEARNED_REWARD)
-        self.params = [*learner.policy.parameters(), *learner.value.parameters()]
+        self.params = [*learner.policy.parameters(), *self.value.parameters()]
 
     def update(self, batch: TensorDictBase, generator: torch.Generator) -> dict[str, float]:
         """PPO epochs on ``batch`` (module docstring); returns the last epoch's mean losses."""
@@ -102,28 +109,24 @@ class PPOGenerator:
         batch.set(self.loss.tensor_keys.sample_log_prob, log_prob)
         n = batch.numel()
         sums: dict[str, float] = {}
-        opts = (self.learner.opt_pi, self.learner.opt_v)
+        opts = self.opts
         # Adam's step through the seam (its functional form on the CPU, both optimizers
         # in one call: the same bits), the clip likewise
         optimizer_step = paths.optimizer_step(*opts)
         zero_grad = paths.zero_grad(*opts)  # both optimizers' zero_grad(set_to_none=True)
-        fast = paths.ppo_loss(self.loss, batch)  # the loss on tensors (same bits), or None
+        ppo_loss = paths.ppo_loss(self.loss, batch)  # on the batch's tensors (same bits)
         gae = paths.gae(self.gae, batch)  # GAE on tensors (same bits), or the module
         for _ in range(self.epochs):
             with torch.no_grad():
                 gae(batch)
             flat = batch.reshape(-1)
-            columns = None if fast is None else fast.columns(flat)
+            prepared = ppo_loss.prepare(flat)
             order = torch.randperm(n, generator=generator)
             sums = {}
             for start in range(0, n, self.minibatch_size):
                 rows = order[start : start + self.minibatch_size]
-                if fast is None:
-                    out = self.loss(flat[rows])
-                    losses = {k: v for k, v in out.items() if k.startswith("loss_")}
-                else:
-                    losses = fast(*(c[rows] for c in columns))
-                total = sum(losses.values())
+                losses = ppo_loss.on_rows(prepared, rows)
+                total = cast(torch.Tensor, sum(losses.values()))
                 zero_grad()
                 total.backward()
                 paths.clip_grad_norm(self.params, self.max_grad_norm)
@@ -139,7 +142,7 @@ class PPOGenerator:
         ``scale`` times its own learning rate (the annealing of
         ``AdversarialConfig.anneal_lr``); the learner's own rates are back after it, even
         on an error."""
-        groups = [g for o in (self.learner.opt_pi, self.learner.opt_v) for g in o.param_groups]
+        groups = [g for o in self.opts for g in o.param_groups]
         own = [g["lr"] for g in groups]
         for g, lr in zip(groups, own):
             g["lr"] = lr * scale

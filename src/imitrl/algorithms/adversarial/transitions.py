@@ -112,14 +112,33 @@ def _transitions(obs, action, next_obs, terminated) -> TensorDict:
     )
 
 
+def learner_inputs(learner) -> tuple[int, ActionSpace]:
+    """``(d, action space)`` of an ``ActorCritic`` a discriminator pairs with: its flat
+    vector observations ``[d]`` and the action space it writes (refused otherwise, by name)."""
+    shape, space = learner.observation_shape, learner.action_space
+    if shape is None or len(shape) != 1:
+        raise ValueError(
+            "a discriminator reads flat vector observations [d]; this learner reads "
+            + ("integer states" if shape is None else f"observations {tuple(shape)}")
+        )
+    if space is None:
+        raise ValueError(
+            "a discriminator needs the learner's action space: build the learner from the "
+            "env or a TaskSpec (imitrl.learners.build)"
+        )
+    return int(shape[0]), space
+
+
 def action_features(action: torch.Tensor, space: ActionSpace) -> torch.Tensor:
     """Actions ``[N, ...]`` -> float ``[N, k]``: one-hot ``k = n`` (discrete), ``k = dim``
     (continuous)."""
     if space.kind == "discrete":
         if space.one_hot:
             return action.to(torch.float32)
+        assert space.n is not None  # a discrete ActionSpace always has its n
         return torch.nn.functional.one_hot(action.long().reshape(-1), space.n).to(torch.float32)
     if space.kind == "continuous":
+        assert space.dim is not None  # a continuous ActionSpace always has its dim
         return action.to(torch.float32).reshape(action.shape[0], space.dim)
     raise ValueError(
         f"adversarial imitation supports discrete or continuous actions, got {space.kind}"

@@ -87,7 +87,6 @@ from imitrl.datasets.lerobot._layout import (  # noqa: F401
     EPISODES_PATH,
     IMAGE_NAMES,
     IMITRL_COLUMNS,
-    LEGACY_DATA_PATH,
     QUANTILES,
     READ_VERSIONS,
     SIDECAR,

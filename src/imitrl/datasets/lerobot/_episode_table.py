@@ -25,7 +25,7 @@ import pyarrow.parquet as pq
 
 from imitrl.datasets._arrow import release_unused_memory
 from imitrl.datasets.lerobot._stats_totals import DatasetStats
-from imitrl.datasets.lerobot._write_frames import Episodes, Plan
+from imitrl.datasets.lerobot._write_plan import Episodes, Plan
 
 ROW_GROUP_BYTES = 8 << 20
 """arrow bytes of episode rows held before they are written as one row group"""

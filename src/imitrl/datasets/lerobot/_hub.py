@@ -260,7 +260,7 @@ def _default_revision(client: HubClient, api: str, where: str) -> str:
         raise ValueError(f"{where}: cannot list its revisions ({err})") from None
     if not isinstance(refs, dict):
         raise ValueError(f"{where}: its revisions are {type(refs).__name__}, not an object")
-    names = set()
+    names: set[str] = set()
     for kind in ("branches", "tags"):
         listed = refs.get(kind, [])
         if not isinstance(listed, list) or not all(isinstance(r, dict) for r in listed):

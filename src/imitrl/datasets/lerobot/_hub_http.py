@@ -65,6 +65,7 @@ import zlib
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
+from typing import IO
 from urllib.parse import SplitResult, urljoin, urlsplit
 
 from imitrl.datasets.lerobot._hub_limits import HubLimits
@@ -176,7 +177,9 @@ def _shut(sock: socket.socket) -> None:
         pass  # closed already
 
 
-def _connection(base: type, limits: HubLimits, deadline: _Deadline) -> type:
+def _connection(
+    base: type, limits: HubLimits, deadline: _Deadline
+) -> type[http.client.HTTPConnection]:
     """``base`` (http.client's HTTP or HTTPS connection) connecting within ``connect_s``
     (or what is left of the deadline), then reading with ``read_s``, watched by
     ``deadline``."""
@@ -195,7 +198,7 @@ def _connection(base: type, limits: HubLimits, deadline: _Deadline) -> type:
 
 
 class _HTTP(urllib.request.HTTPHandler):
-    def __init__(self, connection: type) -> None:
+    def __init__(self, connection: type[http.client.HTTPConnection]) -> None:
         super().__init__()
         self._connection = connection
 
@@ -204,12 +207,14 @@ class _HTTP(urllib.request.HTTPHandler):
 
 
 class _HTTPS(urllib.request.HTTPSHandler):
-    def __init__(self, connection: type) -> None:
+    def __init__(self, connection: type[http.client.HTTPConnection]) -> None:
         super().__init__()
         self._connection = connection
 
     def https_open(self, req: urllib.request.Request) -> http.client.HTTPResponse:
-        return self.do_open(self._connection, req, context=self._context)
+        # typeshed omits HTTPSHandler._context, which its __init__ sets
+        context = self._context  # type: ignore[attr-defined]
+        return self.do_open(self._connection, req, context=context)
 
 
 class _Redirects(urllib.request.HTTPRedirectHandler):
@@ -225,7 +230,7 @@ class _Redirects(urllib.request.HTTPRedirectHandler):
     def redirect_request(
         self,
         req: urllib.request.Request,
-        fp: http.client.HTTPResponse,
+        fp: IO[bytes],
         code: int,
         msg: str,
         headers: http.client.HTTPMessage,

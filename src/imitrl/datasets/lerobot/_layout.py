@@ -51,7 +51,6 @@ DEFAULT_DATA_FILE_SIZE_IN_MB = 100
 DEFAULT_VIDEO_FILE_SIZE_IN_MB = 200
 DATA_PATH = "data/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet"
 EPISODES_PATH = "meta/episodes/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet"
-LEGACY_DATA_PATH = "data/chunk-{episode_chunk:03d}/episode_{episode_index:06d}.parquet"
 QUANTILES = (0.01, 0.10, 0.50, 0.90, 0.99)
 IMAGE_NAMES = {"hwc": ["height", "width", "channels"], "chw": ["channels", "height", "width"]}
 DATASET_ENTRIES = frozenset(
@@ -207,7 +206,7 @@ def _check_template(path: Path, field: str, template: object) -> str:
         numbers = [n.lstrip("0") or "0" for n in _NUMBER.findall(spec or "")]
         if "{" in (spec or "") or any(len(n) > 3 or int(n) > MAX_TEMPLATE_WIDTH for n in numbers):
             raise ValueError(
-                f"{path}: {field} {_short(template)} asks for {{{name}:{spec[:20]}}}, "
+                f"{path}: {field} {_short(template)} asks for {{{name}:{(spec or '')[:20]}}}, "
                 f"a format width past {MAX_TEMPLATE_WIDTH} characters (LeRobot's templates "
                 "ask for 3 or 6: data/chunk-{episode_chunk:03d}/episode_{episode_index:06d}"
                 ".parquet); refused before formatting it"

@@ -112,10 +112,14 @@ def _sidecar_entry(
     as this very feature) and its exact per-frame shape (as many entries as ``info.json``'s)."""
     key = entry.get("key") if isinstance(entry, dict) else None
     shape = entry.get("shape") if isinstance(entry, dict) else None
-    valid_key = isinstance(key, str) or (
-        isinstance(key, list) and key and all(isinstance(k, str) and k for k in key)
-    )
-    if not valid_key or as_key(key) == "" or feature_name(as_key(key)) != name:
+    if (
+        not (
+            isinstance(key, str)
+            or (isinstance(key, list) and key and all(isinstance(k, str) and k for k in key))
+        )
+        or as_key(key) == ""
+        or feature_name(as_key(key)) != name
+    ):
         raise ValueError(f"{sidecar}: column {name!r} records key {key!r}, not this feature's")
     pictures = feature["dtype"] in ("image", "video")
     if not isinstance(shape, list) or not all(

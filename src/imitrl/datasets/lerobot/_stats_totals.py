@@ -68,7 +68,7 @@ class EpisodeSum:
         self._total: np.ndarray | None = None
         self._pending: np.ndarray | None = None  # rows not summed yet (pairwise)
         self._tree = _pairwise(self._left) if pairwise else None
-        self._need = next(self._tree) if pairwise else 0
+        self._need = next(self._tree) if self._tree is not None else 0
 
     def add(self, terms: np.ndarray) -> None:
         """The next ``terms [k, K]``."""

@@ -97,8 +97,8 @@ def _runs(
         rows = int(end - first)  # as its footer was counted
         table = read_parquet(folder, name, ["episode_index"], rows=rows, named_by=named_by)
         column = table.column("episode_index")
-        ids = column_to_tensor(column, shape=(1,), dtype="int64", where=f"{path}: 'episode_index'")
-        ids = ids.reshape(-1).numpy()
+        read = column_to_tensor(column, shape=(1,), dtype="int64", where=f"{path}: 'episode_index'")
+        ids = read.reshape(-1).numpy()
         change = np.flatnonzero(np.diff(ids)) + 1
         for s, e in zip(np.r_[0, change], np.r_[change, len(ids)]):
             i = int(ids[s])

@@ -31,7 +31,8 @@ from imitrl.datasets.lerobot._layout import (
 )
 from imitrl.datasets.lerobot._stats_totals import DatasetStats
 from imitrl.datasets.lerobot._video_write import VIDEO_PATH, VideoFiles, write_videos
-from imitrl.datasets.lerobot._write_frames import Episodes, Plan, write_frames
+from imitrl.datasets.lerobot._write_frames import write_frames
+from imitrl.datasets.lerobot._write_plan import Episodes, Plan
 
 
 def write_v3(
@@ -115,7 +116,7 @@ def _write_tasks(root: Path, task_list: list[str]) -> None:
             "task_index": pa.array(range(len(task_list)), pa.int64()),
             "__index_level_0__": pa.array(task_list, pa.large_string()),
         }
-    ).replace_schema_metadata({b"pandas": _pandas_index_metadata(len(task_list))})
+    ).replace_schema_metadata({b"pandas": _pandas_index_metadata()})
     pq.write_table(tasks_table, root / "meta" / "tasks.parquet")
 
 
@@ -129,7 +130,7 @@ def _write_stats(root: Path, totals: DatasetStats) -> None:
     (root / "meta" / "stats.json").write_text(json.dumps(stats, indent=4))
 
 
-def _pandas_index_metadata(n_rows: int) -> bytes:
+def _pandas_index_metadata() -> bytes:
     """The pandas metadata ``DataFrame.to_parquet`` writes, so ``pd.read_parquet`` restores
     the task strings as the index (LeRobot looks tasks up with ``tasks.loc[task]``)."""
     return json.dumps(

@@ -37,7 +37,8 @@ from imitrl.datasets.lerobot._layout import (
 )
 from imitrl.datasets.lerobot._v3_files import write_v3
 from imitrl.datasets.lerobot._video_write import MIN_SIDE, import_av
-from imitrl.datasets.lerobot._write_frames import Column, Episodes, Plan, pixels_of
+from imitrl.datasets.lerobot._write_frames import pixels_of
+from imitrl.datasets.lerobot._write_plan import Column, Episodes, Plan
 from imitrl.fs.publish import publishing
 
 

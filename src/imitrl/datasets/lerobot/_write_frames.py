@@ -19,9 +19,8 @@ time.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Literal
+from typing import Any, Literal
 
 import numpy as np
 import pyarrow as pa
@@ -37,68 +36,16 @@ from imitrl.datasets._arrow import (
     release_unused_memory,
     tensor_to_array,
 )
-from imitrl.datasets._common import NestedKey
+from imitrl.datasets.lerobot._episode_table import EpisodeTable
 from imitrl.datasets.lerobot._layout import DATA_PATH
 from imitrl.datasets.lerobot._stats import image_stats, sample_frames, segment_stats
 from imitrl.datasets.lerobot._stats_totals import DatasetStats
 from imitrl.datasets.lerobot._video_write import next_file
-
-if TYPE_CHECKING:  # _episode_table imports this module's Episodes and Plan
-    from imitrl.datasets.lerobot._episode_table import EpisodeTable
+from imitrl.datasets.lerobot._write_plan import Episodes, Plan
 
 SLICE_BYTES = 8 << 20
 """bytes of rows read and converted at once (rounded to whole episodes, at least one); a
 row group holds at most one slice, so a streamed load reads at most this much at once"""
-
-
-@dataclass(frozen=True)
-class Episodes:
-    """The episodes written: contiguous blocks of the ``N`` rows, and their tasks; a few
-    integers per episode."""
-
-    starts: np.ndarray
-    """``[E]`` int64: first row of each episode"""
-    lengths: np.ndarray
-    """``[E]`` int64: rows of each episode"""
-    task_pairs: np.ndarray
-    """``[P, 2]`` int64: every distinct ``(episode, task_index)`` of the rows, sorted"""
-    task_list: list[str]
-    """every task string, indexed by ``task_index``"""
-
-    def tasks(self, first: int, end: int) -> list[list[str]]:
-        """Episodes ``first .. end - 1``'s task strings, each sorted (the episode table's
-        ``tasks``)."""
-        lo, hi = np.searchsorted(self.task_pairs[:, 0], [first, end])
-        out: list[list[str]] = [[] for _ in range(end - first)]
-        for e, t in self.task_pairs[lo:hi].tolist():
-            out[e - first].append(self.task_list[t])
-        return [sorted(t) for t in out]
-
-
-@dataclass(frozen=True)
-class Column:
-    """One key of the rows as a LeRobot feature."""
-
-    key: NestedKey
-    name: str
-    """the feature name"""
-    kind: Literal["array", "image", "video"]
-    layout: Literal["hwc", "chw"] | None
-    """how an image or video key holds its frames"""
-
-
-@dataclass(frozen=True)
-class Plan:
-    """What :func:`save_lerobot` writes, feature by feature, in column order."""
-
-    columns: list[Column]
-    """the rows' keys as features (bookkeeping columns aside)"""
-    info: dict[str, dict]
-    """feature -> its ``info.json`` entry (dtype, shape, names), bookkeeping included"""
-    sidecar: dict[str, dict]
-    """feature -> its ``meta/imitrl.json`` entry (buffer key, exact per-frame shape)"""
-    videos: dict[str, np.ndarray]
-    """video feature -> uint8 ``[N, H, W, 3]`` frames to encode (a view of the rows)"""
 
 
 def pixels_of(value: Any, layout: Literal["hwc", "chw"]) -> np.ndarray:
@@ -134,8 +81,10 @@ def _slice_table(
     for col in plan.columns:
         value = part.get(col.key)
         if col.kind == "video":
+            assert col.layout is not None  # an image or video column has one (_write._plan)
             images[col.name] = pixels_of(value, col.layout).transpose(0, 3, 1, 2)
         elif col.kind == "image":
+            assert col.layout is not None
             pixels = pixels_of(value, col.layout)
             columns[col.name] = encode_images(pixels, frame_index)
             images[col.name] = pixels.transpose(0, 3, 1, 2)  # (C, H, W), as LeRobot reads them
@@ -208,6 +157,7 @@ def write_frames(
             e, offset = first, 0
             while e < end:  # one row group: the slice's episodes that go to one file
                 if e and e % episodes_per_file == 0:  # lerobot's update_chunk_file_indices
+                    assert writer is not None  # opened at episode 0, in the first slice
                     writer.close()
                     writer = None
                     chunk, file = next_file(chunk, file, chunks_size)

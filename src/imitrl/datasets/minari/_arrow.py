@@ -241,7 +241,12 @@ def read_episode(
         raise ValueError(f"{here}: no {missing or 'rows'} (an episode has T + 1 rows)")
     steps = table.num_rows - 1  # observations [T + 1]; the rest padded by one row
     column = {name: table.column(name).combine_chunks() for name in _FIELDS}
-    common = {"storage": _Columns(), "jpeg": jpeg, "skipped": skipped, "where": here}
+    common: dict[str, Any] = {
+        "storage": _Columns(),
+        "jpeg": jpeg,
+        "skipped": skipped,
+        "where": here,
+    }
     obs = decode(column["observations"], spaces[0], "observations", **common)
     act = decode(column["actions"].slice(0, steps), spaces[1], "actions", **common)
     if obs is None or act is None:

@@ -212,7 +212,12 @@ def _read_group(
     if recorded is not None and as_count(recorded, "attrs id", here) != ep_id:
         raise ValueError(f"{here}: attrs id={int(recorded)} contradicts the group's name")
     declared = group.attrs.get("total_steps")
-    common = {"storage": _Groups(floor), "jpeg": jpeg, "skipped": skipped, "where": here}
+    common: dict[str, Any] = {
+        "storage": _Groups(floor),
+        "jpeg": jpeg,
+        "skipped": skipped,
+        "where": here,
+    }
     obs = decode(
         node(group, "observations", f"{here}/observations"), spaces[0], "observations", **common
     )

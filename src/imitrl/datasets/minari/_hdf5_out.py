@@ -131,6 +131,7 @@ class HDF5Out:
             raise self._file.failed
 
     def __exit__(self, kind: type | None, *exc: object) -> None:
+        assert self._file is not None  # __enter__ returned: it opened the file
         try:
             self._h5.close()  # never fails on a write: they all succeed, to disk or memory
             if kind is None:

@@ -175,6 +175,7 @@ def open_episodes(
     meta_where = str(folder.root / METADATA_FILE)
     fmt = (meta or {}).get("data_format", "hdf5")
     if fmt != "hdf5":  # arrow / parquet: metadata.json named the format
+        assert meta is not None  # without it, the format is hdf5
         spaces = _spaces(meta, meta_where)
         listing = list_folders(folder, fmt, meta)
         src = EpisodeSource(meta, str(folder.root), listing, spaces, skipped, folder, pin=pin)

@@ -76,7 +76,13 @@ def _check_space(space: Any, where: str, depth: int = 0) -> None:
             raise ValueError(f"{where}: unsupported dtype {space['dtype']!r}")
     if kind == "Discrete":
         n, start = space.get("n"), space.get("start", 0)
-        if not all(isinstance(v, int) and not isinstance(v, bool) for v in (n, start)) or n < 1:
+        if not (
+            isinstance(n, int)
+            and not isinstance(n, bool)
+            and isinstance(start, int)
+            and not isinstance(start, bool)
+            and n >= 1
+        ):
             raise ValueError(f"{where}: a Discrete space needs integers n >= 1 and start")
     if kind == "MultiDiscrete" and not _sizes(space.get("nvec")):
         raise ValueError(f"{where}: a MultiDiscrete space needs an 'nvec' list of sizes")
@@ -110,6 +116,7 @@ def space_shape(space: dict) -> tuple[int, ...]:
 
 def is_image(space: dict) -> bool:
     """``minari.dataset.minari_storage.is_image_space``: JPEG-encoded when ``jpeg_encoding``."""
+    bounds: np.bool_ | bool
     try:
         bounds = np.all(np.asarray(space.get("low")) == 0) and np.all(
             np.asarray(space.get("high")) == 255

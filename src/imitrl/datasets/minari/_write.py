@@ -71,7 +71,13 @@ def _rows_to_write(
         raise ValueError(
             f"action_key must be {keys.EXPERT_ACTION!r} or {keys.ACTION!r}, got {action_key!r}"
         )
-    need = [keys.OBSERVATION, action_key, keys.EPISODE, keys.STEP, (keys.NEXT, keys.REWARD)]
+    need: list[NestedKey] = [
+        keys.OBSERVATION,
+        action_key,
+        keys.EPISODE,
+        keys.STEP,
+        (keys.NEXT, keys.REWARD),
+    ]
     need += [*_FLAGS, _NEXT_OBS]
     held = set(rows.keys(include_nested=True))
     missing = [key_name(k) for k in need if k not in held]

@@ -64,6 +64,7 @@ def _serialized(space: gymnasium.Space) -> dict[str, Any]:
     if isinstance(space, MultiBinary):
         n = space.n
         return {"type": "MultiBinary", "n": n.tolist() if isinstance(n, np.ndarray) else n}
+    assert isinstance(space, Dict)  # the last kind check_space lets through
     return {"type": "Dict", "subspaces": {k: _serialized(s) for k, s in space.spaces.items()}}
 
 
@@ -113,10 +114,12 @@ def space_values(value: Any, space: gymnasium.Space, where: str) -> Any:
     if not isinstance(value, torch.Tensor):
         raise ValueError(f"{where}: a {type(space).__name__} space needs a tensor, got entries")
     array = value.detach().cpu().numpy()
-    if tuple(array.shape[1:]) != tuple(space.shape):
+    shape = space.shape
+    assert shape is not None  # a leaf space (check_space): each has a shape
+    if tuple(array.shape[1:]) != tuple(shape):
         raise ValueError(
             f"{where}: per-step shape {list(array.shape[1:])}, the space {space} declares "
-            f"{list(space.shape)}"
+            f"{list(shape)}"
         )
     check_finite(array, where=where)
     dtype = _leaf_dtype(space)

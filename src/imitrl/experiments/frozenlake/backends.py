@@ -70,9 +70,6 @@ class _FaithfulBlock:
             raise ValueError("the faithful protocol runs one replicate at a time")
         return GymnasiumStreamSource(self.mdp, self.stream)
 
-    def relabel_mdp(self, replicates: int) -> TabularMDP:
-        return self.mdp
-
 
 class FaithfulBackend:
     """The section's protocol on gymnasium's own random stream."""
@@ -130,9 +127,6 @@ class _BatchedBlock:
     def source(self, replicates: int = 1, episodes_per_round: int = 1) -> EnvSource:
         _, env = self._product(replicates, episodes_per_round)
         return EnvSource(env, exploration=ExplorationType.DETERMINISTIC, max_steps=10**6)
-
-    def relabel_mdp(self, replicates: int) -> TabularMDP:
-        return self.mdp.replicate(replicates) if replicates > 1 else self.mdp
 
 
 class BatchedBackend:

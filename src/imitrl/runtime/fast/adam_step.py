@@ -22,10 +22,12 @@ from __future__ import annotations
 
 import itertools
 from collections.abc import Callable
+from typing import Any
 
 import torch
-from torch.optim import optimizer as _optimizer
 from torch.optim.adam import adam
+
+from imitrl.compat import foreach_add_, foreach_copy_, optimizer_hooked
 
 __all__ = ["optimizer_step"]
 
@@ -36,15 +38,6 @@ _SETTINGS = (
 """the group settings ``adam`` reads: optimizers agreeing on all of them step in one call"""
 
 
-def _hooked(opt: torch.optim.Optimizer) -> bool:
-    return bool(
-        opt._optimizer_step_pre_hooks
-        or opt._optimizer_step_post_hooks
-        or _optimizer._global_optimizer_pre_hooks
-        or _optimizer._global_optimizer_post_hooks
-    )
-
-
 def _same(a: list, b: list) -> bool:
     return len(a) == len(b) and all(x is y for x, y in zip(a, b))
 
@@ -52,14 +45,16 @@ def _same(a: list, b: list) -> bool:
 def optimizer_step(*opts: torch.optim.Optimizer) -> Callable[[], None]:
     """``opt.step()`` for each of ``opts`` in a fit's loop (module docstring): decided once,
     call it per step."""
-    steps = [_AdamStep.of(opt) or opt.step for opt in opts]
-    params = [p for s in steps if isinstance(s, _AdamStep) for p in s.params]
+    adams = [_AdamStep.of(opt) for opt in opts]
+    steps: list[Callable[[], Any]] = [a or opt.step for a, opt in zip(adams, opts)]
+    flat = [a for a in adams if a is not None]
+    params = [p for a in flat for p in a.params]
     if (
-        all(isinstance(s, _AdamStep) for s in steps)
+        len(flat) == len(opts)
         and len(params) > 1  # one tensor: nothing to lay end to end
         and len({id(p) for p in params}) == len(params)  # a shared parameter steps twice
     ):
-        return _FlatStep(opts, steps)
+        return _FlatStep(opts, flat)
     if len(steps) == 1:
         return steps[0]
 
@@ -85,7 +80,7 @@ class _AdamStep:
             type(opt) is not torch.optim.Adam
             or "step" in vars(opt)  # a step patched on the instance: it is what must run
             or len(opt.param_groups) != 1
-            or _hooked(opt)
+            or optimizer_hooked(opt)
         ):
             return None
         group = opt.param_groups[0]
@@ -105,8 +100,9 @@ class _AdamStep:
             or not _same(groups[0]["params"], self.params)
         ):
             return None  # a group added or replaced since: Adam's own step reads them
-        grads = [p.grad for p in self.params]
-        if any(g is None or g.is_sparse for g in grads) or _hooked(self.opt):
+        maybe = [p.grad for p in self.params]
+        grads = [g for g in maybe if g is not None and not g.is_sparse]
+        if len(grads) != len(maybe) or optimizer_hooked(self.opt):
             return None
         if (
             self.lists
@@ -114,8 +110,9 @@ class _AdamStep:
         ):
             self.lists.clear()  # the state was replaced (load_state_dict): read it again
         if not self.lists:
-            states = [self.opt.state.get(p) for p in self.params]
-            if not all(states):
+            found = [self.opt.state.get(p) for p in self.params]
+            states = [s for s in found if s]
+            if len(states) != len(found):
                 return None
             amsgrad = self.group["amsgrad"]
             self.lists[:] = [
@@ -172,8 +169,9 @@ class _FlatStep:
                 opt.step()  # an optimizer this step no longer replays: its own step
             return
         first = self.parts[0].group
-        grads = [s.ready() for s in self.parts]
-        if any(g is None for g in grads) or any(
+        ready = [s.ready() for s in self.parts]
+        grads = [g for g in ready if g is not None]
+        if len(grads) != len(ready) or any(
             s.group[k] != first[k] for s in self.parts[1:] for k in _SETTINGS
         ):
             self._each()
@@ -189,8 +187,8 @@ class _FlatStep:
             flat_grads = [torch.cat([g.reshape(-1) for g in gs]) for gs in grads]
             _adam(self.parts[0].opt, first, buffers, flat_grads, lists)
             if others:
-                torch._foreach_add_(others, 1)
-            torch._foreach_copy_(params, views)
+                foreach_add_(others, 1)
+            foreach_copy_(params, views)
 
     def _current(self) -> bool:
         """Whether the optimizers are as this step read them (their group and parameters
@@ -315,10 +313,14 @@ def _adam(opt, group, params, grads, lists) -> None:
     """``Adam.step``'s call of the functional ``adam`` with ``group``'s settings."""
     beta1, beta2 = group["betas"]
     with torch.no_grad():
+        exp_avgs, exp_avg_sqs, max_exp_avg_sqs, state_steps = lists
         adam(
             params,
             grads,
-            *lists,
+            exp_avgs,
+            exp_avg_sqs,
+            max_exp_avg_sqs,
+            state_steps,
             amsgrad=group["amsgrad"],
             has_complex=False,
             beta1=beta1,

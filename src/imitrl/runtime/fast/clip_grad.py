@@ -20,6 +20,8 @@ from collections.abc import Sequence
 
 import torch
 
+from imitrl.compat import foreach_mul_, foreach_norm
+
 __all__ = ["clip_grad_norm"]
 
 
@@ -30,9 +32,9 @@ def clip_grad_norm(params: Sequence[torch.Tensor], max_norm: float) -> torch.Ten
     if not grads or not _one_foreach_group(grads):
         return torch.nn.utils.clip_grad_norm_(params, max_norm)
     with torch.no_grad():
-        total = torch.linalg.vector_norm(torch.stack(torch._foreach_norm(grads, 2.0)), 2.0)
+        total = torch.linalg.vector_norm(torch.stack(foreach_norm(grads, 2.0)), 2.0)
         coef = torch.clamp(float(max_norm) / (total + 1e-6), max=1.0)
-        torch._foreach_mul_(grads, coef)
+        foreach_mul_(grads, coef)
     return total
 
 

@@ -114,13 +114,13 @@ class _TabularSteps(DirectSteps):
 
     def step_raw(self, action: torch.Tensor) -> RawStep:
         state, reward, terminated, truncated = self.env.step_lanes(action)
-        terminated, truncated = terminated.numpy(), truncated.numpy()
+        ended, cut = terminated.numpy(), truncated.numpy()
         return RawStep(
             state.reshape(self.batch_size),
             reward.numpy(),
-            terminated,
-            truncated,
-            terminated | truncated,  # as TabularEnv._step writes it
+            ended,
+            cut,
+            ended | cut,  # as TabularEnv._step writes it
         )
 
     def reset_lanes(self, done: np.ndarray) -> torch.Tensor:
@@ -204,9 +204,7 @@ class GymSteps(DirectSteps):
         if action.requires_grad or not action.is_cpu:
             action = action.detach().cpu()
         a = action.numpy()  # TensorSpec.to_numpy(safe=False)
-        if self._int_action:
-            a = int(a)
-        obs, reward, terminated, truncated, _ = self._gym.step(a)
+        obs, reward, terminated, truncated, _ = self._gym.step(int(a) if self._int_action else a)
         terminated, truncated = self._flag(terminated), self._flag(truncated)
         # GymWrapper._output_transform (gymnasium): done = terminated | truncated
         done = _FALSE if terminated is _FALSE and truncated is _FALSE else terminated | truncated

@@ -45,7 +45,7 @@ from torchrl.objectives.value.functional import (
     vec_generalized_advantage_estimate,
 )
 
-from imitrl.compat import plain_module
+from imitrl.compat import forward_hooked, plain_module
 from imitrl.policies.modules import Value
 from imitrl.runtime.fast.policy_call import direct_call
 
@@ -83,7 +83,7 @@ class TensorGAE:
         value = gae.value_network
         if type(value) not in (TensorDictModule, ValueOperator, Value) or not plain_module(value):
             return None  # a subclass or a sequence may compute anything in its forward
-        if value._forward_hooks or value._forward_pre_hooks:
+        if forward_hooked(value):
             return None
         if len(value.in_keys) != 1 or len(value.out_keys) != 1:
             return None

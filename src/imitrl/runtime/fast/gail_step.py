@@ -19,10 +19,11 @@ from __future__ import annotations
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule
+from tensordict.utils import NestedKey
 from torch.nn import functional as F
 from torchrl.objectives import GAILLoss
 
-from imitrl.compat import plain_module
+from imitrl.compat import forward_hooked, loss_mask_keys, plain_module
 
 __all__ = ["TensorGAILLoss"]
 
@@ -30,11 +31,14 @@ __all__ = ["TensorGAILLoss"]
 class TensorGAILLoss:
     """``GAILLoss(batch)["loss"]`` from the four feature tensors (module docstring)."""
 
+    accelerated = True
+    """the accelerated path (:class:`~imitrl.runtime.losses.GAILReference` says False)"""
+
     def __init__(self, loss: GAILLoss) -> None:
         self.net = loss.discriminator_network.module
-        self.out = list(loss.discriminator_network.out_keys).index(
-            loss.tensor_keys.discriminator_pred
-        )
+        self.in_keys = list(loss.discriminator_network.in_keys)
+        self.out_keys = list(loss.discriminator_network.out_keys)
+        self.out = self.out_keys.index(loss.tensor_keys.discriminator_pred)
         self.loss = loss
 
     @classmethod
@@ -50,15 +54,31 @@ class TensorGAILLoss:
             or type(net).forward is not TensorDictModule.forward
             or not plain_module(net)
             or len(net.in_keys) != 2
-            or any(m._forward_hooks or m._forward_pre_hooks for m in (net, net.module))
+            or forward_hooked(net, net.module)
         ):
             return None  # a network whose call is not its module on the two features
         k = loss.tensor_keys
         if list(net.in_keys) != [k.expert_observation, k.expert_action]:
             return None
-        if batch is not None and any(m in batch.keys(True) for m in loss._loss_mask_keys()):
+        if batch is not None and any(m in batch.keys(True) for m in loss_mask_keys(loss)):
             return None
         return cls(loss)
+
+    def loss_and_penalty(
+        self, batch: TensorDictBase, sides: tuple[TensorDictBase, TensorDictBase]
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """:meth:`__call__` on ``sides``' (expert's, policy's) features, and a zero
+        penalty (a penalised loss is never replayed)."""
+        (eo, ea), (po, pa) = ([side.get(k) for k in self.in_keys] for side in sides)
+        return self(eo, ea, po, pa), torch.zeros(())
+
+    def logits(
+        self, sides: tuple[TensorDictBase, TensorDictBase], key: NestedKey
+    ) -> list[torch.Tensor]:
+        """The network's output ``key`` on each side's features (the module's call on the
+        same tensors)."""
+        out = self.out_keys.index(key)
+        return [self.net(*(side.get(k) for k in self.in_keys))[out] for side in sides]
 
     def __call__(
         self,

@@ -37,6 +37,7 @@ policy).
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import cast
 
 import torch
 from tensordict import TensorDict
@@ -54,37 +55,23 @@ from torchrl.envs.utils import ExplorationType, exploration_type
 from torchrl.modules import ProbabilisticActor
 
 from imitrl import keys
-from imitrl.compat import plain_module, plain_sampler, plain_sequence
+from imitrl.compat import (
+    forward_hooked,
+    global_module_hooks,
+    hooked,
+    plain_module,
+    plain_sampler,
+    plain_sequence,
+)
 from imitrl.policies.distributions import GreedyCategorical
 from imitrl.policies.experts import Expert, _ExecuteExpert
+from imitrl.policies.heads import Chain, Squash
 from imitrl.policies.mixture import BetaMixer
 from imitrl.policies.modules import Module
+from imitrl.policies.normalization import ObservationNormalizer
 from imitrl.runtime.fast import categorical, tanh_normal
 
 __all__ = ["TensorPolicy", "Values", "direct_call"]
-
-
-def _hookless(module: nn.Module) -> bool:
-    return not (
-        module._forward_hooks
-        or module._forward_pre_hooks
-        or module._backward_hooks
-        or module._backward_pre_hooks
-    )
-
-
-def _global_hooks() -> bool:
-    from torch.nn.modules import module as torch_module
-
-    return any(
-        getattr(torch_module, name, None)
-        for name in (
-            "_global_forward_hooks",
-            "_global_forward_pre_hooks",
-            "_global_backward_hooks",
-            "_global_backward_pre_hooks",
-        )
-    )
 
 
 def direct_call(module: nn.Module) -> Callable[..., torch.Tensor]:
@@ -99,14 +86,11 @@ def direct_call(module: nn.Module) -> Callable[..., torch.Tensor]:
     bits. Anything with a hook is called as ``module`` itself. Decided when called: hooks
     registered afterwards are not seen (build it per rollout, or per fit).
     """
-    from imitrl.policies.heads import Chain, Squash
-    from imitrl.policies.normalization import ObservationNormalizer
-
-    if not isinstance(module, nn.Module) or _global_hooks() or not _hookless(module):
+    if not isinstance(module, nn.Module) or global_module_hooks() or hooked(module):
         return module
     forward = type(module).forward
     if forward is nn.Sequential.forward or forward is Chain.forward:
-        children = [direct_call(child) for child in module]
+        children = [direct_call(child) for child in cast(nn.Sequential, module)]  # or a Chain
         if not children:
             return module
         first, rest = children[0], children[1:]
@@ -120,7 +104,7 @@ def direct_call(module: nn.Module) -> Callable[..., torch.Tensor]:
         return chain
     if type(module) is nn.Tanh:
         return torch.tanh  # nn.Tanh.forward is torch.tanh(input)
-    if type(module) in (Squash, ObservationNormalizer):  # exactly: not a subclass's forward
+    if type(module) is Squash or type(module) is ObservationNormalizer:  # not a subclass's
         return _bound_forward(module)
     if type(module) is nn.Linear and not parametrize.is_parametrized(module):
         # Linear.forward is F.linear(x, self.weight, self.bias): the same call with the
@@ -134,14 +118,14 @@ def direct_call(module: nn.Module) -> Callable[..., torch.Tensor]:
 _ONE, _TWO = torch.ones(()), torch.full((), 2.0)  # Squash.forward's constants, the same values
 
 
-def _bound_forward(module: nn.Module) -> Callable[[torch.Tensor], torch.Tensor]:
+def _bound_forward(
+    module: Squash | ObservationNormalizer,
+) -> Callable[[torch.Tensor], torch.Tensor]:
     """A ``Squash``'s or an ``ObservationNormalizer``'s forward with its buffers read now:
     the same operations on the same values (a ``Squash``'s span computed once, so one fewer
     per call). A normaliser's statistics are updated in place, so a refit during the
     rollout is still seen; a ``Squash``'s bounds replaced afterwards are not."""
-    from imitrl.policies.heads import Squash
-
-    if type(module) is Squash:
+    if isinstance(module, Squash):
         low, span = module.low, module.high - module.low
         return lambda x: low + span * (torch.tanh(x) + _ONE) / _TWO
     loc, scale = module.loc, module.scale
@@ -183,7 +167,7 @@ class TensorPolicy:
 
     # ------------------------------------------------------------------ dispatch
     def _compile(self, node: TensorDictModuleBase) -> _Step:
-        if node._forward_hooks or node._forward_pre_hooks:
+        if forward_hooked(node):
             return self._forward(node)  # e.g. a safe (projecting) actor, selected out-keys
         kind = type(node)
         if kind is TensorDictSequential and plain_sequence(node):
@@ -281,7 +265,7 @@ class TensorPolicy:
                 self.exploration is not ExplorationType.DETERMINISTIC
                 or hasattr(last.distribution_class, "deterministic_sample")  # as _dist_sample
             )
-            and not (last._forward_hooks or last._forward_pre_hooks)
+            and not forward_hooked(last)
             and plain_sampler(last, node)
             and isinstance(last.distribution_kwargs, dict)
             and len(last.dist_sample_keys) == 1
@@ -348,6 +332,7 @@ class TensorPolicy:
         fn = direct_call(node.module)
 
         def step(values: Values) -> None:
+            raw: object
             if own_label:  # Expert.label: the function of the in-keys
                 raw = fn(*(values[k] for k in in_keys))
             else:  # a subclass's label reads a TensorDict of the in-keys

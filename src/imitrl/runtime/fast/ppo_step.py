@@ -17,7 +17,8 @@ computed without building its distribution
 (:class:`~imitrl.runtime.fast.tanh_normal.TanhNormalLogProb`,
 :func:`~imitrl.runtime.fast.categorical.log_prob`: its operations on the same tensors),
 other heads build theirs. Any other configuration returns None from
-:meth:`TensorPPO.of` and the generator calls the loss module itself.
+:meth:`TensorPPO.of`, and the seam hands out the loss module itself
+(:class:`~imitrl.runtime.losses.PPOReference`, the same methods).
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ from torch.nn import functional as F
 from torchrl.modules import ProbabilisticActor
 from torchrl.objectives import ClipPPOLoss
 
-from imitrl.compat import plain_clip_ppo, plain_sampler, ppo_clip_bounds
+from imitrl.compat import forward_hooked, plain_clip_ppo, plain_sampler, ppo_clip_bounds
 from imitrl.runtime.fast import categorical
 from imitrl.runtime.fast.policy_call import direct_call
 from imitrl.runtime.fast.tanh_normal import TanhNormalLogProb
@@ -40,12 +41,11 @@ _RESOLUTION = torch.finfo(torch.float).resolution
 """``torchrl._utils._standardize``'s epsilon for floating inputs"""
 
 
-def _hookless(*modules: torch.nn.Module) -> bool:
-    return not any(m._forward_hooks or m._forward_pre_hooks for m in modules)
-
-
 class TensorPPO:
     """``ClipPPOLoss``'s ``loss_objective`` and ``loss_critic`` on tensors (module docstring)."""
+
+    accelerated = True
+    """the accelerated path (:class:`~imitrl.runtime.losses.PPOReference` says False)"""
 
     def __init__(self, loss: ClipPPOLoss) -> None:
         actor, critic = loss.actor_network, loss.critic_network
@@ -81,7 +81,7 @@ class TensorPPO:
             and isinstance(last.distribution_kwargs, dict)
             and plain_sampler(last, actor)
             and list(last.in_keys) == list(params.out_keys)
-            and _hookless(actor, params, last, critic, params.module, critic.module)
+            and not forward_hooked(actor, params, last, critic, params.module, critic.module)
         ):
             return None
         return cls(loss)
@@ -97,6 +97,17 @@ class TensorPPO:
                         k.advantage, k.value_target)
         )  # fmt: skip
 
+    def prepare(self, flat: TensorDictBase) -> tuple[torch.Tensor, ...]:
+        """What :meth:`on_rows` indexes: :meth:`columns` of ``flat``."""
+        return self.columns(flat)
+
+    def on_rows(
+        self, prepared: tuple[torch.Tensor, ...], rows: torch.Tensor
+    ) -> dict[str, torch.Tensor]:
+        """:meth:`__call__` on the minibatch ``rows`` of :meth:`prepare`'s columns."""
+        obs, action, old_log_prob, advantage, value_target = (c[rows] for c in prepared)
+        return self(obs, action, old_log_prob, advantage, value_target)
+
     def __call__(
         self,
         obs: torch.Tensor,
@@ -108,12 +119,14 @@ class TensorPPO:
         """``{"loss_objective", "loss_critic"}`` of one minibatch, as ``ClipPPOLoss`` returns them."""
         # _maybe_normalize_advantage -> torchrl._utils._standardize (no excluded dims)
         advantage = (advantage - advantage.mean()) / advantage.std().clamp_min(_RESOLUTION)
-        out = self.net(obs)
-        out = out if isinstance(out, tuple) else (out,)
+        net_out = self.net(obs)
+        out: tuple[torch.Tensor, ...] = net_out if isinstance(net_out, tuple) else (net_out,)
         if self.tanh_normal is not None:  # its log-probability without the distribution
-            log_prob = self.tanh_normal(*out, action)
+            loc, scale = out
+            log_prob = self.tanh_normal(loc, scale, action)
         elif self.categorical:
-            log_prob = categorical.log_prob(*out, action)
+            (logits,) = out
+            log_prob = categorical.log_prob(logits, action)
         else:
             dist = self.dist_class(**dict(zip(self.names, out)), **self.dist_kwargs)
             log_prob = dist.log_prob(action)

@@ -82,19 +82,21 @@ class DirectStepper(Stepper):
         if self._record:
             for k in self._row_keys:
                 self._columns[k].append(values[k])
-        self._last = step = self._direct.step_raw(values.get(self._action_key))
+        self._last = step = self._direct.step_raw(values[self._action_key])
         if self._record:
             self._raw.append(step)
         return step.reward, step.done
 
     def advance(self, done: np.ndarray | None) -> None:
         if done is None:
+            assert self._last is not None  # advance follows a step
             self._values[keys.OBSERVATION] = self._last.observation
         else:
             self._values[keys.OBSERVATION] = self._direct.reset_lanes(done)
 
     def step_tensordict(self) -> TensorDict:
         step = self._last
+        assert step is not None  # asked for after a step
         tensors = dict(zip(NEXT_KEYS, self._direct.step_tensors(step)))
         nxt = {keys.OBSERVATION: step.observation, **tensors}
         return TensorDict({**self._values, keys.NEXT: nxt}, batch_size=self.env.batch_size)

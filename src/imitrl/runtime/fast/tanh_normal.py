@@ -35,7 +35,13 @@ from torch import distributions as D
 from torch.nn import functional as F
 from torchrl.modules import TanhNormal
 
-from imitrl.compat import safe_atanh, safe_tanh, standard_normal, sum_rightmost
+from imitrl.compat import (
+    safe_atanh,
+    safe_tanh,
+    standard_normal,
+    sum_rightmost,
+    validates_args,
+)
 
 __all__ = ["TanhNormalAction", "TanhNormalLogProb", "replays"]
 
@@ -117,6 +123,7 @@ class TanhNormalLogProb:
         ``TanhNormal`` moves its bounds to ``loc``'s device, and the log taken there, as
         ``AffineTransform.log_abs_det_jacobian`` takes it."""
         if device not in self._on:
+            assert self.affine is not None  # called where the bounds are not trivial
             shift, half = (t.to(device) for t in self.affine)
             self._on[device] = (shift, half, torch.abs(half).log())
         return self._on[device]
@@ -137,7 +144,7 @@ class TanhNormalLogProb:
         probe = dist_class(torch.zeros_like(action), torch.ones_like(action), **dist_kwargs)
         base = probe.base_dist
         if (
-            probe._validate_args
+            validates_args(probe)
             or len(probe.transforms) != 1
             or type(base) is not D.Independent
             or type(base.base_dist) is not D.Normal

@@ -14,7 +14,8 @@ actor's own call (``tests/test_fast_path.py``).
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from typing import cast
 
 import torch
 from tensordict import TensorDictBase
@@ -28,18 +29,23 @@ from imitrl.runtime.fast.policy_call import direct_call
 __all__ = ["TensorChain"]
 
 _PLAIN_MODULES = (TensorDictModule, Module)
+_Step = tuple[Callable[..., torch.Tensor], NestedKey, NestedKey]
+"""one step of a chain: its network, the key it reads, the key it writes"""
 
 
 def _is_plain(module: nn.Module) -> bool:
     """A TensorDictModule (or imitrl's ``Module``) of one input and one output key: its
     forward writes ``module.module(td[in_key])`` to ``out_key``."""
-    return type(module) in _PLAIN_MODULES and len(module.in_keys) == 1 and len(module.out_keys) == 1
+    if type(module) not in _PLAIN_MODULES:
+        return False
+    plain = cast(TensorDictModule, module)
+    return len(plain.in_keys) == 1 and len(plain.out_keys) == 1
 
 
 class TensorChain:
     """``(network, in_key, out_key)`` steps, each reading the row or an earlier output."""
 
-    def __init__(self, steps: tuple[tuple[nn.Module, NestedKey, NestedKey], ...]) -> None:
+    def __init__(self, steps: tuple[_Step, ...]) -> None:
         self._steps = steps
 
     @classmethod
@@ -47,7 +53,8 @@ class TensorChain:
         """The chain of ``modules`` when every one is plain (:func:`_is_plain`), else None."""
         if not modules or not all(_is_plain(m) for m in modules):
             return None
-        return cls(tuple((m.module, m.in_keys[0], m.out_keys[0]) for m in modules))
+        plain = [cast(TensorDictModule, m) for m in modules]
+        return cls(tuple((m.module, m.in_keys[0], m.out_keys[0]) for m in plain))
 
     @property
     def out_key(self) -> NestedKey:
@@ -66,7 +73,7 @@ class TensorChain:
         """Within: the networks are called through ``direct_call`` (built on entry; hooks
         registered inside the context are not seen)."""
         steps = self._steps
-        self._steps = tuple((direct_call(n), i, o) for n, i, o in steps)
+        self._steps = tuple((direct_call(cast(nn.Module, n)), i, o) for n, i, o in steps)
         try:
             yield
         finally:

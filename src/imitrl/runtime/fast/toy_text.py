@@ -23,6 +23,7 @@ from __future__ import annotations
 import gymnasium
 import numpy as np
 import torch
+from gymnasium.spaces import Discrete
 from gymnasium.wrappers import OrderEnforcing, PassiveEnvChecker, TimeLimit
 from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase
@@ -92,6 +93,7 @@ def play_lanes(
         lane ``j % lanes``'s ``j // lanes``-th).
     """
     mdp = TabularMDP.from_gym(envs[0], 1.0)  # every lane is a copy of one env
+    assert mdp.max_steps is not None  # the player takes toy-text envs with a time limit
     sampler = OutcomeSampler(mdp)
     lists, lanes = sampler.as_lists(), len(envs)
     generators = [e.unwrapped.np_random for e in envs]
@@ -134,15 +136,17 @@ def table_returns(
     # the action in every state, each state at every lane at once: the batch the step
     # loop calls the policy with, so that the table is its actions to the bit
     false = torch.zeros((*env.batch_size, 1), dtype=torch.bool)
-    columns = []
-    for s in range(int(envs[0].observation_space.n)):
+    columns: list[torch.Tensor] = []
+    states, actions = envs[0].observation_space, envs[0].action_space
+    assert isinstance(states, Discrete) and isinstance(actions, Discrete)  # toy-text spaces
+    for s in range(int(states.n)):
         values = {keys.OBSERVATION: torch.full(env.batch_size, s, dtype=torch.int64)}
         values.update({keys.DONE: false, keys.TERMINATED: false, keys.TRUNCATED: false})
         call(values)
         if not columns:
             check_first_step(env, values, labels=False)
-        columns.append(values.get(env.action_key).reshape(book.lanes))
+        columns.append(values[env.action_key].reshape(book.lanes))
     tables = torch.stack(columns, dim=1)  # [lanes, S]
-    if bool(((tables < 0) | (tables >= envs[0].action_space.n)).any()):
+    if bool(((tables < 0) | (tables >= actions.n)).any()):
         return None  # stepped, gymnasium refuses the action as it would on the other path
     return play_lanes(envs, tables, book.quota, book.bound, book.bound_name)

@@ -1,0 +1,203 @@
+"""The architecture's rules, read from the source: layers point down, no import circle,
+private attributes of other libraries in ``compat.py`` only.
+
+* The layer contract is ``[tool.importlinter]`` in ``pyproject.toml`` (one line per layer,
+  highest first); import-linter checks it here and in CI.
+* No two modules of ``src/imitrl`` import each other, directly or around a circle, at any
+  level (function-level imports included): the strongly connected components of grimp's
+  import graph are single modules.
+* A private attribute (``x._name``, ``getattr(x, "_name")``, ``from lib import _name``)
+  that imitrl does not define itself is reached in :mod:`imitrl.compat` only, where each
+  use is listed with its reason and tested against the public path.
+"""
+
+from __future__ import annotations
+
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
+import grimp
+import pytest
+
+import imitrl
+
+SRC = Path(imitrl.__file__).resolve().parent
+COMPAT = SRC / "compat.py"
+
+
+def test_the_layer_contract_holds():
+    root = SRC.parent.parent
+    if not (root / "pyproject.toml").exists():  # an installed copy: the contract is the repo's
+        return
+    lint = Path(sys.executable).parent / "lint-imports"
+    done = subprocess.run([str(lint)], cwd=root, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stdout[-4000:] + done.stderr[-2000:]
+    assert "1 kept, 0 broken" in done.stdout
+
+
+def _components(graph: grimp.ImportGraph) -> list[list[str]]:
+    """Tarjan's strongly connected components of the module import graph (iterative)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    on_stack: set[str] = set()
+    stack: list[str] = []
+    out: list[list[str]] = []
+    for start in sorted(graph.modules):
+        if start in index:
+            continue
+        work = [(start, iter(sorted(graph.find_modules_directly_imported_by(start))))]
+        index[start] = low[start] = len(index)
+        stack.append(start)
+        on_stack.add(start)
+        while work:
+            node, children = work[-1]
+            child = next(children, None)
+            if child is not None:
+                if child not in index:
+                    index[child] = low[child] = len(index)
+                    stack.append(child)
+                    on_stack.add(child)
+                    work.append(
+                        (child, iter(sorted(graph.find_modules_directly_imported_by(child))))
+                    )
+                elif child in on_stack:
+                    low[node] = min(low[node], index[child])
+                continue
+            work.pop()
+            if work:
+                low[work[-1][0]] = min(low[work[-1][0]], low[node])
+            if low[node] == index[node]:
+                component = []
+                while True:
+                    member = stack.pop()
+                    on_stack.discard(member)
+                    component.append(member)
+                    if member == node:
+                        break
+                out.append(sorted(component))
+    return out
+
+
+def test_no_import_circle():
+    graph = grimp.build_graph("imitrl", cache_dir=None)
+    circles = [c for c in _components(graph) if len(c) > 1]
+    assert circles == []
+
+
+def test_the_circle_finder_finds_a_circle():
+    graph = grimp.ImportGraph()
+    for name in ("p", "p.a", "p.b", "p.c"):
+        graph.add_module(name)
+    graph.add_import(importer="p.a", imported="p.b")
+    graph.add_import(importer="p.b", imported="p.a")
+    graph.add_import(importer="p.c", imported="p.a")
+    assert [c for c in _components(graph) if len(c) > 1] == [["p.a", "p.b"]]
+
+
+def _defined_names(trees: dict[Path, ast.Module]) -> set[str]:
+    """Every name imitrl defines: functions, classes, assigned attributes and names,
+    arguments, and attributes set by name (``object.__setattr__(self, "_x", ...)``,
+    ``register_buffer("_x", ...)``)."""
+    own: set[str] = set()
+    for tree in trees.values():
+        for n in ast.walk(tree):
+            if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+                own.add(n.name)
+            elif isinstance(n, ast.Attribute) and isinstance(n.ctx, ast.Store):
+                own.add(n.attr)
+            elif isinstance(n, ast.Name) and isinstance(n.ctx, ast.Store):
+                own.add(n.id)
+            elif isinstance(n, ast.arg):
+                own.add(n.arg)
+            elif isinstance(n, ast.Call) and len(n.args) >= 2:
+                name = n.args[1] if _called(n) == "__setattr__" else n.args[0]
+                if _called(n) in ("__setattr__", "setattr", "register_buffer", "register_module",
+                                  "register_parameter") and isinstance(name, ast.Constant):  # fmt: skip
+                    own.add(str(name.value))
+    return own
+
+
+def _called(call: ast.Call) -> str:
+    f = call.func
+    return f.attr if isinstance(f, ast.Attribute) else f.id if isinstance(f, ast.Name) else ""
+
+
+def _private(name: str) -> bool:
+    return name.startswith("_") and not name.startswith("__")
+
+
+def private_uses(trees: dict[Path, ast.Module]) -> list[str]:
+    """``file:line name`` of every private attribute of another library used outside
+    ``compat.py``."""
+    own = _defined_names(trees)
+    hits = []
+    for path, tree in trees.items():
+        if path == COMPAT:
+            continue
+        for n in ast.walk(tree):
+            names: list[str] = []
+            if isinstance(n, ast.Attribute):
+                names = [n.attr]
+            elif isinstance(n, ast.ImportFrom) and n.module and not n.module.startswith("imitrl"):
+                names = [a.name for a in n.names] + n.module.split(".")
+            elif isinstance(n, ast.Import):
+                names = [
+                    p for a in n.names if not a.name.startswith("imitrl") for p in a.name.split(".")
+                ]
+            elif (isinstance(n, ast.Call) and _called(n) in ("getattr", "hasattr", "setattr")
+                  and len(n.args) > 1 and isinstance(n.args[1], ast.Constant)):  # fmt: skip
+                names = [str(n.args[1].value)]
+            hits += [f"{path.relative_to(SRC)}:{n.lineno} {x}" for x in names
+                     if _private(x) and x not in own]  # fmt: skip
+    return sorted(hits)
+
+
+def _trees() -> dict[Path, ast.Module]:
+    return {p: ast.parse(p.read_text(), str(p)) for p in sorted(SRC.rglob("*.py"))}
+
+
+def test_private_attributes_of_other_libraries_only_in_compat():
+    assert private_uses(_trees()) == []
+
+
+def test_the_private_attribute_finder_finds_each_form(tmp_path):
+    fake = SRC / "fake_module.py"  # a path inside the package, parsed, never written
+    code = (
+        "import torch\nfrom torch.nn.modules import _functions\nfrom torchrl import _utils\n"
+        "def f(m):\n    m._forward_hooks\n    getattr(m, '_kwargs')\n    m.__dict__\n"
+        "    m._mine = 1\n    return m._mine\n"
+    )
+    hits = private_uses({fake: ast.parse(code)})
+    assert hits == [
+        "fake_module.py:2 _functions",
+        "fake_module.py:3 _utils",
+        "fake_module.py:5 _forward_hooks",
+        "fake_module.py:6 _kwargs",
+    ]
+
+
+def test_contributing_layout_table_is_the_tree():
+    """CONTRIBUTING.md's layout table names every module of ``src/imitrl``, file for
+    file, with its docstring's first line (``python tests/_layout.py`` refreshes it)."""
+    from tests import _layout
+
+    assert _layout.current() == _layout.table(), "stale layout table: run python tests/_layout.py"
+
+
+def test_the_layout_table_sees_a_new_module(tmp_path, monkeypatch):
+    from tests import _layout
+
+    package = tmp_path / "imitrl"
+    (package / "sub").mkdir(parents=True)
+    (package / "__init__.py").write_text('"""top."""\n')
+    (package / "sub" / "__init__.py").write_text('"""sub."""\n')
+    monkeypatch.setattr(_layout, "PACKAGE", package)
+    before = _layout.table()
+    (package / "sub" / "new.py").write_text('"""A new module | with a pipe."""\n')
+    after = _layout.table()
+    assert after != before and "| `sub/new.py` | A new module \\| with a pipe. |" in after
+    (package / "sub" / "bare.py").write_text("x = 1\n")
+    with pytest.raises(ValueError, match="no module docstring"):
+        _layout.table()
