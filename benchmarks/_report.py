@@ -64,6 +64,26 @@ def results_dir(out_dir: Path | None) -> Path:
 
 
 # ------------------------------------------------------------------------ writing
+REPO = Path(__file__).resolve().parents[1]
+"""this checkout's root: the paths a report records are relative to it"""
+
+
+def portable(path: str | Path) -> str:
+    """``path`` as a committed report may name it: relative to this checkout when inside
+    it, else its last three parts (``imitrl_venv/bin/python``): never one machine's
+    absolute path."""
+    resolved = Path(path).absolute()
+    if resolved.is_relative_to(REPO):
+        return resolved.relative_to(REPO).as_posix()
+    return Path(*resolved.parts[-3:]).as_posix()
+
+
+def portable_args(args: list[str]) -> list[str]:
+    """``args`` with every absolute path made :func:`portable` (what a report records of a
+    command line)."""
+    return [portable(a) if Path(a).is_absolute() else a for a in args]
+
+
 def machine() -> dict[str, Any]:
     import gymnasium
     import tensordict

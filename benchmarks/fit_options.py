@@ -44,7 +44,7 @@ class Config:
     """runs per option (the best samples/s is kept; the final loss is the same each run)"""
     compiled: tuple[str, ...] = ("mlp", "cnn")
     """the fits also timed under torch.compile (each compilation takes 10-20 s; none in the
-    smoke run: ``tests/test_devices.py`` checks a compiled fit against the eager one)"""
+    smoke run: ``tests/system/test_device.py`` checks a compiled fit against the eager one)"""
 
 
 QUICK = Config(steps=3, batch_size=16, rows=64, image=(36, 36), repeats=1, compiled=())

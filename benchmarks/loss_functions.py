@@ -68,7 +68,7 @@ from imitrl.learners import FOR_ENV, registry
 
 QUICK_LOSSES = ("cross_entropy", "gaussian_nll", "mse", "flow", "mse_chunk")
 """``--quick``'s default: a loss of each cheap family, one-step and chunked (the smoke run
-of the pipeline; ``tests/test_loss_registry.py`` builds and trains every entry)"""
+of the pipeline; ``tests/learners/test_registry.py`` builds and trains every entry)"""
 
 
 def main(argv: list[str] | None = None) -> None:

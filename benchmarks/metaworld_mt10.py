@@ -74,7 +74,7 @@ core-minutes); 1000-step fits and 10 episodes had cost three times as much on
 pick-place. The demonstrations per task variant (``DEMOS``) replace ``demo_episodes``,
 and BC at DAgger's query budget runs from the largest number of demonstrations only.
 Episodes are cut at 150 steps: the experts succeed by step 46-98 in the median
-(``tests/test_metaworld.py``), and a failing learner's episode would otherwise cost 500
+(``tests/envs/test_metaworld.py``), and a failing learner's episode would otherwise cost 500
 steps of simulation."""
 
 

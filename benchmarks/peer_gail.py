@@ -64,6 +64,8 @@ from _peer_imitation.gail_tasks import TASKS, GailTask, command_flags, quick
 from imitrl.jobs.checkpoint import RESULTS_FILE
 
 HERE = Path(__file__).resolve().parent / "_peer_imitation"
+QUICK_TASKS = ("cartpole", "pendulum_airl")
+"""the smoke run's tasks (``--quick`` without ``--tasks``): both methods, both action kinds"""
 CHILD = {"imitrl": HERE / "gail_imitrl.py", "imitation": HERE / "gail_peer.py"}
 PLAN = (
     ("imitrl", "own", "plain"),
@@ -113,7 +115,7 @@ def run_command(
     wall, results = runs._call(cmd, "imitrl", timeout, result=out_dir / RESULTS_FILE)
     return {
         "task": task.name, "library": "imitrl", "protocol": "own", "seed": seed,
-        "wall": wall, "process": "command", "argv": cmd,
+        "wall": wall, "process": "command", "argv": _report.portable_args(cmd),
         "phases": {"job": float(results["seconds"])},  # the job's clock, imports excluded
         "returns": {"final": float(results["learner"]["mean_return"])},
         "env_steps": int(results["env_steps"]),
@@ -160,7 +162,11 @@ def build_parser():
         "this one; see peer_imitation.py's docstring for the recommended one)",
     )  # fmt: skip
     parser.add_argument("--seeds", type=int, default=None, help="default 3; 1 with --quick")
-    parser.add_argument("--tasks", nargs="+", default=list(TASKS), choices=list(TASKS))
+    parser.add_argument(
+        "--tasks", nargs="+", default=None, choices=list(TASKS),
+        help=f"default: all; with --quick {', '.join(QUICK_TASKS)} (GAIL on discrete "
+        "actions, AIRL on continuous ones)",
+    )  # fmt: skip
     parser.add_argument("--timeout", type=float, default=1800.0)
     return parser
 
@@ -172,7 +178,8 @@ def main(argv: list[str] | None = None) -> None:
     out_dir = _report.destination(NAME, quick=args.quick, out=args.out)
     torch.set_num_threads(1)
     seeds = args.seeds if args.seeds is not None else (1 if args.quick else 3)
-    tasks = [quick(TASKS[t]) if args.quick else TASKS[t] for t in args.tasks]
+    names = args.tasks or (list(QUICK_TASKS) if args.quick else list(TASKS))
+    tasks = [quick(TASKS[t]) if args.quick else TASKS[t] for t in names]
     peer_versions = None if peer_python is None else runs.peer_versions(peer_python)
     install = runs.imitrl_install(args.imitrl_python)
     bytecode = None if args.quick else runs.byte_compile_imitrl()
@@ -195,9 +202,11 @@ def main(argv: list[str] | None = None) -> None:
             "plan": [list(job) for job in jobs],
             "quick": args.quick,
             "bytecode": bytecode,
-            "peer_python": peer_python,
+            "peer_python": None if peer_python is None else _report.portable(peer_python),
             "imitrl_install": install,
-            "command": " ".join(["python benchmarks/peer_gail.py", *(argv or sys.argv[1:])]),
+            "command": " ".join(
+                ["python benchmarks/peer_gail.py", *_report.portable_args(argv or sys.argv[1:])]
+            ),
         },
         "imitrl_versions": {
             **{k: v for k, v in _report.machine().items() if k != "platform"},

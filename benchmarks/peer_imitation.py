@@ -211,9 +211,11 @@ def measure(args, argv: list[str], peer_python: str | None) -> dict:
             "imitrl_loss": args.imitrl_loss,
             "quick": args.quick,
             "bytecode": bytecode,
-            "peer_python": peer_python,
+            "peer_python": None if peer_python is None else _report.portable(peer_python),
             "imitrl_install": install,
-            "command": " ".join(["python benchmarks/peer_imitation.py", *argv]),
+            "command": " ".join(
+                ["python benchmarks/peer_imitation.py", *_report.portable_args(argv)]
+            ),
         },
         "imitrl_versions": {
             **{k: v for k, v in _report.machine().items() if k != "platform"},

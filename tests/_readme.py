@@ -1,9 +1,12 @@
-"""Run the README's code blocks as tests: extract, exec, compare what they print.
+"""Run the named code blocks of the README and of the documentation site as tests:
+extract, exec, compare what they print.
 
-:func:`run` runs a block twice in one folder, as a user who runs it again would: first
-in a fresh interpreter, whose whole standard output (C libraries' included) must be
-exactly the block's documented output, the ``# ...`` comment lines after each
-``print``; then in this process, returning its namespace for further checks.
+A block is named by ``<!-- BEGIN name -->`` ... ``<!-- END name -->`` in ``README.md``
+or in a page under ``docs/`` (a tutorial), exactly once across them. :func:`run` runs a
+block twice in one folder, as a user who runs it again would: first in a fresh
+interpreter, whose whole standard output (C libraries' included) must be exactly the
+block's documented output, the ``# ...`` comment lines after each ``print``; then in
+this process, returning its namespace for further checks.
 """
 
 from __future__ import annotations
@@ -17,15 +20,30 @@ import subprocess
 import sys
 from pathlib import Path
 
-README = Path(__file__).resolve().parents[1] / "README.md"
+ROOT = Path(__file__).resolve().parents[1]
+README = ROOT / "README.md"
+DOCS = ROOT / "docs"
+
+
+def pages() -> list[Path]:
+    """The README and every written page of the documentation site."""
+    return [README, *sorted(DOCS.rglob("*.md"))]
+
+
+def page_of(name: str) -> Path:
+    """The one page that holds the block ``name``."""
+    found = [p for p in pages() if f"<!-- BEGIN {name} -->" in p.read_text()]
+    assert len(found) == 1, f"the {name} block is in {len(found)} pages: {found}"
+    return found[0]
 
 
 def block(name: str) -> str:
-    """The python code between ``<!-- BEGIN name -->`` and ``<!-- END name -->``."""
-    text = README.read_text()
+    """The python code between ``<!-- BEGIN name -->`` and ``<!-- END name -->`` (its
+    fence may carry markdown-exec's options: ``python exec="on" ...``)."""
+    text = page_of(name).read_text()
     found = re.search(rf"<!-- BEGIN {name} -->(.*?)<!-- END {name} -->", text, flags=re.S)
-    assert found is not None, f"README.md lacks the {name} block"
-    code = re.search(r"```python\n(.*?)```", found.group(1), flags=re.S)
+    assert found is not None, f"no page holds the {name} block"
+    code = re.search(r"```python[^\n]*\n(.*?)```", found.group(1), flags=re.S)
     assert code is not None, f"the {name} block has no python code"
     return code.group(1)
 
@@ -80,7 +98,7 @@ def run_fresh(name: str, cwd: Path) -> list[str]:
     documented = documented_output(block(name))
     assert len(printed) == len(documented) and all(
         _same_line(p, d) for p, d in zip(printed, documented)
-    ), f"{name} printed {printed}, the README documents {documented}"
+    ), f"{name} printed {printed}, {page_of(name).name} documents {documented}"
     return printed
 
 
@@ -115,7 +133,7 @@ def run(name: str, cwd: Path) -> tuple[dict, list[str]]:
     log.setLevel(logging.WARNING)
     try:
         with contextlib.redirect_stdout(out):
-            exec(compile(code, f"README.md:{name}", "exec"), namespace)
+            exec(compile(code, f"{page_of(name).name}:{name}", "exec"), namespace)
     finally:
         os.chdir(here)
         log.setLevel(level)
@@ -125,5 +143,5 @@ def run(name: str, cwd: Path) -> tuple[dict, list[str]]:
 def assert_prints_what_it_promises(name: str, printed: list[str]) -> None:
     code = block(name)
     assert same_numbers(code, printed), (
-        f"{name}: printed {printed}, README says {expected_numbers(code)}"
+        f"{name}: printed {printed}, {page_of(name).name} says {expected_numbers(code)}"
     )

@@ -201,3 +201,51 @@ def test_the_layout_table_sees_a_new_module(tmp_path, monkeypatch):
     (package / "sub" / "bare.py").write_text("x = 1\n")
     with pytest.raises(ValueError, match="no module docstring"):
         _layout.table()
+
+
+TESTS = Path(__file__).resolve().parent
+TOP_LEVEL = {"test_architecture.py", "test_readme_blocks.py", "test_readme_examples.py"}
+"""tests of the whole tree and of the README, beside the mirror"""
+
+
+def mirror_misses(tests: Path, src: Path, benchmarks: Path) -> list[str]:
+    """Test files that do not mirror a module: ``tests/<package>/test_<module>[_<aspect>].py``
+    for a module (or the package itself) of ``src/imitrl/<package>``, and
+    ``tests/benchmarks/test_<script>[_<aspect>].py`` for a script of ``benchmarks/``."""
+    misses = []
+    for path in sorted(tests.rglob("test_*.py")):
+        rel = path.relative_to(tests)
+        if len(rel.parts) == 1 and rel.name in TOP_LEVEL:
+            continue
+        folder = benchmarks if rel.parts[0] == "benchmarks" else src.joinpath(*rel.parts[:-1])
+        if rel.parts[0] == "benchmarks" and len(rel.parts) != 2:
+            folder = benchmarks / "missing"
+        names = {p.stem.lstrip("_") for p in folder.glob("*.py")} if folder.is_dir() else set()
+        names.add(folder.name)
+        stem = path.stem.removeprefix("test_")
+        if not folder.is_dir() or not any(stem == n or stem.startswith(n + "_") for n in names):
+            misses.append(rel.as_posix())
+    return misses
+
+
+def test_tests_mirror_the_source_tree():
+    """Every test file sits in the folder of the package it tests, named after a module."""
+    assert mirror_misses(TESTS, SRC, TESTS.parent / "benchmarks") == []
+
+
+def test_the_mirror_check_finds_a_misplaced_test(tmp_path):
+    src, tests, bench = tmp_path / "src", tmp_path / "tests", tmp_path / "bench"
+    for d in (src / "data", tests / "data", tests / "benchmarks", bench):
+        d.mkdir(parents=True)
+    (src / "data" / "buffer.py").write_text("")
+    (bench / "seam.py").write_text("")
+    for name in ("data/test_buffer.py", "data/test_buffer_disk.py", "data/test_data.py",
+                 "benchmarks/test_seam.py"):  # fmt: skip
+        (tests / name).write_text("")
+    assert mirror_misses(tests, src, bench) == []
+    for name in ("data/test_bufferx.py", "test_newcomer.py", "envs/test_make.py"):
+        (tests / name).parent.mkdir(exist_ok=True)
+        (tests / name).write_text("")
+    assert mirror_misses(tests, src, bench) == [
+        "data/test_bufferx.py", "envs/test_make.py", "test_newcomer.py",
+    ]  # fmt: skip

@@ -1,4 +1,5 @@
-"""The README's examples run and print what they promise (tabular pieces, cameras)."""
+"""The tutorials' examples run and print what they promise (the FrozenLake pieces in
+docs/tutorials/frozenlake.md, cameras in docs/tutorials/cameras.md)."""
 
 from __future__ import annotations
 

@@ -18,6 +18,7 @@ from pathlib import Path
 import torch
 from tensordict import TensorDict
 
+import _report
 from _peer_imitation.imitrl_run import EXPERTS
 from _peer_imitation.tasks import Task
 from imitrl import keys
@@ -83,7 +84,7 @@ def byte_compile_imitrl() -> str:
     root = Path(imitrl.__file__).resolve().parent
     if not compileall.compile_dir(str(root), quiet=1):
         raise RuntimeError(f"byte-compiling {root} failed")
-    return f"imitrl's modules byte-compiled before the timed runs ({root})"
+    return f"imitrl's modules byte-compiled before the timed runs ({_report.portable(root)})"
 
 
 SRC = HERE.parents[1] / "src"
@@ -138,8 +139,8 @@ def imitrl_install(python: str, *, timeout: float = 120) -> dict:
     if not Path(info["imitrl"]).resolve().is_relative_to(SRC.resolve()):
         raise RuntimeError(f"{python} imports imitrl from {info['imitrl']}, not from {SRC}")
     return {
-        "python": python,
-        "imitrl": info["imitrl"],
+        "python": _report.portable(python),
+        "imitrl": _report.portable(info["imitrl"]),
         "versions": info["versions"],
         "optional_packages": [n for n in OPTIONAL if n in info["have"]],
     }

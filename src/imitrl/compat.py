@@ -176,7 +176,7 @@ def grow_tensor_storage(storage: LazyTensorStorage, new_size: int) -> None:
     not exist (seen on torchrl 0.14.1). The demonstration buffer must grow instead of
     wrapping, so this reallocates that tensordict at ``new_size`` rows and copies the
     first ``len(storage)`` rows over.
-    ``tests/test_buffer_properties.py`` checks that a buffer grown this way holds the
+    ``tests/data/test_buffer_properties.py`` checks that a buffer grown this way holds the
     same rows as a ``LazyTensorStorage`` allocated large enough from the start.
     """
     if new_size < len(storage):
@@ -201,7 +201,7 @@ def wrapped_gym_env(env: GymWrapper) -> object:
     ``_EnvWrapper._env``; its only public route is ``_EnvWrapper.__getattr__``, which
     forwards any attribute the TorchRL env lacks (``env.spec`` reaches the gymnasium
     env's ``spec``) - an implicit fallthrough that an attribute added to ``EnvBase``
-    would silently shadow. ``tests/test_episode_limits.py`` checks that both give the
+    would silently shadow. ``tests/envs/test_limits.py`` checks that both give the
     same spec.
     """
     if not isinstance(env, GymWrapper):
@@ -220,7 +220,7 @@ def replace_storage_contents(
     disk buffer a previous process wrote; both hand the storage tensors it did not
     allocate. torchrl keeps them in the private ``_storage`` and its row count in the
     private ``_len`` (a property over a shared ``mp.Value``), with no public setter; its
-    ``load_state_dict`` would copy every row. ``tests/test_buffer_disk.py`` checks that a
+    ``load_state_dict`` would copy every row. ``tests/data/test_disk.py`` checks that a
     disk buffer grown this way holds the same rows as an in-memory buffer fed the same rows.
     """
     if not 0 <= rows <= contents.shape[0]:
@@ -238,7 +238,7 @@ def plain_sequence(seq) -> bool:
     Why: ``imitrl.runtime.fast.policy_call.TensorPolicy`` runs a rollout's policy on a dict of
     tensors instead of a TensorDict, and must refuse a sequence that selects its outputs
     (``selected_out_keys``/``select_out_keys``), which tensordict records only in the
-    private ``_select_before_return``. ``tests/test_fast_path.py`` checks that the dict
+    private ``_select_before_return``. ``tests/runtime/test_paths.py`` checks that the dict
     call gives the same digits as the TensorDict call.
     """
     # inplace None also returns `td` itself (no out-tensordict is made)
@@ -274,6 +274,33 @@ def plain_sampler(module, sequence=None) -> bool:
         not sequence._requires_sample or sequence.return_composite or not plain_sequence(sequence)
     ):
         return False
+    return True
+
+
+def plain_call(node, sequence: bool = False, module: bool = False) -> bool:
+    """One answer for a rollout's policy call (``imitrl.runtime.fast.policy_call.
+    TensorPolicy``): whether ``node`` may be replayed from its public settings. Never with a
+    forward hook of its own; a ``TensorDictSequential`` (``sequence``) when
+    :func:`plain_sequence`; a ``TensorDictModule`` (``module``) when :func:`plain_module`; a
+    ``ProbabilisticActor`` when its last module is hookless and :func:`plain_sampler`
+    (where its last module is a ``ProbabilisticTensorDictModule``); any other node when
+    hookless.
+
+    Why: the private attributes each of those reads (see them), asked in one place.
+    """
+    from tensordict.nn import ProbabilisticTensorDictModule
+    from torchrl.modules import ProbabilisticActor
+
+    if forward_hooked(node):
+        return False
+    if sequence:
+        return plain_sequence(node)
+    if module:
+        return plain_module(node)
+    if type(node) is ProbabilisticActor:
+        last = list(node.module)[-1]
+        if isinstance(last, ProbabilisticTensorDictModule):
+            return not forward_hooked(last) and plain_sampler(last, node)
     return True
 
 

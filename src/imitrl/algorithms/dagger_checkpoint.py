@@ -13,7 +13,7 @@ verified by checksums) holds after round ``k``:
 
 A run killed at any point resumes from the last complete round and then draws exactly
 the numbers the uninterrupted run drew: the buffer, the learner's weights and every
-later evaluation are identical to the bit (``tests/test_dagger_resume.py`` kills a
+later evaluation are identical to the bit (``tests/algorithms/test_dagger_checkpoint.py`` kills a
 subprocess with SIGKILL after each round).
 """
 

@@ -10,7 +10,7 @@ learner's parameters and the mixer's ``beta`` buffer) once to every worker throu
 
 **Slots, seeds, order.** A round of ``n`` episodes is split into ``workers`` slots
 (slot ``w`` plays ``ceil((n - w) / workers)`` episodes, as lanes do in
-:func:`~imitrl.data.rollout_episodes`). A slot is one Ray call: the worker seeds its
+:func:`~imitrl.runtime.rollout_episodes`). A slot is one Ray call: the worker seeds its
 env and its torch RNG (the learner's sampling and the mixer's coins) from
 ``SeedSequence([seed, 0, round, w])``, resets, and plays its whole episodes. Episode
 ids are ``first_episode + (episodes of slots < w) + j``, so rows come in (round,
@@ -227,7 +227,7 @@ class RaySource:
     ) -> TensorDict:
         """``num_episodes`` whole episodes of ``behaviour`` as buffer rows, in (slot, episode) order.
 
-        Rows as :func:`~imitrl.data.rollout_episodes` gives them (``ROUND`` =
+        Rows as :func:`~imitrl.runtime.rollout_episodes` gives them (``ROUND`` =
         ``round_index``, ``EPISODE`` from ``first_episode``, ``STEP``).
         """
         exploration = self.exploration or exploration_type()

@@ -42,7 +42,7 @@ line on stderr and exit status 1 (the outputs as they were).
 
 Import cost: ``imitrl --help`` imports no command; ``imitrl COMMAND ...`` imports that
 command's module alone (:class:`Command`), so ``imitrl --help``, ``imitrl bench`` and
-every command's ``--help`` start without torch (``tests/test_imports.py``): the configs
+every command's ``--help`` start without torch (``tests/jobs/test_names_imports.py``): the configs
 live in :mod:`imitrl.jobs.configs`, the lists of losses and experts in
 :mod:`imitrl.jobs.names`.
 """

@@ -14,7 +14,7 @@ Why not ``ActionChunkTransform`` itself: it windows a time-structured ``[B, T, m
 tensor (one trajectory window per row, or cut at ``("next", "done")``), while a
 demonstration buffer holds flat rows of many episodes, in any order, identified by
 ``EPISODE`` and ``STEP``. :func:`chunk_labels` is the same windowing keyed by those
-two columns; ``tests/test_chunks.py`` checks that both give the same digits on one
+two columns; ``tests/data/test_chunks.py`` checks that both give the same digits on one
 episode.
 
 DAgger. A relabel round stores, at every state the learner visited, the expert's
@@ -132,7 +132,7 @@ def add_chunk_labels(
     """``rows`` (a shallow copy) with :data:`EXPERT_CHUNK` and :data:`CHUNK_PAD` added.
 
     ``rows`` ``[N]`` need ``label_key``, ``EPISODE`` and ``STEP`` (what
-    :func:`~imitrl.data.rollout_episodes` and a ``DemonstrationBuffer`` hold); where
+    :func:`~imitrl.runtime.rollout_episodes` and a ``DemonstrationBuffer`` hold); where
     they have ``EXPERT_EXECUTED``, a chunk ends at the first row whose executed action
     was not the expert's (module docstring).
     """

@@ -358,7 +358,7 @@ def mode_fractions(
 
 
 def outcomes(rows: TensorDictBase, geometry: CorridorGeometry = CorridorGeometry()) -> torch.Tensor:
-    """Per episode in ``rows`` (from :func:`imitrl.data.rollout_episodes`): its :data:`OUTCOMES` code.
+    """Per episode in ``rows`` (from :func:`imitrl.runtime.rollout_episodes`): its :data:`OUTCOMES` code.
 
     0..3: the lane it reached the goal line in (from below); 4: it hit the first
     divider; 5: a second divider; 6: a corridor wall. ``[E]`` int64 in episode id order.

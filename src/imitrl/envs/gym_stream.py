@@ -457,7 +457,7 @@ class GymnasiumStreamSource:
     ) -> TensorDict:
         """Play ``num_episodes`` episodes of ``behaviour`` on the stream; buffer rows.
 
-        Rows as :func:`imitrl.data.rollout_episodes` returns them (every transition,
+        Rows as :func:`imitrl.runtime.rollout_episodes` returns them (every transition,
         episodes back to back, ids from ``first_episode``, ``ROUND = round_index``).
         """
         S = self.mdp.num_states

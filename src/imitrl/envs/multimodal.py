@@ -369,7 +369,7 @@ def mode_fractions(
 def passing_side(
     rows: TensorDictBase, geometry: ObstacleGeometry = ObstacleGeometry()
 ) -> torch.Tensor:
-    """Per episode in ``rows`` (from :func:`imitrl.data.rollout_episodes`): +1 passed above, -1 below, 0 hit.
+    """Per episode in ``rows`` (from :func:`imitrl.runtime.rollout_episodes`): +1 passed above, -1 below, 0 hit.
 
     Read at the first step at or beyond the disc's centre (``x >= obstacle_x``);
     episodes that end before it (in the disc) get 0. Returns ``[E]`` int64 in episode id order.

@@ -3,7 +3,7 @@
 Each expert is a batched function of the observation (no simulator access), so
 DAgger can ask it about any state the learner visits. Returns over 100 episodes
 (seeds 0-99) are measured by ``benchmarks/bc_vs_dagger.py`` and checked in
-``tests/test_experts.py``:
+``tests/experts/test_experts.py``:
 
 ================= ========================================== ===================
 env               expert                                     return (100 eps)

@@ -6,7 +6,7 @@ action held), ``x_{t+1} ~ A x_t + B u_t`` with ``x = (qpos, qvel)``, and
 :func:`~imitrl.experts.lqr.dlqr` gives the gain. The expert is then a plain
 function of the observation, ``u = clip(-K x(obs))``, so DAgger can query it at any
 state. Returns over 100 episodes (``benchmarks/bc_vs_dagger.py``,
-``tests/test_experts.py``): InvertedPendulum-v5 1000 / 1000, InvertedDoublePendulum-v5
+``tests/experts/test_experts.py``): InvertedPendulum-v5 1000 / 1000, InvertedDoublePendulum-v5
 about 9360 / 9360.
 
 The gain is tuned for the env's time step. An action repeat (TorchRL's

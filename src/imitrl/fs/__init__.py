@@ -11,6 +11,8 @@
   waited for.
 * :mod:`~imitrl.fs.publish`: a folder is written beside its destination and moved into
   place whole, by an atomic exchange (:func:`publishing`).
+* :mod:`~imitrl.fs.run_folder`: a job's ``--out``, claimed, staged beside it and
+  published whole (:func:`~imitrl.fs.run_folder.claimed`), one rule for every command.
 * :mod:`~imitrl.fs.write_errors`: a full disk or a read-only folder names the destination
   (:class:`DiskFullError`, :class:`NotWritableError`).
 """

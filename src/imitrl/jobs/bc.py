@@ -32,20 +32,19 @@ from torchrl.record.loggers import Logger
 from imitrl.algorithms import BCConfig, fit_bc
 from imitrl.data import DemonstrationBuffer
 from imitrl.envs import make_env
+from imitrl.fs.run_folder import claimed
 from imitrl.jobs.checkpoint import save_run
 from imitrl.jobs.configs import BCJob, GAILJob
 from imitrl.jobs.curves import make_logger, plot_curves, scalars_dir
 from imitrl.jobs.evaluate import evaluate_returns, format_return
-from imitrl.jobs.output import claimed
 from imitrl.jobs.resolve import (
     check_expert_fits,
+    choose_learner,
     dataset_format,
     expert_for_env,
-    learner_factory,
     load_dataset,
     make_expert,
     no_expert_message,
-    resolve_loss,
     time_limit,
 )
 from imitrl.learners import Learner
@@ -86,9 +85,11 @@ class Setup:
     loss: str
     """what ``--loss`` resolved to for the env (:func:`~imitrl.jobs.resolve.resolve_loss`:
     a registry entry, or ``for_env``): what the run records and a checkpoint rebuilds"""
+    recipe: Callable[[BCConfig], BCConfig] | None
+    """the loss's fit schedule, where its recipe has one (:func:`bc_config`)"""
     folder: Path
     """where the run writes until it finishes (staged beside ``--out``, which it then
-    replaces: :mod:`imitrl.jobs.output`)"""
+    replaces: :mod:`imitrl.fs.run_folder`)"""
 
     def close(self) -> None:
         """Close the env and shut the logger down (its files closed); a second call does
@@ -108,7 +109,7 @@ def prepare(
     probabilistic: bool = False,
 ) -> Setup:
     """Resolve and check every flag of ``config`` before any work (ValueError otherwise);
-    the run will write into ``folder`` (:func:`imitrl.jobs.output.claimed`'s).
+    the run will write into ``folder`` (:func:`imitrl.fs.run_folder.claimed`'s).
 
     ``keep_logs``: append to the command's earlier CSV logs (a resumed run) instead of
     starting them afresh; ``probabilistic``: the job needs ``log pi`` and a value head
@@ -129,15 +130,14 @@ def prepare(
     if expert_name is not None:
         expert = make_expert(expert_name, config.expert_kind, env_id=config.env, env=env)
         check_expert_fits(expert, expert_name, config.env, env)  # observations it can read
-    loss = resolve_loss(config.loss, env, probabilistic=probabilistic)
-    make_learner = learner_factory(
-        loss, env, hidden=config.hidden, lr=config.lr, seed=config.seed, device=config.device,
-        value=probabilistic,
-    )  # fmt: skip
     if config.dataset is not None:
         dataset_format(config.dataset)
+    learner = choose_learner(
+        config.loss, env, hidden=config.hidden, lr=config.lr, seed=config.seed,
+        device=config.device, probabilistic=probabilistic,
+    )  # fmt: skip
     logger = make_logger(config.logger, folder, name, fresh=not keep_logs)
-    return Setup(env, limit, expert, make_learner, logger, loss, folder)
+    return Setup(env, limit, expert, learner.make, logger, learner.loss, learner.recipe, folder)
 
 
 def demonstrations(config: BCJob, setup: Setup) -> DemonstrationBuffer:
@@ -151,17 +151,12 @@ def demonstrations(config: BCJob, setup: Setup) -> DemonstrationBuffer:
     return buffer
 
 
-def bc_config(config: BCJob) -> BCConfig:
+def bc_config(config: BCJob, setup: Setup) -> BCConfig:
     """The behaviour-cloning fit the flags describe, on the loss's own schedule where its
-    recipe has one (``LossEntry.recipe``: Diffusion Policy's warm-up and cosine decay);
-    ``--batch-size`` is kept as given."""
-    from imitrl.learners import registry
-
+    recipe has one (``setup.recipe``, the entry's ``LossEntry.recipe``: Diffusion
+    Policy's warm-up and cosine decay); ``--batch-size`` is kept as given."""
     bc = config.fit()
-    if config.loss not in registry.names():  # for_env's learner: no recipe
-        return bc
-    recipe = registry.get(config.loss).recipe
-    return bc if recipe is None else recipe(bc)
+    return bc if setup.recipe is None else setup.recipe(bc)
 
 
 def evaluate_learner(config: BCJob, learner: Learner) -> dict:
@@ -226,7 +221,7 @@ def finish(
 def run_bc(config: BCJob) -> dict:
     """Behaviour cloning as ``config`` says (module docstring); returns what results.json holds.
 
-    ``--out`` follows :mod:`imitrl.jobs.output`'s rule: a previous run there is refused
+    ``--out`` follows :mod:`imitrl.fs.run_folder`'s rule: a previous run there is refused
     unless ``--overwrite``, and a second run writing it meanwhile is refused at once."""
     with claimed(config.out, overwrite=config.overwrite) as folder:
         return _run_bc(config, folder)
@@ -240,7 +235,7 @@ def _run_bc(config: BCJob, folder: Path) -> dict:
         buffer = demonstrations(config, setup)
         learner = setup.make_learner()
         fit = fit_bc(
-            learner, buffer, bc_config(config), progress=config.progress, logger=setup.logger
+            learner, buffer, bc_config(config, setup), progress=config.progress, logger=setup.logger
         )
         expert_ev = evaluate_expert(config, setup)
         learner_ev = evaluate_learner(config, learner)

@@ -13,7 +13,7 @@ adds (the env, the demonstrations, the learner, the evaluation, the output).
 The classes live here, apart from the functions that run them (:mod:`imitrl.jobs.bc`,
 :mod:`~imitrl.jobs.dagger`, :mod:`~imitrl.jobs.gail`), and the library configs they
 extend import no torch, so that ``imitrl bc --help`` builds its flags without importing
-torch, TorchRL or the loss registry (``tests/test_imports.py``). Every number is
+torch, TorchRL or the loss registry (``tests/jobs/test_names_imports.py``). Every number is
 range-checked by the limits its field declares (:func:`~imitrl.limits.bounded`,
 :func:`~imitrl.limits.widths` for ``--hidden``; ``--help`` shows them), named by its flag.
 """

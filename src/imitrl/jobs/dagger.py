@@ -31,6 +31,7 @@ import torch
 from imitrl.algorithms import Constant, DAggerConfig, EnvSource, dagger
 from imitrl.algorithms.ray_source import RaySource
 from imitrl.envs import make_env
+from imitrl.fs.run_folder import claimed
 from imitrl.jobs.bc import (
     Setup,
     bc_config,
@@ -43,7 +44,6 @@ from imitrl.jobs.bc import (
 )
 from imitrl.jobs.configs import DAggerJob
 from imitrl.jobs.evaluate import format_return
-from imitrl.jobs.output import claimed
 from imitrl.jobs.resolve import no_expert_message
 from imitrl.learners import Learner
 
@@ -53,7 +53,7 @@ __all__ = ["DAggerJob", "report", "run_dagger"]
 def run_dagger(config: DAggerJob) -> dict:
     """DAgger as ``config`` says (module docstring); returns what results.json holds.
 
-    ``--out`` follows :mod:`imitrl.jobs.output`'s rule: a previous run there is refused
+    ``--out`` follows :mod:`imitrl.fs.run_folder`'s rule: a previous run there is refused
     unless ``--overwrite`` or ``--resume``, and a second run writing it meanwhile is
     refused at once."""
     with claimed(config.out, overwrite=config.overwrite, resume=config.resume) as folder:
@@ -89,7 +89,7 @@ def _run_dagger(config: DAggerJob, folder: Path) -> dict:
                     episodes_per_round=config.episodes_per_round,
                     beta=Constant(config.beta),
                     warm_start=config.warm_start,
-                    bc=bc_config(config),
+                    bc=bc_config(config, setup),
                     seed=config.seed,
                 ),
                 on_fit=on_fit,

@@ -39,6 +39,7 @@ from imitrl.algorithms.adversarial import (
 from imitrl.algorithms.adversarial.absorbing import demonstrations_terminate
 from imitrl.algorithms.adversarial.transitions import NEXT_TERMINATED
 from imitrl.configs.adversarial import AIRLConfig
+from imitrl.fs.run_folder import claimed
 from imitrl.jobs.bc import (
     BCJob,
     Setup,
@@ -51,7 +52,6 @@ from imitrl.jobs.bc import (
 )
 from imitrl.jobs.configs import AIRLJob, GAILJob
 from imitrl.jobs.evaluate import format_return
-from imitrl.jobs.output import claimed
 from imitrl.learners import ActorCritic
 
 __all__ = ["AIRLJob", "GAILJob", "report", "run_airl", "run_gail"]
@@ -85,7 +85,7 @@ def _evaluator(config: GAILJob, bc_view: BCJob, setup: Setup, evaluations: list)
 
 
 def _run(config: GAILJob, name: str) -> dict:
-    with claimed(config.out, overwrite=config.overwrite) as folder:  # jobs.output's rule
+    with claimed(config.out, overwrite=config.overwrite) as folder:  # fs.run_folder's rule
         return _train(config, name, folder)
 
 

@@ -1,7 +1,7 @@
 """Names the command line lists, without importing torch: experts, losses, loggers.
 
 ``imitrl bc --help`` prints these lists; importing the loss registry or the experts to
-read them would import torch and TorchRL (seconds). ``tests/test_imports.py`` checks
+read them would import torch and TorchRL (seconds). ``tests/jobs/test_names_imports.py`` checks
 that each table here equals what the registry and :data:`imitrl.jobs.resolve.EXPERTS`
 build, so a loss or expert added there and not here fails a test.
 """

@@ -26,6 +26,7 @@ import importlib
 import inspect
 import re
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import gymnasium
@@ -34,10 +35,11 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase
 
 from imitrl import experts, keys
+from imitrl.configs.bc import BCConfig
 from imitrl.data.buffer import OBSERVATION_KEYS, REQUIRED_KEYS
 from imitrl.envs.make import METAWORLD_PREFIX
 from imitrl.jobs.names import EXPERT_ENVS, EXPERT_KINDS
-from imitrl.learners import FOR_ENV, Learner, TaskSpec, build, resolve
+from imitrl.learners import FOR_ENV, Learner, TaskSpec, build, registry, resolve
 from imitrl.policies import Expert
 
 __all__ = [
@@ -47,7 +49,9 @@ __all__ = [
     "EXPERT_KINDS",
     "FOR_ENV",
     "LEGACY_DEFAULT",
+    "LearnerChoice",
     "check_expert_fits",
+    "choose_learner",
     "dataset_format",
     "expert_for_env",
     "learner_factory",
@@ -73,7 +77,7 @@ AUTO = "auto"
 """``--expert auto``: the built-in expert of ``--env`` (:func:`expert_for_env`)"""
 
 
-# the keys a rollout writes (imitrl.data.rollout_episodes): loaded rows keep only these,
+# the keys a rollout writes (imitrl.runtime.rollout_episodes): loaded rows keep only these,
 # so that DAgger's rollouts can extend the same buffer
 ROW_KEYS = (
     *REQUIRED_KEYS,
@@ -262,6 +266,42 @@ def learner_factory(
         text = text.replace("; registered:", "; choose default or one of:")
         raise ValueError(text) from None
     return make
+
+
+@dataclass(frozen=True)
+class LearnerChoice:
+    """What ``--loss`` (with ``--hidden``, ``--lr``, ``--seed``, ``--device``) chose for an env."""
+
+    loss: str
+    """the registry entry ``--loss`` resolved to (:func:`resolve_loss`): what the run
+    records and a checkpoint rebuilds"""
+    make: Callable[[], Learner]
+    """a fresh learner, same initialisation each call (:func:`learner_factory`)"""
+    recipe: Callable[[BCConfig], BCConfig] | None
+    """the entry's fit schedule (``LossEntry.recipe``), None for ``for_env`` or an entry
+    without one"""
+
+
+def choose_learner(
+    loss: str,
+    env: EnvBase,
+    *,
+    hidden: tuple[int, ...] | None,
+    lr: float | None,
+    seed: int,
+    device: str | None = None,
+    probabilistic: bool = False,
+) -> LearnerChoice:
+    """``--loss`` and its settings for ``env``, in one visit of :mod:`imitrl.learners`:
+    the learner factory (one learner built at once, so that a bad flag fails here, naming
+    it), the entry ``default`` resolves to, and that entry's fit recipe.
+    ``probabilistic``: the job needs ``log pi`` and a value head (GAIL, AIRL)."""
+    make = learner_factory(
+        loss, env, hidden=hidden, lr=lr, seed=seed, device=device, value=probabilistic
+    )
+    name = resolve(loss, TaskSpec.from_env(env), value=probabilistic)
+    recipe = registry.get(name).recipe if name in registry.names() else None
+    return LearnerChoice(name, make, recipe)
 
 
 def _flag(match: re.Match) -> str:

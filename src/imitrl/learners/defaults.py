@@ -16,8 +16,9 @@ continuous ``mse``           ``gaussian_nll``
 ``cross_entropy`` is a logits table on integer states (FrozenLake) and an MLP on vector
 observations, like every discrete entry. Where the registry builds nothing (image
 observations, with or without a state beside them; multi-discrete, one-hot or unbounded
-actions) ``default`` is ``for_env``: :meth:`ActorCritic.for_env`'s network (a CNN on
-images) (:func:`imitrl.jobs.resolve.resolve_loss`).
+actions) ``default`` is ``for_env``:
+:func:`~imitrl.learners.actor_critic.entries.for_env`'s network (a CNN on images)
+(:func:`imitrl.jobs.resolve.resolve_loss`).
 
 Adam's learning rate when none is given (``LearnerConfig.lr`` None, no ``--lr``), one
 per kind of network:

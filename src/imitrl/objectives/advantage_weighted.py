@@ -1,6 +1,6 @@
 """Advantage-weighted behaviour cloning as a loss module: ``-mean_i A(s_i, a*_i) log pi(a*_i | s_i)``.
 
-The objective of :func:`imitrl.objectives.policy_step` with the weights computed
+The objective of :func:`imitrl.algorithms.policy_step` with the weights computed
 from the row by a task-supplied advantage function instead of passed in, so it
 trains through the same interface as every other loss (rows of ``OBSERVATION`` and
 the expert's label in, ``loss_bc`` out). The weights are data: computed without

@@ -82,7 +82,8 @@ class ImitationLoss(LossModule):
 
     def fitting(self) -> contextlib.AbstractContextManager:
         """A context a fit's steps run in (``fit_bc``): here nothing; a loss may run its
-        networks through :func:`imitrl.runtime.paths.network` inside it."""
+        networks without ``nn.Module.__call__`` per layer inside it (``BehaviorCloningLoss``:
+        :func:`imitrl.runtime.paths.loss_chain`)."""
         return contextlib.nullcontext()
 
     def objective(self, batch: TensorDictBase, weights: torch.Tensor | None = None) -> torch.Tensor:

@@ -15,7 +15,7 @@ smooth_l1   Huber(1) averaged over dims         deterministic
 The objective is ``loss_bc = mean_i w_i l_i`` with ``w_i = 1`` unless a weight key
 is set; weights are read as data (detached): with ``loss_type="nll"`` and weights
 equal to advantages this is the advantage-weighted log-likelihood of
-:func:`imitrl.objectives.policy_step`.
+:func:`imitrl.algorithms.policy_step`.
 
 Why not ``torchrl.objectives.BCLoss``: in torchrl 0.14.1 it routes integer labels of
 a ``Categorical`` actor to a cross-entropy on the *sampled action* as if it were

@@ -2,7 +2,7 @@
 
 The labels are the expert's next ``H`` actions and their padding mask,
 ``EXPERT_CHUNK`` ``[N, H, m]`` and ``CHUNK_PAD`` ``[N, H]``
-(:func:`imitrl.data.add_chunk_labels`). Two ways to train on them:
+(:func:`imitrl.data.chunks.add_chunk_labels`). Two ways to train on them:
 
 * :class:`ChunkRegressionLoss` (``mse``, ``l1``, ``smooth_l1``): the per-entry error of
   the predicted chunk, averaged over the entries that are not padding;

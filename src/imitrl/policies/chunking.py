@@ -39,7 +39,7 @@ input fails loudly rather than run every lane as if it had just been reset.
 Why not ``torchrl.modules.MultiStepActorWrapper``: it does the receding horizon
 (``replan_interval``) but not temporal ensembling, and it keeps its cache in the
 tensordict that the env carries from step to step; this module keeps both modes in
-one place with the state in the module (``tests/test_chunks.py`` checks the actions
+one place with the state in the module (``tests/data/test_chunks.py`` checks the actions
 both modes execute against hand-computed ones).
 """
 

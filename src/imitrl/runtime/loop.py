@@ -1,7 +1,7 @@
 """The one rollout loop: whole episodes from any env, lanes under round-robin quotas.
 
-Collection (:func:`~imitrl.data.rollout_episodes`), DAgger's relabel rounds (which
-collect through it) and evaluation (:func:`~imitrl.data.episode_returns`, hence
+Collection (:func:`~imitrl.runtime.rollout_episodes`), DAgger's relabel rounds (which
+collect through it) and evaluation (:func:`~imitrl.runtime.episode_returns`, hence
 :func:`~imitrl.evaluation.evaluate`) all play their episodes by :func:`play`. What differs
 is what they keep: rows (the stepper records the trajectory) or per-episode summaries
 (the ``on_reward`` / ``on_end`` callbacks).
@@ -23,7 +23,7 @@ the bound raises.
 the reference one on public TorchRL (:class:`imitrl.runtime.reference.TorchRLStepper`:
 ``policy(td)`` and ``env.step_and_maybe_reset``) or the accelerated one
 (:mod:`imitrl.runtime.fast`), chosen by :func:`imitrl.runtime.paths.stepper`. Both play
-the same episodes, digit for digit (``tests/test_fast_path.py``).
+the same episodes, digit for digit (``tests/runtime/test_paths.py``).
 
 **Fixed steps.** An on-policy learner (GAIL's and AIRL's PPO generator) wants batches of
 a fixed number of steps that continue across rounds, episodes cut wherever a batch ends:

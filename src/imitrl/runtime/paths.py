@@ -1,7 +1,7 @@
 """The seam: where imitrl chooses between its reference code and its accelerated paths.
 
 Every accelerated piece is reached through a function of this module, and nothing else
-in imitrl imports :mod:`imitrl.runtime.fast` (``tests/test_fast_path.py`` greps for it).
+in imitrl imports :mod:`imitrl.runtime.fast` (``tests/runtime/test_paths.py`` greps for it).
 Each piece has a reference on public TorchRL/torch that gives the same digits:
 
 ================== ========================================= ==========================================
@@ -11,7 +11,6 @@ piece              reference (public API)                    accelerated (:mod:`
                    (:mod:`imitrl.runtime.reference`)         (plain gymnasium envs, ``TabularEnv``)
 :func:`table_      the step loop                             the toy-text stream player: the episodes
 returns`                                                     of a fixed state table, without steps
-:func:`network`    ``module(x)``                             ``direct_call``: no hook bookkeeping
 :func:`loss_chain` the actor on a TensorDict                 its plain modules' networks on tensors
 :func:`optimizer_  ``opt.step``                              Adam's functional form on the CPU (its
 step`                                                        wrapper costs as much as a small update),
@@ -23,8 +22,6 @@ norm`
                                                              probability without the distribution
 :func:`gail_loss`  ``GAILLoss(batch)``                       ``TensorGAILLoss``: its arithmetic on the
                                                              four feature tensors
-:func:`gae`        ``GAE(batch)``                            ``TensorGAE``: the value net called once,
-                                                             on each distinct observation, no vmap
 ================== ========================================= ==========================================
 
 On a GPU the CPU tricks step aside for the device's own fast forms: ``optimizer_step``
@@ -40,6 +37,11 @@ reference path: to check a result against public TorchRL, or to rule the fast pa
 when something looks wrong. ``IMITRL_REFERENCE`` (``all``, or a comma-separated list of
 :data:`PIECES`) does the same for a whole process: what ``benchmarks/seam.py`` measures
 each piece's gain with.
+
+Each piece is kept because it buys at least 5% of a whole process on a benchmark it
+serves (``benchmarks/seam.py``'s table in ``benchmarks/README.md``); ``network`` (a bare
+module call, no caller left) and ``gae`` (GAE replayed on tensors: +1.8% / +4.6% on the
+GAIL commands) bought less and were deleted (issue 43).
 """
 
 from __future__ import annotations
@@ -74,10 +76,8 @@ __all__ = [
     "PIECES",
     "clip_grad_norm",
     "fast_enabled",
-    "gae",
     "gail_loss",
     "loss_chain",
-    "network",
     "optimizer_step",
     "ppo_loss",
     "reference",
@@ -89,14 +89,12 @@ __all__ = [
 PIECES = (
     "stepper",
     "table_returns",
-    "network",
     "loss_chain",
     "optimizer_step",
     "zero_grad",
     "clip_grad_norm",
     "ppo_loss",
     "gail_loss",
-    "gae",
 )
 """every accelerated piece, by the name :func:`reference` and ``IMITRL_REFERENCE`` take"""
 
@@ -186,16 +184,6 @@ def table_returns(
     return played(env, policy, book)
 
 
-def network(module: nn.Module) -> Callable[..., torch.Tensor]:
-    """``module``'s call: without ``nn.Module.__call__``'s hook bookkeeping where it has
-    no hooks (the same bits), or ``module`` itself on the reference path."""
-    if not fast_enabled("network"):
-        return module
-    from imitrl.runtime.fast.policy_call import direct_call
-
-    return direct_call(module)
-
-
 def loss_chain(modules: list[nn.Module] | None):
     """A :class:`~imitrl.runtime.fast.tensor_chain.TensorChain` of ``modules`` (their
     networks run on a batch's tensors), or None where they are not all plain one-key
@@ -234,17 +222,6 @@ def gail_loss(loss: LossModule, batch: TensorDictBase | None = None) -> GAILLoss
         if fast is not None:
             return fast
     return GAILReference(loss, loss.discriminator_network)
-
-
-def gae(module, batch):
-    """``module`` (a TorchRL ``GAE``) as a callable on ``batch``: a
-    :class:`~imitrl.runtime.fast.gae_step.TensorGAE` (the same bits) where it replays the
-    module's configuration, the module itself on the reference path and elsewhere."""
-    if not fast_enabled("gae"):
-        return module
-    from imitrl.runtime.fast.gae_step import TensorGAE
-
-    return TensorGAE.of(module, batch) or module
 
 
 def optimizer_step(*opts: torch.optim.Optimizer) -> Callable[[], None]:

@@ -1,7 +1,7 @@
 """Returns, lengths and success of whole episodes, without keeping their transitions.
 
 :func:`episode_returns` plays episodes by the one rollout loop, as
-:func:`~imitrl.data.rollout_episodes` does (the same lanes, quotas, bounds and the same
+:func:`~imitrl.runtime.rollout_episodes` does (the same lanes, quotas, bounds and the same
 two steppers, digit for digit), and keeps only each episode's summary, so that 1e5+
 evaluation episodes cost no memory. On a gymnasium toy-text env a policy that is a fixed
 table of states plays its episodes by the stream player, with no step loop at all

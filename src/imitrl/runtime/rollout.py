@@ -13,7 +13,7 @@ chooses (:func:`imitrl.runtime.paths.stepper`): on a plain gymnasium env from
 :func:`~imitrl.envs.make_env` and on a :class:`~imitrl.envs.TabularEnv` the accelerated
 one (the simulator stepped directly, the policy called on a dict of tensors), on every
 other env and inside :func:`imitrl.runtime.paths.reference` (``"stepper"``, or all) TorchRL's own ``env.step_and_maybe_reset`` and ``policy(td)``: the reference the
-accelerated path is tested against, digit for digit (``tests/test_fast_path.py``).
+accelerated path is tested against, digit for digit (``tests/runtime/test_paths.py``).
 """
 
 from __future__ import annotations

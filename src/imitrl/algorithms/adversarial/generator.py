@@ -115,10 +115,9 @@ class PPOGenerator:
         optimizer_step = paths.optimizer_step(*opts)
         zero_grad = paths.zero_grad(*opts)  # both optimizers' zero_grad(set_to_none=True)
         ppo_loss = paths.ppo_loss(self.loss, batch)  # on the batch's tensors (same bits)
-        gae = paths.gae(self.gae, batch)  # GAE on tensors (same bits), or the module
         for _ in range(self.epochs):
             with torch.no_grad():
-                gae(batch)
+                self.gae(batch)
             flat = batch.reshape(-1)
             prepared = ppo_loss.prepare(flat)
             order = torch.randperm(n, generator=generator)

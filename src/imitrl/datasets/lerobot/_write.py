@@ -347,7 +347,7 @@ def save_lerobot(
 
     Args:
         data: a buffer or ``[N]`` rows; each episode one contiguous block whose ``STEP``
-            runs 0..length-1 (as :func:`~imitrl.data.rollout_episodes` produces); with
+            runs 0..length-1 (as :func:`~imitrl.runtime.rollout_episodes` produces); with
             ``OBSERVATION``, or only a camera ``PIXELS`` (what :func:`load_lerobot` gives
             for a camera-only dataset).
         path: the dataset directory (must not exist unless ``overwrite``; never the working

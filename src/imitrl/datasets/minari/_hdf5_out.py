@@ -18,7 +18,7 @@ goes to memory instead. HDF5 sees a file that works, so the close succeeds; the 
 raises the kept error after the episode that met it (:meth:`HDF5Out.check`), so what
 went to memory is at most one episode and the file's last metadata. The file holds what
 HDF5's own driver writes (laid out a little differently: 0.1% smaller; ``minari``'s own
-reader reads it, ``tests/test_minari_write.py``), 10 to 20% slower to write, since each
+reader reads it, ``tests/datasets/minari/test_write.py``), 10 to 20% slower to write, since each
 read and write crosses into Python (300 episodes, 13 MB: 0.41 s against 0.37 s).
 """
 

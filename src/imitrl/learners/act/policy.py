@@ -20,7 +20,7 @@ contracts, and says what it changes:
 * observations are normalised inside the network (fitted by ``Learner.prepare``), and
   chunks live in ``[-1, 1]`` (the action bounds mapped there), as ACT normalises both;
   the predicted chunk is clipped to ``[-1, 1]`` and mapped back to the bounds;
-* labels: the chunk ``EXPERT_CHUNK`` ``[N, H, m]`` of :func:`imitrl.data.add_chunk_labels`.
+* labels: the chunk ``EXPERT_CHUNK`` ``[N, H, m]`` of :func:`imitrl.data.chunks.add_chunk_labels`.
   ``ACTLoss`` has no padding mask (the paper's code masks padded entries): past an
   episode's end the label repeats its last action (``ActionChunkTransform``'s padding),
   so the model is taught to hold it;

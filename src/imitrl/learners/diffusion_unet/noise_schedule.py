@@ -2,7 +2,7 @@
 
 The arithmetic Diffusion Policy uses (Chi et al. 2023, through ``diffusers``' DDPM and
 DDIM schedulers; LeRobot's reproduction the same), written out so that each update can
-be checked by hand (``tests/test_diffusion_unet.py``):
+be checked by hand (``tests/learners/diffusion_unet/test_unet1d.py``):
 
 * **Schedules.** ``squaredcos_cap_v2`` (Nichol & Dhariwal 2021): ``abar(s) = cos(((s +
   0.008) / 1.008) pi / 2) ** 2`` and ``beta_k = min(1 - abar((k + 1) / K) / abar(k / K),

@@ -21,7 +21,7 @@ class FlowMatchingLoss(ImitationLoss):
     Args:
         policy: the flow policy trained.
         chunked: labels are chunks ``[N, H, m]`` under ``EXPERT_CHUNK`` with the padding
-            mask ``[N, H]`` under ``CHUNK_PAD`` (:func:`imitrl.data.add_chunk_labels`);
+            mask ``[N, H]`` under ``CHUNK_PAD`` (:func:`imitrl.data.chunks.add_chunk_labels`);
             False: actions ``[N, m]`` under ``EXPERT_ACTION``.
         seed: seed of the loss's draws (``x_0`` and ``t``).
 

@@ -1,6 +1,6 @@
 """Accelerated paths: each gives the digits of its reference on public TorchRL/torch.
 
-Reached only through the seam, :mod:`imitrl.runtime.paths` (``tests/test_fast_path.py``
+Reached only through the seam, :mod:`imitrl.runtime.paths` (``tests/runtime/test_paths.py``
 greps that nothing else imports this package, and runs every piece against its
 reference): ``env_steps`` (envs stepped directly), ``policy_call`` (a policy on a dict of
 tensors, networks without hook bookkeeping), ``stepper`` (the two together, for the one

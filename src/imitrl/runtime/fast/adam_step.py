@@ -7,7 +7,7 @@ update itself: measured 616 us against 331 us for the same update through
 MLP with one torch thread. :func:`optimizer_step` returns a step that calls that function
 with the optimizer's own state tensors and its group's settings (read every step, so a
 learning-rate schedule is seen): the same kernels on the same tensors, so the same bits
-(``tests/test_optim_step.py`` trains side by side). Several optimizers stepped together
+(``tests/runtime/fast/test_adam_step.py`` trains side by side). Several optimizers stepped together
 (PPO's policy and value optimizers) are one call over all their parameters while every
 group setting agrees: Adam updates each parameter from its own gradient, state and step
 count, so one call over the union is the calls one after the other, at one call's

@@ -13,8 +13,8 @@ distribution's own operations on the same tensors, in its order:
   same RNG draw;
 * ``log_prob(a)``: the normalised logits gathered at ``a``, broadcast as it broadcasts.
 
-The same bits and draws as the distribution (``tests/test_fast_ppo.py``; the rollout's
-draw also through ``tests/test_fast_path.py``'s replay of every head). :func:`replays`
+The same bits and draws as the distribution (``tests/runtime/fast/test_ppo_step.py``; the rollout's
+draw also through ``tests/runtime/test_paths.py``'s replay of every head). :func:`replays`
 says which distributions this covers: exactly ``GreedyCategorical`` over ``logits``
 (which never validates its arguments).
 """

@@ -10,7 +10,7 @@ coefficient ``max_norm / (total + 1e-6)`` clamped at 1, and every gradient multi
 it (``torch._foreach_mul_``). :func:`clip_grad_norm` runs those calls, in that order, where
 ``clip_grad_norm_`` would group every gradient into one group and take its foreach path
 (dense CPU gradients of one floating dtype, the 2-norm): the same kernels on the same
-tensors, so the same bits (``tests/test_optim_step.py``); anywhere else it calls
+tensors, so the same bits (``tests/runtime/fast/test_adam_step.py``); anywhere else it calls
 ``clip_grad_norm_`` itself.
 """
 

@@ -23,7 +23,7 @@ CartPole a tensor per value and step cost more than gymnasium's own step.
 Anything else (``ParallelEnv``, pixel envs, other transforms, your own ``EnvBase``)
 gets None and is stepped through TorchRL. Each conversion below names the TorchRL code
 it mirrors, so the values, dtypes and shapes are TorchRL's: rollouts on either path play
-the same episodes digit for digit (``tests/test_fast_path.py`` runs both side by side).
+the same episodes digit for digit (``tests/runtime/test_paths.py`` runs both side by side).
 The rollout's first reset still goes through TorchRL's ``env.reset()``; a ``set_seed``
 too. Do not use the direct path on an env you compiled (``env.compile()``) or gave
 post-step hooks: it does not see them (run the rollout inside

@@ -10,7 +10,7 @@ computes what ``GAILLoss.forward`` computes without a gradient penalty (the pena
 its interpolation weights from the RNG: the loss module keeps it) and with the ``"mean"``
 reduction, on the same tensors with the same operations in the same order: the expert's
 and the policy's features concatenated, the network's probability split back, ``BCELoss``
-against ones and zeros, summed and averaged (``tests/test_adversarial_lanes.py`` trains
+against ones and zeros, summed and averaged (``tests/algorithms/adversarial/test_loop_lanes.py`` trains
 GAIL on both paths and compares every weight).
 """
 

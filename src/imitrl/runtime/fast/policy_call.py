@@ -30,7 +30,7 @@ The networks inside run by :func:`direct_call`: an ``nn.Sequential`` (or
 MLP's call at batch 1). Any other module (an actor under MEAN or MEDIAN, one that
 writes its log-probability), or a module with hooks runs through its own ``forward`` on
 a TensorDict of the dict's entries. Each replay runs the module's own code on the same tensors, so the outputs are the module's to the bit
-(``tests/test_fast_path.py``, the seam's test, checks it for every learner head and the DAgger behaviour
+(``tests/runtime/test_paths.py``, the seam's test, checks it for every learner head and the DAgger behaviour
 policy).
 """
 
@@ -55,14 +55,7 @@ from torchrl.envs.utils import ExplorationType, exploration_type
 from torchrl.modules import ProbabilisticActor
 
 from imitrl import keys
-from imitrl.compat import (
-    forward_hooked,
-    global_module_hooks,
-    hooked,
-    plain_module,
-    plain_sampler,
-    plain_sequence,
-)
+from imitrl.compat import global_module_hooks, hooked, plain_call
 from imitrl.policies.distributions import GreedyCategorical
 from imitrl.policies.experts import Expert, _ExecuteExpert
 from imitrl.policies.heads import Chain, Squash
@@ -167,15 +160,17 @@ class TensorPolicy:
 
     # ------------------------------------------------------------------ dispatch
     def _compile(self, node: TensorDictModuleBase) -> _Step:
-        if forward_hooked(node):
-            return self._forward(node)  # e.g. a safe (projecting) actor, selected out-keys
         kind = type(node)
-        if kind is TensorDictSequential and plain_sequence(node):
+        sequence, module = kind is TensorDictSequential, kind in (Module, TensorDictModule)
+        if not plain_call(node, sequence=sequence, module=module):
+            # e.g. a hooked (safe, projecting) actor, selected out-keys, keyword in-keys
+            return self._forward(node)
+        if sequence:
             modules = node.module
             return self._sequence(
                 list(modules.values() if isinstance(modules, nn.ModuleDict) else modules)
             )
-        if kind in (Module, TensorDictModule) and plain_module(node):
+        if module:
             return self._module(node)
         if kind is ProbabilisticActor and self._replayable_actor(node):
             return self._actor(node)
@@ -253,7 +248,8 @@ class TensorPolicy:
 
     def _replayable_actor(self, node: ProbabilisticActor) -> bool:
         """An actor of plain modules whose last module builds one distribution and writes
-        one sample: greedy (DETERMINISTIC, MODE) or drawn (RANDOM)."""
+        one sample: greedy (DETERMINISTIC, MODE) or drawn (RANDOM). (Its hooks and private
+        sampler settings: :func:`~imitrl.compat.plain_call`, asked by ``_compile``.)"""
         if self.exploration not in (
             ExplorationType.DETERMINISTIC, ExplorationType.MODE, ExplorationType.RANDOM,
         ):  # fmt: skip
@@ -265,8 +261,6 @@ class TensorPolicy:
                 self.exploration is not ExplorationType.DETERMINISTIC
                 or hasattr(last.distribution_class, "deterministic_sample")  # as _dist_sample
             )
-            and not forward_hooked(last)
-            and plain_sampler(last, node)
             and isinstance(last.distribution_kwargs, dict)
             and len(last.dist_sample_keys) == 1
             and all(type(m) in (Module, TensorDictModule) for m in det)

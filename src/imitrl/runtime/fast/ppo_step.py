@@ -10,8 +10,8 @@ configuration imitrl's generator builds (modules called as they are, no delayed 
 no value clipping, no entropy bonus, advantages standardised over the minibatch, a
 smooth-L1 critic, mean reduction, no loss masks in the batch), on the same tensors with
 the same operations in the same order: the same losses and gradients, to the bit
-(``tests/test_adversarial_lanes.py`` trains GAIL and AIRL on both paths and compares
-every weight; ``tests/test_fast_ppo.py`` compares losses and gradients for every
+(``tests/algorithms/adversarial/test_loop_lanes.py`` trains GAIL and AIRL on both paths and compares
+every weight; ``tests/runtime/fast/test_ppo_step.py`` compares losses and gradients for every
 probabilistic head). The log-probability of a tanh-normal or a categorical head is
 computed without building its distribution
 (:class:`~imitrl.runtime.fast.tanh_normal.TanhNormalLogProb`,

@@ -19,7 +19,7 @@ distribution runs, in its order, on the same tensors:
   low) / 2`` and ``scale = (high - low) / 2``.
 
 The same bits and the same RNG draws as the distribution
-(``tests/test_fast_path.py::test_policy_replay_equals_the_tensordict_call`` compares the
+(``tests/runtime/test_paths.py::test_policy_replay_equals_the_tensordict_call`` compares the
 replayed actor with its own forward under every exploration type, for every head);
 :func:`replays` says which distributions this covers: exactly ``TanhNormal`` built from
 ``loc`` and ``scale`` with at most ``low`` and ``high`` (its defaults otherwise:
@@ -110,7 +110,7 @@ class TanhNormalLogProb:
     tensor, and only the same layout gives the same bits. :meth:`of` checks the
     arithmetic against the distribution's own transform objects on a probe of actions
     (the bounds included) and declines where they differ (another TorchRL's
-    transforms); ``tests/test_fast_ppo.py`` compares values and gradients with the
+    transforms); ``tests/runtime/fast/test_ppo_step.py`` compares values and gradients with the
     distribution's, row counts with a scalar tail included.
     """
 

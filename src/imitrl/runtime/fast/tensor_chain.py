@@ -8,7 +8,7 @@ deterministic actor), :class:`TensorChain` calls their networks on the batch's t
 no TensorDict is built per step, and inside :meth:`TensorChain.direct` the networks run
 through :func:`~imitrl.runtime.fast.policy_call.direct_call` (no ``nn.Module.__call__``
 per layer). The same operations on the same tensors: the digits and gradients of the
-actor's own call (``tests/test_fast_path.py``).
+actor's own call (``tests/runtime/test_paths.py``).
 """
 
 from __future__ import annotations

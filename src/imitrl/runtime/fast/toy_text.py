@@ -4,7 +4,7 @@ Accelerated internals of :mod:`imitrl.runtime.paths` (import them from there, no
 
 gymnasium's FrozenLake, Taxi and CliffWalking draw one uniform from the env's numpy
 generator per reset and one per step (:mod:`imitrl.envs.gym_stream`). So when a rollout
-keeps only returns (:func:`~imitrl.data.episode_returns`, hence ``evaluate``), its policy
+keeps only returns (:func:`~imitrl.runtime.episode_returns`, hence ``evaluate``), its policy
 acts as a fixed table of states, and its env is a plain :func:`~imitrl.envs.make_env`
 env of one of these with a time limit, the episodes each lane would play step by step
 are walked on that lane's generator by the stream player's scalar path
@@ -14,7 +14,7 @@ in plain Python instead of thousands of env and policy steps.
 The lane's own generator is then advanced by exactly the uniforms the step-by-step loop
 draws (:func:`play_lanes`), so a later rollout on the env plays the same episodes too.
 Only the generators are carried over: the envs' current states are not (every rollout
-starts with a reset). ``tests/test_fast_path.py`` checks the returns, lengths and the
+starts with a reset). ``tests/runtime/test_paths.py`` checks the returns, lengths and the
 next evaluation against TorchRL's path on all three envs, at one and several lanes.
 """
 

@@ -1,0 +1,56 @@
+"""benchmarks/metaworld_mt10.py --merge: cells of runs apart, one report, refusals."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+pytest.importorskip("metaworld")
+from metaworld_mt10 import merge  # noqa: E402
+
+PROTOCOL = {"demo_episodes": 5, "rounds": 3}
+
+
+def _run(loss: str, seeds: list[int], *, expert: float = 1.0, demos=(5,)) -> dict:
+    tasks = [f"reach-v3/{n}demo" for n in demos]
+    return {
+        "config": {"tasks": ["reach-v3"], "losses": [loss], "demos": list(demos),
+                   "seeds": len(seeds), "jobs": 2, "protocol": {t: PROTOCOL for t in tasks}},
+        "rows": [{"task": t, "loss": loss, "seed": s, "algorithm": a, "score": 0.5}
+                 for t in tasks for s in seeds for a in ("bc", "dagger")],
+        "references": [{"task": t, "policy": "expert", "seed": s, "score": expert}
+                       for t in tasks for s in seeds],
+        "wall_seconds": 60.0,
+        "load_average_start": [1.0], "load_average_end": [2.0],
+    }  # fmt: skip
+
+
+def test_merge_joins_disjoint_cells_and_keeps_only_the_asked_demonstrations():
+    full = _run("mse", [0, 1], demos=(1, 5))
+    merged = merge([full, _run("diffusion_unet", [0]), _run("diffusion_unet", [1])], (5,))
+    assert merged["config"]["losses"] == ["mse", "diffusion_unet"]
+    assert merged["config"]["seeds"] == 2 and merged["config"]["jobs"] == "merged"
+    assert {r["task"] for r in merged["rows"]} == {"reach-v3/5demo"}
+    assert len(merged["rows"]) == 2 * 2 * 2  # losses x seeds x algorithms
+    assert len(merged["references"]) == 2  # one per seed, shared by the runs
+    assert merged["wall_seconds"] == 180.0
+
+
+def test_merge_refuses_disagreements():
+    with pytest.raises(ValueError, match=r"another .* reference"):
+        merge([_run("mse", [0]), _run("act", [0], expert=0.8)], (5,))
+    with pytest.raises(ValueError, match="repeats the cell"):
+        merge([_run("mse", [0]), _run("mse", [0])], (5,))
+    with pytest.raises(ValueError, match=r"diffusion_unet has seeds \[0\]"):
+        merge([_run("mse", [0, 1]), _run("diffusion_unet", [0])], (5,))
+    other = _run("act", [0])
+    other["config"]["protocol"] = {"reach-v3/5demo": {**PROTOCOL, "rounds": 4}}
+    with pytest.raises(ValueError, match="another protocol"):
+        merge([_run("mse", [0]), other], (5,))
+    with pytest.raises(ValueError, match="at least two"):
+        merge([_run("mse", [0])], (5,))

@@ -1,0 +1,71 @@
+"""Runs saved by imitrl at d6e5639 load and resume (issue 43): their learners carried a
+value head and its optimizer, which a learner built today has only when a job needs one
+(``tests/fixtures/d6e5639/README.md`` says how the runs were made)."""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import shutil
+import warnings
+from pathlib import Path
+
+import pytest
+import torch
+
+from imitrl.cli import main
+from imitrl.envs import make_env
+from imitrl.jobs.checkpoint import load_learner
+
+OLD = Path(__file__).resolve().parents[1] / "fixtures" / "d6e5639"
+COMMON = ["--demos", "1", "--max-episode-steps", "50", "--eval-episodes", "2", "--no-progress"]
+
+
+def run(argv: list[str]) -> tuple[int, str, str]:
+    out, err = io.StringIO(), io.StringIO()
+    with (
+        contextlib.redirect_stdout(out),
+        contextlib.redirect_stderr(err),
+        warnings.catch_warnings(),
+    ):
+        warnings.simplefilter("ignore")
+        status = main(argv)
+    return status, out.getvalue(), err.getvalue()
+
+
+@pytest.mark.parametrize(
+    "name, env_id",
+    [("cart_bc", "CartPole-v1"), ("pend_bc", "Pendulum-v1"), ("cart_gail", "CartPole-v1")],
+)
+def test_an_old_run_loads_with_its_weights_and_reproduces_its_evaluation(tmp_path, name, env_id):
+    saved = torch.load(OLD / name / "learner.pt", weights_only=True)
+    assert any(k.startswith("value.") for k in saved)  # what d6e5639 saved
+    learner = load_learner(OLD / name, make_env(env_id, seed=0))
+    assert learner.value is None
+    for key, tensor in learner.state_dict().items():
+        assert torch.equal(tensor, saved[key]), key  # every weight it has, as saved
+    status, _, err = run(["eval", "--checkpoint", str(OLD / name), "--eval-episodes", "2",
+                            "--max-episode-steps", "50", "--no-progress",
+                            "--out", str(tmp_path / "ev")])  # fmt: skip
+    assert status == 0, err
+    evaluated = json.loads((tmp_path / "ev" / "eval.json").read_text())["evaluation"]
+    recorded = json.loads((OLD / name / "results.json").read_text())["learner"]
+    assert evaluated["mean_return"] == recorded["mean_return"]
+
+
+def test_an_old_dagger_run_resumes_and_equals_the_longer_run(tmp_path):
+    """d6e5639's 2-round run (its ``run/`` checkpoint holds the value head's weights and
+    ``opt_v``), resumed to 3 rounds today, gives today's uninterrupted 3-round run."""
+    out = tmp_path / "old"
+    shutil.copytree(OLD / "cart_dagger", out)
+    flags = ["dagger", "--env", "CartPole-v1", *COMMON, "--episodes-per-round", "1",
+             "--steps", "20", "--rounds", "3"]  # fmt: skip
+    status, _, err = run([*flags, "--out", str(out), "--resume"])
+    assert status == 0, err
+    status, _, err = run([*flags, "--out", str(tmp_path / "whole")])
+    assert status == 0, err
+    resumed = json.loads((out / "results.json").read_text())
+    whole = json.loads((tmp_path / "whole" / "results.json").read_text())
+    for key in ("rounds", "learner", "final_loss"):
+        assert resumed[key] == whole[key], key
