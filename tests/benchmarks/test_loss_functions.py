@@ -192,9 +192,10 @@ def test_parse_task_reads_every_key_and_rejects_bad_ones():
             parse_task(bad)
 
 
-def test_imitrl_bench_losses_runs_loss_functions(monkeypatch):
+def test_imitrl_bench_losses_runs_loss_functions(monkeypatch, tmp_path):
     from imitrl.jobs import bench
 
+    monkeypatch.chdir(tmp_path)
     calls = []
     monkeypatch.setattr(
         bench.subprocess,
@@ -202,9 +203,11 @@ def test_imitrl_bench_losses_runs_loss_functions(monkeypatch):
         lambda cmd, check: calls.append(cmd) or type("P", (), {"returncode": 0}),
     )
     out = bench.run_bench(bench.BenchJob("losses", ("--task", "name=a,env=X,expert=m:f")))
-    assert out == {"benchmark": "loss_functions", "returncode": 0}
+    chosen = str(tmp_path / "results" / "bench" / "loss_functions")
+    assert out == {"benchmark": "loss_functions", "returncode": 0, "out": chosen}
     assert calls[0][1].endswith("benchmarks/loss_functions.py")
-    assert calls[0][2:] == ["--task", "name=a,env=X,expert=m:f"]
+    # issue 44: a run from outside writes under the current folder, never the committed results
+    assert calls[0][2:] == ["--task", "name=a,env=X,expert=m:f", "--out", chosen]
 
 
 def test_aggregate_takes_the_tasks_mse_ran_on_and_seeds_as_runs():

@@ -11,6 +11,8 @@ import dataclasses
 import importlib.util
 import io
 import json
+import subprocess
+import sys
 import textwrap
 
 import pytest
@@ -270,6 +272,27 @@ def test_bench_runs_the_script_with_the_remaining_args(tmp_path, monkeypatch, ca
     assert "bc_vs_dagger" in bench.available()  # the checkout's own benchmarks
 
 
+def test_bench_never_writes_the_committed_results_unless_told(tmp_path, monkeypatch, capfd):
+    """Issue 44: ``imitrl bench loss_functions --task ...`` without ``--out`` rewrote
+    benchmarks/README.md and results/; a full run now gets ``--out results/bench/NAME``
+    under the current folder, unless it names its own place or asks for the committed one."""
+    scripts = tmp_path / "benchmarks"
+    scripts.mkdir()
+    (scripts / "echo_args.py").write_text("import sys\nprint(sys.argv[1:])\n")
+    monkeypatch.setattr(bench, "BENCHMARKS_DIR", scripts)
+    monkeypatch.chdir(tmp_path)
+    assert main(["bench", "echo_args", "--seeds", "1"]) == 0
+    captured = capfd.readouterr()
+    chosen = str(tmp_path / "results" / "bench" / "echo_args")
+    assert f"['--seeds', '1', '--out', '{chosen}']" in captured.out
+    assert "committed benchmarks/results/ are left alone" in captured.err
+    for given in (["--out", "mine"], ["--out=mine"], ["--quick"], ["--render", "r.json"]):
+        assert main(["bench", "echo_args", *given]) == 0
+        assert f"{given}" in capfd.readouterr().out  # passed on untouched
+    assert main(["bench", "echo_args", "--seeds", "1", bench.WRITE_COMMITTED]) == 0
+    assert "['--seeds', '1']" in capfd.readouterr().out  # the maintainer's refresh
+
+
 # -------------------------------------------------------------------- bad flags
 @pytest.mark.parametrize(
     ("argv", "message"),
@@ -315,3 +338,28 @@ def test_dagger_config_keeps_every_bc_flag():
     assert bc_fields <= {f.name for f in dataclasses.fields(DAggerJob)}
     with pytest.raises(ValueError, match="--beta must be in"):
         DAggerJob(beta=1.5)
+
+
+def test_a_missing_extra_is_named_with_its_install_line(tmp_path):
+    """Issue 44: ``--dataset`` after the base install failed with ``No module named
+    'pyarrow'``; every extra's module now gets the line that installs it."""
+    from imitrl.cli import EXTRAS, missing_extra
+
+    dataset = tmp_path / "demos"  # a LeRobot dataset's marker: read with pyarrow
+    (dataset / "meta").mkdir(parents=True)
+    (dataset / "meta" / "info.json").write_text('{"codebase_version": "v3.0"}')
+    code = (
+        "import sys; sys.modules['pyarrow'] = None\n"  # pyarrow absent, as in the base install
+        "from imitrl.cli import main\n"
+        f"sys.exit(main(['bc', '--env', 'CartPole-v1', '--dataset', {str(dataset)!r},"
+        f" '--out', {str(tmp_path / 'out')!r}]))"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert proc.returncode == 2, proc.stderr
+    assert "pip install 'imitrl[datasets]'" in proc.stderr and "Traceback" not in proc.stderr
+    for module, extra in EXTRAS.items():
+        err = ModuleNotFoundError(f"No module named {module!r}", name=f"{module}.sub")
+        assert missing_extra(err) == f" (the {extra!r} extra: pip install 'imitrl[{extra}]')"
+    named = ModuleNotFoundError("needs pip install 'imitrl[hub]'", name="huggingface_hub")
+    assert missing_extra(named) == "" and missing_extra(ValueError("x")) == ""
+    assert missing_extra(ModuleNotFoundError("No module named 'nope'", name="nope")) == ""

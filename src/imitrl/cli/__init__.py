@@ -65,7 +65,7 @@ from imitrl.limits import MAX_THREADS, Bound
 from imitrl.system.heap import collector_paused, freeze_imported
 from imitrl.system.threads import DEFAULT_THREADS, set_threads
 
-__all__ = ["COMMANDS", "Command", "build_parser", "main"]
+__all__ = ["COMMANDS", "EXTRAS", "Command", "build_parser", "main", "missing_extra"]
 
 
 def _load(spec: str) -> Any:
@@ -280,6 +280,29 @@ def _start_torch(threads: int) -> None:
     logging.getLogger("torchrl").setLevel(logging.WARNING)  # its INFO lines go to stdout
 
 
+EXTRAS = {
+    "pyarrow": "datasets",
+    "h5py": "datasets",
+    "av": "datasets",
+    "huggingface_hub": "hub",
+    "ray": "distributed",
+    "mujoco": "mujoco",
+    "metaworld": "metaworld",
+    "Box2D": "box2d",
+}
+"""the optional package each extra of ``pyproject.toml`` brings -> that extra's name"""
+
+
+def missing_extra(err: BaseException) -> str:
+    """For a module an extra brings and this venv lacks, the install line that adds it
+    (``""`` for anything else, or where the message already names the extra)."""
+    name = getattr(err, "name", None) or ""
+    extra = EXTRAS.get(name.split(".")[0])
+    if not isinstance(err, ModuleNotFoundError) or extra is None or f"imitrl[{extra}]" in str(err):
+        return ""
+    return f" (the {extra!r} extra: pip install 'imitrl[{extra}]')"
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the ``imitrl`` command; returns the exit status (2 on bad input).
 
@@ -309,7 +332,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                     freeze_imported()
             results = run(config_from_args(command.config, args))
     except (ValueError, ImportError) as err:  # bad flags, unknown names, missing extras
-        print(f"imitrl {args.command}: {err}", file=sys.stderr)
+        print(f"imitrl {args.command}: {err}{missing_extra(err)}", file=sys.stderr)
         return 2
     except OSError as err:  # a full disk, a read-only folder: named, outputs as they were
         from imitrl.fs.write_errors import DiskFullError, NotWritableError

@@ -6,6 +6,13 @@ its ``import _report`` and its own argument parser work as when it is run direct
 A few scripts have a short name (:data:`ALIASES`): ``imitrl bench losses --task
 name=...,env=...,expert=module:function`` runs ``loss_functions.py`` on a task from
 outside.
+
+``imitrl bench`` never writes inside the project unless told to: run in full without
+``--out`` (or ``--quick``, ``--render``, ``--help``), a script would refresh the committed
+``benchmarks/results/`` and ``benchmarks/README.md``; the command gives it ``--out
+results/bench/NAME`` under the current folder instead, and says so on stderr.
+``--write-committed`` (taken out before the script sees its arguments) is the
+maintainer's way to refresh the committed results through the command.
 """
 
 from __future__ import annotations
@@ -17,7 +24,15 @@ from pathlib import Path
 
 import imitrl
 
-__all__ = ["ALIASES", "BENCHMARKS_DIR", "BenchJob", "available", "run_bench"]
+__all__ = [
+    "ALIASES",
+    "BENCHMARKS_DIR",
+    "WRITE_COMMITTED",
+    "BenchJob",
+    "available",
+    "run_bench",
+    "script_args",
+]
 
 BENCHMARKS_DIR = Path(imitrl.__file__).resolve().parents[2] / "benchmarks"
 """``<checkout>/benchmarks`` (``src/imitrl/__init__.py`` is two levels below the checkout)"""
@@ -25,6 +40,24 @@ BENCHMARKS_DIR = Path(imitrl.__file__).resolve().parents[2] / "benchmarks"
 
 ALIASES: dict[str, str] = {"losses": "loss_functions"}
 """short name -> benchmark script name"""
+
+
+WRITE_COMMITTED = "--write-committed"
+"""the flag that lets a full run refresh the committed results (module docstring)"""
+_CHOSEN = ("--out", "--quick", "--render", "-h", "--help")
+"""flags that already say where a run writes (or that it writes nothing)"""
+
+
+def script_args(name: str, args: tuple[str, ...], cwd: Path) -> tuple[list[str], Path | None]:
+    """The script's arguments and the folder the command chose for it (None: the
+    arguments already say where, or ``--write-committed`` was given)."""
+    given = list(args)
+    if WRITE_COMMITTED in given:
+        return [a for a in given if a != WRITE_COMMITTED], None
+    if any(a == flag or a.startswith(flag + "=") for a in given for flag in _CHOSEN):
+        return given, None
+    out = cwd / "results" / "bench" / name
+    return [*given, "--out", str(out)], out
 
 
 def available(directory: Path = BENCHMARKS_DIR) -> list[str]:
@@ -60,5 +93,16 @@ def run_bench(config: BenchJob) -> dict:
             f"unknown benchmark {config.name!r}; available: {', '.join(names)}; short names: {short}"
         )
     script = BENCHMARKS_DIR / f"{name}.py"
-    proc = subprocess.run([sys.executable, str(script), *config.args], check=False)
-    return {"benchmark": name, "returncode": proc.returncode}
+    args, out = script_args(name, config.args, Path.cwd())
+    if out is not None:
+        print(
+            f"imitrl bench: writing to {out} (the committed benchmarks/results/ are left "
+            f"alone; {WRITE_COMMITTED} refreshes them)",
+            file=sys.stderr,
+        )
+    proc = subprocess.run([sys.executable, str(script), *args], check=False)
+    return {
+        "benchmark": name,
+        "returncode": proc.returncode,
+        "out": None if out is None else str(out),
+    }
