@@ -382,6 +382,10 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--demo-steps", type=int, default=None)
     parser.add_argument("--episodes-per-round", type=int, default=None)
     parser.add_argument("--fit-steps", type=int, default=None)
+    parser.add_argument(
+        "--max-episode-steps", type=int, default=None,
+        help="time limit of every env (default: each env's own; --quick: 30)",
+    )  # fmt: skip
     args = parser.parse_args(argv)
     knobs = ("head", "loss", "demo_steps", "episodes_per_round", "fit_steps")
     overrides = {k: getattr(args, k) for k in knobs if getattr(args, k) is not None}
@@ -393,6 +397,10 @@ def main(argv: list[str] | None = None) -> dict:
         cfg = dataclasses.replace(cfg, seeds=args.seeds)
     if args.parallel:
         cfg = dataclasses.replace(cfg, parallel=True)
+    if args.max_episode_steps is not None:
+        if args.max_episode_steps < 1:
+            raise SystemExit(f"--max-episode-steps must be >= 1, got {args.max_episode_steps}")
+        cfg = dataclasses.replace(cfg, max_episode_steps=args.max_episode_steps)
     results = run(cfg, tasks, experts, log=lambda s: print(s, file=sys.stderr, flush=True))
     results["machine"] = _report.machine()
     figure(results, cfg, _report.results_dir(out_dir) / f"{NAME}.png")

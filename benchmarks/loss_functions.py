@@ -150,7 +150,10 @@ def main(argv: list[str] | None = None) -> None:
     if args.quick and args.losses is None:
         args.losses = list(QUICK_LOSSES)
     for loss in args.losses or []:
-        registry.get(loss)
+        try:
+            registry.get(loss)
+        except ValueError as err:  # a typo: one line, not a traceback (issue 44)
+            raise SystemExit(f"loss_functions.py: --losses: {err}") from None
     torch.set_num_threads(1)
     seeds = args.seeds if args.seeds is not None else (1 if args.quick else 5)
     t0 = time.perf_counter()

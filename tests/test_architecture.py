@@ -14,6 +14,7 @@ private attributes of other libraries in ``compat.py`` only.
 from __future__ import annotations
 
 import ast
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -249,3 +250,40 @@ def test_the_mirror_check_finds_a_misplaced_test(tmp_path):
     assert mirror_misses(tests, src, bench) == [
         "data/test_bufferx.py", "envs/test_make.py", "test_newcomer.py",
     ]  # fmt: skip
+
+
+MACHINE_PATH = re.compile(r"/work/\w+|/home/\w+|/Users/\w+|/root/|[A-Z]:\\\\Users")
+"""an absolute path of one machine: a work folder, a home, a venv"""
+
+
+def machine_paths(root: Path, files: list[str]) -> list[str]:
+    """``file:line`` of every committed text file line naming :data:`MACHINE_PATH`."""
+    hits = []
+    for name in files:
+        try:
+            text = (root / name).read_text()
+        except (UnicodeDecodeError, FileNotFoundError, IsADirectoryError):
+            continue  # binary files, and files deleted but not yet committed
+        for number, line in enumerate(text.splitlines(), 1):
+            if MACHINE_PATH.search(line):
+                hits.append(f"{name}:{number}")
+    return hits
+
+
+def test_no_committed_file_names_a_machines_path():
+    """Issue 44: committed text named a venv and a source folder by absolute path."""
+    root = SRC.parents[1]
+    listed = subprocess.run(
+        ["git", "ls-files"], cwd=root, capture_output=True, text=True, check=False
+    )
+    if listed.returncode != 0:
+        pytest.skip("not a git checkout")
+    files = [f for f in listed.stdout.splitlines() if f != "tests/test_architecture.py"]
+    assert machine_paths(root, files) == []
+
+
+def test_the_machine_path_finder_finds_one(tmp_path):
+    (tmp_path / "a.md").write_text("ran with /work/peer_venv/bin/python\nfine: --out /tmp/x\n")
+    (tmp_path / "b.json").write_text('{"python": "imitrl_venv/bin/python"}\n')
+    (tmp_path / "c.bin").write_bytes(b"\xff\xfe/home/me")
+    assert machine_paths(tmp_path, ["a.md", "b.json", "c.bin"]) == ["a.md:1"]

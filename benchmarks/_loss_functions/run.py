@@ -176,6 +176,46 @@ def _expert_rows(env, expert, count: int, max_steps: int, seed: int) -> TensorDi
     return torch.cat(parts)[:count]
 
 
+def plan(
+    tasks: list[TaskDef], losses: list[str] | None, seeds: list[int], quick_mode: bool
+) -> tuple[list[tuple], list[tuple]]:
+    """The (task, loss, seed, quick) cells and (task, seed, quick) references of a run.
+
+    A requested loss that applies to none of the tasks is refused naming the tasks'
+    action kinds; one that applies to some of them runs there, and stderr names the
+    tasks it does not apply to (was: dropped without a word, issue 44)."""
+    cells, refs, applies = [], [], {name: [] for name in losses or []}
+    for defn in tasks:
+        spec = build(defn, quick_mode).spec()
+        names = [n for n in registry.names(spec) if n != FOR_ENV]  # for_env: a network
+        for name, where in applies.items():
+            if name in names:
+                where.append(defn.name)
+        for seed in seeds:
+            refs.append((defn, seed, quick_mode))
+            cells += [(defn, n, seed, quick_mode) for n in names if losses is None or n in losses]
+    task_names = [d.name for d in tasks]
+    for name, where in applies.items():
+        if not where:
+            raise ValueError(
+                f"--losses {name}: applies to none of the tasks {task_names} (it takes "
+                f"{registry.get(name).actions} actions"
+                + (
+                    f" and a task's {', '.join(registry.get(name).requires)}"
+                    if registry.get(name).requires
+                    else ""
+                )
+                + ")"
+            )
+        if len(where) < len(tasks):
+            skipped = [t for t in task_names if t not in where]
+            print(f"loss_functions: {name} does not apply to {skipped}: runs on {where}",
+                  file=sys.stderr)  # fmt: skip
+    if not cells:
+        raise ValueError(f"no loss applies to the tasks {task_names}")
+    return cells, refs
+
+
 def run(
     *,
     tasks: list[TaskDef],
@@ -190,19 +230,7 @@ def run(
     ``seeds``: a count (seeds 0..n-1) or the seeds themselves (a cell's digits depend on
     its seed alone, so a run of seeds 1-4 extends a run of seed 0)."""
     seed_list = list(range(seeds)) if isinstance(seeds, int) else list(seeds)
-    cells, refs = [], []
-    for defn in tasks:
-        spec = build(defn, quick_mode).spec()
-        for seed in seed_list:
-            refs.append((defn, seed, quick_mode))
-            for loss in registry.names(spec):  # for_env: a network, not an objective
-                if loss != FOR_ENV and (losses is None or loss in losses):
-                    cells.append((defn, loss, seed, quick_mode))
-    if not cells:
-        raise ValueError(
-            f"none of the losses {losses} applies to the tasks {[d.name for d in tasks]} "
-            "(each loss applies to some action spaces: imitrl.learners.registry)"
-        )
+    cells, refs = plan(tasks, losses, seed_list, quick_mode)
     # the longest cells first (a rough cost), so that the last to finish are short; the
     # rows come back in the cells' own order
     schedule = sorted(range(len(cells)), key=lambda i: -_cost(*cells[i][:2]))

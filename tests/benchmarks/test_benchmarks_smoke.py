@@ -111,3 +111,19 @@ def test_bc_vs_dagger_quick_records_every_task_and_round(quick_runs):
 def test_continuous_traps_quick_covers_every_trap(quick_runs):
     saved = _quick_json(quick_runs, "continuous_traps.py")
     assert {"float64", "vector_final_obs", "frame_skip", "bang_bang", "startup"} <= set(saved)
+
+
+def test_bc_vs_dagger_takes_the_flag_its_nan_advice_names():
+    """Issue 44: the explanation of a nan score told the user to give a larger
+    --max-episode-steps, which bc_vs_dagger.py refused as an unknown flag."""
+    source = (BENCH / "bc_vs_dagger.py").read_text()
+    assert "give a larger --max-episode-steps" in source
+    shown = subprocess.run(
+        [sys.executable, "bc_vs_dagger.py", "--help"], cwd=BENCH, capture_output=True, text=True
+    )
+    assert shown.returncode == 0 and "--max-episode-steps" in shown.stdout
+    refused = subprocess.run(
+        [sys.executable, "bc_vs_dagger.py", "--max-episode-steps", "0", "--quick"],
+        cwd=BENCH, capture_output=True, text=True,
+    )  # fmt: skip
+    assert refused.returncode != 0 and "--max-episode-steps must be >= 1" in refused.stderr

@@ -21,7 +21,7 @@ from tests.benchmarks.test_benchmarks_smoke import committed
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from _loss_functions.run import loss_cell, run  # noqa: E402
+from _loss_functions.run import loss_cell, plan, run  # noqa: E402
 from _loss_functions.tasks import TASKS, build, parse_task, quick  # noqa: E402
 
 TIMING = {"fit_seconds", "eval_seconds", "cell_seconds", "cell_cpu_seconds"}
@@ -237,7 +237,8 @@ def test_no_applicable_loss_is_a_clear_error():
     """A discrete task with only continuous losses chosen has no cell: the run says so
     before any work (it used to fail later, drawing an empty figure)."""
     with pytest.raises(
-        ValueError, match=r"none of the losses \['mse'\] applies to the tasks \['cartpole'\]"
+        ValueError,
+        match=r"--losses mse: applies to none of the tasks \['cartpole'\] \(it takes continuous",
     ):
         run(tasks=[TASKS["cartpole"]], losses=["mse"], seeds=1, quick_mode=True)
 
@@ -281,3 +282,28 @@ def test_runs_of_disjoint_cells_merge_into_the_run_of_all_of_them():
     changed["references"][0]["score"] += 1
     with pytest.raises(ValueError, match="reference"):
         merge([raw(["mse"]), changed])
+
+
+def test_a_requested_loss_that_does_not_apply_is_named_never_dropped(capsys):
+    """Issue 44: a requested loss that did not apply to a task was dropped without a word,
+    and a typo in --losses ended in a traceback."""
+    tasks = [TASKS["frozenlake"], TASKS["pendulum"]]
+    cells, refs = plan(tasks, ["mse", "cross_entropy"], [0, 1], True)
+    assert {(c[0].name, c[1]) for c in cells} == {
+        ("pendulum", "mse"),
+        ("frozenlake", "cross_entropy"),
+    }
+    assert len(cells) == 4 and len(refs) == 4
+    err = capsys.readouterr().err
+    assert "mse does not apply to ['frozenlake']: runs on ['pendulum']" in err
+    assert "cross_entropy does not apply to ['pendulum']" in err
+    with pytest.raises(
+        ValueError, match=r"--losses mse: applies to none of the tasks \['frozenlake'\]"
+    ):
+        plan([TASKS["frozenlake"]], ["mse"], [0], True)
+    typo = subprocess.run(
+        [sys.executable, "loss_functions.py", "--quick", "--losses", "mes"],
+        cwd=ROOT / "benchmarks", capture_output=True, text=True,
+    )  # fmt: skip
+    assert typo.returncode != 0 and "Traceback" not in typo.stderr
+    assert "--losses: unknown loss 'mes'; registered:" in typo.stderr

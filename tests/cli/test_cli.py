@@ -363,3 +363,22 @@ def test_a_missing_extra_is_named_with_its_install_line(tmp_path):
     named = ModuleNotFoundError("needs pip install 'imitrl[hub]'", name="huggingface_hub")
     assert missing_extra(named) == "" and missing_extra(ValueError("x")) == ""
     assert missing_extra(ModuleNotFoundError("No module named 'nope'", name="nope")) == ""
+
+
+def test_a_dataset_for_another_env_names_env_and_its_default(tmp_path):
+    """Issue 44: a dataset recorded on one env and loaded for another got a shape error
+    that did not say which env it was loaded for, nor that it was the default."""
+    pytest.importorskip("pyarrow")
+    from imitrl.datasets import EnvMismatchError, save_lerobot
+    from imitrl.experts import pendulum_expert
+
+    env = make_env("Pendulum-v1", seed=3, max_episode_steps=20)
+    rows = rollout_episodes(env, pendulum_expert(), 1, max_steps=20)
+    root = save_lerobot(rows, tmp_path / "pendulum", fps=20)
+    for argv, named in (([], "--env is CartPole-v1 (the default)"),
+                        (["--env", "Acrobot-v1"], "--env is Acrobot-v1:")):  # fmt: skip
+        status, _, stderr = run(["bc", "--expert", "none", "--dataset", str(root), *argv,
+                                 "--out", str(tmp_path / "out"), "--no-progress"])  # fmt: skip
+        assert status == 2 and named in stderr and "Traceback" not in stderr
+        assert "pass the env the dataset was recorded on" in stderr
+    assert issubclass(EnvMismatchError, ValueError)  # callers catching ValueError still do

@@ -8,7 +8,7 @@ extra (pyarrow; h5py for Minari). The network is used only to download a LeRobot
 ``HF_HUB_OFFLINE=1``).
 """
 
-from imitrl.datasets._common import LoadedDemonstrations
+from imitrl.datasets._common import EnvMismatchError, LoadedDemonstrations
 from imitrl.datasets.lerobot import (
     DEFAULT_KEY_MAP,
     IMITRL_COLUMNS,
@@ -24,6 +24,7 @@ from imitrl.datasets.minari import load_minari, resolve_minari_root, save_minari
 __all__ = [
     "DEFAULT_KEY_MAP",
     "IMITRL_COLUMNS",
+    "EnvMismatchError",
     "HubLimits",
     "LoadedDemonstrations",
     "download_lerobot",

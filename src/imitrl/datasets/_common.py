@@ -24,7 +24,21 @@ from torchrl.envs import EnvBase
 from imitrl import keys
 from imitrl.fs.reading import OpenedFolder, ReplacedWhileReading
 
-__all__ = ["LoadedDemonstrations", "NestedKey", "conform_to_env", "key_name", "open_in", "read_in"]
+__all__ = [
+    "EnvMismatchError",
+    "LoadedDemonstrations",
+    "NestedKey",
+    "conform_to_env",
+    "key_name",
+    "open_in",
+    "read_in",
+]
+
+
+class EnvMismatchError(ValueError):
+    """A dataset that does not fit the env it is loaded for (an observation the env lacks,
+    a shape it does not have): most often the wrong env, which the caller can name."""
+
 
 NestedKey = str | tuple[str, ...]
 
@@ -268,7 +282,7 @@ def _fit(
             value = value.reshape(value.shape[0], *want)
             notes.append(f"{what}: reshaped {list(have)} -> {list(want)} to match the env")
         else:
-            raise ValueError(
+            raise EnvMismatchError(
                 f"{where}: {what} has shape {list(have)} per frame, the env expects {list(want)}"
             )
     if value.dtype != dtype:
@@ -360,7 +374,7 @@ def conform_to_env(
         if spec is not None:
             checks.append((key, spec))
         elif key in rows.keys():
-            raise ValueError(
+            raise EnvMismatchError(
                 f"{where}: the dataset has {key!r} (from feature {names.get(key, '?')!r}), "
                 f"the env has no {key!r} observation (leave the feature out with key_map)"
             )

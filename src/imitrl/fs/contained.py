@@ -118,7 +118,10 @@ def links_stay_inside(root: str | Path, *, what: str = "dataset") -> None:
     for path, st in walk_tree(root):  # no recursion: any depth of folders
         if not stat.S_ISLNK(st.st_mode):
             continue
-        real = Path(os.path.realpath(path))
+        try:
+            real = Path(os.path.realpath(path))
+        except FileNotFoundError:  # the link removed between its lstat and its readlink
+            continue  # (realpath reads it unguarded): gone, nothing of it is read later
         if not _within(real, bases):
             raise ValueError(
                 f"{path}: a symbolic link out of the {what} folder (to {real}); a "

@@ -187,10 +187,14 @@ def _loss_panel(ax, panel: Panel, curves: dict) -> None:
 
 
 def _eval_panel(ax, curves: dict, xlabel: str) -> None:
-    """Mean return at each evaluation (interval bars), the expert's as a dashed line."""
-    if "eval/return" in curves:
-        steps, mean = curves["eval/return"]
-        lo, hi = curves["eval/return_lo"][1], curves["eval/return_hi"][1]
+    """Success rate at each evaluation where the env reports it (Meta-World), else the
+    mean return (interval bars), the expert's as a dashed line."""
+    metric, label = (
+        ("success", "success rate") if "eval/success" in curves else ("return", "mean return")
+    )
+    if f"eval/{metric}" in curves:
+        steps, mean = curves[f"eval/{metric}"]
+        lo, hi = curves[f"eval/{metric}_lo"][1], curves[f"eval/{metric}_hi"][1]
         # one episode has no interval (NaN bounds): draw the point without a bar
         err = [
             [0.0 if math.isnan(a) else m - a for m, a in zip(mean, lo)],
@@ -199,10 +203,11 @@ def _eval_panel(ax, curves: dict, xlabel: str) -> None:
         ax.errorbar(steps, mean, yerr=err, marker="o", capsize=3, label="learner", zorder=3)
         if xlabel == "round":
             ax.set_xticks(steps)
-    if "eval/expert_return" in curves:
-        expert = curves["eval/expert_return"][1][0]
-        ax.axhline(expert, color="tab:orange", ls="--", label=f"expert ({expert:.1f})")
-    ax.set(xlabel=xlabel, ylabel="mean return", title=f"evaluation per {xlabel}")
+    if f"eval/expert_{metric}" in curves:
+        expert = curves[f"eval/expert_{metric}"][1][0]
+        shown = f"{expert:.0%}" if metric == "success" else f"{expert:.1f}"
+        ax.axhline(expert, color="tab:orange", ls="--", label=f"expert ({shown})")
+    ax.set(xlabel=xlabel, ylabel=label, title=f"evaluation per {xlabel}")
     if ax.get_legend_handles_labels()[0]:
         ax.legend(loc="best", fontsize=8)
 

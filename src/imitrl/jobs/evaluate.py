@@ -123,10 +123,11 @@ class EvalJob:
     )
     """a keyword argument of the env's constructor, name=value; none given = the
     checkpoint's"""
-    eval_episodes: int = bounded(10, 1, MAX_EVAL_EPISODES)
-    """evaluation episodes (the default of bc/dagger, so the run's numbers reproduce)"""
-    eval_seed: int = bounded(10_000, 0, MAX_SEED)
-    """seed of the evaluation env (the default of bc/dagger)"""
+    eval_episodes: int | None = bounded(None, 1, MAX_EVAL_EPISODES, none_ok=True)
+    """evaluation episodes; none = the checkpoint's run's own (so every job's numbers
+    reproduce: 10 for bc/dagger, 20 for gail/airl by default), 10 for an expert"""
+    eval_seed: int | None = bounded(None, 0, MAX_SEED, none_ok=True)
+    """seed of the evaluation env; none = the checkpoint's run's own, 10000 for an expert"""
     out: Path | None = None
     """also write eval.json into this directory; none = print only"""
     overwrite: bool = False
@@ -170,12 +171,17 @@ def run_eval(config: EvalJob) -> dict:
         checkpoint_env_kwargs,
         read_checkpoint,
     )
+    from imitrl.jobs.configs import RunFlags
     from imitrl.jobs.resolve import make_expert
     from imitrl.policies import as_actor
 
+    episodes, seed = config.eval_episodes, config.eval_seed
     if config.checkpoint is not None:
         # config.json and learner.pt of one checkpoint, even while a writer replaces it
         saved = read_checkpoint(config.checkpoint)
+        # the run's own evaluation unless told otherwise: its numbers reproduce
+        episodes = episodes or saved.config.get("eval_episodes")
+        seed = saved.config.get("eval_seed") if seed is None else seed
         env_id = config.env or checkpoint_env(config.checkpoint, saved.config)
         steps = config.max_episode_steps or saved.config.get("max_episode_steps")
         kwargs = dict(config.env_kwargs) or checkpoint_env_kwargs(saved.config)
@@ -197,8 +203,9 @@ def run_eval(config: EvalJob) -> dict:
         env_id,
         policy,
         exploration=exploration,
-        episodes=config.eval_episodes,
-        seed=config.eval_seed,
+        # an expert (or a checkpoint that recorded none): imitrl bc's evaluation
+        episodes=RunFlags.eval_episodes if episodes is None else int(episodes),
+        seed=RunFlags.eval_seed if seed is None else int(seed),
         max_episode_steps=steps,
         env_kwargs=kwargs,
         progress=config.progress,

@@ -9,6 +9,8 @@ recorded, then asserts :func:`imitrl.plotting.outside_canvas` finds nothing cut 
 from __future__ import annotations
 
 import json
+import os
+import stat
 import sys
 from pathlib import Path
 from types import SimpleNamespace
@@ -68,9 +70,15 @@ def test_the_check_finds_a_label_off_the_canvas():
 
 def test_study_figures_of_a_small_run(tmp_path, saved):
     """The study's own inputs: dagger.png's two-line ticks, ex_budget.png's 0.7275 ticks."""
-    assert main(["frozenlake", "--out", str(tmp_path / "out"), *SMALL]) == 0
+    umask = os.umask(0o022)  # a common umask, whatever this process had
+    try:
+        assert main(["frozenlake", "--out", str(tmp_path / "out"), *SMALL]) == 0
+    finally:
+        os.umask(umask)
     assert set(saved) == set(outputs.FIGURES)
     assert _cut_off(saved) == {}
+    # issue 44: the study's folder was 0700 (tempfile.mkdtemp) unlike every other output
+    assert stat.S_IMODE((tmp_path / "out").stat().st_mode) == 0o755
 
 
 @pytest.mark.parametrize(

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -108,8 +109,15 @@ def test_dagger(study):
 
 
 def test_exercises_and_prose_checks(study):
-    _, r = study
+    out, r = study
     ex = r["exercises"]
+    # Exercise 2's answer quotes its table's row (issue 44: "losing 0.0000" in the table,
+    # "lose 1.13%" in the answer, two thresholds)
+    text = (out / "report.txt").read_text()
+    answer = re.search(r"answer: at N = (\d+) clones .*? yet lose ([\d.]+%) success", text)
+    assert answer is not None, "Exercise 2 has no answer line"
+    row = re.search(rf"^\s*{answer[1]} \|.*, losing ([\d.]+%) success", text, re.M)
+    assert row is not None and row[1] == answer[2]
     assert set(ex["demo_counts"]) >= {"5", "20", "100", "500"}
     assert len(ex["state_errors"]["error"]) == 11
     assert len(ex["budget"]["dagger"]) == 10 and len(ex["corruption"]["bc_corrupted"]) == 10

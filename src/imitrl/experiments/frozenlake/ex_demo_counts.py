@@ -25,20 +25,26 @@ def _score(
     return success, agree, own_error
 
 
+NEAR_PERFECT = 0.99
+"""agreement with the expert on the expert's state mass that makes a clone near-perfect:
+the table's last column and the answer speak of the same clones (issue 44: the table
+used 99.9% and printed a fraction, the answer 99% and a percentage, and they disagreed)"""
+
+
 def _answer(
     ctx: StudyContext, success: np.ndarray, agree: np.ndarray, expert_success: float
 ) -> int | None:
-    """The smallest N whose near-perfect clones (>= 99% agreement) still lose success, printed."""
+    """The smallest N whose near-perfect clones (:data:`NEAR_PERFECT`) still lose success, printed."""
     gap = expert_success - success
     near = [
-        (N, float(gap[i][agree[i] >= 0.99].mean()))
+        (N, float(gap[i][agree[i] >= NEAR_PERFECT].mean()))
         for i, N in enumerate(ctx.config.ex_demo_counts)
-        if (agree[i] >= 0.99).any()
+        if (agree[i] >= NEAR_PERFECT).any()
     ]
     losing = [(N, g) for N, g in near if g > 1e-3]
     if losing:
         ctx.report.line(
-            f"answer: at N = {losing[0][0]} clones already agree with the expert on >= 99% of the expert's state mass "
+            f"answer: at N = {losing[0][0]} clones already agree with the expert on >= {NEAR_PERFECT:.0%} of the expert's state mass "
             f"yet lose {losing[0][1]:.2%} success on average: the remaining disagreements sit on rarely visited states "
             "from which the clone's own mistakes compound"
         )
@@ -59,19 +65,20 @@ def ex_demo_counts(ctx: StudyContext) -> None:
         f"{cfg.ex_datasets} datasets per N, {cfg.ex_fit_steps} fit steps; exact values (expert success {expert_success:.2%})"
     )
     rep.line(
-        "     N | success mean [min, max]   | agreement on expert's states | error on own states | clones matching on expert's states"
+        "     N | success mean [min, max]   | agreement on expert's states | error on own states | "
+        f"clones agreeing on >= {NEAR_PERFECT:.0%} of the expert's states"
     )
     for i, N in enumerate(cfg.ex_demo_counts):
         tables, _, _ = replicated_clones(
             ctx, block, cfg.ex_datasets, N, cfg.ex_fit_steps, 0, f"N={N}"
         )
         success[i], agree[i], own_error[i] = _score(ctx, tables, expert_states)
-        matching = agree[i] >= 0.999
+        matching = agree[i] >= NEAR_PERFECT
         lost = (expert_success - success[i][matching]).mean() if matching.any() else float("nan")
         rep.line(
             f"{N:>6} | {success[i].mean():.3f} [{success[i].min():.3f}, {success[i].max():.3f}] "
             f"| {agree[i].mean():>27.4f} | {own_error[i].mean():>18.4f} | {int(matching.sum())}/{cfg.ex_datasets}"
-            + (f", losing {lost:.4f} success on average" if matching.any() else "")
+            + (f", losing {lost:.2%} success on average" if matching.any() else "")
         )
         rep.set(
             f"exercises.demo_counts.{N}",

@@ -1,0 +1,47 @@
+"""curves.png: the evaluation panel plots success where the env reports it (issue 44)."""
+
+from __future__ import annotations
+
+from imitrl.jobs import curves as curves_module
+from imitrl.jobs.bc import log_evaluation
+from imitrl.jobs.curves import make_logger, plot_curves, read_scalars, scalars_dir
+
+
+def _ev(ret: float, success: float | None) -> dict:
+    ev = {"mean_return": ret, "return_ci": [ret - 1.0, ret + 1.0]}
+    if success is not None:
+        ev |= {
+            "success_rate": success,
+            "success_ci": [max(0.0, success - 0.1), min(1.0, success + 0.1)],
+        }
+    return ev
+
+
+def _panel_labels(tmp_path, monkeypatch, learner: list[dict], expert: dict) -> tuple[str, list]:
+    logger = make_logger("csv", tmp_path, "dagger")
+    for k, ev in enumerate(learner):
+        log_evaluation(logger, k, ev, expert if k == 0 else None)
+    logger.shutdown()
+    saved = []
+    monkeypatch.setattr(
+        "imitrl.plotting.save_figure", lambda fig, path, **kw: saved.append(fig) or path
+    )
+    plot_curves(scalars_dir(tmp_path, "dagger"), tmp_path / "curves.png", title="t")
+    (ax,) = [a for a in saved[0].axes if a.get_title().startswith("evaluation")]
+    return ax.get_ylabel(), [line.get_label() for line in ax.get_lines()]
+
+
+def test_a_env_reporting_success_is_plotted_by_success(tmp_path, monkeypatch):
+    """A Meta-World learner returning 481 at 90% success against an expert's 353 at 100%:
+    the curve shows the learner below the expert, not above it."""
+    label, lines = _panel_labels(tmp_path, monkeypatch, [_ev(481.0, 0.9), _ev(470.0, 0.8)],
+                                 _ev(353.0, 1.0))  # fmt: skip
+    assert label == "success rate" and "expert (100%)" in lines
+    logged = read_scalars(scalars_dir(tmp_path, "dagger"))
+    assert logged["eval/success"][1] == [0.9, 0.8] and logged["eval/return"][1] == [481.0, 470.0]
+
+
+def test_a_env_without_success_is_plotted_by_return(tmp_path, monkeypatch):
+    label, lines = _panel_labels(tmp_path, monkeypatch, [_ev(200.0, None)], _ev(500.0, None))
+    assert label == "mean return" and "expert (500.0)" in lines
+    assert curves_module.read_scalars(scalars_dir(tmp_path, "dagger")).get("eval/success") is None
