@@ -299,7 +299,7 @@ def choose_learner(
     make = learner_factory(
         loss, env, hidden=hidden, lr=lr, seed=seed, device=device, value=probabilistic
     )
-    name = resolve(loss, TaskSpec.from_env(env), value=probabilistic)
+    name = resolve_loss(loss, env, probabilistic=probabilistic)
     recipe = registry.get(name).recipe if name in registry.names() else None
     return LearnerChoice(name, make, recipe)
 
