@@ -32,16 +32,20 @@ if TYPE_CHECKING:
 __all__ = ["metaworld_expert"]
 
 
+STATE_DIM = 39
+"""the width of Meta-World's state (hand, gripper, two objects, the goal)"""
+
+
 class _LanePolicy:
     """The task's scripted policy on ``[*B, 39]`` observations (a loop over lanes)."""
 
-    def __init__(self, task: str) -> None:
+    def __init__(self, task: str, key: str) -> None:
         from imitrl.envs.metaworld import _import_metaworld, task_of
 
         _import_metaworld()
         from metaworld.policies import ENV_POLICY_MAP
 
-        self.task = task_of(task)
+        self.task, self.key = task_of(task), key
         # each a concrete policy class: mypy reads the map as of the abstract Policy
         make: Callable[[], Policy] = ENV_POLICY_MAP[self.task]
         self.policy = make()
@@ -52,6 +56,15 @@ class _LanePolicy:
         )
 
     def __call__(self, obs: torch.Tensor) -> torch.Tensor:
+        if obs.shape[-1] != STATE_DIM:
+            other = keys.ENVIRONMENT_STATE if self.key == keys.OBSERVATION else keys.OBSERVATION
+            raise ValueError(
+                f"metaworld_expert({self.task!r}) reads Meta-World's {STATE_DIM}-d state from "
+                f"{self.key!r}, which holds {obs.shape[-1]} numbers: with the LeRobot "
+                f"observation types (obs_type='environment_state_agent_pos' or "
+                f"'pixels_agent_pos') the state is {keys.ENVIRONMENT_STATE!r}: pass "
+                f"observation_key={other!r}"
+            )
         flat = obs.detach().cpu().reshape(-1, obs.shape[-1]).to(torch.float64).numpy()
         actions = np.stack([self.policy.get_action(o) for o in flat]).astype(np.float32)
         return torch.from_numpy(actions).reshape(*obs.shape[:-1], actions.shape[-1])
@@ -71,4 +84,6 @@ def metaworld_expert(task: str, *, observation_key=None) -> Expert:
     # every task's action space (so the labels are clipped wherever the expert acts,
     # before any env binds it: as_actor(expert), a DAgger relabel)
     spec = Bounded(low=-1.0, high=1.0, shape=(4,), dtype=torch.float32)
-    return Expert.from_callable(_LanePolicy(task), action_spec=spec, observation_key=key, clip=True)
+    return Expert.from_callable(
+        _LanePolicy(task, key), action_spec=spec, observation_key=key, clip=True
+    )

@@ -3,7 +3,8 @@ builds them.
 
 * :func:`build` ``(name, env, **settings)``: the only learner builder (the command line,
   the benchmarks and the study use it): a loss-registry entry (or ``"default"``) for an
-  env or a :class:`TaskSpec`.
+  env or a :class:`TaskSpec`; it warns (:class:`IgnoredObservationWarning`) when the
+  env observes an entry the learner's policy never reads.
 * :mod:`~imitrl.learners.registry`: the entries by name (:func:`registry.names`), and
   :func:`~imitrl.learners.registry.register` for your own; the built-in ones are
   registered in :mod:`~imitrl.learners.catalogue`.
@@ -21,12 +22,13 @@ from imitrl.learners.actor_critic import ActorCritic
 from imitrl.learners.build import DEFAULT, FOR_ENV, build, resolve
 from imitrl.learners.learner import Learner
 from imitrl.learners.registry import LearnerConfig
-from imitrl.learners.task import TaskSpec
+from imitrl.learners.task import IgnoredObservationWarning, TaskSpec
 
 __all__ = [
     "DEFAULT",
     "FOR_ENV",
     "ActorCritic",
+    "IgnoredObservationWarning",
     "Learner",
     "LearnerConfig",
     "TaskSpec",

@@ -23,6 +23,7 @@ U-Net); a setting the entry does not have is refused, naming the ones it has.
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Mapping
 from dataclasses import fields, is_dataclass, replace
 from typing import Any
@@ -32,7 +33,7 @@ from torchrl.envs import EnvBase
 from imitrl.learners.defaults import default_loss
 from imitrl.learners.learner import Learner
 from imitrl.learners.registry import LearnerConfig, get, make
-from imitrl.learners.task import TaskSpec
+from imitrl.learners.task import IgnoredObservationWarning, TaskSpec
 
 __all__ = ["DEFAULT", "FOR_ENV", "build", "resolve"]
 
@@ -103,4 +104,26 @@ def build(
     shared = {k: v for k, v in settings.items() if k in _SETTINGS}
     if "hidden" in shared and shared["hidden"] is not None:
         shared["hidden"] = tuple(int(h) for h in shared["hidden"])
-    return make(name, task, LearnerConfig(**shared, options=options))
+    learner = make(name, task, LearnerConfig(**shared, options=options))
+    warn_unread(task, learner, name)
+    return learner
+
+
+def warn_unread(task: TaskSpec, learner: Learner, name: str) -> None:
+    """An :class:`~imitrl.learners.task.IgnoredObservationWarning` naming the env's
+    observation entries ``learner``'s policy does not read (:meth:`TaskSpec.unread`), and
+    how to give them to it."""
+    unread = task.unread(list(learner.policy.in_keys))
+    if not unread:
+        return
+    seen = ", ".join(repr(k) for k in learner.policy.in_keys)
+    missed = ", ".join(f"{k!r} {v}" for k, v in unread.items())
+    warnings.warn(
+        f"loss {name}'s policy reads {seen} and not {missed} of the env's observation: "
+        "it cannot act on what it does not see (Meta-World's environment_state holds the "
+        "objects and the goal). Give the learner one state: for Meta-World the env's "
+        "obs_type='state' (--env-kwarg obs_type=state: all 39 numbers as 'observation'); "
+        "for another Dict env, gymnasium.wrappers.FlattenObservation before registering it",
+        IgnoredObservationWarning,
+        stacklevel=3,
+    )

@@ -20,13 +20,23 @@ from torchrl.envs import EnvBase
 
 from imitrl import keys
 
-__all__ = ["ACTION_KINDS", "Advantage", "TaskSpec"]
+__all__ = ["ACTION_KINDS", "OBSERVED_ENTRIES", "Advantage", "IgnoredObservationWarning", "TaskSpec"]
 
 ACTION_KINDS = ("discrete", "continuous")
 """the action kinds an entry may declare (``for_env`` takes any action spec: ``"any"``)"""
 
 Advantage = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 """``A(observation, action) -> [N]``, the weights of an advantage-weighted loss"""
+
+OBSERVED_ENTRIES = (keys.OBSERVATION, keys.ENVIRONMENT_STATE, keys.PIXELS)
+"""the observation entries an env may give a learner (a Dict env's, as
+:class:`~imitrl.envs.DictObservation` names them): one no key of the learner's policy
+reads is reported (:meth:`TaskSpec.unread`)"""
+
+
+class IgnoredObservationWarning(UserWarning):
+    """A learner is built for an env whose observation holds an entry its policy never
+    reads (:meth:`TaskSpec.unread`): what it cannot see it cannot act on."""
 
 
 @dataclass(frozen=True)
@@ -112,6 +122,23 @@ class TaskSpec:
         if isinstance(action, int):
             action = Categorical(action, dtype=torch.int64)
         return Composite({keys.OBSERVATION: obs}), action
+
+    def unread(self, in_keys: list[NestedKey]) -> dict[str, str]:
+        """The entries of :data:`OBSERVED_ENTRIES` in the env's observation spec (when read
+        off an env) that none of ``in_keys`` (a policy's) reads, each with its shape
+        (``"[39]"``) or, for a Dict of cameras, their names. A policy that reads the
+        camera is taken to learn from it: the state entries it leaves are the privileged
+        ones a vision policy goes without (Meta-World's ``pixels_agent_pos``), not reported."""
+        heads = {k if isinstance(k, str) else k[0] for k in in_keys}
+        if self.specs is None or keys.PIXELS in heads:
+            return {}
+        observed, out = self.specs[0], {}
+        for key in OBSERVED_ENTRIES:
+            if key in observed.keys() and key not in heads:
+                spec = observed[key]
+                named = isinstance(spec, Composite)
+                out[key] = f"cameras {sorted(spec.keys())}" if named else list(spec.shape)
+        return {k: str(v) for k, v in out.items()}
 
     @classmethod
     def from_env(cls, env: EnvBase) -> TaskSpec:
