@@ -218,3 +218,35 @@ def test_evaluate_refuses_a_learner_that_does_not_fit_the_env_before_any_step():
         evaluate(env, build("for_env", TaskSpec.from_specs(5, 2)), 1)
     with pytest.raises(ValueError, match="writes 3 discrete actions; the env takes 2"):
         evaluate(env, build("for_env", TaskSpec.from_specs(4, 3)), 1)
+
+
+def test_rows_alone_describe_their_task():
+    """``TaskSpec.from_rows``: a dataset with no env (``imitrl bc --env none``)."""
+    from tensordict import TensorDict
+    from torchrl.data import Bounded
+
+    n = 6
+    labels = torch.tensor([[0.0, 0.5], [-1.0, 0.5], [2.0, 0.5]]).repeat(2, 1)
+    rows = TensorDict(
+        {"observation": torch.randn(n, 3), "expert_action": labels,
+         "pixels": torch.zeros(n, 8, 8, 3, dtype=torch.uint8)}, [n],
+    )  # fmt: skip
+    task = TaskSpec.from_rows(rows)
+    assert task.observation_dim == 3 and task.pixels == ((8, 8, 3), "pixels")
+    assert isinstance(task.action, Bounded)
+    # the second dimension never varied: a sliver of range around 0.5
+    low, high = task.action.space.low, task.action.space.high
+    assert torch.equal(low, torch.tensor([-1.0, 0.5 - 1e-3])), low
+    assert torch.equal(high, torch.tensor([2.0, 0.5 + 1e-3])), high
+
+    states = TensorDict({"observation": torch.tensor([0, 3, 5]),
+                         "expert_action": torch.tensor([1, 0, 2])}, [3])  # fmt: skip
+    task = TaskSpec.from_rows(states)
+    assert (task.num_states, task.action) == (6, 3)
+    assert TaskSpec.from_rows(states, action=4).action == 4  # a recorded space wins
+
+    with pytest.raises(ValueError, match="rows need 'expert_action'"):
+        TaskSpec.from_rows(TensorDict({"observation": torch.zeros(2, 3)}, [2]))
+    odd = TensorDict({"observation": torch.zeros(2, 3, 4), "expert_action": labels[:2]}, [2])
+    with pytest.raises(ValueError, match=r"expected float32 \[N, d\]"):
+        TaskSpec.from_rows(odd)

@@ -24,6 +24,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
 
+from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType
@@ -47,7 +48,7 @@ from imitrl.jobs.resolve import (
     no_expert_message,
     time_limit,
 )
-from imitrl.learners import Learner
+from imitrl.learners import Learner, TaskSpec
 from imitrl.policies import as_actor
 from imitrl.runtime import rollout_episodes
 
@@ -73,10 +74,12 @@ DETERMINISTIC = ExplorationType.DETERMINISTIC
 class Setup:
     """Everything a job's flags name, resolved and checked."""
 
-    env: EnvBase
-    """plays the demonstrations (and DAgger's rounds): ``--num-envs`` lanes, seed ``--seed``"""
-    limit: int
-    """steps per episode (the time limit)"""
+    env: EnvBase | None
+    """plays the demonstrations (and DAgger's rounds): ``--num-envs`` lanes, seed
+    ``--seed``; None for a run on a dataset alone (``--env none``: nothing is played or
+    evaluated)"""
+    limit: int | None
+    """steps per episode (the time limit); None without an env"""
     expert: TensorDictModuleBase | None
     """writes ``expert_action``"""
     make_learner: Callable[[], Learner]
@@ -91,14 +94,27 @@ class Setup:
     folder: Path
     """where the run writes until it finishes (staged beside ``--out``, which it then
     replaces: :mod:`imitrl.fs.run_folder`)"""
+    task: TaskSpec
+    """what the learner is built for: the env's specs, or (``--env none``) the dataset's
+    observations and the range of its actions (:meth:`TaskSpec.from_rows`)"""
+    rows: TensorDictBase | None = None
+    """the dataset's rows when they were read to learn the task (``--env none``)"""
 
     def close(self) -> None:
         """Close the env and shut the logger down (its files closed); a second call does
         nothing."""
         if not getattr(self, "_closed", False):
             self._closed = True
-            self.env.close()
+            if self.env is not None:
+                self.env.close()
             self.logger.shutdown()
+
+    def playing(self) -> EnvBase:
+        """The env, for a job that plays in it (DAgger, GAIL: their flags refuse ``--env
+        none``)."""
+        if self.env is None:
+            raise ValueError("this job plays in an env: --env none is for imitrl bc --dataset")
+        return self.env
 
 
 def prepare(
@@ -116,6 +132,8 @@ def prepare(
     starting them afresh; ``probabilistic``: the job needs ``log pi`` and a value head
     (GAIL's and AIRL's PPO generator: ``--loss default`` resolves to a head with an action
     distribution, and the learner is built with ``value=True``)."""
+    if config.env is None:  # BCJob's checks: a dataset, no expert
+        return _prepare_offline(config, name, folder, keep_logs=keep_logs)
     env = make_env(
         config.env,
         seed=config.seed,
@@ -133,17 +151,38 @@ def prepare(
         check_expert_fits(expert, expert_name, config.env, env)  # observations it can read
     if config.dataset is not None:
         dataset_format(config.dataset)
+    task = TaskSpec.from_env(env)
     learner = choose_learner(
-        config.loss, env, hidden=config.hidden, lr=config.lr, seed=config.seed,
+        config.loss, task, hidden=config.hidden, lr=config.lr, seed=config.seed,
         device=config.device, probabilistic=probabilistic,
     )  # fmt: skip
     logger = make_logger(config.logger, folder, name, fresh=not keep_logs)
-    return Setup(env, limit, expert, learner.make, logger, learner.loss, learner.recipe, folder)
+    return Setup(
+        env, limit, expert, learner.make, logger, learner.loss, learner.recipe, folder, task
+    )
+
+
+def _prepare_offline(config: BCJob, name: str, folder: Path, *, keep_logs: bool) -> Setup:
+    """A run on ``--dataset`` alone (``--env none``): the rows are read first, and the
+    learner is built for their observations and the range of their actions."""
+    assert config.dataset is not None  # BCJob's checks
+    rows = load_dataset(config.dataset, None)
+    task = TaskSpec.from_rows(rows)
+    learner = choose_learner(
+        config.loss, task, hidden=config.hidden, lr=config.lr, seed=config.seed,
+        device=config.device,
+    )  # fmt: skip
+    logger = make_logger(config.logger, folder, name, fresh=not keep_logs)
+    return Setup(
+        None, None, None, learner.make, logger, learner.loss, learner.recipe, folder, task, rows
+    )
 
 
 def demonstrations(config: BCJob, setup: Setup) -> DemonstrationBuffer:
     """The rows of ``--dataset``, or ``--demos`` greedy expert episodes, in a buffer."""
-    if config.dataset is not None:
+    if setup.rows is not None:
+        rows = setup.rows
+    elif config.dataset is not None:
         from imitrl.datasets import EnvMismatchError  # needs the datasets extra
 
         try:
@@ -154,8 +193,10 @@ def demonstrations(config: BCJob, setup: Setup) -> DemonstrationBuffer:
                 f"{err}; --env is {config.env}{default}: pass the env the dataset was recorded on"
             ) from None
     else:
-        rows = rollout_episodes(setup.env, setup.expert, config.demos)  # greedy, whole episodes
-    buffer = DemonstrationBuffer(action_spec=setup.env.action_spec_unbatched)
+        rows = rollout_episodes(
+            setup.playing(), setup.expert, config.demos
+        )  # greedy, whole episodes
+    buffer = DemonstrationBuffer(action_spec=setup.task.env_specs()[1])
     buffer.extend(rows)
     return buffer
 
@@ -171,7 +212,7 @@ def bc_config(config: BCJob, setup: Setup) -> BCConfig:
 def evaluate_learner(config: BCJob, learner: Learner) -> dict:
     """The learner's evaluation, acting as it says (``learner.exploration``)."""
     return evaluate_returns(
-        config.env,
+        config.played_env(),
         learner.policy,
         exploration=learner.exploration,
         episodes=config.eval_episodes,
@@ -187,7 +228,7 @@ def evaluate_expert(config: BCJob, setup: Setup) -> dict | None:
     if setup.expert is None:
         return None
     return evaluate_returns(
-        config.env,
+        config.played_env(),
         as_actor(setup.expert),
         exploration=DETERMINISTIC,
         episodes=config.eval_episodes,
@@ -227,7 +268,7 @@ def finish(
     curves = plot_curves(
         scalars_dir(setup.folder, name),
         setup.folder / "curves.png",
-        title=f"imitrl {name} on {config.env} (loss {config.loss}, seed {config.seed})",
+        title=f"imitrl {name} on {config.env or config.dataset} (loss {config.loss}, seed {config.seed})",
     )
     results["files"] = {
         "curves": str(config.out / curves.name),
@@ -255,9 +296,11 @@ def _run_bc(config: BCJob, folder: Path) -> dict:
         fit = fit_bc(
             learner, buffer, bc_config(config, setup), progress=config.progress, logger=setup.logger
         )
-        expert_ev = evaluate_expert(config, setup)
-        learner_ev = evaluate_learner(config, learner)
-        log_evaluation(setup.logger, 0, learner_ev, expert_ev)
+        expert_ev = learner_ev = None
+        if setup.env is not None:  # --env none: trained on the dataset alone
+            expert_ev = evaluate_expert(config, setup)
+            learner_ev = evaluate_learner(config, learner)
+            log_evaluation(setup.logger, 0, learner_ev, expert_ev)
         results = {
             "command": "bc",
             "env": config.env,
@@ -287,10 +330,17 @@ def report(results: dict) -> list[str]:
     ]
     if results["expert"] is not None:
         lines.append(format_return("expert", results["expert"]))
-    lines.append(format_return("learner", results["learner"]))
-    hint = compounding_hint(results["expert"], results["learner"])
-    if hint:
-        lines.append(hint)
+    if results["learner"] is None:
+        out = Path(results["files"]["curves"]).parent
+        lines.append(
+            f"learner: not evaluated (--env none); imitrl eval --checkpoint {out} --env ENV "
+            "evaluates it in an env with the dataset's observations and actions"
+        )
+    else:
+        lines.append(format_return("learner", results["learner"]))
+        hint = compounding_hint(results["expert"], results["learner"])
+        if hint:
+            lines.append(hint)
     lines.append(f"wrote {Path(results['files']['curves']).parent}")
     return lines
 

@@ -256,6 +256,8 @@ def _check_fields(path: Path, config: Any) -> None:
     if not isinstance(config, dict):
         raise ValueError(f"{path}: 'config' must be an object, got {type(config).__name__}")
     for field in ("env", "loss"):
+        if field == "env" and config.get(field, "") is None:
+            continue  # imitrl bc --env none: trained on a dataset alone
         if not isinstance(config.get(field), str) or not config[field]:
             raise ValueError(f"{path}: {field} must be a name, got {config.get(field)!r}")
     # null hidden / lr / max_episode_steps: the network's own layers, the loss's own rate,
@@ -297,6 +299,12 @@ def checkpoint_env(checkpoint: Path, config: dict) -> str:
     checkpoint is data, and loading it never runs code the user did not name, so such an
     id must come from the command line (``--env``) instead (ValueError saying so)."""
     env = config["env"]
+    if env is None:
+        raise ValueError(
+            f"{Path(checkpoint) / CONFIG_FILE}: this learner was trained on a dataset alone "
+            "(imitrl bc --env none): name the env to evaluate it in, --env ENV (its "
+            "observations and actions must be the dataset's)"
+        )
     if ":" in env:
         module = env.split(":", 1)[0]
         raise ValueError(

@@ -63,8 +63,10 @@ def _library(config: object, cls: type) -> dict:
 class RunFlags:
     """What every training run takes besides its algorithm's settings."""
 
-    env: str = "CartPole-v1"
-    """gymnasium id, or module:Env-v0 (importing module registers Env-v0)"""
+    env: str | None = "CartPole-v1"
+    """gymnasium id, or module:Env-v0 (importing module registers Env-v0); none = no env
+    (imitrl bc --dataset only: a dataset recorded on a robot is trained on alone, the
+    learner built for its observations and the range of its actions, nothing evaluated)"""
     num_envs: int = bounded(1, 1, MAX_NUM_ENVS)
     """env copies stepped together (lanes) when collecting episodes"""
     env_kwargs: tuple[tuple[str, object], ...] = field(
@@ -117,9 +119,22 @@ class RunFlags:
     progress: bool = True
     """progress bars on stderr"""
 
+    def played_env(self) -> str:
+        """``--env``, for what plays in it (ValueError with ``--env none``)."""
+        if self.env is None:
+            raise ValueError("--env none trains on --dataset alone: nothing plays in an env")
+        return self.env
+
     def _check_run(self) -> None:
-        if not self.env:
-            raise ValueError("--env must name a gymnasium env")
+        if self.env is None:
+            if self.dataset is None:
+                raise ValueError("--env none trains on --dataset alone: give --dataset")
+            if self.expert not in (None, "auto"):
+                raise ValueError(
+                    f"--expert {self.expert} needs an env to act in: leave it out with --env none"
+                )
+        elif not self.env:
+            raise ValueError("--env must name a gymnasium env (or none, with --dataset)")
         check_bounds(self)  # every number, the algorithm's too, named by its flag
         if self.dataset is None and (self.expert is None or self.demos < 1):
             raise ValueError("without --dataset, --expert must play --demos >= 1 episodes")
@@ -178,6 +193,8 @@ class DAggerJob(BCJob):
 
     def __post_init__(self) -> None:
         super().__post_init__()
+        if self.env is None:
+            raise ValueError("dagger plays the learner in an env: --env none is for imitrl bc")
         if self.expert is None:
             raise ValueError("dagger needs --expert to label the learner's states")
         if self.address is not None and self.workers is None:
@@ -214,6 +231,10 @@ class GAILJob(GAILConfig, RunFlags):
 
     def __post_init__(self) -> None:
         self._check_run()
+        if self.env is None:
+            raise ValueError(
+                "gail and airl play the learner in an env: --env none is for imitrl bc"
+            )
         GAILConfig.__post_init__(self)
         if self.rollout_steps % self.num_envs:
             raise ValueError(

@@ -67,7 +67,7 @@ def _run_dagger(config: DAggerJob, folder: Path) -> dict:
     try:
         config = dataclasses.replace(config, loss=setup.loss)  # recorded as resolved
         if setup.expert is None:  # --expert auto with a --dataset, on an env without one
-            raise ValueError(no_expert_message(config.env))
+            raise ValueError(no_expert_message(config.played_env()))
         buffer = demonstrations(config, setup)
         demo_rows, demo_episodes = len(buffer), buffer.num_episodes
         expert_ev = evaluate_expert(config, setup)
@@ -139,10 +139,10 @@ def episode_source(config: DAggerJob, setup: Setup) -> EnvSource | RaySource:
     """Where the relabel rounds are played: ``setup.env`` in this process, or
     ``--workers`` Ray workers each building the env as ``--env``/``--seed`` say."""
     if config.workers is None:  # exploration None: each round's learner acts as it says
-        return EnvSource(setup.env, generator=torch.Generator().manual_seed(config.seed))
+        return EnvSource(setup.playing(), generator=torch.Generator().manual_seed(config.seed))
     env_fn = functools.partial(
         make_env,
-        config.env,
+        config.played_env(),
         seed=config.seed,
         max_episode_steps=config.max_episode_steps,
         env_kwargs=dict(config.env_kwargs),

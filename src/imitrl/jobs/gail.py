@@ -108,11 +108,11 @@ def _train(config: GAILJob, name: str, folder: Path) -> dict:
         training = dataclasses.replace(config.algorithm_config(), absorbing=absorbing)
         progress, logger = config.progress, setup.logger
         if name == "gail":
-            result = gail(setup.env, learner, buffer, training, progress=progress, logger=logger,
+            result = gail(setup.playing(), learner, buffer, training, progress=progress, logger=logger,
                           on_round=on_round)  # fmt: skip
         else:
             assert isinstance(training, AIRLConfig)  # an AIRLJob's (run_airl)
-            result, _ = airl(setup.env, learner, buffer, training, progress=progress,
+            result, _ = airl(setup.playing(), learner, buffer, training, progress=progress,
                              logger=logger, on_round=on_round)  # fmt: skip
         if not evaluations or evaluations[-1][0] != result.env_steps:  # the last round's
             ev = evaluate_learner(bc_view, learner)

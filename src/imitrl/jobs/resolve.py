@@ -227,17 +227,18 @@ LEGACY_DEFAULT = "default"
 record: their learner was ``for_env``'s"""
 
 
-def resolve_loss(loss: str, env: EnvBase, *, probabilistic: bool = False) -> str:
+def resolve_loss(loss: str, env: EnvBase | TaskSpec, *, probabilistic: bool = False) -> str:
     """``--loss`` as the registry entry it names for ``env``
     (:func:`imitrl.learners.resolve`: ``default`` is ``cross_entropy``, ``mse``, or
     ``gaussian_nll`` where the job needs ``log pi``; ``for_env`` on images); what a run
     records and a checkpoint rebuilds."""
-    return resolve(loss, TaskSpec.from_env(env), value=probabilistic)
+    task = env if isinstance(env, TaskSpec) else TaskSpec.from_env(env)
+    return resolve(loss, task, value=probabilistic)
 
 
 def learner_factory(
     loss: str,
-    env: EnvBase,
+    env: EnvBase | TaskSpec,
     *,
     hidden: tuple[int, ...] | None,
     lr: float | None,
@@ -284,7 +285,7 @@ class LearnerChoice:
 
 def choose_learner(
     loss: str,
-    env: EnvBase,
+    env: EnvBase | TaskSpec,
     *,
     hidden: tuple[int, ...] | None,
     lr: float | None,
@@ -332,8 +333,9 @@ def dataset_format(path: Path) -> str:
     )
 
 
-def load_dataset(path: Path, env: EnvBase) -> TensorDictBase:
-    """Demonstration rows ``[N]`` of the dataset at ``path``, conformed to ``env``'s specs.
+def load_dataset(path: Path, env: EnvBase | None) -> TensorDictBase:
+    """Demonstration rows ``[N]`` of the dataset at ``path``, conformed to ``env``'s specs
+    (None: as recorded, for a run on the dataset alone).
 
     ``path`` is a folder or a LeRobot dataset's Hub ``repo_id`` (:func:`dataset_format`).
     Only the keys a rollout writes are kept (:data:`ROW_KEYS`), so DAgger's rounds

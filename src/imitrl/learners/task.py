@@ -14,6 +14,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import torch
+from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
 from torchrl.data import Bounded, Categorical, Composite, MultiCategorical, TensorSpec, Unbounded
 from torchrl.envs import EnvBase
@@ -141,6 +142,31 @@ class TaskSpec:
         return {k: str(v) for k, v in out.items()}
 
     @classmethod
+    def from_rows(cls, rows: TensorDictBase, *, action: int | TensorSpec | None = None) -> TaskSpec:
+        """The task of demonstration rows alone (a dataset recorded on a robot, with no env
+        to read specs from): the observation entries the rows hold
+        (:data:`OBSERVED_ENTRIES`: a float state ``Unbounded [d]``, integer states
+        ``Categorical(max + 1)``, a camera or a Dict of cameras ``uint8 [H, W, C]``), and
+        ``action`` (a number of actions or a spec, e.g. a Minari dataset's recorded space)
+        or else the range of the expert's actions: integers ``Categorical(max + 1)``,
+        floats ``Bounded(min, max)`` per dimension (the min and max LeRobot's
+        ``stats.json`` records). ValueError naming what is missing or of the wrong kind."""
+        present = set(rows.keys())
+        if keys.EXPERT_ACTION not in present or not present & set(OBSERVED_ENTRIES):
+            raise ValueError(
+                f"rows need {keys.EXPERT_ACTION!r} and one of {list(OBSERVED_ENTRIES)} to "
+                f"describe a task; they hold {sorted(map(str, present))}"
+            )
+        spec = Composite({})
+        for key in OBSERVED_ENTRIES:
+            if key in present:
+                spec[key] = _observed_spec(rows.get(key), key)
+        labels = rows.get(keys.EXPERT_ACTION)
+        if action is None:
+            action = _action_range(labels)
+        return cls.from_specs(spec, action)
+
+    @classmethod
     def from_env(cls, env: EnvBase) -> TaskSpec:
         """The task of ``env`` (batched or not): :meth:`from_specs` of its unbatched
         observation and action specs."""
@@ -191,3 +217,44 @@ class TaskSpec:
             num_states=states,
             specs=(spec, action),
         )
+
+
+CONSTANT_RANGE = 1e-3
+"""how far a constant action dimension's bounds are set apart (relative, at least absolute)"""
+
+
+def _observed_spec(value: torch.Tensor | TensorDictBase, key: str) -> TensorSpec:
+    """The spec of one observation entry ``[N, ...]`` of demonstration rows."""
+    if isinstance(value, TensorDictBase):  # a Dict of cameras
+        return Composite({k: _observed_spec(value.get(k), k) for k in value.keys()})
+    if value.dtype == torch.uint8 and value.dim() == 4:
+        return Bounded(0, 255, tuple(value.shape[1:]), dtype=torch.uint8)
+    if key != keys.PIXELS and value.dim() == 1 and not value.is_floating_point():
+        return Categorical(int(value.max()) + 1, dtype=torch.int64)
+    if key != keys.PIXELS and value.dim() == 2 and value.is_floating_point():
+        return Unbounded((int(value.shape[1]),), dtype=torch.float32)
+    raise ValueError(
+        f"rows' {key!r} is {value.dtype} {list(value.shape)}: expected float32 [N, d], "
+        "integer states [N] or uint8 images [N, H, W, C]"
+    )
+
+
+def _action_range(labels: torch.Tensor) -> int | TensorSpec:
+    """Integer labels ``[N]``: their number; float ones ``[N, m]``: ``Bounded(min, max)``
+    (a constant dimension widened by :data:`CONSTANT_RANGE` of its size each way)."""
+    if labels.numel() == 0:
+        raise ValueError("no expert actions in the rows to take the action range from")
+    if not labels.is_floating_point() and labels.dim() == 1:
+        return int(labels.max()) + 1
+    if labels.is_floating_point() and labels.dim() == 2:
+        low, high = labels.amin(0).float(), labels.amax(0).float()
+        # a dimension the expert never varied (a gripper held shut) gets a sliver of range:
+        # bounds need low < high, and the squashed output stays at the recorded value
+        flat = high - low < CONSTANT_RANGE
+        margin = CONSTANT_RANGE * high.abs().clamp(min=1.0)
+        low, high = torch.where(flat, low - margin, low), torch.where(flat, high + margin, high)
+        return Bounded(low, high, (int(labels.shape[1]),), dtype=torch.float32)
+    raise ValueError(
+        f"rows' {keys.EXPERT_ACTION!r} is {labels.dtype} {list(labels.shape)}: expected "
+        "integer actions [N] or float ones [N, m]"
+    )
