@@ -37,6 +37,7 @@ that size; distinct pairs are counted slice by slice.
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -53,7 +54,7 @@ from imitrl.learners.learner import Learner
 from imitrl.runtime import paths
 from imitrl.system.device import to_device
 
-__all__ = ["PRECISIONS", "BCConfig", "BCResult", "distinct_pairs", "fit_bc"]
+__all__ = ["FLUSH_SECONDS", "PRECISIONS", "BCConfig", "BCResult", "LossStream", "distinct_pairs", "fit_bc"]
 
 
 @dataclass
@@ -306,7 +307,8 @@ def fit_bc(
         config: steps, batch size, seed.
         progress: show a progress bar (on stderr).
         logger: a TorchRL logger; the loss of every step is logged as ``log_name`` at
-            steps ``log_step, log_step + 1, ...``.
+            steps ``log_step, log_step + 1, ...``, while the fit runs (:class:`LossStream`:
+            a long fit's curve grows, and the progress bar shows the latest loss).
     """
     if not isinstance(learner, Learner):
         raise ValueError(
@@ -348,6 +350,7 @@ def fit_bc(
         weights = None if weights is None else to_device(weights, device)
     losses = torch.empty(config.num_steps, device=device)  # recording never waits for it
     steps = tqdm(range(config.num_steps), desc="bc fit", disable=not progress, leave=False)
+    stream = LossStream(losses, logger, log_name, log_step, steps if progress else None)
     schedule = None
     if config.lr_schedule == "cosine" or config.warmup_steps:
         schedule = _Cosine(opt, config.num_steps, config.warmup_steps, config.lr_schedule)
@@ -370,10 +373,14 @@ def fit_bc(
                 if ema is not None:
                     ema.update()
                 losses[step] = loss.detach()
+                if stream.on and stream.due():
+                    stream.flush(step + 1)
     finally:
         if schedule is not None:
             schedule.restore()
-    return _result(losses.cpu(), n, logger, log_name, log_step)
+    stream.flush(config.num_steps)
+    final = float(losses[-1]) if losses.numel() else float("nan")
+    return BCResult(losses=losses.cpu(), final_loss=final, num_rows=n)
 
 
 def _placement(opt: torch.optim.Optimizer) -> tuple[torch.device, bool]:
@@ -383,10 +390,34 @@ def _placement(opt: torch.optim.Optimizer) -> tuple[torch.device, bool]:
     return device, device.type != "cpu"
 
 
-def _result(losses: torch.Tensor, n: int, logger, log_name: str, log_step: int) -> BCResult:
-    """The fit's losses, logged as ``log_name`` from step ``log_step``."""
-    if logger is not None:
-        for step, value in enumerate(losses.tolist()):
-            logger.log_scalar(log_name, value, step=log_step + step)
-    final = float(losses[-1]) if losses.numel() else float("nan")
-    return BCResult(losses=losses, final_loss=final, num_rows=n)
+FLUSH_SECONDS = 1.0
+"""how often a fit hands its losses to the logger and the progress bar"""
+
+
+class LossStream:
+    """A fit's losses to the logger and the progress bar while it runs: the steps since
+    the last flush, every :data:`FLUSH_SECONDS` (one read of the losses from their
+    device each time), and the rest when the fit ends. What is logged (each step's loss
+    at its step) does not depend on when it is flushed; without a logger or a bar
+    nothing is read until the end (:attr:`on`)."""
+
+    def __init__(self, losses: torch.Tensor, logger: Logger | None, name: str, first: int,
+                 bar: tqdm | None) -> None:  # fmt: skip
+        self.losses, self.logger, self.name, self.first, self.bar = losses, logger, name, first, bar
+        self.on = logger is not None or bar is not None
+        """whether anything reads the losses while the fit runs"""
+        self.done, self.next = 0, time.monotonic() + FLUSH_SECONDS
+
+    def due(self) -> bool:
+        """Whether :data:`FLUSH_SECONDS` have passed since the last flush."""
+        return time.monotonic() >= self.next
+
+    def flush(self, upto: int) -> None:
+        """Log the losses of steps ``done .. upto - 1`` and show the last on the bar."""
+        values = self.losses[self.done : upto].tolist() if self.on else []
+        if self.logger is not None:
+            for i, value in enumerate(values, start=self.first + self.done):
+                self.logger.log_scalar(self.name, value, step=i)
+        if self.bar is not None and values:
+            self.bar.set_postfix(loss=f"{values[-1]:.4g}", refresh=False)
+        self.done, self.next = upto, time.monotonic() + FLUSH_SECONDS
