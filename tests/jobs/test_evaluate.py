@@ -28,3 +28,21 @@ def test_eval_of_an_adversarial_run_reproduces_its_evaluation(job, tmp_path):
     assert ev["mean_return"] == results["learner"]["mean_return"]
     other = run_eval(EvalJob(checkpoint=out, eval_episodes=3, eval_seed=5, progress=False))
     assert other["evaluation"]["episodes"] == 3  # given flags still win
+
+
+def test_eval_of_a_diffusion_policy_run_reproduces_its_evaluation(tmp_path):
+    """Issue 44: Diffusion Policy sampled from a generator of its own, which the run's
+    evaluation advanced before the checkpoint saved it, so ``imitrl eval`` drew other
+    samples (-1096.52 against the run's -1111.20); it now draws from the RNG the
+    evaluation seeds, as every sampled policy does."""
+    from imitrl.jobs.bc import run_bc
+    from imitrl.jobs.configs import BCJob
+
+    out = tmp_path / "run"
+    results = run_bc(BCJob(env="Pendulum-v1", loss="diffusion_unet", demos=1, num_steps=3,
+                           batch_size=16, eval_episodes=3, max_episode_steps=20,
+                           progress=False, out=out))  # fmt: skip
+    saved = results["learner"]
+    assert saved["exploration"] == "random" and saved["return_ci"][0] < saved["return_ci"][1]
+    assert run_eval(EvalJob(checkpoint=out, progress=False))["evaluation"] == saved
+    assert run_eval(EvalJob(checkpoint=out, progress=False))["evaluation"] == saved  # again

@@ -54,7 +54,15 @@ from imitrl.learners.learner import Learner
 from imitrl.runtime import paths
 from imitrl.system.device import to_device
 
-__all__ = ["FLUSH_SECONDS", "PRECISIONS", "BCConfig", "BCResult", "LossStream", "distinct_pairs", "fit_bc"]
+__all__ = [
+    "FLUSH_SECONDS",
+    "PRECISIONS",
+    "BCConfig",
+    "BCResult",
+    "LossStream",
+    "distinct_pairs",
+    "fit_bc",
+]
 
 
 @dataclass

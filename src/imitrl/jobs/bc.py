@@ -50,16 +50,20 @@ from imitrl.jobs.resolve import (
 )
 from imitrl.learners import Learner, TaskSpec
 from imitrl.policies import as_actor
+from imitrl.policies.random_actions import RandomActions
 from imitrl.runtime import rollout_episodes
 
 __all__ = [
     "BCJob",
     "Setup",
+    "at_random_level",
     "bc_config",
+    "below_expert",
     "compounding_hint",
     "demonstrations",
     "evaluate_expert",
     "evaluate_learner",
+    "evaluate_random",
     "finish",
     "log_evaluation",
     "prepare",
@@ -239,6 +243,21 @@ def evaluate_expert(config: BCJob, setup: Setup) -> dict | None:
     )
 
 
+def evaluate_random(config: BCJob, setup: Setup) -> dict:
+    """Uniform random actions' evaluation on the learner's initial states
+    (:class:`~imitrl.policies.random_actions.RandomActions`, seeded by ``--eval-seed``)."""
+    return evaluate_returns(
+        config.played_env(),
+        RandomActions(setup.task.env_specs()[1]),
+        exploration=ExplorationType.RANDOM,
+        episodes=config.eval_episodes,
+        seed=config.eval_seed,
+        max_episode_steps=config.max_episode_steps,
+        env_kwargs=dict(config.env_kwargs),
+        progress=config.progress,
+    )
+
+
 def log_evaluation(logger: Logger, round_index: int, ev: dict, expert: dict | None) -> None:
     """``eval/return`` (and its interval) at step ``round_index``; the expert's at step 0;
     ``eval/success`` (and its interval, and the expert's) where the env reports success
@@ -296,11 +315,13 @@ def _run_bc(config: BCJob, folder: Path) -> dict:
         fit = fit_bc(
             learner, buffer, bc_config(config, setup), progress=config.progress, logger=setup.logger
         )
-        expert_ev = learner_ev = None
+        expert_ev = learner_ev = random_ev = None
         if setup.env is not None:  # --env none: trained on the dataset alone
             expert_ev = evaluate_expert(config, setup)
             learner_ev = evaluate_learner(config, learner)
             log_evaluation(setup.logger, 0, learner_ev, expert_ev)
+            if below_expert(expert_ev, learner_ev):  # what acting at random scores there
+                random_ev = evaluate_random(config, setup)
         results = {
             "command": "bc",
             "env": config.env,
@@ -313,6 +334,7 @@ def _run_bc(config: BCJob, folder: Path) -> dict:
             "final_loss": fit.final_loss,
             "expert": expert_ev,
             "learner": learner_ev,
+            "random": random_ev,
             "seconds": time.perf_counter() - start,
         }
         finish(config, "bc", learner, results, setup)
@@ -338,21 +360,50 @@ def report(results: dict) -> list[str]:
         )
     else:
         lines.append(format_return("learner", results["learner"]))
-        hint = compounding_hint(results["expert"], results["learner"])
+        if results.get("random") is not None:
+            lines.append(format_return("random actions", results["random"]))
+        hint = compounding_hint(results["expert"], results["learner"], results.get("random"))
         if hint:
             lines.append(hint)
     lines.append(f"wrote {Path(results['files']['curves']).parent}")
     return lines
 
 
-def compounding_hint(expert: dict | None, learner: dict) -> str:
+def below_expert(expert: dict | None, learner: dict | None) -> bool:
+    """Whether the learner scores clearly below the expert on the same initial states
+    (their 95% intervals apart; False without an expert, or with one episode)."""
+    if expert is None or learner is None:
+        return False
+    if None in (*expert["return_ci"], *learner["return_ci"]):
+        return False
+    return learner["return_ci"][1] < expert["return_ci"][0]
+
+
+def at_random_level(learner: dict, random: dict | None) -> bool:
+    """Whether the learner scores no better than random actions (its 95% interval
+    reaches theirs), on the same initial states."""
+    if random is None or None in (*random["return_ci"], *learner["return_ci"]):
+        return False
+    return learner["return_ci"][0] <= random["return_ci"][1]
+
+
+def compounding_hint(expert: dict | None, learner: dict, random: dict | None = None) -> str:
     """A line saying what to try when the cloned learner scores clearly below the expert
     on the same initial states (their 95% intervals apart), else ``""`` (issue 44:
-    InvertedDoublePendulum's clone reached 1.3% of the expert and nothing said why)."""
-    if expert is None or None in (*expert["return_ci"], *learner["return_ci"]):
+    InvertedDoublePendulum's clone reached 1.3% of the expert, ACT and Diffusion Policy
+    scored at random level on Pendulum, and nothing said why). ``random``: random
+    actions' evaluation on the same states (:func:`evaluate_random`): a learner at their
+    level has not learned to act, which DAgger does not mend."""
+    if not below_expert(expert, learner):
         return ""
-    if learner["return_ci"][1] >= expert["return_ci"][0]:
-        return ""
+    if at_random_level(learner, random):
+        assert random is not None  # at_random_level
+        return (
+            f"hint: the learner scores at the level of random actions (return "
+            f"{random['mean_return']:.2f} on the same initial states): it has not learned "
+            "to act, which DAgger does not mend. Fit it first: more --steps (a chunked or "
+            "diffusion learner needs far more than an MLP), then more --demos or another --loss"
+        )
     return (
         "hint: the learner scores below the expert. Cloning is trained on the expert's "
         "states only, and its errors take it to states the expert never showed (the "

@@ -80,6 +80,7 @@ def test_a_fit_lowers_the_loss_and_the_same_seed_gives_the_same_digits():
             [3],
         )  # fmt: skip
         with set_exploration_type(ExplorationType.RANDOM), torch.no_grad():
+            torch.manual_seed(7)  # sampling draws from the global RNG an evaluation seeds
             action = learner.policy(obs).get(keys.ACTION)
         return result.losses, action
 
@@ -162,10 +163,8 @@ def test_a_checkpoint_carries_the_average_the_trained_weights_and_the_step():
     for a, b in zip(fresh.policy.parameters(), learner.policy.parameters()):
         assert torch.equal(a, b)
     assert int(fresh.ema.step) == 4
-    # the loss's and the sampler's generators are saved with the weights
+    # the loss's generator is saved with the weights (sampling draws from the global RNG)
     assert torch.equal(fresh.loss.generator.get_state(), learner.loss.generator.get_state())
-    net, fresh_net = learner.policy.network, fresh.policy.network
-    assert torch.equal(fresh_net.generator.get_state(), net.generator.get_state())
     # both continue with the same digits, given the optimiser's moments (a copy: a live
     # state dict shares Adam's step tensors)
     fresh.opt_pi.load_state_dict(copy.deepcopy(learner.opt_pi.state_dict()))

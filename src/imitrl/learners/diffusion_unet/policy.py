@@ -73,7 +73,8 @@ class UnetDiffusionPolicy(TensorDictModuleBase):
         observation_dim: ``d``.
         action_spec: ``Bounded`` ``[m]``.
         config: the hyperparameters.
-        seed: initialisation seed; samples draw from a generator seeded ``seed + 1``.
+        seed: initialisation seed; samples draw from torch's global RNG, which an
+            evaluation seeds (``evaluate(generator=)``), as every sampled policy's do.
 
     ``RANDOM`` exploration samples (a fresh latent per query, as the paper acts);
     ``DETERMINISTIC`` starts from the zero latent: with DDIM (deterministic updates)
@@ -125,15 +126,16 @@ class UnetDiffusionPolicy(TensorDictModuleBase):
         )
         self.register_buffer("low", action_spec.space.low.float().clone())
         self.register_buffer("high", action_spec.space.high.float().clone())
-        self.generator = torch.Generator().manual_seed(int(seed) + 1)
 
     def get_extra_state(self) -> torch.Tensor:
-        """The sampling generator's state: saved with the weights, so a resumed run
-        draws the samples the uninterrupted one would have."""
-        return self.generator.get_state()
+        """Nothing (an empty tensor): acting draws from torch's global RNG, which an
+        evaluation or a rollout seeds from its own generator (as every sampled policy's
+        draws), so ``imitrl eval`` replays a run's evaluation. Kept so that checkpoints
+        which saved the sampler's own generator (imitrl up to 2f3db47) still load."""
+        return torch.empty(0, dtype=torch.uint8)
 
     def set_extra_state(self, state: torch.Tensor) -> None:
-        self.generator.set_state(state.cpu())  # (a map_location may have moved it)
+        """Ignore the saved state (:meth:`get_extra_state`)."""
 
     def condition(
         self, td: TensorDictBase, generator: torch.Generator | None = None
@@ -170,13 +172,12 @@ class UnetDiffusionPolicy(TensorDictModuleBase):
         if interaction_type() == InteractionType.DETERMINISTIC:
             x = torch.zeros(shape, device=cond.device)
         else:
-            x = torch.randn(shape, generator=self.generator).to(cond.device)
+            x = torch.randn(shape).to(cond.device)  # the global RNG: module docstring
         x = self.schedule.sample(
             lambda xk, k: self.unet(xk, k, cond),
             x,
             sampler=self.config.sampler,
             sample_steps=self.config.sample_steps,
-            generator=self.generator,
         )
         action = self.low + (self.high - self.low) * (x.clamp(-1.0, 1.0) + 1) / 2
         tensordict.set(keys.ACTION, action.reshape(*batch, -1))
