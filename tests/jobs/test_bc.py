@@ -15,7 +15,7 @@ def test_a_clone_clearly_below_the_expert_is_told_about_dagger():
     assert "imitrl dagger" in compounding_hint(expert, failing)
     results = {"demonstrations": {"episodes": 1, "rows": 9, "source": "expert"},
                "final_loss": 0.5, "expert": expert, "learner": failing,
-               "files": {"curves": "out/curves.png"}}  # fmt: skip
+               "learner_loss": "mse", "files": {"curves": "out/curves.png"}}  # fmt: skip
     lines = report(results)
     assert lines[-2] == compounding_hint(expert, failing) and lines[-1] == "wrote out"
 
@@ -35,13 +35,16 @@ def test_a_clone_at_random_level_is_told_to_fit_first_not_dagger():
     random = _ev(-1102.5, -1377.3, -827.7)
     hint = compounding_hint(expert, failing, random)
     assert "random actions" in hint and "more --steps" in hint and "DAgger does not mend" in hint
+    chunked = compounding_hint(expert, failing, random, chunked=True)
+    assert "plays predicted chunks" in chunked and "unchunked --loss" in chunked
     # a clone clearly above random actions but below the expert: compounding, DAgger
     assert "imitrl dagger" in compounding_hint(expert, _ev(-500.0, -600.0, -400.0), random)
     results = {"demonstrations": {"episodes": 1, "rows": 9, "source": "expert"},
                "final_loss": 0.5, "expert": expert, "learner": failing, "random": random,
-               "files": {"curves": "out/curves.png"}}  # fmt: skip
+               "learner_loss": "mse", "files": {"curves": "out/curves.png"}}  # fmt: skip
     lines = report(results)
     assert lines[-3].startswith("random actions: return -1102.50") and lines[-2] == hint
+    assert report({**results, "learner_loss": "act"})[-2] == chunked
 
 
 def test_the_bc_command_plays_random_actions_only_for_a_failing_clone(tmp_path):
