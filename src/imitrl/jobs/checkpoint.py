@@ -49,6 +49,7 @@ __all__ = [
     "read_checkpoint",
     "read_config",
     "save_run",
+    "saved_loss",
     "to_json",
 ]
 
@@ -315,11 +316,31 @@ def checkpoint_env(checkpoint: Path, config: dict) -> str:
     return env
 
 
-def _saved_lr(config: dict) -> float | None:
-    """The learning rate to rebuild a saved learner with: the one it trained at, except
-    for an entry that trains at its recipe's own (a run saved before such entries refused
-    --lr recorded the CLI default, which they did not use)."""
-    loss = config["loss"]
+def saved_loss(checkpoint: Path, loss: str) -> str:
+    """The registry name to rebuild a checkpoint's learner with: ``default`` saved when
+    it meant ``for_env``; for a loss of the user's own, ``module:name``, ``name`` when it
+    is registered in this process. imitrl never imports a module a checkpoint names:
+    import it yourself (Python), or name it to ``imitrl eval --loss module:name``
+    (ValueError saying so)."""
+    if loss == LEGACY_DEFAULT:
+        return FOR_ENV  # saved when default meant for_env
+    if ":" not in loss:
+        return loss
+    module, _, name = loss.partition(":")
+    if name not in registry.names():
+        raise ValueError(
+            f"{Path(checkpoint) / CONFIG_FILE} was trained with loss {loss!r}, which "
+            f"importing the module {module!r} registers; imitrl never imports code a "
+            f"checkpoint names. If you trust that module, name it yourself: imitrl eval "
+            f"--loss {loss} (or import {module} before load_learner)"
+        )
+    return name
+
+
+def _saved_lr(config: dict, loss: str) -> float | None:
+    """The learning rate to rebuild a saved learner of entry ``loss`` with: the one it
+    trained at, except for an entry that trains at its recipe's own (a run saved before
+    such entries refused --lr recorded the CLI default, which they did not use)."""
     if loss in registry.names() and registry.get(loss).own_lr is not None:
         return None
     return config.get("lr")
@@ -344,8 +365,7 @@ def build_learner(saved: SavedRun, env: EnvBase, *, device: str | None = None) -
     weights; the network its config asks for is held to the weights' size with the env's
     observation and action sizes first (:func:`check_holds`)."""
     config = saved.config
-    loss = config["loss"]
-    loss = FOR_ENV if loss == LEGACY_DEFAULT else loss  # saved when default meant for_env
+    loss = saved_loss(saved.path, config["loss"])
     hidden = None if config.get("hidden") is None else tuple(config["hidden"])
     if hidden is not None and _builds_table(loss, env):
         hidden = None  # a table: runs before --hidden was optional recorded the default
@@ -355,7 +375,7 @@ def build_learner(saved: SavedRun, env: EnvBase, *, device: str | None = None) -
         loss,
         env,
         hidden=hidden,
-        lr=_saved_lr(config),
+        lr=_saved_lr(config, loss),
         seed=config["seed"],
         device=device,
     )

@@ -91,9 +91,10 @@ class RunFlags:
     demos: int = bounded(5, 0, MAX_EPISODES)
     """greedy expert demonstration episodes (when no --dataset)"""
     loss: str = "default"
-    """a loss-registry name (listed below); default = cross_entropy for discrete actions
-    (a logits table on integer states, an MLP otherwise), mse for continuous ones, for_env
-    on images (a CNN): imitrl.learners.build(name, env) builds it"""
+    """a loss-registry name (listed below) or module:name, your own (importing module
+    registers name with imitrl.learners.registry.register); default = cross_entropy for
+    discrete actions (a logits table on integer states, an MLP otherwise), mse for
+    continuous ones, for_env on images (a CNN): imitrl.learners.build(name, env) builds it"""
     hidden: tuple[int, ...] | None = widths()
     """hidden layer sizes of the learner's network; none = the network's own (64,64 for
     an MLP); refused where the learner is a logits table (integer states), which has none"""

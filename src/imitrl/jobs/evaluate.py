@@ -123,6 +123,9 @@ class EvalJob:
     )
     """a keyword argument of the env's constructor, name=value; none given = the
     checkpoint's"""
+    loss: str | None = None
+    """the checkpoint's loss when it is your own, module:name (importing module registers
+    it): imitrl imports only the modules you name here; none = a registry loss"""
     eval_episodes: int | None = bounded(None, 1, MAX_EVAL_EPISODES, none_ok=True)
     """evaluation episodes; none = the checkpoint's run's own (so every job's numbers
     reproduce: 10 for bc/dagger, 20 for gail/airl by default), 10 for an expert"""
@@ -160,6 +163,15 @@ class EvalJob:
             )
 
 
+def _import_loss(named: str, saved: str, checkpoint: Path) -> None:
+    """Import the module of ``--loss module:name``, which must be the checkpoint's loss."""
+    from imitrl.jobs.resolve import registered_loss
+
+    if named != saved:
+        raise ValueError(f"--loss {named}: {checkpoint} was trained with loss {saved!r}")
+    registered_loss(named)
+
+
 def run_eval(config: EvalJob) -> dict:
     """Evaluate what ``config`` names; returns ``{"policy", "env", "evaluation"}``."""
     from torchrl.envs.utils import ExplorationType
@@ -179,6 +191,8 @@ def run_eval(config: EvalJob) -> dict:
     if config.checkpoint is not None:
         # config.json and learner.pt of one checkpoint, even while a writer replaces it
         saved = read_checkpoint(config.checkpoint)
+        if config.loss is not None:
+            _import_loss(config.loss, saved.config["loss"], config.checkpoint)
         # the run's own evaluation unless told otherwise: its numbers reproduce
         episodes = episodes or saved.config.get("eval_episodes")
         seed = saved.config.get("eval_seed") if seed is None else seed

@@ -57,6 +57,7 @@ __all__ = [
     "learner_factory",
     "load_dataset",
     "make_expert",
+    "registered_loss",
     "resolve_loss",
     "time_limit",
 ]
@@ -227,6 +228,33 @@ LEGACY_DEFAULT = "default"
 record: their learner was ``for_env``'s"""
 
 
+def registered_loss(spec: str) -> str:
+    """``--loss`` as a registry name: ``spec`` itself, or for ``module:name`` (your own
+    loss) ``name`` after importing ``module``, which registers it
+    (:func:`imitrl.learners.registry.register`): code you named on the command line, as
+    ``--env module:Env-v0`` and ``--expert module:function`` are.
+
+    Raises:
+        ValueError: a module that does not import, or registers no loss ``name``.
+    """
+    if ":" not in spec:
+        return spec
+    module, _, name = spec.partition(":")
+    if not module or not name:
+        raise ValueError(f"--loss {spec!r}: expected a registered name or module:name")
+    try:
+        importlib.import_module(module)
+    except ImportError as err:
+        raise ValueError(f"--loss {spec!r}: cannot import {module!r} ({err})") from err
+    if name not in registry.names():
+        raise ValueError(
+            f"--loss {spec!r}: importing {module!r} registered no loss {name!r} (register it "
+            f"with @imitrl.learners.registry.register({name!r}, ...)); registered: "
+            f"{', '.join(registry.names())}"
+        )
+    return name
+
+
 def resolve_loss(loss: str, env: EnvBase | TaskSpec, *, probabilistic: bool = False) -> str:
     """``--loss`` as the registry entry it names for ``env``
     (:func:`imitrl.learners.resolve`: ``default`` is ``cross_entropy``, ``mse``, or
@@ -296,13 +324,16 @@ def choose_learner(
     """``--loss`` and its settings for ``env``, in one visit of :mod:`imitrl.learners`:
     the learner factory (one learner built at once, so that a bad flag fails here, naming
     it), the entry ``default`` resolves to, and that entry's fit recipe.
-    ``probabilistic``: the job needs ``log pi`` and a value head (GAIL, AIRL)."""
+    ``probabilistic``: the job needs ``log pi`` and a value head (GAIL, AIRL). A loss of
+    your own, ``module:name`` (:func:`registered_loss`), is recorded as given, so that
+    ``imitrl eval`` knows which module to ask you to name."""
+    plain = registered_loss(loss)
     make = learner_factory(
-        loss, env, hidden=hidden, lr=lr, seed=seed, device=device, value=probabilistic
+        plain, env, hidden=hidden, lr=lr, seed=seed, device=device, value=probabilistic
     )
-    name = resolve_loss(loss, env, probabilistic=probabilistic)
+    name = resolve_loss(plain, env, probabilistic=probabilistic)
     recipe = registry.get(name).recipe if name in registry.names() else None
-    return LearnerChoice(name, make, recipe)
+    return LearnerChoice(loss if plain != loss else name, make, recipe)
 
 
 def _flag(match: re.Match) -> str:
