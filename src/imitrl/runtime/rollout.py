@@ -130,6 +130,7 @@ def rollout_episodes(
     round_index: int = 0,
     first_episode: int = 0,
     generator: torch.Generator | None = None,
+    next_observation: bool = False,
 ) -> TensorDict:
     """Play ``num_episodes`` whole episodes and return their transitions as rows.
 
@@ -152,6 +153,10 @@ def rollout_episodes(
         generator: source of the policy's sampling in ``RANDOM`` mode (torch
             distributions draw from the global RNG; this runs them on ``generator``
             instead and advances it). None: torch's global RNG (or ``seed``'s).
+        next_observation: also keep each row's ``("next", OBSERVATION)`` (the next row's
+            observation, and at an episode's last row its final observation, which no
+            row holds otherwise): what Minari stores (:func:`~imitrl.datasets.save_minari`
+            needs it). Off by default: a buffer's rows and a dataset's share one schema.
 
     Returns:
         rows ``[R]`` with ``OBSERVATION, ACTION, EXPERT_ACTION, EXPERT_EXECUTED,
@@ -167,13 +172,47 @@ def rollout_episodes(
     generator = _seeded(env, seed, generator)
     with torch.no_grad(), set_exploration_type(exploration), rng_from(generator):
         stepper = paths.stepper(init_tracked(env, actor), actor, record=True)
-        play(stepper, book, labels=True)
+        finals = FinalObservations(stepper, book, first_episode) if next_observation else None
+        play(stepper, book, labels=True, on_end=finals)
         traj = stepper.trajectory()
     if traj is None:
         raise ValueError("num_episodes must be positive to collect rows")
     rows = _rows(env, traj, book, round_index, first_episode)
+    if finals is not None:
+        finals.add_to(rows)
     check_labels(rows, _action_spec(env))
     return rows
+
+
+class FinalObservations:
+    """Each kept episode's final observation, taken as its lane ends (``play``'s
+    ``on_end``: the step's ``("next", OBSERVATION)`` before the lane resets), and
+    :meth:`add_to` rows: ``("next", OBSERVATION)`` of every row."""
+
+    def __init__(self, stepper, book: Lanes, first_episode: int) -> None:
+        self.stepper, self.book, self.first = stepper, book, int(first_episode)
+        self.finals: dict[int, torch.Tensor] = {}
+        self.batched = len(stepper.env.batch_size) > 0
+
+    def __call__(self, ended: np.ndarray) -> None:
+        """Keep the final observation of each ``ended`` lane's episode, if it is kept."""
+        nxt = self.stepper.step_tensordict().get((keys.NEXT, keys.OBSERVATION))
+        for lane in ended.tolist():
+            k = int(self.book.finished[lane])  # the lane's episode that just ended
+            if k < int(self.book.quota[lane]):
+                episode = self.first + k * self.book.lanes + lane
+                self.finals[episode] = (nxt[lane] if self.batched else nxt).clone()
+
+    def add_to(self, rows: TensorDictBase) -> None:
+        """Set ``("next", OBSERVATION)`` on ``rows`` (episodes back to back, in order)."""
+        obs, episode = rows.get(keys.OBSERVATION), rows.get(keys.EPISODE)
+        nxt = torch.empty_like(obs)
+        nxt[:-1] = obs[1:]
+        last = torch.ones_like(episode, dtype=torch.bool)
+        last[:-1] = episode[1:] != episode[:-1]
+        for i in last.nonzero().flatten().tolist():
+            nxt[i] = self.finals[int(episode[i])]
+        rows.set((keys.NEXT, keys.OBSERVATION), nxt)
 
 
 def check_labels(rows: TensorDictBase, spec: TensorSpec) -> None:

@@ -84,7 +84,8 @@ def _rows_to_write(
     if missing:
         hint = (
             f" (Minari stores each episode's final observation: keep {key_name(_NEXT_OBS)!r}, "
-            "e.g. load_minari(..., next_observation=True))"
+            "collected with rollout_episodes(..., next_observation=True) or read with "
+            "load_minari(..., next_observation=True))"
             if key_name(_NEXT_OBS) in missing
             else ""
         )
