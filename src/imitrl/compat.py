@@ -51,6 +51,9 @@ hooks``/``post_hooks``, torch's
 ``LossModule._loss_mask_keys()``    :func:`loss_mask_keys` (``imitrl.runtime.fast.gail_step``)
 Meta-World's ``SawyerXYZEnv.        :func:`random_reset_space` (``imitrl.envs.metaworld``)
 _random_reset_space``
+``torchrl.modules.models.act.       :func:`act_latent_noise` (``imitrl.learners.act.loss``:
+_reparameterise``                   the CVAE latent's noise drawn per row, so that
+                                    data-parallel ranks draw one process's)
 =================================== ==========================================================
 """
 
@@ -74,6 +77,7 @@ else:
 
 __all__ = [
     "DirectWriteMixin",
+    "act_latent_noise",
     "foreach_add_",
     "foreach_copy_",
     "foreach_lerp_",
@@ -488,3 +492,25 @@ def random_reset_space(env: object) -> Any:
     the private ``_random_reset_space`` of ``SawyerXYZEnv``; ``metaworld.MT1`` reads it the
     same way to build its tasks."""
     return env._random_reset_space  # type: ignore[attr-defined]
+
+
+@contextmanager
+def act_latent_noise(noise: torch.Tensor) -> Iterator[None]:
+    """Within: TorchRL's ``ACTModel`` samples its CVAE latent as ``mu + std * noise``
+    (``noise`` ``[B, latent]``, given) instead of drawing ``torch.randn_like(std)`` from
+    the global RNG inside its module-level ``_reparameterise``. The loss draws ``noise``
+    itself, per row, from the same generator state (the same numbers one process drew
+    before), so a data-parallel rank can keep its rows' (:mod:`imitrl.system.ranks`);
+    TorchRL offers no argument for it."""
+    import torchrl.modules.models.act as act
+
+    original = act._reparameterise
+
+    def given(mu: torch.Tensor, log_var: torch.Tensor) -> torch.Tensor:
+        return mu + (0.5 * log_var).exp() * noise.to(mu.device, mu.dtype)
+
+    act._reparameterise = given
+    try:
+        yield
+    finally:
+        act._reparameterise = original

@@ -41,6 +41,7 @@ __all__ = [
     "MAX_EPISODE_STEPS",
     "MAX_EVAL_EPISODES",
     "MAX_LAYERS",
+    "MAX_NPROC",
     "MAX_NUM_ENVS",
     "MAX_PARAMETERS",
     "MAX_ROLLOUT_STEPS",
@@ -90,6 +91,8 @@ MAX_ROUNDS = 10_000
 round's record is kept"""
 MAX_WORKERS = 1024
 """most Ray workers (``--workers``): each is a process holding an env and the expert"""
+MAX_NPROC = 1024
+"""most data-parallel ranks of one command (``--nproc``)"""
 MAX_ENV_STEPS = 1_000_000_000
 """most environment steps of an adversarial run (``--total-steps``): 10^9 steps are days
 of stepping on any machine this library runs on"""

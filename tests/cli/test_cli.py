@@ -382,3 +382,10 @@ def test_a_dataset_for_another_env_names_env_and_its_default(tmp_path):
         assert status == 2 and named in stderr and "Traceback" not in stderr
         assert "pass the env the dataset was recorded on" in stderr
     assert issubclass(EnvMismatchError, ValueError)  # callers catching ValueError still do
+    # the failed runs left nothing that blocks the corrected rerun in the same --out
+    # (issue 44: they left --out/logs, and the rerun was refused as "holds a previous run")
+    status, _, stderr = run(["bc", "--expert", "none", "--dataset", str(root), "--env",
+                             "Pendulum-v1", "--steps", "5", "--eval-episodes", "2",
+                             "--out", str(tmp_path / "out"), "--no-progress"])  # fmt: skip
+    assert status == 0, stderr
+    assert (tmp_path / "out" / "results.json").is_file()

@@ -36,6 +36,7 @@ that size; distinct pairs are counted slice by slice.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import time
 from collections.abc import Callable
@@ -53,6 +54,7 @@ from imitrl.data.permutation import LazyPermutation
 from imitrl.learners.learner import Learner
 from imitrl.runtime import paths
 from imitrl.system.device import to_device
+from imitrl.system.ranks import DataParallel, sharded, share
 
 __all__ = [
     "FLUSH_SECONDS",
@@ -179,6 +181,8 @@ class _Minibatches:
         self, rows: TensorDictBase | DemonstrationBuffer, reads: list, batch_size: int, seed: int
     ) -> None:
         self.batch_size, self.generator = batch_size, torch.Generator().manual_seed(seed)
+        self.part: tuple[int, int] | None = None
+        """``(first, count)``: this rank's rows of each global batch (a data-parallel fit)"""
         self.lazy: LazyPermutation | None = None
         if isinstance(rows, DemonstrationBuffer):  # on disk
             self.n, self.buffer, self.reads = len(rows), rows, reads
@@ -208,6 +212,8 @@ class _Minibatches:
 
     def next(self) -> TensorDictBase:
         idx = self._indices()
+        if self.part is not None:
+            idx = idx[self.part[0] : self.part[0] + self.part[1]]
         if self.lazy is not None:
             return self.buffer.rows_at(idx, *self.reads)
         batch = self.rows.empty(batch_size=[idx.numel()])
@@ -335,18 +341,9 @@ def fit_bc(
         learner.prepare(rows)
         learner.loss.check_labels(rows)  # once, over every row the fit can draw
         n = rows.shape[0]
-    minibatch = config.batch_size is not None and config.batch_size < n
-    weights = None
-    if minibatch:
-        assert config.batch_size is not None  # minibatch: a batch size below n
-        source = data if on_disk else rows
-        batches = _Minibatches(source, reads if on_disk else [], config.batch_size, config.seed)
-    else:
-        if on_disk:
-            rows = _rows(data, list(learner.loss.in_keys))  # distinct pairs may be few
-        rows, weights = _dedup(learner, rows, config)
-        if weights is None:
-            _check_full_batch(n, on_disk, config)
+    dp = DataParallel.of(learner.opt_pi)  # None in a single process
+    feed = _feed(learner, data, None if on_disk else rows, n, reads if on_disk else [], config, dp)
+    minibatch, rows, weights = feed.batches is not None, feed.rows, feed.weights
     objective, opt = learner.loss.objective, learner.opt_pi
     zero_grad = paths.zero_grad(opt)  # the seam's: its assignment without the method's range
     if config.compile:
@@ -365,16 +362,19 @@ def fit_bc(
     ema = learner.ema
     if config.precision == "bf16":  # the forward in bfloat16; backward and the step float32
         objective = _bf16(objective, device)
+    shard = contextlib.nullcontext() if dp is None else sharded(feed.first, feed.total)
     try:
         # e.g. its networks without nn.Module.__call__; an EMA learner's trained weights
-        with learner.loss.fitting(), learner.fitting_weights():
+        with learner.loss.fitting(), learner.fitting_weights(), shard:
             for step in steps:
-                batch = batches.next() if minibatch else rows
+                batch = feed.batches.next() if feed.batches is not None else rows
                 if cross and minibatch:  # pinned, without blocking: runtime.device
                     batch = to_device(batch, device)
                 loss = objective(batch) if weights is None else objective(batch, weights)
                 zero_grad()
                 loss.backward()
+                if dp is not None:  # the global batch's gradients and loss, on every rank
+                    loss = dp.reduce(loss, feed.count, feed.total)
                 if schedule is not None:
                     schedule.at(step)
                 opt_step()
@@ -389,6 +389,56 @@ def fit_bc(
     stream.flush(config.num_steps)
     final = float(losses[-1]) if losses.numel() else float("nan")
     return BCResult(losses=losses.cpu(), final_loss=final, num_rows=n)
+
+
+@dataclass
+class _Feed:
+    """Each step's batch: minibatches, or the full batch (and its distinct pairs'
+    weights); in a data-parallel fit this rank's ``count`` rows from ``first`` of each
+    global batch of ``total``."""
+
+    batches: _Minibatches | None
+    rows: TensorDictBase | None
+    weights: torch.Tensor | None
+    first: int
+    count: int
+    total: int
+
+
+def _feed(
+    learner: Learner,
+    data: DemonstrationBuffer | TensorDictBase,
+    rows: TensorDictBase | None,
+    n: int,
+    reads: list,
+    config: BCConfig,
+    dp: DataParallel | None,
+) -> _Feed:
+    """The fit's batches over ``n`` rows (``rows`` in memory; None on disk, where a batch
+    reads the columns ``reads`` of the drawn rows only): minibatches of
+    ``config.batch_size`` per rank when that is below ``n`` (the global batch: the batch
+    times the ranks), else the full batch, on distinct pairs where the loss allows (one
+    process only)."""
+    world = 1 if dp is None else dp.world
+    weights, batches = None, None
+    if config.batch_size is not None and config.batch_size * world < n:
+        total = config.batch_size * world  # the global batch: each rank computes its share
+        batches = _Minibatches(data if rows is None else rows, reads, total, config.seed)
+    else:
+        on_disk = rows is None
+        if rows is None:
+            rows = _rows(data, list(learner.loss.in_keys))  # distinct pairs may be few
+        if dp is None:
+            rows, weights = _dedup(learner, rows, config)
+        if weights is None:
+            _check_full_batch(n, on_disk, config)
+        total = rows.shape[0]
+    first, count = (0, total) if dp is None else share(total, dp.rank, dp.world)
+    if batches is not None:
+        batches.part = None if dp is None else (first, count)
+    elif dp is not None and rows is not None:
+        rows = rows[first : first + count]
+    return _Feed(batches, rows, weights, first, count, total)
 
 
 def _placement(opt: torch.optim.Optimizer) -> tuple[torch.device, bool]:

@@ -61,6 +61,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from imitrl.cli.flags import OneLineParser, add_config_flags, config_from_args
+from imitrl.cli.launch import RankLostError, in_rank, launch, process_group, quiet
 from imitrl.limits import MAX_THREADS, Bound
 from imitrl.system.heap import collector_paused, freeze_imported
 from imitrl.system.threads import DEFAULT_THREADS, set_threads
@@ -303,6 +304,17 @@ def missing_extra(err: BaseException) -> str:
     return f" (the {extra!r} extra: pip install 'imitrl[{extra}]')"
 
 
+def _backend(device: str) -> str:
+    """The process group's backend for ``--device``: NCCL on GPUs, gloo on CPUs."""
+    from imitrl.system.device import resolve_device
+
+    return "nccl" if resolve_device(device).type == "cuda" else "gloo"
+
+
+def _nothing() -> contextlib.AbstractContextManager:
+    return contextlib.nullcontext()
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the ``imitrl`` command; returns the exit status (2 on bad input).
 
@@ -330,9 +342,15 @@ def main(argv: Sequence[str] | None = None) -> int:
                 run = command.run  # imports the command's modules
                 if owns_process:
                     freeze_imported()
-            results = run(config_from_args(command.config, args))
+            config = config_from_args(command.config, args)
+            nproc = getattr(config, "nproc", 1)
+            if nproc > 1 and not in_rank():  # N ranks of this command; this one waits
+                return launch(nproc, argv)
+            with process_group(_backend(config.device)) if in_rank() else _nothing():
+                results = run(config)
     except (ValueError, ImportError) as err:  # bad flags, unknown names, missing extras
-        print(f"imitrl {args.command}: {err}{missing_extra(err)}", file=sys.stderr)
+        if not quiet():  # --nproc: rank 0 names it, once
+            print(f"imitrl {args.command}: {err}{missing_extra(err)}", file=sys.stderr)
         return 2
     except OSError as err:  # a full disk, a read-only folder: named, outputs as they were
         from imitrl.fs.write_errors import DiskFullError, NotWritableError
@@ -341,10 +359,13 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise
         print(f"imitrl {args.command}: {err}", file=sys.stderr)
         return 1
+    except RankLostError as err:  # --nproc: a rank died, the others were stopped
+        print(f"imitrl {args.command}: {err}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:  # outputs are written whole or not at all (see each job)
         print(f"imitrl {args.command}: interrupted", file=sys.stderr)
         return 130
-    if command.report is not None:
+    if command.report is not None and not quiet():
         for line in command.report(results):
             print(line)
     if args.command == "bench":

@@ -18,11 +18,14 @@ are shared with ``imitrl dagger``.
 
 from __future__ import annotations
 
+import contextlib
 import math
+import tempfile
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import TypeVar
 
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
@@ -52,6 +55,7 @@ from imitrl.learners import Learner, TaskSpec, registry
 from imitrl.policies import as_actor
 from imitrl.policies.random_actions import RandomActions
 from imitrl.runtime import rollout_episodes
+from imitrl.system.ranks import rank_and_world
 
 __all__ = [
     "BCJob",
@@ -64,11 +68,14 @@ __all__ = [
     "evaluate_expert",
     "evaluate_learner",
     "evaluate_random",
+    "evaluating",
     "finish",
+    "lead",
     "log_evaluation",
     "prepare",
     "report",
     "run_bc",
+    "run_folder",
 ]
 
 DETERMINISTIC = ExplorationType.DETERMINISTIC
@@ -301,8 +308,36 @@ def run_bc(config: BCJob) -> dict:
 
     ``--out`` follows :mod:`imitrl.fs.run_folder`'s rule: a previous run there is refused
     unless ``--overwrite``, and a second run writing it meanwhile is refused at once."""
-    with claimed(config.out, overwrite=config.overwrite) as folder:
-        return _run_bc(config, folder)
+    with run_folder(config) as folder:
+        return _run_bc(lead(config), folder)
+
+
+JobT = TypeVar("JobT", bound=BCJob)
+
+
+@contextlib.contextmanager
+def run_folder(config: BCJob | GAILJob, *, resume: bool = False) -> Iterator[Path]:
+    """Where the run writes: ``--out`` claimed (:func:`imitrl.fs.run_folder.claimed`'s
+    rule); on a data-parallel rank other than 0 (``--nproc``) a scratch folder that
+    nothing keeps: rank 0 alone writes ``--out``."""
+    if rank_and_world()[0] == 0:
+        with claimed(config.out, overwrite=config.overwrite, resume=resume) as folder:
+            yield folder
+    else:
+        with tempfile.TemporaryDirectory(prefix="imitrl-rank-") as scratch:
+            yield Path(scratch)
+
+
+def lead(config: JobT) -> JobT:
+    """``config`` as this rank runs it: rank 0 as given; another rank (``--nproc``)
+    without progress bars (one per run) and without evaluations (:func:`evaluating`)."""
+    return config if rank_and_world()[0] == 0 else replace(config, progress=False)
+
+
+def evaluating() -> bool:
+    """Whether this process evaluates and reports: rank 0 (every rank plays the same
+    episodes and fits its share; the evaluations are rank 0's alone)."""
+    return rank_and_world()[0] == 0
 
 
 def _run_bc(config: BCJob, folder: Path) -> dict:
@@ -316,7 +351,7 @@ def _run_bc(config: BCJob, folder: Path) -> dict:
             learner, buffer, bc_config(config, setup), progress=config.progress, logger=setup.logger
         )
         expert_ev = learner_ev = random_ev = None
-        if setup.env is not None:  # --env none: trained on the dataset alone
+        if setup.env is not None and evaluating():  # --env none: the dataset alone
             expert_ev = evaluate_expert(config, setup)
             learner_ev = evaluate_learner(config, learner)
             log_evaluation(setup.logger, 0, learner_ev, expert_ev)

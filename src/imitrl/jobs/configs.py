@@ -30,6 +30,7 @@ from imitrl.limits import (
     MAX_EPISODE_STEPS,
     MAX_EPISODES,
     MAX_EVAL_EPISODES,
+    MAX_NPROC,
     MAX_NUM_ENVS,
     MAX_ROUNDS,
     MAX_SEED,
@@ -40,6 +41,30 @@ from imitrl.limits import (
 )
 
 __all__ = ["AIRLJob", "BCJob", "DAggerJob", "GAILJob", "RunFlags"]
+
+
+def check_nproc(nproc: int, device: str) -> None:
+    """``--nproc`` ranks this machine can hold: at most one per CPU core on the CPU, one
+    per GPU on CUDA (one line naming both otherwise)."""
+    if nproc == 1:
+        return
+    from imitrl.system.device import resolve_device
+    from imitrl.system.threads import cores
+
+    target = resolve_device(device)
+    if target.type == "cuda":
+        import torch
+
+        if nproc > torch.cuda.device_count():
+            raise ValueError(
+                f"--nproc {nproc}: this machine has {torch.cuda.device_count()} GPU(s), one "
+                "rank each"
+            )
+    elif nproc > cores():
+        raise ValueError(
+            f"--nproc {nproc}: more CPU ranks than the {cores()} cores this process may use "
+            "(each rank computes its share of every batch; more would only wait)"
+        )
 
 
 def _check_device(device: str) -> None:
@@ -156,10 +181,16 @@ class BCJob(BCConfig, RunFlags):
     seed: int = bounded(0, 0, MAX_SEED)
     """seeds the env that plays the demonstrations, the learner's initialisation and
     the minibatch order"""
+    nproc: int = bounded(1, 1, MAX_NPROC)
+    """processes (ranks) the fits run on, data-parallel on torch.distributed (gloo on
+    CPUs, NCCL on GPUs; launched as torchrun does): --batch-size is each rank's, so the
+    global batch is N times it (scale --lr with it, or not: one process at that global
+    batch gives the same parameters); 1 = this process alone"""
 
     def __post_init__(self) -> None:
         self._check_run()
         BCConfig.__post_init__(self)
+        check_nproc(self.nproc, self.device)
 
     def fit(self) -> BCConfig:
         """The fit the flags describe (the library's :class:`BCConfig`)."""
@@ -200,6 +231,11 @@ class DAggerJob(BCJob):
             raise ValueError("dagger needs --expert to label the learner's states")
         if self.address is not None and self.workers is None:
             raise ValueError("--address names the Ray cluster for --workers: give --workers too")
+        if self.workers is not None and self.nproc > 1:
+            raise ValueError(
+                "--workers plays the rounds on Ray, --nproc fits on several ranks: give one "
+                "(every rank plays the same rounds itself)"
+            )
 
 
 @dataclass(frozen=True)

@@ -31,16 +31,18 @@ import torch
 from imitrl.algorithms import Constant, DAggerConfig, EnvSource, dagger
 from imitrl.algorithms.ray_source import RaySource
 from imitrl.envs import make_env
-from imitrl.fs.run_folder import claimed
 from imitrl.jobs.bc import (
     Setup,
     bc_config,
     demonstrations,
     evaluate_expert,
     evaluate_learner,
+    evaluating,
     finish,
+    lead,
     log_evaluation,
     prepare,
+    run_folder,
 )
 from imitrl.jobs.configs import DAggerJob
 from imitrl.jobs.evaluate import format_return
@@ -56,8 +58,8 @@ def run_dagger(config: DAggerJob) -> dict:
     ``--out`` follows :mod:`imitrl.fs.run_folder`'s rule: a previous run there is refused
     unless ``--overwrite`` or ``--resume``, and a second run writing it meanwhile is
     refused at once."""
-    with claimed(config.out, overwrite=config.overwrite, resume=config.resume) as folder:
-        return _run_dagger(config, folder)
+    with run_folder(config, resume=config.resume) as folder:
+        return _run_dagger(lead(config), folder)
 
 
 def _run_dagger(config: DAggerJob, folder: Path) -> dict:
@@ -70,9 +72,11 @@ def _run_dagger(config: DAggerJob, folder: Path) -> dict:
             raise ValueError(no_expert_message(config.played_env()))
         buffer = demonstrations(config, setup)
         demo_rows, demo_episodes = len(buffer), buffer.num_episodes
-        expert_ev = evaluate_expert(config, setup)
+        expert_ev = evaluate_expert(config, setup) if evaluating() else None
 
         def on_fit(round_index: int, learner: Learner) -> dict:
+            if not evaluating():  # rank 0 evaluates (--nproc)
+                return {}
             ev = evaluate_learner(config, learner)
             log_evaluation(setup.logger, round_index, ev, expert_ev if round_index == 0 else None)
             return ev  # kept in the round's record, and so in the checkpoint

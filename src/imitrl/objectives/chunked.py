@@ -25,6 +25,7 @@ from tensordict.utils import NestedKey
 from imitrl import keys
 from imitrl.data.chunks import CHUNK_PAD, EXPERT_CHUNK
 from imitrl.objectives.base import ImitationLoss, sum_losses
+from imitrl.system.ranks import masked_mean
 
 __all__ = ["FLAT_CHUNK", "ChunkRegressionLoss", "FlatChunkLoss"]
 
@@ -77,7 +78,7 @@ class ChunkRegressionLoss(ImitationLoss):
         err = _ERRORS[self.loss_type](pred, label.to(pred.dtype), reduction="none")
         keep = (~tensordict.get(CHUNK_PAD)).to(err.dtype)
         keep = keep.repeat_interleave(err.shape[-1] // self.horizon, dim=-1)
-        loss = (err * keep).sum() / keep.sum().clamp_min(1.0)
+        loss = masked_mean(err, keep)  # over the global batch (data-parallel)
         return TensorDict({"loss_chunk": loss, self.loss_type: err.detach().mean()}, [])
 
 

@@ -6,6 +6,8 @@
 * :mod:`imitrl.system.threads`: torch's intra-op threads (:func:`set_threads`, default
   :data:`DEFAULT_THREADS` = 1, measured in ``benchmarks/threads.py``) and each worker's
   share when several run at once (:func:`worker_threads`).
+* :mod:`imitrl.system.ranks`: data-parallel ranks on ``torch.distributed``
+  (:func:`rank_and_world`), a fit's gradients shared among them (:class:`DataParallel`).
 * :mod:`imitrl.system.heap`: in a process imitrl owns, its imports with the garbage
   collector paused (:func:`~imitrl.system.heap.collector_paused`), then the import-time
   heap frozen out of the collector's walks (:func:`~imitrl.system.heap.freeze_imported`).
@@ -19,10 +21,12 @@ from imitrl import _lazy_exports
 
 __all__ = [
     "DEFAULT_THREADS",
+    "DataParallel",
     "OnDevice",
     "acting",
     "cores",
     "module_device",
+    "rank_and_world",
     "resolve_device",
     "set_threads",
     "to_device",
@@ -36,6 +40,8 @@ __getattr__, __dir__ = _lazy_exports(
         "cores": "imitrl.system.threads",
         "set_threads": "imitrl.system.threads",
         "worker_threads": "imitrl.system.threads",
+        "DataParallel": "imitrl.system.ranks",
+        "rank_and_world": "imitrl.system.ranks",
         "OnDevice": "imitrl.system.device",
         "acting": "imitrl.system.device",
         "module_device": "imitrl.system.device",

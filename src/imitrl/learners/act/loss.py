@@ -11,10 +11,12 @@ from tensordict.utils import NestedKey
 from torchrl.objectives import ACTLoss
 
 from imitrl import keys
+from imitrl.compat import act_latent_noise
 from imitrl.data.chunks import EXPERT_CHUNK
 from imitrl.learners.act.policy import ACTPolicy
 from imitrl.objectives.base import ImitationLoss
 from imitrl.rng import rng_from
+from imitrl.system.ranks import rows_drawn
 
 __all__ = ["ACTChunkLoss"]
 
@@ -69,7 +71,11 @@ class ACTChunkLoss(ImitationLoss):
             },
             batch_size=label.shape[:1],
         )
-        with rng_from(self.generator):
+        g, latent = self.generator, p.network.model.latent_dim
+        # the CVAE latent's noise, per row: what randn_like drew from the generator's state
+        # before, and a data-parallel rank's rows of it (imitrl.system.ranks.rows_drawn)
+        noise = rows_drawn(lambda m: torch.randn(m, latent, generator=g), label.shape[0])
+        with rng_from(self.generator), act_latent_noise(noise):
             out = self.inner(td)
         return TensorDict(
             {"loss_act": out["loss_act"], "l1": out["loss_reconstruction"], "kl": out["loss_kl"]},

@@ -13,6 +13,7 @@ from imitrl.data.chunks import CHUNK_PAD, EXPERT_CHUNK
 from imitrl.data.history import OBS_HISTORY, history_key
 from imitrl.learners.diffusion_unet.policy import UnetDiffusionPolicy
 from imitrl.objectives.base import ImitationLoss
+from imitrl.system.ranks import masked_mean, rows_drawn
 
 __all__ = ["UnetDiffusionLoss"]
 
@@ -79,13 +80,15 @@ class UnetDiffusionLoss(ImitationLoss):
             td = tensordict.copy().set(OBS_HISTORY, tensordict.get(self.tensor_keys.history))
         cond = p.condition(td, self.generator)  # random crops in training
         n = x0.shape[0]
-        k = torch.randint(0, p.config.train_steps, (n,), generator=self.generator).to(x0.device)
-        eps = torch.randn(x0.shape, generator=self.generator).to(x0.device)
+        g, steps, shape = self.generator, p.config.train_steps, tuple(x0.shape[1:])
+        # per-row draws: a data-parallel rank keeps its rows' (imitrl.system.ranks.rows_drawn)
+        k = rows_drawn(lambda m: torch.randint(0, steps, (m,), generator=g), n).to(x0.device)
+        eps = rows_drawn(lambda m: torch.randn((m, *shape), generator=g), n).to(x0.device)
         err = (p.unet(p.schedule.add_noise(x0, eps, k), k, cond) - eps).pow(2)
         if p.config.mask_padding:
             keep = ~tensordict.get(self.tensor_keys.pad).to(err.device).bool()  # [N, T_p]
             weight = keep.unsqueeze(-1).to(err.dtype).expand_as(err)
-            loss = (err * weight).sum() / weight.sum().clamp_min(1.0)
+            loss = masked_mean(err, weight)  # over the global batch (data-parallel)
         else:
             loss = err.mean()
         return TensorDict({"loss_diffusion": loss}, batch_size=[])

@@ -156,7 +156,7 @@ class UnetDiffusionPolicy(TensorDictModuleBase):
         if self.rgb is not None:
             images = td.get(history_key(self.pixel_key))  # [*B, T_o, H, W, C] uint8
             flat = images.reshape(-1, *images.shape[-3:])
-            features = self.rgb(flat, generator).reshape(h.shape[0], n, -1)
+            features = self.rgb(flat, generator, per_row=n).reshape(h.shape[0], n, -1)
             h = torch.cat([h, features], dim=-1)
         return h.flatten(-2)
 

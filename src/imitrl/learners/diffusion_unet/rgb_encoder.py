@@ -26,6 +26,8 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from imitrl.system.ranks import rows_drawn
+
 __all__ = ["ResNet18GN", "RgbEncoder", "SpatialSoftmax", "crop"]
 
 
@@ -89,9 +91,16 @@ class SpatialSoftmax(nn.Module):
         return (attention @ self.grid).flatten(1)  # [B, K, 2] -> [B, 2K]
 
 
-def crop(images: torch.Tensor, size: tuple[int, int], generator: torch.Generator | None):
+def crop(
+    images: torch.Tensor,
+    size: tuple[int, int],
+    generator: torch.Generator | None,
+    per_row: int = 1,
+):
     """``[B, C, H, W]`` cropped to ``size``: each sample at its own offset drawn from
-    ``generator``, or all at the centre when ``generator`` is None."""
+    ``generator``, or all at the centre when ``generator`` is None. ``per_row``: images
+    per batch row (a row's observation history), consecutive: the offsets are per-row
+    draws (:func:`~imitrl.system.ranks.rows_drawn`: a data-parallel rank keeps its rows')."""
     h, w = images.shape[-2:]
     ch, cw = size
     if (ch, cw) == (h, w):
@@ -100,8 +109,14 @@ def crop(images: torch.Tensor, size: tuple[int, int], generator: torch.Generator
         top, left = (h - ch) // 2, (w - cw) // 2
         return images[..., top : top + ch, left : left + cw]
     n = images.shape[0]
-    tops = torch.randint(0, h - ch + 1, (n,), generator=generator)
-    lefts = torch.randint(0, w - cw + 1, (n,), generator=generator)
+
+    def offsets(high: int) -> torch.Tensor:
+        def draw(m: int) -> torch.Tensor:
+            return torch.randint(0, high, (m * per_row,), generator=generator).reshape(m, -1)
+
+        return rows_drawn(draw, n // per_row).reshape(-1)
+
+    tops, lefts = offsets(h - ch + 1), offsets(w - cw + 1)
     rows = (tops[:, None] + torch.arange(ch)).to(images.device)  # [B, ch]
     cols = (lefts[:, None] + torch.arange(cw)).to(images.device)  # [B, cw]
     b = torch.arange(n, device=images.device)[:, None, None]
@@ -145,14 +160,17 @@ class RgbEncoder(nn.Module):
         self.out = nn.Linear(2 * keypoints, 2 * keypoints)
         self.features = 2 * keypoints
 
-    def forward(self, images: torch.Tensor, generator: torch.Generator | None = None):
+    def forward(
+        self, images: torch.Tensor, generator: torch.Generator | None = None, per_row: int = 1
+    ):
         """Features of ``images``; random crops drawn from ``generator`` when given
-        (training), the centre crop otherwise (acting)."""
+        (training), the centre crop otherwise (acting); ``per_row`` images per batch row
+        (:func:`crop`)."""
         if tuple(images.shape[-3:]) != self.image_shape:
             raise ValueError(
                 f"the camera encoder was built for images {self.image_shape} (H, W, C), "
                 f"got {tuple(images.shape[-3:])}"
             )
         x = images.movedim(-1, -3).float() / 255.0
-        x = crop(x, self.crop_shape, generator)
+        x = crop(x, self.crop_shape, generator, per_row)
         return torch.relu(self.out(self.pool(self.backbone(x))))

@@ -11,6 +11,7 @@ from tensordict.utils import NestedKey
 from imitrl import keys
 from imitrl.learners.flow.policy import FlowPolicy
 from imitrl.objectives.base import ImitationLoss
+from imitrl.system.ranks import masked_mean, rows_drawn
 
 __all__ = ["FlowMatchingLoss"]
 
@@ -59,8 +60,9 @@ class FlowMatchingLoss(ImitationLoss):
                 f"per row, got {label.dtype} {tuple(label.shape)}"
             )
         x1 = self.policy.normalize(label.reshape(n, d))
-        x0 = torch.randn(n, d, generator=self.generator).to(x1.device)  # CPU draws: any device
-        t = torch.rand(n, 1, generator=self.generator).to(x1.device)
+        g = self.generator  # CPU draws (any device), per row: imitrl.system.ranks.rows_drawn
+        x0 = rows_drawn(lambda m: torch.randn(m, d, generator=g), n).to(x1.device)
+        t = rows_drawn(lambda m: torch.rand(m, 1, generator=g), n).to(x1.device)
         v = self.policy.velocity((1 - t) * x0 + t * x1, obs, t)
         err = (v - (x1 - x0)) ** 2  # [N, d]
         if self.tensor_keys.pad is None:
@@ -68,5 +70,5 @@ class FlowMatchingLoss(ImitationLoss):
         else:  # [N, H] -> [N, H * m]: padded entries of a chunk carry no weight
             keep = (~tensordict.get(self.tensor_keys.pad)).float()
             keep = keep.repeat_interleave(d // keep.shape[-1], dim=-1)
-            loss = (err * keep).sum() / keep.sum().clamp_min(1.0)
+            loss = masked_mean(err, keep)  # over the global batch (data-parallel)
         return TensorDict({"loss_flow": loss}, batch_size=[])

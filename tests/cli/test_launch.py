@@ -1,0 +1,114 @@
+"""``--nproc N``: ``imitrl bc`` and ``imitrl dagger`` in N data-parallel ranks from the
+command line, launched as torchrun launches them (issue 45): the same numbers as one
+process at N times the batch, from expert demonstrations and from a LeRobot dataset; a
+rank killed mid-fit ends the run at once with one line naming it; bad rank counts are
+one line each."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+TINY = ["--env", "Pendulum-v1", "--demos", "1", "--steps", "40", "--eval-episodes", "2",
+        "--max-episode-steps", "40", "--no-progress"]  # fmt: skip
+
+
+def imitrl(*argv: str, timeout: float = 300) -> subprocess.CompletedProcess:
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    cmd = [sys.executable, "-m", "imitrl", *argv]
+    return subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=timeout)
+
+
+def _results(out: Path) -> dict:
+    return json.loads((out / "results.json").read_text())
+
+
+@pytest.mark.parametrize("command", ["bc", "dagger"])
+def test_two_ranks_give_one_process_at_twice_the_batch(command, tmp_path):
+    extra = ["--rounds", "2", "--episodes-per-round", "1"] if command == "dagger" else []
+    two = imitrl(command, *TINY, *extra, "--nproc", "2", "--batch-size", "8",
+                 "--out", str(tmp_path / "two"))  # fmt: skip
+    assert two.returncode == 0, two.stderr
+    assert two.stdout.count("wrote ") == 1  # rank 0 alone reports
+    one = imitrl(command, *TINY, *extra, "--batch-size", "16", "--out", str(tmp_path / "one"))
+    assert one.returncode == 0, one.stderr
+    a, b = _results(tmp_path / "two"), _results(tmp_path / "one")
+    assert a["final_loss"] == pytest.approx(b["final_loss"], rel=1e-5)
+    assert a["learner"]["mean_return"] == pytest.approx(b["learner"]["mean_return"], rel=1e-4)
+    assert json.loads((tmp_path / "two" / "config.json").read_text())["config"]["nproc"] == 2
+
+
+def test_two_ranks_train_on_a_lerobot_dataset(tmp_path):
+    pytest.importorskip("pyarrow")
+    from imitrl.datasets import save_lerobot
+    from imitrl.envs import make_env
+    from imitrl.experts import pendulum_expert
+    from imitrl.runtime import rollout_episodes
+
+    env = make_env("Pendulum-v1", seed=3, max_episode_steps=40)
+    root = save_lerobot(rollout_episodes(env, pendulum_expert(), 2), tmp_path / "d", fps=20)
+    done = imitrl("bc", "--env", "none", "--dataset", str(root), "--nproc", "2", "--steps",
+                  "30", "--batch-size", "8", "--out", str(tmp_path / "run"), "--no-progress")  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    assert _results(tmp_path / "run")["demonstrations"]["rows"] == 80
+
+
+def test_a_rank_killed_mid_fit_ends_the_run_naming_it(tmp_path):
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    argv = [sys.executable, "-m", "imitrl", "bc", *TINY[:-1], "--steps", "10000000",
+            "--nproc", "2", "--out", str(tmp_path / "run"), "--no-progress"]  # fmt: skip
+    proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env=env)  # fmt: skip
+    try:
+        rank = _wait_for_rank(proc.pid, 1, deadline=120)
+        os.kill(rank, signal.SIGKILL)
+        start = time.monotonic()
+        _, stderr = proc.communicate(timeout=60)  # the others stop within a minute
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 1 and time.monotonic() - start < 60
+    assert "rank 1 (killed by SIGKILL) ended the run" in stderr, stderr
+    assert not (tmp_path / "run").exists()  # nothing half-written in --out
+
+
+def _wait_for_rank(parent: int, local_rank: int, deadline: float) -> int:
+    """The pid of rank ``local_rank`` (the launcher's child with that ``LOCAL_RANK``)."""
+    end = time.monotonic() + deadline
+    while time.monotonic() < end:
+        ranks = []
+        for pid in os.listdir("/proc"):
+            if pid.isdigit():
+                try:
+                    stat = Path(f"/proc/{pid}/stat").read_text().split()
+                    environ = Path(f"/proc/{pid}/environ").read_bytes().split(b"\0")
+                except OSError:
+                    continue
+                if int(stat[3]) == parent and f"LOCAL_RANK={local_rank}".encode() in environ:
+                    ranks.append(int(pid))
+        if ranks:
+            time.sleep(8)  # into the fit: past imports, the demonstrations and the first steps
+            return ranks[0]
+        time.sleep(0.5)
+    raise AssertionError("the ranks did not start")
+
+
+@pytest.mark.parametrize(
+    "argv, said",
+    [
+        (["bc", "--nproc", "0"], "--nproc must be an integer >= 1, got 0"),
+        (["bc", "--nproc", "4096"], "--nproc must be an integer"),
+        (["dagger", "--nproc", "2", "--workers", "2"], "give one"),
+        (["bc", "--nproc", str(len(os.sched_getaffinity(0)) + 1)], "more CPU ranks than the"),
+    ],
+)
+def test_bad_rank_counts_are_one_line(argv, said):
+    done = imitrl(*argv, timeout=120)
+    assert done.returncode == 2 and said in done.stderr and "Traceback" not in done.stderr
