@@ -60,6 +60,7 @@ BC = {
     "--eval-episodes": ["0", "-1", "100001", "1000000000000", "1e12"],
     "--eval-seed": SEEDS,
     "--seed": SEEDS,
+    "--nproc": ["0", "-1", "1025", HUGE],
     **THREADS,
 }
 DAGGER = {

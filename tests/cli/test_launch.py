@@ -67,19 +67,19 @@ def test_a_rank_killed_mid_fit_ends_the_run_naming_it(tmp_path):
     proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             env=env)  # fmt: skip
     try:
-        rank = _wait_for_rank(proc.pid, 1, deadline=120)
+        rank = _wait_for_rank(proc.pid, 1, deadline=300)
         os.kill(rank, signal.SIGKILL)
         start = time.monotonic()
         _, stderr = proc.communicate(timeout=60)  # the others stop within a minute
     finally:
         if proc.poll() is None:
-            proc.kill()
+            proc.kill()  # the ranks end with their launcher (they watch it)
     assert proc.returncode == 1 and time.monotonic() - start < 60
     assert "rank 1 (killed by SIGKILL) ended the run" in stderr, stderr
     assert not (tmp_path / "run").exists()  # nothing half-written in --out
 
 
-def _wait_for_rank(parent: int, local_rank: int, deadline: float) -> int:
+def _wait_for_rank(parent: int, local_rank: int, deadline: float, settle: float = 6) -> int:
     """The pid of rank ``local_rank`` (the launcher's child with that ``LOCAL_RANK``)."""
     end = time.monotonic() + deadline
     while time.monotonic() < end:
@@ -94,7 +94,7 @@ def _wait_for_rank(parent: int, local_rank: int, deadline: float) -> int:
                 if int(stat[3]) == parent and f"LOCAL_RANK={local_rank}".encode() in environ:
                     ranks.append(int(pid))
         if ranks:
-            time.sleep(8)  # into the fit: past imports, the demonstrations and the first steps
+            time.sleep(settle)  # into the fit: past imports, the demonstrations, first steps
             return ranks[0]
         time.sleep(0.5)
     raise AssertionError("the ranks did not start")
@@ -110,5 +110,59 @@ def _wait_for_rank(parent: int, local_rank: int, deadline: float) -> int:
     ],
 )
 def test_bad_rank_counts_are_one_line(argv, said):
-    done = imitrl(*argv, timeout=120)
-    assert done.returncode == 2 and said in done.stderr and "Traceback" not in done.stderr
+    import contextlib
+    import io
+
+    from imitrl.cli import main
+
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+        status = main(argv)
+    assert status == 2 and said in err.getvalue() and "Traceback" not in err.getvalue()
+
+
+DAGGER = [*TINY, "--rounds", "1", "--episodes-per-round", "1"]
+
+
+def test_a_dagger_run_resumes_at_another_world_size(tmp_path):
+    """Saved at 2 ranks (batch 8 each), resumed at 1 (batch 16), and the reverse: both
+    equal the run never interrupted, at 16 in one process."""
+    whole = imitrl("dagger", *DAGGER[:-3], "2", "--episodes-per-round", "1", "--batch-size",
+                   "16", "--out", str(tmp_path / "whole"))  # fmt: skip
+    assert whole.returncode == 0, whole.stderr
+    want = _results(tmp_path / "whole")
+    for first, then in ((["--nproc", "2", "--batch-size", "8"], ["--batch-size", "16"]),
+                        (["--batch-size", "16"], ["--nproc", "2", "--batch-size", "8"])):  # fmt: skip
+        out = tmp_path / f"run{len(first)}"
+        done = imitrl("dagger", *DAGGER, *first, "--out", str(out))  # round 0 and its episodes
+        assert done.returncode == 0, done.stderr
+        more = imitrl("dagger", *DAGGER[:-3], "2", "--episodes-per-round", "1", *then,
+                      "--resume", "--out", str(out))  # fmt: skip
+        assert more.returncode == 0, more.stderr
+        got = _results(out)
+        assert got["final_loss"] == pytest.approx(want["final_loss"], rel=1e-5)
+        assert [r["rows_trained"] for r in got["rounds"]] == [
+            r["rows_trained"] for r in want["rounds"]
+        ]
+    # a world size that asks for another global batch: one line saying what to give
+    wrong = imitrl("dagger", *DAGGER[:-3], "2", "--episodes-per-round", "1", "--nproc", "2",
+                   "--batch-size", "16", "--resume", "--out", str(tmp_path / "run4"))  # fmt: skip
+    assert wrong.returncode == 2, wrong.stderr
+    assert "global batch of 16 rows" in wrong.stderr and "give --batch-size 8" in wrong.stderr
+
+
+def test_ranks_end_with_a_launcher_killed_outright(tmp_path):
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    argv = [sys.executable, "-m", "imitrl", "bc", *TINY[:-1], "--steps", "10000000",
+            "--nproc", "2", "--out", str(tmp_path / "run"), "--no-progress"]  # fmt: skip
+    proc = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
+    ranks = [_wait_for_rank(proc.pid, k, deadline=300, settle=s) for k, s in ((0, 0), (1, 4))]
+    proc.kill()
+    proc.wait()
+    end = time.monotonic() + 30
+    while time.monotonic() < end and any(Path(f"/proc/{r}").exists() for r in ranks):
+        time.sleep(0.5)
+    alive = [r for r in ranks if Path(f"/proc/{r}").exists()]
+    for r in alive:
+        os.kill(r, signal.SIGKILL)
+    assert not alive, "ranks outlived their launcher"

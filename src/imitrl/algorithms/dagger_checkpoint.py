@@ -28,6 +28,7 @@ import torch
 from imitrl.algorithms.bc import BCResult
 from imitrl.data.buffer import DemonstrationBuffer
 from imitrl.learners.learner import Learner
+from imitrl.system.ranks import rank_and_world
 
 __all__ = ["FORMAT", "RunState", "generator_state", "load_run", "save_run", "set_generator_state"]
 
@@ -48,16 +49,42 @@ def set_generator_state(generator: torch.Generator | None, state: list[int] | No
 
 
 def config_summary(config) -> dict[str, Any]:
-    """What a resumed run must share with the saved one (``rounds`` may grow)."""
+    """What a resumed run must share with the saved one (``rounds`` may grow). The fits'
+    batch is the global one (each rank's times the ranks: :mod:`imitrl.system.ranks`),
+    so a run saved at N ranks resumes at any M whose ranks hold that batch between them."""
     beta = config.beta
+    bc = dataclasses.asdict(config.bc)
+    if bc["batch_size"] is not None:
+        bc["batch_size"] *= rank_and_world()[1]
     return {
         "episodes_per_round": config.episodes_per_round,
         "warm_start": config.warm_start,
         "seed": config.seed,
-        "bc": dataclasses.asdict(config.bc),
+        "bc": bc,
         # a dataclass schedule by value; any other callable by its type only
         "beta": repr(beta) if dataclasses.is_dataclass(beta) else type(beta).__qualname__,
     }
+
+
+def _refuse_batch(path: Path, saved: dict, mine: dict) -> None:
+    """ValueError naming the batch when only the global batch differs: the saved run's
+    global batch, and what this world size needs (or that it cannot split it)."""
+    theirs, ours = saved.get("bc", {}), mine["bc"]
+    if not isinstance(theirs, dict) or {**theirs, "batch_size": None} != {
+        **ours,
+        "batch_size": None,
+    }:
+        return
+    total, world = theirs.get("batch_size"), rank_and_world()[1]
+    if not isinstance(total, int) or total <= 0:
+        return
+    if total % world:
+        need = f"{world} ranks cannot split it evenly: resume at a world size dividing it"
+    else:
+        need = f"at {world} rank(s) give --batch-size {total // world}"
+    raise ValueError(
+        f"{path} was saved with a global batch of {total} rows (--batch-size times --nproc); {need}"
+    )
 
 
 def _record_json(record) -> dict[str, Any]:
@@ -170,6 +197,7 @@ def load_run(
             )
     mine = config_summary(config)
     if state["config"] != mine:
+        _refuse_batch(path, state["config"], mine)
         diff = sorted(k for k in mine if mine[k] != state["config"].get(k))
         raise ValueError(f"{path} was saved by a run with another config (differs in {diff})")
     if not 0 <= state["next_round"] <= config.rounds:

@@ -362,6 +362,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     except RankLostError as err:  # --nproc: a rank died, the others were stopped
         print(f"imitrl {args.command}: {err}", file=sys.stderr)
         return 1
+    except RuntimeError as err:  # a rank whose peer died: the collective fails here
+        if not in_rank():
+            raise
+        line = str(err).strip().splitlines()[0][:200]
+        rank = os.environ.get("RANK")
+        print(f"imitrl {args.command}: rank {rank} lost a peer ({line})", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:  # outputs are written whole or not at all (see each job)
         print(f"imitrl {args.command}: interrupted", file=sys.stderr)
         return 130

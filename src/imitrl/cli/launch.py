@@ -8,7 +8,8 @@ launcher sets: gloo on CPUs, NCCL on GPUs) and runs the command
 as one rank (:mod:`imitrl.system.ranks`: every rank plays the same episodes and fits its
 share of every batch; rank 0 alone writes ``--out``, evaluates and reports). A rank that
 dies takes the others down with it (the launcher stops them; ``max_restarts=0``), and the
-command ends with one line naming it. On a cluster, start the same command under
+command ends with one line naming it; a launcher killed outright takes its ranks with it
+(each watches its parent). On a cluster, start the same command under
 ``torchrun --nnodes ... --nproc-per-node ...`` instead: it finds ``RANK`` set and runs as
 that rank (``--nproc`` is then each node's count, read by torchrun, not by imitrl).
 """
@@ -18,7 +19,9 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import signal
 import sys
+import time
 import uuid
 from collections.abc import Iterator, Sequence
 
@@ -59,11 +62,26 @@ def launch(nproc: int, argv: Sequence[str]) -> int:
         codes = {failure.exitcode for failure in err.failures.values()}
         if codes == {2}:  # bad input found by the ranks (a dataset for another env)
             return 2
-        lost = ", ".join(
-            f"rank {rank} ({_how(failure.exitcode)})" for rank, failure in err.failures.items()
-        )
-        raise RankLostError(f"{lost} ended the run; the other ranks were stopped") from None
+        rank, exitcode = _lost(err)
+        raise RankLostError(
+            f"rank {rank} ({_how(exitcode)}) ended the run; the other ranks were stopped"
+        ) from None
     return 0
+
+
+def _lost(err) -> tuple[int, int]:
+    """The rank a failed run lost first, and its exit code: one killed by a signal other
+    than the launcher's SIGTERM (its peers then fail for want of it, or are stopped),
+    else the earliest failure."""
+    killed = [
+        (rank, f.exitcode)
+        for rank, f in sorted(err.failures.items())
+        if f.exitcode < 0 and f.exitcode != -signal.SIGTERM
+    ]
+    if killed:
+        return killed[0]
+    rank, first = err.get_first_failure()
+    return rank, first.exitcode
 
 
 class RankLostError(RuntimeError):
@@ -73,8 +91,6 @@ class RankLostError(RuntimeError):
 def _how(exitcode: int) -> str:
     """``-9`` -> ``"killed by SIGKILL"``, ``1`` -> ``"exit status 1"``."""
     if exitcode < 0:
-        import signal
-
         try:
             return f"killed by {signal.Signals(-exitcode).name}"
         except ValueError:
@@ -92,11 +108,33 @@ def process_group(backend: str) -> Iterator[None]:
 
     if backend == "nccl":
         torch.cuda.set_device(int(os.environ.get("LOCAL_RANK", "0")))
+    _end_with_launcher()
     dist.init_process_group(backend)
     try:
         yield
     finally:
         dist.destroy_process_group()
+
+
+LAUNCHER_POLL_S = 1.0
+"""how often a rank looks whether its launcher is still there"""
+
+
+def _end_with_launcher() -> None:
+    """End this rank when the process that launched it is gone (killed outright, it
+    cannot stop its ranks; they would fit on alone, holding the cores): a daemon thread
+    compares the parent's pid every :data:`LAUNCHER_POLL_S` seconds."""
+    import threading
+
+    launcher = os.getppid()
+
+    def watch() -> None:
+        while os.getppid() == launcher:
+            time.sleep(LAUNCHER_POLL_S)
+        print(f"imitrl: rank {os.environ.get('RANK')}: the launcher is gone", file=sys.stderr)
+        os.kill(os.getpid(), signal.SIGTERM)  # the whole process, whatever thread it is in
+
+    threading.Thread(target=watch, name="imitrl-launcher-watch", daemon=True).start()
 
 
 def quiet() -> bool:

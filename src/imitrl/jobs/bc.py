@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import shutil
 import tempfile
 import time
 from collections.abc import Callable, Iterator
@@ -313,18 +314,24 @@ def run_bc(config: BCJob) -> dict:
 
 
 JobT = TypeVar("JobT", bound=BCJob)
+RUN_CHECKPOINT = "run"
+"""the folder of ``--out`` where ``imitrl dagger`` keeps its resumable checkpoint"""
 
 
 @contextlib.contextmanager
 def run_folder(config: BCJob | GAILJob, *, resume: bool = False) -> Iterator[Path]:
     """Where the run writes: ``--out`` claimed (:func:`imitrl.fs.run_folder.claimed`'s
     rule); on a data-parallel rank other than 0 (``--nproc``) a scratch folder that
-    nothing keeps: rank 0 alone writes ``--out``."""
+    nothing keeps: rank 0 alone writes ``--out`` (``resume``: the scratch starts with a
+    copy of its DAgger checkpoint, :data:`RUN_CHECKPOINT`, which every rank resumes)."""
     if rank_and_world()[0] == 0:
         with claimed(config.out, overwrite=config.overwrite, resume=resume) as folder:
             yield folder
     else:
         with tempfile.TemporaryDirectory(prefix="imitrl-rank-") as scratch:
+            saved = Path(config.out) / RUN_CHECKPOINT
+            if resume and saved.is_dir():  # rank 0's checkpoint, read as every rank's
+                shutil.copytree(saved, Path(scratch) / RUN_CHECKPOINT, symlinks=True)
             yield Path(scratch)
 
 

@@ -32,6 +32,7 @@ from imitrl.algorithms import Constant, DAggerConfig, EnvSource, dagger
 from imitrl.algorithms.ray_source import RaySource
 from imitrl.envs import make_env
 from imitrl.jobs.bc import (
+    RUN_CHECKPOINT,
     Setup,
     bc_config,
     demonstrations,
@@ -64,7 +65,7 @@ def run_dagger(config: DAggerJob) -> dict:
 
 def _run_dagger(config: DAggerJob, folder: Path) -> dict:
     start = time.perf_counter()
-    checkpoint = folder / "run"
+    checkpoint = folder / RUN_CHECKPOINT
     setup = prepare(config, "dagger", folder, keep_logs=config.resume)
     try:
         config = dataclasses.replace(config, loss=setup.loss)  # recorded as resolved
