@@ -6,7 +6,7 @@ same synthetic rows with the same global batch, as one process and as two gloo r
 each holding half of every batch:
 
 * ``cnn``: the camera learner, ``build("for_env", ...)``'s Nature CNN on 84x84x3 uint8
-  images (2 bounded actions, MSE), global batch 64;
+  images (2 bounded actions, MSE), global batch 256 (benchmarks/gpu.py's);
 * ``mlp``: ``build("mse", ...)``'s 64-64 MLP on 17-d states (6 bounded actions), global
   batch 256: a step cheaper than an all-reduce.
 
@@ -42,7 +42,7 @@ import _report
 
 NAME = "scale_train"
 NETWORKS = ("cnn", "mlp")
-GLOBAL_BATCH = {"cnn": 64, "mlp": 256}
+GLOBAL_BATCH = {"cnn": 256, "mlp": 256}
 
 
 @dataclass(frozen=True)
@@ -164,7 +164,7 @@ def run(cfg: Config, say) -> tuple[list[dict], dict]:
     for network in NETWORKS:
         last: dict = {}
         for repeat in range(cfg.repeats):
-            for ranks in ((1, 2) if repeat % 2 == 0 else (2, 1)):
+            for ranks in (1, 2) if repeat % 2 == 0 else (2, 1):
                 m = _one(network, ranks, cfg)
                 last[ranks] = m["params"]
                 sps = GLOBAL_BATCH[network] * cfg.steps / m["seconds"]
