@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import sys
+from pathlib import Path
+
 import pytest
 import torch
 
@@ -20,3 +23,21 @@ def lake() -> TabularMDP:
 def expert_table(lake: TabularMDP) -> torch.Tensor:
     """``[16]`` value-iteration greedy policy of the slippery lake."""
     return greedy(lake.backup(value_iteration(lake, 1000)[-1]))
+
+
+EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
+"""the user-side package ``mypkg`` (experts, a registered loss) the README's examples import"""
+
+
+@pytest.fixture
+def mypkg(monkeypatch):
+    """``examples/`` importable for the test; afterwards ``mypkg`` forgotten and the loss
+    it registers (``l1_l2``) unregistered, as before."""
+    from imitrl.learners import registry
+
+    monkeypatch.syspath_prepend(str(EXAMPLES))
+    yield
+    for name in [m for m in sys.modules if m == "mypkg" or m.startswith("mypkg.")]:
+        del sys.modules[name]
+    if "l1_l2" in registry.names():
+        registry.unregister("l1_l2")

@@ -4,22 +4,8 @@ built-in expert covers, with the user-written expert module in examples/mypkg.""
 from __future__ import annotations
 
 import json
-import sys
-from pathlib import Path
-
-import pytest
 
 from imitrl.cli import main
-
-EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
-
-
-@pytest.fixture
-def mypkg(monkeypatch):
-    monkeypatch.syspath_prepend(str(EXAMPLES))
-    yield
-    for name in [m for m in sys.modules if m == "mypkg" or m.startswith("mypkg.")]:
-        del sys.modules[name]
 
 
 def test_dagger_from_the_cli_with_a_user_expert_on_mountain_car(mypkg, tmp_path, capsys):

@@ -11,25 +11,13 @@ import json
 import os
 import subprocess
 import sys
-from pathlib import Path
 
 import pytest
 
 from imitrl.cli import main
-from imitrl.learners import registry
+from tests.conftest import EXAMPLES
 
-EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
 LOSS = "mypkg.losses:l1_l2"
-
-
-@pytest.fixture
-def mypkg(monkeypatch):
-    monkeypatch.syspath_prepend(str(EXAMPLES))
-    yield
-    for name in [m for m in sys.modules if m == "mypkg" or m.startswith("mypkg.")]:
-        del sys.modules[name]
-    if "l1_l2" in registry.names():
-        registry.unregister("l1_l2")  # as before the import registered it
 
 
 def run(argv: list[str]) -> tuple[int, str, str]:

@@ -68,6 +68,7 @@ __all__ = [
     "demonstrations",
     "evaluate_expert",
     "evaluate_learner",
+    "evaluate_policy",
     "evaluate_random",
     "evaluating",
     "finish",
@@ -221,49 +222,41 @@ def bc_config(config: BCJob, setup: Setup) -> BCConfig:
     return bc if setup.recipe is None else setup.recipe(bc)
 
 
-def evaluate_learner(config: BCJob, learner: Learner) -> dict:
-    """The learner's evaluation, acting as it says (``learner.exploration``)."""
+def evaluate_policy(
+    config: BCJob, policy: TensorDictModuleBase, exploration: ExplorationType
+) -> dict:
+    """``policy``'s evaluation on the run's ``--eval-episodes`` initial states (seed
+    ``--eval-seed``, the env as the flags make it): every policy of a run plays the same
+    states (:func:`~imitrl.jobs.evaluate.evaluate_returns`)."""
     return evaluate_returns(
         config.played_env(),
-        learner.policy,
-        exploration=learner.exploration,
+        policy,
+        exploration=exploration,
         episodes=config.eval_episodes,
         seed=config.eval_seed,
         max_episode_steps=config.max_episode_steps,
         env_kwargs=dict(config.env_kwargs),
         progress=config.progress,
     )
+
+
+def evaluate_learner(config: BCJob, learner: Learner) -> dict:
+    """The learner's evaluation, acting as it says (``learner.exploration``)."""
+    return evaluate_policy(config, learner.policy, learner.exploration)
 
 
 def evaluate_expert(config: BCJob, setup: Setup) -> dict | None:
     """The expert's greedy evaluation on the learner's initial states (None without one)."""
     if setup.expert is None:
         return None
-    return evaluate_returns(
-        config.played_env(),
-        as_actor(setup.expert),
-        exploration=DETERMINISTIC,
-        episodes=config.eval_episodes,
-        seed=config.eval_seed,
-        max_episode_steps=config.max_episode_steps,
-        env_kwargs=dict(config.env_kwargs),
-        progress=config.progress,
-    )
+    return evaluate_policy(config, as_actor(setup.expert), DETERMINISTIC)
 
 
 def evaluate_random(config: BCJob, setup: Setup) -> dict:
     """Uniform random actions' evaluation on the learner's initial states
     (:class:`~imitrl.policies.random_actions.RandomActions`, seeded by ``--eval-seed``)."""
-    return evaluate_returns(
-        config.played_env(),
-        RandomActions(setup.task.env_specs()[1]),
-        exploration=ExplorationType.RANDOM,
-        episodes=config.eval_episodes,
-        seed=config.eval_seed,
-        max_episode_steps=config.max_episode_steps,
-        env_kwargs=dict(config.env_kwargs),
-        progress=config.progress,
-    )
+    actions = RandomActions(setup.task.env_specs()[1])
+    return evaluate_policy(config, actions, ExplorationType.RANDOM)
 
 
 def log_evaluation(logger: Logger, round_index: int, ev: dict, expert: dict | None) -> None:
