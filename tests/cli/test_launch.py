@@ -159,10 +159,18 @@ def test_ranks_end_with_a_launcher_killed_outright(tmp_path):
     ranks = [_wait_for_rank(proc.pid, k, deadline=300, settle=s) for k, s in ((0, 0), (1, 4))]
     proc.kill()
     proc.wait()
-    end = time.monotonic() + 30
-    while time.monotonic() < end and any(Path(f"/proc/{r}").exists() for r in ranks):
+    end = time.monotonic() + 60
+    while time.monotonic() < end and any(map(_running, ranks)):
         time.sleep(0.5)
-    alive = [r for r in ranks if Path(f"/proc/{r}").exists()]
+    alive = [r for r in ranks if _running(r)]
     for r in alive:
         os.kill(r, signal.SIGKILL)
-    assert not alive, "ranks outlived their launcher"
+    assert not alive, f"ranks outlived their launcher: {alive} of {ranks}"
+
+
+def _running(pid: int) -> bool:
+    """Whether ``pid`` is a live process (a zombie, ended but not yet reaped, is not)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except (OSError, IndexError):
+        return False

@@ -70,11 +70,13 @@ def _refuse_batch(path: Path, saved: dict, mine: dict) -> None:
     """ValueError naming the batch when only the global batch differs: the saved run's
     global batch, and what this world size needs (or that it cannot split it)."""
     theirs, ours = saved.get("bc", {}), mine["bc"]
-    if not isinstance(theirs, dict) or {**theirs, "batch_size": None} != {
-        **ours,
-        "batch_size": None,
-    }:
+    if not isinstance(theirs, dict) or theirs.get("batch_size") == ours["batch_size"]:
         return
+    if {**saved, "bc": {**theirs, "batch_size": None}} != {
+        **mine,
+        "bc": {**ours, "batch_size": None},
+    }:
+        return  # something besides the batch differs: the general message names it
     total, world = theirs.get("batch_size"), rank_and_world()[1]
     if not isinstance(total, int) or total <= 0:
         return
