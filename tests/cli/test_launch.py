@@ -151,6 +151,7 @@ def test_a_dagger_run_resumes_at_another_world_size(tmp_path):
     assert "global batch of 16 rows" in wrong.stderr and "give --batch-size 8" in wrong.stderr
 
 
+@pytest.mark.slow  # 11 s of three processes; run it with -m slow (the watch is in every rank)
 def test_ranks_end_with_a_launcher_killed_outright(tmp_path):
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     argv = [sys.executable, "-m", "imitrl", "bc", *TINY[:-1], "--steps", "10000000",
