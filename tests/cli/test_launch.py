@@ -30,7 +30,10 @@ def _results(out: Path) -> dict:
     return json.loads((out / "results.json").read_text())
 
 
-@pytest.mark.parametrize("command", ["bc", "dagger"])
+@pytest.mark.parametrize(
+    "command",
+    ["bc", pytest.param("dagger", marks=pytest.mark.slow)],  # dagger: -m slow
+)
 def test_two_ranks_give_one_process_at_twice_the_batch(command, tmp_path):
     extra = ["--rounds", "2", "--episodes-per-round", "1"] if command == "dagger" else []
     two = imitrl(command, *TINY, *extra, "--nproc", "2", "--batch-size", "8",
@@ -45,6 +48,7 @@ def test_two_ranks_give_one_process_at_twice_the_batch(command, tmp_path):
     assert json.loads((tmp_path / "two" / "config.json").read_text())["config"]["nproc"] == 2
 
 
+@pytest.mark.slow  # several launches of 3 processes on 2 cores: run with -m slow (they starve the default run's race tests)
 def test_two_ranks_train_on_a_lerobot_dataset(tmp_path):
     pytest.importorskip("pyarrow")
     from imitrl.datasets import save_lerobot
@@ -124,6 +128,7 @@ def test_bad_rank_counts_are_one_line(argv, said):
 DAGGER = [*TINY, "--rounds", "1", "--episodes-per-round", "1"]
 
 
+@pytest.mark.slow  # several launches of 3 processes on 2 cores: run with -m slow (they starve the default run's race tests)
 def test_a_dagger_run_resumes_at_another_world_size(tmp_path):
     """Saved at 2 ranks (batch 8 each), resumed at 1 (batch 16), and the reverse: both
     equal the run never interrupted, at 16 in one process."""
