@@ -293,7 +293,10 @@ def test_a_checkpoint_replaced_while_it_is_read_is_never_called_damaged(tmp_path
           f"replaced while reading, {len(damaged)} damaged, {mixed} mixed")  # fmt: skip
     assert exchanges >= 50, "the writer barely ran: the test saw no race"
     assert damaged == [] and mixed == 0, damaged[:3]
-    assert loads - replaced >= loads / 2  # most loads read one checkpoint whole
+    # liveness, not safety: a quarter of the loads read one checkpoint whole (a run's load
+    # builds a learner, ~30 ms, against an exchange every ~3 ms; on a busy machine a third
+    # and more of them overlap one: 105 of 300 at load 4, more in a full run)
+    assert loads - replaced >= loads / 4
 
 
 # ---------------------------------------- finding 7: one clear line, never a traceback
