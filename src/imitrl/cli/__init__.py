@@ -311,10 +311,6 @@ def _backend(device: str) -> str:
     return "nccl" if resolve_device(device).type == "cuda" else "gloo"
 
 
-def _nothing() -> contextlib.AbstractContextManager:
-    return contextlib.nullcontext()
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the ``imitrl`` command; returns the exit status (2 on bad input).
 
@@ -346,7 +342,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             nproc = getattr(config, "nproc", 1)
             if nproc > 1 and not in_rank():  # N ranks of this command; this one waits
                 return launch(nproc, argv)
-            with process_group(_backend(config.device)) if in_rank() else _nothing():
+            with process_group(_backend(config.device)) if in_rank() else contextlib.nullcontext():
                 results = run(config)
     except (ValueError, ImportError) as err:  # bad flags, unknown names, missing extras
         if not quiet():  # --nproc: rank 0 names it, once
