@@ -95,6 +95,7 @@ GAIL = {
     "--eval-seed": SEEDS,
     "--eval-every": ["-1", "2.5"],
     "--seed": SEEDS,
+    "--nproc": ["0", "-1", "1025", HUGE],
     **THREADS,
 }
 AIRL = {**GAIL, "--entropy-weight": ["-1", "nan", "inf"]}

@@ -48,6 +48,20 @@ def test_two_ranks_give_one_process_at_twice_the_batch(command, tmp_path):
     assert json.loads((tmp_path / "two" / "config.json").read_text())["config"]["nproc"] == 2
 
 
+@pytest.mark.slow  # a launch of 3 processes on 2 cores: run with -m slow
+@pytest.mark.parametrize("command", ["gail", "airl"])
+def test_adversarial_imitation_on_two_ranks_counts_both_ranks_steps(command, tmp_path):
+    done = imitrl(command, "--env", "CartPole-v1", "--total-steps", "1024", "--rollout-steps",
+                  "256", "--num-envs", "2", "--eval-episodes", "2", "--eval-every", "2",
+                  "--nproc", "2", "--out", str(tmp_path / "run"), "--no-progress")  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.count("wrote ") == 1  # rank 0 alone reports
+    results = _results(tmp_path / "run")
+    assert results["env_steps"] == 1024  # 2 rounds of 2 ranks x 256 steps
+    assert [r["env_steps"] for r in results["rounds"]] == [512, 1024]
+    assert results["rounds"][1]["info"]["evaluation"] == results["learner"]
+
+
 @pytest.mark.slow  # several launches of 3 processes on 2 cores: run with -m slow (they starve the default run's race tests)
 def test_two_ranks_train_on_a_lerobot_dataset(tmp_path):
     pytest.importorskip("pyarrow")

@@ -306,7 +306,7 @@ def run_bc(config: BCJob) -> dict:
         return _run_bc(lead(config), folder)
 
 
-JobT = TypeVar("JobT", bound=BCJob)
+JobT = TypeVar("JobT", bound=BCJob | GAILJob)
 RUN_CHECKPOINT = "run"
 """the folder of ``--out`` where ``imitrl dagger`` keeps its resumable checkpoint"""
 

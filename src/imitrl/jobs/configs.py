@@ -144,6 +144,13 @@ class RunFlags:
     curves.png is drawn from are written in every case)"""
     progress: bool = True
     """progress bars on stderr"""
+    nproc: int = bounded(1, 1, MAX_NPROC)
+    """processes (ranks) the training runs on, data-parallel on torch.distributed (gloo
+    on CPUs, NCCL on GPUs; launched as torchrun does): every batch flag is each rank's
+    (bc's and dagger's --batch-size: one process at N times it gives the same parameters;
+    gail's and airl's --rollout-steps, --discriminator-batch and --minibatch-size, each
+    rank playing its own lanes), so the global batch is N times it: scale --lr with it,
+    or not; 1 = this process alone"""
 
     def played_env(self) -> str:
         """``--env``, for what plays in it (ValueError with ``--env none``)."""
@@ -171,6 +178,7 @@ class RunFlags:
         if self.logger not in LOGGERS:
             raise ValueError(f"--logger must be one of {', '.join(LOGGERS)}, got {self.logger!r}")
         _check_device(self.device)
+        check_nproc(self.nproc, self.device)
 
 
 @dataclass(frozen=True)
@@ -181,16 +189,10 @@ class BCJob(BCConfig, RunFlags):
     seed: int = bounded(0, 0, MAX_SEED)
     """seeds the env that plays the demonstrations, the learner's initialisation and
     the minibatch order"""
-    nproc: int = bounded(1, 1, MAX_NPROC)
-    """processes (ranks) the fits run on, data-parallel on torch.distributed (gloo on
-    CPUs, NCCL on GPUs; launched as torchrun does): --batch-size is each rank's, so the
-    global batch is N times it (scale --lr with it, or not: one process at that global
-    batch gives the same parameters); 1 = this process alone"""
 
     def __post_init__(self) -> None:
         self._check_run()
         BCConfig.__post_init__(self)
-        check_nproc(self.nproc, self.device)
 
     def fit(self) -> BCConfig:
         """The fit the flags describe (the library's :class:`BCConfig`)."""

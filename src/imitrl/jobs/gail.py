@@ -23,7 +23,10 @@ The default budget is 50 rounds of 2048 steps; a ``--total-steps`` that is not a
 multiple of ``--rollout-steps`` is rounded up to whole rounds (``env_steps`` in
 results.json says how many were taken). ``--num-envs N`` steps N copies of the env
 together (the policy batched over them, ``--rollout-steps / N`` steps each per round);
-a run's numbers depend on the seed and N.
+a run's numbers depend on the seed and N. ``--nproc N`` trains on N data-parallel ranks
+(:mod:`imitrl.algorithms.adversarial.loop`): each plays its own ``--num-envs`` lanes and
+``--rollout-steps`` a round, so a round is N times as many env steps and
+``--total-steps`` counts them all; rank 0 evaluates and writes ``--out``.
 """
 
 from __future__ import annotations
@@ -39,20 +42,23 @@ from imitrl.algorithms.adversarial import (
 from imitrl.algorithms.adversarial.absorbing import demonstrations_terminate
 from imitrl.algorithms.adversarial.transitions import NEXT_TERMINATED
 from imitrl.configs.adversarial import AIRLConfig
-from imitrl.fs.run_folder import claimed
 from imitrl.jobs.bc import (
     BCJob,
     Setup,
     demonstrations,
     evaluate_expert,
     evaluate_learner,
+    evaluating,
     finish,
+    lead,
     log_evaluation,
     prepare,
+    run_folder,
 )
 from imitrl.jobs.configs import AIRLJob, GAILJob
 from imitrl.jobs.evaluate import format_return
 from imitrl.learners import ActorCritic
+from imitrl.system.ranks import rank_and_world
 
 __all__ = ["AIRLJob", "GAILJob", "report", "run_airl", "run_gail"]
 
@@ -74,7 +80,7 @@ def _evaluator(config: GAILJob, bc_view: BCJob, setup: Setup, evaluations: list)
     ``evaluations`` and return the evaluation (the round's ``info`` in results.json)."""
 
     def on_round(k: int, learner: ActorCritic, env_steps: int) -> dict | None:
-        if config.eval_every == 0 or (k + 1) % config.eval_every:
+        if config.eval_every == 0 or (k + 1) % config.eval_every or not evaluating():
             return None
         ev = evaluate_learner(bc_view, learner)
         log_evaluation(setup.logger, env_steps, ev, None)
@@ -85,8 +91,8 @@ def _evaluator(config: GAILJob, bc_view: BCJob, setup: Setup, evaluations: list)
 
 
 def _run(config: GAILJob, name: str) -> dict:
-    with claimed(config.out, overwrite=config.overwrite) as folder:  # fs.run_folder's rule
-        return _train(config, name, folder)
+    with run_folder(config) as folder:  # fs.run_folder's rule; a scratch on ranks > 0
+        return _train(lead(config), name, folder)
 
 
 def _train(config: GAILJob, name: str, folder: Path) -> dict:
@@ -96,10 +102,13 @@ def _train(config: GAILJob, name: str, folder: Path) -> dict:
         loss = setup.loss  # --loss default: a head with log pi (imitrl.learners.defaults)
         bc_view = config.bc_view(loss)
         learner = _learner(setup)
-        buffer = demonstrations(bc_view, setup)
-        expert_ev = evaluate_expert(bc_view, setup)
-        initial_ev = evaluate_learner(bc_view, learner)
-        log_evaluation(setup.logger, 0, initial_ev, expert_ev)  # env step 0
+        buffer = demonstrations(bc_view, setup)  # the same rows on every rank
+        _own_lanes(config, setup)
+        expert_ev = initial_ev = None
+        if evaluating():  # rank 0 evaluates and reports (--nproc)
+            expert_ev = evaluate_expert(bc_view, setup)
+            initial_ev = evaluate_learner(bc_view, learner)
+            log_evaluation(setup.logger, 0, initial_ev, expert_ev)  # env step 0
         evaluations: list[tuple[int, dict]] = []  # (env steps, evaluation)
         on_round = _evaluator(config, bc_view, setup, evaluations)
         absorbing = (
@@ -114,11 +123,11 @@ def _train(config: GAILJob, name: str, folder: Path) -> dict:
             assert isinstance(training, AIRLConfig)  # an AIRLJob's (run_airl)
             result, _ = airl(setup.playing(), learner, buffer, training, progress=progress,
                              logger=logger, on_round=on_round)  # fmt: skip
-        if not evaluations or evaluations[-1][0] != result.env_steps:  # the last round's
-            ev = evaluate_learner(bc_view, learner)
+        if evaluating() and (not evaluations or evaluations[-1][0] != result.env_steps):
+            ev = evaluate_learner(bc_view, learner)  # the last round's
             log_evaluation(setup.logger, result.env_steps, ev, None)
             evaluations.append((result.env_steps, ev))
-        learner_ev = evaluations[-1][1]
+        learner_ev = evaluations[-1][1] if evaluations else None
         results = {
             "command": name,
             "env": config.env,
@@ -141,6 +150,15 @@ def _train(config: GAILJob, name: str, folder: Path) -> dict:
         return results
     finally:
         setup.close()  # the env and the logger, whatever happened
+
+
+def _own_lanes(config: GAILJob, setup: Setup) -> None:
+    """On data-parallel ranks (``--nproc``), rank ``r > 0`` re-seeds its env's lanes
+    ``seed + r * num_envs + i`` after the demonstrations (which every rank plays alike):
+    each rank's generator plays its own episodes, rank 0's those of a single process."""
+    rank = rank_and_world()[0]
+    if rank > 0:
+        setup.playing().set_seed(config.seed + rank * config.num_envs)
 
 
 def _absorbing_why(config: GAILJob, buffer, absorbing: bool) -> str:
@@ -179,7 +197,8 @@ def report(results: dict) -> list[str]:
     ]
     if results["expert"] is not None:
         lines.append(format_return("expert", results["expert"]))
-    lines.append(format_return("initial learner", results["initial_learner"]))
-    lines.append(format_return("learner", results["learner"]))
+    for label, key in (("initial learner", "initial_learner"), ("learner", "learner")):
+        if results[key] is not None:  # None on ranks > 0 (--nproc): rank 0 evaluates
+            lines.append(format_return(label, results[key]))
     lines.append(f"wrote {Path(results['files']['curves']).parent}")
     return lines

@@ -14,6 +14,10 @@ one process at batch ``N B``: the same rows, the same per-row draws
 to float summation order. A loss whose draws happen inside TorchRL's own modules
 (``act``'s CVAE latent, ``diffusion``'s noise, an entropy estimate) draws on each rank
 from its own generator: a valid data-parallel fit, not bit for bit one process's.
+GAIL's and AIRL's discriminator and PPO steps average their gradients the same way
+(:meth:`DataParallel.mean`), each rank playing its own lanes
+(:mod:`imitrl.algorithms.adversarial.loop`); :func:`gathered` and :func:`summed` put
+every rank's rows or counts together.
 
 Why ``torch.distributed`` and not TorchRL's Ray learner backend or Ray Train: a fit is
 one loop over one buffer that every rank already holds; the collectives are all it
@@ -29,7 +33,16 @@ from contextvars import ContextVar
 
 import torch
 
-__all__ = ["DataParallel", "masked_mean", "rank_and_world", "rows_drawn", "sharded", "share"]
+__all__ = [
+    "DataParallel",
+    "gathered",
+    "masked_mean",
+    "rank_and_world",
+    "rows_drawn",
+    "sharded",
+    "share",
+    "summed",
+]
 
 _SHARD: ContextVar[tuple[int, int] | None] = ContextVar("imitrl_shard", default=None)
 """``(first, total)``: this rank's rows start at ``first`` of a global batch of ``total``"""
@@ -92,6 +105,30 @@ def share(total: int, rank: int, world: int) -> tuple[int, int]:
     return first, base + (1 if rank < extra else 0)
 
 
+def gathered(values: torch.Tensor) -> torch.Tensor:
+    """Every rank's ``values`` (the same shape on each), concatenated along the first
+    dimension in rank order (``values`` itself in a single process): what one process
+    holding every rank's rows holds."""
+    if rank_and_world()[1] == 1:
+        return values
+    import torch.distributed as dist
+
+    parts = [torch.empty_like(values) for _ in range(rank_and_world()[1])]
+    dist.all_gather(parts, values.contiguous())
+    return torch.cat(parts)
+
+
+def summed(values: torch.Tensor) -> torch.Tensor:
+    """The sum of ``values`` over the ranks (``values`` itself in a single process)."""
+    if rank_and_world()[1] == 1:
+        return values
+    import torch.distributed as dist
+
+    out = values.detach().clone()
+    dist.all_reduce(out)
+    return out
+
+
 class DataParallel:
     """One fit's gradients shared among the ranks of the default process group.
 
@@ -106,11 +143,11 @@ class DataParallel:
         self.params = params
 
     @classmethod
-    def of(cls, opt: torch.optim.Optimizer) -> DataParallel | None:
-        """The sharing of ``opt``'s parameters, or None in a single process."""
+    def of(cls, *opts: torch.optim.Optimizer) -> DataParallel | None:
+        """The sharing of the parameters ``opts`` step, or None in a single process."""
         if rank_and_world()[1] == 1:
             return None
-        return cls([p for group in opt.param_groups for p in group["params"]])
+        return cls([p for opt in opts for group in opt.param_groups for p in group["params"]])
 
     def reduce(self, loss: torch.Tensor, count: int, total: int) -> torch.Tensor:
         """Weight this rank's gradients and ``loss`` by ``count / total`` and sum them over
@@ -126,3 +163,8 @@ class DataParallel:
             g.copy_(flat[offset : offset + g.numel()].view_as(g))
             offset += g.numel()
         return flat[-1]
+
+    def mean(self, loss: torch.Tensor) -> torch.Tensor:
+        """:meth:`reduce` where every rank's ``loss`` is a mean over as many rows as any
+        other's: the ranks' gradients and losses averaged."""
+        return self.reduce(loss, 1, self.world)

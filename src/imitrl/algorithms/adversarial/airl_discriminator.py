@@ -46,6 +46,7 @@ from imitrl.algorithms.adversarial.transitions import (
 from imitrl.configs.adversarial import ADVERSARIAL_LR, DISCRIMINATOR_HIDDEN
 from imitrl.learners.actor_critic import ActorCritic
 from imitrl.policies.heads import mlp
+from imitrl.system.ranks import DataParallel
 
 __all__ = ["AIRLDiscriminator", "ShapedReward", "airl_reward", "shaped_f"]
 
@@ -182,6 +183,9 @@ class AIRLDiscriminator:
         out = self.loss(expert, policy)
         self.optimizer.zero_grad(set_to_none=True)
         out["loss"].backward()
+        dp = DataParallel.of(self.optimizer)  # ranks (--nproc): each holds B of N B pairs
+        if dp is not None:
+            out["loss"] = dp.mean(out["loss"])
         self.optimizer.step()
         with torch.no_grad():
             expert_acc = (self.logits(expert) > 0).float().mean()

@@ -51,6 +51,7 @@ from imitrl.learners.actor_critic import ActorCritic
 from imitrl.policies.heads import mlp
 from imitrl.policies.modules import Module
 from imitrl.runtime import paths
+from imitrl.system.ranks import DataParallel
 
 __all__ = ["GAILDiscriminator", "PairNetwork", "gail_reward"]
 
@@ -158,6 +159,9 @@ class GAILDiscriminator:
         loss, gp = gail_loss.loss_and_penalty(batch, sides)
         self._optimizer_call("zero_grad")()
         loss.backward()
+        dp = DataParallel.of(self.optimizer)  # ranks (--nproc): each holds B of N B pairs
+        if dp is not None:
+            loss = dp.mean(loss)
         self._optimizer_call("optimizer_step")()
         with torch.no_grad():  # each side's pairs through D after the step
             logits = gail_loss.logits(sides, DISCRIMINATOR_LOGIT)

@@ -28,6 +28,13 @@ Episode ends: TorchRL's GAE reads the env's ``("next", "terminated")`` and ``("n
 done)``): a terminated step is not bootstrapped (with absorbing states its reward
 carries the absorbing state's value instead), a truncated one (done, not terminated)
 bootstraps the critic's ``V(s')`` of the final observation, and the trace stops at both.
+
+On data-parallel ranks (``--nproc``) each rank holds its own round's batch (its own env
+lanes): GAE runs on it, the minibatch order is the same draw on every rank, and each
+step's gradients are averaged over the ranks (:class:`~imitrl.system.ranks.DataParallel`),
+so a step is one over ``N`` minibatches; advantages are normalised within each rank's
+minibatch, as the multi-GPU PPO of CleanRL does (a data-parallel PPO, not one process's
+bit for bit).
 """
 
 from __future__ import annotations
@@ -45,6 +52,7 @@ from imitrl import keys
 from imitrl.algorithms.adversarial.keys import LEARNED_REWARD
 from imitrl.learners.actor_critic import ActorCritic
 from imitrl.runtime import paths
+from imitrl.system.ranks import DataParallel
 
 __all__ = ["PPOGenerator"]
 
@@ -115,6 +123,7 @@ class PPOGenerator:
         optimizer_step = paths.optimizer_step(*opts)
         zero_grad = paths.zero_grad(*opts)  # both optimizers' zero_grad(set_to_none=True)
         ppo_loss = paths.ppo_loss(self.loss, batch)  # on the batch's tensors (same bits)
+        dp = DataParallel.of(*opts)  # None in a single process
         for _ in range(self.epochs):
             with torch.no_grad():
                 self.gae(batch)
@@ -128,6 +137,8 @@ class PPOGenerator:
                 total = cast(torch.Tensor, sum(losses.values()))
                 zero_grad()
                 total.backward()
+                if dp is not None:  # ranks: the mean over every rank's minibatch
+                    dp.mean(total)
                 paths.clip_grad_norm(self.params, self.max_grad_norm)
                 optimizer_step()
                 for k, v in losses.items():

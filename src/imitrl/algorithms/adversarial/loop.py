@@ -33,6 +33,17 @@ Every random draw comes from ``config.seed``: the torch global RNG (the policy's
 GAILLoss's penalty interpolations) is seeded with it inside ``fork_rng`` (the caller's
 global state is left untouched) and the minibatch draws use generators seeded from it;
 the env is seeded by whoever built it. Same seed, same env seed: same numbers.
+
+On ``N`` data-parallel ranks (``torch.distributed``, ``imitrl gail --nproc N``) every rank
+plays ``rollout_steps`` steps of its own lanes a round (its env seeded apart by the
+caller: ``imitrl gail`` gives rank ``r`` the seeds ``seed + r * lanes + i``) and holds the
+same demonstrations: a round is ``N * rollout_steps`` env steps, ``total_steps`` counts
+every rank's. The normaliser's warm-up statistics are every rank's steps; each
+discriminator step's expert rows are this rank's share of ``N * discriminator_batch``
+(drawn as one process draws them), its policy rows its own; the discriminator's and
+PPO's gradients are averaged over the ranks, so every rank holds the same networks
+after every step. The policy's samples are seeded ``seed * N + rank`` (``seed`` itself in
+a single process), the minibatch draws ``seed`` on every rank.
 """
 
 from __future__ import annotations
@@ -69,6 +80,7 @@ from imitrl.learners.actor_critic import ActorCritic
 from imitrl.runtime import paths
 from imitrl.runtime.loop import STEP_ROW_KEYS, Stepper, lane_count, play_steps
 from imitrl.system.device import acting
+from imitrl.system.ranks import gathered, rank_and_world, rows_drawn, sharded, summed
 
 __all__ = [
     "AdversarialResult",
@@ -188,9 +200,10 @@ def train_adversarial(
         expert = with_absorbing(expert)
     records: list[RoundRecord] = []
     bar = tqdm(total=config.total_steps, desc=name, disable=not progress, leave=False)
+    rank, world = rank_and_world()
     with torch.random.fork_rng(devices=[]):
-        torch.manual_seed(config.seed)
-        draws = torch.Generator().manual_seed(config.seed)
+        torch.manual_seed(config.seed * world + rank)  # each rank's own samples (ranks)
+        draws = torch.Generator().manual_seed(config.seed)  # in step on every rank
         steps = _fit_normalizer(env, learner, rows, config.normalizer_warmup)
         generator = PPOGenerator(
             learner, gamma=config.gamma, gae_lambda=config.gae_lambda,
@@ -199,12 +212,13 @@ def train_adversarial(
             max_grad_norm=config.max_grad_norm,
         )  # fmt: skip
         stepper, per_lane = _stepper(env, learner, config.rollout_steps)
-        rounds = -(-config.total_steps // (per_lane * lane_count(env)))  # whole rounds
+        per_round = per_lane * lane_count(env) * world  # every rank's lanes
+        rounds = -(-config.total_steps // per_round)  # whole rounds
         try:
             for k in range(rounds):
                 with set_exploration_type(ExplorationType.RANDOM), torch.no_grad():
                     batch = play_steps(stepper, per_lane).to(device)
-                steps += batch.numel()
+                steps += batch.numel() * world
                 with generator.learning_rates(1 - k / rounds if config.anneal_lr else 1.0):
                     record = _round(
                         k, steps, batch, expert, discriminator, generator, config, draws
@@ -214,7 +228,7 @@ def train_adversarial(
                     record.info = info if isinstance(info, dict) else None
                 records.append(record)
                 _log(logger, name, record)
-                bar.update(batch.numel())
+                bar.update(batch.numel() * world)
         finally:
             bar.close()
     return AdversarialResult(
@@ -253,10 +267,11 @@ def _fit_normalizer(env: EnvBase, learner: ActorCritic, rows: TensorDictBase, wa
     with set_exploration_type(ExplorationType.RANDOM), torch.no_grad():
         policy = acting(learner.policy, env.device)  # a learner on a GPU crosses per step
         played = env.rollout(-(-warmup // lanes), policy, break_when_any_done=False)
-    obs = [rows.get(keys.OBSERVATION), played.get(keys.OBSERVATION)]
-    norm.fit(torch.cat([o.reshape(-1, *norm.shape).to(torch.float64) for o in obs]))
+    mine = played.get(keys.OBSERVATION).reshape(-1, *norm.shape).to(torch.float64)
+    obs = [rows.get(keys.OBSERVATION).reshape(-1, *norm.shape).to(torch.float64), gathered(mine)]
+    norm.fit(torch.cat(obs))  # every rank's steps: the same statistics on every rank
     learner.prepare(rows)  # validates the rows; the statistics stay
-    return played.numel()
+    return played.numel() * rank_and_world()[1]
 
 
 def _round(k, steps, batch, expert, discriminator, generator, config, draws) -> RoundRecord:
@@ -268,8 +283,8 @@ def _round(k, steps, batch, expert, discriminator, generator, config, draws) -> 
     metrics: dict[str, float] = {}
     for _ in range(config.discriminator_updates):
         metrics = discriminator.update(
-            sample_rows(expert, config.discriminator_batch, draws),
-            sample_rows(policy, config.discriminator_batch, draws),
+            _expert_rows(expert, config.discriminator_batch, draws),
+            sample_rows(policy, config.discriminator_batch, draws),  # this rank's own rows
         )
     reward = discriminator.reward(policy[:n])  # [n, 1], rows in the batch's order
     learned, r_abs = reward, None
@@ -278,12 +293,23 @@ def _round(k, steps, batch, expert, discriminator, generator, config, draws) -> 
         reward = absorbing_tail(reward, policy[:n].get(NEXT_ABSORBING), r_abs, config.gamma)
     batch.set((keys.NEXT, LEARNED_REWARD), reward.reshape(*batch.shape, 1))
     ppo = generator.update(batch, draws)
+    world = rank_and_world()[1]  # the record's numbers are every rank's rows
     return RoundRecord(
         round=k, env_steps=steps, discriminator=metrics, generator=ppo,
-        learned_reward=float(learned.mean()),
+        learned_reward=float(summed(learned.mean())) / world,  # as many rows on each
         absorbing_reward=None if r_abs is None else float(r_abs),
-        terminated=int(batch.get((keys.NEXT, keys.TERMINATED)).sum()),
+        terminated=int(summed(batch.get((keys.NEXT, keys.TERMINATED)).sum())),
     )  # fmt: skip
+
+
+def _expert_rows(expert: TensorDictBase, batch: int, draws: torch.Generator) -> TensorDictBase:
+    """``batch`` expert transitions drawn with replacement: on ``N`` ranks (every one
+    holding the same demonstrations), this rank's share of the ``N * batch`` one process
+    at ``N`` times the batch draws."""
+    rank, world = rank_and_world()
+    with sharded(rank * batch, world * batch):
+        drawn = rows_drawn(lambda m: torch.randint(expert.shape[0], (m,), generator=draws), batch)
+    return expert[drawn]
 
 
 def _log(logger: Logger | None, name: str, record: RoundRecord) -> None:
