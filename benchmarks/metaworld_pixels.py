@@ -2,9 +2,9 @@
 
 1. Render cost. Frames of LeRobot's ``corner2`` camera (``obs_type="pixels_agent_pos"``)
    rendered headless by MuJoCo (``MUJOCO_GL=egl``, Mesa's llvmpipe on these machines) at
-   84x84 and 480x480, with shadows and reflections on (MuJoCo's default) and off
-   (``fast_render``, the default here): seconds per env step, frame included, against the
-   state-only step.
+   84x84 and 480x480, with shadows and reflections on (MuJoCo's default, and the env's:
+   LeRobot's frames) and off (``fast_render=True``, what part 2 uses): seconds per env
+   step, frame included, against the state-only step.
 2. BC vs DAgger from pixels. One MT1 task (``reach-v3``) seen through an 84x84 camera
    plus the hand's 4-d ``agent_pos``; the expert is the task's scripted policy reading
    the 39-d state the learner does not see (privileged). Per seed: ``demos`` expert

@@ -27,9 +27,12 @@ def _rows(pixels: bool):
     return env, rollout_episodes(env, pendulum_expert(), 2)
 
 
-def fit(name: str, batch: int, disk: str | None = None) -> tuple[dict, torch.Tensor]:
+def fit(
+    name: str, batch: int, disk: str | None = None, lerobot: str | None = None
+) -> tuple[dict, torch.Tensor]:
     """Learner ``name`` fitted ``STEPS`` steps at ``batch`` rows (per rank): its policy's
-    parameters and the logged losses. ``disk``: the rows in a disk buffer there."""
+    parameters and the logged losses. ``disk``: the rows in a disk buffer there;
+    ``lerobot``: that LeRobot dataset (the same rows) streamed into it."""
     from imitrl.algorithms import BCConfig, fit_bc
     from imitrl.data import DemonstrationBuffer
     from imitrl.learners import build
@@ -38,7 +41,12 @@ def fit(name: str, batch: int, disk: str | None = None) -> tuple[dict, torch.Ten
     env, rows = _rows(pixels=name == "for_env")
     if disk is not None:
         buffer = DemonstrationBuffer(action_spec=env.action_spec_unbatched, path=disk)
-        buffer.extend(rows)
+        if lerobot is None:
+            buffer.extend(rows)
+        else:  # streamed, a piece at a time, into the disk buffer
+            from imitrl.datasets import load_lerobot
+
+            load_lerobot(lerobot, env=env, into=buffer)
         rows = buffer
     settings: dict = {"seed": 0}
     if name in ("mse", "flow_chunk"):
@@ -53,7 +61,7 @@ def fit(name: str, batch: int, disk: str | None = None) -> tuple[dict, torch.Ten
     return params, result.losses
 
 
-def _rank(rank: int, world: int, init: str, out: str) -> None:
+def _rank(rank: int, world: int, init: str, out: str, lerobot: str | None) -> None:
     import torch.distributed as dist
 
     torch.set_num_threads(1)
@@ -61,6 +69,8 @@ def _rank(rank: int, world: int, init: str, out: str) -> None:
     try:
         fits = {name: fit(name, B) for name in LOSSES}
         fits["disk"] = fit("mse", B, disk=f"{out}.rank{rank}")  # each rank's copy on disk
+        if lerobot is not None:
+            fits["lerobot"] = fit("mse", B, disk=f"{out}.lr{rank}", lerobot=lerobot)
         if rank == 0:
             torch.save(fits, out)
     finally:
@@ -78,15 +88,26 @@ def _key_bias(name: str) -> bool:
 def two_ranks(tmp_path_factory):
     folder = tmp_path_factory.mktemp("ranks")
     out = str(folder / "fits.pt")
-    mp.spawn(_rank, args=(2, str(folder / "init"), out), nprocs=2, join=True)
-    return torch.load(out)
+    lerobot = None
+    try:
+        from imitrl.datasets import save_lerobot
+
+        lerobot = str(save_lerobot(_rows(pixels=False)[1], folder / "lerobot", fps=20))
+    except ImportError:  # pyarrow, the datasets extra: that case is skipped
+        pass
+    mp.spawn(_rank, args=(2, str(folder / "init"), out, lerobot), nprocs=2, join=True)
+    return {**torch.load(out), "_lr": lerobot}
 
 
-@pytest.mark.parametrize("name", [*LOSSES, "disk"])
+@pytest.mark.parametrize("name", [*LOSSES, "disk", "lerobot"])
 def test_two_ranks_at_batch_b_are_one_process_at_2b(two_ranks, name, tmp_path):
+    if name not in two_ranks:
+        pytest.skip("the LeRobot case needs pyarrow (the datasets extra)")
     params, losses = two_ranks[name]
     if name == "disk":  # a disk buffer's own order (a lazy permutation), in one process
         one, one_losses = fit("mse", 2 * B, disk=str(tmp_path / "one"))
+    elif name == "lerobot":  # streamed into a disk buffer, in one process
+        one, one_losses = fit("mse", 2 * B, disk=str(tmp_path / "one"), lerobot=two_ranks["_lr"])
     else:
         one, one_losses = fit(name, 2 * B)
     assert torch.allclose(losses, one_losses, rtol=1e-5, atol=1e-6)  # the global batch's loss

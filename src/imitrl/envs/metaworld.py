@@ -210,7 +210,7 @@ def make_task(
     camera_name: str = CAMERA,
     width: int = 480,
     height: int = 480,
-    fast_render: bool = True,
+    fast_render: bool = False,
 ) -> gymnasium.Env:
     """One Meta-World v3 task (module docstring); the entry point of ``metaworld/<task>``.
 
@@ -222,7 +222,9 @@ def make_task(
             once reached).
         render_mode, camera_name, width, height: the raw env's rendering (``pixels_agent_pos``
             renders ``rgb_array`` frames of ``height x width``).
-        fast_render: shadows and reflections off (about 6x faster frames on a CPU renderer).
+        fast_render: shadows and reflections off (about 6x faster frames on a CPU renderer,
+            but not LeRobot's frames: its env renders them, and frames differ from the
+            first step on); off by default, so the frames are LeRobot's byte for byte.
     """
     task = task_of(task)
     if obs_type not in OBS_TYPES:

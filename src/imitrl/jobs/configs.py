@@ -233,11 +233,6 @@ class DAggerJob(BCJob):
             raise ValueError("dagger needs --expert to label the learner's states")
         if self.address is not None and self.workers is None:
             raise ValueError("--address names the Ray cluster for --workers: give --workers too")
-        if self.workers is not None and self.nproc > 1:
-            raise ValueError(
-                "--workers plays the rounds on Ray, --nproc fits on several ranks: give one "
-                "(every rank plays the same rounds itself)"
-            )
 
 
 @dataclass(frozen=True)

@@ -16,7 +16,9 @@ the learner's weights sent once per round; needs ``pip install 'imitrl[distribut
 on a local Ray instance or on the cluster at ``--address``. The rows then depend on
 ``--seed`` and ``--workers`` (not on ``--num-envs``, which still sets the lanes of the
 demonstrations); the evaluation stays in this process, so its numbers compare with
-``imitrl eval``.
+``imitrl eval``. With ``--nproc`` too, rank 0 alone holds the workers and every rank
+gets each round's rows (:class:`~imitrl.algorithms.lead_source.LeadSource`): the rows of
+one process with the same ``--workers``, fitted data-parallel.
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ from pathlib import Path
 import torch
 
 from imitrl.algorithms import Constant, DAggerConfig, EnvSource, dagger
+from imitrl.algorithms.lead_source import LeadSource
 from imitrl.algorithms.ray_source import RaySource
 from imitrl.envs import make_env
 from imitrl.jobs.bc import (
@@ -49,6 +52,7 @@ from imitrl.jobs.configs import DAggerJob
 from imitrl.jobs.evaluate import format_return
 from imitrl.jobs.resolve import no_expert_message
 from imitrl.learners import Learner
+from imitrl.system.ranks import rank_and_world
 
 __all__ = ["DAggerJob", "report", "run_dagger"]
 
@@ -104,7 +108,7 @@ def _run_dagger(config: DAggerJob, folder: Path) -> dict:
                 resume=config.resume,
             )
         finally:
-            if isinstance(source, RaySource):
+            if isinstance(source, RaySource | LeadSource):
                 source.close()  # the Ray workers, and Ray where the source started it
         evaluations = [r.info for r in result.rounds]
         rounds = [
@@ -140,11 +144,16 @@ def _run_dagger(config: DAggerJob, folder: Path) -> dict:
         setup.close()  # the env and the logger, whatever happened
 
 
-def episode_source(config: DAggerJob, setup: Setup) -> EnvSource | RaySource:
-    """Where the relabel rounds are played: ``setup.env`` in this process, or
-    ``--workers`` Ray workers each building the env as ``--env``/``--seed`` say."""
+def episode_source(config: DAggerJob, setup: Setup) -> EnvSource | RaySource | LeadSource:
+    """Where the relabel rounds are played: ``setup.env`` in this process (on every rank
+    alike with ``--nproc``), or ``--workers`` Ray workers each building the env as
+    ``--env``/``--seed`` say (with ``--nproc``, rank 0's workers, their rows broadcast to
+    every rank: :class:`~imitrl.algorithms.lead_source.LeadSource`)."""
+    here = EnvSource(setup.playing(), generator=torch.Generator().manual_seed(config.seed))
     if config.workers is None:  # exploration None: each round's learner acts as it says
-        return EnvSource(setup.playing(), generator=torch.Generator().manual_seed(config.seed))
+        return here
+    if not evaluating():  # a rank > 0 of --nproc: rank 0's workers play
+        return LeadSource(here)
     env_fn = functools.partial(
         make_env,
         config.played_env(),
@@ -152,7 +161,8 @@ def episode_source(config: DAggerJob, setup: Setup) -> EnvSource | RaySource:
         max_episode_steps=config.max_episode_steps,
         env_kwargs=dict(config.env_kwargs),
     )
-    return RaySource(env_fn, config.workers, seed=config.seed, address=config.address)
+    ray = RaySource(env_fn, config.workers, seed=config.seed, address=config.address)
+    return ray if rank_and_world()[1] == 1 else LeadSource(ray)
 
 
 def report(results: dict) -> list[str]:

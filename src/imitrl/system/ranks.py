@@ -30,11 +30,13 @@ from __future__ import annotations
 import contextlib
 from collections.abc import Callable, Iterator
 from contextvars import ContextVar
+from typing import TypeVar
 
 import torch
 
 __all__ = [
     "DataParallel",
+    "from_lead",
     "gathered",
     "masked_mean",
     "rank_and_world",
@@ -43,6 +45,8 @@ __all__ = [
     "share",
     "summed",
 ]
+
+T = TypeVar("T")
 
 _SHARD: ContextVar[tuple[int, int] | None] = ContextVar("imitrl_shard", default=None)
 """``(first, total)``: this rank's rows start at ``first`` of a global batch of ``total``"""
@@ -116,6 +120,18 @@ def gathered(values: torch.Tensor) -> torch.Tensor:
     parts = [torch.empty_like(values) for _ in range(rank_and_world()[1])]
     dist.all_gather(parts, values.contiguous())
     return torch.cat(parts)
+
+
+def from_lead(value: T) -> T:
+    """Rank 0's ``value`` (any picklable object) on every rank (``value`` itself in a
+    single process); the other ranks' ``value`` is ignored."""
+    if rank_and_world()[1] == 1:
+        return value
+    import torch.distributed as dist
+
+    box = [value]
+    dist.broadcast_object_list(box, src=0)
+    return box[0]
 
 
 def summed(values: torch.Tensor) -> torch.Tensor:
