@@ -47,7 +47,7 @@ def lerobots_frames(task: str = TASK, seed: int = SEED, steps: int = STEPS):
     # generator instead, so both sides render the same scene
     env.seeded_rand_vec = True
     env.seed(seed)
-    policy = getattr(policies, "SawyerReachV3Policy")()
+    policy = policies.SawyerReachV3Policy()
     obs, _ = env.reset(seed=seed)
     frames, actions = [np.flip(env.render(), (0, 1)).copy()], []
     for _ in range(steps):
