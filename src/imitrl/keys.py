@@ -22,6 +22,10 @@ Per-transition keys (root of a rollout / demonstration row):
 ``LEARNER_ACTION``        the learner's own proposal at step t (kept by the DAgger
                           mixture before it decides which action is executed)
 ``EXPERT_EXECUTED``       bool: the executed action was the expert's
+``EXPERT_PLAN``           ``[H, *action]``: the expert's own next H actions from the
+                          row's state, played on the simulator from there and undone
+                          (chunk-aware DAgger); past its episode's end, its last one
+``EXPERT_PLAN_PAD``       bool ``[H]``: the plan entry lies past the episode's end
 ``EPISODE``               int64 episode id, unique within a buffer
 ``ROUND``                 int64 DAgger round that collected the row (0 = offline demos)
 ``STEP``                  int64 time index of the row inside its episode
@@ -51,6 +55,8 @@ ACTION = "action"
 EXPERT_ACTION = "expert_action"
 LEARNER_ACTION = "learner_action"
 EXPERT_EXECUTED = "expert_executed"
+EXPERT_PLAN = "expert_plan"
+EXPERT_PLAN_PAD = "expert_plan_is_pad"
 EPISODE = "episode"
 ROUND = "round"
 STEP = "step"
@@ -74,6 +80,8 @@ __all__ = [
     "EPISODE",
     "EXPERT_ACTION",
     "EXPERT_EXECUTED",
+    "EXPERT_PLAN",
+    "EXPERT_PLAN_PAD",
     "LEARNER_ACTION",
     "LOC",
     "LOGITS",

@@ -14,6 +14,7 @@ Beta schedules are tiny callables ``round -> beta`` (Ross et al. 2011 use
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -21,7 +22,7 @@ from typing import Protocol
 
 import torch
 from tensordict import TensorDict
-from tensordict.nn import TensorDictModuleBase
+from tensordict.nn import TensorDictModuleBase, TensorDictSequential
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, exploration_type, set_exploration_type
 from torchrl.record.loggers import Logger
@@ -36,6 +37,7 @@ from imitrl.algorithms.dagger_checkpoint import (
     save_run,
     set_generator_state,
 )
+from imitrl.algorithms.expert_plan import ExpertPlanner
 from imitrl.data.buffer import DemonstrationBuffer
 from imitrl.envs.limits import episode_limit
 from imitrl.envs.random_state import env_random_state, set_env_random_state
@@ -43,6 +45,7 @@ from imitrl.fs.lock import exclusive
 from imitrl.learners.learner import Learner
 from imitrl.policies.experts import Expert
 from imitrl.policies.mixture import BetaMixer, behaviour_policy
+from imitrl.runtime import paths
 from imitrl.runtime.rollout import rollout_episodes
 from imitrl.system.device import acting
 
@@ -144,13 +147,20 @@ class EnvSource:
             the source refuses to be built otherwise.
         generator: source of the learner's sampling when ``exploration`` is
             ``RANDOM`` (seed it for reproducible rounds); None: torch's global RNG.
+        plans: chunk-aware labels: at every visited state the expert's own next
+            ``learner.horizon`` actions, played on the env from there and undone
+            (:class:`~imitrl.algorithms.expert_plan.ExpertPlanner`; one lane, a chunked
+            learner, demonstrations carrying plans too: :func:`with_plans`). The rounds
+            then take the reference path (the planner drives the env through TorchRL).
     """
 
     env: EnvBase
     exploration: ExplorationType | None = None
     max_steps: int | None = None
     generator: torch.Generator | None = None
+    plans: bool = False
     _episode_steps: int = field(init=False, repr=False)
+    _planner: ExpertPlanner | None = field(default=None, init=False, repr=False)
 
     def __post_init__(self) -> None:
         if self.max_steps is not None:
@@ -173,6 +183,13 @@ class EnvSource:
         the env (both before the first step, naming what differs)."""
         expert.bind(self.env.action_spec_unbatched)
         learner.check_env(self.env)
+        if self.plans:
+            if learner.horizon is None:
+                raise ValueError(
+                    "plans label whole chunks for a chunked learner (act, flow_chunk, "
+                    "mse_chunk, diffusion_unet, ...); this learner predicts one action"
+                )
+            self._planner = ExpertPlanner(expert, self.env, learner.horizon)
 
     def state_dict(self) -> dict:
         """The env's random generators and the learner's sampling generator."""
@@ -191,17 +208,24 @@ class EnvSource:
         round_index: int,
         first_episode: int,
     ) -> TensorDict:
-        """``num_episodes`` whole episodes of ``behaviour`` as buffer rows (see ``rollout_episodes``)."""
-        return rollout_episodes(
-            self.env,
-            behaviour,
-            num_episodes,
-            exploration=self.exploration or exploration_type(),
-            max_steps=self._episode_steps,
-            round_index=round_index,
-            first_episode=first_episode,
-            generator=self.generator,
-        )
+        """``num_episodes`` whole episodes of ``behaviour`` as buffer rows (see
+        ``rollout_episodes``), with the expert's plans where ``plans`` is set."""
+        planning = self.plans and not isinstance(behaviour, Expert)
+        if planning:
+            if self._planner is None:
+                raise ValueError("plans: check(expert, learner) names the planner's horizon first")
+            behaviour = TensorDictSequential(behaviour, self._planner)
+        with paths.reference() if planning else contextlib.nullcontext():
+            return rollout_episodes(
+                self.env,
+                behaviour,
+                num_episodes,
+                exploration=self.exploration or exploration_type(),
+                max_steps=self._episode_steps,
+                round_index=round_index,
+                first_episode=first_episode,
+                generator=self.generator,
+            )
 
 
 @dataclass(frozen=True)
@@ -308,6 +332,12 @@ def dagger(
             to the bit to an uninterrupted run.
     """
     _check_inputs(buffer, expert, checkpoint_dir, resume)
+    if getattr(source, "plans", False) and keys.EXPERT_PLAN not in buffer.data.keys():
+        raise ValueError(
+            "the source records the expert's plans (plans=True) and the demonstrations carry "
+            "none: add them before the buffer takes the rows (buffer.extend(with_plans(rows, "
+            "horizon)), imitrl.algorithms.expert_plan.with_plans), so both share one schema"
+        )
     if checkpoint_dir is None:
         return _run(source, expert, make_learner, buffer, config, on_fit, train, progress, logger)
     # the folder is this run's until it returns: a second run of it is refused at once

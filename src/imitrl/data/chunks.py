@@ -30,6 +30,12 @@ was the expert's (``EXPERT_EXECUTED``, when the rows have it): a relabelled row 
 learner-driven round (beta = 0) keeps entry 0, the expert's label at its own state,
 and pads the rest (its last valid label repeated, masked). Demonstrations, where the
 expert drove, keep whole chunks.
+
+Chunk-aware DAgger. Rows that carry the expert's own plan from their state
+(``EXPERT_PLAN``, ``EXPERT_PLAN_PAD``: :class:`~imitrl.algorithms.expert_plan.ExpertPlanner`
+records it during a relabel round, by letting the expert drive a snapshot of the simulator
+and undoing it) take their chunks from it: whole chunks at every visited state, each
+answering "what would the expert have done next".
 """
 
 from __future__ import annotations
@@ -129,7 +135,8 @@ def chunk_labels(
 def add_chunk_labels(
     rows: TensorDictBase, horizon: int, *, label_key=keys.EXPERT_ACTION
 ) -> TensorDictBase:
-    """``rows`` (a shallow copy) with :data:`EXPERT_CHUNK` and :data:`CHUNK_PAD` added.
+    """``rows`` (a shallow copy) with :data:`EXPERT_CHUNK` and :data:`CHUNK_PAD` added
+    (from the rows' ``EXPERT_PLAN`` where they carry one, module docstring).
 
     ``rows`` ``[N]`` need ``label_key``, ``EPISODE`` and ``STEP`` (what
     :func:`~imitrl.runtime.rollout_episodes` and a ``DemonstrationBuffer`` hold); where
@@ -141,14 +148,23 @@ def add_chunk_labels(
         raise ValueError(f"chunk labels need {missing} in the rows (keys {list(rows.keys())})")
     if rows.batch_dims != 1:
         raise ValueError(f"rows must be [N], got batch_size {tuple(rows.batch_size)}")
-    executed = rows.get(keys.EXPERT_EXECUTED, None)
-    chunk, pad = chunk_labels(
-        rows.get(label_key),
-        rows.get(keys.EPISODE),
-        rows.get(keys.STEP),
-        horizon,
-        expert_executed=executed if executed is None else executed.reshape(rows.shape[0]),
-    )
+    plan = rows.get(keys.EXPERT_PLAN, None) if label_key == keys.EXPERT_ACTION else None
+    if plan is not None:  # the expert's own plans (chunk-aware DAgger): whole chunks
+        if plan.shape[1] < horizon:
+            raise ValueError(
+                f"the rows' expert plans hold {plan.shape[1]} actions, the learner's chunks "
+                f"{horizon}: collect the rounds with plans at least as long"
+            )
+        chunk, pad = plan[:, :horizon], rows.get(keys.EXPERT_PLAN_PAD)[:, :horizon]
+    else:
+        executed = rows.get(keys.EXPERT_EXECUTED, None)
+        chunk, pad = chunk_labels(
+            rows.get(label_key),
+            rows.get(keys.EPISODE),
+            rows.get(keys.STEP),
+            horizon,
+            expert_executed=executed if executed is None else executed.reshape(rows.shape[0]),
+        )
     out = TensorDict(dict(rows.items()), batch_size=rows.batch_size)  # new dict, same tensors
     out.set(EXPERT_CHUNK, chunk)
     out.set(CHUNK_PAD, pad)

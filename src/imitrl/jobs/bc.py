@@ -35,6 +35,7 @@ from torchrl.envs.utils import ExplorationType
 from torchrl.record.loggers import Logger
 
 from imitrl.algorithms import BCConfig, fit_bc
+from imitrl.algorithms.expert_plan import with_plans
 from imitrl.data import DemonstrationBuffer
 from imitrl.envs import make_env
 from imitrl.fs.run_folder import claimed
@@ -191,8 +192,12 @@ def _prepare_offline(config: BCJob, name: str, folder: Path, *, keep_logs: bool)
     )
 
 
-def demonstrations(config: BCJob, setup: Setup) -> DemonstrationBuffer:
-    """The rows of ``--dataset``, or ``--demos`` greedy expert episodes, in a buffer."""
+def demonstrations(
+    config: BCJob, setup: Setup, plan_horizon: int | None = None
+) -> DemonstrationBuffer:
+    """The rows of ``--dataset``, or ``--demos`` greedy expert episodes, in a buffer
+    (``plan_horizon``: with the expert's plans, :func:`~imitrl.algorithms.expert_plan.with_plans`,
+    for ``imitrl dagger --chunk-labels plan``)."""
     if setup.rows is not None:
         rows = setup.rows
     elif config.dataset is not None:
@@ -210,7 +215,7 @@ def demonstrations(config: BCJob, setup: Setup) -> DemonstrationBuffer:
             setup.playing(), setup.expert, config.demos
         )  # greedy, whole episodes
     buffer = DemonstrationBuffer(action_spec=setup.task.env_specs()[1])
-    buffer.extend(rows)
+    buffer.extend(rows if plan_horizon is None else with_plans(rows, plan_horizon))
     return buffer
 
 

@@ -40,7 +40,12 @@ from imitrl.limits import (
     widths,
 )
 
-__all__ = ["AIRLJob", "BCJob", "DAggerJob", "GAILJob", "RunFlags"]
+__all__ = ["CHUNK_LABELS", "AIRLJob", "BCJob", "DAggerJob", "GAILJob", "RunFlags"]
+
+CHUNK_LABELS = ("mask", "plan")
+"""``--chunk-labels``: a chunked learner's relabelled rows keep the expert's label at
+their state alone (``mask``) or its plan from there (``plan``,
+:class:`~imitrl.algorithms.expert_plan.ExpertPlanner`)"""
 
 
 def check_nproc(nproc: int, device: str) -> None:
@@ -224,6 +229,11 @@ class DAggerJob(BCJob):
     address: str | None = None
     """the Ray cluster for --workers (auto, or ray://HOST:10001); none = a local Ray
     instance with --workers CPUs"""
+    chunk_labels: str = "mask"
+    """a chunked learner's labels at the states its rounds visit: mask = the expert's
+    label at each state, the rest of the chunk masked (windowing); plan = the expert's
+    own next H actions from each state, played on the env from there and undone (whole
+    chunks; H expert steps per visited state; one lane, in this process)"""
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -233,6 +243,15 @@ class DAggerJob(BCJob):
             raise ValueError("dagger needs --expert to label the learner's states")
         if self.address is not None and self.workers is None:
             raise ValueError("--address names the Ray cluster for --workers: give --workers too")
+        if self.chunk_labels not in CHUNK_LABELS:
+            raise ValueError(
+                f"--chunk-labels must be one of {', '.join(CHUNK_LABELS)}, got {self.chunk_labels!r}"
+            )
+        if self.chunk_labels == "plan" and (self.workers is not None or self.num_envs > 1):
+            raise ValueError(
+                "--chunk-labels plan plays the expert's plans on the env in this process, one "
+                "lane: leave out --workers and --num-envs"
+            )
 
 
 @dataclass(frozen=True)

@@ -75,7 +75,14 @@ def _run_dagger(config: DAggerJob, folder: Path) -> dict:
         config = dataclasses.replace(config, loss=setup.loss)  # recorded as resolved
         if setup.expert is None:  # --expert auto with a --dataset, on an env without one
             raise ValueError(no_expert_message(config.played_env()))
-        buffer = demonstrations(config, setup)
+        horizon = setup.make_learner().horizon if config.chunk_labels == "plan" else None
+        if config.chunk_labels == "plan" and horizon is None:
+            raise ValueError(
+                f"--chunk-labels plan labels whole chunks for a chunked learner (act, "
+                f"flow_chunk, mse_chunk, diffusion_unet, ...); --loss {setup.loss} predicts "
+                "one action"
+            )
+        buffer = demonstrations(config, setup, plan_horizon=horizon)
         demo_rows, demo_episodes = len(buffer), buffer.num_episodes
         expert_ev = evaluate_expert(config, setup) if evaluating() else None
 
@@ -149,7 +156,11 @@ def episode_source(config: DAggerJob, setup: Setup) -> EnvSource | RaySource | L
     alike with ``--nproc``), or ``--workers`` Ray workers each building the env as
     ``--env``/``--seed`` say (with ``--nproc``, rank 0's workers, their rows broadcast to
     every rank: :class:`~imitrl.algorithms.lead_source.LeadSource`)."""
-    here = EnvSource(setup.playing(), generator=torch.Generator().manual_seed(config.seed))
+    here = EnvSource(
+        setup.playing(),
+        generator=torch.Generator().manual_seed(config.seed),
+        plans=config.chunk_labels == "plan",
+    )
     if config.workers is None:  # exploration None: each round's learner acts as it says
         return here
     if not evaluating():  # a rank > 0 of --nproc: rank 0's workers play

@@ -72,9 +72,9 @@ ROW_KEYS = (
 NEXT_KEYS = (keys.REWARD, keys.DONE, keys.TERMINATED, keys.TRUNCATED)
 STEP_ROW_KEYS = (keys.OBSERVATION, keys.ACTION)
 """what :func:`play_steps` records of the root (an on-policy learner's batch: no expert)"""
-OPTIONAL_ROW_KEYS = (keys.PIXELS, keys.ENVIRONMENT_STATE)
-"""kept in the rows when the env gives them (a pixel env's images, a Dict env's
-``environment_state`` beside its state)"""
+OPTIONAL_ROW_KEYS = (keys.PIXELS, keys.ENVIRONMENT_STATE, keys.EXPERT_PLAN, keys.EXPERT_PLAN_PAD)
+"""kept in the rows when the env or the policy gives them (a pixel env's images, a Dict
+env's ``environment_state`` beside its state, chunk-aware DAgger's expert plans)"""
 OPTIONAL_NEXT_KEYS = ("success",)
 """kept under ``"next"`` when the env gives them (``make_env``'s ``success``)"""
 

@@ -1,0 +1,232 @@
+"""Chunk-aware DAgger: a chunked learner's relabelled rows labelled by masking (the
+expert's label at each visited state, the rest of the chunk masked) or by the expert's
+plan (its own next H actions from each visited state, played on the simulator and
+undone: ``imitrl dagger --chunk-labels plan``), issue 46.
+
+Tasks: the two-way obstacle task (``imitrl.envs.multimodal``: an expert with a hidden
+intent per episode, whose plan from a visited state follows that intent) and Pendulum
+(the scripted swing-up). Per task, learner (``mse_chunk``, ``flow_chunk``), seed and
+labelling: ``demos`` expert episodes, then DAgger (round 0 = BC; ``rounds - 1`` relabel
+rounds of ``episodes`` learner episodes, beta 0, a fresh learner each round, ``steps``
+fit steps at batch 64); the last learner evaluated on ``eval`` held-out episodes (the
+same starts for both labellings, and for the expert). Reported: success (two-way) or
+mean return (Pendulum) with 95% intervals over the pooled episodes, and the rows each
+last fit saw.
+
+    python benchmarks/chunk_labels.py            # full run, refreshes the README block
+    python benchmarks/chunk_labels.py --quick    # smoke run, into a temporary directory
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import torch
+from torchrl.envs.utils import ExplorationType
+
+import _report
+from imitrl.algorithms import BCConfig, DAggerConfig, dagger
+from imitrl.algorithms.dagger import EnvSource
+from imitrl.algorithms.expert_plan import with_plans
+from imitrl.data import DemonstrationBuffer
+from imitrl.envs import make_env
+from imitrl.envs.multimodal import TwoWayObstacleEnv, two_way_expert
+from imitrl.evaluation.evaluate import mean_ci, wilson_interval
+from imitrl.experts import pendulum_expert
+from imitrl.learners import build
+from imitrl.runtime import rollout_episodes
+
+NAME = "chunk_labels"
+TASKS = ("two_way", "pendulum")
+LEARNERS = ("mse_chunk", "flow_chunk")
+LABELS = ("mask", "plan")
+
+
+@dataclass(frozen=True)
+class Config:
+    """The whole run."""
+
+    seeds: int = 5
+    demos: int = 3
+    rounds: int = 4
+    episodes: int = 3
+    steps: int = 400
+    eval: int = 40
+    tasks: tuple = TASKS
+    learners: tuple = LEARNERS
+
+
+QUICK = Config(seeds=1, demos=1, rounds=2, episodes=1, steps=5, eval=2, tasks=TASKS,
+               learners=("mse_chunk",))  # fmt: skip
+
+
+def _task(task: str, seed: int):
+    if task == "two_way":
+        env, expert, limit = TwoWayObstacleEnv(seed=seed), two_way_expert(), 40
+        return env, expert, limit, lambda s: TwoWayObstacleEnv(seed=s)
+    env = make_env("Pendulum-v1", seed=seed, max_episode_steps=100)
+    return (
+        env,
+        pendulum_expert(),
+        100,
+        lambda s: make_env("Pendulum-v1", seed=s, max_episode_steps=100),
+    )
+
+
+def cell(task: str, learner: str, labels: str, seed: int, cfg: Config) -> dict:
+    """One DAgger run and its last learner's evaluation."""
+    torch.manual_seed(seed)
+    env, expert, limit, make = _task(task, seed)
+    demos = rollout_episodes(env, expert, cfg.demos, max_steps=limit)
+    buffer = DemonstrationBuffer(action_spec=env.action_spec_unbatched)
+    plans = labels == "plan"
+    probe = build(learner, env, hidden=(64, 64), seed=seed)
+    buffer.extend(with_plans(demos, probe.horizon) if plans else demos)
+    source = EnvSource(env, exploration=ExplorationType.DETERMINISTIC, max_steps=limit,
+                       plans=plans)  # fmt: skip
+    result = dagger(
+        source,
+        expert,
+        lambda: build(learner, env, hidden=(64, 64), seed=seed),
+        buffer,
+        DAggerConfig(rounds=cfg.rounds, episodes_per_round=cfg.episodes,
+                     bc=BCConfig(num_steps=cfg.steps, batch_size=64, seed=seed), seed=seed),
+    )  # fmt: skip
+    returns, successes = _episodes(
+        make(10_000 + seed), result.learner.policy, cfg.eval, seed, limit
+    )
+    return {"task": task, "learner": learner, "labels": labels, "seed": seed,
+            "rows": [r.rows_trained for r in result.rounds], "returns": returns,
+            "successes": successes}  # fmt: skip
+
+
+def expert_cell(task: str, seed: int, cfg: Config) -> dict:
+    """The expert on the same held-out starts."""
+    _, expert, limit, make = _task(task, seed)
+    returns, successes = _episodes(make(10_000 + seed), expert, cfg.eval, seed, limit)
+    return {"task": task, "learner": "expert", "labels": "-", "seed": seed, "rows": [0],
+            "returns": returns, "successes": successes}  # fmt: skip
+
+
+def _episodes(env, policy, n: int, seed: int, limit: int) -> tuple[list[float], int]:
+    """Each held-out episode's return (greedy), and the successes (the two-way task:
+    reward 1)."""
+    from imitrl.runtime.returns import episode_returns
+    from imitrl.runtime.rollout import rollout_policy
+
+    actor, _ = rollout_policy(env, policy, ExplorationType.DETERMINISTIC)
+    summary = episode_returns(env, actor, n, exploration=ExplorationType.DETERMINISTIC,
+                              max_steps=limit, seed=10_000 + seed)  # fmt: skip
+    returns = summary.returns.double().tolist()
+    return returns, sum(1 for r in returns if r > 0.5)
+
+
+def summarise(cells: list[dict]) -> list[dict]:
+    rows = []
+    for task in dict.fromkeys(c["task"] for c in cells):
+        for learner in dict.fromkeys(c["learner"] for c in cells):
+            for labels in ("-", *LABELS):
+                mine = [c for c in cells if (c["task"], c["learner"], c["labels"]) ==
+                        (task, learner, labels)]  # fmt: skip
+                if not mine:
+                    continue
+                returns = torch.tensor([r for c in mine for r in c["returns"]])
+                n, k = returns.numel(), sum(c["successes"] for c in mine)
+                row = {"task": task, "learner": learner, "labels": labels, "episodes": n,
+                       "return": mean_ci(returns), "last_rows": [c["rows"][-1] for c in mine]}  # fmt: skip
+                if task == "two_way":
+                    lo, hi = wilson_interval(k, n)
+                    row["success"] = (k / n, lo, hi)
+                rows.append(row)
+    return rows
+
+
+def markdown(cfg: Config, rows: list[dict], wall: float) -> str:
+    header = ["task", "learner", "chunk labels", "success (95% Wilson)",
+              "mean return (95% t)", "rows in the last fit"]  # fmt: skip
+    body = []
+    for r in rows:
+        s = r.get("success")
+        body.append([
+            r["task"], r["learner"], r["labels"],
+            "-" if s is None else f"{s[0]:.2f} [{s[1]:.2f}, {s[2]:.2f}]",
+            _report.fmt_ci(tuple(r["return"]), digits=2),
+            "-" if r["learner"] == "expert" else ", ".join(map(str, r["last_rows"])),
+        ])  # fmt: skip
+    return _report.section(
+        "Chunk-aware DAgger: masked chunks against the expert's plans (chunk_labels.py)",
+        f"`python benchmarks/chunk_labels.py` ({wall / 60:.1f} min, 1 torch thread): "
+        f"{cfg.seeds} seeds, {cfg.demos} demonstrations, {cfg.rounds - 1} relabel rounds x "
+        f"{cfg.episodes} learner episodes (beta 0), a fresh learner per round "
+        f"({cfg.steps} steps x batch 64, widths 64-64), the last learner on {cfg.eval} "
+        "held-out episodes per seed (the same starts for both labellings), pooled.\n\n"
+        + _report.table(header, body)
+        + f"\n\n![success and return](results/{NAME}.png)\n",
+    )
+
+
+def figure(rows: list[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    tasks = list(dict.fromkeys(r["task"] for r in rows))
+    fig, axes = plt.subplots(1, len(tasks), figsize=(5 * len(tasks), 3.4), squeeze=False)
+    for ax, task in zip(axes[0], tasks):
+        mine = [r for r in rows if r["task"] == task]
+        score = "success" if task == "two_way" else "return"
+        expert = next(r for r in mine if r["learner"] == "expert")
+        ax.axhline(expert[score][0], color="grey", ls="--", label="expert")
+        learners = list(dict.fromkeys(r["learner"] for r in mine if r["learner"] != "expert"))
+        for j, labels in enumerate(LABELS):
+            xs, mids, errs = [], [], []
+            for i, learner in enumerate(learners):
+                r = next(x for x in mine if (x["learner"], x["labels"]) == (learner, labels))
+                mid, lo, hi = r[score]
+                xs.append(i + (j - 0.5) * 0.25)
+                mids.append(mid)
+                errs.append((mid - lo, hi - mid))
+            ax.errorbar(xs, mids, yerr=list(zip(*errs)), fmt="o", capsize=4, label=labels)
+        ax.set_xticks(range(len(learners)), learners)
+        ax.set_xlim(-0.6, len(learners) - 0.4)
+        ax.set_ylabel("success rate (95% Wilson)" if score == "success" else "mean return (95% t)")
+        ax.set_title(f"{task.replace('_', '-')}: DAgger's last learner")
+        ax.legend(title="chunk labels", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> dict:
+    args = _report.parser(__doc__).parse_args(argv)
+    out_dir = _report.destination(NAME, quick=args.quick, out=args.out)
+    cfg = QUICK if args.quick else Config()
+    torch.set_num_threads(1)
+    t0 = time.perf_counter()
+    cells = []
+    for task in cfg.tasks:
+        cells.extend(expert_cell(task, seed, cfg) for seed in range(cfg.seeds))
+        for learner in cfg.learners:
+            for seed in range(cfg.seeds):
+                for labels in LABELS:
+                    cells.append(cell(task, learner, labels, seed, cfg))
+                    c = cells[-1]
+                    print(f"{task} {learner} {labels} seed {seed}: return "
+                          f"{sum(c['returns']) / len(c['returns']):.2f}, successes "
+                          f"{c['successes']}/{len(c['returns'])}", file=sys.stderr, flush=True)  # fmt: skip
+    wall = time.perf_counter() - t0
+    rows = summarise(cells)
+    figure(rows, _report.results_dir(out_dir) / f"{NAME}.png")
+    md = markdown(cfg, rows, wall)
+    print(md)
+    payload = {"config": asdict(cfg), "summary": rows, "cells": cells, "wall_seconds": wall}
+    print("results:", _report.write(NAME, payload, md, out_dir=out_dir))
+    return payload
+
+
+if __name__ == "__main__":
+    main()
