@@ -34,6 +34,7 @@ from imitrl.algorithms.expert_plan import with_plans
 from imitrl.data import DemonstrationBuffer
 from imitrl.envs import make_env
 from imitrl.envs.multimodal import TwoWayObstacleEnv, two_way_expert
+from imitrl.envs.success import SUCCESS, reported_success
 from imitrl.evaluation.evaluate import mean_ci, wilson_interval
 from imitrl.experts import pendulum_expert
 from imitrl.learners import build
@@ -43,11 +44,15 @@ NAME = "chunk_labels"
 TASKS = ("two_way", "pendulum")
 LEARNERS = ("mse_chunk", "flow_chunk")
 LABELS = ("mask", "plan")
+METAWORLD = ("reach-v3", "push-v3", "pick-place-v3", "door-open-v3", "drawer-open-v3")
+"""MT10 tasks measured (the first five of MT10's list)"""
+METAWORLD_STEPS = 150
+"""metaworld_mt10.py's episode cut"""
 
 
 @dataclass(frozen=True)
 class Config:
-    """The whole run."""
+    """The whole run: the classic tasks' budget, and MT10's protocol for Meta-World's."""
 
     seeds: int = 5
     demos: int = 3
@@ -57,47 +62,87 @@ class Config:
     eval: int = 40
     tasks: tuple = TASKS
     learners: tuple = LEARNERS
+    metaworld: tuple = METAWORLD
+    mw_seeds: int = 3
+    """Meta-World: metaworld_mt10.py's protocol (5 demonstrations, 2 relabel rounds of 3
+    episodes, 320 steps at batch 256, widths 128-128 at lr 3e-3, 5 held-out episodes of at
+    most 150 steps), a fresh learner each round as above"""
+
+
+@dataclass(frozen=True)
+class Budget:
+    """One task's budget."""
+
+    seeds: int
+    demos: int
+    rounds: int
+    episodes: int
+    steps: int
+    batch: int
+    hidden: tuple
+    lr: float | None
+    eval: int
+
+
+def budget(task: str, cfg: Config) -> Budget:
+    if task.startswith("metaworld/"):
+        quick = cfg.steps < 10
+        return Budget(cfg.mw_seeds, 1 if quick else 5, cfg.rounds if quick else 3,
+                      cfg.episodes, cfg.steps if quick else 320, 256, (128, 128), 3e-3,
+                      cfg.eval if quick else 5)  # fmt: skip
+    return Budget(cfg.seeds, cfg.demos, cfg.rounds, cfg.episodes, cfg.steps, 64, (64, 64),
+                  None, cfg.eval)  # fmt: skip
 
 
 QUICK = Config(seeds=1, demos=1, rounds=2, episodes=1, steps=5, eval=2, tasks=TASKS,
-               learners=("mse_chunk",))  # fmt: skip
+               learners=("mse_chunk",), metaworld=("reach-v3",), mw_seeds=1)  # fmt: skip
 
 
 def _task(task: str, seed: int):
+    """``(env, expert, episode bound, make(seed) -> held-out env)`` of ``task``."""
     if task == "two_way":
         env, expert, limit = TwoWayObstacleEnv(seed=seed), two_way_expert(), 40
         return env, expert, limit, lambda s: TwoWayObstacleEnv(seed=s)
-    env = make_env("Pendulum-v1", seed=seed, max_episode_steps=100)
-    return (
-        env,
-        pendulum_expert(),
-        100,
-        lambda s: make_env("Pendulum-v1", seed=s, max_episode_steps=100),
-    )
+    if task.startswith("metaworld/"):  # MT10's protocol: 150-step episodes, success
+        from imitrl.experts import metaworld_expert
+
+        limit = METAWORLD_STEPS
+        task_id = task.removeprefix("metaworld/")
+    else:
+        limit = 100
+
+    def make(s: int):
+        return make_env(task if limit == METAWORLD_STEPS else "Pendulum-v1", seed=s,
+                        max_episode_steps=limit)  # fmt: skip
+
+    expert = metaworld_expert(task_id) if limit == METAWORLD_STEPS else pendulum_expert()
+    return make(seed), expert, limit, make
 
 
 def cell(task: str, learner: str, labels: str, seed: int, cfg: Config) -> dict:
     """One DAgger run and its last learner's evaluation."""
+    b = budget(task, cfg)
     torch.manual_seed(seed)
     env, expert, limit, make = _task(task, seed)
-    demos = rollout_episodes(env, expert, cfg.demos, max_steps=limit)
+    demos = rollout_episodes(env, expert, b.demos, max_steps=limit)
     buffer = DemonstrationBuffer(action_spec=env.action_spec_unbatched)
     plans = labels == "plan"
-    probe = build(learner, env, hidden=(64, 64), seed=seed)
-    buffer.extend(with_plans(demos, probe.horizon) if plans else demos)
+
+    def make_learner():
+        return build(learner, env, hidden=b.hidden, seed=seed, lr=b.lr)
+
+    buffer.extend(with_plans(demos, make_learner().horizon) if plans else demos)
     source = EnvSource(env, exploration=ExplorationType.DETERMINISTIC, max_steps=limit,
                        plans=plans)  # fmt: skip
     result = dagger(
         source,
         expert,
-        lambda: build(learner, env, hidden=(64, 64), seed=seed),
+        make_learner,
         buffer,
-        DAggerConfig(rounds=cfg.rounds, episodes_per_round=cfg.episodes,
-                     bc=BCConfig(num_steps=cfg.steps, batch_size=64, seed=seed), seed=seed),
+        DAggerConfig(rounds=b.rounds, episodes_per_round=b.episodes,
+                     bc=BCConfig(num_steps=b.steps, batch_size=b.batch, seed=seed), seed=seed),
     )  # fmt: skip
-    returns, successes = _episodes(
-        make(10_000 + seed), result.learner.policy, cfg.eval, seed, limit
-    )
+    returns, successes = _episodes(make(10_000 + seed), result.learner.policy, b.eval, seed, limit)
     return {"task": task, "learner": learner, "labels": labels, "seed": seed,
             "rows": [r.rows_trained for r in result.rounds], "returns": returns,
             "successes": successes}  # fmt: skip
@@ -106,22 +151,30 @@ def cell(task: str, learner: str, labels: str, seed: int, cfg: Config) -> dict:
 def expert_cell(task: str, seed: int, cfg: Config) -> dict:
     """The expert on the same held-out starts."""
     _, expert, limit, make = _task(task, seed)
-    returns, successes = _episodes(make(10_000 + seed), expert, cfg.eval, seed, limit)
+    returns, successes = _episodes(make(10_000 + seed), expert, budget(task, cfg).eval, seed, limit)
     return {"task": task, "learner": "expert", "labels": "-", "seed": seed, "rows": [0],
             "returns": returns, "successes": successes}  # fmt: skip
 
 
 def _episodes(env, policy, n: int, seed: int, limit: int) -> tuple[list[float], int]:
-    """Each held-out episode's return (greedy), and the successes (the two-way task:
-    reward 1)."""
+    """Each held-out episode's return (greedy), and the successes (Meta-World's
+    ``info["success"]`` at any step; the two-way task: reward 1)."""
     from imitrl.runtime.returns import episode_returns
     from imitrl.runtime.rollout import rollout_policy
 
     actor, _ = rollout_policy(env, policy, ExplorationType.DETERMINISTIC)
+    reported = SUCCESS in env.observation_spec.keys()  # Meta-World's info["success"]
     summary = episode_returns(env, actor, n, exploration=ExplorationType.DETERMINISTIC,
-                              max_steps=limit, seed=10_000 + seed)  # fmt: skip
+                              max_steps=limit, seed=10_000 + seed,
+                              success_fn=reported_success if reported else None)  # fmt: skip
     returns = summary.returns.double().tolist()
-    return returns, sum(1 for r in returns if r > 0.5)
+    if summary.success is not None:
+        return returns, int(summary.success.sum())
+    return returns, sum(1 for r in returns if r > 0.5)  # the two-way task: reward 1
+
+
+def _scored_by_success(task: str) -> bool:
+    return task == "two_way" or task.startswith("metaworld/")
 
 
 def summarise(cells: list[dict]) -> list[dict]:
@@ -137,7 +190,7 @@ def summarise(cells: list[dict]) -> list[dict]:
                 n, k = returns.numel(), sum(c["successes"] for c in mine)
                 row = {"task": task, "learner": learner, "labels": labels, "episodes": n,
                        "return": mean_ci(returns), "last_rows": [c["rows"][-1] for c in mine]}  # fmt: skip
-                if task == "two_way":
+                if _scored_by_success(task):
                     lo, hi = wilson_interval(k, n)
                     row["success"] = (k / n, lo, hi)
                 rows.append(row)
@@ -175,10 +228,14 @@ def figure(rows: list[dict], path: Path) -> None:
     import matplotlib.pyplot as plt
 
     tasks = list(dict.fromkeys(r["task"] for r in rows))
-    fig, axes = plt.subplots(1, len(tasks), figsize=(5 * len(tasks), 3.4), squeeze=False)
-    for ax, task in zip(axes[0], tasks):
+    cols = min(4, len(tasks))
+    grid = -(-len(tasks) // cols)
+    fig, axes = plt.subplots(grid, cols, figsize=(4.2 * cols, 3.2 * grid), squeeze=False)
+    for ax in axes.flat[len(tasks) :]:
+        ax.axis("off")
+    for ax, task in zip(axes.flat, tasks):
         mine = [r for r in rows if r["task"] == task]
-        score = "success" if task == "two_way" else "return"
+        score = "success" if _scored_by_success(task) else "return"
         expert = next(r for r in mine if r["learner"] == "expert")
         ax.axhline(expert[score][0], color="grey", ls="--", label="expert")
         learners = list(dict.fromkeys(r["learner"] for r in mine if r["learner"] != "expert"))
@@ -193,8 +250,8 @@ def figure(rows: list[dict], path: Path) -> None:
             ax.errorbar(xs, mids, yerr=list(zip(*errs)), fmt="o", capsize=4, label=labels)
         ax.set_xticks(range(len(learners)), learners)
         ax.set_xlim(-0.6, len(learners) - 0.4)
-        ax.set_ylabel("success rate (95% Wilson)" if score == "success" else "mean return (95% t)")
-        ax.set_title(f"{task.replace('_', '-')}: DAgger's last learner")
+        ax.set_ylabel("success (95% Wilson)" if score == "success" else "mean return (95% t)")
+        ax.set_title(task.replace("_", "-").removeprefix("metaworld/"), fontsize=10)
         ax.legend(title="chunk labels", fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
@@ -208,10 +265,11 @@ def main(argv: list[str] | None = None) -> dict:
     torch.set_num_threads(1)
     t0 = time.perf_counter()
     cells = []
-    for task in cfg.tasks:
-        cells.extend(expert_cell(task, seed, cfg) for seed in range(cfg.seeds))
+    for task in [*cfg.tasks, *(f"metaworld/{t}" for t in cfg.metaworld)]:
+        seeds = budget(task, cfg).seeds
+        cells.extend(expert_cell(task, seed, cfg) for seed in range(seeds))
         for learner in cfg.learners:
-            for seed in range(cfg.seeds):
+            for seed in range(seeds):
                 for labels in LABELS:
                     cells.append(cell(task, learner, labels, seed, cfg))
                     c = cells[-1]

@@ -69,7 +69,7 @@ def dagger_run(tmp_path_factory):
 # ------------------------------------------------------------------------- help
 def test_help_lists_every_command(capsys):
     text = help_text([], capsys)
-    names = {"bc", "dagger", "gail", "airl", "eval", "bench", "frozenlake"}
+    names = {"bc", "dagger", "gail", "airl", "eval", "compare", "bench", "frozenlake"}
     for name in names:
         assert name in text
     assert set(COMMANDS) == names

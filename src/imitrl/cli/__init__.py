@@ -187,6 +187,16 @@ COMMANDS: dict[str, Command] = {
         "Mean return and its 95% interval over --eval-episodes episodes on the env seeded "
         "--eval-seed (the defaults reproduce the numbers of imitrl bc/dagger).",
     ),
+    "compare": Command(
+        "imitrl.jobs.compare:CompareJob",
+        "imitrl.jobs.compare:run_compare",
+        "imitrl.jobs.compare:report",
+        "compare two policies on paired episodes: fixed-size or sequential",
+        "Two checkpoints (or expert, random) play episode j from the env seeded --seed + j; "
+        "the paired differences of success (or return) give the mean difference, its "
+        "interval and the decision, after --episodes pairs or, with --sequential, as soon "
+        "as an anytime-valid interval excludes 0.",
+    ),
     "bench": Command(
         "imitrl.jobs.bench:BenchJob",
         "imitrl.jobs.bench:run_bench",

@@ -27,7 +27,7 @@ from imitrl.policies.experts import Expert
 from imitrl.runtime.returns import SuccessFn, episode_returns
 from imitrl.runtime.rollout import policy_errors_named, rollout_policy
 
-__all__ = ["Evaluation", "evaluate", "mean_ci", "wilson_interval"]
+__all__ = ["Evaluation", "evaluate", "mean_ci", "tabular_success", "wilson_interval"]
 
 
 def _z(confidence: float) -> float:
@@ -98,7 +98,8 @@ class Evaluation:
         return ", ".join(parts)
 
 
-def _tabular_success(env: TabularEnv) -> SuccessFn:
+def tabular_success(env: TabularEnv) -> SuccessFn:
+    """Success on a :class:`~imitrl.envs.TabularEnv`: the episode ended in a goal state."""
     goal = env.mdp.goal
 
     def success(out) -> torch.Tensor:
@@ -154,7 +155,7 @@ def evaluate(
     actor, exploration = rollout_policy(env, policy, exploration)
     tabular = isinstance(env, TabularEnv)
     if success_fn is None and tabular:
-        success_fn = _tabular_success(env)
+        success_fn = tabular_success(env)
     elif success_fn is None and SUCCESS in env.observation_spec.keys():
         success_fn = reported_success
     with policy_errors_named(env, actor):

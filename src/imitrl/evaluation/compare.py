@@ -1,0 +1,232 @@
+"""Two policies compared on paired episodes, with a fixed number of episodes or a
+sequential stop.
+
+**Pairing.** Episode ``j`` of both policies starts from the env seeded ``seed + j`` (and
+the policies' own sampling from the generator of that seed): the same initial state, and
+the same draws of the env's randomness for as long as the two play the same actions.
+Episodes are played in waves of one episode per lane (lane ``i`` of a wave ``w`` of an
+``L``-lane env is seeded ``seed + w L + i``, what ``make_env``'s lanes do), so a greedy
+policy's outcomes do not depend on the lane count (a sampling policy draws for its
+lanes at once, from the generator of the wave's seed: its outcomes depend on ``L``, the
+pairing does not). The outcome of an episode is its success (the
+env's reported success, a tabular goal) or its return; the comparison is of the paired
+differences ``d_j = a_j - b_j``, whose variance is ``var(a) + var(b) - 2 cov(a, b)``:
+where the shared seeds make the outcomes agree, fewer episodes say more. An env whose
+reset from one seed does not replay the same observation is refused (:func:`check_replays`).
+
+**Fixed size** (``sequential=False``): ``episodes`` pairs, the mean difference with its
+Student-t interval, and the two-sided paired t-test at ``alpha`` (the interval excludes 0).
+
+**Sequential** (``sequential=True``): after each wave, an anytime-valid confidence
+sequence for the mean difference (the hedged betting confidence sequence of
+Waudby-Smith and Ramdas, "Estimating means of bounded random variables by betting",
+JRSS-B 2024, with their predictable plug-in bets), and the comparison stops as soon as
+it excludes 0, or at ``episodes``. Its error rate is at most ``alpha`` whenever it stops
+(a test martingale: Ville's inequality), which is what lets it stop early. It needs
+bounded outcomes: success, or returns within a stated ``return_range``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+import torch
+from tensordict.nn import TensorDictModuleBase
+from torchrl.envs import EnvBase
+from torchrl.envs.utils import ExplorationType
+
+from imitrl import keys
+from imitrl.envs.success import SUCCESS, reported_success
+from imitrl.envs.tabular_env import TabularEnv
+from imitrl.evaluation.evaluate import tabular_success
+from imitrl.evaluation.statistics import t_interval
+from imitrl.runtime.loop import lane_count
+from imitrl.runtime.returns import episode_returns
+from imitrl.runtime.rollout import rollout_policy
+
+__all__ = ["Comparison", "PolicySpec", "betting_interval", "check_replays", "compare"]
+
+BET_CAP = 0.5
+"""the largest fraction of its capital a bet may stake (the paper's ``c``)"""
+GRID = 2001
+"""candidate means of the confidence sequence, on [0, 1]"""
+
+
+@dataclass(frozen=True)
+class PolicySpec:
+    """A policy to compare: a module writing ``ACTION`` and how it acts."""
+
+    policy: TensorDictModuleBase
+    exploration: ExplorationType
+    name: str
+
+
+@dataclass(frozen=True)
+class Comparison:
+    """What :func:`compare` found."""
+
+    a: str
+    b: str
+    metric: str
+    """``"success"`` or ``"return"``"""
+    episodes: int
+    """pairs played"""
+    mean_a: float
+    mean_b: float
+    difference: float
+    """mean of ``a - b``"""
+    interval: tuple[float, float]
+    """of the mean difference: Student-t (fixed) or the confidence sequence (sequential)"""
+    decision: str
+    """``"a better"``, ``"b better"`` or ``"no difference shown"``"""
+    rule: str
+    alpha: float
+    stopped_early: bool
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+def check_replays(env: EnvBase, seed: int) -> None:
+    """ValueError unless two resets from ``seed`` give the same observation (episodes
+    can then be paired)."""
+    first = env.reset(seed=seed).get(keys.OBSERVATION).clone()
+    again = env.reset(seed=seed).get(keys.OBSERVATION)
+    if not torch.equal(first, again):
+        raise ValueError(
+            f"{type(env).__name__} does not replay its episodes from a seed (two resets from "
+            f"seed {seed} differ): its episodes cannot be paired"
+        )
+
+
+def compare(
+    env: EnvBase,
+    a: PolicySpec,
+    b: PolicySpec,
+    episodes: int,
+    *,
+    seed: int = 0,
+    alpha: float = 0.05,
+    sequential: bool = False,
+    metric: str | None = None,
+    return_range: tuple[float, float] | None = None,
+    max_steps: int | None = None,
+) -> Comparison:
+    """Compare ``a`` and ``b`` on paired episodes of ``env`` (module docstring).
+
+    Args:
+        episodes: pairs in a fixed comparison; the most a sequential one plays.
+        metric: ``"success"`` (default where the env reports success or is tabular) or
+            ``"return"``.
+        return_range: ``(low, high)`` bounds of an episode's return, needed for a
+            sequential comparison of returns (its bets need bounded outcomes).
+    """
+    if not 0.0 < alpha < 1.0:
+        raise ValueError(f"alpha must be in (0, 1), got {alpha}")
+    if int(episodes) != episodes or episodes < 2:
+        raise ValueError(f"episodes must be an integer >= 2 (pairs), got {episodes!r}")
+    success_fn = _success_fn(env)
+    metric = metric or ("success" if success_fn is not None else "return")
+    if metric not in ("success", "return"):
+        raise ValueError(f"metric must be success or return, got {metric!r}")
+    if metric == "success" and success_fn is None:
+        raise ValueError(f"{type(env).__name__} reports no success: compare returns instead")
+    bounds = (0.0, 1.0) if metric == "success" else return_range
+    if sequential and bounds is None:
+        raise ValueError(
+            "a sequential comparison of returns needs their bounds (return_range=(low, high)): "
+            "its bets are on bounded outcomes"
+        )
+    check_replays(env, seed)
+    lanes = lane_count(env)
+    xa: list[float] = []
+    xb: list[float] = []
+    interval, stopped = (math.nan, math.nan), False
+    wave = 0
+    while len(xa) < episodes:
+        n = min(lanes, episodes - len(xa))
+        for spec, out in ((a, xa), (b, xb)):
+            out.extend(_wave(env, spec, n, seed + wave * lanes, success_fn, metric, max_steps))
+        wave += 1
+        if sequential:
+            assert bounds is not None
+            interval = betting_interval(_differences(xa, xb), alpha, bounds)
+            if (interval[0] > 0 or interval[1] < 0) and len(xa) < episodes:
+                stopped = True
+                break
+    d = _differences(xa, xb)
+    if not sequential:
+        mean, lo, hi = t_interval(d.tolist(), 1 - alpha)
+        interval = (lo, hi) if not math.isnan(lo) else (mean, mean)
+    decision = (
+        "a better" if interval[0] > 0 else "b better" if interval[1] < 0 else "no difference shown"
+    )
+    rule = (
+        "sequential: hedged betting confidence sequence (Waudby-Smith & Ramdas, JRSS-B 2024)"
+        if sequential
+        else "fixed: paired Student-t"
+    )
+    return Comparison(
+        a=a.name, b=b.name, metric=metric, episodes=len(xa),
+        mean_a=sum(xa) / len(xa), mean_b=sum(xb) / len(xb), difference=float(d.mean()),
+        interval=(float(interval[0]), float(interval[1])), decision=decision, rule=rule,
+        alpha=alpha, stopped_early=stopped,
+    )  # fmt: skip
+
+
+def _differences(xa: list[float], xb: list[float]) -> torch.Tensor:
+    return torch.tensor(xa, dtype=torch.float64) - torch.tensor(xb, dtype=torch.float64)
+
+
+def _success_fn(env: EnvBase):
+    if isinstance(env, TabularEnv):
+        return tabular_success(env)
+    return reported_success if SUCCESS in env.observation_spec.keys() else None
+
+
+def _wave(env, spec: PolicySpec, n: int, seed: int, success_fn, metric: str, max_steps):
+    """``n`` episodes (one a lane) from the env seeded ``seed``: each one's outcome."""
+    actor, exploration = rollout_policy(env, spec.policy, spec.exploration)
+    summary = episode_returns(
+        env, actor, n, exploration=exploration, max_steps=max_steps, seed=seed,
+        success_fn=success_fn if metric == "success" else None,
+    )  # fmt: skip
+    if metric == "success":
+        assert summary.success is not None
+        return summary.success.double().tolist()
+    return summary.returns.double().tolist()
+
+
+def betting_interval(
+    d: torch.Tensor, alpha: float, bounds: tuple[float, float]
+) -> tuple[float, float]:
+    """The ``1 - alpha`` hedged betting confidence sequence for the mean of ``d`` (paired
+    differences of outcomes within ``bounds``), at its last element: the running
+    intersection over every prefix, as Waudby-Smith and Ramdas (2024, Theorem 3 with
+    their predictable plug-in bets) build it; valid at any stopping time."""
+    low, high = bounds
+    width = 2 * (high - low)  # a difference lies within [-(high - low), high - low]
+    y = ((d + (high - low)) / width).clamp(0, 1)  # in [0, 1]
+    n = y.shape[0]
+    i = torch.arange(1, n + 1, dtype=torch.float64)
+    mu = (0.5 + torch.cumsum(y, 0)) / (i + 1)  # their regularised running mean ...
+    var = (0.25 + torch.cumsum((y - mu) ** 2, 0)) / (i + 1)  # ... and variance
+    prev_var = torch.cat([torch.tensor([0.25], dtype=torch.float64), var[:-1]])  # predictable
+    lam = torch.sqrt(2 * math.log(2 / alpha) / (prev_var * i * torch.log1p(i)))  # [n]
+    m = torch.linspace(0, 1, GRID, dtype=torch.float64)[1:-1]  # [G]
+    up = torch.minimum(lam[:, None], BET_CAP / m[None, :])
+    down = torch.minimum(lam[:, None], BET_CAP / (1 - m[None, :]))
+    gap = y[:, None] - m[None, :]
+    log_up = torch.cumsum(torch.log1p(up * gap), 0)
+    log_down = torch.cumsum(torch.log1p(-down * gap), 0)
+    capital = torch.logaddexp(log_up, log_down) - math.log(2)  # hedged, theta = 1/2
+    kept = (capital < math.log(1 / alpha)).all(0)  # in every prefix's set
+    if not bool(kept.any()):
+        mid = float(y.mean())
+        kept_m = torch.tensor([mid], dtype=torch.float64)
+    else:
+        kept_m = m[kept]
+    lo, hi = float(kept_m.min()), float(kept_m.max())
+    to_d = lambda v: v * width - (high - low)  # noqa: E731
+    return to_d(lo), to_d(hi)

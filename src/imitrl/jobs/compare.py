@@ -1,0 +1,187 @@
+"""``imitrl compare``: two policies on paired episodes of one env, in one function.
+
+``run_compare(CompareJob(...)) -> dict``: each side (``--a``, ``--b``) is a checkpoint
+(the ``--out`` of imitrl bc, dagger, gail or airl), ``expert`` (the env's built-in
+expert) or ``random`` (uniform random actions); both play episode ``j`` from the env
+seeded ``--seed + j`` (:mod:`imitrl.evaluation.compare`), and the paired differences of
+their success (or return) give the mean difference, its interval and the decision, after
+``--episodes`` pairs or, with ``--sequential``, as soon as the anytime-valid interval
+excludes 0. Bad input (a side that does not fit the env, an env that does not replay
+its seeds, ``--alpha`` outside (0, 1), fewer than 2 episodes) is one line, and nothing is
+written.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from imitrl.limits import MAX_EPISODE_STEPS, MAX_EVAL_EPISODES, MAX_SEED, bounded
+
+__all__ = ["CompareJob", "report", "run_compare"]
+
+SIDES = ("expert", "random")
+"""what ``--a`` / ``--b`` may name besides a checkpoint folder"""
+
+
+@dataclass(frozen=True)
+class CompareJob:
+    """Compare two policies on paired episodes of one env."""
+
+    a: str
+    """a checkpoint folder (imitrl bc/dagger/gail/airl --out), expert (the env's built-in
+    expert) or random (uniform random actions)"""
+    b: str
+    """the other side, as --a"""
+    env: str | None = None
+    """gymnasium id (metaworld/<task>-v3 included); none = the checkpoints' env (both
+    must name the same)"""
+    episodes: int = bounded(100, 2, MAX_EVAL_EPISODES)
+    """pairs of episodes: all of them with a fixed comparison, the most a --sequential
+    one plays"""
+    sequential: bool = False
+    """stop as soon as the anytime-valid confidence sequence of the difference excludes 0
+    (Waudby-Smith & Ramdas 2024); its error rate is at most --alpha whenever it stops"""
+    alpha: float = bounded(0.05, 0, 1, integer=False, low_open=True)
+    """error rate of the decision (the intervals are at 1 - alpha)"""
+    metric: str = "auto"
+    """success, return, or auto (success where the env reports it, return elsewhere)"""
+    return_range: tuple[float, ...] | None = None
+    """low,high bounds of an episode's return (a --sequential comparison of returns needs
+    them)"""
+    seed: int = bounded(10_000, 0, MAX_SEED)
+    """episode j of both sides starts from the env seeded seed + j"""
+    max_episode_steps: int | None = bounded(None, 1, MAX_EPISODE_STEPS, none_ok=True)
+    """override the env's time limit; none = the checkpoints' (or the env's own)"""
+    env_kwargs: tuple[tuple[str, object], ...] = field(
+        default=(), metadata={"repeat": "--env-kwarg"}
+    )
+    """a keyword argument of the env's constructor, name=value"""
+    out: Path | None = None
+    """also write compare.json into this directory; none = print only"""
+
+    def __post_init__(self) -> None:
+        from imitrl.limits import check_bounds
+
+        if isinstance(self.alpha, float | int) and not 0 < self.alpha < 1:
+            raise ValueError(f"--alpha must be in (0, 1), got {self.alpha}")
+        check_bounds(self)
+        if self.metric not in ("auto", "success", "return"):
+            raise ValueError(f"--metric must be auto, success or return, got {self.metric!r}")
+        if self.return_range is not None and (
+            len(self.return_range) != 2 or not self.return_range[0] < self.return_range[1]
+        ):
+            raise ValueError(
+                f"--return-range must be low,high with low < high, got {self.return_range}"
+            )
+        for flag, side in (("--a", self.a), ("--b", self.b)):
+            if side not in SIDES and not (Path(side) / "config.json").is_file():
+                raise ValueError(
+                    f"{flag} {side}: not a checkpoint folder (no config.json), expert or random"
+                )
+        if self.env is None and (self.a in SIDES or self.b in SIDES):
+            raise ValueError("--env names the env for expert or random")
+        if self.out is not None and (Path(self.out) / "compare.json").exists():
+            raise ValueError(f"--out {self.out} holds a compare.json: give another --out")
+
+
+def run_compare(config: CompareJob) -> dict:
+    """Compare as ``config`` says (module docstring); returns what compare.json holds."""
+    from imitrl.envs import make_env
+    from imitrl.evaluation.compare import compare
+
+    env_id, steps, kwargs = _env_of(config)
+    env = make_env(env_id, seed=config.seed, max_episode_steps=steps, env_kwargs=kwargs)
+    try:
+        a = _side(config.a, "--a", env, env_id)
+        b = _side(config.b, "--b", env, env_id)
+        metric = None if config.metric == "auto" else config.metric
+        result = compare(
+            env, a, b, config.episodes, seed=config.seed, alpha=config.alpha,
+            sequential=config.sequential, metric=metric,
+            return_range=None if config.return_range is None else tuple(config.return_range),  # type: ignore[arg-type]
+            max_steps=steps,
+        )  # fmt: skip
+    finally:
+        env.close()
+    results = {"env": env_id, "seed": config.seed, "comparison": result.as_dict()}
+    if config.out is not None:  # written whole, never through a link (imitrl.fs.files)
+        from imitrl.fs.files import make_folder, replace_file
+        from imitrl.fs.write_errors import reporting_disk_full
+
+        with reporting_disk_full(config.out, what="compare.json", left="--out is as it was"):
+            make_folder(config.out)
+            replace_file(config.out / "compare.json", json.dumps(results, indent=2) + "\n")
+    return results
+
+
+def _env_of(config: CompareJob) -> tuple[str, int | None, dict]:
+    """The env both sides play: ``--env``, or the checkpoints' (the same one)."""
+    from imitrl.jobs.checkpoint import checkpoint_env, checkpoint_env_kwargs, read_config
+
+    saved = {s: read_config(Path(s)) for s in (config.a, config.b) if s not in SIDES}
+    envs = {s: checkpoint_env(Path(s), c) for s, c in saved.items()}
+    if config.env is None and len(set(envs.values())) > 1:
+        raise ValueError(
+            "the checkpoints were trained on different envs ("
+            + ", ".join(f"{s}: {e}" for s, e in envs.items())
+            + "): name the one to compare them on with --env"
+        )
+    env_id = config.env or next(iter(envs.values()))
+    steps = config.max_episode_steps or next(
+        (c.get("max_episode_steps") for c in saved.values() if c.get("max_episode_steps")), None
+    )
+    kwargs = dict(config.env_kwargs) or next(
+        (checkpoint_env_kwargs(c) for c in saved.values() if c.get("env_kwargs")), {}
+    )
+    return env_id, steps, kwargs
+
+
+def _side(side: str, flag: str, env, env_id: str):
+    """A :class:`~imitrl.evaluation.compare.PolicySpec` of ``side`` on ``env``."""
+    from torchrl.envs.utils import ExplorationType
+
+    from imitrl.evaluation.compare import PolicySpec
+    from imitrl.jobs.checkpoint import build_learner, read_checkpoint
+    from imitrl.jobs.resolve import expert_for_env, make_expert, no_expert_message
+    from imitrl.policies import as_actor
+    from imitrl.policies.random_actions import RandomActions
+
+    if side == "expert":
+        name = expert_for_env("auto", env_id)
+        if name is None:
+            raise ValueError(f"{flag} expert: {no_expert_message(env_id)}")
+        expert = make_expert(name, "builder", env_id=env_id, env=env)
+        return PolicySpec(as_actor(expert), ExplorationType.DETERMINISTIC, "expert")
+    if side == "random":
+        return PolicySpec(
+            RandomActions(env.action_spec_unbatched), ExplorationType.RANDOM, "random"
+        )
+    saved = read_checkpoint(Path(side))
+    try:
+        learner = build_learner(saved, env)
+        learner.check_env(env)
+    except ValueError as err:
+        trained = saved.config.get("env")
+        raise ValueError(
+            f"{flag} {side} (trained on {trained}) does not fit {env_id}'s observations and "
+            f"actions: {err}"
+        ) from None
+    return PolicySpec(learner.policy, learner.exploration, str(side))
+
+
+def report(results: dict) -> list[str]:
+    """What ``imitrl compare`` prints."""
+    c = results["comparison"]
+    lo, hi = c["interval"]
+    level = round(100 * (1 - c["alpha"]))
+    return [
+        f"{c['a']} vs {c['b']} on {results['env']}: {c['episodes']} paired episodes "
+        f"(seeds {results['seed']}..{results['seed'] + c['episodes'] - 1})",
+        f"{c['metric']}: a {c['mean_a']:.4g}, b {c['mean_b']:.4g}; difference a - b "
+        f"{c['difference']:+.4g}, {level}% interval [{lo:+.4g}, {hi:+.4g}]",
+        f"decision: {c['decision']} ({c['rule']}"
+        + (", stopped early" if c["stopped_early"] else "")
+        + ")",
+    ]

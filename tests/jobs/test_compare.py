@@ -1,0 +1,75 @@
+"""``imitrl compare`` (issue 47): two checkpoints, or an expert and random actions, on
+paired episodes of a gymnasium env and of a Meta-World task; what it prints; bad input
+is one line and writes nothing."""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+
+import pytest
+
+from imitrl.cli import main
+
+
+def _main(*argv: str) -> tuple[int, str, str]:
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        status = main(list(argv))
+    return status, out.getvalue(), err.getvalue()
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    """Two CartPole checkpoints (a short fit, a long one) and a Pendulum one."""
+    root = tmp_path_factory.mktemp("compare")
+    for name, env, steps in (("short", "CartPole-v1", "20"), ("long", "CartPole-v1", "600"),
+                             ("pend", "Pendulum-v1", "10")):  # fmt: skip
+        status, _, err = _main("bc", "--env", env, "--demos", "3", "--steps", steps,
+                               "--eval-episodes", "1", "--out", str(root / name),
+                               "--no-progress")  # fmt: skip
+        assert status == 0, err
+    return root
+
+
+def test_two_checkpoints_on_paired_episodes(runs, tmp_path):
+    status, out, err = _main("compare", "--a", str(runs / "short"), "--b", str(runs / "long"),
+                             "--episodes", "20", "--out", str(tmp_path / "c"))  # fmt: skip
+    assert status == 0, err
+    lines = out.splitlines()
+    assert "20 paired episodes (seeds 10000..10019)" in lines[0]
+    assert "difference a - b" in lines[1] and "95% interval" in lines[1]
+    saved = json.loads((tmp_path / "c" / "compare.json").read_text())["comparison"]
+    assert lines[2] == f"decision: {saved['decision']} ({saved['rule']})"
+    assert saved["episodes"] == 20 and saved["metric"] == "return"
+
+
+def test_a_sequential_comparison_on_a_metaworld_task_stops_early():
+    pytest.importorskip("metaworld")
+    status, out, err = _main("compare", "--a", "expert", "--b", "random", "--env",
+                             "metaworld/reach-v3", "--episodes", "60", "--sequential",
+                             "--max-episode-steps", "150")  # fmt: skip
+    assert status == 0, err
+    assert "success: a 1, b 0" in out and "decision: a better" in out and "stopped early" in out
+    used = int(out.split(" paired episodes")[0].rsplit(" ", 1)[1])
+    assert used < 60
+
+
+@pytest.mark.parametrize(
+    "argv, said",
+    [
+        (["--b", "{pend}", "--env", "CartPole-v1"], "(trained on Pendulum-v1) does not fit"),
+        (["--b", "{pend}"], "trained on different envs"),
+        (["--b", "{long}", "--alpha", "1"], "--alpha must be in (0, 1), got 1"),
+        (["--b", "{long}", "--alpha", "0"], "--alpha must be in (0, 1), got 0"),
+        (["--b", "{long}", "--episodes", "0"], "--episodes must be an integer >= 2"),
+        (["--b", "{long}", "--sequential", "--metric", "return"], "needs their bounds"),
+    ],
+)
+def test_bad_input_is_one_line_and_writes_nothing(runs, tmp_path, argv, said):
+    argv = [a.format(pend=runs / "pend", long=runs / "long") for a in argv]
+    out = tmp_path / "c"
+    status, _, err = _main("compare", "--a", str(runs / "short"), *argv, "--out", str(out))
+    assert status == 2 and said in err and "Traceback" not in err, err
+    assert len(err.strip().splitlines()) == 1 and not out.exists()
