@@ -252,7 +252,9 @@ def figure(rows: list[dict], path: Path) -> None:
         ax.set_xlim(-0.6, len(learners) - 0.4)
         ax.set_ylabel("success (95% Wilson)" if score == "success" else "mean return (95% t)")
         ax.set_title(task.replace("_", "-").removeprefix("metaworld/"), fontsize=10)
-        ax.legend(title="chunk labels", fontsize=8)
+        if score == "success":
+            ax.set_ylim(-0.03, 1.05)
+    axes.flat[0].legend(title="chunk labels", fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)

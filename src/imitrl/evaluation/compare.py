@@ -45,7 +45,14 @@ from imitrl.runtime.loop import lane_count
 from imitrl.runtime.returns import episode_returns
 from imitrl.runtime.rollout import rollout_policy
 
-__all__ = ["Comparison", "PolicySpec", "betting_interval", "check_replays", "compare"]
+__all__ = [
+    "Comparison",
+    "PolicySpec",
+    "betting_interval",
+    "check_replays",
+    "compare",
+    "log_capital",
+]
 
 BET_CAP = 0.5
 """the largest fraction of its capital a bet may stake (the paper's ``c``)"""
@@ -205,28 +212,37 @@ def betting_interval(
     differences of outcomes within ``bounds``), at its last element: the running
     intersection over every prefix, as Waudby-Smith and Ramdas (2024, Theorem 3 with
     their predictable plug-in bets) build it; valid at any stopping time."""
-    low, high = bounds
-    width = 2 * (high - low)  # a difference lies within [-(high - low), high - low]
-    y = ((d + (high - low)) / width).clamp(0, 1)  # in [0, 1]
-    n = y.shape[0]
-    i = torch.arange(1, n + 1, dtype=torch.float64)
-    mu = (0.5 + torch.cumsum(y, 0)) / (i + 1)  # their regularised running mean ...
-    var = (0.25 + torch.cumsum((y - mu) ** 2, 0)) / (i + 1)  # ... and variance
-    prev_var = torch.cat([torch.tensor([0.25], dtype=torch.float64), var[:-1]])  # predictable
-    lam = torch.sqrt(2 * math.log(2 / alpha) / (prev_var * i * torch.log1p(i)))  # [n]
-    m = torch.linspace(0, 1, GRID, dtype=torch.float64)[1:-1]  # [G]
-    up = torch.minimum(lam[:, None], BET_CAP / m[None, :])
-    down = torch.minimum(lam[:, None], BET_CAP / (1 - m[None, :]))
-    gap = y[:, None] - m[None, :]
-    log_up = torch.cumsum(torch.log1p(up * gap), 0)
-    log_down = torch.cumsum(torch.log1p(-down * gap), 0)
-    capital = torch.logaddexp(log_up, log_down) - math.log(2)  # hedged, theta = 1/2
+    span = bounds[1] - bounds[0]
+    m = torch.linspace(0, 1, GRID, dtype=torch.float64)[1:-1]  # candidate means of y
+    capital = log_capital(_unit(d, span)[None, :], m, alpha)[0]  # [n, G]
     kept = (capital < math.log(1 / alpha)).all(0)  # in every prefix's set
-    if not bool(kept.any()):
-        mid = float(y.mean())
-        kept_m = torch.tensor([mid], dtype=torch.float64)
-    else:
-        kept_m = m[kept]
-    lo, hi = float(kept_m.min()), float(kept_m.max())
-    to_d = lambda v: v * width - (high - low)  # noqa: E731
-    return to_d(lo), to_d(hi)
+    kept_m = m[kept] if bool(kept.any()) else _unit(d, span).mean().reshape(1)
+    return _from_unit(float(kept_m.min()), span), _from_unit(float(kept_m.max()), span)
+
+
+def log_capital(y: torch.Tensor, m: torch.Tensor, alpha: float) -> torch.Tensor:
+    """``[K, n, G]`` log of the hedged capital (theta = 1/2) after each of ``n`` outcomes
+    ``y [K, n]`` in [0, 1], betting against each candidate mean ``m [G]`` with the
+    predictable plug-in bets of Waudby-Smith and Ramdas (2024): the test martingale of
+    the hypothesis "the mean is m", which rejects it once it reaches ``1 / alpha``."""
+    n = y.shape[1]
+    i = torch.arange(1, n + 1, dtype=torch.float64)
+    mu = (0.5 + torch.cumsum(y, 1)) / (i + 1)  # their regularised running mean ...
+    var = (0.25 + torch.cumsum((y - mu) ** 2, 1)) / (i + 1)  # ... and variance
+    prev = torch.cat([torch.full_like(var[:, :1], 0.25), var[:, :-1]], 1)  # predictable
+    lam = torch.sqrt(2 * math.log(2 / alpha) / (prev * i * torch.log1p(i)))[:, :, None]
+    up = torch.minimum(lam, BET_CAP / m)
+    down = torch.minimum(lam, BET_CAP / (1 - m))
+    gap = y[:, :, None] - m
+    log_up = torch.cumsum(torch.log1p(up * gap), 1)
+    log_down = torch.cumsum(torch.log1p(-down * gap), 1)
+    return torch.logaddexp(log_up, log_down) - math.log(2)
+
+
+def _unit(d: torch.Tensor, span: float) -> torch.Tensor:
+    """Paired differences within ``[-span, span]`` mapped to [0, 1] (0 -> 1/2)."""
+    return ((d + span) / (2 * span)).clamp(0, 1)
+
+
+def _from_unit(v: float, span: float) -> float:
+    return v * 2 * span - span
