@@ -1,6 +1,7 @@
 """Snapshot (issue 46): an env's state taken, steps played, the state put back: the same
 steps then give the same observations, rewards and flags, bit for bit; classic control,
-MuJoCo, every Meta-World task, imitrl's own envs; envs in other processes refused."""
+MuJoCo, Meta-World (all 50 tasks with -m slow), imitrl's own envs; envs in other
+processes refused."""
 
 from __future__ import annotations
 
@@ -48,12 +49,17 @@ def test_mujoco_steps_again_as_it_did(env_id):
     assert _restores_exactly(make_env(env_id, seed=1))
 
 
-def test_every_metaworld_task_steps_again_as_it_did():
+@pytest.mark.parametrize(
+    "tasks",
+    [("reach-v3", "pick-place-v3", "door-open-v3"),
+     pytest.param("MT50", marks=pytest.mark.slow)],  # all 50: 11 s, with -m slow
+)  # fmt: skip
+def test_metaworld_tasks_step_again_as_they_did(tasks):
     pytest.importorskip("metaworld")
     from imitrl.envs.metaworld import MT50
 
     bad = []
-    for task in MT50:
+    for task in MT50 if tasks == "MT50" else tasks:
         env = make_env(f"metaworld/{task}", seed=2)
         if not _restores_exactly(env, ahead=10):
             bad.append(task)

@@ -65,12 +65,12 @@ def test_the_sequential_rule_stops_early_on_a_large_difference():
 
 
 def test_the_confidence_sequence_covers_at_its_level_at_every_stop():
-    """Bernoulli(0.6) - Bernoulli(0.45) pairs: over 400 sequences of 200, the running
+    """Bernoulli(0.6) - Bernoulli(0.45) pairs: over 200 sequences of 200, the running
     interval excludes the true difference 0.15 at some point in at most about alpha of
     them (Ville's inequality bounds it by alpha; binomial slack 3 sd)."""
     g = torch.Generator().manual_seed(0)
     misses = 0
-    runs, n, alpha = 400, 200, 0.1
+    runs, n, alpha = 200, 200, 0.1
     for _ in range(runs):
         d = (torch.rand(n, generator=g) < 0.6).double() - (
             torch.rand(n, generator=g) < 0.45
