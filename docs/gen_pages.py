@@ -248,6 +248,7 @@ EXAMPLES = {
     "gail": "imitrl gail --env Acrobot-v1 --demos 10 --out results/gail",
     "airl": "imitrl airl --env Pendulum-v1 --demos 10 --anneal-lr --out results/airl",
     "eval": "imitrl eval --checkpoint results/dagger --eval-episodes 20",
+    "compare": "imitrl compare --a results/bc --b results/dagger --env Pendulum-v1 --sequential --return-range=-2000,0",
     "bench": "imitrl bench loss_functions --quick",
     "frozenlake": "imitrl frozenlake --out results/frozenlake",
 }
