@@ -69,6 +69,7 @@ DAGGER = {
     "--episodes-per-round": ["0", "10001", HUGE],
     "--beta": ["-0.5", "1.5", "nan", "inf"],
     "--workers": ["0", "1025", HUGE],
+    "--gate": ["-1", "nan", "inf"],
 }
 GAIL = {
     "--num-envs": ["0", "-1", "257", HUGE],

@@ -39,11 +39,13 @@ from imitrl.algorithms.dagger_checkpoint import (
 )
 from imitrl.algorithms.expert_plan import ExpertPlanner
 from imitrl.data.buffer import DemonstrationBuffer
+from imitrl.data.interventions import intervention_segments
 from imitrl.envs.limits import episode_limit
 from imitrl.envs.random_state import env_random_state, set_env_random_state
 from imitrl.fs.lock import exclusive
 from imitrl.learners.learner import Learner
 from imitrl.policies.experts import Expert
+from imitrl.policies.gate import ExpertGate
 from imitrl.policies.mixture import BetaMixer, behaviour_policy
 from imitrl.runtime import paths
 from imitrl.runtime.rollout import rollout_episodes
@@ -244,9 +246,22 @@ class DAggerConfig:
     """the behaviour-cloning fit of each round"""
     seed: int = 0
     """seed of the mixture's coin flips"""
+    gate: ExpertGate | None = None
+    """a gated expert (:class:`~imitrl.policies.gate.ExpertGate`) instead of ``beta``'s coin:
+    the expert takes over where the gate's rule fires"""
+    label: str = "all"
+    """which visited states the expert labels: ``all`` (DAgger) or ``interventions``
+    (HG-DAgger, with a gate: the frames it took over, each streak an episode,
+    :func:`~imitrl.data.interventions.intervention_segments`)"""
 
     def __post_init__(self) -> None:
         checks.integer(self.rounds, "DAggerConfig.rounds", minimum=1)
+        if self.label not in ("all", "interventions"):
+            raise ValueError(f"DAggerConfig.label must be all or interventions, got {self.label!r}")
+        if self.label == "interventions" and self.gate is None:
+            raise ValueError("label='interventions' (HG-DAgger) needs a gate: ExpertGate(rule)")
+        if self.gate is not None and not isinstance(self.gate, ExpertGate):
+            raise ValueError(f"DAggerConfig.gate must be an ExpertGate, got {self.gate!r}")
         checks.integer(self.episodes_per_round, "DAggerConfig.episodes_per_round", minimum=1)
         checks.boolean(self.warm_start, "DAggerConfig.warm_start")
         checks.integer(self.seed, "DAggerConfig.seed")
@@ -273,7 +288,10 @@ class RoundRecord:
     beta_next: float | None = None
     """beta of the relabel round collected after this fit"""
     rows_collected: int = 0
+    """rows the relabel round added to the buffer"""
     expert_executed_fraction: float | None = None
+    interventions: int | None = None
+    """visited states where a gate gave the expert control (None without a gate)"""
     info: dict | None = None
     """what ``on_fit`` returned for this round (e.g. its evaluation), kept in checkpoints"""
 
@@ -447,9 +465,13 @@ def _fit(k, learner, buffer, config, train, logger, bc_step) -> RoundRecord:
 
 def _collect(k, learner, expert, mixer, source, buffer, config, record) -> None:
     """Relabel round ``k + 1``: the behaviour policy's episodes, labelled, into the buffer."""
-    mixer.beta = config.beta(k + 1)
     # envs and experts stay on the CPU; a learner elsewhere acts through OnDevice
-    behaviour = behaviour_policy(expert, acting(learner.policy, "cpu"), mixer)
+    actor = acting(learner.policy, "cpu")
+    if config.gate is None:
+        mixer.beta = config.beta(k + 1)
+        behaviour = behaviour_policy(expert, actor, mixer)
+    else:  # the expert takes over where the gate fires
+        behaviour = TensorDictSequential(expert, actor, config.gate)
     with set_exploration_type(learner.exploration):  # what EnvSource(exploration=None) uses
         rows = source.collect(
             behaviour,
@@ -457,7 +479,12 @@ def _collect(k, learner, expert, mixer, source, buffer, config, record) -> None:
             round_index=k + 1,
             first_episode=buffer.next_episode,
         )
-    buffer.extend(rows)
-    record.beta_next = mixer.beta
+    executed = rows.get(keys.EXPERT_EXECUTED)
+    if config.label == "interventions":  # HG-DAgger: the expert's frames alone
+        rows = intervention_segments(rows, buffer.next_episode)
+    if rows.shape[0]:
+        buffer.extend(rows)
+    record.beta_next = mixer.beta if config.gate is None else 0.0
     record.rows_collected = rows.shape[0]
-    record.expert_executed_fraction = float(rows.get(keys.EXPERT_EXECUTED).float().mean())
+    record.expert_executed_fraction = float(executed.float().mean())
+    record.interventions = None if config.gate is None else int(executed.sum())

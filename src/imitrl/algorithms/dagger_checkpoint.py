@@ -56,7 +56,7 @@ def config_summary(config) -> dict[str, Any]:
     bc = dataclasses.asdict(config.bc)
     if bc["batch_size"] is not None:
         bc["batch_size"] *= rank_and_world()[1]
-    return {
+    summary = {
         "episodes_per_round": config.episodes_per_round,
         "warm_start": config.warm_start,
         "seed": config.seed,
@@ -64,6 +64,9 @@ def config_summary(config) -> dict[str, Any]:
         # a dataclass schedule by value; any other callable by its type only
         "beta": repr(beta) if dataclasses.is_dataclass(beta) else type(beta).__qualname__,
     }
+    if config.gate is not None:  # a gated run's (absent from the runs saved before gates)
+        summary.update(gate=repr(config.gate), label=config.label)
+    return summary
 
 
 def _refuse_batch(path: Path, saved: dict, mine: dict) -> None:

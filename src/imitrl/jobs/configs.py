@@ -229,6 +229,13 @@ class DAggerJob(BCJob):
     address: str | None = None
     """the Ray cluster for --workers (auto, or ray://HOST:10001); none = a local Ray
     instance with --workers CPUs"""
+    gate: float | None = bounded(None, 0, integer=False, none_ok=True)
+    """a gated expert instead of --beta's coin: the expert takes over where the learner's
+    action is farther than this from its own (Euclidean; discrete actions: where they
+    differ); none = --beta decides"""
+    label: str = "all"
+    """which visited states the expert labels: all (DAgger) or interventions (HG-DAgger,
+    with --gate: the frames it took over, each streak an episode of its own)"""
     chunk_labels: str = "mask"
     """a chunked learner's labels at the states its rounds visit: mask = the expert's
     label at each state, the rest of the chunk masked (windowing); plan = the expert's
@@ -243,6 +250,14 @@ class DAggerJob(BCJob):
             raise ValueError("dagger needs --expert to label the learner's states")
         if self.address is not None and self.workers is None:
             raise ValueError("--address names the Ray cluster for --workers: give --workers too")
+        if self.label not in ("all", "interventions"):
+            raise ValueError(f"--label must be all or interventions, got {self.label!r}")
+        if self.label == "interventions" and self.gate is None:
+            raise ValueError(
+                "--label interventions (HG-DAgger) labels what --gate hands the expert: give --gate"
+            )
+        if self.gate is not None and self.beta > 0:
+            raise ValueError("--gate decides who acts instead of --beta's coin: leave --beta at 0")
         if self.chunk_labels not in CHUNK_LABELS:
             raise ValueError(
                 f"--chunk-labels must be one of {', '.join(CHUNK_LABELS)}, got {self.chunk_labels!r}"

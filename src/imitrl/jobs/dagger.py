@@ -52,6 +52,7 @@ from imitrl.jobs.configs import DAggerJob
 from imitrl.jobs.evaluate import format_return
 from imitrl.jobs.resolve import no_expert_message
 from imitrl.learners import Learner
+from imitrl.policies.gate import ExpertGate
 from imitrl.system.ranks import rank_and_world
 
 __all__ = ["DAggerJob", "report", "run_dagger"]
@@ -107,6 +108,8 @@ def _run_dagger(config: DAggerJob, folder: Path) -> dict:
                     warm_start=config.warm_start,
                     bc=bc_config(config, setup),
                     seed=config.seed,
+                    gate=None if config.gate is None else ExpertGate(config.gate),
+                    label=config.label,
                 ),
                 on_fit=on_fit,
                 progress=config.progress,
@@ -126,6 +129,7 @@ def _run_dagger(config: DAggerJob, folder: Path) -> dict:
                 "beta_next": r.beta_next,
                 "rows_collected": r.rows_collected,
                 "expert_executed_fraction": r.expert_executed_fraction,
+                "interventions": r.interventions,
                 "evaluation": ev,
             }
             for r, ev in zip(result.rounds, evaluations)
