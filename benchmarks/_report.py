@@ -152,3 +152,19 @@ def fmt_ci(ci: tuple[float, float, float], digits: int = 2, *, unit: bool = Fals
 def env_label(env_id: str) -> str:
     """``module:Env-v0`` without its module, for tables."""
     return env_id.split(":", 1)[-1]
+
+
+def panels(n: int, cols: int, size: tuple[float, float]):
+    """A figure of ``n`` panels, ``cols`` to a row (fewer when ``n`` is smaller), each
+    ``size`` inches; the unused cells of the grid hidden. Returns ``(figure, the n axes)``."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    cols = min(cols, n)
+    grid = -(-n // cols)
+    fig, axes = plt.subplots(grid, cols, figsize=(size[0] * cols, size[1] * grid), squeeze=False)
+    for ax in axes.flat[n:]:
+        ax.axis("off")
+    return fig, list(axes.flat[:n])

@@ -222,18 +222,11 @@ def markdown(cfg: Config, rows: list[dict], wall: float) -> str:
 
 
 def figure(rows: list[dict], path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     tasks = list(dict.fromkeys(r["task"] for r in rows))
-    cols = min(4, len(tasks))
-    grid = -(-len(tasks) // cols)
-    fig, axes = plt.subplots(grid, cols, figsize=(4.2 * cols, 3.2 * grid), squeeze=False)
-    for ax in axes.flat[len(tasks) :]:
-        ax.axis("off")
-    for ax, task in zip(axes.flat, tasks):
+    fig, axes = _report.panels(len(tasks), 4, (4.2, 3.2))
+    for ax, task in zip(axes, tasks):
         mine = [r for r in rows if r["task"] == task]
         score = "success" if _scored_by_success(task) else "return"
         expert = next(r for r in mine if r["learner"] == "expert")
@@ -254,7 +247,7 @@ def figure(rows: list[dict], path: Path) -> None:
         ax.set_title(task.replace("_", "-").removeprefix("metaworld/"), fontsize=10)
         if score == "success":
             ax.set_ylim(-0.03, 1.05)
-    axes.flat[0].legend(title="chunk labels", fontsize=8)
+    axes[0].legend(title="chunk labels", fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)

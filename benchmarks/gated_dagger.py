@@ -137,18 +137,11 @@ def markdown(rows: list[dict], wall: float) -> str:
 
 
 def figure(rows: list[dict], path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     tasks = list(dict.fromkeys(r["task"] for r in rows))
-    cols = min(3, len(tasks))
-    grid = -(-len(tasks) // cols)
-    fig, axes = plt.subplots(grid, cols, figsize=(4.4 * cols, 3.3 * grid), squeeze=False)
-    for ax in axes.flat[len(tasks) :]:
-        ax.axis("off")
-    for ax, task in zip(axes.flat, tasks):
+    fig, axes = _report.panels(len(tasks), 3, (4.4, 3.3))
+    for ax, task in zip(axes, tasks):
         score = "success" if _scored_by_success(task) else "return"
         for r in (x for x in rows if x["task"] == task):
             mid, lo, hi = r[score]
@@ -159,7 +152,7 @@ def figure(rows: list[dict], path: Path) -> None:
         if score == "success":
             ax.set_ylim(-0.03, 1.05)
         ax.set_title(task.removeprefix("metaworld/"), fontsize=10)
-    axes.flat[0].legend(fontsize=8)
+    axes[0].legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
