@@ -97,10 +97,11 @@ def run_compare(config: CompareJob) -> dict:
         a = _side(config.a, "--a", env, env_id)
         b = _side(config.b, "--b", env, env_id)
         metric = None if config.metric == "auto" else config.metric
+        bounds = config.return_range  # low, high (CompareJob's check)
         result = compare(
             env, a, b, config.episodes, seed=config.seed, alpha=config.alpha,
             sequential=config.sequential, metric=metric,
-            return_range=None if config.return_range is None else tuple(config.return_range),  # type: ignore[arg-type]
+            return_range=None if bounds is None else (float(bounds[0]), float(bounds[1])),
             max_steps=steps,
         )  # fmt: skip
     finally:
