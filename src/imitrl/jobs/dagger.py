@@ -76,14 +76,7 @@ def _run_dagger(config: DAggerJob, folder: Path) -> dict:
         config = dataclasses.replace(config, loss=setup.loss)  # recorded as resolved
         if setup.expert is None:  # --expert auto with a --dataset, on an env without one
             raise ValueError(no_expert_message(config.played_env()))
-        horizon = setup.make_learner().horizon if config.chunk_labels == "plan" else None
-        if config.chunk_labels == "plan" and horizon is None:
-            raise ValueError(
-                f"--chunk-labels plan labels whole chunks for a chunked learner (act, "
-                f"flow_chunk, mse_chunk, diffusion_unet, ...); --loss {setup.loss} predicts "
-                "one action"
-            )
-        buffer = demonstrations(config, setup, plan_horizon=horizon)
+        buffer = demonstrations(config, setup, plan_horizon=_plan_horizon(config, setup))
         demo_rows, demo_episodes = len(buffer), buffer.num_episodes
         expert_ev = evaluate_expert(config, setup) if evaluating() else None
 
@@ -153,6 +146,20 @@ def _run_dagger(config: DAggerJob, folder: Path) -> dict:
         return results
     finally:
         setup.close()  # the env and the logger, whatever happened
+
+
+def _plan_horizon(config: DAggerJob, setup: Setup) -> int | None:
+    """The chunk length the expert plans (``--chunk-labels plan``), None with ``mask``;
+    ValueError for a learner that predicts one action."""
+    if config.chunk_labels != "plan":
+        return None
+    horizon = setup.make_learner().horizon
+    if horizon is None:
+        raise ValueError(
+            f"--chunk-labels plan labels whole chunks for a chunked learner (act, flow_chunk, "
+            f"mse_chunk, diffusion_unet, ...); --loss {setup.loss} predicts one action"
+        )
+    return horizon
 
 
 def episode_source(config: DAggerJob, setup: Setup) -> EnvSource | RaySource | LeadSource:
