@@ -46,6 +46,11 @@ LOSSES: tuple[tuple[str, str, str], ...] = (
     ("diffusion", "continuous", "diffusion policy (DDPM, 50 steps), samples its actions"),
     ("diffusion_ddim", "continuous", "diffusion trained as DDPM (50 steps), sampled by DDIM in 8"),
     ("flow", "continuous", "flow matching (rectified flow), 8 Euler steps, samples its actions"),
+    (
+        "mip",
+        "continuous",
+        "minimal iterative policy (Pan et al. 2025): 2 regression steps, t*=0.9, noise in training only",
+    ),
     ("mse_chunk", "continuous", "MSE on chunks of 8, executes 4 then replans"),
     ("l1_chunk", "continuous", "L1 on chunks of 8, executes 4 then replans"),
     ("l1_chunk_ensemble", "continuous", "L1 on chunks of 8, ACT's temporal ensembling (m=0.01)"),
@@ -62,6 +67,7 @@ LOSSES: tuple[tuple[str, str, str], ...] = (
         "continuous",
         "flow matching on chunks of 8 (masked, 16 Euler steps), executes 4, noise held per episode",
     ),
+    ("mip_chunk", "continuous", "minimal iterative policy on chunks of 8 (masked), executes 4"),
     (
         "act",
         "continuous",

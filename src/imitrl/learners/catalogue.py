@@ -38,6 +38,8 @@ from imitrl.learners.diffusion.entries import (
 from imitrl.learners.diffusion_unet.config import fit_recipe
 from imitrl.learners.diffusion_unet.entries import DIFFUSION_UNET, diffusion_unet, unet_summary
 from imitrl.learners.flow.entries import FLOW_CHUNK_STEPS, FLOW_STEPS, flow, flow_chunk
+from imitrl.learners.mip.entries import mip, mip_chunk
+from imitrl.learners.mip.policy import T_STAR
 from imitrl.learners.registry import register
 
 __all__: list[str] = []
@@ -98,6 +100,13 @@ register(
     summary=f"flow matching (rectified flow), {FLOW_STEPS} Euler steps, samples its actions",
 )(flow)
 
+register(
+    "mip",
+    actions=_C,
+    summary=f"minimal iterative policy (Pan et al. 2025): 2 regression steps, t*={T_STAR}, "
+    "noise in training only",
+)(mip)
+
 # ------------------------------------------------------------------ chunks of H actions
 register(
     "mse_chunk",
@@ -143,6 +152,12 @@ register(
     f"executes {_K}, noise held per episode",
     horizon=_H,
 )(flow_chunk)
+register(
+    "mip_chunk",
+    actions=_C,
+    summary=f"minimal iterative policy on chunks of {_H} (masked), executes {_K}",
+    horizon=_H,
+)(mip_chunk)
 register(
     "act",
     actions=_C,
