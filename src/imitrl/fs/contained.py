@@ -100,7 +100,7 @@ def inside(root: str | Path, relative: object, *, named_by: str) -> Path:
             or resolves (through a symbolic link) outside the folder.
     """
     path = Path(root, *check_relative(root, relative, named_by=named_by))
-    real = Path(os.path.realpath(path))
+    real = _resolved(path)
     bases = trusted_bases(root)
     if not _within(real, bases):
         raise ValueError(
@@ -119,7 +119,7 @@ def links_stay_inside(root: str | Path, *, what: str = "dataset") -> None:
         if not stat.S_ISLNK(st.st_mode):
             continue
         try:
-            real = Path(os.path.realpath(path))
+            real = _resolved(path)
         except FileNotFoundError:  # the link removed between its lstat and its readlink
             continue  # (realpath reads it unguarded): gone, nothing of it is read later
         if not _within(real, bases):
@@ -128,3 +128,18 @@ def links_stay_inside(root: str | Path, *, what: str = "dataset") -> None:
                 f"downloaded {what} may only link to its own files (copy the files in, "
                 "or point to the folder itself)"
             )
+
+
+def _resolved(path: Path) -> Path:
+    """``os.path.realpath(path)``; a path replaced as it is resolved (a link turned into
+    a file between realpath's lstat and its readlink: EINVAL) is refused (ValueError), a
+    removed one raises FileNotFoundError for the caller to judge."""
+    try:
+        return Path(os.path.realpath(path))
+    except FileNotFoundError:
+        raise
+    except OSError as err:
+        raise ValueError(
+            f"{path}: changed while it was checked (a symbolic link and a file swapped as it "
+            f"was resolved: {err.strerror}); refused"
+        ) from None
