@@ -21,20 +21,18 @@ sampler is its ``mip_sampler`` (the first prediction fed to the second unscaled)
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
 
 import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
-from tensordict.utils import NestedKey
 from torchrl.data import Bounded
 
 from imitrl import keys
+from imitrl.learners.action_loss import NormalizedActionLoss
 from imitrl.learners.defaults import HIDDEN
 from imitrl.learners.flow.policy import VelocityNetwork
-from imitrl.objectives.base import ImitationLoss
 from imitrl.policies.normalization import ObservationNormalizer
-from imitrl.system.ranks import masked_mean, rows_drawn
+from imitrl.system.ranks import rows_drawn
 
 __all__ = ["T_STAR", "MIPLoss", "MIPPolicy"]
 
@@ -97,7 +95,7 @@ class MIPPolicy(TensorDictModuleBase):
         return tensordict
 
 
-class MIPLoss(ImitationLoss):
+class MIPLoss(NormalizedActionLoss):
     """MIP's training loss of a :class:`MIPPolicy` (module docstring).
 
     Args:
@@ -109,46 +107,21 @@ class MIPLoss(ImitationLoss):
     Returns ``loss_mip``.
     """
 
-    @dataclass
-    class _AcceptedKeys:
-        observation: NestedKey = keys.OBSERVATION
-        label: NestedKey = keys.EXPERT_ACTION
-        pad: NestedKey | None = None
-
-    default_keys = _AcceptedKeys
-    tensor_keys: _AcceptedKeys
     out_keys = ["loss_mip"]
+    what = "MIP labels"
 
     def __init__(self, policy: MIPPolicy, *, chunked: bool = False, seed: int = 0) -> None:
         if not isinstance(policy, MIPPolicy):
             raise ValueError(f"expected a MIPPolicy, got {type(policy).__name__}")
-        super().__init__()
-        self.policy = policy
-        if chunked:
-            from imitrl.data.chunks import CHUNK_PAD, EXPERT_CHUNK
-
-            self.set_keys(label=EXPERT_CHUNK, pad=CHUNK_PAD)
-        self.generator = torch.Generator().manual_seed(int(seed))
+        super().__init__(policy, chunked=chunked, seed=seed)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         obs = tensordict.get(self.tensor_keys.observation)
-        label = tensordict.get(self.tensor_keys.label)
-        n, d = label.shape[0], self.policy.low.shape[0]
-        if not label.dtype.is_floating_point or label[0].numel() != d:
-            raise ValueError(
-                f"MIP labels under {self.tensor_keys.label!r} must be float with {d} entries "
-                f"per row, got {label.dtype} {tuple(label.shape)}"
-            )
-        a = self.policy.normalize(label.reshape(n, d))
+        a = self.labels(tensordict)
+        n, d = a.shape
         g, t = self.generator, self.policy.t_star  # CPU draws per row (data-parallel ranks)
         eps = rows_drawn(lambda m: torch.randn(m, d, generator=g), n).to(a.device)
         first = self.policy.step(torch.zeros_like(a), obs, 0.0)
         second = self.policy.step(a + (1 - t) * eps, obs, t)
         err = (first - a) ** 2 / t**2 + (second - a) ** 2 / (1 - t) ** 2  # [N, d]
-        if self.tensor_keys.pad is None:
-            loss = err.mean()
-        else:  # [N, H] -> [N, H * m]: padded entries of a chunk carry no weight
-            keep = (~tensordict.get(self.tensor_keys.pad)).float()
-            keep = keep.repeat_interleave(d // keep.shape[-1], dim=-1)
-            loss = masked_mean(err, keep)
-        return TensorDict({"loss_mip": loss}, batch_size=[])
+        return TensorDict({"loss_mip": self.mean_error(err, tensordict)}, batch_size=[])
