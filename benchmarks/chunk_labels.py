@@ -98,7 +98,7 @@ QUICK = Config(seeds=1, demos=1, rounds=2, episodes=1, steps=5, eval=2, tasks=TA
                learners=("mse_chunk",), metaworld=("reach-v3",), mw_seeds=1)  # fmt: skip
 
 
-def _task(task: str, seed: int):
+def task_setup(task: str, seed: int):
     """``(env, expert, episode bound, make(seed) -> held-out env)`` of ``task``."""
     if task == "two_way":
         env, expert, limit = TwoWayObstacleEnv(seed=seed), two_way_expert(), 40
@@ -123,7 +123,7 @@ def cell(task: str, learner: str, labels: str, seed: int, cfg: Config) -> dict:
     """One DAgger run and its last learner's evaluation."""
     b = budget(task, cfg)
     torch.manual_seed(seed)
-    env, expert, limit, make = _task(task, seed)
+    env, expert, limit, make = task_setup(task, seed)
     demos = rollout_episodes(env, expert, b.demos, max_steps=limit)
     buffer = DemonstrationBuffer(action_spec=env.action_spec_unbatched)
     plans = labels == "plan"
@@ -142,7 +142,9 @@ def cell(task: str, learner: str, labels: str, seed: int, cfg: Config) -> dict:
         DAggerConfig(rounds=b.rounds, episodes_per_round=b.episodes,
                      bc=BCConfig(num_steps=b.steps, batch_size=b.batch, seed=seed), seed=seed),
     )  # fmt: skip
-    returns, successes = _episodes(make(10_000 + seed), result.learner.policy, b.eval, seed, limit)
+    returns, successes = held_out_episodes(
+        make(10_000 + seed), result.learner.policy, b.eval, seed, limit
+    )
     return {"task": task, "learner": learner, "labels": labels, "seed": seed,
             "rows": [r.rows_trained for r in result.rounds], "returns": returns,
             "successes": successes}  # fmt: skip
@@ -150,13 +152,15 @@ def cell(task: str, learner: str, labels: str, seed: int, cfg: Config) -> dict:
 
 def expert_cell(task: str, seed: int, cfg: Config) -> dict:
     """The expert on the same held-out starts."""
-    _, expert, limit, make = _task(task, seed)
-    returns, successes = _episodes(make(10_000 + seed), expert, budget(task, cfg).eval, seed, limit)
+    _, expert, limit, make = task_setup(task, seed)
+    returns, successes = held_out_episodes(
+        make(10_000 + seed), expert, budget(task, cfg).eval, seed, limit
+    )
     return {"task": task, "learner": "expert", "labels": "-", "seed": seed, "rows": [0],
             "returns": returns, "successes": successes}  # fmt: skip
 
 
-def _episodes(env, policy, n: int, seed: int, limit: int) -> tuple[list[float], int]:
+def held_out_episodes(env, policy, n: int, seed: int, limit: int) -> tuple[list[float], int]:
     """Each held-out episode's return (greedy), and the successes (Meta-World's
     ``info["success"]`` at any step; the two-way task: reward 1)."""
     from imitrl.runtime.returns import episode_returns
@@ -173,7 +177,7 @@ def _episodes(env, policy, n: int, seed: int, limit: int) -> tuple[list[float], 
     return returns, sum(1 for r in returns if r > 0.5)  # the two-way task: reward 1
 
 
-def _scored_by_success(task: str) -> bool:
+def scored_by_success(task: str) -> bool:
     return task == "two_way" or task.startswith("metaworld/")
 
 
@@ -190,7 +194,7 @@ def summarise(cells: list[dict]) -> list[dict]:
                 n, k = returns.numel(), sum(c["successes"] for c in mine)
                 row = {"task": task, "learner": learner, "labels": labels, "episodes": n,
                        "return": mean_ci(returns), "last_rows": [c["rows"][-1] for c in mine]}  # fmt: skip
-                if _scored_by_success(task):
+                if scored_by_success(task):
                     lo, hi = wilson_interval(k, n)
                     row["success"] = (k / n, lo, hi)
                 rows.append(row)
@@ -228,7 +232,7 @@ def figure(rows: list[dict], path: Path) -> None:
     fig, axes = _report.panels(len(tasks), 4, (4.2, 3.2))
     for ax, task in zip(axes, tasks):
         mine = [r for r in rows if r["task"] == task]
-        score = "success" if _scored_by_success(task) else "return"
+        score = "success" if scored_by_success(task) else "return"
         expert = next(r for r in mine if r["learner"] == "expert")
         ax.axhline(expert[score][0], color="grey", ls="--", label="expert")
         learners = list(dict.fromkeys(r["learner"] for r in mine if r["learner"] != "expert"))

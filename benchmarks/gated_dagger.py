@@ -31,7 +31,7 @@ import torch
 from torchrl.envs.utils import ExplorationType
 
 import _report
-from chunk_labels import METAWORLD, _episodes, _scored_by_success, _task
+from chunk_labels import METAWORLD, held_out_episodes, scored_by_success, task_setup
 from imitrl.algorithms import BCConfig, DAggerConfig, dagger
 from imitrl.algorithms.dagger import EnvSource
 from imitrl.data import DemonstrationBuffer
@@ -69,7 +69,7 @@ def _budget(task: str, cfg: Config) -> dict:
 def cell(task: str, method: str, seed: int, cfg: Config) -> dict:
     b = _budget(task, cfg)
     torch.manual_seed(seed)
-    env, expert, limit, make = _task(task, seed)
+    env, expert, limit, make = task_setup(task, seed)
     buffer = DemonstrationBuffer(action_spec=env.action_spec_unbatched)
     buffer.extend(rollout_episodes(env, expert, b["demos"], max_steps=limit))
     spec = env.action_spec_unbatched
@@ -84,7 +84,7 @@ def cell(task: str, method: str, seed: int, cfg: Config) -> dict:
         DAggerConfig(rounds=b["rounds"], episodes_per_round=b["episodes"], gate=gate, label=label,
                      bc=BCConfig(num_steps=b["steps"], batch_size=b["batch"], seed=seed), seed=seed),
     )  # fmt: skip
-    returns, successes = _episodes(
+    returns, successes = held_out_episodes(
         make(10_000 + seed), result.learner.policy, b["eval"], seed, limit
     )
     rounds = result.rounds[:-1]
@@ -106,7 +106,7 @@ def summarise(cells: list[dict]) -> list[dict]:
             row = {"task": task, "method": method, "episodes": n, "return": mean_ci(returns),
                    "labels": sum(c["labels"] for c in mine) / len(mine),
                    "interventions": sum(c["interventions"] for c in mine) / len(mine)}  # fmt: skip
-            if _scored_by_success(task):
+            if scored_by_success(task):
                 lo, hi = wilson_interval(k, n)
                 row["success"] = (k / n, lo, hi)
             rows.append(row)
@@ -142,7 +142,7 @@ def figure(rows: list[dict], path: Path) -> None:
     tasks = list(dict.fromkeys(r["task"] for r in rows))
     fig, axes = _report.panels(len(tasks), 3, (4.4, 3.3))
     for ax, task in zip(axes, tasks):
-        score = "success" if _scored_by_success(task) else "return"
+        score = "success" if scored_by_success(task) else "return"
         for r in (x for x in rows if x["task"] == task):
             mid, lo, hi = r[score]
             ax.errorbar([r["labels"]], [mid], yerr=[[mid - lo], [hi - mid]], fmt="o", capsize=4,
