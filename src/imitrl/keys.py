@@ -28,6 +28,13 @@ Per-transition keys (root of a rollout / demonstration row):
 ``EXPERT_PLAN_PAD``       bool ``[H]``: the plan entry lies past the episode's end
 ``EPISODE``               int64 episode id, unique within a buffer
 ``ROUND``                 int64 DAgger round that collected the row (0 = offline demos)
+``BETA``                  float: the probability that the round's behaviour policy
+                          executed the expert's action (1 in round 0; -1 where a gate,
+                          not a coin, decided); a LeRobot dataset of DAgger rounds
+                          carries it per frame (``imitrl.beta``)
+``POLICY_VERSION``        int64: the fit whose learner acted (round r's rows: fit r - 1;
+                          -1: no learner acted, an expert or a recording); a LeRobot
+                          dataset of DAgger rounds carries it (``imitrl.policy_version``)
 ``STEP``                  int64 time index of the row inside its episode
 ``WEIGHT``                float per-row weight of the log-likelihood (advantage);
                           treated as data, never differentiated
@@ -59,6 +66,8 @@ EXPERT_PLAN = "expert_plan"
 EXPERT_PLAN_PAD = "expert_plan_is_pad"
 EPISODE = "episode"
 ROUND = "round"
+BETA = "beta"
+POLICY_VERSION = "policy_version"
 STEP = "step"
 WEIGHT = "weight"
 LOGITS = "logits"
@@ -75,6 +84,7 @@ TRUNCATED = "truncated"
 
 __all__ = [
     "ACTION",
+    "BETA",
     "DONE",
     "ENVIRONMENT_STATE",
     "EPISODE",
@@ -89,6 +99,7 @@ __all__ = [
     "OBSERVATION",
     "PIXELS",
     "POLICY_NOISE",
+    "POLICY_VERSION",
     "REWARD",
     "ROUND",
     "SCALE",

@@ -40,6 +40,7 @@ __all__ = [
     "MAX_EPISODES",
     "MAX_EPISODE_STEPS",
     "MAX_EVAL_EPISODES",
+    "MAX_FPS",
     "MAX_LAYERS",
     "MAX_NPROC",
     "MAX_NUM_ENVS",
@@ -89,6 +90,9 @@ full-batch fit's (:attr:`imitrl.algorithms.bc.BCConfig.full_batch_max_rows`)"""
 MAX_ROUNDS = 10_000
 """most DAgger rounds (``--rounds``): each is a fit and a round of episodes, and each
 round's record is kept"""
+MAX_FPS = 100_000
+"""highest recording rate of a LeRobot dataset imitrl writes (``--save-lerobot``): frames
+``1/fps`` s apart must stay farther apart than LeRobot's timestamp tolerance, 1e-4 s"""
 MAX_WORKERS = 1024
 """most Ray workers (``--workers``): each is a process holding an env and the expert"""
 MAX_NPROC = 1024

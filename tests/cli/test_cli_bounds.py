@@ -70,6 +70,7 @@ DAGGER = {
     "--beta": ["-0.5", "1.5", "nan", "inf"],
     "--workers": ["0", "1025", HUGE],
     "--gate": ["-1", "nan", "inf"],
+    "--save-lerobot": ["0", "-1", "100001", "2.5", HUGE],
 }
 GAIL = {
     "--num-envs": ["0", "-1", "257", HUGE],

@@ -4,7 +4,8 @@ Round ``k = 0, 1, ...``: fit a learner on everything in the buffer (from scratch
 the section does, or warm-started), hand it to ``on_fit`` (evaluation), then collect
 ``episodes_per_round`` episodes with the behaviour policy
 ``TensorDictSequential(expert, learner, BetaMixer(beta_{k+1}))`` and extend the
-buffer with them as round ``k + 1``. Round 0 of the buffer is the offline
+buffer with them as round ``k + 1`` (after the last round the buffer started with: a
+dataset of earlier rounds is continued). Round 0 of the buffer is the offline
 demonstrations (``beta_0 = 1``). Every visited state is labelled by the expert, so
 the number of expert queries is the number of rows in the buffer.
 
@@ -30,6 +31,7 @@ from tqdm.auto import tqdm
 
 from imitrl import checks, keys
 from imitrl.algorithms.bc import BCConfig, BCResult, fit_bc
+from imitrl.algorithms.beta_schedules import BetaSchedule, Constant, Exponential, Linear
 from imitrl.algorithms.dagger_checkpoint import (
     RunState,
     generator_state,
@@ -40,6 +42,7 @@ from imitrl.algorithms.dagger_checkpoint import (
 from imitrl.algorithms.expert_plan import ExpertPlanner
 from imitrl.data.buffer import DemonstrationBuffer
 from imitrl.data.interventions import intervention_segments
+from imitrl.data.provenance import NO_BETA, with_provenance
 from imitrl.envs.limits import episode_limit
 from imitrl.envs.random_state import env_random_state, set_env_random_state
 from imitrl.fs.lock import exclusive
@@ -62,50 +65,6 @@ __all__ = [
     "RoundRecord",
     "dagger",
 ]
-
-BetaSchedule = Callable[[int], float]
-
-
-@dataclass(frozen=True)
-class Constant:
-    """``beta_i = beta`` for every relabel round."""
-
-    beta: float = 0.0
-
-    def __post_init__(self) -> None:
-        if not 0.0 <= self.beta <= 1.0:
-            raise ValueError(f"Constant beta must be in [0, 1], got {self.beta}")
-
-    def __call__(self, round_index: int) -> float:
-        return self.beta
-
-
-@dataclass(frozen=True)
-class Linear:
-    """``beta_i = max(0, 1 - i / rounds)``: from all-expert to all-learner over ``rounds``."""
-
-    rounds: int
-
-    def __post_init__(self) -> None:
-        if int(self.rounds) != self.rounds or self.rounds < 1:
-            raise ValueError(f"Linear rounds must be a positive integer, got {self.rounds!r}")
-
-    def __call__(self, round_index: int) -> float:
-        return max(0.0, 1.0 - round_index / self.rounds)
-
-
-@dataclass(frozen=True)
-class Exponential:
-    """``beta_i = p ** (i - 1)`` for ``i >= 1`` (Ross et al. 2011): round 1 is all expert."""
-
-    p: float = 0.5
-
-    def __post_init__(self) -> None:
-        if not 0.0 <= self.p <= 1.0:
-            raise ValueError(f"Exponential p must be in [0, 1], got {self.p}")
-
-    def __call__(self, round_index: int) -> float:
-        return self.p ** max(0, round_index - 1)
 
 
 class EpisodeSource(Protocol):
@@ -374,6 +333,8 @@ def _run(
     """The rounds of :func:`dagger` (its arguments, checked)."""
     coins = torch.Generator().manual_seed(config.seed)
     mixer = BetaMixer(0.0, generator=coins)
+    # rounds continue a dataset's (one written by save_dagger_lerobot): its last round + 1
+    first = max(buffer.rounds())
     run = RunState(next_round=0, records=[], bc_step=0, learner=None)
     if resume and checkpoint_dir is not None and _holds_run(checkpoint_dir):
         run = load_run(
@@ -386,7 +347,7 @@ def _run(
         # the saved run ended at its last round, which collects nothing; its rounds grew:
         # that round's relabel episodes now, as an uninterrupted run would have played them
         assert learner is not None
-        _collect(run.next_round - 1, learner, expert, mixer, source, buffer, config, last)
+        _collect(run.next_round - 1, learner, expert, mixer, source, buffer, config, last, first)
     rounds = range(run.next_round, config.rounds)
     for k in tqdm(rounds, desc="dagger", disable=not progress, leave=False):
         if learner is None or not config.warm_start:
@@ -397,7 +358,7 @@ def _run(
         if on_fit is not None:
             record.info = _info(on_fit(k, learner))
         if k + 1 < config.rounds:
-            _collect(k, learner, expert, mixer, source, buffer, config, record)
+            _collect(k, learner, expert, mixer, source, buffer, config, record, first)
         if checkpoint_dir is not None:
             save_run(
                 checkpoint_dir, buffer, learner, next_round=k + 1, config=config,
@@ -463,8 +424,9 @@ def _fit(k, learner, buffer, config, train, logger, bc_step) -> RoundRecord:
     return RoundRecord(round=k, rows_trained=len(buffer), expert_queries=len(buffer), bc=result)
 
 
-def _collect(k, learner, expert, mixer, source, buffer, config, record) -> None:
-    """Relabel round ``k + 1``: the behaviour policy's episodes, labelled, into the buffer."""
+def _collect(k, learner, expert, mixer, source, buffer, config, record, first: int) -> None:
+    """Relabel round ``k + 1``: the behaviour policy's episodes, labelled, into the buffer
+    (``ROUND`` = ``first + k + 1``: after the rounds the buffer started with)."""
     # envs and experts stay on the CPU; a learner elsewhere acts through OnDevice
     actor = acting(learner.policy, "cpu")
     if config.gate is None:
@@ -476,9 +438,12 @@ def _collect(k, learner, expert, mixer, source, buffer, config, record) -> None:
         rows = source.collect(
             behaviour,
             config.episodes_per_round,
-            round_index=k + 1,
+            round_index=first + k + 1,
             first_episode=buffer.next_episode,
         )
+    beta = mixer.beta if config.gate is None else NO_BETA
+    if keys.BETA in buffer.data.keys():  # rows of a dataset that records its rounds' betas
+        rows = with_provenance(rows, beta, policy_version=first + k)
     executed = rows.get(keys.EXPERT_EXECUTED)
     if config.label == "interventions":  # HG-DAgger: the expert's frames alone
         rows = intervention_segments(rows, buffer.next_episode)

@@ -16,6 +16,7 @@ from imitrl.datasets.lerobot import (
     download_lerobot,
     load_lerobot,
     resolve_lerobot_root,
+    save_dagger_lerobot,
     save_lerobot,
     save_metaworld_lerobot,
 )
@@ -32,6 +33,7 @@ __all__ = [
     "load_minari",
     "resolve_lerobot_root",
     "resolve_minari_root",
+    "save_dagger_lerobot",
     "save_lerobot",
     "save_metaworld_lerobot",
     "save_minari",

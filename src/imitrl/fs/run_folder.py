@@ -56,7 +56,16 @@ from imitrl.fs.write_errors import DiskFullError, reporting_disk_full
 __all__ = ["FINISHED", "RUN_FILES", "STAGE", "claimed", "staging_folder"]
 
 RUN_FILES = frozenset(
-    {"config.json", "learner.pt", "results.json", "curves.png", "logs", "run", "eval.json"}
+    {
+        "config.json",
+        "learner.pt",
+        "results.json",
+        "curves.png",
+        "logs",
+        "run",
+        "eval.json",
+        "lerobot",
+    }
 )
 """what ``imitrl bc/dagger/gail/airl`` write into ``--out`` (``run/``: DAgger's checkpoint)"""
 

@@ -180,7 +180,7 @@ def _prepare_offline(config: BCJob, name: str, folder: Path, *, keep_logs: bool)
     """A run on ``--dataset`` alone (``--env none``): the rows are read first, and the
     learner is built for their observations and the range of their actions."""
     assert config.dataset is not None  # BCJob's checks
-    rows = load_dataset(config.dataset, None)
+    rows = load_dataset(config.dataset, None, config.dataset_frames)
     task = TaskSpec.from_rows(rows)
     learner = choose_learner(
         config.loss, task, hidden=config.hidden, lr=config.lr, seed=config.seed,
@@ -204,7 +204,7 @@ def demonstrations(
         from imitrl.datasets import EnvMismatchError  # needs the datasets extra
 
         try:
-            rows = load_dataset(config.dataset, setup.env)
+            rows = load_dataset(config.dataset, setup.env, config.dataset_frames)
         except EnvMismatchError as err:  # most often the wrong env: name the flag
             default = " (the default)" if config.env == type(config).env else ""
             raise ValueError(

@@ -30,6 +30,7 @@ from imitrl.limits import (
     MAX_EPISODE_STEPS,
     MAX_EPISODES,
     MAX_EVAL_EPISODES,
+    MAX_FPS,
     MAX_NPROC,
     MAX_NUM_ENVS,
     MAX_ROUNDS,
@@ -43,6 +44,7 @@ from imitrl.limits import (
 __all__ = ["CHUNK_LABELS", "AIRLJob", "BCJob", "DAggerJob", "GAILJob", "RunFlags"]
 
 CHUNK_LABELS = ("mask", "plan")
+DATASET_FRAMES = ("all", "interventions")
 """``--chunk-labels``: a chunked learner's relabelled rows keep the expert's label at
 their state alone (``mask``) or its plan from there (``plan``,
 :class:`~imitrl.algorithms.expert_plan.ExpertPlanner`)"""
@@ -118,6 +120,10 @@ class RunFlags:
     dataset: Path | None = None
     """LeRobot (meta/info.json) or Minari (main_data.hdf5) directory of demonstrations;
     none = play --demos expert episodes"""
+    dataset_frames: str = "all"
+    """which frames of --dataset are trained on: all (as lerobot-train does: a LeRobot
+    DAgger recording's autonomous frames too) or interventions (the frames whose
+    intervention column is True, each streak an episode of its own: HG-DAgger's labels)"""
     demos: int = bounded(5, 0, MAX_EPISODES)
     """greedy expert demonstration episodes (when no --dataset)"""
     loss: str = "default"
@@ -176,6 +182,13 @@ class RunFlags:
         check_bounds(self)  # every number, the algorithm's too, named by its flag
         if self.dataset is None and (self.expert is None or self.demos < 1):
             raise ValueError("without --dataset, --expert must play --demos >= 1 episodes")
+        if self.dataset_frames not in DATASET_FRAMES:
+            raise ValueError(
+                f"--dataset-frames must be one of {', '.join(DATASET_FRAMES)}, got "
+                f"{self.dataset_frames!r}"
+            )
+        if self.dataset_frames != "all" and self.dataset is None:
+            raise ValueError("--dataset-frames chooses frames of --dataset: give --dataset")
         if self.expert_kind not in EXPERT_KINDS:
             raise ValueError(
                 f"--expert-kind must be one of {EXPERT_KINDS}, got {self.expert_kind!r}"
@@ -236,6 +249,11 @@ class DAggerJob(BCJob):
     label: str = "all"
     """which visited states the expert labels: all (DAgger) or interventions (HG-DAgger,
     with --gate: the frames it took over, each streak an episode of its own)"""
+    save_lerobot: int | None = bounded(None, 1, MAX_FPS, none_ok=True)
+    """write the demonstrations and every round, after each fit, as a LeRobot v3.0 dataset
+    in LeRobot's DAgger schema (OUT/lerobot: intervention, the expert's action, the round,
+    beta, the policy version) recorded at this many frames per second (the env's control
+    rate; LeRobot's metaworld_mt50 has 80); none = not written"""
     chunk_labels: str = "mask"
     """a chunked learner's labels at the states its rounds visit: mask = the expert's
     label at each state, the rest of the chunk masked (windowing); plan = the expert's

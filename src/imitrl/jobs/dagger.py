@@ -6,7 +6,9 @@ the demonstrations; after each fit the learner is evaluated (logged as
 ``eval/return`` at step = round) and, but after the last, rolls
 ``--episodes-per-round`` episodes on the env (the expert's action executed with
 probability ``--beta``), every visited state labelled by the expert and added to
-the buffer. The last round's learner is saved as the checkpoint. After every round
+the buffer. ``--save-lerobot FPS`` writes the buffer after each fit as a LeRobot v3.0
+dataset in LeRobot's DAgger schema, ``OUT/lerobot`` (:func:`save_rounds`); a
+``--dataset`` of earlier rounds (one it wrote) is continued: the new rounds come after. The last round's learner is saved as the checkpoint. After every round
 the whole run is checkpointed in ``OUT/run`` (:func:`imitrl.algorithms.dagger`'s
 ``checkpoint_dir``); ``--resume`` continues an interrupted run from there.
 
@@ -33,6 +35,7 @@ import torch
 from imitrl.algorithms import Constant, DAggerConfig, EnvSource, dagger
 from imitrl.algorithms.lead_source import LeadSource
 from imitrl.algorithms.ray_source import RaySource
+from imitrl.data.provenance import NO_BETA
 from imitrl.envs import make_env
 from imitrl.jobs.bc import (
     RUN_CHECKPOINT,
@@ -55,7 +58,10 @@ from imitrl.learners import Learner
 from imitrl.policies.gate import ExpertGate
 from imitrl.system.ranks import rank_and_world
 
-__all__ = ["DAggerJob", "report", "run_dagger"]
+__all__ = ["LEROBOT_DIR", "DAggerJob", "report", "run_dagger", "save_rounds"]
+
+LEROBOT_DIR = "lerobot"
+"""where ``--save-lerobot`` writes the rounds in ``--out``"""
 
 
 def run_dagger(config: DAggerJob) -> dict:
@@ -78,11 +84,14 @@ def _run_dagger(config: DAggerJob, folder: Path) -> dict:
             raise ValueError(no_expert_message(config.played_env()))
         buffer = demonstrations(config, setup, plan_horizon=_plan_horizon(config, setup))
         demo_rows, demo_episodes = len(buffer), buffer.num_episodes
+        demo_last = max(buffer.rounds())  # a dataset of earlier rounds: this run's come after
         expert_ev = evaluate_expert(config, setup) if evaluating() else None
 
         def on_fit(round_index: int, learner: Learner) -> dict:
-            if not evaluating():  # rank 0 evaluates (--nproc)
+            if not evaluating():  # rank 0 evaluates (--nproc) and writes
                 return {}
+            if config.save_lerobot is not None:  # every round so far, before anything else
+                save_rounds(config, buffer, folder / LEROBOT_DIR, demo_last)
             ev = evaluate_learner(config, learner)
             log_evaluation(setup.logger, round_index, ev, expert_ev if round_index == 0 else None)
             return ev  # kept in the round's record, and so in the checkpoint
@@ -146,6 +155,21 @@ def _run_dagger(config: DAggerJob, folder: Path) -> dict:
         return results
     finally:
         setup.close()  # the env and the logger, whatever happened
+
+
+def save_rounds(config: DAggerJob, buffer, path: Path, demo_last: int) -> None:
+    """``--save-lerobot FPS``: the buffer (the demonstrations, whose last round is
+    ``demo_last``, and this run's rounds) as a LeRobot dataset in LeRobot's DAgger schema
+    (:func:`~imitrl.datasets.save_dagger_lerobot`), replacing the previous round's in one
+    step: a later round that fails leaves every earlier one there."""
+    from imitrl.datasets import save_dagger_lerobot  # needs the datasets extra
+
+    beta = NO_BETA if config.gate is not None else config.beta
+    betas = {demo_last + k: beta for k in range(1, config.rounds)}
+    save_dagger_lerobot(
+        buffer, path, fps=int(config.save_lerobot or 0), betas=betas, tasks=str(config.env),
+        overwrite=True,
+    )  # fmt: skip
 
 
 def _plan_horizon(config: DAggerJob, setup: Setup) -> int | None:

@@ -37,6 +37,7 @@ from torchrl.envs import EnvBase
 from imitrl import experts, keys
 from imitrl.configs.bc import BCConfig
 from imitrl.data.buffer import OBSERVATION_KEYS, REQUIRED_KEYS
+from imitrl.data.interventions import intervention_segments
 from imitrl.envs.make import METAWORLD_PREFIX
 from imitrl.jobs.names import EXPERT_ENVS, EXPERT_KINDS
 from imitrl.learners import FOR_ENV, Learner, TaskSpec, build, registry, resolve
@@ -80,6 +81,8 @@ AUTO = "auto"
 
 # the keys a rollout writes (imitrl.runtime.rollout_episodes): loaded rows keep only these,
 # so that DAgger's rollouts can extend the same buffer
+PROVENANCE_KEYS = (keys.BETA, keys.POLICY_VERSION)
+"""a DAgger dataset's per-frame provenance (:mod:`imitrl.data.provenance`), kept when present"""
 ROW_KEYS = (
     *REQUIRED_KEYS,
     *OBSERVATION_KEYS,  # the state, the camera(s) (a nested "pixels" keeps every camera)
@@ -364,13 +367,16 @@ def dataset_format(path: Path) -> str:
     )
 
 
-def load_dataset(path: Path, env: EnvBase | None) -> TensorDictBase:
+def load_dataset(path: Path, env: EnvBase | None, frames: str = "all") -> TensorDictBase:
     """Demonstration rows ``[N]`` of the dataset at ``path``, conformed to ``env``'s specs
     (None: as recorded, for a run on the dataset alone).
 
     ``path`` is a folder or a LeRobot dataset's Hub ``repo_id`` (:func:`dataset_format`).
     Only the keys a rollout writes are kept (:data:`ROW_KEYS`), so DAgger's rounds
-    can extend the same buffer.
+    can extend the same buffer, and a DAgger dataset's provenance (``BETA`` and
+    ``POLICY_VERSION``, which DAgger's rounds then carry too). ``frames="interventions"``
+    keeps the frames whose ``intervention`` is True, each streak an episode
+    (:func:`~imitrl.data.interventions.intervention_segments`; ``--dataset-frames``).
     """
     from imitrl.datasets import load_lerobot, load_minari  # needs the datasets extra
 
@@ -380,4 +386,17 @@ def load_dataset(path: Path, env: EnvBase | None) -> TensorDictBase:
     else:
         loaded = load_minari(path, env=env)
     present = set(loaded.rows.keys(include_nested=True))
-    return loaded.rows.select(*[k for k in ROW_KEYS if k in present])
+    kept = [*ROW_KEYS, *(PROVENANCE_KEYS if set(PROVENANCE_KEYS) <= present else ())]
+    rows = loaded.rows.select(*[k for k in kept if k in present])
+    if frames == "interventions":
+        if keys.EXPERT_EXECUTED not in loaded.loaded.values():
+            raise ValueError(
+                f"--dataset-frames interventions: --dataset {path} has no intervention column "
+                f"(features loaded: {sorted(loaded.loaded)})"
+            )
+        rows = intervention_segments(rows, first_episode=0)
+        if rows.shape[0] == 0:
+            raise ValueError(
+                f"--dataset-frames interventions: no frame of --dataset {path} is an intervention"
+            )
+    return rows

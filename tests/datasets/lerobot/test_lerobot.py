@@ -210,10 +210,12 @@ def test_written_layout_is_lerobots(tmp_path):
     feats = info["features"]
     assert feats["observation.state"] == {"dtype": "float32", "shape": [4], "names": None}
     assert feats["action"]["shape"] == [1] and feats["action"]["dtype"] == "int64"
-    assert (
-        feats["imitrl.round"]["dtype"] == "int64"
-        and feats["imitrl.expert_executed"]["dtype"] == "bool"
-    )
+    assert feats["imitrl.round"]["dtype"] == "int64" and feats["intervention"] == {
+        "dtype": "bool",
+        "shape": [1],
+        "names": None,
+    }  # LeRobot's DAgger column (rollout/strategies/dagger.py), as LeRobot declares it
+    assert "imitrl.expert_executed" not in feats
     assert list(feats)[-5:] == ["timestamp", "frame_index", "episode_index", "index", "task_index"]
     # data: LeRobot's column types and Hugging Face schema metadata
     schema = pq.read_schema(root / "data/chunk-000/file-000.parquet")

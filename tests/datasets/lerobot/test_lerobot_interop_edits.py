@@ -93,7 +93,7 @@ def test_a_dataset_lerobot_resumed_recording_into_loads_with_a_warning(resumed):
     assert "data/chunk-000/file-001.parquet" in message
     assert "meta/episodes/chunk-000/file-001.parquet" in message
     assert "checksums no longer cover those files" in message
-    assert "imitrl's own columns ['imitrl.executed_action', 'imitrl.expert_executed'" in message
+    assert "imitrl's own columns ['imitrl.executed_action', 'imitrl.round'" in message
 
 
 def test_a_resumed_dataset_streams_into_a_buffer_with_the_same_rows(resumed):

@@ -32,11 +32,14 @@ recording is the expert acting), ``next.reward/done/terminated/truncated -> ("ne
 ...)``, ``task_index -> "task_index"`` (indexes ``LoadedDemonstrations.tasks``; loaded
 when there is more than one task); with no ``observation.state`` (nothing mapped to
 ``OBSERVATION``), every ``observation.<sub>`` feature but the cameras ->
-``("observation", *sub.split("."))`` (a Dict observation); ``episode_index`` gives ``EPISODE`` and ``frame_index`` gives ``STEP``. Rows get round 0
-and ``EXPERT_EXECUTED`` True unless the dataset carries imitrl's own columns
-(``imitrl.round``, ``imitrl.expert_executed``, ``imitrl.executed_action``,
-``imitrl.episode``), which :func:`save_lerobot` writes so that every DAgger round
-survives the trip. Image features are decoded (``images="load"``, under their own
+``("observation", *sub.split("."))`` (a Dict observation); ``episode_index`` gives ``EPISODE`` and ``frame_index`` gives ``STEP``. LeRobot's DAgger column ``intervention`` (its DAgger
+strategy's: True on a human's corrections) gives ``EXPERT_EXECUTED``. Rows get round 0
+and ``EXPERT_EXECUTED`` True unless the dataset carries these or imitrl's own columns
+(``imitrl.round``, ``imitrl.executed_action``, ``imitrl.episode``, ``imitrl.beta``,
+``imitrl.policy_version``; ``imitrl.expert_executed``, which imitrl wrote before
+``intervention``), which :func:`save_lerobot` writes so that every DAgger round
+survives the trip (:func:`save_dagger_lerobot`: a DAgger run's rounds in LeRobot's DAgger
+schema; ``_interventions``: what those columns must hold on load). Image features are decoded (``images="load"``, under their own
 names) or skipped with a warning (``images="skip"``). Video (camera) features are
 decoded with PyAV on CPU (``videos="decode"``, the default; ``videos="skip"`` drops them
 with a warning) into uint8 ``[N, H, W, 3]`` under ``PIXELS`` (TorchRL's convention):
@@ -72,6 +75,7 @@ aggregation over every episode at once), ``_metaworld`` (Meta-World recordings w
 exactly ``lerobot/metaworld_mt50``'s features: :func:`save_metaworld_lerobot`).
 """
 
+from imitrl.datasets.lerobot._dagger import save_dagger_lerobot
 from imitrl.datasets.lerobot._hub import download_lerobot
 from imitrl.datasets.lerobot._hub_limits import HubLimits
 
@@ -87,6 +91,7 @@ from imitrl.datasets.lerobot._layout import (  # noqa: F401
     EPISODES_PATH,
     IMAGE_NAMES,
     IMITRL_COLUMNS,
+    INTERVENTION,
     QUANTILES,
     READ_VERSIONS,
     SIDECAR,
@@ -104,6 +109,7 @@ __all__ = [
     "download_lerobot",
     "load_lerobot",
     "resolve_lerobot_root",
+    "save_dagger_lerobot",
     "save_lerobot",
     "save_metaworld_lerobot",
 ]

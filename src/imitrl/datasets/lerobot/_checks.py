@@ -27,7 +27,7 @@ import torch
 
 from imitrl.datasets._common import open_in
 from imitrl.datasets.lerobot._files import holds, list_files, read_json
-from imitrl.datasets.lerobot._layout import IMITRL_COLUMNS, SIDECAR
+from imitrl.datasets.lerobot._layout import IMITRL_COLUMNS, LEGACY_COLUMNS, SIDECAR
 from imitrl.fs.contained import check_relative
 from imitrl.fs.reading import OpenedFolder
 
@@ -248,11 +248,11 @@ def warn_edited(root: Path, edits: list[str], features: dict[str, dict]) -> None
         "LeRobot dataset is (fps and timestamps, frame_index, task_index, lengths, dtypes, "
         "NaN/inf)"
     )
-    ours = [name for name in IMITRL_COLUMNS if name in features]
+    ours = [name for name in {**IMITRL_COLUMNS, **LEGACY_COLUMNS} if name in features]
     if added and ours:
         message += (
             f"; in the episodes added since, imitrl's own columns {ours} hold what LeRobot's "
-            "recorder was given, not imitrl's record of DAgger rounds, expert flags, executed "
-            "actions and episode ids"
+            "recorder was given, not imitrl's record of DAgger rounds, executed actions, "
+            "episode ids, betas and policy versions"
         )
     warnings.warn(message, UserWarning, stacklevel=3)

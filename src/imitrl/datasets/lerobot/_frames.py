@@ -18,11 +18,12 @@ import pyarrow as pa
 import torch
 
 from imitrl import keys
-from imitrl.datasets._arrow import column_to_tensor, decode_images, footer_rows, read_parquet
+from imitrl.datasets._arrow import column_to_tensor, footer_rows, read_parquet
 from imitrl.datasets._common import NestedKey, key_name
 from imitrl.datasets.lerobot._checks import check_frames
 from imitrl.datasets.lerobot._episodes import LISTED, episode_dicts, episode_table, v3_data_files
 from imitrl.datasets.lerobot._files import holds
+from imitrl.datasets.lerobot._interventions import feature_values
 from imitrl.datasets.lerobot._layout import data_file
 from imitrl.fs.reading import OpenedFolder
 
@@ -159,17 +160,7 @@ def _read_frames(
         wanted = list(dict.fromkeys([*plan, *book_names]))
         table = read_parquet(folder, name, wanted, declared=declared, rows=count, named_by=named_by)
         for feature in plan:
-            ft = features[feature]
-            where = f"{path}: feature {feature!r}"
-            if ft["dtype"] == "image":
-                value = decode_images(
-                    table.column(feature), shape=tuple(ft["shape"]), folder=folder, where=where
-                )
-            else:
-                value = column_to_tensor(
-                    table.column(feature), shape=tuple(ft["shape"]), dtype=ft["dtype"], where=where
-                )
-            columns[feature].append(value)
+            columns[feature].append(feature_values(table, feature, features[feature], folder, path))
         for column in book_names:
             dtype = "float64" if column == "timestamp" else "int64"
             book[column].append(

@@ -29,17 +29,27 @@ DEFAULT_KEY_MAP: dict[str, NestedKey] = {
     "next.terminated": (keys.NEXT, keys.TERMINATED),
     "next.truncated": (keys.NEXT, keys.TRUNCATED),
     "observation.environment_state": keys.ENVIRONMENT_STATE,
+    "intervention": keys.EXPERT_EXECUTED,
 }
 """dataset feature -> buffer key, applied unless ``key_map`` overrides an entry (``task_index``
 is loaded as ``"task_index"`` when the dataset has more than one task)"""
 
+INTERVENTION = "intervention"
+"""LeRobot's DAgger column (``lerobot/rollout/strategies/dagger.py``: bool, shape ``(1,)``,
+True on the frames a human's correction was executed): ``EXPERT_EXECUTED``, both ways"""
+
 IMITRL_COLUMNS: dict[str, NestedKey] = {
     "imitrl.executed_action": keys.ACTION,
-    "imitrl.expert_executed": keys.EXPERT_EXECUTED,
     "imitrl.round": keys.ROUND,
     "imitrl.episode": keys.EPISODE,
+    "imitrl.beta": keys.BETA,
+    "imitrl.policy_version": keys.POLICY_VERSION,
 }
-"""the columns :func:`save_lerobot` adds so that DAgger rounds round-trip"""
+"""the columns :func:`save_lerobot` adds so that DAgger rounds round-trip (with
+:data:`INTERVENTION`)"""
+
+LEGACY_COLUMNS: dict[str, NestedKey] = {"imitrl.expert_executed": keys.EXPERT_EXECUTED}
+"""columns imitrl wrote before it wrote LeRobot's own :data:`INTERVENTION`: still read"""
 
 # LeRobot's bookkeeping columns (DEFAULT_FEATURES in lerobot/datasets/utils.py)
 BOOKKEEPING = ("timestamp", "frame_index", "episode_index", "index", "task_index")
@@ -97,6 +107,7 @@ def feature_name(key: NestedKey) -> str:
         keys.OBSERVATION: "observation.state",
         keys.EXPERT_ACTION: "action",
         **{key_name(v): k for k, v in IMITRL_COLUMNS.items()},
+        keys.EXPERT_EXECUTED: INTERVENTION,
         "task_index": "task_index",
         keys.PIXELS: "observation.image",
         keys.ENVIRONMENT_STATE: "observation.environment_state",

@@ -18,6 +18,7 @@ from imitrl.datasets._common import NestedKey, as_key, key_name
 from imitrl.datasets.lerobot._layout import (
     DEFAULT_KEY_MAP,
     IMITRL_COLUMNS,
+    LEGACY_COLUMNS,
     SIDECAR,
     SIDECAR_FORMAT,
     camera_key,
@@ -58,7 +59,8 @@ def plan_features(
         mapping, shapes = _sidecar_mapping(root / SIDECAR, sidecar, features, images)
     else:
         mapping = {k: v for k, v in DEFAULT_KEY_MAP.items() if k in features}
-        mapping.update({k: v for k, v in IMITRL_COLUMNS.items() if k in features})
+        ours = {**IMITRL_COLUMNS, **LEGACY_COLUMNS}
+        mapping.update({k: v for k, v in ours.items() if k in features})
         shapes = {}
     for name, ft in features.items():
         if ft["dtype"] == "video" and name not in mapping:
@@ -118,7 +120,7 @@ def _sidecar_entry(
             or (isinstance(key, list) and key and all(isinstance(k, str) and k for k in key))
         )
         or as_key(key) == ""
-        or feature_name(as_key(key)) != name
+        or (feature_name(as_key(key)) != name and LEGACY_COLUMNS.get(name) != as_key(key))
     ):
         raise ValueError(f"{sidecar}: column {name!r} records key {key!r}, not this feature's")
     pictures = feature["dtype"] in ("image", "video")

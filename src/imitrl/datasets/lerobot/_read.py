@@ -37,6 +37,7 @@ from imitrl.datasets.lerobot._files import holds, read_json
 from imitrl.datasets.lerobot._frames import checked_frames, columns_in_order, data_files, timestamps
 from imitrl.datasets.lerobot._hub import dataset_root
 from imitrl.datasets.lerobot._hub_limits import HubLimits
+from imitrl.datasets.lerobot._interventions import RoundOrder, check_dagger_columns
 from imitrl.datasets.lerobot._layout import SIDECAR, read_info
 from imitrl.datasets.lerobot._plan import plan_features, settle_features
 from imitrl.datasets.lerobot._stream import (
@@ -130,6 +131,14 @@ def _load(folder: OpenedFolder, req: _Request) -> tuple[LoadedDemonstrations, _M
     info = meta.info
     episodes, frames, index = checked_frames(folder, info, meta.major, meta.plan, len(meta.tasks))
     out, loaded = columns_in_order(root, meta.plan, frames, index, meta.exact_shapes)
+    check_dagger_columns(
+        out,
+        frames.episode_index[index],
+        frames.frame_index[index],
+        lambda i: frames.file_at(int(index[i])),
+        RoundOrder(),
+        meta.names.get(key_name(keys.EXPERT_EXECUTED), "intervention"),
+    )
     if meta.cameras:
         times = timestamps(frames, index, info["fps"])
         out.update(

@@ -36,7 +36,6 @@ from imitrl.datasets._arrow import (
     check_schema,
     checked_rows,
     column_to_tensor,
-    decode_images,
     parquet_file,
     read_parquet,
 )
@@ -44,6 +43,7 @@ from imitrl.datasets._common import NestedKey, conform_to_env, key_name, require
 from imitrl.datasets._streaming import check_pieces, extend_pieces
 from imitrl.datasets.lerobot._checks import check_frames
 from imitrl.datasets.lerobot._episodes import episode_dicts
+from imitrl.datasets.lerobot._interventions import RoundOrder, check_dagger_columns, feature_values
 from imitrl.datasets.lerobot._layout import data_file
 from imitrl.datasets.lerobot._video import decode_videos
 from imitrl.fs.reading import OpenedFolder
@@ -240,17 +240,10 @@ def read_piece(
     at = 0
     for path, table in parts:
         for name in names:
-            where = f"{path}: feature {name!r}" if name in plan else f"{path}: {name!r}"
-            ft = features[name]
-            if name in plan and ft["dtype"] == "image":
-                value = decode_images(
-                    table.column(name), shape=tuple(ft["shape"]), folder=src.folder, where=where
-                )
-            elif name in plan:
-                value = column_to_tensor(
-                    table.column(name), shape=tuple(ft["shape"]), dtype=ft["dtype"], where=where
-                )
+            if name in plan:
+                value = feature_values(table, name, features[name], src.folder, path)
             else:
+                where = f"{path}: {name!r}"
                 dtype = "float64" if name == "timestamp" else "int64"
                 value = column_to_tensor(table.column(name), shape=(1,), dtype=dtype, where=where)
                 value = value.reshape(-1)
@@ -322,8 +315,11 @@ class Settings:
     """buffer key name -> feature, for messages"""
 
 
-def piece_rows(src: Source, first: int, end: int, s: Settings, notes: list[str]) -> TensorDict:
-    """The rows of episodes ``first .. end - 1``, checked, videos decoded, fitted to ``env``."""
+def piece_rows(
+    src: Source, first: int, end: int, s: Settings, notes: list[str], order: RoundOrder
+) -> TensorDict:
+    """The rows of episodes ``first .. end - 1``, checked (``order``: the rounds of the
+    pieces before), videos decoded, fitted to ``env``."""
     piece = read_piece(src, first, end, s.plan, s.n_tasks)
     out: dict[NestedKey, torch.Tensor] = {}
     for name, key in s.plan.items():
@@ -334,6 +330,8 @@ def piece_rows(src: Source, first: int, end: int, s: Settings, notes: list[str])
             value = value.unsqueeze(-1)  # TorchRL keeps reward/done as [..., 1]
         out[key] = value
     frame_index = piece.book["frame_index"]
+    flag = s.names.get(key_name(keys.EXPERT_EXECUTED), "intervention")
+    check_dagger_columns(out, piece.book["episode_index"], frame_index, piece.file_of, order, flag)
     if s.cameras:
         times = piece.book.get("timestamp")
         times = frame_index.double() / src.info["fps"] if times is None else times.double()
@@ -353,11 +351,13 @@ def check_stream(buffer: DemonstrationBuffer, src: Source, s: Settings) -> list[
     """Pass 1: every piece read and checked (the buffer's checks included), nothing added;
     returns the notes of :func:`conform_to_env`."""
     notes: list[str] = []
-    check_pieces(buffer, (piece_rows(src, f, e, s, notes) for f, e in pieces(src)), src.root)
+    order = RoundOrder()
+    check_pieces(buffer, (piece_rows(src, f, e, s, notes, order) for f, e in pieces(src)), src.root)
     return notes
 
 
 def extend_stream(buffer: DemonstrationBuffer, src: Source, s: Settings) -> TensorDictBase:
     """Pass 2: the pieces :func:`check_stream` checked, added to ``buffer``; returns the
     rows added (a view of the buffer)."""
-    return extend_pieces(buffer, (piece_rows(src, f, e, s, []) for f, e in pieces(src)))
+    order = RoundOrder()
+    return extend_pieces(buffer, (piece_rows(src, f, e, s, [], order) for f, e in pieces(src)))

@@ -333,8 +333,10 @@ def save_lerobot(
     Every leaf key becomes a feature: ``OBSERVATION -> observation.state``,
     ``EXPERT_ACTION -> action`` (the label a LeRobot policy trains on),
     ``("next", k) -> next.k``, ``ACTION -> imitrl.executed_action``,
-    ``EXPERT_EXECUTED -> imitrl.expert_executed``, ``ROUND -> imitrl.round``,
-    ``EPISODE -> imitrl.episode`` (LeRobot's ``episode_index`` must run 0..E-1),
+    ``EXPERT_EXECUTED -> intervention`` (LeRobot's DAgger column, bool ``(1,)``),
+    ``ROUND -> imitrl.round``, ``BETA -> imitrl.beta``, ``POLICY_VERSION ->
+    imitrl.policy_version``, ``EPISODE -> imitrl.episode`` (LeRobot's ``episode_index``
+    must run 0..E-1),
     ``STEP -> frame_index``, ``"task_index" -> task_index``; any other key
     ``("a", "b") -> a.b``. A uint8 ``[N, H, W, 3]`` (or ``[N, 3, H, W]``) key whose feature
     name contains ``"image"`` (``observation.images.top``, as ``load_lerobot(...,

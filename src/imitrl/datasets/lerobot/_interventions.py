@@ -1,0 +1,178 @@
+"""What a LeRobot dataset's DAgger columns must hold, checked as its frames are read.
+
+LeRobot's DAgger strategy (``lerobot/rollout/strategies/dagger.py``) records autonomous and
+correction frames and tags the corrections ``intervention=True`` (bool, shape ``(1,)``); the
+frame's ``action`` is the action sent to the robot, the human's on a correction. imitrl reads
+``intervention`` into ``EXPERT_EXECUTED`` and writes it back (``save_lerobot``), beside its
+own ``imitrl.round``, ``imitrl.beta`` and ``imitrl.policy_version``. Refused, naming the data
+file, the episode and the frame:
+
+* an ``intervention`` value that is not a boolean: other tools declare the column int64 or
+  float32, which is read when every value is 0 or 1 (then as booleans), and refused for any
+  other value (a 2, a 0.5);
+* an intervention frame without its corrected action: a null, NaN or infinite value of a
+  feature is refused where the column is read (:func:`feature_values`), and a dataset with
+  interventions and no action feature at all is refused here;
+* rounds out of order: ``imitrl.round`` must be the same on every frame of an episode, and
+  a DAgger round (1, 2, ...) may not come after a later one (:class:`RoundOrder` carries
+  the last one across the pieces of a streamed load); demonstrations (round 0) may come
+  anywhere, as episodes LeRobot's recorder added to the dataset since do; ``imitrl.beta`` and ``imitrl.policy_version`` must
+  be the same on every frame of an episode.
+
+Everything is checked before a row reaches a buffer (a streamed load checks every piece
+before it adds one), so a dataset refused at its fifth round leaves nothing of it behind.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import pyarrow as pa
+import pyarrow.compute as pc
+import torch
+
+from imitrl import keys
+from imitrl.datasets._arrow import column_to_tensor, decode_images
+from imitrl.datasets._common import NestedKey
+from imitrl.datasets.lerobot._layout import INTERVENTION
+
+__all__ = ["RoundOrder", "check_dagger_columns", "feature_values"]
+
+_PER_EPISODE = {keys.ROUND: "round", keys.BETA: "beta", keys.POLICY_VERSION: "policy version"}
+
+
+def _first_bad_row(column: pa.ChunkedArray | pa.Array) -> tuple[int, str] | None:
+    """The first row of a column holding a null, NaN or infinite value, and which."""
+    arr = column.combine_chunks() if isinstance(column, pa.ChunkedArray) else column
+    rows = pa.array(range(len(arr)), pa.int64())
+    while (
+        pa.types.is_list(arr.type)
+        or pa.types.is_fixed_size_list(arr.type)
+        or (pa.types.is_large_list(arr.type))
+    ):
+        nulls = arr.is_null().to_numpy(zero_copy_only=False)
+        if nulls.any():
+            return int(rows[int(nulls.argmax())].as_py()), "null"
+        rows = pc.take(rows, pc.list_parent_indices(arr))
+        arr = arr.flatten()
+    nulls = arr.is_null().to_numpy(zero_copy_only=False)
+    if nulls.any():
+        return int(rows[int(nulls.argmax())].as_py()), "null"
+    if pa.types.is_floating(arr.type):
+        finite = pc.is_finite(arr).to_numpy(zero_copy_only=False)
+        if not finite.all():
+            return int(rows[int((~finite).argmax())].as_py()), "NaN or infinite"
+    return None
+
+
+def feature_values(
+    table: pa.Table, name: str, feature: dict, folder: Any, path: Path
+) -> torch.Tensor:
+    """Feature ``name`` of one data file's ``table`` as a tensor (images decoded); a value
+    that cannot be read (a null, NaN or inf, among others) is refused naming the episode and
+    the frame that hold it, and an intervention frame's missing action says so."""
+    where = f"{path}: feature {name!r}"
+    if feature["dtype"] == "image":
+        return decode_images(
+            table.column(name), shape=tuple(feature["shape"]), folder=folder, where=where
+        )
+    try:
+        return column_to_tensor(
+            table.column(name), shape=tuple(feature["shape"]), dtype=feature["dtype"], where=where
+        )
+    except ValueError as err:
+        bad = _first_bad_row(table.column(name))
+        if bad is None or "episode_index" not in table.column_names:
+            raise
+        row, _ = bad
+        episode = table.column("episode_index")[row].as_py()
+        frame = table.column("frame_index")[row].as_py()
+        hint = ""
+        if INTERVENTION in table.column_names and bool(table.column(INTERVENTION)[row].as_py()):
+            hint = ": an intervention frame, which must carry the corrected action"
+        raise ValueError(f"{err} (episode {episode}, frame {frame}{hint})") from err
+
+
+class RoundOrder:
+    """The round of the last episode checked, carried across the pieces of one load."""
+
+    def __init__(self) -> None:
+        self.last: tuple[int, int] | None = None
+        """(round, episode index) of the last DAgger round (round >= 1) checked"""
+
+
+def _where(file_of: Callable[[int], Path], episode: torch.Tensor, frame: torch.Tensor, i: int):
+    return f"{file_of(i)}: episode {int(episode[i])}, frame {int(frame[i])}"
+
+
+def _booleans(
+    value: torch.Tensor, episode: torch.Tensor, frame: torch.Tensor, file_of, name: str
+) -> torch.Tensor:
+    if value.dtype == torch.bool:
+        return value
+    flat = value.reshape(value.shape[0], -1)
+    bad = torch.nonzero(((flat != 0) & (flat != 1)).any(-1)).flatten()
+    if len(bad):
+        i = int(bad[0])
+        raise ValueError(
+            f"{_where(file_of, episode, frame, i)}: {name!r} holds {flat[i].tolist()}, not a "
+            "boolean (True/False, or 0/1 in an integer or float column)"
+        )
+    return value != 0
+
+
+def check_dagger_columns(
+    out: dict[NestedKey, torch.Tensor],
+    episode: torch.Tensor,
+    frame: torch.Tensor,
+    file_of: Callable[[int], Path],
+    order: RoundOrder,
+    intervention_name: str = INTERVENTION,
+) -> None:
+    """Frames ``[N]`` in episode order (``out``: buffer key -> values; ``episode`` and
+    ``frame``: LeRobot's ``episode_index`` and ``frame_index``) against the module
+    docstring's rules; ``EXPERT_EXECUTED`` becomes boolean in ``out``."""
+    if keys.EXPERT_EXECUTED in out:
+        executed = _booleans(out[keys.EXPERT_EXECUTED], episode, frame, file_of, intervention_name)
+        out[keys.EXPERT_EXECUTED] = executed
+        flags = executed.reshape(executed.shape[0], -1).any(-1)
+        if flags.any() and keys.EXPERT_ACTION not in out and keys.ACTION not in out:
+            i = int(torch.nonzero(flags)[0, 0])
+            raise ValueError(
+                f"{_where(file_of, episode, frame, i)}: an intervention frame without its "
+                "corrected action (the dataset has no action feature; map one with key_map)"
+            )
+    starts = torch.ones_like(episode, dtype=torch.bool)
+    starts[1:] = episode[1:] != episode[:-1]
+    first = torch.cumsum(starts.long(), 0) - 1  # each frame's episode, counted from 0
+    heads = torch.nonzero(starts).flatten()
+    for key, what in _PER_EPISODE.items():
+        if key not in out:
+            continue
+        value = out[key].reshape(out[key].shape[0])
+        head = value[heads][first]
+        differs = value != head
+        if differs.any():
+            i = int(torch.nonzero(differs)[0, 0])
+            raise ValueError(
+                f"{_where(file_of, episode, frame, i)}: {what} {value[i].item()}, but the "
+                f"episode began with {what} {head[i].item()} (one {what} per episode)"
+            )
+    if keys.ROUND in out:
+        _check_order(out[keys.ROUND].reshape(-1), heads, episode, frame, file_of, order)
+
+
+def _check_order(rounds, heads, episode, frame, file_of, order: RoundOrder) -> None:
+    for i in heads.tolist():
+        now = (int(rounds[i]), int(episode[i]))
+        if now[0] == 0:  # demonstrations: recorded before the rounds, or added since
+            continue
+        if order.last is not None and now[0] < order.last[0]:
+            raise ValueError(
+                f"{_where(file_of, episode, frame, i)}: round {now[0]} after round "
+                f"{order.last[0]} (episode {order.last[1]}): a dataset's DAgger rounds come "
+                "in order"
+            )
+        order.last = now
