@@ -21,7 +21,15 @@ if TYPE_CHECKING:  # torch, TorchRL and the rest are imported where used: see im
     from tensordict.nn import TensorDictModuleBase
     from torchrl.envs.utils import ExplorationType
 
-__all__ = ["EVAL_LANES", "EvalJob", "evaluate_returns", "format_return", "report", "run_eval"]
+__all__ = [
+    "EVAL_LANES",
+    "EvalJob",
+    "delayed",
+    "evaluate_returns",
+    "format_return",
+    "report",
+    "run_eval",
+]
 
 EVAL_LANES = 16
 """most env copies an evaluation steps together"""
@@ -140,6 +148,15 @@ class EvalJob:
     device: str = "auto"
     """where the saved learner computes: auto, cpu, cuda or cuda:N (a checkpoint saved
     on any device loads on any other)"""
+    inference_delay: int = bounded(0, 0, MAX_EPISODE_STEPS)
+    """a chunked learner's queries answered this many control steps late, simulated in the
+    rollout loop (imitrl.policies.latency); 0 = at once"""
+    chunk_mode: str | None = None
+    """how a chunked learner executes its chunks under --inference-delay: sync (holds still
+    while it waits), naive (asynchronous: the next chunk takes over at its action d), ensemble
+    (ACT's temporal ensembling of the chunks that have arrived) or rtc (real-time chunking:
+    the next chunk inpainted from the current one; flow and diffusion learners); none = its
+    own (its receding horizon as naive, or its ensembling), not delayed when the delay is 0"""
 
     def __post_init__(self) -> None:
         from imitrl.jobs.resolve import EXPERT_KINDS
@@ -154,6 +171,17 @@ class EvalJob:
             )
         check_bounds(self)
         from imitrl.jobs.configs import _check_device
+        from imitrl.policies.latency import MODES
+
+        if self.chunk_mode is not None and self.chunk_mode not in MODES:
+            raise ValueError(
+                f"--chunk-mode must be one of {', '.join(MODES)}, got {self.chunk_mode!r}"
+            )
+        if (self.inference_delay or self.chunk_mode) and self.checkpoint is None:
+            raise ValueError(
+                "--inference-delay and --chunk-mode execute a chunked learner's chunks: give "
+                "--checkpoint"
+            )
 
         _check_device(self.device)
         if self.out is not None and (Path(self.out) / "eval.json").exists() and not self.overwrite:
@@ -203,9 +231,10 @@ def run_eval(config: EvalJob) -> dict:
         specs = make_env(env_id, seed=0, max_episode_steps=steps, env_kwargs=kwargs)
         try:
             learner = build_learner(saved, specs, device=config.device)
+            policy = delayed(learner.policy, config, specs.action_spec_unbatched)
         finally:
             specs.close()
-        policy, exploration, name = learner.policy, learner.exploration, "learner"
+        exploration, name = learner.exploration, "learner"
     else:
         # EvalJob.__post_init__: --expert when no --checkpoint, with --env
         assert config.expert is not None and config.env is not None
@@ -225,6 +254,8 @@ def run_eval(config: EvalJob) -> dict:
         progress=config.progress,
     )
     results = {"policy": name, "env": env_id, "evaluation": ev}
+    if config.inference_delay or config.chunk_mode:
+        results["latency"] = {"inference_delay": config.inference_delay, "mode": policy.mode}
     if config.out is not None:  # written whole, never through a link (imitrl.fs.files)
         from imitrl.fs.files import make_folder, replace_file
         from imitrl.fs.write_errors import reporting_disk_full
@@ -235,6 +266,30 @@ def run_eval(config: EvalJob) -> dict:
     return results
 
 
+def delayed(policy: TensorDictModuleBase, config: EvalJob, spec) -> TensorDictModuleBase:
+    """``policy`` as ``--inference-delay`` and ``--chunk-mode`` say: a chunked learner's
+    network under the delay (:class:`~imitrl.policies.latency.DelayedChunkPolicy`, holding
+    still with :func:`~imitrl.policies.latency.hold_action` of ``spec``), else ``policy``."""
+    from imitrl.policies.chunking import ChunkedPolicy
+    from imitrl.policies.latency import DelayedChunkPolicy, Latency, hold_action
+
+    if not (config.inference_delay or config.chunk_mode):
+        return policy
+    if not isinstance(policy, ChunkedPolicy):
+        raise ValueError(
+            f"--inference-delay and --chunk-mode execute action chunks; {config.checkpoint}'s "
+            f"learner acts one action per query ({type(policy).__name__}): train a chunked "
+            "loss (flow_chunk, mse_chunk, act, ...)"
+        )
+    mode = config.chunk_mode or ("ensemble" if policy.execution.ensemble is not None else "naive")
+    latency = Latency(config.inference_delay, mode)
+    return DelayedChunkPolicy.wrapping(policy, latency, hold=hold_action(spec))
+
+
 def report(results: dict) -> list[str]:
     """What ``imitrl eval`` prints."""
-    return [format_return(f"{results['policy']} on {results['env']}", results["evaluation"])]
+    line = format_return(f"{results['policy']} on {results['env']}", results["evaluation"])
+    if "latency" in results:
+        lat = results["latency"]
+        line += f"; inference delay {lat['inference_delay']} steps, {lat['mode']} execution"
+    return [line]

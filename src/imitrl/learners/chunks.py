@@ -19,7 +19,7 @@ from torchrl.envs.utils import ExplorationType
 from imitrl.learners.learner import Learner
 from imitrl.learners.task import TaskSpec
 from imitrl.objectives.base import ImitationLoss
-from imitrl.policies.chunking import ChunkedPolicy, ChunkExecution, tile_spec
+from imitrl.policies.chunking import ACT_ENSEMBLE_M, ChunkedPolicy, ChunkExecution, tile_spec
 from imitrl.policies.normalization import ObservationNormalizer
 
 __all__ = [
@@ -43,8 +43,9 @@ CHUNK_HORIZON = 8
 """``H``: actions predicted per query"""
 CHUNK_EXECUTE = 4
 """``k``: actions executed per query (receding horizon) before replanning"""
-ENSEMBLE_M = 0.01
-"""``m`` of ACT's temporal-ensembling weights ``exp(-m i)`` (the paper's value)"""
+ENSEMBLE_M = ACT_ENSEMBLE_M
+"""``m`` of ACT's temporal-ensembling weights ``exp(-m i)`` (the paper's value, declared
+in :mod:`imitrl.policies.chunking`)"""
 RECEDING = ChunkExecution(CHUNK_HORIZON, execute=CHUNK_EXECUTE)
 """receding horizon: ``k`` of ``H`` actions executed, then a new query"""
 RECEDING_HELD = ChunkExecution(CHUNK_HORIZON, execute=CHUNK_EXECUTE, hold_noise=True)

@@ -58,12 +58,17 @@ from imitrl.data.chunks import ACTION_CHUNK, IS_INIT
 from imitrl.data.history import history_key
 
 __all__ = [
+    "ACT_ENSEMBLE_M",
     "ChunkExecution",
     "ChunkedPolicy",
     "chunk_env",
     "ensemble_weights",
     "tile_spec",
 ]
+
+
+ACT_ENSEMBLE_M = 0.01
+"""``m`` of ACT's temporal-ensembling weights ``exp(-m i)`` (the paper's value)"""
 
 
 @dataclass(frozen=True)

@@ -170,3 +170,35 @@ def test_a_dataset_imitrl_wrote_before_the_intervention_column_still_loads(tmp_p
     (root / "meta/info.json").write_text(json.dumps(info))
     got = _load(root).rows
     assert torch.equal(got[keys.EXPERT_EXECUTED], rows[keys.EXPERT_EXECUTED])
+
+
+def test_a_dataset_lerobot_records_with_interventions_loads_with_them(tmp_path):
+    """As LeRobot's DAgger strategy records one: ``LeRobotDataset.create`` with its
+    ``intervention`` feature, ``add_frame`` per step, ``save_episode`` per episode (where
+    lerobot is installed, with its dataset extra; 0.6.1 checked)."""
+    pytest.importorskip("lerobot.datasets")
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    features = {
+        "observation.state": {"dtype": "float32", "shape": (3,), "names": None},
+        "action": {"dtype": "float32", "shape": (2,), "names": None},
+        "intervention": {"dtype": "bool", "shape": (1,), "names": None},  # DAggerStrategyConfig's
+    }
+    writer = LeRobotDataset.create("imitrl/rollout_dagger", fps=10, root=tmp_path / "rec",
+                                   features=features, use_videos=False)  # fmt: skip
+    g = np.random.default_rng(0)
+    flags = [[False, False, True, True, False], [True, True, False, False, False, True]]
+    for pattern in flags:
+        for flag in pattern:
+            writer.add_frame({
+                "observation.state": g.standard_normal(3).astype(np.float32),
+                "action": g.standard_normal(2).astype(np.float32),
+                "intervention": np.array([flag]),
+                "task": "reach the cube",
+            })  # fmt: skip
+        writer.save_episode()
+    writer.finalize()
+    rows = _load(tmp_path / "rec").rows
+    want = torch.tensor([f for pattern in flags for f in pattern])
+    assert torch.equal(rows[keys.EXPERT_EXECUTED].reshape(-1), want)
+    assert rows[keys.EPISODE].tolist() == [0] * 5 + [1] * 6

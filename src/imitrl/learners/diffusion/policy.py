@@ -54,7 +54,7 @@ from imitrl import keys
 from imitrl.learners.defaults import HIDDEN
 from imitrl.rng import rng_from
 
-__all__ = ["SAMPLERS", "DiffusionPolicy", "ScoreNetwork", "ddim_sample"]
+__all__ = ["SAMPLERS", "DiffusionPolicy", "ScoreNetwork", "ddim_sample", "ddim_sample_guided"]
 
 
 SAMPLERS = ("ddpm", "ddim")
@@ -108,6 +108,46 @@ def ddim_sample(
         t = torch.full((*x.shape[:-1], 1), float(tau), device=x.device)
         eps = score(torch.cat([x, obs.to(x.dtype), t], dim=-1))
         x0 = ((x - (1 - abar).sqrt() * eps) / abar.sqrt()).clamp(-1.0, 1.0)
+        x = abar_prev.sqrt() * x0 + (1 - abar_prev).sqrt() * eps
+    return x
+
+
+def ddim_sample_guided(
+    score: nn.Module,
+    obs: torch.Tensor,
+    x: torch.Tensor,
+    alphas_cumprod: torch.Tensor,
+    sample_steps: int,
+    target: torch.Tensor,
+    weights: torch.Tensor,
+    guidance: float,
+) -> torch.Tensor:
+    """:func:`ddim_sample` pulled towards ``target`` ``[..., d]`` (in ``[-1, 1]``) where
+    ``weights`` say: real-time chunking's inpainting (Black et al. 2025) on DDIM's clean
+    prediction. Each step's ``x0_hat`` moves by ``(1 - tau) w J^T (W (y - x0_hat))``, ``J`` its
+    Jacobian in ``x`` (one vector-Jacobian product), ``tau = sqrt(abar) / (sqrt(abar) +
+    sqrt(1 - abar))`` the flow time of the step (the same signal-to-noise ratio) and ``w =
+    min(guidance, (1 - tau) / (tau r^2))`` as for a flow
+    (:meth:`~imitrl.learners.flow.policy.FlowPolicy.sample_guided`); ``eps`` moves with it
+    (``x`` unchanged), so zero weights give :func:`ddim_sample`'s steps."""
+    T = alphas_cumprod.shape[0]
+    alphas_cumprod = alphas_cumprod.to(x.device)
+    taus = torch.linspace(T - 1, 0, int(sample_steps)).round().long().unique_consecutive()
+    for i, step in enumerate(taus.tolist()):
+        abar = alphas_cumprod[step]
+        abar_prev = alphas_cumprod[taus[i + 1]] if i + 1 < len(taus) else torch.tensor(1.0)
+        t = torch.full((*x.shape[:-1], 1), float(step), device=x.device)
+        with torch.enable_grad():
+            xg = x.detach().requires_grad_(True)
+            eps = score(torch.cat([xg, obs.to(x.dtype), t], dim=-1))
+            x0 = (xg - (1 - abar).sqrt() * eps) / abar.sqrt()
+            (g,) = torch.autograd.grad(x0, xg, grad_outputs=weights * (target - x0))
+        tau = float(abar.sqrt() / (abar.sqrt() + (1 - abar).sqrt()))
+        r2 = (1 - tau) ** 2 / (tau**2 + (1 - tau) ** 2)
+        w = min(guidance, (1 - tau) / (tau * r2))
+        shift = (1 - tau) * w * g  # x0_hat moves; x stays, so eps moves the other way
+        eps = eps.detach() - abar.sqrt() / (1 - abar).sqrt() * shift
+        x0 = (x0.detach() + shift).clamp(-1.0, 1.0)
         x = abar_prev.sqrt() * x0 + (1 - abar_prev).sqrt() * eps
     return x
 
@@ -184,15 +224,38 @@ class DiffusionPolicy(TensorDictModuleBase):
         """Bounds -> ``[-1, 1]``."""
         return 2 * (action.float() - self.low) / (self.high - self.low) - 1
 
+    def _latent(self, obs: torch.Tensor) -> torch.Tensor:
+        shape = (*obs.shape[:-1], self.low.shape[0])
+        if interaction_type() == InteractionType.DETERMINISTIC:
+            return torch.zeros(shape, device=obs.device)  # as TorchRL's chain starts here
+        return torch.randn(shape, generator=self.generator).to(obs.device)
+
+    def inpaint(
+        self,
+        tensordict: TensorDictBase,
+        target: torch.Tensor,
+        weights: torch.Tensor,
+        guidance: float,
+    ) -> torch.Tensor:
+        """The action ``[..., m]`` sampled by DDIM (``sample_steps`` steps, whichever
+        ``sampler`` the policy acts with: guidance needs the clean prediction at each step)
+        and guided towards ``target`` (in the bounds) with ``weights``
+        (:func:`ddim_sample_guided`): real-time chunking
+        (:class:`~imitrl.policies.latency.DelayedChunkPolicy`, mode ``rtc``)."""
+        obs = tensordict.get(keys.OBSERVATION)
+        y = self.normalize(target.to(obs.device))
+        x = ddim_sample_guided(
+            self._score, obs, self._latent(obs), self._alphas_cumprod, self.sample_steps,
+            y, weights.to(y.dtype), guidance,
+        ).clamp(-1.0, 1.0)  # fmt: skip
+        return self.low + (self.high - self.low) * (x + 1) / 2
+
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         if self.sampler == "ddim":
             obs = tensordict.get(keys.OBSERVATION)
-            shape = (*obs.shape[:-1], self.low.shape[0])
-            if interaction_type() == InteractionType.DETERMINISTIC:
-                x = torch.zeros(shape, device=obs.device)  # as TorchRL's chain starts here
-            else:
-                x = torch.randn(shape, generator=self.generator).to(obs.device)
-            x = ddim_sample(self._score, obs, x, self._alphas_cumprod, self.sample_steps)
+            x = ddim_sample(
+                self._score, obs, self._latent(obs), self._alphas_cumprod, self.sample_steps
+            )
             tensordict.set(NORMALIZED, x)
         else:
             with rng_from(self.generator):
