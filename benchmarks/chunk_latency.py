@@ -92,6 +92,7 @@ def trained(task: str, seed: int, cfg: Config, horizon: int, execute: int):
     """``(learner, make(seed, lanes) -> env, episode limit)`` of ``task``, fitted by BC."""
     torch.manual_seed(seed)
     if task == "two_way":
+
         def make(s: int, lanes: int):
             return TwoWayObstacleEnv(seed=s, batch_size=(lanes,) if lanes > 1 else ())
 
@@ -104,7 +105,12 @@ def trained(task: str, seed: int, cfg: Config, horizon: int, execute: int):
             return make_env(task, seed=s, num_envs=lanes, max_episode_steps=METAWORLD_STEPS)
 
         expert, limit = metaworld_expert(task.removeprefix("metaworld/")), METAWORLD_STEPS
-        demos, steps, hidden, lr = (1 if cfg.quick else 5), cfg.steps if cfg.quick else 320, (128, 128), 3e-3
+        demos, steps, hidden, lr = (
+            (1 if cfg.quick else 5),
+            cfg.steps if cfg.quick else 320,
+            (128, 128),
+            3e-3,
+        )
     env = make(seed, 1)
     buffer = DemonstrationBuffer(action_spec=env.action_spec_unbatched)
     buffer.extend(rollout_episodes(env, expert, demos, max_steps=limit))
@@ -152,8 +158,17 @@ def run_task(task: str, cfg: Config, cells: list[dict]) -> None:
             for d in delays:
                 for mode in MODES:
                     c = play(fitted, make, limit, mode, d, seed, episodes)
-                    cells.append({"task": task, "horizon": horizon, "execute": execute,
-                                  "seed": seed, "delay": d, "mode": mode, **c})
+                    cells.append(
+                        {
+                            "task": task,
+                            "horizon": horizon,
+                            "execute": execute,
+                            "seed": seed,
+                            "delay": d,
+                            "mode": mode,
+                            **c,
+                        }
+                    )
                     print(f"{task} H={horizon} seed {seed} d={d} {mode}: "
                           f"{c['successes']}/{c['episodes']}", file=sys.stderr, flush=True)  # fmt: skip
 
@@ -171,15 +186,19 @@ def _row(task: str, horizon: int, d: int, mode: str, mine: list[dict]) -> dict:
             "jerk": mean_ci(jerk) if jerk.numel() else (float("nan"),) * 3}  # fmt: skip
 
 
+def _in(cell: dict, task: str) -> bool:
+    """``cell`` is one of ``task``'s (of any MT10 task for the pooled row)."""
+    return cell["task"].startswith("metaworld/") if task == MT10 else cell["task"] == task
+
+
 def summarise(cells: list[dict]) -> list[dict]:
     rows = []
     keys_ = dict.fromkeys((c["task"], c["horizon"]) for c in cells)
     mw = [k for k in keys_ if k[0].startswith("metaworld/")]
-    groups = [*keys_, *dict.fromkeys((MT10, h) for _, h in mw)] if len(mw) > 1 else list(keys_)
+    several = len({t for t, _ in mw}) > 1
+    groups = [*keys_, *dict.fromkeys((MT10, h) for _, h in mw)] if several else list(keys_)
     for task, h in groups:
-        pick = (lambda c: c["task"].startswith("metaworld/")) if task == MT10 else (
-            lambda c: c["task"] == task)  # fmt: skip
-        mine_h = [c for c in cells if pick(c) and c["horizon"] == h]
+        mine_h = [c for c in cells if _in(c, task) and c["horizon"] == h]
         for d in sorted({c["delay"] for c in mine_h}):
             for mode in MODES:
                 mine = [c for c in mine_h if (c["delay"], c["mode"]) == (d, mode)]

@@ -103,6 +103,7 @@ GAIL = {
 AIRL = {**GAIL, "--entropy-weight": ["-1", "nan", "inf"]}
 EVAL = {
     "--max-episode-steps": ["0", "-1", "1000001", HUGE],
+    "--inference-delay": ["-1", "1000001", "1.5", HUGE],
     "--eval-episodes": ["0", "-1", "100001", "1000000000000", "1e12"],
     "--eval-seed": SEEDS,
     **THREADS,

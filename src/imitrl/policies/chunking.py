@@ -63,6 +63,7 @@ __all__ = [
     "ChunkedPolicy",
     "chunk_env",
     "ensemble_weights",
+    "reset_lanes",
     "tile_spec",
 ]
 
@@ -114,6 +115,19 @@ def tile_spec(spec: Bounded, horizon: int) -> Bounded:
         raise ValueError(f"chunks need a Bounded action spec of shape [m], got {spec!r}")
     low, high = spec.space.low, spec.space.high
     return Bounded(low.repeat(horizon), high.repeat(horizon), shape=(horizon * low.numel(),))
+
+
+def reset_lanes(tensordict: TensorDictBase) -> torch.Tensor:
+    """``[L]`` bool: which lanes of ``tensordict`` (flattened) were just reset (``is_init``);
+    a chunked policy keeps state per lane and fails loudly without it."""
+    init = tensordict.get(IS_INIT, None)
+    if init is None:
+        raise ValueError(
+            f"a chunked policy needs {IS_INIT!r} to know where a lane was reset: wrap the env "
+            "with imitrl.policies.chunking.chunk_env(env) (TorchRL's InitTracker), or set it "
+            "True to plan afresh"
+        )
+    return init.reshape(tensordict.batch_size.numel()).bool()
 
 
 def chunk_env(env: EnvBase) -> TransformedEnv:
@@ -178,16 +192,9 @@ class ChunkedPolicy(TensorDictModuleBase):
         return flat.unflatten(-1, (self.execution.horizon, self.action_dim))
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        init = tensordict.get(IS_INIT, None)
-        if init is None:
-            raise ValueError(
-                f"a chunked policy needs {IS_INIT!r} to know where a lane was reset: "
-                "wrap the env with imitrl.policies.chunking.chunk_env(env) (TorchRL's "
-                "InitTracker), or set it True to plan afresh"
-            )
         batch = tensordict.batch_size
         lanes = batch.numel()
-        init = init.reshape(lanes).bool()
+        init = reset_lanes(tensordict)
         if self._plan is None or self._plan.shape[0] != lanes:
             if not bool(init.all()):
                 raise ValueError("a chunked policy's first call must follow a reset of every lane")

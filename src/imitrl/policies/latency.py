@@ -51,7 +51,7 @@ from torchrl.data import Bounded
 
 from imitrl import keys
 from imitrl.data.chunks import IS_INIT
-from imitrl.policies.chunking import ACT_ENSEMBLE_M, ChunkedPolicy
+from imitrl.policies.chunking import ACT_ENSEMBLE_M, ChunkedPolicy, reset_lanes
 
 __all__ = [
     "CHUNK_SWITCH",
@@ -208,15 +208,9 @@ class DelayedChunkPolicy(TensorDictModuleBase):
 
     # ------------------------------------------------------------------ steps
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        init = tensordict.get(IS_INIT, None)
-        if init is None:
-            raise ValueError(
-                f"a chunked policy needs {IS_INIT!r} to know where a lane was reset: wrap the "
-                "env with imitrl.policies.chunking.chunk_env(env) (TorchRL's InitTracker)"
-            )
         batch = tensordict.batch_size
         lanes = batch.numel()
-        init = init.reshape(lanes).bool()
+        init = reset_lanes(tensordict)
         if self._state.get("age") is None or self._state["age"].shape[0] != lanes:
             if not bool(init.all()):
                 raise ValueError("a chunked policy's first call must follow a reset of every lane")
