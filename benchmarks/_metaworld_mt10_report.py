@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 import _report
+from _paired import paired_differences, paired_table
 from imitrl.evaluation import wilson_interval
 from imitrl.evaluation.aggregate import (
     iqm,
@@ -166,6 +167,12 @@ def markdown(payload: dict, figure_name: str) -> str:
         ["loss", "demos", "algorithm", "IQM", "optimality gap", f"P(better than {BASELINE})"],
         agg_rows,
     )
+    with_demos = [{**r, "demos": _split(r["task"])[1], "algorithm": LABELS[r["algorithm"]]}
+                  for r in payload["rows"]]  # fmt: skip
+    paired = paired_table(
+        paired_differences(with_demos, lambda task: BASELINE, group=("loss", "demos", "algorithm")),
+        ("loss", "demos", "algorithm"),
+    )
     return "\n\n".join(
         [
             head,
@@ -178,6 +185,11 @@ def markdown(payload: dict, figure_name: str) -> str:
             "held-out starts), 95% stratified bootstrap intervals over seeds "
             f"({REPS} replicates).",
             aggregate,
+            f"Paired differences against {BASELINE}: success rate minus {BASELINE}'s on the "
+            "same task and seed (the same demonstrations and held-out starts), mean over the "
+            "task-seed pairs with a 95% t interval, and the tasks whose mean difference is above "
+            "or below 0 (`_paired.py`).",
+            paired,
             f"![Meta-World MT10]({figure_name})",
         ]
     )

@@ -27,6 +27,7 @@ success on at least 8 of the 10 tasks from at most 5 demonstrations.
     python benchmarks/metaworld_mt10.py --jobs 2     # full run, refreshes benchmarks/README.md
     python benchmarks/metaworld_mt10.py --quick      # smoke run, into a temporary directory
     python benchmarks/metaworld_mt10.py --tasks reach-v3 --losses mse --seeds 1 --out /tmp/x
+    python benchmarks/metaworld_mt10.py --render results/metaworld_mt10.json  # report only
     python benchmarks/metaworld_mt10.py --merge results/metaworld_mt10.json a.json b.json \
         --demos 5                # one report of runs of disjoint cells (other losses, seeds)
 """
@@ -172,7 +173,24 @@ def main(argv: list[str] | None = None) -> None:
         help=f"results files of runs of disjoint cells: one report ({MERGED}) of their "
         "cells with --demos demonstrations; nothing is run",
     )
+    p.add_argument(
+        "--render",
+        type=Path,
+        default=None,
+        metavar="JSON",
+        help="re-render a results file's report (its README block and figure; a merged one "
+        f"as {MERGED}) from its rows; nothing is run",
+    )
     args = p.parse_args(argv)
+    if args.render is not None:
+        payload = json.loads(args.render.read_text())
+        name = MERGED if payload["config"]["jobs"] == "merged" else NAME
+        out_dir = None if args.out is None else Path(args.out)
+        fig = figure(payload, _report.results_dir(out_dir) / f"{name}.png")
+        text = markdown(payload, fig.name if out_dir else f"results/{fig.name}")
+        print(text)
+        print(f"results: {_report.write(name, payload, text, out_dir=out_dir)}")
+        return
     if args.merge is not None:
         runs = [{**json.loads(f.read_text()), "source": str(f)} for f in args.merge]
         payload = merge(runs, tuple(args.demos))

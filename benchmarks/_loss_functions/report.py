@@ -10,6 +10,7 @@ from typing import Any
 
 import _report
 from _loss_functions import aggregate
+from _paired import paired_differences, paired_table
 from imitrl.envs import corridor, multimodal
 from imitrl.evaluation import t_interval
 from imitrl.learners import registry
@@ -123,6 +124,18 @@ def markdown(summary: dict, raw: dict, figures: dict[str, str]) -> str:
     ]
     if summary.get("aggregate", {}).get("entries"):
         lines += ["", aggregate.markdown(summary["aggregate"], figures.get("aggregate"))]
+    paired = paired_differences(raw["rows"], reference_loss(raw["rows"]), score="normalized")
+    if paired:
+        lines += [
+            "",
+            "Paired differences against each task's reference loss (`mse` for continuous "
+            "actions, `cross_entropy` for discrete ones): normalised score minus the "
+            "reference's on the same task and seed (the same demonstrations and held-out "
+            "episodes), mean over the task-seed pairs with a 95% t interval, and the tasks "
+            "whose mean difference is above or below 0 (`_paired.py`):",
+            "",
+            paired_table(paired, ("loss", "algorithm")),
+        ]
     if any(g["task"] == "two_way" for g in summary["groups"]):
         lines += ["", two_way_table(summary)]
     if any(g["task"] == "corridor" for g in summary["groups"]):
@@ -138,6 +151,20 @@ def markdown(summary: dict, raw: dict, figures: dict[str, str]) -> str:
     if figures.get("scores"):
         lines += ["", f"![normalised scores and mode fractions]({figures['scores']})"]
     return "\n".join(lines)
+
+
+def reference_loss(rows: list[dict]):
+    """``task -> its reference loss``: ``mse`` where the task has it, else ``cross_entropy``
+    (a discrete task's default), else None."""
+    have: dict[str, set[str]] = {}
+    for r in rows:
+        have.setdefault(r["task"], set()).add(r["loss"])
+
+    def reference(task: str) -> str | None:
+        losses = have.get(task, set())
+        return next((n for n in ("mse", "cross_entropy") if n in losses), None)
+
+    return reference
 
 
 def _tasks(summary: dict) -> list[str]:
