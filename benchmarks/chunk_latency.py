@@ -115,20 +115,25 @@ def trained(task: str, seed: int, cfg: Config, horizon: int, execute: int):
     buffer = DemonstrationBuffer(action_spec=env.action_spec_unbatched)
     buffer.extend(rollout_episodes(env, expert, demos, max_steps=limit))
     fitted = learner(env, seed, hidden, lr, horizon, execute)
+    env.close()
     fit_bc(fitted, buffer, BCConfig(num_steps=steps, batch_size=256, seed=seed))
     return fitted, make, limit
 
 
-def play(fitted, make, limit: int, mode: str, d: int, seed: int, episodes: int) -> dict:
-    """``episodes`` held-out episodes (lanes seeded ``10_000 + seed``) under delay ``d``:
-    successes and each episode's mean jerk at its chunk boundaries."""
-    env = TransformedEnv(make(10_000 + seed, episodes), InitTracker())
+def play(fitted, env, limit: int, mode: str, d: int, seed: int) -> dict:
+    """``env``'s lanes' held-out episodes (reset from seed ``10_000 + seed``: the same starts
+    for every mode and delay) under delay ``d``: successes and each episode's mean jerk at
+    its chunk boundaries. One env serves every cell of a seed: Meta-World keeps ~15 MB of
+    every env it builds after it is closed (metaworld 3, measured), which thousands of
+    20-lane envs would pile up."""
     spec = env.action_spec_unbatched
     policy = DelayedChunkPolicy.wrapping(fitted.policy, Latency(d, mode), hold=hold_action(spec))
     fitted.policy.network.generator.manual_seed(seed)  # the same draws for every mode
+    env.set_seed(10_000 + seed)  # (reset(seed=...) does not reach an EnvBase env's generator)
+    start = env.reset()
     with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
-        td = env.rollout(limit, policy, break_when_any_done=False, auto_cast_to_device=False)
-    env.close()
+        td = env.rollout(limit, policy, break_when_any_done=False, auto_cast_to_device=False,
+                         auto_reset=False, tensordict=start)  # fmt: skip
     td = td if td.batch_dims == 2 else td.unsqueeze(0)
     done = td.get(("next", keys.DONE)).reshape(td.shape[0], -1)
     first = torch.where(done.any(1), done.float().argmax(1), torch.full((td.shape[0],), limit - 1))
@@ -155,9 +160,10 @@ def run_task(task: str, cfg: Config, cells: list[dict]) -> None:
     for horizon, execute, delays in chunkings:
         for seed in range(seeds):
             fitted, make, limit = trained(task, seed, cfg, horizon, execute)
+            env = TransformedEnv(make(10_000 + seed, episodes), InitTracker())
             for d in delays:
                 for mode in MODES:
-                    c = play(fitted, make, limit, mode, d, seed, episodes)
+                    c = play(fitted, env, limit, mode, d, seed)
                     cells.append(
                         {
                             "task": task,
@@ -171,6 +177,7 @@ def run_task(task: str, cfg: Config, cells: list[dict]) -> None:
                     )
                     print(f"{task} H={horizon} seed {seed} d={d} {mode}: "
                           f"{c['successes']}/{c['episodes']}", file=sys.stderr, flush=True)  # fmt: skip
+            env.close()
 
 
 MT10 = "MT10 (5 tasks)"

@@ -104,6 +104,16 @@ def test_an_env_that_does_not_replay_its_seeds_is_refused():
         check_replays(env, 3)
 
 
+def test_an_env_on_envbase_seeded_by_set_seed_replays():
+    """The two-way task keeps its own generator, which ``set_seed`` reseeds and TorchRL's
+    ``reset(seed=...)`` does not reach: it replays as the paired episodes seed it."""
+    from imitrl.envs.multimodal import TwoWayObstacleEnv
+
+    env = TwoWayObstacleEnv(seed=0, batch_size=(4,))
+    env.rollout(10, break_when_any_done=False)  # its generator moved on
+    check_replays(env, 3)
+
+
 @pytest.mark.parametrize(
     "kwargs, said",
     [({"alpha": 1.0}, "alpha must be in"), ({"alpha": 0.0}, "alpha must be in"),

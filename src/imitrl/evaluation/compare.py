@@ -97,9 +97,13 @@ class Comparison:
 
 def check_replays(env: EnvBase, seed: int) -> None:
     """ValueError unless two resets from ``seed`` give the same observation (episodes
-    can then be paired)."""
-    first = env.reset(seed=seed).get(keys.OBSERVATION).clone()
-    again = env.reset(seed=seed).get(keys.OBSERVATION)
+    can then be paired). Seeded as the paired episodes are (``env.set_seed``, then a reset:
+    :func:`~imitrl.runtime.rollout.rollout_episodes`): TorchRL's ``reset(seed=...)`` reaches
+    a gymnasium env's own seed but not the generator of an env written on ``EnvBase``."""
+    env.set_seed(int(seed))
+    first = env.reset().get(keys.OBSERVATION).clone()
+    env.set_seed(int(seed))
+    again = env.reset().get(keys.OBSERVATION)
     if not torch.equal(first, again):
         raise ValueError(
             f"{type(env).__name__} does not replay its episodes from a seed (two resets from "
