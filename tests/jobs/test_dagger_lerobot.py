@@ -120,3 +120,29 @@ def test_interventions_of_a_dataset_without_them_are_one_line(tmp_path):
                         "--out", str(tmp_path / "bc"), "--no-progress")  # fmt: skip
     assert status == 2 and "--dataset-frames chooses frames of --dataset" in err
     assert not (tmp_path / "bc").exists()
+
+
+def test_a_run_starts_from_a_recording_in_lerobots_own_schema(tmp_path):
+    """A dataset with LeRobot's columns only (``observation.state``, ``action``,
+    ``intervention``; no imitrl column, as LeRobot's DAgger strategy records one): its frames
+    are round 0 with their interventions kept, and the run's rounds come after."""
+    from imitrl.datasets import save_lerobot
+
+    status, err = _main(*TINY, "--rounds", "2", "--out", str(tmp_path / "first"))
+    assert status == 0, err
+    rows = _rows(tmp_path / "first" / "lerobot")
+    flags = rows[keys.EXPERT_EXECUTED].clone()
+    flags[::3] = ~flags[::3]  # a recording's own pattern of corrections
+    rows.set(keys.EXPERT_EXECUTED, flags)
+    rec = save_lerobot(rows, tmp_path / "rec", fps=20,
+                       features=["observation.state", "action", "intervention"])  # fmt: skip
+    (rec / "meta" / "imitrl.json").unlink()  # read as LeRobot's own
+    status, err = _main(
+        *TINY, "--rounds", "2", "--dataset", str(rec), "--out", str(tmp_path / "next")
+    )
+    assert status == 0, err
+    after = _rows(tmp_path / "next" / "lerobot")
+    n = rows.shape[0]
+    assert after[keys.ROUND][:n].eq(0).all() and after[keys.ROUND][n:].eq(1).all()
+    assert torch.equal(after[keys.EXPERT_EXECUTED][:n], flags)
+    assert torch.equal(after[keys.EXPERT_ACTION][:n], rows[keys.EXPERT_ACTION])

@@ -441,6 +441,7 @@ def _collect(k, learner, expert, mixer, source, buffer, config, record, first: i
             round_index=first + k + 1,
             first_episode=buffer.next_episode,
         )
+    rows = _as_recorded(rows, buffer)
     beta = mixer.beta if config.gate is None else NO_BETA
     if keys.BETA in buffer.data.keys():  # rows of a dataset that records its rounds' betas
         rows = with_provenance(rows, beta, policy_version=first + k)
@@ -453,3 +454,14 @@ def _collect(k, learner, expert, mixer, source, buffer, config, record, first: i
     record.rows_collected = rows.shape[0]
     record.expert_executed_fraction = float(executed.float().mean())
     record.interventions = None if config.gate is None else int(executed.sum())
+
+
+def _as_recorded(rows, buffer: DemonstrationBuffer):
+    """A round's rows without the ``("next", ...)`` entries the demonstrations did not record
+    (a LeRobot DAgger recording has no rewards): the buffer keeps one schema."""
+    held = set(buffer.data.keys(include_nested=True, leaves_only=True))
+    unrecorded = [
+        k for k in rows.keys(include_nested=True, leaves_only=True)
+        if k not in held and isinstance(k, tuple) and k[0] == keys.NEXT
+    ]  # fmt: skip
+    return rows.exclude(*unrecorded) if unrecorded else rows
