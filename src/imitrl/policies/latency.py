@@ -42,7 +42,7 @@ chunk boundaries reads.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 from tensordict import TensorDictBase
@@ -174,20 +174,22 @@ class DelayedChunkPolicy(TensorDictModuleBase):
             )
         execute = latency.execute if latency.execute is not None else ex.execute
         m = latency.ensemble if latency.ensemble is not None else ex.ensemble
-        from dataclasses import replace
-
         latency = replace(latency, execute=execute, ensemble=m)
         return cls(policy.network, policy.action_dim, ex.horizon, latency, hold=hold,
                    hold_noise=ex.hold_noise)  # fmt: skip
 
     # ------------------------------------------------------------------ queries
-    def _query(self, td: TensorDictBase, lanes: torch.Tensor) -> torch.Tensor:
-        """``[n, H, m]`` the network's chunks for the lanes ``lanes`` (a mask)."""
+    def _inputs(self, td: TensorDictBase, lanes: torch.Tensor) -> TensorDictBase:
+        """The network's inputs for the lanes ``lanes`` (a mask), with their held noise."""
         sub = td[lanes].select(*self.network.in_keys, strict=True)
         noise = self._state.get("noise")
         if noise is not None:
             sub.set(keys.POLICY_NOISE, noise[lanes])
-        flat = self.network(sub).get(keys.ACTION)
+        return sub
+
+    def _query(self, td: TensorDictBase, lanes: torch.Tensor) -> torch.Tensor:
+        """``[n, H, m]`` the network's chunks for the lanes ``lanes`` (a mask)."""
+        flat = self.network(self._inputs(td, lanes)).get(keys.ACTION)
         return flat.unflatten(-1, (self.horizon, self.action_dim))
 
     def _inpaint(self, td: TensorDictBase, lanes: torch.Tensor) -> torch.Tensor:
@@ -199,11 +201,9 @@ class DelayedChunkPolicy(TensorDictModuleBase):
         target = torch.gather(active, 1, index[..., None].expand(-1, -1, self.action_dim))
         w = rtc_weights(H, self.delay, age).to(active.device)
         w = w[..., None].expand(-1, -1, self.action_dim)
-        sub = td[lanes].select(*self.network.in_keys, strict=True)
-        noise = st.get("noise")
-        if noise is not None:
-            sub.set(keys.POLICY_NOISE, noise[lanes])
-        flat = self.network.inpaint(sub, target.flatten(-2), w.flatten(-2), self.latency.guidance)
+        flat = self.network.inpaint(
+            self._inputs(td, lanes), target.flatten(-2), w.flatten(-2), self.latency.guidance
+        )
         return flat.unflatten(-1, (H, self.action_dim))
 
     # ------------------------------------------------------------------ steps
@@ -281,7 +281,7 @@ class DelayedChunkPolicy(TensorDictModuleBase):
                 st["pending"][ask] = chunk
                 st["wait"][ask] = d
             st["until"][ask] = self.execute
-        action = st["active"][torch.arange(st["age"].shape[0]), st["age"]]
+        action = st["active"][torch.arange(st["age"].shape[0], device=st["age"].device), st["age"]]
         st["age"] += 1
         st["until"] -= 1
         st["wait"] = torch.where(st["wait"] > 0, st["wait"] - 1, st["wait"])
@@ -301,7 +301,7 @@ class DelayedChunkPolicy(TensorDictModuleBase):
         waiting = st["pause"] > 0
         ready = ask & ~waiting  # d = 0: the chunk executes at once
         st["active"][ready] = st["pending"][ready]
-        lanes = torch.arange(st["age"].shape[0])
+        lanes = torch.arange(st["age"].shape[0], device=st["age"].device)
         hold = self.hold.to(st["active"].dtype) if self.hold is not None else None
         action = st["active"][lanes, st["age"]].clone()
         if hold is not None and bool(waiting.any()):
