@@ -8,7 +8,8 @@ the demonstrations; after each fit the learner is evaluated (logged as
 probability ``--beta``), every visited state labelled by the expert and added to
 the buffer. ``--save-lerobot FPS`` writes the buffer after each fit as a LeRobot v3.0
 dataset in LeRobot's DAgger schema, ``OUT/lerobot`` (:func:`save_rounds`); a
-``--dataset`` of earlier rounds (one it wrote) is continued: the new rounds come after. The last round's learner is saved as the checkpoint. After every round
+``--dataset`` of earlier rounds (one it wrote) is continued: the new rounds come after.
+The last round's learner is saved as the checkpoint. After every round
 the whole run is checkpointed in ``OUT/run`` (:func:`imitrl.algorithms.dagger`'s
 ``checkpoint_dir``); ``--resume`` continues an interrupted run from there.
 

@@ -16,8 +16,9 @@ file, the episode and the frame:
 * rounds out of order: ``imitrl.round`` must be the same on every frame of an episode, and
   a DAgger round (1, 2, ...) may not come after a later one (:class:`RoundOrder` carries
   the last one across the pieces of a streamed load); demonstrations (round 0) may come
-  anywhere, as episodes LeRobot's recorder added to the dataset since do; ``imitrl.beta`` and ``imitrl.policy_version`` must
-  be the same on every frame of an episode.
+  anywhere, as episodes LeRobot's recorder added to the dataset since do;
+  ``imitrl.beta`` and ``imitrl.policy_version`` must be the same on every frame of an
+  episode.
 
 Everything is checked before a row reaches a buffer (a streamed load checks every piece
 before it adds one), so a dataset refused at its fifth round leaves nothing of it behind.
