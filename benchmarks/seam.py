@@ -90,6 +90,10 @@ COMMANDS = (
 )  # fmt: skip
 
 
+QUICK_COMMANDS = ("frozenlake", "gail_pendulum")
+"""--quick's commands: between them every piece of every command runs on both paths"""
+
+
 @dataclass(frozen=True)
 class Config:
     """The whole run."""
@@ -225,9 +229,11 @@ def main(argv: list[str] | None = None) -> None:
                         choices=[c.name for c in COMMANDS])  # fmt: skip
     args = parser.parse_args(argv)
     out_dir = _report.destination(NAME, quick=args.quick, out=args.out)
+    # --quick: one command per kind of piece (the fit's and GAIL's) unless named
+    commands = args.commands or (QUICK_COMMANDS if args.quick else None)
     cfg = Config(
         repeats=args.repeats or (1 if args.quick else 5),
-        **({"commands": tuple(args.commands)} if args.commands else {}),
+        **({"commands": tuple(commands)} if commands else {}),
     )
     with tempfile.TemporaryDirectory(prefix="seam-") as tmp:
         rows = measure(cfg, args.quick, Path(tmp))

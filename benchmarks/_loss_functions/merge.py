@@ -12,10 +12,10 @@ from __future__ import annotations
 
 from typing import Any
 
-__all__ = ["merge"]
+__all__ = ["merge", "with_defaults"]
 
 
-def _with_defaults(protocol: dict) -> dict:
+def with_defaults(protocol: dict) -> dict:
     """A recorded protocol with the fields it predates filled with their defaults (a run
     recorded before a field existed trained as its default says)."""
     from dataclasses import MISSING, asdict, fields
@@ -66,12 +66,12 @@ def merge(runs: list[dict[str, Any]]) -> dict[str, Any]:
     cells: set[tuple] = set()
     for k, run in enumerate(runs):
         for name, protocol in run["protocols"].items():
-            protocol = _with_defaults(protocol)  # fields added since an older run: defaults
+            protocol = with_defaults(protocol)  # fields added since an older run: defaults
             if out["protocols"].setdefault(name, protocol) != protocol:
                 raise ValueError(f"run {k} trained task {name!r} with another protocol")
         for name, definition in run.get("tasks", {}).items():
             if "protocol" in definition:
-                definition = {**definition, "protocol": _with_defaults(definition["protocol"])}
+                definition = {**definition, "protocol": with_defaults(definition["protocol"])}
             if out["tasks"].setdefault(name, definition) != definition:
                 raise ValueError(f"run {k} defines task {name!r} differently")
         for ref in run["references"]:

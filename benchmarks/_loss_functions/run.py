@@ -11,7 +11,7 @@ import importlib
 import multiprocessing
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, replace
 from typing import Any
 
@@ -22,6 +22,7 @@ from _common import DET, rollout, source
 from _loss_functions.tasks import TaskDef, build
 from imitrl import keys
 from imitrl.algorithms import DAggerConfig, dagger, fit_bc
+from imitrl.algorithms.beta_schedules import Constant, Exponential
 from imitrl.data import DemonstrationBuffer
 from imitrl.learners import FOR_ENV, Learner, registry
 from imitrl.policies import as_actor
@@ -44,9 +45,17 @@ def reference_cell(defn: TaskDef, seed: int, quick_mode: bool) -> list[dict]:
     ]
 
 
-def loss_cell(defn: TaskDef, loss: str, seed: int, quick_mode: bool) -> list[dict]:
+def loss_cell(
+    defn: TaskDef,
+    loss: str,
+    seed: int,
+    quick_mode: bool,
+    probe: Callable[[TensorDictBase], dict] | None = None,
+) -> list[dict]:
     """Train ``loss`` on the task ``defn`` with ``seed``: one row for BC, one for DAgger
-    (BC alone for a task without an expert)."""
+    (BC alone for a task without an expert). ``probe``: called on DAgger's rows (the
+    demonstrations and every relabel round's) after its last round; what it returns is
+    the DAgger row's ``probe`` (``dagger_labels.py``'s measurement)."""
     torch.set_num_threads(1)
     torch.manual_seed(seed)  # global draws (TorchRL's samplers) start from the seed too
     t0, cpu0 = time.perf_counter(), time.process_time()
@@ -111,6 +120,7 @@ def loss_cell(defn: TaskDef, loss: str, seed: int, quick_mode: bool) -> list[dic
                 rounds=proto.rounds,
                 episodes_per_round=proto.episodes_per_round,
                 warm_start=warm,
+                beta=Constant(0.0) if proto.beta_decay is None else Exponential(proto.beta_decay),
                 bc=bc,
                 seed=seed,
             ),
@@ -119,6 +129,8 @@ def loss_cell(defn: TaskDef, loss: str, seed: int, quick_mode: bool) -> list[dic
         )
         learner = out.learner
         records = [(learner, r.rows_trained, r.bc) for r in out.rounds]
+        if probe is not None:
+            results[proto.rounds - 1]["probe"] = probe(buffer.data[: len(buffer)])
     if proto.matched and expert is not None and proto.rounds > 1:
         steps = sum(c.num_steps for c in fit_configs) if warm else fit_configs[-1].num_steps
         learner_m = config.build(loss, spec)
@@ -224,13 +236,17 @@ def run(
     quick_mode: bool,
     jobs: int = 1,
     modules: tuple[str, ...] = (),
+    probe: Callable[[TensorDictBase], dict] | None = None,
 ) -> dict[str, Any]:
     """Every (loss, task, seed) cell and the expert/random references; returns the raw rows.
 
     ``seeds``: a count (seeds 0..n-1) or the seeds themselves (a cell's digits depend on
-    its seed alone, so a run of seeds 1-4 extends a run of seed 0)."""
+    its seed alone, so a run of seeds 1-4 extends a run of seed 0). ``probe``: each
+    cell's (:func:`loss_cell`; a module-level function, so that workers can take it)."""
     seed_list = list(range(seeds)) if isinstance(seeds, int) else list(seeds)
     cells, refs = plan(tasks, losses, seed_list, quick_mode)
+    if probe is not None:
+        cells = [(*cell, probe) for cell in cells]
     # the longest cells first (a rough cost), so that the last to finish are short; the
     # rows come back in the cells' own order
     schedule = sorted(range(len(cells)), key=lambda i: -_cost(*cells[i][:2]))

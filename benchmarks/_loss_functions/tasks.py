@@ -97,8 +97,14 @@ class Protocol:
     matched: bool = False
     """also fit BC on as many expert-driven rows as DAgger's last fit saw (its expert
     queries): BC at an equal query budget, reported as ``bc_matched``"""
+    beta_decay: float | None = None
+    """DAgger's beta schedule: None = 0 in every relabel round (the learner drives); p =
+    Ross et al.'s ``beta_i = p ** (i - 1)`` (:class:`~imitrl.algorithms.beta_schedules.Exponential`:
+    round 1 all expert, then the learner more and more)"""
 
     def __post_init__(self) -> None:
+        if self.beta_decay is not None and not 0 <= self.beta_decay <= 1:
+            raise ValueError(f"beta_decay must be in [0, 1] or None, got {self.beta_decay}")
         if self.round_steps is not None and self.round_steps < 1:
             raise ValueError(
                 f"round_steps must be a positive number of steps or None, got {self.round_steps}"

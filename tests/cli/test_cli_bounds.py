@@ -68,6 +68,7 @@ DAGGER = {
     "--rounds": ["0", "10001", HUGE],
     "--episodes-per-round": ["0", "10001", HUGE],
     "--beta": ["-0.5", "1.5", "nan", "inf"],
+    "--beta-decay": ["-0.5", "1.5", "nan", "inf"],
     "--workers": ["0", "1025", HUGE],
     "--gate": ["-1", "nan", "inf"],
     "--save-lerobot": ["0", "-1", "100001", "2.5", HUGE],

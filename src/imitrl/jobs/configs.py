@@ -231,6 +231,11 @@ class DAggerJob(BCJob):
     """learner episodes rolled out and labelled by the expert after each fit but the last"""
     beta: float = bounded(0.0, 0, 1, integer=False)
     """probability of executing the expert's action in the relabel rounds (constant)"""
+    beta_decay: float | None = bounded(None, 0, 1, integer=False, none_ok=True)
+    """Ross et al.'s schedule instead of a constant --beta: the expert acts with
+    probability P^(i-1) in relabel round i (round 1 all expert, then the learner more and
+    more; measured better than 0 on Meta-World's object tasks: benchmarks/dagger_labels.py);
+    none = --beta"""
     warm_start: bool = False
     """keep training one learner across rounds instead of fitting a fresh one each round"""
     resume: bool = False
@@ -274,8 +279,15 @@ class DAggerJob(BCJob):
             raise ValueError(
                 "--label interventions (HG-DAgger) labels what --gate hands the expert: give --gate"
             )
-        if self.gate is not None and self.beta > 0:
-            raise ValueError("--gate decides who acts instead of --beta's coin: leave --beta at 0")
+        if self.gate is not None and (self.beta > 0 or self.beta_decay is not None):
+            raise ValueError(
+                "--gate decides who acts instead of --beta's coin: leave --beta at 0 and "
+                "--beta-decay out"
+            )
+        if self.beta_decay is not None and self.beta > 0:
+            raise ValueError(
+                "--beta-decay is a schedule of beta instead of the constant --beta: give one"
+            )
         if self.chunk_labels not in CHUNK_LABELS:
             raise ValueError(
                 f"--chunk-labels must be one of {', '.join(CHUNK_LABELS)}, got {self.chunk_labels!r}"

@@ -33,7 +33,8 @@ from pathlib import Path
 
 import torch
 
-from imitrl.algorithms import Constant, DAggerConfig, EnvSource, dagger
+from imitrl.algorithms import Constant, DAggerConfig, EnvSource, Exponential, dagger
+from imitrl.algorithms.beta_schedules import BetaSchedule
 from imitrl.algorithms.lead_source import LeadSource
 from imitrl.algorithms.ray_source import RaySource
 from imitrl.data.provenance import NO_BETA
@@ -59,7 +60,7 @@ from imitrl.learners import Learner
 from imitrl.policies.gate import ExpertGate
 from imitrl.system.ranks import rank_and_world
 
-__all__ = ["LEROBOT_DIR", "DAggerJob", "report", "run_dagger", "save_rounds"]
+__all__ = ["LEROBOT_DIR", "DAggerJob", "beta_schedule", "report", "run_dagger", "save_rounds"]
 
 LEROBOT_DIR = "lerobot"
 """where ``--save-lerobot`` writes the rounds in ``--out``"""
@@ -107,7 +108,7 @@ def _run_dagger(config: DAggerJob, folder: Path) -> dict:
                 DAggerConfig(
                     rounds=config.rounds,
                     episodes_per_round=config.episodes_per_round,
-                    beta=Constant(config.beta),
+                    beta=beta_schedule(config),
                     warm_start=config.warm_start,
                     bc=bc_config(config, setup),
                     seed=config.seed,
@@ -158,6 +159,14 @@ def _run_dagger(config: DAggerJob, folder: Path) -> dict:
         setup.close()  # the env and the logger, whatever happened
 
 
+def beta_schedule(config: DAggerJob) -> BetaSchedule:
+    """``--beta-decay P``: Ross et al.'s ``P^(i-1)`` in relabel round ``i``; otherwise the
+    constant ``--beta``."""
+    if config.beta_decay is not None:
+        return Exponential(config.beta_decay)
+    return Constant(config.beta)
+
+
 def save_rounds(config: DAggerJob, buffer, path: Path, demo_last: int) -> None:
     """``--save-lerobot FPS``: the buffer (the demonstrations, whose last round is
     ``demo_last``, and this run's rounds) as a LeRobot dataset in LeRobot's DAgger schema
@@ -165,8 +174,11 @@ def save_rounds(config: DAggerJob, buffer, path: Path, demo_last: int) -> None:
     step: a later round that fails leaves every earlier one there."""
     from imitrl.datasets import save_dagger_lerobot  # needs the datasets extra
 
-    beta = NO_BETA if config.gate is not None else config.beta
-    betas = {demo_last + k: beta for k in range(1, config.rounds)}
+    schedule = beta_schedule(config)
+    betas = {
+        demo_last + k: NO_BETA if config.gate is not None else schedule(k)
+        for k in range(1, config.rounds)
+    }
     save_dagger_lerobot(
         buffer, path, fps=int(config.save_lerobot or 0), betas=betas, tasks=str(config.env),
         overwrite=True,

@@ -1,4 +1,4 @@
-"""benchmarks/metaworld_mt10.py --merge: cells of runs apart, one report, refusals."""
+"""benchmarks/_metaworld_suite.py (metaworld_mt10.py, metaworld_mt50.py) --merge: cells of runs apart, one report, refusals."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 pytest.importorskip("metaworld")
-from metaworld_mt10 import merge  # noqa: E402
+from _metaworld_suite import merge  # noqa: E402
 
 PROTOCOL = {"demo_episodes": 5, "rounds": 3}
 

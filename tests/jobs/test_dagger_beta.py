@@ -1,0 +1,53 @@
+"""``imitrl dagger --beta-decay P`` (issue 46): Ross et al.'s schedule, beta = P^(i-1) in
+relabel round i, from the command line; conflicting flags are one line."""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+
+import pytest
+
+from imitrl.algorithms import Constant, Exponential
+from imitrl.cli import main
+from imitrl.jobs.dagger import DAggerJob, beta_schedule
+
+TINY = ["dagger", "--env", "Pendulum-v1", "--demos", "1", "--rounds", "4",
+        "--episodes-per-round", "1", "--steps", "20", "--eval-episodes", "1",
+        "--max-episode-steps", "40", "--no-progress"]  # fmt: skip
+
+
+def _main(*argv: str) -> tuple[int, str]:
+    err = io.StringIO()
+    with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(err):
+        status = main(list(argv))
+    return status, err.getvalue()
+
+
+def test_the_schedule_is_ross_et_al_s_or_the_constant():
+    base = {"env": "Pendulum-v1", "expert": "pendulum"}
+    assert beta_schedule(DAggerJob(**base, beta=0.25)) == Constant(0.25)
+    decay = beta_schedule(DAggerJob(**base, beta_decay=0.5))
+    assert decay == Exponential(0.5) and [decay(i) for i in (1, 2, 3)] == [1.0, 0.5, 0.25]
+
+
+def test_beta_decay_from_the_command_line_hands_round_one_to_the_expert(tmp_path):
+    status, err = _main(*TINY, "--beta-decay", "0.5", "--out", str(tmp_path / "run"))
+    assert status == 0, err
+    rounds = json.loads((tmp_path / "run" / "results.json").read_text())["rounds"]
+    assert [r["beta_next"] for r in rounds] == [1.0, 0.5, 0.25, None]
+    executed = [r["expert_executed_fraction"] for r in rounds[:-1]]
+    assert executed[0] == 1.0  # round 1: every action the expert's
+    assert 0.0 < executed[1] < 1.0 and 0.0 <= executed[2] < 1.0  # the coin, seeded
+
+
+@pytest.mark.parametrize(
+    "extra, said",
+    [(["--beta-decay", "0.5", "--beta", "0.5"], "give one"),
+     (["--beta-decay", "0.5", "--gate", "0.5"], "--beta-decay out")],
+)  # fmt: skip
+def test_conflicting_beta_flags_are_one_line(extra, said, tmp_path):
+    status, err = _main(*TINY, *extra, "--out", str(tmp_path / "run"))
+    assert status == 2 and said in err and "Traceback" not in err
+    assert not (tmp_path / "run").exists()
