@@ -13,6 +13,7 @@ import numpy as np
 
 import _report
 from _paired import paired_differences, paired_table
+from imitrl.envs.metaworld import MAX_STEPS
 from imitrl.envs.metaworld import TASKS as TASKS_OF
 from imitrl.evaluation import wilson_interval
 from imitrl.evaluation.aggregate import (
@@ -129,6 +130,30 @@ def _short_of(payload: dict, counts: dict) -> str:
     return f" Short of it ({loss}, {demos} demonstrations): " + ", ".join(parts) + "."
 
 
+def _paired(payload: dict) -> tuple[str, str]:
+    """The paired differences' sentence and table: each loss against ``BASELINE``; with
+    one loss, DAgger and BC against BC at DAgger's queries (the same labels)."""
+    rows = [{**r, "demos": _split(r["task"])[1]} for r in payload["rows"]]
+    how = (
+        "on the same task and seed (the same demonstrations and held-out starts), mean over "
+        "the task-seed pairs with a 95% t interval, and the tasks whose mean difference is "
+        "above or below 0 (`_paired.py`)."
+    )
+    if len(payload["config"]["losses"]) > 1:
+        rows = [{**r, "algorithm": LABELS[r["algorithm"]]} for r in rows]
+        found = paired_differences(
+            rows, lambda task: BASELINE, group=("loss", "demos", "algorithm")
+        )
+        text = f"Paired differences against {BASELINE}: success rate minus {BASELINE}'s {how}"
+        return text, paired_table(found, ("loss", "demos", "algorithm"))
+    # one loss: the algorithms stand in the reference's place (the loss column)
+    rows = [{**r, "algorithm": LABELS[r["algorithm"]]} for r in rows]
+    rows = [{**r, "loss": r["algorithm"], "algorithm": r["loss"]} for r in rows]
+    found = paired_differences(rows, lambda task: LABELS["bc_matched"], group=("loss", "demos"))
+    text = f"Paired differences against BC at DAgger's queries: success rate minus its success rate {how}"
+    return text, paired_table(found, ("algorithm", "demos"))
+
+
 def markdown(payload: dict, figure_name: str) -> str:
     config, proto = payload["config"], next(iter(payload["config"]["protocol"].values()))
     cells, expert = _groups(payload)
@@ -142,7 +167,9 @@ def markdown(payload: dict, figure_name: str) -> str:
         f"DAgger {proto['rounds'] - 1} relabel rounds x {proto['episodes_per_round']} "
         f"episodes ({_rounds(proto)}), BC at "
         f"DAgger's query budget; evaluation {proto['eval_episodes']} held-out episodes of at "
-        f"most {proto['max_episode_steps']} steps, success = `info['success']` at any step. "
+        f"most {proto['max_episode_steps'] or MAX_STEPS} steps"
+        + (" (Meta-World's own limit)" if proto["max_episode_steps"] is None else "")
+        + ", success = `info['success']` at any step. "
         + (
             f"Wall time {payload['wall_seconds'] / 60:.1f} min with {config['jobs']} "
             f"process(es) at 1 thread, 1-min load {payload['load_average_start'][0]:.2f} at "
@@ -205,12 +232,7 @@ def markdown(payload: dict, figure_name: str) -> str:
         ["loss", "demos", "algorithm", "IQM", "optimality gap", f"P(better than {BASELINE})"],
         agg_rows,
     )
-    with_demos = [{**r, "demos": _split(r["task"])[1], "algorithm": LABELS[r["algorithm"]]}
-                  for r in payload["rows"]]  # fmt: skip
-    paired = paired_table(
-        paired_differences(with_demos, lambda task: BASELINE, group=("loss", "demos", "algorithm")),
-        ("loss", "demos", "algorithm"),
-    )
+    paired_text, paired = _paired(payload)
     return "\n\n".join(
         [
             head,
@@ -223,10 +245,7 @@ def markdown(payload: dict, figure_name: str) -> str:
             "held-out starts), 95% stratified bootstrap intervals over seeds "
             f"({REPS} replicates).",
             aggregate,
-            f"Paired differences against {BASELINE}: success rate minus {BASELINE}'s on the "
-            "same task and seed (the same demonstrations and held-out starts), mean over the "
-            "task-seed pairs with a 95% t interval, and the tasks whose mean difference is above "
-            "or below 0 (`_paired.py`).",
+            paired_text,
             paired,
             f"![Meta-World {name}]({figure_name})",
         ]
@@ -250,7 +269,7 @@ def figure(payload: dict, path: Path) -> Path:
         )
     else:  # MT50: the tasks across the top, the aggregate under them
         fig, (ax1, ax2) = plt.subplots(
-            2, 1, figsize=(max(13, 0.32 * len(tasks)), 9.5), gridspec_kw={"height_ratios": [3, 2]}
+            2, 1, figsize=(max(13, 0.32 * len(tasks)), 8), gridspec_kw={"height_ratios": [3, 1.2]}
         )
     x = np.arange(len(tasks))
     loss = config["losses"][0]

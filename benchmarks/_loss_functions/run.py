@@ -273,7 +273,9 @@ def run(
         with spawn.Pool(
             jobs, maxtasksperchild=WORKER_CELLS, initializer=_import_all, initargs=(modules,)
         ) as pool:
-            ref_rows = [r for rows in pool.starmap(reference_cell, refs) for r in rows]
+            # one reference a task (chunksize=1): maxtasksperchild counts chunks, and
+            # MT50's 150 references in chunks of 19 grew each worker to 5.4 GB
+            ref_rows = [r for rows in pool.starmap(reference_cell, refs, chunksize=1) for r in rows]
             work = [(i, cells[i]) for i in schedule]
             for i, cell in pool.imap_unordered(_indexed_cell, work, chunksize=1):
                 done[i] = cell
