@@ -31,6 +31,7 @@ DAgger's queries paired by task and seed (mean, 95% t interval).
 
 from __future__ import annotations
 
+import json
 import os
 import sys
 import time
@@ -138,7 +139,7 @@ def markdown(runs: dict[str, dict], wall: float, load: tuple[float, float]) -> s
         f"protocol ({DEMOS} demonstrations, 2 relabel rounds x 3 learner episodes, warm start, "
         f"5 held-out episodes), `mse`, {SEEDS} seeds, with DAgger's beta at 0 and with Ross et "
         "al.'s schedule, episodes cut at that benchmark's 150 steps and at Meta-World's own "
-        "500 (the expert's own success). Near the object: the hand within {NEAR_XY} m of "
+        f"500 (the expert's own success). Near the object: the hand within {NEAR_XY} m of "
         f"it across the table and {NEAR_Z} m above it; a retreat: a label there with z > "
         f"{RETREAT_Z} and the gripper open. Round 0: the demonstrations."
     )
@@ -166,9 +167,20 @@ def markdown(runs: dict[str, dict], wall: float, load: tuple[float, float]) -> s
 def main(argv: list[str] | None = None) -> dict:
     parser = _report.parser(__doc__)
     parser.add_argument("--jobs", type=int, default=1, help="worker processes, one thread each")
+    parser.add_argument(
+        "--render", type=Path, default=None, metavar="JSON",
+        help="re-render a results file's README block from its rows; nothing is run",
+    )  # fmt: skip
     args = parser.parse_args(argv)
     if args.jobs < 1:
         parser.error(f"--jobs must be >= 1, got {args.jobs}")
+    if args.render is not None:
+        payload = json.loads(args.render.read_text())
+        md = markdown(payload["runs"], payload["wall_seconds"], tuple(payload["load_average"]))
+        print(md)
+        if args.out is None:
+            _report.update_readme(NAME, md)
+        return payload
     out_dir = _report.destination(NAME, quick=args.quick, out=args.out)
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     tasks = LABELLED[:1] if args.quick else MT10
@@ -188,11 +200,12 @@ def main(argv: list[str] | None = None) -> dict:
             "rows": raw["rows"], "references": raw["references"], "beta_decay": decay, "max_episode_steps": cut,
         }  # fmt: skip
     wall = time.perf_counter() - t0
-    md = markdown(runs, wall, (load0, os.getloadavg()[0]))
+    load = (load0, os.getloadavg()[0])
+    md = markdown(runs, wall, load)
     print(md)
     payload = {"config": {"seeds": SEEDS, "demos": DEMOS, "quick": args.quick,
                           "protocol": str(PROTOCOL)},
-               "runs": runs, "wall_seconds": wall}  # fmt: skip
+               "runs": runs, "wall_seconds": wall, "load_average": list(load)}  # fmt: skip
     print("results:", _report.write(NAME, payload, md, out_dir=out_dir))
     return payload
 
