@@ -23,7 +23,7 @@ digit for digit: the reference path must compute the same numbers. A piece is ke
 it buys at least 5% on some command it serves (issue 43).
 
     python benchmarks/seam.py              # full run (about 40 minutes), refreshes README
-    python benchmarks/seam.py --quick      # smoke run: tiny budgets, default and all, temp dir
+    python benchmarks/seam.py --quick      # smoke run: tiny budgets, default and all, two commands, temp dir
 """
 
 from __future__ import annotations

@@ -1,0 +1,62 @@
+"""benchmarks/_metaworld_report.py: the suite's target, the tasks short of it, and the
+paired table of a one-loss run (DAgger and BC against BC at DAgger's queries)."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+pytest.importorskip("metaworld")
+from _metaworld_report import markdown  # noqa: E402
+
+PROTOCOL = {"demo_episodes": 10, "rounds": 3, "episodes_per_round": 3, "round_steps": 160,
+            "bc": {"num_steps": 320, "batch_size": 256}, "learner": {"hidden": [128, 128], "lr": 3e-3},
+            "eval_episodes": 5, "max_episode_steps": None, "beta_decay": 0.5}  # fmt: skip
+
+
+def _payload(suite: str | None, tasks: list[str], dagger: dict[str, int]) -> dict:
+    """One loss (mse), 10 demonstrations, 2 seeds of 5 episodes; the expert 5/5 a seed;
+    DAgger ``dagger[task]`` successes a seed, BC 2 and BC at DAgger's queries 4."""
+    rows = []
+    for t in tasks:
+        for seed in (0, 1):
+            for algorithm, k in (("bc", 2), ("dagger", dagger[t]), ("bc_matched", 4)):
+                rows.append({"task": f"{t}/10demo", "loss": "mse", "seed": seed,
+                             "algorithm": algorithm, "successes": k, "episodes": 5,
+                             "score": k / 5, "rows_trained": 900})  # fmt: skip
+    config = {"tasks": tasks, "losses": ["mse"], "demos": [10], "seeds": 2, "jobs": 2,
+              "protocol": {f"{t}/10demo": PROTOCOL for t in tasks}}  # fmt: skip
+    if suite is not None:
+        config["suite"] = suite
+    refs = [{"task": f"{t}/10demo", "policy": "expert", "seed": s, "successes": 5, "episodes": 5,
+             "score": 1.0} for t in tasks for s in (0, 1)]  # fmt: skip
+    return {"config": config, "rows": rows, "references": refs, "wall_seconds": 60.0,
+            "load_average_start": [1.0], "load_average_end": [1.0]}  # fmt: skip
+
+
+def test_mt50s_target_and_the_tasks_short_of_it_are_named():
+    text = markdown(_payload("MT50", ["reach-v3", "push-v3"], {"reach-v3": 5, "push-v3": 4}), "f.png")
+    assert ">= 45 of 50 tasks from <= 10 demonstrations): not met" in text
+    assert "mse 10 demo(s): 1." in text
+    assert "Short of it (mse, 10 demonstrations): push-v3 (8/10 against the expert's 10/10)." in text
+    assert "at most 500 steps (Meta-World's own limit)" in text
+    assert "beta p^(i-1) = 0.5^(i-1) in round i (Ross et al.)" in text
+    assert "![Meta-World MT50](f.png)" in text
+
+
+def test_a_payload_without_a_suite_is_mt10s():
+    text = markdown(_payload(None, ["reach-v3"], {"reach-v3": 5}), "f.png")
+    assert ">= 8 of 10 tasks from <= 5 demonstrations)" in text and "Short of it" not in text
+
+
+def test_one_loss_pairs_its_algorithms_against_bc_at_daggers_queries():
+    text = markdown(_payload("MT50", ["reach-v3", "push-v3"], {"reach-v3": 5, "push-v3": 4}), "f.png")
+    assert "Paired differences against BC at DAgger's queries" in text
+    # DAgger - BC at its queries: reach +0.2, push 0.0 on both seeds; BC - it: -0.4 everywhere
+    assert "| DAgger | 10 | 4 | 0.10 [" in text and "| 1 / 0 of 2 |" in text
+    assert "| BC | 10 | 4 | -0.40 [-0.40, -0.40] | 0 / 2 of 2 |" in text
