@@ -13,7 +13,6 @@ ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from dagger_labels import NEAR_XY, NEAR_Z, RETREAT_Z, label_phases  # noqa: E402
-
 from imitrl import keys  # noqa: E402
 
 

@@ -40,10 +40,14 @@ def _payload(suite: str | None, tasks: list[str], dagger: dict[str, int]) -> dic
 
 
 def test_mt50s_target_and_the_tasks_short_of_it_are_named():
-    text = markdown(_payload("MT50", ["reach-v3", "push-v3"], {"reach-v3": 5, "push-v3": 4}), "f.png")
+    text = markdown(
+        _payload("MT50", ["reach-v3", "push-v3"], {"reach-v3": 5, "push-v3": 4}), "f.png"
+    )
     assert ">= 45 of 50 tasks from <= 10 demonstrations): not met" in text
     assert "mse 10 demo(s): 1." in text
-    assert "Short of it (mse, 10 demonstrations): push-v3 (8/10 against the expert's 10/10)." in text
+    assert (
+        "Short of it (mse, 10 demonstrations): push-v3 (8/10 against the expert's 10/10)." in text
+    )
     assert "at most 500 steps (Meta-World's own limit)" in text
     assert "beta p^(i-1) = 0.5^(i-1) in round i (Ross et al.)" in text
     assert "![Meta-World MT50](f.png)" in text
@@ -55,7 +59,9 @@ def test_a_payload_without_a_suite_is_mt10s():
 
 
 def test_one_loss_pairs_its_algorithms_against_bc_at_daggers_queries():
-    text = markdown(_payload("MT50", ["reach-v3", "push-v3"], {"reach-v3": 5, "push-v3": 4}), "f.png")
+    text = markdown(
+        _payload("MT50", ["reach-v3", "push-v3"], {"reach-v3": 5, "push-v3": 4}), "f.png"
+    )
     assert "Paired differences against BC at DAgger's queries" in text
     # DAgger - BC at its queries: reach +0.2, push 0.0 on both seeds; BC - it: -0.4 everywhere
     assert "| DAgger | 10 | 4 | 0.10 [" in text and "| 1 / 0 of 2 |" in text
