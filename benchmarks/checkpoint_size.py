@@ -17,6 +17,7 @@ The load runs with the files in the page cache, right after a save.
 from __future__ import annotations
 
 import logging
+import shutil
 import tempfile
 import time
 from dataclasses import asdict, dataclass
@@ -49,7 +50,9 @@ class Config:
     """seed of the env and of the filled values"""
 
 
-QUICK = Config(rows=100_000, chunk=25_000, repeats=1)
+QUICK = Config(rows=100_000, chunk=25_000, repeats=2)
+"""two repeats: the smoke run saves twice, as the full run does (a second save into one
+folder was refused, and only full runs found it)"""
 
 
 def filled_rows(n: int, first_episode: int, cfg: Config, g: torch.Generator) -> TensorDict:
@@ -89,14 +92,18 @@ def build(cfg: Config) -> DemonstrationBuffer:
 
 def measure(buf: DemonstrationBuffer, cfg: Config, where: Path) -> dict:
     saves, loads = [], []
-    for _ in range(cfg.repeats):
+    for i in range(cfg.repeats):
+        # a save never replaces a folder (overwrite=False): each repeat a fresh one, the
+        # one before it removed untimed
         t0 = time.perf_counter()
-        path = buf.save(where / "ckpt", state={"benchmark": NAME})
+        path = buf.save(where / f"ckpt{i}", state={"benchmark": NAME})
         saves.append(time.perf_counter() - t0)
         t0 = time.perf_counter()
         loaded, _ = DemonstrationBuffer.load(path)
         loads.append(time.perf_counter() - t0)
         del loaded
+        if i + 1 < cfg.repeats:
+            shutil.rmtree(path)
     loaded, _ = DemonstrationBuffer.load(path)
     assert len(loaded) == len(buf) and bool((loaded.data == buf.data).all()), "rows changed"
     row_bytes = buf.data.bytes()
