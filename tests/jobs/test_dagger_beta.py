@@ -6,9 +6,11 @@ from __future__ import annotations
 import contextlib
 import io
 import json
+import warnings
 
 import pytest
 
+from imitrl import keys
 from imitrl.algorithms import Constant, Exponential
 from imitrl.cli import main
 from imitrl.jobs.dagger import DAggerJob, beta_schedule
@@ -51,3 +53,18 @@ def test_conflicting_beta_flags_are_one_line(extra, said, tmp_path):
     status, err = _main(*TINY, *extra, "--out", str(tmp_path / "run"))
     assert status == 2 and said in err and "Traceback" not in err
     assert not (tmp_path / "run").exists()
+
+
+def test_a_lerobot_recording_keeps_each_rounds_beta_from_the_schedule(tmp_path):
+    pytest.importorskip("pyarrow")
+    from imitrl.datasets import load_lerobot  # the datasets extra
+
+    status, err = _main(*TINY, "--beta-decay", "0.5", "--save-lerobot", "20",
+                        "--out", str(tmp_path / "run"))  # fmt: skip
+    assert status == 0, err
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        rows = load_lerobot(tmp_path / "run" / "lerobot").rows
+    rnd, beta = rows[keys.ROUND], rows[keys.BETA]
+    assert [float(beta[rnd == r].unique()) for r in (1, 2, 3)] == [1.0, 0.5, 0.25]
+    assert bool(rows[keys.EXPERT_EXECUTED][rnd == 1].all())  # round 1: the expert drove
