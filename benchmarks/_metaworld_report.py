@@ -39,18 +39,18 @@ def _split(name: str) -> tuple[str, int]:
     return task, int(demos.removesuffix("demo"))
 
 
-def _pooled(rows: list[dict]) -> tuple[int, int]:
+def pooled(rows: list[dict]) -> tuple[int, int]:
     return sum(r["successes"] for r in rows), sum(r["episodes"] for r in rows)
 
 
-def _fmt(k: int, n: int) -> str:
+def fmt_rate(k: int, n: int) -> str:
     if n == 0:
         return "-"
     lo, hi = wilson_interval(k, n)
     return f"{k / n:.2f} [{lo:.2f}, {hi:.2f}]"
 
 
-def _groups(payload: dict) -> tuple[dict, dict]:
+def groups(payload: dict) -> tuple[dict, dict]:
     cells: dict = defaultdict(list)  # (task, demos, loss, algorithm) -> rows over seeds
     for r in payload["rows"]:
         task, demos = _split(r["task"])
@@ -65,7 +65,7 @@ def _groups(payload: dict) -> tuple[dict, dict]:
 def normalised(payload: dict) -> dict:
     """``{(loss, demos, algorithm): [seeds, tasks]}`` of success / the expert's success
     on the same seed's held-out starts (1 where the expert failed every episode)."""
-    cells, expert = _groups(payload)
+    cells, expert = groups(payload)
     config = payload["config"]
     seed_row = {s: i for i, s in enumerate(sorted({r["seed"] for r in payload["rows"]}))}
     out = {}
@@ -85,15 +85,15 @@ def normalised(payload: dict) -> dict:
 
 def target_counts(payload: dict) -> dict:
     """``{(loss, demos): tasks where DAgger's pooled success >= TARGET x the expert's}``."""
-    cells, expert = _groups(payload)
+    cells, expert = groups(payload)
     config = payload["config"]
     out = {}
     for loss in config["losses"]:
         for demos in config["demos"]:
             met = []
             for task in config["tasks"]:
-                k, n = _pooled(cells.get((task, demos, loss, "dagger"), []))
-                ek, en = _pooled(expert[(task, demos)])
+                k, n = pooled(cells.get((task, demos, loss, "dagger"), []))
+                ek, en = pooled(expert[(task, demos)])
                 if n and en and k / n >= TARGET * (ek / en):
                     met.append(task)
             out[(loss, demos)] = met
@@ -117,46 +117,48 @@ def _rounds(proto: dict) -> str:
 def _short_of(payload: dict, counts: dict) -> str:
     """The tasks short of the target for the (loss, demonstrations) that reached most:
     DAgger's and the expert's pooled success on each."""
-    cells, expert = _groups(payload)
+    cells, expert = groups(payload)
     (loss, demos), met = max(counts.items(), key=lambda kv: len(kv[1]))
     short = [t for t in payload["config"]["tasks"] if t not in met]
     if not short:
         return ""
     parts = []
     for task in short:
-        k, n = _pooled(cells.get((task, demos, loss, "dagger"), []))
-        ek, en = _pooled(expert[(task, demos)])
+        k, n = pooled(cells.get((task, demos, loss, "dagger"), []))
+        ek, en = pooled(expert[(task, demos)])
         parts.append(f"{task} ({k}/{n} against the expert's {ek}/{en})")
     return f" Short of it ({loss}, {demos} demonstrations): " + ", ".join(parts) + "."
+
+
+def against_matched(rows: list[dict]) -> list[dict]:
+    """Paired differences (``_paired.py``) of one loss's algorithms against BC at DAgger's
+    queries on the same task and seed; each entry's ``group``: (the algorithm's label,
+    demonstrations)."""
+    rows = [{**r, "demos": _split(r["task"])[1], "loss": LABELS[r["algorithm"]]} for r in rows]
+    return paired_differences(rows, lambda task: LABELS["bc_matched"], group=("loss", "demos"))
 
 
 def _paired(payload: dict) -> tuple[str, str]:
     """The paired differences' sentence and table: each loss against ``BASELINE``; with
     one loss, DAgger and BC against BC at DAgger's queries (the same labels)."""
-    rows = [{**r, "demos": _split(r["task"])[1]} for r in payload["rows"]]
     how = (
         "on the same task and seed (the same demonstrations and held-out starts), mean over "
         "the task-seed pairs with a 95% t interval, and the tasks whose mean difference is "
         "above or below 0 (`_paired.py`)."
     )
-    if len(payload["config"]["losses"]) > 1:
-        rows = [{**r, "algorithm": LABELS[r["algorithm"]]} for r in rows]
-        found = paired_differences(
-            rows, lambda task: BASELINE, group=("loss", "demos", "algorithm")
-        )
-        text = f"Paired differences against {BASELINE}: success rate minus {BASELINE}'s {how}"
-        return text, paired_table(found, ("loss", "demos", "algorithm"))
-    # one loss: the algorithms stand in the reference's place (the loss column)
-    rows = [{**r, "algorithm": LABELS[r["algorithm"]]} for r in rows]
-    rows = [{**r, "loss": r["algorithm"], "algorithm": r["loss"]} for r in rows]
-    found = paired_differences(rows, lambda task: LABELS["bc_matched"], group=("loss", "demos"))
-    text = f"Paired differences against BC at DAgger's queries: success rate minus its success rate {how}"
-    return text, paired_table(found, ("algorithm", "demos"))
+    if len(payload["config"]["losses"]) == 1:
+        text = f"Paired differences against BC at DAgger's queries: success rate minus its success rate {how}"
+        return text, paired_table(against_matched(payload["rows"]), ("algorithm", "demos"))
+    rows = [{**r, "demos": _split(r["task"])[1], "algorithm": LABELS[r["algorithm"]]}
+            for r in payload["rows"]]  # fmt: skip
+    found = paired_differences(rows, lambda task: BASELINE, group=("loss", "demos", "algorithm"))
+    text = f"Paired differences against {BASELINE}: success rate minus {BASELINE}'s {how}"
+    return text, paired_table(found, ("loss", "demos", "algorithm"))
 
 
 def markdown(payload: dict, figure_name: str) -> str:
     config, proto = payload["config"], next(iter(payload["config"]["protocol"].values()))
-    cells, expert = _groups(payload)
+    cells, expert = groups(payload)
     bc = proto["bc"]
     name = suite(payload)
     head = (
@@ -200,9 +202,9 @@ def markdown(payload: dict, figure_name: str) -> str:
                 queries = [r["rows_trained"] for r in got["dagger"]]
                 rows.append(
                     [task, demos, loss]
-                    + [_fmt(*_pooled(got[a])) for a in ALGORITHMS]
+                    + [fmt_rate(*pooled(got[a])) for a in ALGORITHMS]
                     + [f"{statistics.median(queries):.0f}" if queries else "-"]
-                    + [_fmt(*_pooled(expert[(task, demos)]))]
+                    + [fmt_rate(*pooled(expert[(task, demos)]))]
                 )
     per_task = _report.table(
         ["task", "demos", "loss", *[LABELS[a] for a in ALGORITHMS], "DAgger queries", "expert"],
@@ -260,7 +262,7 @@ def figure(payload: dict, path: Path) -> Path:
 
     config = payload["config"]
     scores = normalised(payload)
-    cells, expert = _groups(payload)
+    cells, expert = groups(payload)
     demos = max(config["demos"])
     tasks = config["tasks"]
     if len(tasks) <= 12:  # MT10: tasks and aggregate side by side
@@ -283,7 +285,7 @@ def figure(payload: dict, path: Path) -> Path:
                 if algorithm is None
                 else cells.get((task, demos, loss, algorithm), [])
             )
-            k, n = _pooled(rows)
+            k, n = pooled(rows)
             values.append(k / n if n else np.nan)
         ax1.bar(x + (i - 1.5) * width, values, width, label=LABELS.get(label, "expert"))
     ax1.set_xticks(x, [t.removesuffix("-v3") for t in tasks], rotation=35, ha="right")

@@ -46,11 +46,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _metaworld_suite
 import _report
 from _loss_functions.run import run
-from _metaworld_report import normalised
-from _paired import paired_differences
+from _metaworld_report import against_matched, fmt_rate, groups, normalised, pooled
 from imitrl import keys
 from imitrl.envs.metaworld import MT10
-from imitrl.evaluation import wilson_interval
 from imitrl.evaluation.aggregate import iqm, stratified_bootstrap
 from metaworld_mt10 import PROTOCOL
 
@@ -85,18 +83,6 @@ def label_phases(rows: TensorDictBase) -> dict:
     }  # fmt: skip
 
 
-def _pooled(rows: list[dict], task: str, algorithm: str) -> tuple[int, int]:
-    got = [r for r in rows if r["task"] == task and r["algorithm"] == algorithm]
-    return sum(r["successes"] for r in got), sum(r["episodes"] for r in got)
-
-
-def _rate(k: int, n: int) -> str:
-    if not n:
-        return "-"
-    lo, hi = wilson_interval(k, n)
-    return f"{k / n:.2f} [{lo:.2f}, {hi:.2f}]"
-
-
 def _label_rows(label: str, raw: dict) -> list[list]:
     out = []
     for task in (f"{t}/{DEMOS}demo" for t in LABELLED):
@@ -119,12 +105,7 @@ def _aggregate(label: str, payload: dict) -> list[list]:
     for algorithm, name in ALGORITHMS:
         i = stratified_bootstrap(scores[("mse", DEMOS, algorithm)], iqm, reps=REPS)
         out.append([label, name, f"{i.point:.2f} [{i.low:.2f}, {i.high:.2f}]"])
-    pairs = [
-        {**r, "algorithm": "DAgger", "loss": "dagger"} if r["algorithm"] == "dagger"
-        else {**r, "algorithm": "DAgger", "loss": "bc_matched"}
-        for r in payload["rows"] if r["algorithm"] in ("dagger", "bc_matched")
-    ]  # fmt: skip
-    (d,) = paired_differences(pairs, lambda task: "bc_matched", group=("loss", "algorithm"))
+    (d,) = [f for f in against_matched(payload["rows"]) if f["group"][0] == "DAgger"]
     mean, lo, hi = d["diff"]
     out.append([label, "DAgger - BC at DAgger's queries (paired, 95% t)",
                 f"{mean:+.2f} [{lo:+.2f}, {hi:+.2f}] over {d['pairs']} pairs; tasks above / "
@@ -144,13 +125,14 @@ def markdown(runs: dict[str, dict], wall: float, load: tuple[float, float]) -> s
         f"{RETREAT_Z} and the gripper open. Round 0: the demonstrations."
     )
     labels = [row for label, raw in runs.items() for row in _label_rows(label, raw)]
-    tasks = [f"{t}/{DEMOS}demo" for t in next(iter(runs.values()))["config"]["tasks"]]
+    grouped = {label: groups(raw) for label, raw in runs.items()}  # (cells, expert)
     success = [
-        [t.split("/")[0], label, *(_rate(*_pooled(raw["rows"], t, a)) for a, _ in ALGORITHMS),
-         _rate(*_pooled([{**r, "algorithm": "expert"} for r in raw["references"]
-                         if r["policy"] == "expert"], t, "expert"))]
-        for t in tasks for label, raw in runs.items()
-    ]  # fmt: skip
+        [task, label]
+        + [fmt_rate(*pooled(cells[(task, DEMOS, "mse", a)])) for a, _ in ALGORITHMS]
+        + [fmt_rate(*pooled(expert[(task, DEMOS)]))]
+        for task in next(iter(runs.values()))["config"]["tasks"]
+        for label, (cells, expert) in grouped.items()
+    ]
     aggregate = [row for label, raw in runs.items() for row in _aggregate(label, raw)]
     return "\n\n".join([
         head,

@@ -40,7 +40,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import _metaworld_suite
-from _loss_functions.tasks import LearnerSettings, Protocol, TaskDef
+from _loss_functions.tasks import LearnerSettings, Protocol
 from _metaworld_suite import Suite
 from imitrl.algorithms import BCConfig
 from imitrl.envs.metaworld import MT10
@@ -75,11 +75,6 @@ steps of simulation."""
 
 
 MT10_SUITE = Suite(NAME, "MT10", MT10, PROTOCOL, LOSSES, DEMOS, seeds=5)
-
-
-def task_defs(tasks: tuple[str, ...], demos: tuple[int, ...], quick: bool) -> list[TaskDef]:
-    """One task definition per (task, number of demonstrations) at :data:`PROTOCOL`."""
-    return _metaworld_suite.task_defs(PROTOCOL, tasks, demos, quick)
 
 
 def main(argv: list[str] | None = None) -> None:

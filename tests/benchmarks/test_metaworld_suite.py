@@ -54,3 +54,27 @@ def test_merge_refuses_disagreements():
         merge([_run("mse", [0]), other], (5,))
     with pytest.raises(ValueError, match="at least two"):
         merge([_run("mse", [0])], (5,))
+
+
+@pytest.mark.parametrize(
+    "argv, said",
+    [(["--seeds", "0"], "--seeds must be >= 1, got 0"),
+     (["--jobs", "0"], "--jobs must be >= 1, got 0"),
+     (["--first-seed", "-1"], "--first-seed must be >= 0, got -1"),
+     (["--demos", "5", "0"], "--demos must be >= 1, got 0")],
+)  # fmt: skip
+def test_bad_counts_are_one_line_before_anything_runs(argv, said, capsys):
+    from metaworld_mt50 import main
+
+    with pytest.raises(SystemExit) as exit_:
+        main(argv)
+    assert exit_.value.code == 2 and said in capsys.readouterr().err
+
+
+def test_a_beta_decay_outside_0_1_is_refused():
+    from dataclasses import replace
+
+    from metaworld_mt50 import PROTOCOL
+
+    with pytest.raises(ValueError, match=r"beta_decay must be in \[0, 1\] or None, got 1.5"):
+        replace(PROTOCOL, beta_decay=1.5)

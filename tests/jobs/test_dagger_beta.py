@@ -3,8 +3,6 @@ relabel round i, from the command line; conflicting flags are one line."""
 
 from __future__ import annotations
 
-import contextlib
-import io
 import json
 import warnings
 
@@ -12,19 +10,11 @@ import pytest
 
 from imitrl import keys
 from imitrl.algorithms import Constant, Exponential
-from imitrl.cli import main
 from imitrl.jobs.dagger import DAggerJob, beta_schedule
+from tests.jobs.test_dagger_gate import TINY as GATE_TINY
+from tests.jobs.test_dagger_gate import _main
 
-TINY = ["dagger", "--env", "Pendulum-v1", "--demos", "1", "--rounds", "4",
-        "--episodes-per-round", "1", "--steps", "20", "--eval-episodes", "1",
-        "--max-episode-steps", "40", "--no-progress"]  # fmt: skip
-
-
-def _main(*argv: str) -> tuple[int, str]:
-    err = io.StringIO()
-    with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(err):
-        status = main(list(argv))
-    return status, err.getvalue()
+TINY = [*GATE_TINY, "--rounds", "4"]  # four rounds (the last flag wins): betas 1, 0.5, 0.25
 
 
 def test_the_schedule_is_ross_et_al_s_or_the_constant():
