@@ -94,7 +94,7 @@ def target_counts(payload: dict) -> dict:
             for task in config["tasks"]:
                 k, n = pooled(cells.get((task, demos, loss, "dagger"), []))
                 ek, en = pooled(expert[(task, demos)])
-                if n and en and k / n >= TARGET * (ek / en):
+                if _reaches(k, n, ek, en):
                     met.append(task)
             out[(loss, demos)] = met
     return out
@@ -114,20 +114,63 @@ def _rounds(proto: dict) -> str:
     return f"beta {beta}, warm start, {proto['round_steps']} steps a round"
 
 
-def _short_of(payload: dict, counts: dict) -> str:
-    """The tasks short of the target for the (loss, demonstrations) that reached most:
-    DAgger's and the expert's pooled success on each."""
+def _reaches(k: int, n: int, ek: int, en: int) -> bool:
+    """``k/n`` successes at least ``TARGET`` x the expert's ``ek/en``."""
+    return n > 0 and en > 0 and k / n >= TARGET * (ek / en)
+
+
+SHORT_KINDS = {
+    "episode": "one more success would reach it",
+    "matched": "BC at DAgger's queries reaches it (the same number of expert labels, "
+    "all from the expert's own episodes)",
+    "neither": "BC at DAgger's queries is short too",
+}
+"""how far short a task is, in the order the report names them"""
+
+
+def short_kinds(payload: dict, loss: str, demos: int, tasks: list[str]) -> dict:
+    """``{kind: [(task, DAgger's k/n, BC at its queries' k/n, the expert's k/n)]}`` for
+    the ``tasks`` short of the target: one success short (``episode``), else where BC at
+    DAgger's queries reaches it (``matched``) or not (``neither``; also where the run has
+    no BC at DAgger's queries)."""
     cells, expert = groups(payload)
+    out: dict = {kind: [] for kind in SHORT_KINDS}
+    for task in tasks:
+        k, n = pooled(cells.get((task, demos, loss, "dagger"), []))
+        mk, mn = pooled(cells.get((task, demos, loss, "bc_matched"), []))
+        ek, en = pooled(expert[(task, demos)])
+        if _reaches(k + 1, n, ek, en):
+            kind = "episode"
+        elif _reaches(mk, mn, ek, en):
+            kind = "matched"
+        else:
+            kind = "neither"
+        out[kind].append((task, (k, n), (mk, mn), (ek, en)))
+    return out
+
+
+def _short_of(payload: dict, counts: dict) -> str:
+    """The tasks short of the target for the (loss, demonstrations) that reached most,
+    grouped by how far (:func:`short_kinds`), with DAgger's, BC at its queries' and the
+    expert's pooled successes on each."""
     (loss, demos), met = max(counts.items(), key=lambda kv: len(kv[1]))
     short = [t for t in payload["config"]["tasks"] if t not in met]
     if not short:
         return ""
     parts = []
-    for task in short:
-        k, n = pooled(cells.get((task, demos, loss, "dagger"), []))
-        ek, en = pooled(expert[(task, demos)])
-        parts.append(f"{task} ({k}/{n} against the expert's {ek}/{en})")
-    return f" Short of it ({loss}, {demos} demonstrations): " + ", ".join(parts) + "."
+    for kind, found in short_kinds(payload, loss, demos, short).items():
+        if not found:
+            continue
+        named = []
+        for task, (k, n), (mk, mn), (ek, en) in found:
+            matched = f", BC at its queries {mk}/{mn}" if mn else ""
+            named.append(f"{task} (DAgger {k}/{n}{matched}, the expert {ek}/{en})")
+        parts.append(f"{SHORT_KINDS[kind]}, {len(found)}: " + ", ".join(named))
+    return (
+        f" Short of it ({loss}, {demos} demonstrations), {len(short)} tasks; "
+        + "; ".join(parts)
+        + "."
+    )
 
 
 def against_matched(rows: list[dict]) -> list[dict]:

@@ -17,6 +17,7 @@ from _loss_functions.merge import with_defaults
 from _loss_functions.run import run
 from _loss_functions.tasks import Protocol, TaskDef
 from _metaworld_report import figure, markdown
+from imitrl.envs.metaworld import MAX_STEPS
 
 
 @dataclass(frozen=True)
@@ -50,17 +51,21 @@ def task_defs(
     for task in tasks:
         for n in demos:
             p = replace(protocol, demo_episodes=n, matched=protocol.matched and n == max(demos))
-            out.append(
-                TaskDef(
-                    f"{task}/{n}demo",
-                    env=f"metaworld/{task}",
-                    expert="metaworld",
-                    score="success",
-                    max_steps=500,
-                    protocol=p,
-                )
-            )
+            out.append(metaworld_task(task, f"{task}/{n}demo", p))
     return out
+
+
+def metaworld_task(task: str, name: str, protocol: Protocol) -> TaskDef:
+    """Meta-World's ``task`` (e.g. ``reach-v3``) with its scripted expert, scored by
+    success, as ``name`` in the results."""
+    return TaskDef(
+        name,
+        env=f"metaworld/{task}",
+        expert="metaworld",
+        score="success",
+        max_steps=MAX_STEPS,
+        protocol=protocol,
+    )
 
 
 def merge(runs: list[dict], demos: tuple[int, ...]) -> dict:

@@ -169,10 +169,20 @@ def loss_cell(
                 **results[k],
             }
         )
+        if proto.curve_points:
+            rows[-1]["loss_curve"] = window_means(fit.losses, proto.curve_points)
     for row in rows:
         row["cell_seconds"] = time.perf_counter() - t0
         row["cell_cpu_seconds"] = time.process_time() - cpu0
     return rows
+
+
+def window_means(losses: torch.Tensor, points: int) -> list[float]:
+    """A fit's per-step losses as ``points`` means over consecutive windows (fewer when the
+    fit took fewer steps)."""
+    return [
+        float(w.mean()) for w in torch.tensor_split(losses.double(), min(points, losses.numel()))
+    ]
 
 
 def _expert_rows(env, expert, count: int, max_steps: int, seed: int) -> TensorDictBase:
@@ -247,6 +257,19 @@ def run(
     cells, refs = plan(tasks, losses, seed_list, quick_mode)
     if probe is not None:
         cells = [(*cell, probe) for cell in cells]
+    rows, ref_rows = execute(cells, refs, jobs=jobs, modules=modules)
+    protocols = {d.name: asdict(build(d, quick_mode).protocol) for d in tasks}
+    definitions = {d.name: asdict(d) for d in tasks}
+    return {"rows": rows, "references": ref_rows, "protocols": protocols, "tasks": definitions}
+
+
+def execute(
+    cells: list[tuple], refs: list[tuple], *, jobs: int = 1, modules: tuple[str, ...] = ()
+) -> tuple[list[dict], list[dict]]:
+    """Run ``cells`` (:func:`loss_cell`'s arguments) and ``refs`` (:func:`reference_cell`'s)
+    in ``jobs`` processes; returns their rows, in the order given. :func:`run` plans them
+    from task definitions; a benchmark with cells of its own (``metaworld_budgets.py``:
+    a ladder of fit steps per loss) hands them here."""
     # the longest cells first (a rough cost), so that the last to finish are short; the
     # rows come back in the cells' own order
     schedule = sorted(range(len(cells)), key=lambda i: -_cost(*cells[i][:2]))
@@ -287,10 +310,7 @@ def run(
         for i in schedule:
             done[i] = loss_cell(*cells[i])
             report(len(done), i, done[i])
-    rows = [r for i in range(len(cells)) for r in done[i]]
-    protocols = {d.name: asdict(build(d, quick_mode).protocol) for d in tasks}
-    definitions = {d.name: asdict(d) for d in tasks}
-    return {"rows": rows, "references": ref_rows, "protocols": protocols, "tasks": definitions}
+    return [r for i in range(len(cells)) for r in done[i]], ref_rows
 
 
 def _import_all(modules: tuple[str, ...]) -> None:
@@ -304,12 +324,17 @@ def _indexed_cell(item: tuple[int, tuple]) -> tuple[int, list[dict]]:
     return i, loss_cell(*args)
 
 
+_STEP_COST = {"act": 7, "diffusion_unet": 20}
+"""a fit step's rough cost in MLP steps, where it differs (:func:`_cost`)"""
+
+
 def _cost(defn: TaskDef, loss: str) -> float:
     """A rough relative cost of a cell (only the order the cells start in depends on it):
     its fit steps weighted by batch size; ACT's transformer step costs about seven MLP
-    steps (measured: 25 ms at batch 128 against 3-4 ms at batch 256 on one thread)."""
+    steps (measured: 25 ms at batch 128 against 3-4 ms at batch 256 on one thread), the
+    U-Net of ``diffusion_unet`` about twenty (70 ms at batch 64: ``diffusion_policy.py``)."""
     p = defn.protocol
-    per_step = max(p.bc.batch_size or 256, 256) / 256 * (7 if loss == "act" else 1)
+    per_step = max(p.bc.batch_size or 256, 256) / 256 * _STEP_COST.get(loss, 1)
     steps = p.bc.num_steps * p.rounds
     if p.round_steps is not None:
         steps = p.bc.num_steps + (p.rounds - 1) * p.round_steps

@@ -101,10 +101,15 @@ class Protocol:
     """DAgger's beta schedule: None = 0 in every relabel round (the learner drives); p =
     Ross et al.'s ``beta_i = p ** (i - 1)`` (:class:`~imitrl.algorithms.beta_schedules.Exponential`:
     round 1 all expert, then the learner more and more)"""
+    curve_points: int = 0
+    """keep each reported fit's training loss as this many window means (a row's
+    ``loss_curve``; 0: only its last step's, ``final_loss``)"""
 
     def __post_init__(self) -> None:
         if self.beta_decay is not None and not 0 <= self.beta_decay <= 1:
             raise ValueError(f"beta_decay must be in [0, 1] or None, got {self.beta_decay}")
+        if self.curve_points < 0:
+            raise ValueError(f"curve_points must be >= 0, got {self.curve_points}")
         if self.round_steps is not None and self.round_steps < 1:
             raise ValueError(
                 f"round_steps must be a positive number of steps or None, got {self.round_steps}"

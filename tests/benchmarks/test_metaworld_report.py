@@ -46,7 +46,8 @@ def test_mt50s_target_and_the_tasks_short_of_it_are_named():
     assert ">= 45 of 50 tasks from <= 10 demonstrations): not met" in text
     assert "mse 10 demo(s): 1." in text
     assert (
-        "Short of it (mse, 10 demonstrations): push-v3 (8/10 against the expert's 10/10)." in text
+        "Short of it (mse, 10 demonstrations), 1 tasks; BC at DAgger's queries is short too, 1: "
+        "push-v3 (DAgger 8/10, BC at its queries 8/10, the expert 10/10)." in text
     )
     assert "at most 500 steps (Meta-World's own limit)" in text
     assert "beta p^(i-1) = 0.5^(i-1) in round i (Ross et al.)" in text
@@ -66,3 +67,27 @@ def test_one_loss_pairs_its_algorithms_against_bc_at_daggers_queries():
     # DAgger - BC at its queries: reach +0.2, push 0.0 on both seeds; BC - it: -0.4 everywhere
     assert "| DAgger | 10 | 4 | 0.10 [" in text and "| 1 / 0 of 2 |" in text
     assert "| BC | 10 | 4 | -0.40 [-0.40, -0.40] | 0 / 2 of 2 |" in text
+
+
+def test_the_tasks_short_of_it_are_grouped_by_how_far():
+    """push: DAgger 9/10, one success short of 0.95 x the expert's 10/10; pick-place:
+    DAgger 4/10 where BC at its queries reaches 10/10; the default rows: BC at its queries
+    8/10, short too (door-open)."""
+    payload = _payload(
+        "MT50", ["reach-v3", "push-v3", "pick-place-v3", "door-open-v3"],
+        {"reach-v3": 5, "push-v3": 4, "pick-place-v3": 2, "door-open-v3": 3},
+    )  # fmt: skip
+    for r in payload["rows"]:
+        if (r["task"], r["algorithm"], r["seed"]) == ("push-v3/10demo", "dagger", 0):
+            r["successes"] = 5
+        if (r["task"], r["algorithm"]) == ("pick-place-v3/10demo", "bc_matched"):
+            r["successes"] = 5
+    text = markdown(payload, "f.png")
+    assert (
+        "Short of it (mse, 10 demonstrations), 3 tasks; one more success would reach it, 1: "
+        "push-v3 (DAgger 9/10, BC at its queries 8/10, the expert 10/10); BC at DAgger's "
+        "queries reaches it (the same number of expert labels, all from the expert's own "
+        "episodes), 1: pick-place-v3 (DAgger 4/10, BC at its queries 10/10, the expert 10/10); "
+        "BC at DAgger's queries is short too, 1: door-open-v3 (DAgger 6/10, BC at its queries "
+        "8/10, the expert 10/10)."
+    ) in text

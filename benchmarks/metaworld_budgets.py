@@ -1,0 +1,161 @@
+"""Each loss at its own budget on Meta-World MT10: BC's fit steps per loss, its training
+curve, and success against fit time.
+
+``metaworld_mt10.py`` gives every loss the same 320 fit steps at batch 256, which is a
+fair query budget but not a fair training budget: Diffusion Policy's U-Net
+(``diffusion_unet``, a denoising loss at a random noise level every step) learns far
+slower per step than an MSE regressor. Here each loss trains BC on the same 5
+demonstrations of each MT10 task at a ladder of fit steps of its own (:data:`BUDGETS`:
+the steps, the batch and why), its recipe's schedule at every rung (Diffusion Policy:
+warm-up and cosine decay, its EMA), one cell of ``loss_functions.py``'s machinery per
+(task, loss, rung, seed); each fit's training loss is kept as a curve of
+:data:`CURVE_POINTS` window means. Reported: success per task (Wilson intervals over the
+seeds' pooled episodes, the expert's beside it on the same held-out starts), the
+expert-normalised IQM per (loss, rung) with stratified bootstrap intervals against the
+median fit seconds, how much the loss still fell over the last fifth of each fit, and
+the paired difference of each loss's top rung against ``mse``'s (issue 46: "each loss at
+its own budget ... with the loss's training curve showing it has converged").
+
+    python benchmarks/metaworld_budgets.py --jobs 2    # full run, refreshes benchmarks/README.md
+    python benchmarks/metaworld_budgets.py --quick     # smoke run, into a temporary directory
+    python benchmarks/metaworld_budgets.py --render results/metaworld_budgets.json
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+import time
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import _report
+from _loss_functions.run import execute
+from _metaworld_budgets_report import figure, markdown
+from _metaworld_suite import metaworld_task
+from imitrl.algorithms import BCConfig
+from imitrl.envs.metaworld import MT10
+from metaworld_mt50 import PROTOCOL as MT50_PROTOCOL
+
+NAME = "metaworld_budgets"
+CURVE_POINTS = 40
+"""window means a fit's training loss is kept as (``Protocol.curve_points``)"""
+
+
+@dataclass(frozen=True)
+class Budget:
+    """One loss's fits: a ladder of gradient steps at one batch size."""
+
+    steps: tuple[int, ...]
+    """the rungs, fewest first; the last is the loss's own budget"""
+    batch: int
+    """rows a step"""
+
+
+BUDGETS = {
+    "mse": Budget(steps=(320, 2000), batch=256),
+    "diffusion_unet": Budget(steps=(500, 2000), batch=64),
+}
+"""Per loss. ``mse``: ``metaworld_mt10.py``'s 320 steps and ``metaworld_mt50.py``'s 2000
+(its network, 256-256 at lr 1e-3, chosen there). ``diffusion_unet``: the registry's CPU
+widths (32-64-128, 1.2M parameters, lr 1e-3) at batch 64 (the paper's image configs and
+LeRobot's Diffusion Policy recipe; its state configs take 256, 2.5 times the step time on
+one CPU thread: ``diffusion_policy.py``), 2000 steps (about 70 ms a step, 2.5 min a fit)
+and a quarter of it. The training curves and the success at each rung say whether the
+last rung has converged."""
+
+PROTOCOL = replace(
+    MT50_PROTOCOL,
+    demo_episodes=5,
+    rounds=1,
+    round_steps=None,
+    matched=False,
+    beta_decay=None,
+    eval_episodes=5,
+    curve_points=CURVE_POINTS,
+)
+"""BC alone from 5 demonstrations (``metaworld_mt10.py``'s larger count), episodes at
+Meta-World's own 500-step limit (the expert's own success), 5 held-out episodes a seed;
+each cell's fit steps and batch from :data:`BUDGETS`."""
+SEEDS = 3
+
+
+def rung_name(task: str, loss: str, steps: int) -> str:
+    """A cell's task name: ``<task>/<loss>/<steps>``."""
+    return f"{task}/{loss}/{steps}"
+
+
+def plan(tasks: tuple[str, ...], losses: tuple[str, ...], seeds: range, quick: bool):
+    """The (task definition, loss, seed, quick) cells, one per rung, and the (task,
+    seed, quick) references, one per task and seed."""
+    cells, refs = [], []
+    for task in tasks:
+        for seed in seeds:
+            refs.append((metaworld_task(task, task, PROTOCOL), seed, quick))
+        for loss in losses:
+            budget = BUDGETS[loss]
+            for steps in budget.steps:
+                bc = BCConfig(num_steps=steps, batch_size=budget.batch)
+                defn = metaworld_task(task, rung_name(task, loss, steps), replace(PROTOCOL, bc=bc))
+                cells += [(defn, loss, seed, quick) for seed in seeds]
+    return cells, refs
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = _report.parser(__doc__)
+    p.add_argument("--tasks", nargs="+", default=list(MT10), choices=list(MT10))
+    p.add_argument("--losses", nargs="+", default=list(BUDGETS), choices=list(BUDGETS))
+    p.add_argument("--seeds", type=int, default=SEEDS)
+    p.add_argument("--jobs", type=int, default=1, help="worker processes, one thread each")
+    p.add_argument("--render", type=Path, default=None, metavar="JSON",
+                   help="re-render a results file's report from its rows; nothing is run")  # fmt: skip
+    args = p.parse_args(argv)
+    for flag in ("seeds", "jobs"):
+        if getattr(args, flag) < 1:
+            p.error(f"--{flag} must be >= 1, got {getattr(args, flag)}")
+    if args.render is not None:
+        _report_of(json.loads(args.render.read_text()), args.out)
+        return
+    out_dir = _report.destination(NAME, quick=args.quick, out=args.out)
+    every = args.tasks == list(MT10)
+    tasks = ("reach-v3",) if args.quick and every else tuple(args.tasks)
+    seeds = range(1 if args.quick else args.seeds)
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    load, t0 = os.getloadavg(), time.perf_counter()
+    cells, refs = plan(tasks, tuple(args.losses), seeds, args.quick)
+    rows, references = execute(cells, refs, jobs=args.jobs)
+    payload = {
+        "config": {
+            "tasks": list(tasks),
+            "losses": list(args.losses),
+            "seeds": len(seeds),
+            "jobs": args.jobs,
+            "quick": args.quick,
+            "budgets": {
+                k: {"steps": list(b.steps), "batch": b.batch}
+                for k, b in BUDGETS.items()
+                if k in args.losses
+            },
+            "protocol": json.loads(json.dumps(asdict(PROTOCOL), default=str)),
+        },
+        "rows": rows,
+        "references": references,
+        "wall_seconds": time.perf_counter() - t0,
+        "load_average_start": list(load),
+        "load_average_end": list(os.getloadavg()),
+    }
+    _report_of(payload, out_dir)
+
+
+def _report_of(payload: dict, out: Path | None) -> None:
+    fig = figure(payload, _report.results_dir(out) / f"{NAME}.png")
+    text = markdown(payload, fig.name if out else f"results/{fig.name}")
+    print(text)
+    print(f"results: {_report.write(NAME, payload, text, out_dir=out)}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,96 @@
+"""benchmarks/metaworld_budgets.py and its report: a ladder of fit steps per loss as cells
+with one reference a task and seed, the curve of a fit, and the report's numbers."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+ROOT = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+pytest.importorskip("metaworld")
+from _loss_functions.run import window_means  # noqa: E402
+from _metaworld_budgets_report import late_drop, markdown  # noqa: E402
+from metaworld_budgets import BUDGETS, PROTOCOL, main, plan  # noqa: E402
+
+
+def test_every_rung_is_a_cell_and_every_task_and_seed_one_reference():
+    cells, refs = plan(("reach-v3", "push-v3"), ("mse", "diffusion_unet"), range(2), False)
+    rungs = sum(len(BUDGETS[loss].steps) for loss in ("mse", "diffusion_unet"))
+    assert len(cells) == 2 * rungs * 2 and len(refs) == 2 * 2
+    steps = {(d.name, loss, seed): d.protocol.bc for d, loss, seed, _ in cells}
+    bc = steps[("push-v3/diffusion_unet/2000", "diffusion_unet", 1)]
+    assert (bc.num_steps, bc.batch_size) == (2000, BUDGETS["diffusion_unet"].batch)
+    assert {d.name for d, _, _ in refs} == {"reach-v3", "push-v3"}
+    # BC alone, each fit's curve kept; the references evaluate as the cells do
+    for d, _, _, _ in cells:
+        assert d.protocol.rounds == 1 and d.protocol.curve_points > 0
+        assert d.protocol.eval_episodes == refs[0][0].protocol.eval_episodes
+
+
+def test_a_fit_curve_is_window_means():
+    losses = torch.tensor([4.0, 2.0, 3.0, 1.0, 1.0, 1.0, 0.5])
+    assert window_means(losses, 3) == [3.0, 1.0, 0.75]  # windows of 3, 2 and 2 steps
+    assert window_means(losses[:2], 40) == [4.0, 2.0]  # fewer steps than points
+
+
+def test_late_drop_compares_the_last_fifth_with_the_fifth_before():
+    assert late_drop([10, 8, 6, 4, 2] * 2) == pytest.approx(1 - 3 / 7)  # (4+2)/(8+6)
+    assert late_drop([5.0] * 10) == 0.0
+
+
+def _payload() -> dict:
+    """Two tasks, 2 seeds, 5 episodes; mse 320: 3 a seed, mse 2000 and diffusion_unet 2000:
+    5; diffusion_unet 500: 1; the expert 5 everywhere."""
+    rows = []
+    wins = {
+        ("mse", 320): 3,
+        ("mse", 2000): 5,
+        ("diffusion_unet", 500): 1,
+        ("diffusion_unet", 2000): 5,
+    }
+    for task in ("reach-v3", "push-v3"):
+        for (loss, steps), k in wins.items():
+            for seed in (0, 1):
+                rows.append({"task": f"{task}/{loss}/{steps}", "loss": loss, "seed": seed,
+                             "algorithm": "bc", "successes": k, "episodes": 5, "score": k / 5,
+                             "fit_seconds": steps / 100, "fit_steps": steps,
+                             "fit_batch": BUDGETS[loss].batch,
+                             "loss_curve": [1.0, 0.8, 0.6, 0.5, 0.4]})  # fmt: skip
+    refs = [{"task": t, "policy": "expert", "seed": s, "successes": 5, "episodes": 5, "score": 1.0}
+            for t in ("reach-v3", "push-v3") for s in (0, 1)]  # fmt: skip
+    from dataclasses import asdict
+
+    config = {"tasks": ["reach-v3", "push-v3"], "losses": ["mse", "diffusion_unet"], "seeds": 2,
+              "jobs": 2, "quick": False, "protocol": asdict(PROTOCOL),
+              "budgets": {"mse": {"steps": [320, 2000], "batch": 256},
+                          "diffusion_unet": {"steps": [500, 2000], "batch": 64}}}  # fmt: skip
+    return {"config": config, "rows": rows, "references": refs, "wall_seconds": 120.0,
+            "load_average_start": [1.0], "load_average_end": [1.5]}  # fmt: skip
+
+
+def test_the_report_gives_each_rung_its_success_time_and_late_fall():
+    text = markdown(_payload(), "f.png")
+    # mse 320: 12/20 pooled; IQM of 0.6 everywhere is 0.6 with a degenerate interval
+    assert "| mse | 320 x 256 | 3.2 | 20.0% | 0.60 [0.39, 0.78] | 0.60 [0.60, 0.60] |" in text
+    assert (
+        "| diffusion_unet | 500 x 64 | 5.0 | 20.0% | 0.20 [0.08, 0.42] | 0.20 [0.20, 0.20] |"
+        in text
+    )
+    assert (
+        "| diffusion_unet | 2000 x 64 | 20.0 | 20.0% | 1.00 [0.84, 1.00] | 1.00 [1.00, 1.00] |"
+        in text
+    )
+    # the top rungs paired: diffusion_unet 2000 - mse 2000 = 0 on every pair
+    assert "| diffusion_unet 2000 | 4 | 0.00 [0.00, 0.00] | 0 / 0 of 2 |" in text
+    assert "| reach-v3 | 0.60 [0.31, 0.83] | 1.00 [0.72, 1.00] | 0.20" in text
+
+
+def test_bad_counts_are_one_line_before_anything_runs(capsys):
+    with pytest.raises(SystemExit) as exit_:
+        main(["--seeds", "0"])
+    assert exit_.value.code == 2 and "--seeds must be >= 1, got 0" in capsys.readouterr().err
