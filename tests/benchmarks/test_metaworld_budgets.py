@@ -94,3 +94,10 @@ def test_bad_counts_are_one_line_before_anything_runs(capsys):
     with pytest.raises(SystemExit) as exit_:
         main(["--seeds", "0"])
     assert exit_.value.code == 2 and "--seeds must be >= 1, got 0" in capsys.readouterr().err
+
+
+def test_a_negative_curve_length_is_refused():
+    from dataclasses import replace
+
+    with pytest.raises(ValueError, match="curve_points must be >= 0, got -1"):
+        replace(PROTOCOL, curve_points=-1)
