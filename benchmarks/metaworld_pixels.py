@@ -32,6 +32,7 @@ import _report
 from _common import source
 from imitrl import keys
 from imitrl.algorithms import BCConfig, DAggerConfig, dagger
+from imitrl.algorithms.beta_schedules import Constant, Exponential
 from imitrl.data import DemonstrationBuffer
 from imitrl.envs import make_env
 from imitrl.evaluation import evaluate, wilson_interval
@@ -49,11 +50,12 @@ QUICK = {"seeds": 1, "demos": 1, "rounds": 2, "episodes": 1, "steps": 5, "eval":
          "max_steps": 20, "settings": SETTINGS[:2]}  # fmt: skip
 
 
-def _env(size: int | None, seed: int, lanes: int, budget: dict, fast: bool = True):
+def _env(size: int | None, seed: int, lanes: int, budget: dict, fast: bool = True,
+         task: str = TASK):  # fmt: skip
     kwargs = {} if size is None else {"obs_type": "pixels_agent_pos", "width": size,
                                       "height": size, "fast_render": fast}  # fmt: skip
     return make_env(
-        f"metaworld/{TASK}",
+        f"metaworld/{task}",
         seed=seed,
         num_envs=lanes,
         max_episode_steps=budget["max_steps"],
@@ -77,15 +79,16 @@ def render_cost(budget: dict) -> list[dict]:
     return out
 
 
-def dagger_cell(seed: int, budget: dict) -> dict:
-    """BC and DAgger from pixels with the privileged expert, one seed."""
+def dagger_cell(seed: int, budget: dict, task: str = TASK) -> dict:
+    """BC and DAgger from an 84x84 camera with the privileged expert, one task and seed
+    (``metaworld_pixels_mt10.py`` runs it on every MT10 task)."""
     torch.manual_seed(seed)
-    env = _env(84, seed, budget["episodes"], budget)
-    expert = metaworld_expert(TASK, observation_key=keys.ENVIRONMENT_STATE)
+    env = _env(84, seed, budget["episodes"], budget, task=task)
+    expert = metaworld_expert(task, observation_key=keys.ENVIRONMENT_STATE)
     buffer = DemonstrationBuffer(action_spec=env.action_spec_unbatched)
     buffer.extend(rollout_episodes(env, expert, budget["demos"], seed=seed))
     scores: dict[int, dict] = {}
-    eval_env = _env(84, 10_000 + seed, min(budget["eval"], 5), budget)
+    eval_env = _env(84, 10_000 + seed, min(budget["eval"], 5), budget, task=task)
 
     def on_fit(k: int, learner) -> None:
         if k in (0, budget["rounds"] - 1):
@@ -102,6 +105,8 @@ def dagger_cell(seed: int, budget: dict) -> dict:
             episodes_per_round=budget["episodes"],
             bc=BCConfig(num_steps=budget["steps"], batch_size=128, seed=seed),
             seed=seed,
+            # beta 0 unless the budget names Ross et al.'s schedule
+            beta=Exponential(budget["beta_decay"]) if budget.get("beta_decay") else Constant(0.0),
         ),
         on_fit=on_fit,
     )
@@ -109,6 +114,7 @@ def dagger_cell(seed: int, budget: dict) -> dict:
     env.close()
     eval_env.close()
     return {
+        "task": task,
         "seed": seed,
         "bc": scores[0],
         "dagger": scores[budget["rounds"] - 1],
