@@ -196,7 +196,28 @@ def _paired(payload: dict) -> tuple[str, str]:
             for r in payload["rows"]]  # fmt: skip
     found = paired_differences(rows, lambda task: BASELINE, group=("loss", "demos", "algorithm"))
     text = f"Paired differences against {BASELINE}: success rate minus {BASELINE}'s {how}"
-    return text, paired_table(found, ("loss", "demos", "algorithm"))
+    table = paired_table(found, ("loss", "demos", "algorithm"))
+    matched = dagger_against_matched(payload["rows"])
+    if matched:
+        table += (
+            "\n\nDAgger against BC at DAgger's queries (the same number of expert labels), "
+            "per loss: DAgger's success rate minus BC at DAgger's queries' on the same task "
+            "and seed.\n\n" + paired_table(matched, ("loss", "demos", "algorithm"))
+        )
+    return text, table
+
+
+def dagger_against_matched(rows: list[dict]) -> list[dict]:
+    """Per loss and number of demonstrations, DAgger minus BC at DAgger's queries on the
+    same task and seed (:func:`against_matched`, one loss at a time); each entry's
+    ``group``: (loss, demonstrations, "DAgger")."""
+    out = []
+    for loss in dict.fromkeys(r["loss"] for r in rows):
+        mine = [r for r in rows if r["loss"] == loss and r["algorithm"] in ("dagger", "bc_matched")]
+        for found in against_matched(mine):
+            label, demos = found["group"]
+            out.append({**found, "group": (loss, demos, label)})
+    return out
 
 
 def markdown(payload: dict, figure_name: str) -> str:

@@ -11,10 +11,11 @@ learner unsafe and labels only those frames (LeRobot's DAgger rollouts record th
   (``DAggerConfig(label="interventions")``).
 
 ``tau`` is a quarter of the action box's diagonal. Tasks: Pendulum (the scripted swing-up;
-mean return) and five MT10 tasks at metaworld_mt10.py's protocol (success). A fresh ``mse``
-learner each round. Reported per task and method: success (or return) of the last
-learner with 95% intervals over the pooled held-out episodes, the expert labels the
-relabel rounds added, and the interventions (frames the expert drove), means over seeds.
+mean return) and five MT10 tasks at metaworld_mt10.py's protocol before b0f27fb (beta 0,
+150-step episodes; success). A fresh ``mse`` learner each round. Reported per task and
+method: success (or return) of the last learner with 95% intervals over the pooled
+held-out episodes, the expert labels the relabel rounds added, and the interventions
+(frames the expert drove), means over seeds.
 
     python benchmarks/gated_dagger.py            # full run, refreshes the README block
     python benchmarks/gated_dagger.py --quick    # smoke run, into a temporary directory
@@ -59,7 +60,7 @@ def _budget(task: str, cfg: Config) -> dict:
     if cfg.quick:
         return dict(seeds=1, demos=1, rounds=2, episodes=1, steps=5, batch=32, hidden=(16,),
                     lr=None, eval=2)  # fmt: skip
-    if task.startswith("metaworld/"):  # metaworld_mt10.py's protocol
+    if task.startswith("metaworld/"):  # metaworld_mt10.py's protocol before b0f27fb
         return dict(seeds=cfg.mw_seeds, demos=5, rounds=3, episodes=3, steps=320, batch=256,
                     hidden=(128, 128), lr=3e-3, eval=5)  # fmt: skip
     return dict(seeds=cfg.seeds, demos=3, rounds=4, episodes=3, steps=400, batch=64,

@@ -1,5 +1,6 @@
 """benchmarks/_metaworld_report.py: the suite's target, the tasks short of it, and the
-paired table of a one-loss run (DAgger and BC against BC at DAgger's queries)."""
+paired table of a one-loss run (DAgger and BC against BC at DAgger's queries), and of
+several losses (each against mse, and each loss's DAgger against its BC at DAgger's queries)."""
 
 from __future__ import annotations
 
@@ -91,3 +92,19 @@ def test_the_tasks_short_of_it_are_grouped_by_how_far():
         "BC at DAgger's queries is short too, 1: door-open-v3 (DAgger 6/10, BC at its queries "
         "8/10, the expert 10/10)."
     ) in text
+
+
+def test_several_losses_each_pair_dagger_against_bc_at_its_queries():
+    """Two losses: mse's DAgger 5/5 a seed and act's 3/5 (a copy of mse's rows), BC at
+    DAgger's queries 4/5 for both: +0.2 and -0.2 on every task and seed."""
+    payload = _payload(None, ["reach-v3", "push-v3"], {"reach-v3": 5, "push-v3": 5})
+    act = [{**r, "loss": "act"} for r in payload["rows"]]
+    for r in act:
+        if r["algorithm"] == "dagger":
+            r["successes"], r["score"] = 3, 0.6
+    payload["rows"] += act
+    payload["config"]["losses"] = ["mse", "act"]
+    text = markdown(payload, "f.png")
+    assert "DAgger against BC at DAgger's queries (the same number of expert labels), per loss" in text
+    assert "| mse | 10 | DAgger | 4 | 0.20 [0.20, 0.20] | 2 / 0 of 2 |" in text
+    assert "| act | 10 | DAgger | 4 | -0.20 [-0.20, -0.20] | 0 / 2 of 2 |" in text
