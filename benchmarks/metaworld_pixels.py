@@ -120,6 +120,7 @@ def dagger_cell(seed: int, budget: dict, task: str = TASK) -> dict:
         "dagger": scores[budget["rounds"] - 1],
         "expert": {"success": ref.success_rate, "episodes": budget["eval"]},
         "rows": out.rounds[-1].rows_trained,
+        "betas": [r.beta_next for r in out.rounds[:-1]],  # each relabel round's, in order
     }
 
 

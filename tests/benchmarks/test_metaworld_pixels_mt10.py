@@ -13,7 +13,17 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 pytest.importorskip("metaworld")
 from imitrl.envs.metaworld import MT10  # noqa: E402
-from metaworld_pixels_mt10 import PUBLISHED, SOURCE, figure, main, markdown, pooled  # noqa: E402
+from metaworld_pixels import dagger_cell  # noqa: E402
+from metaworld_pixels_mt10 import (  # noqa: E402
+    PUBLISHED,
+    QUICK,
+    SOURCE,
+    figure,
+    main,
+    markdown,
+    pooled,
+    series,
+)
 
 
 def test_the_published_table_covers_mt10_and_gives_the_papers_means():
@@ -56,7 +66,38 @@ def test_rates_pool_the_seeds_and_the_means_weigh_each_task_once(tmp_path):
     # published (18 + 30) / 2 and (24 + 51) / 2
     assert "| **mean over tasks** | 0.97 | 0.15 | 0.33 | 0.24 | 0.38 |" in text
     assert "wall time 10.0 min" in text and "Meta-World v3" in text
+    assert "13 expert-driven episodes and 3 mixed ones" in text
+    # 200-step episodes, as the published runs': the note does not say they differ there
+    assert "Not the same env version, budget or evaluation." in text
+    payload["budget"]["max_steps"] = 150
+    assert "budget, episode length or evaluation" in markdown(payload, "x.png")
     assert figure(payload, tmp_path / "f.png").stat().st_size > 10_000
+
+
+def test_the_figures_bars_are_the_rates_and_their_intervals():
+    bars = series(_payload())
+    y, lo, hi = bars["DAgger (here)"]
+    assert y == [0.6, 0.05]  # 12/20 and 1/20
+    assert lo[0] == pytest.approx(0.6 - 0.3866, abs=1e-3)  # Wilson 95% of 12/20
+    assert hi[0] == pytest.approx(0.7812 - 0.6, abs=1e-3)
+    y, lo, hi = bars["DP3 (Ze et al.)"]
+    assert y == [0.24, 0.51] and lo == [0.01, 0.03] and hi == [0.01, 0.03]
+    # a published bar stays within [0, 1]: door-open's 98 +- 3 reaches 1.00, not 1.01
+    payload = _payload()
+    payload["tasks"] = ["door-open-v3"]
+    payload["cells"] = [{**c, "task": "door-open-v3"} for c in payload["cells"][:2]]
+    payload["published"]["tasks"] = {"door-open-v3": PUBLISHED["door-open-v3"]}
+    y, lo, hi = series(payload)["Diffusion Policy (Ze et al.)"]
+    assert y == [0.98] and lo == [0.03] and hi == [pytest.approx(0.02)]
+
+
+def test_a_cells_dagger_follows_the_budgets_beta_schedule():
+    """Round 1 all expert, round 2 a fair coin (p = 0.5), as the budget names; a budget
+    without one keeps beta 0 (the section's DAgger)."""
+    tiny = {**QUICK, "rounds": 3}
+    assert dagger_cell(0, tiny, task="reach-v3")["betas"] == [1.0, 0.5]
+    without = {k: v for k, v in tiny.items() if k != "beta_decay"}
+    assert dagger_cell(0, {**without, "rounds": 2}, task="reach-v3")["betas"] == [0.0]
 
 
 def test_a_zero_job_count_is_refused(capsys):
