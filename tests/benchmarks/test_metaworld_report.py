@@ -105,6 +105,8 @@ def test_several_losses_each_pair_dagger_against_bc_at_its_queries():
     payload["rows"] += act
     payload["config"]["losses"] = ["mse", "act"]
     text = markdown(payload, "f.png")
-    assert "DAgger against BC at DAgger's queries (the same number of expert labels), per loss" in text
+    assert (
+        "DAgger against BC at DAgger's queries (the same number of expert labels), per loss" in text
+    )
     assert "| mse | 10 | DAgger | 4 | 0.20 [0.20, 0.20] | 2 / 0 of 2 |" in text
     assert "| act | 10 | DAgger | 4 | -0.20 [-0.20, -0.20] | 0 / 2 of 2 |" in text
