@@ -75,7 +75,7 @@ def portable(path: str | Path) -> str:
     resolved = Path(path).absolute()
     if resolved.is_relative_to(REPO):
         return resolved.relative_to(REPO).as_posix()
-    return Path(*resolved.parts[-3:]).as_posix()
+    return Path(*resolved.parts[1:][-3:]).as_posix()  # never the root: /tmp/x is tmp/x
 
 
 def portable_args(args: list[str]) -> list[str]:
