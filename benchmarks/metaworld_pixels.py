@@ -79,6 +79,12 @@ def render_cost(budget: dict) -> list[dict]:
     return out
 
 
+def beta_schedule(budget: dict) -> Exponential | Constant:
+    """DAgger's beta: Ross et al.'s schedule where ``budget`` names ``beta_decay``, else 0
+    in every round (the section's DAgger, this script's own budgets)."""
+    return Exponential(budget["beta_decay"]) if budget.get("beta_decay") else Constant(0.0)
+
+
 def dagger_cell(seed: int, budget: dict, task: str = TASK) -> dict:
     """BC and DAgger from an 84x84 camera with the privileged expert, one task and seed
     (``metaworld_pixels_mt10.py`` runs it on every MT10 task)."""
@@ -105,8 +111,7 @@ def dagger_cell(seed: int, budget: dict, task: str = TASK) -> dict:
             episodes_per_round=budget["episodes"],
             bc=BCConfig(num_steps=budget["steps"], batch_size=128, seed=seed),
             seed=seed,
-            # beta 0 unless the budget names Ross et al.'s schedule
-            beta=Exponential(budget["beta_decay"]) if budget.get("beta_decay") else Constant(0.0),
+            beta=beta_schedule(budget),
         ),
         on_fit=on_fit,
     )

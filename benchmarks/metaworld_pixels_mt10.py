@@ -92,8 +92,11 @@ def _cell(args: tuple[str, int, dict]) -> dict:
 
 def run(tasks: list[str], budget: dict, jobs: int) -> list[dict]:
     """One cell a (task, seed), ``jobs`` processes of one thread, each cell in a fresh
-    process (a Meta-World env's memory is not all given back when it closes)."""
+    process (a Meta-World env's memory is not all given back when it closes); ``jobs`` 1:
+    in this process."""
     todo = [(task, seed, budget) for task in tasks for seed in range(budget["seeds"])]
+    if jobs == 1:  # here, one after another (the smoke run: no interpreter to start)
+        return [_cell(job) for job in todo]
     with multiprocessing.get_context("spawn").Pool(jobs, maxtasksperchild=1) as pool:
         return list(pool.imap(_cell, todo))
 
