@@ -129,9 +129,15 @@ def dagger_cell(seed: int, budget: dict, task: str = TASK) -> dict:
     }
 
 
-def _pooled(cells: list[dict], who: str) -> str:
+def pooled(cells: list[dict], who: str) -> tuple[int, int]:
+    """(successes, episodes) of ``who`` (expert, bc, dagger) over ``cells``: each cell's
+    success rate is over exactly its ``episodes`` held-out episodes."""
     k = sum(round(c[who]["success"] * c[who]["episodes"]) for c in cells)
-    n = sum(c[who]["episodes"] for c in cells)
+    return k, sum(c[who]["episodes"] for c in cells)
+
+
+def fmt_pooled(k: int, n: int) -> str:
+    """``k / n [95% Wilson] (k/n)``."""
     lo, hi = wilson_interval(k, n)
     return f"{k / n:.2f} [{lo:.2f}, {hi:.2f}] ({k}/{n})"
 
@@ -150,7 +156,7 @@ def markdown(payload: dict) -> str:
     )  # fmt: skip
     results = _report.table(
         ["policy", "success (pooled over seeds, 95% Wilson)"],
-        [[who, _pooled(cells, who)] for who in ("expert", "bc", "dagger")],
+        [[who, fmt_pooled(*pooled(cells, who))] for who in ("expert", "bc", "dagger")],
     )
     return "\n\n".join(
         [

@@ -5,9 +5,9 @@ the ``corner2`` camera plus the hand's 4-d ``agent_pos``), at 84x84, learned by 
 (``build("for_env", env, state=True)``, a fresh learner each round) from the task's scripted
 policy: ``demos`` demonstrations, then DAgger's relabel rounds with Ross et al.'s beta
 schedule (round 1 all expert-driven, round 2 a fair coin), the expert reading the 39-d
-state the learner never sees (privileged). BC (round 0) and the last DAgger learner are scored on the same held-out episodes as the expert, one
-cell a (task, seed): ``metaworld_pixels.dagger_cell``, which ``metaworld_pixels.py`` runs on
-``reach-v3``.
+state the learner never sees (privileged). BC (round 0) and the last DAgger learner are
+scored on the same held-out episodes as the expert, one cell a (task, seed):
+``metaworld_pixels.dagger_cell``, which ``metaworld_pixels.py`` runs on ``reach-v3``.
 
 Beside them, the published per-task success of Diffusion Policy (images) and DP3 (point
 clouds) from 10 demonstrations, as Ze et al. ran both (:data:`PUBLISHED`). They are not
@@ -36,6 +36,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _report
 from imitrl.envs.metaworld import MT10
 from imitrl.evaluation import wilson_interval
+from metaworld_pixels import fmt_pooled, pooled
 
 NAME = "metaworld_pixels_mt10"
 FULL = {"seeds": 2, "demos": 10, "rounds": 3, "episodes": 3, "steps": 600, "eval": 10,
@@ -101,17 +102,6 @@ def run(tasks: list[str], budget: dict, jobs: int) -> list[dict]:
         return list(pool.imap(_cell, todo))
 
 
-def pooled(cells: list[dict], who: str) -> tuple[int, int]:
-    """(successes, episodes) of ``who`` (expert, bc, dagger) over ``cells``."""
-    k = sum(round(c[who]["success"] * c[who]["episodes"]) for c in cells)
-    return k, sum(c[who]["episodes"] for c in cells)
-
-
-def fmt_pooled(k: int, n: int) -> str:
-    lo, hi = wilson_interval(k, n)
-    return f"{k / n:.2f} [{lo:.2f}, {hi:.2f}] ({k}/{n})"
-
-
 def _published(published: dict, task: str, who: str) -> str:
     mean, std = published[task][who]
     return f"{mean / 100:.2f} ± {std / 100:.2f}"
@@ -129,15 +119,15 @@ def markdown(payload: dict, figure_name: str) -> str:
             means[who].append(k / n)
             row.append(fmt_pooled(k, n))
         row += [_published(published, task, w) if task in published else "-"
-                for w in ("Diffusion Policy", "DP3")]  # fmt: skip
+                for w in (_DP, _DP3)]  # fmt: skip
         rows.append(row)
     known = [t for t in tasks if t in published]
     published_mean = {
         w: sum(published[t][w][0] for t in known) / 100 / len(known) if known else float("nan")
-        for w in ("Diffusion Policy", "DP3")
+        for w in (_DP, _DP3)
     }
     rows.append(["**mean over tasks**"] + [f"{sum(v) / len(v):.2f}" for v in means.values()]
-                + [f"{published_mean[w]:.2f}" for w in ("Diffusion Policy", "DP3")])  # fmt: skip
+                + [f"{published_mean[w]:.2f}" for w in (_DP, _DP3)])  # fmt: skip
     head = (
         f"MT10 tasks {len(tasks)} from LeRobot's corner2 camera at 84x84 (shadows and "
         f"reflections off: `fast_render=True`) plus the hand's 4-d agent_pos; Meta-World v3; "
@@ -181,7 +171,7 @@ def series(payload: dict) -> dict[str, tuple[list[float], list[float], list[floa
     published = payload["published"]["tasks"]
     out = {}
     for label, who in (("expert (here)", "expert"), ("BC (here)", "bc"), ("DAgger (here)", "dagger"),
-                       ("Diffusion Policy (Ze et al.)", "Diffusion Policy"), ("DP3 (Ze et al.)", "DP3")):  # fmt: skip
+                       (f"{_DP} (Ze et al.)", _DP), (f"{_DP3} (Ze et al.)", _DP3)):  # fmt: skip
         y, lo, hi = [], [], []
         for task in tasks:
             if who in ("expert", "bc", "dagger"):
