@@ -118,6 +118,21 @@ def _top_paired(payload: dict) -> tuple[str, str]:
     return text, paired_table(found, ("loss and steps",))
 
 
+def _wall(payload: dict) -> str:
+    """The run's wall time and load, or (a merged report) each part's."""
+    if payload["config"]["jobs"] == "merged":
+        return (
+            f"Merged from runs of disjoint rungs ({'; '.join(payload['merged_from'])}), each "
+            f"process at 1 thread on 2 cores; their wall times sum to "
+            f"{payload['wall_seconds'] / 60:.1f} min."
+        )
+    return (
+        f"Wall time {payload['wall_seconds'] / 60:.1f} min with {payload['config']['jobs']} "
+        f"process(es) at 1 thread, 1-min load {payload['load_average_start'][0]:.2f} at the "
+        f"start and {payload['load_average_end'][0]:.2f} at the end (2 cores)."
+    )
+
+
 def markdown(payload: dict, figure_name: str) -> str:
     config, proto = payload["config"], payload["config"]["protocol"]
     head = (
@@ -127,9 +142,7 @@ def markdown(payload: dict, figure_name: str) -> str:
         f"{proto['learner']['hidden']} at lr {proto['learner']['lr']}, diffusion_unet at the "
         f"registry's CPU widths; evaluation {proto['eval_episodes']} held-out episodes of at "
         f"most 500 steps (Meta-World's own limit), success = `info['success']` at any step. "
-        f"Wall time {payload['wall_seconds'] / 60:.1f} min with {config['jobs']} process(es) "
-        f"at 1 thread, 1-min load {payload['load_average_start'][0]:.2f} at the start and "
-        f"{payload['load_average_end'][0]:.2f} at the end (2 cores)."
+        + _wall(payload)
     )
     agg = aggregate_rows(payload)
     table = _report.table(

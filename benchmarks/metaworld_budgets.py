@@ -19,6 +19,12 @@ its own budget ... with the loss's training curve showing it has converged").
     python benchmarks/metaworld_budgets.py --jobs 2    # full run, refreshes benchmarks/README.md
     python benchmarks/metaworld_budgets.py --quick     # smoke run, into a temporary directory
     python benchmarks/metaworld_budgets.py --render results/metaworld_budgets.json
+    python benchmarks/metaworld_budgets.py --losses diffusion_unet --steps 4000 --out /tmp/r4
+    python benchmarks/metaworld_budgets.py --merge results/metaworld_budgets.json \\
+        /tmp/r4/metaworld_budgets.json    # one report of runs of disjoint rungs
+
+Runnable in parts (``--losses``, ``--steps``) and merged (``--merge``): a cell's digits
+depend on its task, loss, rung and seed alone.
 """
 
 from __future__ import annotations
@@ -57,15 +63,16 @@ class Budget:
 
 BUDGETS = {
     "mse": Budget(steps=(320, 2000), batch=256),
-    "diffusion_unet": Budget(steps=(500, 2000), batch=64),
+    "diffusion_unet": Budget(steps=(500, 2000, 4000), batch=64),
 }
 """Per loss. ``mse``: ``metaworld_mt10.py``'s 320 steps and ``metaworld_mt50.py``'s 2000
 (its network, 256-256 at lr 1e-3, chosen there). ``diffusion_unet``: the registry's CPU
 widths (32-64-128, 1.2M parameters, lr 1e-3) at batch 64 (the paper's image configs and
 LeRobot's Diffusion Policy recipe; its state configs take 256, 2.5 times the step time on
-one CPU thread: ``diffusion_policy.py``), 2000 steps (about 70 ms a step, 2.5 min a fit)
-and a quarter of it. The training curves and the success at each rung say whether the
-last rung has converged."""
+one CPU thread: ``diffusion_policy.py``), 2000 steps (about 70 ms a step, 2.5 min a fit),
+a quarter of it, and twice it (its 2000-step training loss still fell 27% over its last
+fifth). The training curves and the success at each rung say whether the last rung has
+converged."""
 
 PROTOCOL = replace(
     MT50_PROTOCOL,
@@ -88,15 +95,27 @@ def rung_name(task: str, loss: str, steps: int) -> str:
     return f"{task}/{loss}/{steps}"
 
 
-def plan(tasks: tuple[str, ...], losses: tuple[str, ...], seeds: range, quick: bool):
-    """The (task definition, loss, seed, quick) cells, one per rung, and the (task,
-    seed, quick) references, one per task and seed."""
+def chosen(losses: tuple[str, ...], steps: tuple[int, ...] | None) -> dict[str, Budget]:
+    """:data:`BUDGETS` of ``losses``, each with the rungs in ``steps`` alone (all without
+    ``steps``; ValueError where a loss keeps none)."""
+    out = {}
+    for loss in losses:
+        budget = BUDGETS[loss]
+        kept = budget.steps if steps is None else tuple(s for s in budget.steps if s in steps)
+        if not kept:
+            raise ValueError(f"{loss} has no rung in --steps {list(steps or ())}: {budget.steps}")
+        out[loss] = replace(budget, steps=kept)
+    return out
+
+
+def plan(budgets: dict[str, Budget], tasks: tuple[str, ...], seeds: range, quick: bool):
+    """The (task definition, loss, seed, quick) cells, one per rung of ``budgets``, and
+    the (task, seed, quick) references, one per task and seed."""
     cells, refs = [], []
     for task in tasks:
         for seed in seeds:
             refs.append((metaworld_task(task, task, PROTOCOL), seed, quick))
-        for loss in losses:
-            budget = BUDGETS[loss]
+        for loss, budget in budgets.items():
             for steps in budget.steps:
                 bc = BCConfig(num_steps=steps, batch_size=budget.batch)
                 defn = metaworld_task(task, rung_name(task, loss, steps), replace(PROTOCOL, bc=bc))
@@ -108,10 +127,14 @@ def main(argv: list[str] | None = None) -> None:
     p = _report.parser(__doc__)
     p.add_argument("--tasks", nargs="+", default=list(MT10), choices=list(MT10))
     p.add_argument("--losses", nargs="+", default=list(BUDGETS), choices=list(BUDGETS))
+    p.add_argument("--steps", nargs="+", type=int, default=None,
+                   help="run these rungs of each loss's ladder alone (default: every rung)")  # fmt: skip
     p.add_argument("--seeds", type=int, default=SEEDS)
     p.add_argument("--jobs", type=int, default=1, help="worker processes, one thread each")
     p.add_argument("--render", type=Path, default=None, metavar="JSON",
                    help="re-render a results file's report from its rows; nothing is run")  # fmt: skip
+    p.add_argument("--merge", nargs="+", type=Path, default=None, metavar="JSON",
+                   help="results files of runs of disjoint rungs: one report of them all")  # fmt: skip
     args = p.parse_args(argv)
     for flag in ("seeds", "jobs"):
         if getattr(args, flag) < 1:
@@ -119,13 +142,21 @@ def main(argv: list[str] | None = None) -> None:
     if args.render is not None:
         _report_of(json.loads(args.render.read_text()), args.out)
         return
+    if args.merge is not None:
+        runs = [{**json.loads(f.read_text()), "source": f.name} for f in args.merge]
+        _report_of(merge(runs), _report.destination(NAME, quick=False, out=args.out))
+        return
+    try:
+        budgets = chosen(tuple(args.losses), None if args.steps is None else tuple(args.steps))
+    except ValueError as err:
+        p.error(str(err))
     out_dir = _report.destination(NAME, quick=args.quick, out=args.out)
     every = args.tasks == list(MT10)
     tasks = ("reach-v3",) if args.quick and every else tuple(args.tasks)
     seeds = range(1 if args.quick else args.seeds)
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     load, t0 = os.getloadavg(), time.perf_counter()
-    cells, refs = plan(tasks, tuple(args.losses), seeds, args.quick)
+    cells, refs = plan(budgets, tasks, seeds, args.quick)
     rows, references = execute(cells, refs, jobs=args.jobs)
     payload = {
         "config": {
@@ -134,11 +165,7 @@ def main(argv: list[str] | None = None) -> None:
             "seeds": len(seeds),
             "jobs": args.jobs,
             "quick": args.quick,
-            "budgets": {
-                k: {"steps": list(b.steps), "batch": b.batch}
-                for k, b in BUDGETS.items()
-                if k in args.losses
-            },
+            "budgets": {k: {"steps": list(b.steps), "batch": b.batch} for k, b in budgets.items()},
             "protocol": json.loads(json.dumps(asdict(PROTOCOL), default=str)),
         },
         "rows": rows,
@@ -146,8 +173,61 @@ def main(argv: list[str] | None = None) -> None:
         "wall_seconds": time.perf_counter() - t0,
         "load_average_start": list(load),
         "load_average_end": list(os.getloadavg()),
+        "command": " ".join(
+            ["metaworld_budgets.py", *(argv if argv is not None else sys.argv[1:])]
+        ),
     }
     _report_of(payload, out_dir)
+
+
+def merge(runs: list[dict]) -> dict:
+    """One payload of ``runs``' rungs (ValueError where two runs disagree on the tasks,
+    the seeds, the protocol, a loss's batch or an expert reference, or run the same cell:
+    the code changed between them, or the rungs overlap)."""
+    if len(runs) < 2:
+        raise ValueError("--merge needs at least two results files")
+    first = runs[0]["config"]
+    rows, refs, cells = [], {}, set()
+    budgets: dict[str, dict] = {}
+    for k, part in enumerate(runs):
+        config = part["config"]
+        for key in ("tasks", "seeds", "protocol"):
+            if config[key] != first[key]:
+                raise ValueError(f"run {k} has another {key} than run 0: {config[key]}")
+        for loss, b in config["budgets"].items():
+            have = budgets.setdefault(loss, {"steps": [], "batch": b["batch"]})
+            if have["batch"] != b["batch"]:
+                raise ValueError(f"run {k} fits {loss} at batch {b['batch']}, not {have['batch']}")
+            have["steps"] = sorted({*have["steps"], *b["steps"]})
+        for ref in part["references"]:
+            key = (ref["task"], ref["policy"], ref["seed"])
+            if refs.setdefault(key, ref) != ref:
+                raise ValueError(f"run {k} measured another {key} reference: the code changed")
+        for row in part["rows"]:
+            key = (row["task"], row["seed"], row["algorithm"])
+            if key in cells:
+                raise ValueError(f"run {k} repeats the cell {key}")
+            cells.add(key)
+            rows.append(row)
+    losses = [loss for loss in BUDGETS if loss in budgets]
+    return {
+        "config": {
+            **first,
+            "losses": losses,
+            "jobs": "merged",
+            "budgets": {loss: budgets[loss] for loss in losses},
+        },
+        "rows": rows,
+        "references": list(refs.values()),
+        "wall_seconds": sum(r["wall_seconds"] for r in runs),
+        "load_average_start": runs[0]["load_average_start"],
+        "load_average_end": runs[-1]["load_average_end"],
+        "merged_from": [
+            f"{r.get('command', r.get('source', f'run {k}'))}: {r['wall_seconds'] / 60:.1f} min "
+            f"with {r['config']['jobs']} process(es), load {r['load_average_start'][0]:.2f} to {r['load_average_end'][0]:.2f}"
+            for k, r in enumerate(runs)
+        ],
+    }
 
 
 def _report_of(payload: dict, out: Path | None) -> None:

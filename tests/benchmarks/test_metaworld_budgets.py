@@ -15,11 +15,12 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 pytest.importorskip("metaworld")
 from _loss_functions.run import window_means  # noqa: E402
 from _metaworld_budgets_report import late_drop, markdown  # noqa: E402
-from metaworld_budgets import BUDGETS, PROTOCOL, main, plan  # noqa: E402
+from metaworld_budgets import BUDGETS, PROTOCOL, chosen, main, merge, plan  # noqa: E402
 
 
 def test_every_rung_is_a_cell_and_every_task_and_seed_one_reference():
-    cells, refs = plan(("reach-v3", "push-v3"), ("mse", "diffusion_unet"), range(2), False)
+    budgets = chosen(("mse", "diffusion_unet"), None)
+    cells, refs = plan(budgets, ("reach-v3", "push-v3"), range(2), False)
     rungs = sum(len(BUDGETS[loss].steps) for loss in ("mse", "diffusion_unet"))
     assert len(cells) == 2 * rungs * 2 and len(refs) == 2 * 2
     steps = {(d.name, loss, seed): d.protocol.bc for d, loss, seed, _ in cells}
@@ -101,3 +102,44 @@ def test_a_negative_curve_length_is_refused():
 
     with pytest.raises(ValueError, match="curve_points must be >= 0, got -1"):
         replace(PROTOCOL, curve_points=-1)
+
+
+def test_steps_keep_the_named_rungs_alone_and_refuse_a_loss_left_without_one():
+    budgets = chosen(("diffusion_unet",), (4000,))
+    assert budgets["diffusion_unet"].steps == (4000,)
+    cells, _ = plan(budgets, ("reach-v3",), range(2), False)
+    assert {d.name for d, _, _, _ in cells} == {"reach-v3/diffusion_unet/4000"}
+    with pytest.raises(ValueError, match=r"mse has no rung in --steps \[4000\]"):
+        chosen(("mse", "diffusion_unet"), (4000,))
+
+
+def _part(rungs: dict[tuple[str, int], int], wall: float) -> dict:
+    """_payload's shape for ``rungs`` alone."""
+    whole = _payload()
+    keep = {f"{t}/{loss}/{steps}" for t in whole["config"]["tasks"] for loss, steps in rungs}
+    budgets: dict = {}
+    for loss, steps in rungs:
+        budgets.setdefault(loss, {"steps": [], "batch": BUDGETS[loss].batch})["steps"].append(steps)
+    return {**whole, "rows": [r for r in whole["rows"] if r["task"] in keep],
+            "config": {**whole["config"], "budgets": budgets, "losses": list(budgets)},
+            "wall_seconds": wall, "command": f"metaworld_budgets.py part {wall}"}  # fmt: skip
+
+
+def test_runs_of_disjoint_rungs_merge_into_the_report_of_one_run():
+    whole = _payload()
+    a = _part({("mse", 320): 0, ("mse", 2000): 0, ("diffusion_unet", 500): 0}, 60.0)
+    b = _part({("diffusion_unet", 2000): 0}, 30.0)
+    merged = merge([a, b])
+    assert merged["config"]["budgets"] == whole["config"]["budgets"]
+    assert merged["config"]["losses"] == ["mse", "diffusion_unet"]
+    assert merged["wall_seconds"] == 90.0 and len(merged["references"]) == 4
+    tables = markdown(whole, "f.png").split("\n\n", 1)[1]
+    assert markdown(merged, "f.png").split("\n\n", 1)[1] == tables  # every number the same
+    assert "metaworld_budgets.py part 30.0: 0.5 min with 2 process(es)" in markdown(merged, "f.png")
+    with pytest.raises(ValueError, match="repeats the cell"):
+        merge([a, a])
+    other = {**b, "references": [{**b["references"][0], "successes": 4}, *b["references"][1:]]}
+    with pytest.raises(ValueError, match=r"another .* reference: the code changed"):
+        merge([a, other])
+    with pytest.raises(ValueError, match="another seeds"):
+        merge([a, {**b, "config": {**b["config"], "seeds": 3}}])
