@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import sys
 import time
 from dataclasses import asdict, dataclass, replace
@@ -180,6 +181,11 @@ def main(argv: list[str] | None = None) -> None:
     _report_of(payload, out_dir)
 
 
+def _without_out(command: str) -> str:
+    """``command`` without its ``--out`` folder (a path of one machine)."""
+    return re.sub(r" --out(=| )\S+", "", command)
+
+
 def merge(runs: list[dict]) -> dict:
     """One payload of ``runs``' rungs (ValueError where two runs disagree on the tasks,
     the seeds, the protocol, a loss's batch or an expert reference, or run the same cell:
@@ -223,7 +229,8 @@ def merge(runs: list[dict]) -> dict:
         "load_average_start": runs[0]["load_average_start"],
         "load_average_end": runs[-1]["load_average_end"],
         "merged_from": [
-            f"{r.get('command', r.get('source', f'run {k}'))}: {r['wall_seconds'] / 60:.1f} min "
+            f"{_without_out(r.get('command', r.get('source', f'run {k}')))}: "
+            f"{r['wall_seconds'] / 60:.1f} min "
             f"with {r['config']['jobs']} process(es), load {r['load_average_start'][0]:.2f} to {r['load_average_end'][0]:.2f}"
             for k, r in enumerate(runs)
         ],
