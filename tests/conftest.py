@@ -2,8 +2,15 @@
 
 from __future__ import annotations
 
+import os
 import sys
 from pathlib import Path
+
+# One torch thread in every process the tests start too (benchmark scripts, `python -c`
+# children, Ray workers, spawned pools), not this one alone: on a 2-core machine with two
+# xdist workers, children at torch's default of a thread a core made the suite's wall time
+# swing by minutes between runs. A test that measures threads sets its own.
+os.environ["OMP_NUM_THREADS"] = "1"
 
 import pytest
 import torch
