@@ -11,7 +11,9 @@ with ``TMPDIR=tmp`` (where its ``--quick`` writes) and ``sys.argv = [script,
 ``log/stdout``, ``log/stderr`` and ``log/status`` get what the process would print and
 its exit status. ``PARALLEL`` forks at a time. This process starts no thread
 before it forks (none of the imports does), so each fork starts as a fresh interpreter
-would, with the modules already loaded.
+would, with the modules already loaded. What a fork cannot catch: a script reaching a
+submodule the preload imported without importing it itself (``imitrl.jobs.bc`` as an
+attribute of ``imitrl``), which a fresh interpreter would refuse.
 """
 
 from __future__ import annotations
