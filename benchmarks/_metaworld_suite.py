@@ -13,7 +13,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 import _report
-from _loss_functions.merge import with_defaults
+from _loss_functions.merge import join_cells, with_defaults
 from _loss_functions.run import run
 from _loss_functions.tasks import Protocol, TaskDef
 from _metaworld_report import figure, markdown
@@ -76,24 +76,13 @@ def merge(runs: list[dict], demos: tuple[int, ...]) -> dict:
     if len(runs) < 2:
         raise ValueError("--merge needs at least two results files")
     keep = {f"{t}/{n}demo" for r in runs for t in r["config"]["tasks"] for n in demos}
-    rows, refs, cells, protocols = [], {}, set(), {}
+    protocols: dict = {}
     for k, part in enumerate(runs):
         for name, recorded in part["config"]["protocol"].items():
             protocol = with_defaults(recorded)  # fields a run predates: their defaults
             if name in keep and protocols.setdefault(name, protocol) != protocol:
                 raise ValueError(f"run {k} trained {name} with another protocol")
-        for ref in part["references"]:
-            key = (ref["task"], ref["policy"], ref["seed"])
-            if ref["task"] in keep and refs.setdefault(key, ref) != ref:
-                raise ValueError(f"run {k} measured another {key} reference: the code changed")
-        for row in part["rows"]:
-            key = (row["task"], row["loss"], row["seed"], row["algorithm"])
-            if row["task"] not in keep:
-                continue
-            if key in cells:
-                raise ValueError(f"run {k} repeats the cell {key}")
-            cells.add(key)
-            rows.append(row)
+    rows, refs = join_cells(runs, keep=keep.__contains__)
     losses = list(dict.fromkeys(r["loss"] for r in rows))
     seeds = sorted({r["seed"] for r in rows})
     tasks = list(dict.fromkeys(t for r in runs for t in r["config"]["tasks"]))
@@ -116,7 +105,7 @@ def merge(runs: list[dict], demos: tuple[int, ...]) -> dict:
     return {
         "config": config,
         "rows": rows,
-        "references": list(refs.values()),
+        "references": refs,
         "wall_seconds": sum(r["wall_seconds"] for r in runs),
         "load_average_start": runs[0]["load_average_start"],
         "load_average_end": runs[-1]["load_average_end"],

@@ -40,6 +40,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import _report
+from _loss_functions.merge import join_cells
 from _loss_functions.run import execute
 from _metaworld_budgets_report import figure, markdown
 from _metaworld_suite import metaworld_task
@@ -145,7 +146,11 @@ def main(argv: list[str] | None = None) -> None:
         return
     if args.merge is not None:
         runs = [{**json.loads(f.read_text()), "source": f.name} for f in args.merge]
-        _report_of(merge(runs), _report.destination(NAME, quick=False, out=args.out))
+        try:
+            merged = merge(runs)
+        except ValueError as err:  # files that do not join: one line, nothing written
+            p.error(f"--merge: {err}")
+        _report_of(merged, _report.destination(NAME, quick=False, out=args.out))
         return
     try:
         budgets = chosen(tuple(args.losses), None if args.steps is None else tuple(args.steps))
@@ -193,7 +198,6 @@ def merge(runs: list[dict]) -> dict:
     if len(runs) < 2:
         raise ValueError("--merge needs at least two results files")
     first = runs[0]["config"]
-    rows, refs, cells = [], {}, set()
     budgets: dict[str, dict] = {}
     for k, part in enumerate(runs):
         config = part["config"]
@@ -205,16 +209,7 @@ def merge(runs: list[dict]) -> dict:
             if have["batch"] != b["batch"]:
                 raise ValueError(f"run {k} fits {loss} at batch {b['batch']}, not {have['batch']}")
             have["steps"] = sorted({*have["steps"], *b["steps"]})
-        for ref in part["references"]:
-            key = (ref["task"], ref["policy"], ref["seed"])
-            if refs.setdefault(key, ref) != ref:
-                raise ValueError(f"run {k} measured another {key} reference: the code changed")
-        for row in part["rows"]:
-            key = (row["task"], row["seed"], row["algorithm"])
-            if key in cells:
-                raise ValueError(f"run {k} repeats the cell {key}")
-            cells.add(key)
-            rows.append(row)
+    rows, refs = join_cells(runs)
     losses = [loss for loss in BUDGETS if loss in budgets]
     return {
         "config": {
@@ -224,7 +219,7 @@ def merge(runs: list[dict]) -> dict:
             "budgets": {loss: budgets[loss] for loss in losses},
         },
         "rows": rows,
-        "references": list(refs.values()),
+        "references": refs,
         "wall_seconds": sum(r["wall_seconds"] for r in runs),
         "load_average_start": runs[0]["load_average_start"],
         "load_average_end": runs[-1]["load_average_end"],

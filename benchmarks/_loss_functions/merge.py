@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from typing import Any
 
-__all__ = ["merge", "with_defaults"]
+__all__ = ["join_cells", "merge", "with_defaults"]
 
 
 def with_defaults(protocol: dict) -> dict:
@@ -34,6 +34,26 @@ def with_defaults(protocol: dict) -> dict:
         **protocol.get("learner", {}),
     }
     return out
+
+
+def join_cells(runs: list[dict], keep=lambda task: True) -> tuple[list[dict], list[dict]]:
+    """Every run's rows and references whose task ``keep`` accepts, each once (ValueError
+    where two runs measured a reference with other digits, or ran the same cell: the code
+    changed between them, or the cells overlap). The Meta-World suites' merges."""
+    rows, refs, cells = [], {}, set()
+    for k, part in enumerate(runs):
+        for ref in part["references"]:
+            key = (ref["task"], ref["policy"], ref["seed"])
+            if keep(ref["task"]) and refs.setdefault(key, ref) != ref:
+                raise ValueError(f"run {k} measured another {key} reference: the code changed")
+        for row in part["rows"]:
+            if not keep(row["task"]):
+                continue
+            if _cell(row) in cells:
+                raise ValueError(f"run {k} repeats the cell {_cell(row)}")
+            cells.add(_cell(row))
+            rows.append(row)
+    return rows, list(refs.values())
 
 
 def _cell(row: dict) -> tuple:

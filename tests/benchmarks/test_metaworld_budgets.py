@@ -145,3 +145,15 @@ def test_runs_of_disjoint_rungs_merge_into_the_report_of_one_run():
         merge([a, other])
     with pytest.raises(ValueError, match="another seeds"):
         merge([a, {**b, "config": {**b["config"], "seeds": 3}}])
+
+
+def test_files_that_do_not_join_are_one_line_and_nothing_is_written(tmp_path, capsys):
+    import json
+
+    part = tmp_path / "a.json"
+    part.write_text(json.dumps(_part({("mse", 320): 0}, 60.0)))
+    with pytest.raises(SystemExit) as exit_:
+        main(["--merge", str(part), str(part), "--out", str(tmp_path / "out")])
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and "--merge: run 1 repeats the cell" in err
+    assert "Traceback" not in err and not (tmp_path / "out").exists()
