@@ -51,7 +51,14 @@ def test_an_old_run_loads_with_its_weights_and_reproduces_its_evaluation(tmp_pat
     assert status == 0, err
     evaluated = json.loads((tmp_path / "ev" / "eval.json").read_text())["evaluation"]
     recorded = json.loads((OLD / name / "results.json").read_text())["learner"]
-    assert evaluated["mean_return"] == recorded["mean_return"]
+    if env_id == "Pendulum-v1":
+        # Pendulum's returns sum 50 float64 dynamics steps driven by float32 actions, whose
+        # last bits depend on the CPU's matmul kernels (AVX2 vs AVX-512): seen to differ in
+        # the 10th digit between the machine that saved the run and another. CartPole's
+        # integer returns are equal exactly.
+        assert evaluated["mean_return"] == pytest.approx(recorded["mean_return"], rel=1e-7)
+    else:
+        assert evaluated["mean_return"] == recorded["mean_return"]
 
 
 def test_an_old_dagger_run_resumes_and_equals_the_longer_run(tmp_path):
