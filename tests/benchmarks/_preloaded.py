@@ -9,7 +9,8 @@ with ``TMPDIR=tmp`` (where its ``--quick`` writes) and ``sys.argv = [script,
 "--quick"]``, as ``__main__`` (:func:`runpy.run_path`), its exit handlers run at its end
 (:data:`OWN_PROCESS`: a fresh interpreter instead);
 ``log/stdout``, ``log/stderr`` and ``log/status`` get what the process would print and
-its exit status. ``PARALLEL`` forks at a time. This process starts no thread
+its exit status, ``log/cost.json`` its wall and CPU seconds (its own and its children's
+that it waited for). ``PARALLEL`` forks at a time. This process starts no thread
 before it forks (none of the imports does), so each fork starts as a fresh interpreter
 would, with the modules already loaded. What a fork cannot catch: a script reaching a
 submodule the preload imported without importing it itself (``imitrl.jobs.bc`` as an
@@ -98,7 +99,7 @@ def main(parallel: int, jobs: list[tuple[str, str, str]]) -> None:
             if pid == 0:
                 os._exit(child(script, tmp, log))
             running[pid] = (log, time.monotonic())
-        pid, wait_status = os.waitpid(-1, os.WNOHANG)
+        pid, wait_status, usage = os.wait4(-1, os.WNOHANG)
         if pid == 0:  # none ended: stop one past its time, then look again
             for late, (log, start) in running.items():
                 if time.monotonic() - start > TIMEOUT:
@@ -107,8 +108,10 @@ def main(parallel: int, jobs: list[tuple[str, str, str]]) -> None:
                         print(f"killed after {TIMEOUT} s", file=err)
             time.sleep(0.2)
             continue
-        log, _ = running.pop(pid)
+        log, start = running.pop(pid)
         (log / "status").write_text(str(os.waitstatus_to_exitcode(wait_status)))
+        cost = {"wall_s": time.monotonic() - start, "cpu_s": usage.ru_utime + usage.ru_stime}
+        (log / "cost.json").write_text(json.dumps(cost))
 
 
 if __name__ == "__main__":
