@@ -20,39 +20,6 @@ from imitrl.tabular import TabularMDP, greedy, value_iteration
 torch.set_num_threads(1)
 
 
-LONGEST_FIRST = (
-    "benchmarks/test_benchmarks_smoke.py",
-    "fs/test_fs_hostile.py",
-    "datasets/minari/test_minari_hostile.py",
-    "cli/test_cli.py",
-    "experiments/frozenlake/test_study.py",
-    "experiments/frozenlake/test_study_faults.py",
-    "datasets/lerobot/test_lerobot_hostile.py",
-    "algorithms/test_ray_source.py",
-    "envs/test_metaworld.py",
-    "datasets/minari/test_bounds.py",
-    "test_readme_examples.py",
-)
-"""test files (under ``tests/``) handed to the xdist workers before the rest, longest
-first: each took 28-200 s of a worker in a quiet run, the median file under 2 s. Given out
-last, one of them kept one worker busy while the other sat idle (20 s at the end of a
-9.8-minute run). Only the order changes; every file still runs."""
-
-
-def pytest_collection_modifyitems(config, items):
-    """:data:`LONGEST_FIRST` files first (``--no-loadscope-reorder`` in ``pyproject.toml``
-    makes xdist hand files out in this order), the rest as collected."""
-    root = Path(__file__).resolve().parent
-    rank = {name: i for i, name in enumerate(LONGEST_FIRST)}
-
-    def key(item) -> int:
-        path = Path(str(item.path)).resolve()
-        name = path.relative_to(root).as_posix() if path.is_relative_to(root) else ""
-        return rank.get(name, len(LONGEST_FIRST))
-
-    items.sort(key=key)  # stable: within a file, and among the rest, collection order
-
-
 @pytest.fixture(scope="session")
 def lake() -> TabularMDP:
     """Slippery FrozenLake-v1 (4x4) with gamma 0.95."""

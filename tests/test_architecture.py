@@ -288,13 +288,3 @@ def test_the_machine_path_finder_finds_one(tmp_path):
     (tmp_path / "b.json").write_text('{"python": "imitrl_venv/bin/python"}\n')
     (tmp_path / "c.bin").write_bytes(b"\xff\xfe" + "/".join(["", "home", "x"]).encode())
     assert machine_paths(tmp_path, ["a.md", "b.json", "c.bin"]) == ["a.md:1"]
-
-
-def test_the_files_run_first_are_test_files_of_the_tree():
-    """``tests/conftest.py`` hands its ``LONGEST_FIRST`` files out first: a renamed or
-    moved one would silently fall back to the end, where the suite's tail waits on it."""
-    from tests.conftest import LONGEST_FIRST
-
-    missing = [name for name in LONGEST_FIRST if not (TESTS / name).is_file()]
-    assert missing == [], f"LONGEST_FIRST names files that are gone: {missing}"
-    assert len(set(LONGEST_FIRST)) == len(LONGEST_FIRST)
