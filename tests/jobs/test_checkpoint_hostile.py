@@ -211,6 +211,7 @@ REPLACER = textwrap.dedent(
             sys.exit("this file system cannot exchange two folders")
         shutil.rmtree(tmp)
         i += 1
+        stop.with_name("exchanges").write_text(str(i))  # how far it got, for the reader
         time.sleep(0.002)  # a busy writer, not a spinning one: loads still finish between
     print(i)
     """
@@ -254,6 +255,14 @@ def _buffer_sources(tmp_path: Path):
     return sources, load, whole
 
 
+def _exchanges(stop: Path) -> int:
+    """The exchanges :data:`REPLACER` has made so far (0 before its first, or mid-write)."""
+    try:
+        return int(stop.with_name("exchanges").read_text())
+    except (FileNotFoundError, ValueError):
+        return 0
+
+
 @pytest.mark.parametrize("kind", ["run", "buffer"])
 def test_a_checkpoint_replaced_while_it_is_read_is_never_called_damaged(tmp_path, kind):
     import shutil
@@ -272,9 +281,11 @@ def test_a_checkpoint_replaced_while_it_is_read_is_never_called_damaged(tmp_path
         while target.stat().st_ino == first and time.perf_counter() - started < 20:
             time.sleep(0.001)  # the writer has started: its first exchange is done
         started = time.perf_counter()
-        while (loads < 300 or time.perf_counter() - started < 3) and (
-            time.perf_counter() - started < 20
-        ):
+        # at least 300 loads, 3 s and 50 exchanges (on a loaded machine the writer may get
+        # a small share of a core: 28 exchanges in 3 s were seen), at most 60 s
+        while (
+            loads < 300 or time.perf_counter() - started < 3 or _exchanges(stop) < 50
+        ) and time.perf_counter() - started < 60:
             loads += 1
             try:
                 mixed += not whole(load(target))
