@@ -57,9 +57,10 @@ def test_batched_estimate_agrees_with_exact_value(lake, expert_table, lanes):
 def test_sampled_policy_has_exact_value_from_its_probabilities(lake):
     learner = build("cross_entropy", TaskSpec(action=4, num_states=16))  # uniform random policy
     env = TabularEnv(lake, batch_size=(5000,), seed=3)
+    # seeded: unseeded, its draws came from torch's global RNG, set by the tests run before
     ev = evaluate(
         env, learner.policy, 20_000, exploration=ExplorationType.RANDOM, confidence=0.999, seed=3
-    )  # seeded: drawn from torch's global RNG, the interval depended on the tests run before
+    )
     probs = tabulate(learner.policy, 16, ExplorationType.RANDOM)
     assert torch.allclose(probs, torch.full((16, 4), 0.25, dtype=torch.float64))
     assert ev.exact_success == pytest.approx(success_probability(lake, probs))
