@@ -205,8 +205,11 @@ def test_the_layout_table_sees_a_new_module(tmp_path, monkeypatch):
 
 
 TESTS = Path(__file__).resolve().parent
-TOP_LEVEL = {"test_architecture.py", "test_readme_blocks.py", "test_readme_examples.py"}
-"""tests of the whole tree and of the README, beside the mirror"""
+TOP_LEVEL = {
+    "test_architecture.py", "test_child.py", "test_readme_blocks.py", "test_readme_examples.py",
+}  # fmt: skip
+"""tests of the whole tree, of the README and of the tests' own child processes, beside the
+mirror"""
 
 
 def mirror_misses(tests: Path, src: Path, benchmarks: Path) -> list[str]:

@@ -16,7 +16,7 @@ from imitrl.algorithms import dagger
 from imitrl.envs import make_env
 from imitrl.evaluation import evaluate
 from imitrl.tabular import TabularMDP, success_probability
-from tests import _resume_run
+from tests import _child, _resume_run
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -60,7 +60,7 @@ def _reference(kind: str) -> dict:
 def test_killed_after_any_round_and_resumed_is_identical_to_the_bit(kind, kill_at, tmp_path):
     expected = _reference(kind)
     ckpt = tmp_path / "run"
-    proc = subprocess.run(
+    proc = _child.run(
         [sys.executable, "-m", "tests._resume_run", kind, str(ckpt), str(kill_at)],
         cwd=ROOT,
         capture_output=True,
@@ -113,7 +113,7 @@ def test_imitrl_dagger_resume_after_a_kill_gives_the_uninterrupted_results(tmp_p
     ]  # fmt: skip
     assert main([*flags, "--out", str(tmp_path / "whole")]) == 0
     killed = tmp_path / "killed"
-    proc = subprocess.Popen(
+    proc = _child.Popen(
         [sys.executable, "-m", "imitrl", *flags, "--out", str(killed)],
         cwd=ROOT,
         stdout=subprocess.DEVNULL,

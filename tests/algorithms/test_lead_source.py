@@ -9,6 +9,8 @@ import torch
 import torch.multiprocessing as mp
 from tensordict import TensorDict
 
+from tests import _child
+
 
 class _Played:
     """Rank 0's source: rows that name the round."""
@@ -65,7 +67,13 @@ def _rank(rank: int, world: int, init: str, out: str) -> None:
 def ranks(tmp_path_factory):
     folder = tmp_path_factory.mktemp("lead")
     out = str(folder / "out")
-    mp.spawn(_rank, args=(2, str(folder / "init"), out), nprocs=2, join=True)
+    mp.start_processes(
+        _rank,
+        args=(2, str(folder / "init"), out),
+        nprocs=2,
+        join=True,
+        start_method=_child.forkserver(),
+    )
     return [torch.load(f"{out}.{r}", weights_only=False) for r in range(2)]
 
 

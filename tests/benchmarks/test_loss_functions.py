@@ -6,7 +6,6 @@ from __future__ import annotations
 import json
 import os
 import re
-import subprocess
 import sys
 from pathlib import Path
 
@@ -16,6 +15,7 @@ import torch
 
 from imitrl.learners import registry
 from imitrl.tabular import success_probability
+from tests import _child
 from tests.benchmarks.test_benchmarks_smoke import committed
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -32,7 +32,7 @@ def test_quick_run_covers_every_loss_on_every_task(tmp_path, lake, expert_table)
     """``--quick`` without ``--out`` writes to a temporary directory, never the committed
     README or results, and covers every loss on every task."""
     before = committed()
-    proc = subprocess.run(
+    proc = _child.run(
         [sys.executable, str(ROOT / "benchmarks" / "loss_functions.py"), "--quick"],
         env={**os.environ, "TMPDIR": str(tmp_path)},  # where --quick writes
         capture_output=True,
@@ -301,7 +301,7 @@ def test_a_requested_loss_that_does_not_apply_is_named_never_dropped(capsys):
         ValueError, match=r"--losses mse: applies to none of the tasks \['frozenlake'\]"
     ):
         plan([TASKS["frozenlake"]], ["mse"], [0], True)
-    typo = subprocess.run(
+    typo = _child.run(
         [sys.executable, "loss_functions.py", "--quick", "--losses", "mes"],
         cwd=ROOT / "benchmarks", capture_output=True, text=True,
     )  # fmt: skip

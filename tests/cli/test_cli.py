@@ -11,7 +11,6 @@ import dataclasses
 import importlib.util
 import io
 import json
-import subprocess
 import sys
 import textwrap
 
@@ -26,6 +25,7 @@ from imitrl.jobs import BCJob, DAggerJob, bench, run_bc
 from imitrl.jobs.curves import read_scalars, scalars_dir
 from imitrl.limits import flag_of
 from imitrl.runtime import rollout_episodes
+from tests import _child
 
 TINY = [
     "--env", "CartPole-v1", "--expert", "cartpole", "--demos", "1", "--steps", "20",
@@ -354,7 +354,7 @@ def test_a_missing_extra_is_named_with_its_install_line(tmp_path):
         f"sys.exit(main(['bc', '--env', 'CartPole-v1', '--dataset', {str(dataset)!r},"
         f" '--out', {str(tmp_path / 'out')!r}]))"
     )
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    proc = _child.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert proc.returncode == 2, proc.stderr
     assert "pip install 'imitrl[datasets]'" in proc.stderr and "Traceback" not in proc.stderr
     for module, extra in EXTRAS.items():

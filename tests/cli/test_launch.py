@@ -16,6 +16,8 @@ from pathlib import Path
 
 import pytest
 
+from tests import _child
+
 TINY = ["--env", "Pendulum-v1", "--demos", "1", "--steps", "40", "--eval-episodes", "2",
         "--max-episode-steps", "40", "--no-progress"]  # fmt: skip
 
@@ -23,7 +25,7 @@ TINY = ["--env", "Pendulum-v1", "--demos", "1", "--steps", "40", "--eval-episode
 def imitrl(*argv: str, timeout: float = 300) -> subprocess.CompletedProcess:
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     cmd = [sys.executable, "-m", "imitrl", *argv]
-    return subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=timeout)
+    return _child.run(cmd, capture_output=True, text=True, env=env, timeout=timeout)
 
 
 def _results(out: Path) -> dict:
@@ -100,7 +102,7 @@ def test_a_rank_killed_mid_fit_ends_the_run_naming_it(tmp_path):
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     argv = [sys.executable, "-m", "imitrl", "bc", *TINY[:-1], "--steps", "10000000",
             "--nproc", "2", "--out", str(tmp_path / "run"), "--no-progress"]  # fmt: skip
-    proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    proc = _child.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             env=env)  # fmt: skip
     try:
         rank = _wait_for_rank(proc.pid, 1, deadline=300)
@@ -192,7 +194,7 @@ def test_ranks_end_with_a_launcher_killed_outright(tmp_path):
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     argv = [sys.executable, "-m", "imitrl", "bc", *TINY[:-1], "--steps", "10000000",
             "--nproc", "2", "--out", str(tmp_path / "run"), "--no-progress"]  # fmt: skip
-    proc = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
+    proc = _child.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
     ranks = [_wait_for_rank(proc.pid, k, deadline=300, settle=s) for k, s in ((0, 0), (1, 4))]
     proc.kill()
     proc.wait()

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import json
 import os
-import subprocess
 import sys
 import textwrap
 from pathlib import Path
@@ -22,6 +21,7 @@ import pytest
 import imitrl
 from imitrl.data import DemonstrationBuffer
 from imitrl.fs import PlantedLinkError
+from tests import _child
 from tests.data.test_disk import cartpole_rows
 
 SRC = str(Path(imitrl.__file__).resolve().parents[1])
@@ -133,7 +133,7 @@ def test_a_fifo_or_a_link_at_the_layout_or_a_column_is_refused_at_once(tmp_path)
     os.truncate(paths["big"] / "imitrl_buffer.json", (16 << 20) + 1)  # sparse, past the limit
     os.unlink(paths["fifo column"] / "storage" / "observation.memmap")
     os.mkfifo(paths["fifo column"] / "storage" / "observation.memmap")
-    done = subprocess.run(
+    done = _child.run(
         [sys.executable, "-c", textwrap.dedent(_RESUME), SRC, *map(str, paths.values())],
         capture_output=True, text=True, timeout=30,
         env={**os.environ, "OMP_NUM_THREADS": "1"},

@@ -20,6 +20,7 @@ from tensordict import TensorDict
 
 from imitrl import keys
 from imitrl.datasets import load_lerobot, save_lerobot
+from tests import _child
 
 
 # ----------------------------------------------------------------- helpers
@@ -86,7 +87,9 @@ def test_two_writers_at_once_one_wins_every_time(tmp_path):
     """30 trials of two processes saving to one path at the same moment: exactly one
     succeeds, the other gets a ValueError, and the path holds the winner's rows whole."""
     trials = [str(tmp_path / f"ds{i}") for i in range(30)]
-    ctx = multiprocessing.get_context("spawn")  # no fork of a process holding torch threads
+    ctx = (
+        _child.context()
+    )  # a fork of the preloaded server: no fork of a process holding torch threads
     barrier, results = ctx.Barrier(2), ctx.Queue()
     workers = [ctx.Process(target=_writer, args=(i, barrier, trials, results)) for i in (0, 1)]
     for w in workers:

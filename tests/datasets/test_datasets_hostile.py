@@ -27,7 +27,7 @@ import pytest
 import torch
 
 from imitrl.datasets import load_lerobot, load_minari
-from tests import _watch
+from tests import _child, _watch
 from tests._lerobot_files import episodes_data, write_v21, write_v30
 from tests._lerobot_videos import add_cameras_v21, add_cameras_v30, encode
 
@@ -269,7 +269,7 @@ def test_an_episode_table_declaring_more_episodes_than_frames_is_refused_at_once
         root = write_v21(tmp_path / "ds", episodes)
     _declare_episodes(root, count, v3)
     src = next(p for p in sys.path if (Path(p) / "imitrl").is_dir())
-    done = subprocess.run(
+    done = _child.run(
         [sys.executable, "-c", textwrap.dedent(_COUNT_SCRIPT), str(root), src],
         capture_output=True,
         text=True,

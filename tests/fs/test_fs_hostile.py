@@ -32,6 +32,7 @@ from imitrl.data import DemonstrationBuffer
 from imitrl.datasets import save_lerobot, save_minari
 from imitrl.fs import PlantedLinkError
 from imitrl.fs.run_folder import staging_folder
+from tests import _child
 from tests._resume_run import run as dagger_run
 from tests.data.test_checkpoint import demo_rows
 from tests.datasets.minari.test_write import _play
@@ -58,7 +59,7 @@ def run(argv: list[str]) -> tuple[int, str, str]:
 def cli(*argv: str, cwd: Path | None = None, **kwargs) -> subprocess.CompletedProcess:
     """``python -m imitrl ARGV`` in a process of its own (this checkout's package)."""
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT / "src")}
-    return subprocess.run(
+    return _child.run(
         [sys.executable, "-m", "imitrl", *argv],
         cwd=cwd or ROOT,
         env=env,
@@ -181,7 +182,7 @@ def test_a_killed_overwrite_leaves_the_previous_run_whole(tmp_path, delay):
     assert {"results.json", "learner.pt", "config.json", "curves.png"} <= set(before)
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT / "src")}
     long = [a if a != "2" else "100000" for a in TINY]  # --steps 100000: still fitting
-    proc = subprocess.Popen(
+    proc = _child.Popen(
         [sys.executable, "-m", "imitrl", "bc", *long, "--out", str(out), "--overwrite"],
         cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
     )  # fmt: skip
@@ -214,7 +215,7 @@ def test_a_failed_or_killed_run_never_blocks_its_rerun(tmp_path):
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT / "src")}
     fresh = tmp_path / "fresh"
     long = [a if a != "2" else "100000" for a in TINY]
-    proc = subprocess.Popen(
+    proc = _child.Popen(
         [sys.executable, "-m", "imitrl", "bc", *long, "--out", str(fresh)],
         cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
     )  # fmt: skip

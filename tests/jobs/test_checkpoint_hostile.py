@@ -33,6 +33,7 @@ from imitrl.cli import main
 from imitrl.data import DemonstrationBuffer
 from imitrl.envs import make_env
 from imitrl.learners import TaskSpec, build
+from tests import _child
 from tests.data.test_checkpoint import demo_rows, same_buffer
 
 ENV = "CartPole-v1"
@@ -110,7 +111,7 @@ def test_a_config_asking_for_a_huge_network_is_refused_before_memory_is_taken(tm
     assert (ckpt / "learner.pt").stat().st_size < 50_000  # a 40 KB download
     assert (ckpt / "config.json").stat().st_size < 500
     started = time.perf_counter()
-    done = subprocess.run(
+    done = _child.run(
         [sys.executable, "-c", LOAD_UNDER_A_LIMIT, str(ckpt), str(HEADROOM)],
         capture_output=True, text=True, timeout=300,
         env={**os.environ, "OMP_NUM_THREADS": "1"},
@@ -270,7 +271,7 @@ def test_a_checkpoint_replaced_while_it_is_read_is_never_called_damaged(tmp_path
     sources, load, whole = (_run_sources if kind == "run" else _buffer_sources)(tmp_path)
     target, stop = tmp_path / "ck", tmp_path / "stop"
     shutil.copytree(sources[0], target)
-    writer = subprocess.Popen(
+    writer = _child.Popen(
         [sys.executable, "-c", REPLACER, str(target), str(stop), *map(str, sources)],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )  # fmt: skip

@@ -9,12 +9,12 @@ import contextlib
 import io
 import json
 import os
-import subprocess
 import sys
 
 import pytest
 
 from imitrl.cli import main
+from tests import _child
 from tests.conftest import EXAMPLES
 
 LOSS = "mypkg.losses:l1_l2"
@@ -39,10 +39,10 @@ def test_a_registered_loss_trains_from_the_cli_and_eval_needs_its_module_named(m
     # a fresh process: the checkpoint alone never imports mypkg
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(EXAMPLES), *sys.path])}
     cmd = [sys.executable, "-m", "imitrl", "eval", "--checkpoint", str(out), "--no-progress"]
-    refused = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300)
+    refused = _child.run(cmd, capture_output=True, text=True, env=env, timeout=300)
     assert refused.returncode == 2, refused.stderr
     assert f"name it yourself: imitrl eval --loss {LOSS}" in refused.stderr
-    named = subprocess.run([*cmd, "--loss", LOSS], capture_output=True, text=True, env=env,
+    named = _child.run([*cmd, "--loss", LOSS], capture_output=True, text=True, env=env,
                            timeout=300)  # fmt: skip
     assert named.returncode == 0, named.stderr
     assert f"return {learner['mean_return']:.2f}" in named.stdout

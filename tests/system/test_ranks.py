@@ -12,6 +12,7 @@ import torch
 import torch.multiprocessing as mp
 
 from imitrl.system.ranks import rows_drawn, sharded, share
+from tests import _child
 
 B, STEPS = 16, 100
 LOSSES = ("mse", "flow_chunk", "act", "diffusion_unet", "for_env")
@@ -95,7 +96,13 @@ def two_ranks(tmp_path_factory):
         lerobot = str(save_lerobot(_rows(pixels=False)[1], folder / "lerobot", fps=20))
     except ImportError:  # pyarrow, the datasets extra: that case is skipped
         pass
-    mp.spawn(_rank, args=(2, str(folder / "init"), out, lerobot), nprocs=2, join=True)
+    mp.start_processes(
+        _rank,
+        args=(2, str(folder / "init"), out, lerobot),
+        nprocs=2,
+        join=True,
+        start_method=_child.forkserver(),
+    )
     return {**torch.load(out), "_lr": lerobot}
 
 

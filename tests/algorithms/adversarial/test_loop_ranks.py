@@ -9,6 +9,8 @@ import pytest
 import torch
 import torch.multiprocessing as mp
 
+from tests import _child
+
 B, WORLD, LANES = 32, 2, 2
 RUN = dict(total_steps=512, rollout_steps=128, ppo_epochs=2, minibatch_size=64,
            discriminator_updates=2, discriminator_batch=32)  # fmt: skip
@@ -105,7 +107,13 @@ def _rank(rank: int, world: int, init: str, out: str) -> None:
 def ranks(tmp_path_factory):
     folder = tmp_path_factory.mktemp("adversarial_ranks")
     out = str(folder / "out.pt")
-    mp.spawn(_rank, args=(WORLD, str(folder / "init"), out), nprocs=WORLD, join=True)
+    mp.start_processes(
+        _rank,
+        args=(WORLD, str(folder / "init"), out),
+        nprocs=WORLD,
+        join=True,
+        start_method=_child.forkserver(),
+    )
     return [torch.load(f"{out}.{r}") for r in range(WORLD)]
 
 

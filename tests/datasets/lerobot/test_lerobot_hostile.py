@@ -38,7 +38,7 @@ import imitrl
 from imitrl import keys
 from imitrl.data import DemonstrationBuffer
 from imitrl.datasets import load_lerobot, save_lerobot
-from tests import _watch
+from tests import _child, _watch
 from tests._lerobot_files import episodes_data, write_v21, write_v30
 from tests._lerobot_videos import add_cameras_v30
 from tests.datasets.test_datasets_faults import _rows, _same
@@ -87,7 +87,7 @@ print(json.dumps(out))
 def _capped_load(root: Path) -> dict:
     """``load_lerobot(root, images="load")`` in a child process capped at 1.5 GiB more
     than its imports hold: ``{"error", "message", "seconds", "peak_mib"}``."""
-    done = subprocess.run(
+    done = _child.run(
         [sys.executable, "-c", textwrap.dedent(_CAPPED), str(root), SRC],
         capture_output=True,
         text=True,
@@ -330,7 +330,7 @@ def test_a_fifo_in_place_of_a_file_is_refused_without_waiting(tmp_path, case):
     (root / name).unlink()
     os.mkfifo(root / name)
     try:
-        done = subprocess.run(
+        done = _child.run(
             [sys.executable, "-c", textwrap.dedent(_FIFO_LOAD), str(root), SRC, how],
             capture_output=True,
             text=True,

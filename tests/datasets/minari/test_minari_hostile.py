@@ -42,6 +42,7 @@ from tensordict import TensorDict
 from imitrl import keys
 from imitrl.datasets import load_minari, save_minari
 from imitrl.fs import DiskFullError
+from tests import _child
 from tests.datasets.minari.test_minari import BOX4, DISCRETE2, _episode, _write
 
 torch.set_num_threads(1)
@@ -90,7 +91,7 @@ def _python(script: str, *args: str, timeout: float, **env: str) -> subprocess.C
     """``script`` run by this interpreter with ``sys.argv[1:] = args``, imitrl (the one
     under test) and the tests importable, and ``env`` added to the environment."""
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([SRC, ROOT]), "OMP_NUM_THREADS": "1", **env}
-    return subprocess.run(
+    return _child.run(
         [sys.executable, "-c", textwrap.dedent(script), *args],
         capture_output=True,
         text=True,

@@ -25,6 +25,7 @@ from imitrl.cli import main
 from imitrl.evaluation.evaluate import wilson_interval
 from imitrl.experiments.frozenlake import figures, figures_irl, outputs, study
 from imitrl.tabular import TabularMDP
+from tests import _child
 
 UNREACHABLE = "SFFF,FFFF,FFHH,FFHG"  # the goal is walled off by holes
 SRC = str(Path(imitrl.__file__).resolve().parents[1])
@@ -200,7 +201,7 @@ def test_a_fifo_or_a_link_at_results_json_is_refused_at_once(tmp_path):
     os.symlink("/dev/zero", zero / "results.json")
     with open(big / "results.json", "wb") as f:
         f.truncate((16 << 20) + 1)  # sparse, past outputs.RESULTS_LIMIT
-    done = subprocess.run(
+    done = _child.run(
         [sys.executable, "-c", textwrap.dedent(_HOSTILE_OUT), SRC, str(fifo), str(zero), str(big)],
         capture_output=True, text=True, timeout=30,
         env={**os.environ, "OMP_NUM_THREADS": "1"},
@@ -302,7 +303,7 @@ def test_sigkill_mid_run_leaves_previous_results_whole(tmp_path, previous, capsy
     shutil.copytree(previous, out)
     before = _files(out)
     argv = _small(out, "--dagger-rounds", "1000")  # long enough to be killed mid-run
-    proc = subprocess.Popen([sys.executable, "-m", "imitrl", *argv], stdout=subprocess.DEVNULL)
+    proc = _child.Popen([sys.executable, "-m", "imitrl", *argv], stdout=subprocess.DEVNULL)
     try:
         deadline = time.monotonic() + 240  # generous: a loaded machine is slow to reach a figure
         while not any(p.glob("*.png") for p in _leftovers(out)):  # a figure drawn: mid-run
@@ -336,7 +337,7 @@ def test_previous_results_left_aside_by_a_kill_are_put_back(tmp_path, previous):
 def test_a_second_run_of_one_out_is_refused_while_the_first_runs(tmp_path):
     out = tmp_path / "out"
     with outputs.staged(out):  # a run in this process, writing
-        second = subprocess.run(
+        second = _child.run(
             [sys.executable, "-m", "imitrl", *_small(out)], capture_output=True, text=True
         )
     assert second.returncode == 2 and "is being written by another process" in second.stderr
