@@ -20,6 +20,18 @@ from imitrl.tabular import TabularMDP, greedy, value_iteration
 torch.set_num_threads(1)
 
 
+@pytest.fixture(autouse=True)
+def _own_environment():
+    """Each test starts from the environment the session started with: what one sets in
+    ``os.environ`` (imitrl sets ``MUJOCO_GL`` to render Meta-World without a display) ends
+    with it, as it would with its process, and never reaches another test's children."""
+    saved = dict(os.environ)
+    yield
+    if os.environ != saved:
+        os.environ.clear()
+        os.environ.update(saved)
+
+
 @pytest.fixture(scope="session")
 def lake() -> TabularMDP:
     """Slippery FrozenLake-v1 (4x4) with gamma 0.95."""
