@@ -44,6 +44,7 @@ def streamed_load_peak(package: str, root: Path, buffer: Path) -> tuple[int, int
     2 ms) in a fresh process."""
     script = textwrap.dedent(_SCRIPT).format(loader=f"load_{package}", package=package)
     src = next(p for p in sys.path if (Path(p) / "imitrl").is_dir())
+    # a fresh interpreter: its resident set is its own (a fork shares the server's pages)
     done = subprocess.run(
         [sys.executable, "-c", script, str(root), str(buffer), src],
         capture_output=True,

@@ -223,6 +223,7 @@ RSS_SCRIPT = textwrap.dedent(
 
 def test_resident_memory_stays_far_below_the_data(tmp_path):
     n = 2_000_000  # 114 MB of rows, written 200k rows (11 MB) at a time, then sampled
+    # a fresh interpreter: its resident set is its own (a fork shares the server's pages)
     out = subprocess.run(
         [sys.executable, "-c", RSS_SCRIPT, str(tmp_path / "big"), str(n)],
         capture_output=True,

@@ -73,6 +73,7 @@ def test_extending_from_a_memory_mapped_source_does_not_keep_it_resident(tmp_pat
     """Frames decoded into a file (``load_lerobot(decode_dir=...)``) copied into a disk
     buffer: the source's pages are let go slice by slice, so the peak resident set grows
     by a fraction of the 1 GB source (a fixed ~250 MB: the destination pages written between remaps) (without the release, by all of it: the control)."""
+    # a fresh interpreter: its resident set is its own (a fork shares the server's pages)
     proc = subprocess.run(
         [sys.executable, "-c", _SOURCE_SCRIPT, str(tmp_path), release],
         capture_output=True, text=True, timeout=300, check=True,

@@ -175,6 +175,7 @@ def stopped_holder(hub_env) -> Iterator[int]:
 
     lock = lock_file(absolute(hub_env / "datasets--org--demo"))
     lock.parent.mkdir(parents=True)
+    # read line by line while it runs (tests/_child.py gives a pipe's output at the end)
     holder = subprocess.Popen(
         [sys.executable, "-c", _HOLD, str(lock)], stdout=subprocess.PIPE, text=True
     )
