@@ -30,6 +30,7 @@ from __future__ import annotations
 import atexit
 import json
 import multiprocessing
+import multiprocessing.forkserver
 import os
 import runpy
 import signal
@@ -64,18 +65,30 @@ READ_AT_IMPORT = ("PYTHON", "OMP_", "MKL_", "KMP_", "TORCH", "PYTORCH", "CUDA", 
 child whose ``env`` gives one of them another value than the fork server's gets a fresh
 interpreter (``PYTHONPATH`` excepted: the child puts it on ``sys.path`` itself)"""
 
+_SESSION_ENV = dict(os.environ)
+"""the environment when the tests were collected (this module is imported then), before a
+test sets anything of its own"""
 _server: tuple[multiprocessing.context.BaseContext, dict[str, str]] | None = None
 _fresh_path: list[str] | None = None
 
 
 def _context() -> tuple[multiprocessing.context.BaseContext, dict[str, str]]:
-    """multiprocessing's fork server, its preload set (started at the first child), and the
-    environment it started with."""
+    """multiprocessing's fork server, its preload set, started at the first child with the
+    environment the session started with (:data:`_SESSION_ENV`, not a test's own); and
+    that environment."""
     global _server
     if _server is None:
         ctx = multiprocessing.get_context("forkserver")
         ctx.set_forkserver_preload(PRELOAD)
-        _server = ctx, dict(os.environ)
+        now = dict(os.environ)
+        os.environ.clear()
+        os.environ.update(_SESSION_ENV)
+        try:
+            multiprocessing.forkserver.ensure_running()  # it inherits this environment
+        finally:
+            os.environ.clear()
+            os.environ.update(now)
+        _server = ctx, dict(_SESSION_ENV)
     return _server
 
 

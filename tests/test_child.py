@@ -101,3 +101,16 @@ def test_only_what_can_be_a_fork_is_one():
         done = _child.run(args, capture_output=True, text=True, env=env, check=True)
         parent, torch_loaded = done.stdout.split()
         assert (int(parent) != os.getpid()) == fork and torch_loaded == str(fork), args
+
+
+def test_the_server_starts_with_the_sessions_environment(monkeypatch):
+    """A test that sets a variable the preloaded libraries read (here before the server's
+    first child, if it is the first) sends its own children to fresh interpreters, and
+    never the later tests' children: the server keeps the session's environment."""
+    monkeypatch.setenv("OMP_NUM_THREADS", "3")
+    probe = "import os, sys; print(os.getppid())"
+    done = _child.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True)
+    assert int(done.stdout) == os.getpid()  # fresh: this test's own setting
+    monkeypatch.setenv("OMP_NUM_THREADS", _child._SESSION_ENV["OMP_NUM_THREADS"])
+    done = _child.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True)
+    assert int(done.stdout) != os.getpid()  # a fork: the session's setting
