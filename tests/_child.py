@@ -290,7 +290,7 @@ def _main(argv, env, cwd, path, out_fd, err_fd) -> None:
             import torch
 
             torch.set_num_threads(int(env["OMP_NUM_THREADS"]))
-        status = _python(argv, path)
+        status = run_program(argv, path)
     except BaseException:
         traceback.print_exc()
     finally:
@@ -302,8 +302,11 @@ def _main(argv, env, cwd, path, out_fd, err_fd) -> None:
         os._exit(status)
 
 
-def _python(argv: list[str], path: list[str]) -> int:
-    """Run ``python ARGV``'s program in this process: its exit status."""
+def run_program(argv: list[str], path: list[str]) -> int:
+    """Run ``python ARGV``'s program (``-m MODULE``, ``-c CODE`` or ``SCRIPT``, then its
+    arguments) in this process as ``__main__``, with ``path`` after ``sys.path[0]``, as
+    the interpreter would run it to its exit (module docstring): its exit status. The
+    benchmarks' smoke run (``tests/benchmarks/_preloaded.py``) runs its scripts with it."""
     kind = argv[0]
     if kind == "-m":
         sys.argv = ["-m", *argv[2:]]  # runpy puts the module's file first

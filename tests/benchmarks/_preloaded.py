@@ -19,18 +19,19 @@ attribute of ``imitrl``), which a fresh interpreter would refuse.
 
 from __future__ import annotations
 
-import atexit
 import json
 import os
-import runpy
 import signal
 import sys
 import tempfile
 import time
-import traceback
 from pathlib import Path
 
 BENCH = Path(__file__).resolve().parents[2] / "benchmarks"
+TESTS = Path(__file__).resolve().parents[1]
+sys.path.insert(1, str(TESTS))  # for _child (taken off the scripts' sys.path)
+from _child import run_program  # noqa: E402  # as python runs a script, to its exit
+
 TIMEOUT = 900
 """seconds a script may run before it is killed (its status then -9)"""
 OWN_PROCESS = {"scale_ray.py"}
@@ -63,26 +64,9 @@ def child(script: str, tmp: Path, log: Path) -> int:
     os.environ["TMPDIR"] = str(tmp)
     tempfile.tempdir = None  # gettempdir() reads TMPDIR again
     os.chdir(BENCH)
-    sys.argv = [script, "--quick"]
-    sys.path[0] = str((BENCH / script).parent)  # as ``python SCRIPT`` puts its folder first
     if Path(script).name in OWN_PROCESS:
         os.execv(sys.executable, [sys.executable, script, "--quick"])
-    status = 0
-    try:
-        runpy.run_path(str(BENCH / script), run_name="__main__")
-    except SystemExit as done:
-        code = done.code
-        status = code if isinstance(code, int) else (0 if code is None else 1)
-        if not isinstance(code, int | None):
-            print(code, file=sys.stderr)
-    except BaseException:
-        traceback.print_exc()
-        status = 1
-    try:
-        atexit._run_exitfuncs()  # what the interpreter runs at its exit
-    except BaseException:
-        traceback.print_exc()
-        status = status or 1
+    status = run_program([script, "--quick"], [p for p in sys.path[1:] if p != str(TESTS)])
     sys.stdout.flush()
     sys.stderr.flush()
     return status
