@@ -23,7 +23,7 @@ PROBE = textwrap.dedent(
         print("thread joined", flush=True)
     threading.Thread(target=late).start()  # python joins it before the exit handlers
     print(json.dumps({
-        "argv": sys.argv[1:], "path0": sys.path[0], "name": __name__, "cwd": os.getcwd(),
+        "argv": sys.argv[1:], "path": sys.path, "name": __name__, "cwd": os.getcwd(),
         "tmp": tempfile.gettempdir(), "probe": os.environ.get("PROBE"),
         "imitrl_path": os.environ.get("PYTHONPATH", "").split(os.pathsep)[0] in sys.path,
     }))
