@@ -137,7 +137,7 @@ def _forkable(args: list[str], env: dict[str, str]) -> bool:
     )
 
 
-def _open_out(where, text: bool) -> tuple[int | None, Path | None]:
+def _open_out(where) -> tuple[int | None, Path | None]:
     """What the child's fd 1 or 2 becomes: None (inherited), DEVNULL, or a file to read."""
     if where is None:
         return None, None
@@ -167,8 +167,8 @@ class Popen:
             )
             self.pid = self._plain.pid
             return
-        out_fd, self._out = _open_out(stdout, text)
-        err_fd, self._err = _open_out(stderr, text)
+        out_fd, self._out = _open_out(stdout)
+        err_fd, self._err = _open_out(stderr)
         ctx = _context()[0]
         pythonpath = [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p]
         fds = [fd for fd in (out_fd, err_fd) if fd is not None and fd >= 0]
@@ -183,6 +183,9 @@ class Popen:
         finally:
             for fd in fds:
                 os.close(fd)
+        # as subprocess leaves its children: this process's exit does not wait for it
+        # (multiprocessing's exit handler joins the Process objects it still lists)
+        multiprocessing.process._children.discard(self._proc)  # type: ignore[attr-defined]
         self.pid = self._proc.pid
 
     def poll(self) -> int | None:

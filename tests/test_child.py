@@ -4,6 +4,7 @@ would (what it sees, prints and exits with), and falls back to one where it cann
 from __future__ import annotations
 
 import json
+import multiprocessing
 import os
 import signal
 import subprocess
@@ -76,6 +77,8 @@ def test_a_fork_dies_as_python_dies(tmp_path):
 def test_a_popen_is_killed_waited_and_timed_out():
     proc = _child.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
     assert proc.poll() is None
+    # left as subprocess leaves a child: this process's exit would not wait for it
+    assert proc.pid not in [c.pid for c in multiprocessing.active_children()]
     proc.send_signal(signal.SIGKILL)
     assert proc.wait(timeout=30) == -signal.SIGKILL
     with pytest.raises(subprocess.TimeoutExpired):
