@@ -28,6 +28,7 @@ it starts, or how much memory its imports take calls :mod:`subprocess` itself.
 from __future__ import annotations
 
 import atexit
+import importlib
 import json
 import multiprocessing
 import multiprocessing.forkserver
@@ -65,17 +66,18 @@ READ_AT_IMPORT = ("PYTHON", "OMP_", "MKL_", "KMP_", "TORCH", "PYTORCH", "CUDA", 
 child whose ``env`` gives one of them another value than the fork server's gets a fresh
 interpreter (``PYTHONPATH`` excepted: the child puts it on ``sys.path`` itself)"""
 
+for _name in PRELOAD:  # what they set as they are imported (RAY_CLIENT_MODE) is set here too
+    importlib.import_module(_name)
 _SESSION_ENV = dict(os.environ)
-"""the environment when the tests were collected (this module is imported then), before a
-test sets anything of its own"""
-_server: tuple[multiprocessing.context.BaseContext, dict[str, str]] | None = None
+"""the environment when the tests were collected (this module is imported then), with what
+the preloaded libraries set as they are imported, before a test sets anything of its own"""
+_server: multiprocessing.context.BaseContext | None = None
 _fresh_path: list[str] | None = None
 
 
-def _context() -> tuple[multiprocessing.context.BaseContext, dict[str, str]]:
-    """multiprocessing's fork server, its preload set, started at the first child with the
-    environment the session started with (:data:`_SESSION_ENV`, not a test's own); and
-    that environment."""
+def _context() -> multiprocessing.context.BaseContext:
+    """multiprocessing's fork server with its preload set, started at the first child with
+    the environment the session started with (:data:`_SESSION_ENV`, not a test's own)."""
     global _server
     if _server is None:
         ctx = multiprocessing.get_context("forkserver")
@@ -88,7 +90,7 @@ def _context() -> tuple[multiprocessing.context.BaseContext, dict[str, str]]:
         finally:
             os.environ.clear()
             os.environ.update(now)
-        _server = ctx, dict(_SESSION_ENV)
+        _server = ctx
     return _server
 
 
@@ -97,7 +99,7 @@ def context() -> multiprocessing.context.BaseContext:
     own ``Process`` (or ``torch.multiprocessing.start_processes(...,
     start_method="forkserver")``, which uses the same server), where ``spawn`` would pay the
     imports in every process."""
-    return _context()[0]
+    return _context()
 
 
 def forkserver() -> str:
@@ -129,10 +131,9 @@ def _forkable(args: list[str], env: dict[str, str]) -> bool:
         return False
     if args[1] in ("-m", "-c") and len(args) < 3:
         return False
-    started = _context()[1]
     return all(
-        env.get(k) == started.get(k)
-        for k in {*env, *started}
+        env.get(k) == _SESSION_ENV.get(k)
+        for k in {*env, *_SESSION_ENV}
         if k.startswith(READ_AT_IMPORT) and k != "PYTHONPATH"
     )
 
@@ -169,7 +170,7 @@ class Popen:
             return
         out_fd, self._out = _open_out(stdout)
         err_fd, self._err = _open_out(stderr)
-        ctx = _context()[0]
+        ctx = _context()
         pythonpath = [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p]
         fds = [fd for fd in (out_fd, err_fd) if fd is not None and fd >= 0]
         wrap = lambda fd: _Fd(fd) if fd is not None and fd >= 0 else fd  # noqa: E731
@@ -320,8 +321,8 @@ def run_program(argv: list[str], path: list[str]) -> int:
         sys.path[:] = ["", *path]
         main = types.ModuleType("__main__")
         sys.modules["__main__"] = main
-        code = compile(argv[1], "<string>", "exec")
-        body = lambda: exec(code, main.__dict__)  # noqa: E731
+        compiled = compile(argv[1], "<string>", "exec")
+        body = lambda: exec(compiled, main.__dict__)  # noqa: E731
     else:
         script = os.path.abspath(kind)
         sys.argv = list(argv)

@@ -87,9 +87,8 @@ def test_two_writers_at_once_one_wins_every_time(tmp_path):
     """30 trials of two processes saving to one path at the same moment: exactly one
     succeeds, the other gets a ValueError, and the path holds the winner's rows whole."""
     trials = [str(tmp_path / f"ds{i}") for i in range(30)]
-    ctx = (
-        _child.context()
-    )  # a fork of the preloaded server: no fork of a process holding torch threads
+    # forks of the tests' preloaded server, never of this process (it holds torch threads)
+    ctx = _child.context()
     barrier, results = ctx.Barrier(2), ctx.Queue()
     workers = [ctx.Process(target=_writer, args=(i, barrier, trials, results)) for i in (0, 1)]
     for w in workers:
