@@ -103,7 +103,9 @@ def test_only_what_can_be_a_fork_is_one():
     ]:
         done = _child.run(args, capture_output=True, text=True, env=env, check=True)
         parent, torch_loaded = done.stdout.split()
-        assert (int(parent) != os.getpid()) == fork and torch_loaded == str(fork), args
+        assert (int(parent) != os.getpid()) == fork and torch_loaded == str(fork), (
+            args, _changed(env)
+        )  # fmt: skip
 
 
 def test_the_server_starts_with_the_sessions_environment(monkeypatch):
@@ -116,4 +118,15 @@ def test_the_server_starts_with_the_sessions_environment(monkeypatch):
     assert int(done.stdout) == os.getpid()  # fresh: this test's own setting
     monkeypatch.setenv("OMP_NUM_THREADS", _child._SESSION_ENV["OMP_NUM_THREADS"])
     done = _child.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True)
-    assert int(done.stdout) != os.getpid()  # a fork: the session's setting
+    assert int(done.stdout) != os.getpid(), _changed(None)  # a fork: the session's setting
+
+
+def _changed(env: dict[str, str] | None) -> list[tuple[str, str | None, str | None]]:
+    """What ``env`` (this process's by default) sets otherwise than the session did, of
+    what the preloaded libraries read as they are imported: why a child went fresh."""
+    env = dict(os.environ if env is None else env)
+    return sorted(
+        (k, env.get(k), _child._SESSION_ENV.get(k))
+        for k in {*env, *_child._SESSION_ENV}
+        if k.startswith(_child.READ_AT_IMPORT) and env.get(k) != _child._SESSION_ENV.get(k)
+    )
