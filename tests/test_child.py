@@ -95,10 +95,11 @@ def test_only_what_can_be_a_fork_is_one():
     that is not ``python -m/-c/SCRIPT``, or an env that changes what torch read as it was
     imported, gets a fresh interpreter: this process's child, torch not imported."""
     probe = "import os, sys; print(os.getppid(), 'torch' in sys.modules)"
-    threads = {**os.environ, "OMP_NUM_THREADS": "2"}
+    session = dict(_child._SESSION_ENV)  # not what another file's fixtures left set
+    threads = {**session, "OMP_NUM_THREADS": "2"}
     for args, env, fork in [
-        ([sys.executable, "-c", probe], None, True),
-        ([sys.executable, "-X", "utf8", "-c", probe], None, False),
+        ([sys.executable, "-c", probe], session, True),
+        ([sys.executable, "-X", "utf8", "-c", probe], session, False),
         ([sys.executable, "-c", probe], threads, False),
     ]:
         done = _child.run(args, capture_output=True, text=True, env=env, check=True)
@@ -116,9 +117,10 @@ def test_the_server_starts_with_the_sessions_environment(monkeypatch):
     probe = "import os, sys; print(os.getppid())"
     done = _child.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True)
     assert int(done.stdout) == os.getpid()  # fresh: this test's own setting
-    monkeypatch.setenv("OMP_NUM_THREADS", _child._SESSION_ENV["OMP_NUM_THREADS"])
-    done = _child.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True)
-    assert int(done.stdout) != os.getpid(), _changed(None)  # a fork: the session's setting
+    session = dict(_child._SESSION_ENV)  # a later test's (not what a fixture left set)
+    done = _child.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True,
+                      env=session)  # fmt: skip
+    assert int(done.stdout) != os.getpid(), _changed(session)  # a fork: the session's setting
 
 
 def _changed(env: dict[str, str] | None) -> list[tuple[str, str | None, str | None]]:
