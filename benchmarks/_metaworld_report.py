@@ -221,13 +221,37 @@ def dagger_against_matched(rows: list[dict]) -> list[dict]:
 
 
 def markdown(payload: dict, figure_name: str) -> str:
+    """The README section of a run: its protocol, the target's verdict, the per-task
+    table, the aggregate table, the paired differences and the figure."""
+    head, verdict, per_task = _head(payload), _verdict(payload), _per_task(payload)
+    aggregate = _aggregate(payload)
+    paired_text, paired = _paired(payload)  # after the aggregate, as its draws always were
+    return "\n\n".join(
+        [
+            head,
+            verdict,
+            "Success rate per task (pooled over seeds, 95% Wilson interval); DAgger's "
+            "queries: the expert-labelled rows its last fit saw (demonstrations included), "
+            "the budget BC at DAgger's queries gets.",
+            per_task,
+            "Across tasks: expert-normalised success (success / the expert's on the same "
+            "held-out starts), 95% stratified bootstrap intervals over seeds "
+            f"({REPS} replicates).",
+            aggregate,
+            paired_text,
+            paired,
+            f"![Meta-World {suite(payload)}]({figure_name})",
+        ]
+    )
+
+
+def _head(payload: dict) -> str:
+    """The run's protocol and where its wall time went."""
     config, proto = payload["config"], next(iter(payload["config"]["protocol"].values()))
-    cells, expert = groups(payload)
     bc = proto["bc"]
-    name = suite(payload)
-    head = (
-        f"{name} tasks {len(config['tasks'])}, demonstrations {config['demos']}, losses "
-        f"{config['losses']}, {config['seeds']} seed(s); each cell: demonstrations of the "
+    return (
+        f"{suite(payload)} tasks {len(config['tasks'])}, demonstrations {config['demos']}, "
+        f"losses {config['losses']}, {config['seeds']} seed(s); each cell: demonstrations of the "
         f"scripted expert, BC fit {bc['num_steps']} steps x batch {bc['batch_size']} "
         f"(ACT: its own batch), MLP {proto['learner']['hidden']} lr {proto['learner']['lr']}, "
         f"DAgger {proto['rounds'] - 1} relabel rounds x {proto['episodes_per_round']} "
@@ -246,11 +270,16 @@ def markdown(payload: dict, figure_name: str) -> str:
             f"{payload['wall_seconds'] / 60:.1f} min."
         )
     )
+
+
+def _verdict(payload: dict) -> str:
+    """Whether the suite's target is met, the tasks each loss reached, and those short."""
+    name = suite(payload)
     counts = target_counts(payload)
     need, most_demos = TARGETS[name]
     best = max(counts.items(), key=lambda kv: len(kv[1]))
     met = len(best[1]) >= need and best[0][1] <= most_demos
-    verdict = (
+    return (
         f"**Target** (DAgger >= {TARGET:.2f} of the expert's success on >= {need} of "
         f"{len(TASKS_OF[name])} tasks from <= {most_demos} demonstrations): "
         f"{'met' if met else 'not met'}. Tasks reached, per loss and demonstrations: "
@@ -258,6 +287,12 @@ def markdown(payload: dict, figure_name: str) -> str:
         + "."
         + _short_of(payload, counts)
     )
+
+
+def _per_task(payload: dict) -> str:
+    """Success per task, demonstrations and loss, for each algorithm and the expert."""
+    config = payload["config"]
+    cells, expert = groups(payload)
     rows = []
     for task in config["tasks"]:
         for demos in config["demos"]:
@@ -270,10 +305,15 @@ def markdown(payload: dict, figure_name: str) -> str:
                     + [f"{statistics.median(queries):.0f}" if queries else "-"]
                     + [fmt_rate(*pooled(expert[(task, demos)]))]
                 )
-    per_task = _report.table(
+    return _report.table(
         ["task", "demos", "loss", *[LABELS[a] for a in ALGORITHMS], "DAgger queries", "expert"],
         rows,
     )
+
+
+def _aggregate(payload: dict) -> str:
+    """IQM, optimality gap and P(better than the baseline) of the expert-normalised
+    success, per loss, demonstrations and algorithm."""
     agg_rows = []
     scores = normalised(payload)
     for (loss, demos, algorithm), grid in scores.items():
@@ -294,27 +334,9 @@ def markdown(payload: dict, figure_name: str) -> str:
                 p,
             ]
         )
-    aggregate = _report.table(
+    return _report.table(
         ["loss", "demos", "algorithm", "IQM", "optimality gap", f"P(better than {BASELINE})"],
         agg_rows,
-    )
-    paired_text, paired = _paired(payload)
-    return "\n\n".join(
-        [
-            head,
-            verdict,
-            "Success rate per task (pooled over seeds, 95% Wilson interval); DAgger's "
-            "queries: the expert-labelled rows its last fit saw (demonstrations included), "
-            "the budget BC at DAgger's queries gets.",
-            per_task,
-            "Across tasks: expert-normalised success (success / the expert's on the same "
-            "held-out starts), 95% stratified bootstrap intervals over seeds "
-            f"({REPS} replicates).",
-            aggregate,
-            paired_text,
-            paired,
-            f"![Meta-World {name}]({figure_name})",
-        ]
     )
 
 

@@ -6,6 +6,7 @@ command line (``--tasks``, ``--losses``, ``--demos``, ``--seeds``, ``--first-see
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import time
@@ -121,8 +122,7 @@ def _report_of(payload: dict, name: str, out: Path | None) -> None:
     print(f"results: {_report.write(name, payload, text, out_dir=out)}")
 
 
-def main(suite: Suite, doc: str | None, argv: list[str] | None = None) -> None:
-    """The command line of a suite's script (see the module docstring)."""
+def _parser(suite: Suite, doc: str | None) -> argparse.ArgumentParser:
     p = _report.parser(doc)
     p.add_argument("--tasks", nargs="+", default=list(suite.tasks), choices=list(suite.tasks))
     p.add_argument("--losses", nargs="+", default=list(suite.losses))
@@ -151,6 +151,12 @@ def main(suite: Suite, doc: str | None, argv: list[str] | None = None) -> None:
         help="re-render a results file's report (its README block and figure; a merged one "
         f"as {suite.merged}) from its rows; nothing is run",
     )
+    return p
+
+
+def main(suite: Suite, doc: str | None, argv: list[str] | None = None) -> None:
+    """The command line of a suite's script (see the module docstring)."""
+    p = _parser(suite, doc)
     args = p.parse_args(argv)
     for flag in ("seeds", "jobs"):
         if getattr(args, flag) < 1:

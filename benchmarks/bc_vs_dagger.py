@@ -212,6 +212,27 @@ def expert_rows(task: Task, seed: int, cfg: Config, n: int) -> TensorDict:
     return torch.cat(chunks)[:n]
 
 
+def _normaliser(
+    env_id: str, seed: int, expert_return: float, random_return: float, n: int, limit: int
+) -> Callable[[float], float]:
+    """A return as a share of the way from random actions' to the expert's (nan, said on
+    stderr, where the two are equal)."""
+    gap = expert_return - random_return
+    if gap == 0:  # nothing to normalise by: say so instead of printing nan
+        print(
+            f"{env_id} seed {seed}: the expert and the random policy both return "
+            f"{expert_return:.4g} over {n} episodes of at most {limit} steps, so normalised "
+            "scores are undefined (nan); the episodes are too short for the expert to differ "
+            "(give a larger --max-episode-steps)",
+            file=sys.stderr,
+        )
+
+    def normalise(r: float) -> float:
+        return (r - random_return) / gap if gap != 0 else float("nan")
+
+    return normalise
+
+
 def run_seed(task: Task, seed: int, cfg: Config) -> dict:
     """One training seed of one env: BC, DAgger per round, BC with matched samples."""
     limit = 4 * horizon(task.env_id, cfg)
@@ -231,18 +252,7 @@ def run_seed(task: Task, seed: int, cfg: Config) -> dict:
         eval_env.set_seed(eval_seed)
         return float(returns(eval_env, policy, n, exploration=DET, max_steps=limit).mean())
 
-    gap = expert_return - random_return
-    if gap == 0:  # nothing to normalise by: say so instead of printing nan
-        print(
-            f"{task.env_id} seed {seed}: the expert and the random policy both return "
-            f"{expert_return:.4g} over {n} episodes of at most {limit} steps, so normalised "
-            "scores are undefined (nan); the episodes are too short for the expert to differ "
-            "(give a larger --max-episode-steps)",
-            file=sys.stderr,
-        )
-
-    def normalise(r: float) -> float:
-        return (r - random_return) / gap if gap != 0 else float("nan")
+    normalise = _normaliser(task.env_id, seed, expert_return, random_return, n, limit)
 
     # -- DAgger; its round 0 is BC on the demonstration
     source_env = make_env(

@@ -296,6 +296,73 @@ def memory(root: Path, scratch: Path) -> dict:
 
 
 # ------------------------------------------------------------------ report
+def _tables(cfg: Config, speed: dict, mem: dict, train: dict) -> tuple[list, list, list]:
+    """The rows of the three tables: decoders, memory per load mode, memory per stage."""
+    mb = 1024
+    rows = [
+        ["PyAV loop (decode + to_ndarray rgb24)", f"{speed['pyav_fps']:,.0f} frames/s", "1.00"],
+        [
+            "load_lerobot (whole load)",
+            f"{speed['reader_fps']:,.0f} frames/s",
+            f"{speed['ratio']:.2f}",
+        ],
+    ]
+    mem_rows = []
+    for mode, label in (("ram", "decode_dir=None"), ("decode_dir", "decode_dir set")):
+        m = mem[mode]
+        mem_rows.append(
+            [
+                label,
+                f"{m['loaded']['VmHWM'] / mb:,.0f} MB",
+                f"{m['loaded']['RssAnon'] / mb:,.0f} MB",
+                f"{m['loaded']['RssFile'] / mb:,.0f} MB",
+                f"{m['read_once']['RssAnon'] / mb:,.0f} / {m['read_once']['RssFile'] / mb:,.0f} MB",
+                f"{m['imported']['VmRSS'] / mb:,.0f} MB",
+            ]
+        )
+    train_rows = [
+        [
+            stage,
+            f"{train[key]['VmHWM'] / mb:,.0f} MB",
+            f"{train[key]['RssAnon'] / mb:,.0f} MB",
+            f"{train[key]['RssFile'] / mb:,.0f} MB",
+        ]
+        for stage, key in (
+            ("imports", "imported"),
+            ("load_lerobot(decode_dir=...)", "loaded"),
+            ("DemonstrationBuffer(path=...).extend", "buffered"),
+            (f"fit_bc, {cfg.train_steps} steps of {cfg.train_batch}", "trained"),
+        )
+    ]
+    return rows, mem_rows, train_rows
+
+
+def _markdown(
+    cfg: Config, speed: dict, train: dict, rows: list, mem_rows: list, train_rows: list
+) -> str:
+    """The README section: the three tables and what each measured."""
+    frames_mb = cfg.mem_frames * cfg.size * cfg.size * 3 / 1e6
+    return (
+        f"One {cfg.size}x{cfg.size} AV1 camera (lerobot's defaults), LeRobot v3.0, "
+        f"{cfg.episodes_per_file} episodes per video file. Decode: {cfg.episodes} x "
+        f"{cfg.length} frames, best of {cfg.repeats} (the load without decoding takes "
+        f"{speed['parquet_only_s']:.2f} s). Target: load_lerobot >= 0.8x PyAV.\n\n"
+        + _report.table(["decoder", "throughput", "x PyAV"], rows)
+        + f"\n\nResident memory of a fresh process loading {cfg.mem_frames:,} frames "
+        f"({frames_mb:,.0f} MB of pixels), after the load and after reading every frame once "
+        "(anonymous / file-backed); file-backed pages are reclaimable page cache.\n\n"
+        + _report.table(
+            ["load", "peak RSS", "RssAnon", "RssFile", "after one pass", "imports alone"],
+            mem_rows,
+        )
+        + f"\n\nTraining from the {cfg.mem_frames:,} frames in a fresh process: decoded into "
+        "`decode_dir`, extended into a disk buffer, minibatch `fit_bc` of the Nature CNN "
+        f"({train['train_s']:.0f} s for the fit); peak resident set so far and the memory "
+        "after each stage. Target: under 2 GB resident.\n\n"
+        + _report.table(["stage", "peak RSS", "RssAnon", "RssFile"], train_rows)
+    )
+
+
 def main(argv: list[str] | None = None) -> dict:
     p = _report.parser(__doc__)
     p.add_argument("--child", type=Path, default=None, help=argparse.SUPPRESS)
@@ -324,66 +391,10 @@ def main(argv: list[str] | None = None) -> dict:
             ["--train-child", *train_args[:2], "--train", *train_args[2:], str(cfg.train_batch)],
             "training",
         )
-    mb = 1024
-    rows = [
-        ["PyAV loop (decode + to_ndarray rgb24)", f"{speed['pyav_fps']:,.0f} frames/s", "1.00"],
-        [
-            "load_lerobot (whole load)",
-            f"{speed['reader_fps']:,.0f} frames/s",
-            f"{speed['ratio']:.2f}",
-        ],
-    ]
-    mem_rows = []
-    for mode, label in (("ram", "decode_dir=None"), ("decode_dir", "decode_dir set")):
-        m = mem[mode]
-        mem_rows.append(
-            [
-                label,
-                f"{m['loaded']['VmHWM'] / mb:,.0f} MB",
-                f"{m['loaded']['RssAnon'] / mb:,.0f} MB",
-                f"{m['loaded']['RssFile'] / mb:,.0f} MB",
-                f"{m['read_once']['RssAnon'] / mb:,.0f} / {m['read_once']['RssFile'] / mb:,.0f} MB",
-                f"{m['imported']['VmRSS'] / mb:,.0f} MB",
-            ]
-        )
-    for r in rows + mem_rows:
+    rows, mem_rows, train_rows = _tables(cfg, speed, mem, train)
+    for r in rows + mem_rows + train_rows:
         print(" | ".join(r))
-    train_rows = [
-        [
-            stage,
-            f"{train[key]['VmHWM'] / mb:,.0f} MB",
-            f"{train[key]['RssAnon'] / mb:,.0f} MB",
-            f"{train[key]['RssFile'] / mb:,.0f} MB",
-        ]
-        for stage, key in (
-            ("imports", "imported"),
-            ("load_lerobot(decode_dir=...)", "loaded"),
-            ("DemonstrationBuffer(path=...).extend", "buffered"),
-            (f"fit_bc, {cfg.train_steps} steps of {cfg.train_batch}", "trained"),
-        )
-    ]
-    for r in train_rows:
-        print(" | ".join(r))
-    frames_mb = cfg.mem_frames * cfg.size * cfg.size * 3 / 1e6
-    md = (
-        f"One {cfg.size}x{cfg.size} AV1 camera (lerobot's defaults), LeRobot v3.0, "
-        f"{cfg.episodes_per_file} episodes per video file. Decode: {cfg.episodes} x "
-        f"{cfg.length} frames, best of {cfg.repeats} (the load without decoding takes "
-        f"{speed['parquet_only_s']:.2f} s). Target: load_lerobot >= 0.8x PyAV.\n\n"
-        + _report.table(["decoder", "throughput", "x PyAV"], rows)
-        + f"\n\nResident memory of a fresh process loading {cfg.mem_frames:,} frames "
-        f"({frames_mb:,.0f} MB of pixels), after the load and after reading every frame once "
-        "(anonymous / file-backed); file-backed pages are reclaimable page cache.\n\n"
-        + _report.table(
-            ["load", "peak RSS", "RssAnon", "RssFile", "after one pass", "imports alone"],
-            mem_rows,
-        )
-        + f"\n\nTraining from the {cfg.mem_frames:,} frames in a fresh process: decoded into "
-        "`decode_dir`, extended into a disk buffer, minibatch `fit_bc` of the Nature CNN "
-        f"({train['train_s']:.0f} s for the fit); peak resident set so far and the memory "
-        "after each stage. Target: under 2 GB resident.\n\n"
-        + _report.table(["stage", "peak RSS", "RssAnon", "RssFile"], train_rows)
-    )
+    md = _markdown(cfg, speed, train, rows, mem_rows, train_rows)
     payload = {
         "config": asdict(cfg),
         "encode_s": encode_s,

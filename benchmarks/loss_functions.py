@@ -21,7 +21,7 @@ successful episodes passed) and the forking corridor of :mod:`imitrl.envs.corrid
 forks, turn-backs in the decision windows). ``--task key=value,...`` adds a task from
 outside: an env id (or ``module:Id-v0``, or a TorchRL env class ``module:Class``) with
 an expert ``module:function`` and a budget, or a recorded LeRobot / Minari dataset
-and the env to evaluate in (see ``parse_task`` in ``_loss_functions/tasks.py``).
+and the env to evaluate in (see ``parse_task`` in ``_loss_functions/parse.py``).
 
 The expert-normalised score is ``(score - random) / (expert - random)``, with the
 expert's and a uniformly random policy's scores measured by the same protocol on the
@@ -49,6 +49,7 @@ continuous loss applies to.
 
 from __future__ import annotations
 
+import argparse
 import importlib
 import json
 import os
@@ -61,9 +62,10 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _report
 from _loss_functions.merge import merge
+from _loss_functions.parse import parse_task
 from _loss_functions.report import NAME, report
 from _loss_functions.run import run
-from _loss_functions.tasks import TASKS, parse_task
+from _loss_functions.tasks import TASKS
 from imitrl.learners import FOR_ENV, registry
 
 QUICK_LOSSES = ("cross_entropy", "gaussian_nll", "mse", "flow", "mse_chunk")
@@ -71,7 +73,7 @@ QUICK_LOSSES = ("cross_entropy", "gaussian_nll", "mse", "flow", "mse_chunk")
 of the pipeline; ``tests/learners/test_registry.py`` builds and trains every entry)"""
 
 
-def main(argv: list[str] | None = None) -> None:
+def _parser() -> argparse.ArgumentParser:
     parser = _report.parser(__doc__)
     parser.add_argument(
         "--seeds", type=int, default=None, help="seeds per cell (default 5; 1 with --quick)"
@@ -131,15 +133,25 @@ def main(argv: list[str] | None = None) -> None:
         metavar="JSON",
         help="re-render the table and figure from a results file instead of running",
     )
-    args = parser.parse_args(argv)
-    for module in args.modules:
-        importlib.import_module(module)
+    return parser
+
+
+def _tasks(args: argparse.Namespace) -> list:
+    """The run's tasks: ``--tasks`` (default: the default run's) and each ``--task``."""
     external = [parse_task(text) for text in args.external]
     default = [n for n, t in TASKS.items() if t.in_default_run]
     names = args.tasks if args.tasks is not None else ([] if external else default)
     tasks = [TASKS[n] for n in names] + external
     if len({t.name for t in tasks}) != len(tasks):
         raise SystemExit(f"task names must be unique, got {[t.name for t in tasks]}")
+    return tasks
+
+
+def main(argv: list[str] | None = None) -> None:
+    args = _parser().parse_args(argv)
+    for module in args.modules:
+        importlib.import_module(module)
+    tasks = _tasks(args)
     out_dir = _report.destination(NAME, quick=args.quick, out=args.out)
     if args.render is not None:
         report(json.loads(args.render.read_text()), out_dir)

@@ -1,5 +1,6 @@
 """The architecture's rules, read from the source: layers point down, no import circle,
-private attributes of other libraries in ``compat.py`` only.
+private attributes of other libraries in ``compat.py`` only, no file or function past
+its size.
 
 * The layer contract is ``[tool.importlinter]`` in ``pyproject.toml`` (one line per layer,
   highest first); import-linter checks it here and in CI.
@@ -291,3 +292,47 @@ def test_the_machine_path_finder_finds_one(tmp_path):
     (tmp_path / "b.json").write_text('{"python": "imitrl_venv/bin/python"}\n')
     (tmp_path / "c.bin").write_bytes(b"\xff\xfe" + "/".join(["", "home", "x"]).encode())
     assert machine_paths(tmp_path, ["a.md", "b.json", "c.bin"]) == ["a.md:1"]
+
+
+MAX_FILE_LINES = 550
+"""most lines of a Python file (the style guide's "no file past ~500 lines")"""
+MAX_FUNCTION_LINES = 80
+"""most lines of a function's code, its docstring not counted ("no function past ~80")"""
+
+
+def oversized(root: Path, folders: tuple[str, ...]) -> list[str]:
+    """``path (lines)`` of every Python file under ``folders`` past :data:`MAX_FILE_LINES`,
+    and ``path:function (lines)`` of every function past :data:`MAX_FUNCTION_LINES`."""
+    found = []
+    for path in sorted(p for f in folders for p in (root / f).rglob("*.py")):
+        text = path.read_text()
+        rel = path.relative_to(root).as_posix()
+        if text.count("\n") > MAX_FILE_LINES:
+            found.append(f"{rel} ({text.count(chr(10))} lines)")
+        for node in ast.walk(ast.parse(text)):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                body = node.body
+                if len(body) > 1 and ast.get_docstring(node, clean=False) is not None:
+                    body = body[1:]  # the docstring is prose, not code
+                lines = node.end_lineno - body[0].lineno + 1  # type: ignore[operator]
+                if lines > MAX_FUNCTION_LINES:
+                    found.append(f"{rel}:{node.name} ({lines} lines)")
+    return found
+
+
+def test_no_file_or_function_past_its_size():
+    """The style guide's sizes, for the source, the benchmarks and the tests."""
+    assert oversized(SRC.parents[1], ("src", "benchmarks", "tests")) == []
+
+
+def test_the_size_check_finds_a_long_file_and_a_long_function(tmp_path):
+    (tmp_path / "src").mkdir()
+    doc = '    """' + "prose\n" * 200 + '    """\n'
+    short = "def fine():\n" + doc + "    x = 1\n" * MAX_FUNCTION_LINES
+    long = "def long():\n" + "    x = 1\n" * (MAX_FUNCTION_LINES + 1)
+    (tmp_path / "src" / "a.py").write_text(short + long)
+    (tmp_path / "src" / "b.py").write_text("x = 1\n" * (MAX_FILE_LINES + 1))
+    assert oversized(tmp_path, ("src",)) == [  # fine() is long with its docstring alone
+        f"src/a.py:long ({MAX_FUNCTION_LINES + 1} lines)",
+        f"src/b.py ({MAX_FILE_LINES + 1} lines)",
+    ]

@@ -59,14 +59,12 @@ def loss_cell(
     torch.set_num_threads(1)
     torch.manual_seed(seed)  # global draws (TorchRL's samplers) start from the seed too
     t0, cpu0 = time.perf_counter(), time.process_time()
-    task_name = defn.name
     task = build(defn, quick_mode)
     proto = task.protocol
     spec = task.spec()
     config = replace(proto.learner, seed=seed)
     # the loss's own recipe: ACT's minibatch, Diffusion Policy's warm-up and cosine decay
-    bc = registry.fit_config(loss, replace(proto.bc, seed=seed))
-    warm = proto.round_steps is not None
+    cell = _Cell(task, loss, registry.fit_config(loss, replace(proto.bc, seed=seed)), seed)
 
     # 1. demonstrations: a recorded dataset, or the expert drives the env (every row labelled)
     env = task.env(seed=seed, lanes=proto.episodes_per_round)
@@ -81,34 +79,10 @@ def loss_cell(
     demo_rows = len(buffer)
 
     # 2. DAgger, whose round 0 is BC; evaluate the first and the last fit
-    results: dict[int, dict] = {}
-    fit_seconds: list[float] = []
-    fit_configs: list = []  # each fit's steps and batch size
-
-    def timed_fit(learner: Learner, buf: DemonstrationBuffer):
-        # what dagger does without train=, timed; a chunked learner's fit adds every row's
-        # label chunk (and history) from the (relabelled) rows of its episode
-        t = time.perf_counter()
-        config = replace(bc, num_steps=proto.round_steps) if warm and fit_seconds else bc
-        if warm and fit_seconds:
-            config = registry.fit_config(loss, config)  # its warm-up sized to this fit
-        out = fit_bc(learner, buf, config)
-        fit_seconds.append(time.perf_counter() - t)
-        fit_configs.append(config)
-        return out
-
-    def on_fit(k: int, learner: Learner) -> None:
-        if k in (0, proto.rounds - 1, proto.rounds):  # BC, DAgger, BC at its query budget
-            t = time.perf_counter()
-            result = task.score(learner.policy, learner.exploration, seed)
-            result.update(task.extras(learner, seed))
-            result["eval_seconds"] = time.perf_counter() - t
-            results[k] = result
-
     if expert is None:  # a dataset alone: BC only
         learner = config.build(loss, spec)
-        fit = timed_fit(learner, buffer)
-        on_fit(0, learner)
+        fit = cell.fit(learner, buffer)
+        cell.score(0, learner)
         records = [(learner, len(buffer), fit)]
     else:
         out = dagger(
@@ -119,62 +93,112 @@ def loss_cell(
             DAggerConfig(
                 rounds=proto.rounds,
                 episodes_per_round=proto.episodes_per_round,
-                warm_start=warm,
+                warm_start=cell.warm,
                 beta=Constant(0.0) if proto.beta_decay is None else Exponential(proto.beta_decay),
-                bc=bc,
+                bc=cell.bc,
                 seed=seed,
             ),
-            on_fit=on_fit,
-            train=timed_fit,
+            on_fit=cell.score,
+            train=cell.fit,
         )
         learner = out.learner
         records = [(learner, r.rows_trained, r.bc) for r in out.rounds]
         if probe is not None:
-            results[proto.rounds - 1]["probe"] = probe(buffer.data[: len(buffer)])
+            cell.results[proto.rounds - 1]["probe"] = probe(buffer.data[: len(buffer)])
+    # 3. BC at DAgger's query budget: as many expert-labelled rows, from the expert's states
     if proto.matched and expert is not None and proto.rounds > 1:
-        steps = sum(c.num_steps for c in fit_configs) if warm else fit_configs[-1].num_steps
-        learner_m = config.build(loss, spec)
-        matched = _expert_rows(env, expert, records[-1][1], task.max_steps(), seed)
-        t = time.perf_counter()
-        config_m = registry.fit_config(loss, replace(bc, num_steps=steps))
-        fit_m = fit_bc(learner_m, matched, config_m)
-        fit_seconds.append(time.perf_counter() - t)
-        fit_configs.append(config_m)
-        on_fit(proto.rounds, learner_m)
-        records.append((learner_m, matched.shape[0], fit_m))
+        records.append(cell.matched(env, expert, records[-1][1], config.build(loss, spec)))
     env.close()
-    exploration = str(learner.exploration).split(".")[-1].lower()
-    rows = []
-    algorithms = [("bc", 0)] + ([("dagger", proto.rounds - 1)] if proto.rounds > 1 else [])
-    if len(records) > proto.rounds:  # BC at DAgger's query budget
-        algorithms.append(("bc_matched", proto.rounds))
-    for algorithm, k in algorithms:
-        _, rows_trained, fit = records[k]
-        rows.append(
-            {
-                "task": task_name,
-                "loss": loss,
-                "seed": seed,
-                "algorithm": algorithm,
-                "exploration": exploration,
-                "rows_trained": rows_trained,
-                "demo_rows": demo_rows,
-                "final_loss": fit.final_loss,
-                "fit_seconds": fit_seconds[k],
-                # the gradient steps the reported learner took (warm: every fit so far)
-                "fit_steps": sum(c.num_steps for c in fit_configs[: k + 1])
-                if warm and algorithm != "bc_matched"
-                else fit_configs[k].num_steps,
-                "fit_batch": fit_configs[k].batch_size,
-                **results[k],
-            }
-        )
-        if proto.curve_points:
-            rows[-1]["loss_curve"] = window_means(fit.losses, proto.curve_points)
+    rows = cell.rows(records, demo_rows, str(learner.exploration).split(".")[-1].lower())
     for row in rows:
         row["cell_seconds"] = time.perf_counter() - t0
         row["cell_cpu_seconds"] = time.process_time() - cpu0
     return rows
+
+
+class _Cell:
+    """One cell's fits, each timed with its configuration (its steps and batch size), and
+    the scores of the learners it reports: BC (fit 0), DAgger (fit ``rounds - 1``), BC at
+    DAgger's query budget (fit ``rounds``)."""
+
+    def __init__(self, task: Any, loss: str, bc: Any, seed: int) -> None:
+        self.task, self.loss, self.bc, self.seed = task, loss, bc, seed
+        self.proto = task.protocol
+        self.warm = self.proto.round_steps is not None
+        """each DAgger round continues the last fit for ``round_steps`` steps"""
+        self.results: dict[int, dict] = {}
+        self.fit_seconds: list[float] = []
+        self.fit_configs: list = []
+
+    def fit(self, learner: Learner, buf: DemonstrationBuffer):
+        """What dagger does without ``train=``, timed; a chunked learner's fit adds every
+        row's label chunk (and history) from the (relabelled) rows of its episode."""
+        t = time.perf_counter()
+        config = self.bc
+        if self.warm and self.fit_seconds:  # its warm-up sized to this fit
+            config = registry.fit_config(
+                self.loss, replace(self.bc, num_steps=self.proto.round_steps)
+            )
+        out = fit_bc(learner, buf, config)
+        self.fit_seconds.append(time.perf_counter() - t)
+        self.fit_configs.append(config)
+        return out
+
+    def score(self, k: int, learner: Learner) -> None:
+        """Score fit ``k``'s learner where the cell reports it."""
+        if k in (0, self.proto.rounds - 1, self.proto.rounds):
+            t = time.perf_counter()
+            result = self.task.score(learner.policy, learner.exploration, self.seed)
+            result.update(self.task.extras(learner, self.seed))
+            result["eval_seconds"] = time.perf_counter() - t
+            self.results[k] = result
+
+    def matched(self, env, expert, count: int, learner: Learner) -> tuple:
+        """``learner`` fitted on ``count`` rows of the expert's own episodes, for as many
+        steps as DAgger's learner took in all (warm) or in its last fit."""
+        last = self.fit_configs[-1].num_steps
+        steps = sum(c.num_steps for c in self.fit_configs) if self.warm else last
+        rows = _expert_rows(env, expert, count, self.task.max_steps(), self.seed)
+        t = time.perf_counter()
+        config = registry.fit_config(self.loss, replace(self.bc, num_steps=steps))
+        fit = fit_bc(learner, rows, config)
+        self.fit_seconds.append(time.perf_counter() - t)
+        self.fit_configs.append(config)
+        self.score(self.proto.rounds, learner)
+        return learner, rows.shape[0], fit
+
+    def rows(self, records: list[tuple], demo_rows: int, exploration: str) -> list[dict]:
+        """The cell's rows: BC, DAgger (more than one round), BC at DAgger's queries."""
+        rounds = self.proto.rounds
+        algorithms = [("bc", 0)] + ([("dagger", rounds - 1)] if rounds > 1 else [])
+        if len(records) > rounds:  # BC at DAgger's query budget
+            algorithms.append(("bc_matched", rounds))
+        rows = []
+        for algorithm, k in algorithms:
+            _, rows_trained, fit = records[k]
+            configs = self.fit_configs
+            rows.append(
+                {
+                    "task": self.task.name,
+                    "loss": self.loss,
+                    "seed": self.seed,
+                    "algorithm": algorithm,
+                    "exploration": exploration,
+                    "rows_trained": rows_trained,
+                    "demo_rows": demo_rows,
+                    "final_loss": fit.final_loss,
+                    "fit_seconds": self.fit_seconds[k],
+                    # the gradient steps the reported learner took (warm: every fit so far)
+                    "fit_steps": sum(c.num_steps for c in configs[: k + 1])
+                    if self.warm and algorithm != "bc_matched"
+                    else configs[k].num_steps,
+                    "fit_batch": configs[k].batch_size,
+                    **self.results[k],
+                }
+            )
+            if self.proto.curve_points:
+                rows[-1]["loss_curve"] = window_means(fit.losses, self.proto.curve_points)
+        return rows
 
 
 def window_means(losses: torch.Tensor, points: int) -> list[float]:

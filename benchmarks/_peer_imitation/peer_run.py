@@ -202,25 +202,7 @@ def run(spec: dict) -> dict:
         env_id, eval_seed, min(spec["eval_lanes"]["imitation"], spec["eval_episodes"])
     )
     expert = ScriptedExpert(venv.observation_space, venv.action_space, expert_function(env_id))
-    demos = rollout.generate_trajectories(
-        expert,
-        venv,
-        rollout.make_min_episodes(spec["demo_episodes"]),
-        rng,
-        deterministic_policy=True,
-    )
-    if spec["demo_steps"] is not None:
-        k = spec["demo_steps"]
-        (traj,) = demos
-        demos = [
-            types.TrajectoryWithRew(
-                obs=traj.obs[: k + 1],
-                acts=traj.acts[:k],
-                infos=None if traj.infos is None else traj.infos[:k],
-                terminal=False,
-                rews=traj.rews[:k],
-            )
-        ]
+    demos = _demonstrations(spec, venv, expert, rng)
     transitions = rollout.flatten_trajectories(demos)
     setup = now() - t0
 
@@ -247,8 +229,65 @@ def run(spec: dict) -> dict:
     eval_s = now() - t0
 
     # -- DAgger: SimpleDAggerTrainer.train's round, a fixed number of times
+    t0 = now()
+    rows, collect_s, fit_s = _dagger(spec, venv, expert, rng, demos, trainer, quiet)
+    rows += len(transitions)
+    dagger_s = now() - t0
+    t0 = now()
+    evals["final"] = mean_return(trainer.policy, eval_venv, spec["eval_episodes"], eval_seed)
+    if env_id == "FrozenLake-v1":
+        tables["final"] = greedy_table(trainer.policy, venv.observation_space.n)
+    eval_s += now() - t0
+    return {
+        "library": "imitation",
+        "phases": {
+            "imports": T_IMPORTED - T_START,
+            "setup": setup,
+            "bc": bc_s,
+            "dagger": dagger_s,
+            "dagger_fit": fit_s,
+            "dagger_collect": collect_s,
+            "evaluation": eval_s,
+        },
+        "returns": evals,
+        "greedy_tables": tables,
+        "rows": rows,
+        "demo_rows": len(transitions),
+    }
+
+
+def _demonstrations(spec: dict, venv, expert, rng: np.random.Generator) -> list:
+    """``spec["demo_episodes"]`` greedy expert episodes; the first ``spec["demo_steps"]``
+    steps of the one episode where that is set."""
+    demos = rollout.generate_trajectories(
+        expert,
+        venv,
+        rollout.make_min_episodes(spec["demo_episodes"]),
+        rng,
+        deterministic_policy=True,
+    )
+    if spec["demo_steps"] is not None:
+        k = spec["demo_steps"]
+        (traj,) = demos
+        demos = [
+            types.TrajectoryWithRew(
+                obs=traj.obs[: k + 1],
+                acts=traj.acts[:k],
+                infos=None if traj.infos is None else traj.infos[:k],
+                terminal=False,
+                rews=traj.rews[:k],
+            )
+        ]
+    return demos
+
+
+def _dagger(spec: dict, venv, expert, rng, demos, trainer, quiet) -> tuple[int, float, float]:
+    """DAgger: ``SimpleDAggerTrainer.train``'s round, ``spec["rounds"]`` times. Returns the
+    rows its rounds added, the seconds of collection (the trainer's set-up included) and
+    of fitting."""
+    now = time.perf_counter
     collect_s = fit_s = 0.0
-    rows = len(transitions)
+    rows = 0
     t0 = now()
     scratch = tempfile.mkdtemp(prefix="peer-imitation-dagger-")
     dagger_trainer = dagger.SimpleDAggerTrainer(
@@ -262,7 +301,7 @@ def run(spec: dict) -> dict:
         # matched protocol: beta 0, as imitrl's default; own: imitation's LinearBetaSchedule(15)
         **({"beta_schedule": zero_beta} if spec["protocol"] == "matched" else {}),
     )
-    setup_dagger = now() - t0
+    collect_s += now() - t0  # the trainer's set-up
     for _ in range(spec["rounds"]):
         t = now()
         collector = dagger_trainer.create_trajectory_collector()
@@ -280,29 +319,7 @@ def run(spec: dict) -> dict:
             {"n_batches": spec["round_steps"], "progress_bar": False, "log_rollouts_venv": None}
         )
         fit_s += now() - t
-    dagger_s = now() - t0
-
-    t0 = now()
-    evals["final"] = mean_return(trainer.policy, eval_venv, spec["eval_episodes"], eval_seed)
-    if env_id == "FrozenLake-v1":
-        tables["final"] = greedy_table(trainer.policy, venv.observation_space.n)
-    eval_s += now() - t0
-    return {
-        "library": "imitation",
-        "phases": {
-            "imports": T_IMPORTED - T_START,
-            "setup": setup,
-            "bc": bc_s,
-            "dagger": dagger_s,
-            "dagger_fit": fit_s,
-            "dagger_collect": collect_s + setup_dagger,
-            "evaluation": eval_s,
-        },
-        "returns": evals,
-        "greedy_tables": tables,
-        "rows": rows,
-        "demo_rows": len(transitions),
-    }
+    return rows, collect_s, fit_s
 
 
 def check(batches: dict) -> dict:
