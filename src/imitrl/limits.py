@@ -36,6 +36,7 @@ from typing import Any
 
 __all__ = [
     "MAX_BATCH",
+    "MAX_CATEGORIES",
     "MAX_ENV_STEPS",
     "MAX_EPISODES",
     "MAX_EPISODE_STEPS",
@@ -111,6 +112,11 @@ MAX_THREADS = 1024
 (``benchmarks/README.md``, threads), and torch refuses counts past a C int"""
 MAX_WIDTH = 1 << 16
 """widest hidden layer (``--hidden``, and a checkpoint's ``hidden``)"""
+MAX_CATEGORIES = 1 << 16
+"""most integer states or actions a task read from rows may have
+(:meth:`imitrl.learners.TaskSpec.from_rows`, ``imitrl bc --env none``): each is a one-hot
+input or an output of the network, as wide as the widest hidden layer
+(:data:`MAX_WIDTH`); a dataset's largest label must not size a network by itself"""
 MAX_LAYERS = 64
 """most hidden layers (``--hidden``)"""
 MAX_PARAMETERS = 100_000_000

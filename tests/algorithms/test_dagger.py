@@ -278,3 +278,35 @@ def test_cosine_schedule_decays_each_fit_from_the_optimizers_rate_and_restores_i
     assert seen[4:] == [0.01, 0.01]  # constant: untouched
     with pytest.raises(ValueError, match="lr_schedule must be one of"):
         BCConfig(lr_schedule="linear")
+
+
+def test_rounds_that_would_pass_the_most_rounds_are_refused_before_any_fit(lake, expert_table):
+    """A buffer of rows from late rounds (a dataset of earlier DAgger rounds): this run's
+    rounds count on from its last, and may not pass ``MAX_ROUNDS`` (a hostile review:
+    round 2**63 - 1 overflowed after the first fit)."""
+    from imitrl.limits import MAX_ROUNDS
+
+    env, buf = demonstrations(lake, expert_table, 0)
+    late = buf.data[: len(buf)].clone()
+    late.set(keys.ROUND, torch.full_like(late.get(keys.ROUND), MAX_ROUNDS - 2))
+    late.set(keys.EPISODE, late.get(keys.EPISODE) + 100)
+    buf.extend(late)
+    fits = []
+    with pytest.raises(ValueError, match=rf"up to {MAX_ROUNDS - 2}; 3 relabel rounds more"):
+        dagger(
+            EnvSource(env, exploration=ExplorationType.DETERMINISTIC),
+            Expert.from_table(expert_table),
+            lambda: build("cross_entropy", TaskSpec(action=4, num_states=16)),
+            buf,
+            DAggerConfig(rounds=4, episodes_per_round=1, seed=0),
+            on_fit=lambda k, learner: fits.append(k),
+        )
+    assert fits == []
+    res = dagger(
+        EnvSource(env, exploration=ExplorationType.DETERMINISTIC),
+        Expert.from_table(expert_table),
+        lambda: build("cross_entropy", TaskSpec(action=4, num_states=16)),
+        buf,
+        DAggerConfig(rounds=3, episodes_per_round=1, seed=0),
+    )
+    assert max(buf.rounds()) == MAX_ROUNDS and len(res.rounds) == 3

@@ -73,3 +73,21 @@ def test_bad_input_is_one_line_and_writes_nothing(runs, tmp_path, argv, said):
     status, _, err = _main("compare", "--a", str(runs / "short"), *argv, "--out", str(out))
     assert status == 2 and said in err and "Traceback" not in err, err
     assert len(err.strip().splitlines()) == 1 and not out.exists()
+
+
+def test_checkpoints_trained_with_different_env_arguments_are_refused(runs, tmp_path):
+    """A hostile review: the first checkpoint's env arguments were played by both sides."""
+    import shutil
+
+    other = tmp_path / "other"
+    shutil.copytree(runs / "long", other)
+    saved = json.loads((other / "config.json").read_text())
+    saved["config"]["env_kwargs"] = [["sutton_barto_reward", True]]
+    (other / "config.json").write_text(json.dumps(saved))
+    status, _, err = _main("compare", "--a", str(runs / "short"), "--b", str(other),
+                           "--episodes", "4")  # fmt: skip
+    assert status == 2 and "trained with different env arguments" in err, err
+    assert "sutton_barto_reward" in err and len(err.strip().splitlines()) == 1
+    status, _, err = _main("compare", "--a", str(runs / "short"), "--b", str(other),
+                           "--episodes", "4", "--env-kwarg", "sutton_barto_reward=false")  # fmt: skip
+    assert status == 0, err

@@ -250,3 +250,28 @@ def test_rows_alone_describe_their_task():
     odd = TensorDict({"observation": torch.zeros(2, 3, 4), "expert_action": labels[:2]}, [2])
     with pytest.raises(ValueError, match=r"expected float32 \[N, d\]"):
         TaskSpec.from_rows(odd)
+
+
+@pytest.mark.parametrize(
+    ("key", "values", "what"),
+    [
+        ("expert_action", [0, 10**11], "'expert_action' \\(integer actions\\) range over \\[0, 100000000000\\]"),
+        ("expert_action", [-1, 2], "'expert_action' \\(integer actions\\) range over \\[-1, 2\\]"),
+        ("observation", [0, 1 << 16], "'observation' \\(integer states\\) range over \\[0, 65536\\]"),
+        ("observation", [-5, 3], "'observation' \\(integer states\\) range over \\[-5, 3\\]"),
+    ],
+)  # fmt: skip
+def test_rows_whose_largest_integer_would_size_the_network_are_refused(key, values, what):
+    """A hostile review: one action of 10^11 in a 60 KB dataset asked ``imitrl bc --env
+    none`` for a 25 TB output layer."""
+    from tensordict import TensorDict
+
+    from imitrl.limits import MAX_CATEGORIES
+
+    rows = {"observation": torch.tensor([0, 1]), "expert_action": torch.tensor([1, 0])}
+    rows[key] = torch.tensor(values)
+    with pytest.raises(ValueError, match=what + rf": expected integers in \[0, {MAX_CATEGORIES}\)"):
+        TaskSpec.from_rows(TensorDict(rows, [2]))
+    rows[key] = torch.tensor([0, MAX_CATEGORIES - 1])  # the largest allowed builds
+    task = TaskSpec.from_rows(TensorDict(rows, [2]))
+    assert MAX_CATEGORIES in (task.num_states, task.action)

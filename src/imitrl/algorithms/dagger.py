@@ -47,6 +47,7 @@ from imitrl.envs.limits import episode_limit
 from imitrl.envs.random_state import env_random_state, set_env_random_state
 from imitrl.fs.lock import exclusive
 from imitrl.learners.learner import Learner
+from imitrl.limits import MAX_ROUNDS
 from imitrl.policies.experts import Expert
 from imitrl.policies.gate import ExpertGate
 from imitrl.policies.mixture import BetaMixer, behaviour_policy
@@ -335,6 +336,11 @@ def _run(
     mixer = BetaMixer(0.0, generator=coins)
     # rounds continue a dataset's (one written by save_dagger_lerobot): its last round + 1
     first = max(buffer.rounds())
+    if first + config.rounds - 1 > MAX_ROUNDS:  # before any fit, not when a round is stored
+        raise ValueError(
+            f"the buffer's rows come from DAgger rounds up to {first}; {config.rounds - 1} "
+            f"relabel rounds more would pass round {MAX_ROUNDS} (imitrl.limits.MAX_ROUNDS)"
+        )
     run = RunState(next_round=0, records=[], bc_step=0, learner=None)
     if resume and checkpoint_dir is not None and _holds_run(checkpoint_dir):
         run = load_run(

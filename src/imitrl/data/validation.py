@@ -12,6 +12,7 @@ from tensordict import TensorDictBase
 from torchrl.data import Bounded, Categorical, TensorSpec
 
 from imitrl import keys
+from imitrl.limits import MAX_ROUNDS
 
 __all__ = ["OBSERVATION_KEYS", "REQUIRED_KEYS", "Schema", "check_rows", "episode_runs"]
 
@@ -89,6 +90,11 @@ def check_rows(
         _check_episodes(rows.get(keys.EPISODE), next_episode)
     if (rows.get(keys.ROUND) < 0).any() or (rows.get(keys.STEP) < 0).any():
         raise ValueError(f"{keys.ROUND!r} and {keys.STEP!r} must be non-negative")
+    if rows.numel() and int(rows.get(keys.ROUND).max()) > MAX_ROUNDS:  # DAgger counts on
+        raise ValueError(
+            f"{keys.ROUND!r} must be at most {MAX_ROUNDS} (imitrl.limits.MAX_ROUNDS: the "
+            f"most DAgger rounds), got {int(rows.get(keys.ROUND).max())}"
+        )
     if action_spec is not None:
         for k in (keys.EXPERT_ACTION, keys.ACTION):
             _check_action(rows.get(k), action_spec, k)

@@ -87,6 +87,8 @@ def exact_cast(values: np.ndarray, dtype: str, *, where: str) -> np.ndarray:
         else:
             back = cast.astype(values.dtype)
             lost = back != values
+            if values.dtype.kind in "iu" and target.kind in "iu":  # a wrap that comes back
+                lost |= (values < 0) != (cast < 0)  # (uint64 2**64 - 1 <-> int64 -1): its sign
             if values.dtype.kind == "f":
                 lost &= ~(np.isnan(values) & np.isnan(back))
     if lost.any():

@@ -181,7 +181,10 @@ def _prepare_offline(config: BCJob, name: str, folder: Path, *, keep_logs: bool)
     learner is built for their observations and the range of their actions."""
     assert config.dataset is not None  # BCJob's checks
     rows = load_dataset(config.dataset, None, config.dataset_frames)
-    task = TaskSpec.from_rows(rows)
+    try:
+        task = TaskSpec.from_rows(rows)
+    except ValueError as err:  # the dataset's observations or actions: name it
+        raise ValueError(f"--dataset {config.dataset}: {err}") from None
     learner = choose_learner(
         config.loss, task, hidden=config.hidden, lr=config.lr, seed=config.seed,
         device=config.device,

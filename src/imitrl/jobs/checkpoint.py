@@ -265,12 +265,29 @@ def _check_fields(path: Path, config: Any) -> None:
     # the env's own limit (no flag given)
     for field in ("hidden", "seed", "lr", "max_episode_steps"):
         _field_bound(field).check_field(config.get(field), f"{path}: {field}", none="null")
+    for field in ("eval_episodes", "eval_seed"):  # null or missing: imitrl eval's defaults
+        if config.get(field) is not None:
+            _field_bound(field).check_field(config[field], f"{path}: {field}")
     pairs = config.get("env_kwargs", [])
     if not isinstance(pairs, list) or not all(_plain_pair(p) for p in pairs):
         raise ValueError(
             f"{path}: env_kwargs must be a list of [name, value] pairs of JSON scalars (or "
             f"lists of them), got {pairs!r}"[:300]
         )
+
+
+def _names_a_path(text: str) -> bool:
+    """Whether ``text`` could name a file outside a package's own folder: an absolute or
+    home path, a path with a separator, or one relative to the working directory
+    (``./``, ``../``). gymnasium's MuJoCo envs open ``xml_file`` so; a bare name
+    (``"ant.xml"``) is looked up among gymnasium's own assets."""
+    return (
+        os.path.isabs(text)
+        or text.startswith((".", "~"))
+        or "/" in text
+        or "\\" in text
+        or "\0" in text
+    )
 
 
 def _plain_pair(pair: Any) -> bool:
@@ -288,9 +305,21 @@ def _scalar(value: Any) -> bool:
     return value is None or isinstance(value, str | int | float | bool)
 
 
-def checkpoint_env_kwargs(config: dict) -> dict:
-    """The env's constructor arguments a checkpoint was trained with (checked data)."""
-    return {name: value for name, value in config.get("env_kwargs", [])}
+def checkpoint_env_kwargs(config: dict, checkpoint: str | Path) -> dict:
+    """The env's constructor arguments a checkpoint was trained with (checked data), for
+    a command given none; ValueError for one that names a file (the env would open it: a
+    checkpoint never makes imitrl read outside its folder; ``--env-kwarg`` names it)."""
+    pairs = {name: value for name, value in config.get("env_kwargs", [])}
+    for name, value in pairs.items():
+        for item in value if isinstance(value, list) else [value]:
+            if isinstance(item, str) and _names_a_path(item):
+                raise ValueError(
+                    f"{Path(checkpoint) / CONFIG_FILE}: env_kwargs {name}={item!r} names a "
+                    "file, which the env would open; a checkpoint never makes imitrl read "
+                    f"outside its folder. If you trust that file, name it yourself: "
+                    f"--env-kwarg {name}={item}"[:400]
+                )
+    return pairs
 
 
 def checkpoint_env(checkpoint: Path, config: dict) -> str:
@@ -379,6 +408,13 @@ def build_learner(saved: SavedRun, env: EnvBase, *, device: str | None = None) -
         seed=config["seed"],
         device=device,
     )
+    for name, tensor in saved.state.items():
+        if isinstance(tensor, torch.Tensor) and tensor.is_floating_point():
+            if not bool(torch.isfinite(tensor).all()):
+                raise ValueError(
+                    f"{saved.path / WEIGHTS_FILE}: {name!r} holds NaN or inf (the saved fit "
+                    "diverged, or the file was altered): nothing it does can be scored"
+                )
     learner = make()
     try:
         learner.load_state_dict(migrated(saved.state, learner))

@@ -133,10 +133,16 @@ def _env_of(config: CompareJob) -> tuple[str, int | None, dict]:
     steps = config.max_episode_steps or next(
         (c.get("max_episode_steps") for c in saved.values() if c.get("max_episode_steps")), None
     )
-    kwargs = dict(config.env_kwargs) or next(
-        (checkpoint_env_kwargs(c) for c in saved.values() if c.get("env_kwargs")), {}
-    )
-    return env_id, steps, kwargs
+    if config.env_kwargs:
+        return env_id, steps, dict(config.env_kwargs)
+    each = {s: checkpoint_env_kwargs(c, s) for s, c in saved.items()}
+    if len({json.dumps(k, sort_keys=True) for k in each.values()}) > 1:
+        raise ValueError(
+            "the checkpoints were trained with different env arguments ("
+            + ", ".join(f"{s}: {k}" for s, k in each.items())
+            + "): name the ones to compare them with, --env-kwarg NAME=VALUE"
+        )
+    return env_id, steps, next(iter(each.values()), {})
 
 
 def _side(side: str, flag: str, env, env_id: str):

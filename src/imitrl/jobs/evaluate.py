@@ -226,7 +226,7 @@ def run_eval(config: EvalJob) -> dict:
         seed = saved.config.get("eval_seed") if seed is None else seed
         env_id = config.env or checkpoint_env(config.checkpoint, saved.config)
         steps = config.max_episode_steps or saved.config.get("max_episode_steps")
-        kwargs = dict(config.env_kwargs) or checkpoint_env_kwargs(saved.config)
+        kwargs = dict(config.env_kwargs) or checkpoint_env_kwargs(saved.config, saved.path)
         # the learner's shapes
         specs = make_env(env_id, seed=0, max_episode_steps=steps, env_kwargs=kwargs)
         try:

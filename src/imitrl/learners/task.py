@@ -20,6 +20,7 @@ from torchrl.data import Bounded, Categorical, Composite, MultiCategorical, Tens
 from torchrl.envs import EnvBase
 
 from imitrl import keys
+from imitrl.limits import MAX_CATEGORIES
 
 __all__ = ["ACTION_KINDS", "OBSERVED_ENTRIES", "Advantage", "IgnoredObservationWarning", "TaskSpec"]
 
@@ -230,7 +231,7 @@ def _observed_spec(value: torch.Tensor | TensorDictBase, key: str) -> TensorSpec
     if value.dtype == torch.uint8 and value.dim() == 4:
         return Bounded(0, 255, tuple(value.shape[1:]), dtype=torch.uint8)
     if key != keys.PIXELS and value.dim() == 1 and not value.is_floating_point():
-        return Categorical(int(value.max()) + 1, dtype=torch.int64)
+        return Categorical(_categories(value, f"{key!r} (integer states)"), dtype=torch.int64)
     if key != keys.PIXELS and value.dim() == 2 and value.is_floating_point():
         return Unbounded((int(value.shape[1]),), dtype=torch.float32)
     raise ValueError(
@@ -245,7 +246,7 @@ def _action_range(labels: torch.Tensor) -> int | TensorSpec:
     if labels.numel() == 0:
         raise ValueError("no expert actions in the rows to take the action range from")
     if not labels.is_floating_point() and labels.dim() == 1:
-        return int(labels.max()) + 1
+        return _categories(labels, f"{keys.EXPERT_ACTION!r} (integer actions)")
     if labels.is_floating_point() and labels.dim() == 2:
         low, high = labels.amin(0).float(), labels.amax(0).float()
         # a dimension the expert never varied (a gripper held shut) gets a sliver of range:
@@ -258,3 +259,16 @@ def _action_range(labels: torch.Tensor) -> int | TensorSpec:
         f"rows' {keys.EXPERT_ACTION!r} is {labels.dtype} {list(labels.shape)}: expected "
         "integer actions [N] or float ones [N, m]"
     )
+
+
+def _categories(values: torch.Tensor, what: str) -> int:
+    """The number of integer values ``values`` ``[N]`` take, ``max + 1``: ValueError
+    naming ``what`` for a negative one or more than :data:`~imitrl.limits.MAX_CATEGORIES`."""
+    low, high = int(values.min()), int(values.max())
+    if low < 0 or high >= MAX_CATEGORIES:
+        raise ValueError(
+            f"rows' {what} range over [{low}, {high}]: expected integers in [0, "
+            f"{MAX_CATEGORIES}) (imitrl.limits.MAX_CATEGORIES; the network is as wide as their "
+            "number)"
+        )
+    return high + 1

@@ -142,6 +142,23 @@ def test_rounds_out_of_order_are_refused_and_nothing_earlier_is_added(tmp_path, 
     assert len(buffer) == 0
 
 
+@pytest.mark.parametrize("stream", [False, True])
+def test_a_round_past_the_most_dagger_rounds_is_refused_at_load(tmp_path, stream):
+    """A hostile review: round 2**63 - 1 loaded, and ``imitrl dagger`` failed after its
+    first fit counting on from it (an int64 overflow)."""
+    from imitrl.limits import MAX_ROUNDS
+
+    rows = dagger_rows(rounds=(0, 1), length=LENGTH)
+    root = _foreign(rows, tmp_path)
+    rounds = rows[keys.ROUND].numpy().copy()
+    rounds[LENGTH:] = 2**63 - 1
+    _replace_column(root, "imitrl.round", pa.array(rounds))
+    with pytest.raises(
+        ValueError, match=rf"episode 1, frame 0: round {2**63 - 1}, expected 0 .* to {MAX_ROUNDS}"
+    ):
+        _load(root, into=DemonstrationBuffer()) if stream else _load(root)
+
+
 def test_a_round_that_changes_inside_an_episode_is_refused(tmp_path):
     rows = dagger_rows(rounds=(0, 1, 2), length=LENGTH)
     root = _foreign(rows, tmp_path)

@@ -38,6 +38,7 @@ from imitrl import keys
 from imitrl.datasets._arrow import column_to_tensor, decode_images
 from imitrl.datasets._common import NestedKey
 from imitrl.datasets.lerobot._layout import INTERVENTION
+from imitrl.limits import MAX_ROUNDS
 
 __all__ = ["RoundOrder", "check_dagger_columns", "feature_values"]
 
@@ -168,6 +169,11 @@ def check_dagger_columns(
 def _check_order(rounds, heads, episode, frame, file_of, order: RoundOrder) -> None:
     for i in heads.tolist():
         now = (int(rounds[i]), int(episode[i]))
+        if not 0 <= now[0] <= MAX_ROUNDS:
+            raise ValueError(
+                f"{_where(file_of, episode, frame, i)}: round {now[0]}, expected 0 (the "
+                f"demonstrations) to {MAX_ROUNDS} (imitrl.limits.MAX_ROUNDS)"
+            )
         if now[0] == 0:  # demonstrations: recorded before the rounds, or added since
             continue
         if order.last is not None and now[0] < order.last[0]:

@@ -93,6 +93,16 @@ def check_repo_id(repo_id: object) -> str:
     return repo_id
 
 
+_SNAPSHOT_NAME = re.compile(r"[\w.-]{1,128}")
+"""a snapshot folder's name: a commit hash, or a revision the hub cache names one by"""
+
+
+def _commit_of(ref_file: Path) -> str:
+    """The commit a hub cache's ``refs/<ref>`` names (its first 256 bytes: a hash is 40)."""
+    with open(ref_file, "rb") as f:
+        return f.read(256).decode("utf-8", "replace").strip()
+
+
 def _hub_snapshot(repo_dir: Path, revision: str | None) -> Path | None:
     """The snapshot of a hub cache's ``datasets--<org>--<name>`` that holds the dataset:
     ``revision`` (or ``v3.0``, ``v2.1``, ``main``) through ``refs/``, else (no revision
@@ -103,7 +113,13 @@ def _hub_snapshot(repo_dir: Path, revision: str | None) -> Path | None:
     refs = [revision] if revision is not None else ["v3.0", "v2.1", "main"]
     for ref in refs:
         ref_file = repo_dir / "refs" / ref
-        commit = ref_file.read_text().strip() if ref_file.is_file() else ref
+        commit = _commit_of(ref_file) if ref_file.is_file() else ref
+        if not _SNAPSHOT_NAME.fullmatch(commit) or commit in (".", ".."):
+            raise ValueError(
+                f"{ref_file if ref_file.is_file() else repo_dir}: revision {commit[:80]!r} is "
+                "not a snapshot's name (a commit hash or a tag): refusing to look outside "
+                f"{snapshots}"
+            )
         candidate = snapshots / commit
         if (candidate / "meta" / "info.json").is_file():
             return candidate

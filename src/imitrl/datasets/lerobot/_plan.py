@@ -37,6 +37,10 @@ def _under_observation(key: NestedKey) -> bool:
     return _under(key, keys.OBSERVATION)
 
 
+_OWN_KEYS = frozenset(getattr(keys, name) for name in keys.__all__)
+"""imitrl's row keys (:mod:`imitrl.keys`): no feature is loaded under one by its name"""
+
+
 def plan_features(
     root: Path,
     info: dict,
@@ -213,12 +217,20 @@ def settle_features(
         if name in plan or name in ("episode_index", "frame_index"):
             continue
         reason = _skip_reason(name, ft, tasks, quiet, key_map, images, videos)
-        if reason is None:
+        if reason is None:  # loaded under its own name, which must not be one of imitrl's
+            if name in _OWN_KEYS:
+                raise ValueError(
+                    f"{root / 'meta' / 'info.json'}: feature {name!r} would be loaded under "
+                    f"its own name, which is one of imitrl's keys: load it under another, "
+                    f"key_map={{{name!r}: ('pixels', {name!r})}}, or skip it, "
+                    f"key_map={{{name!r}: None}}"
+                )
             plan[name] = name
             continue
         skipped[name] = reason
         if reason == _LEFT_OUT:
             quiet.add(name)  # the caller's choice: listed, not warned about
+    _check_targets(root, plan, features)  # the features added here against the rest
     for name, key in plan.items():
         if features[name]["dtype"] == "string":
             raise ValueError(
@@ -241,6 +253,8 @@ def _skip_reason(
     (``images="load"``)."""
     if name == "task_index" and name in quiet:
         return f"a single task ({tasks[0]!r})" if len(tasks) == 1 else "not recorded by imitrl"
+    if key_map is not None and name in key_map:  # mapped to None: the caller leaves it out
+        return _LEFT_OUT
     if ft["dtype"] == "video" and videos == "skip" and name not in (key_map or {}):
         return "video feature (mp4 under videos/) not decoded (videos='skip'; pass videos='decode')"
     if ft["dtype"] == "string":
@@ -251,6 +265,4 @@ def _skip_reason(
         return None
     if name in ("index", "timestamp"):
         return "bookkeeping (derivable from episode order and frame_index / fps)"
-    if key_map is not None and name in key_map:
-        return _LEFT_OUT
     return "no buffer key for it (add it to key_map)"
