@@ -110,3 +110,11 @@ def test_weights_that_are_not_numbers_are_refused(run, tmp_path, value):
     torch.save(state, bad / "learner.pt")
     status, err = _main("eval", "--checkpoint", str(bad), "--eval-episodes", "1")
     assert status == 2 and f"{name!r} holds NaN or inf" in err and "learner.pt" in err, err
+
+
+def test_a_checkpoint_evaluated_in_another_env_is_one_line_naming_its_env(run):
+    """Was torch's list of every mismatched weight, 16 lines."""
+    status, err = _main("eval", "--checkpoint", str(run), "--env", "Acrobot-v1",
+                        "--eval-episodes", "1")  # fmt: skip
+    assert status == 2 and "the checkpoint was trained on CartPole-v1" in err, err
+    assert "size mismatch" not in err and len(err.strip().splitlines()) == 1

@@ -275,3 +275,18 @@ def test_the_clis_default_learner_is_builds_default_bit_for_bit(tmp_path, env_id
         assert cli.opt_pi.param_groups[0]["lr"] == mine.opt_pi.param_groups[0]["lr"]
     finally:
         setup.close()
+
+
+@pytest.mark.parametrize("env", [None, "CartPole-v1", 3])
+def test_build_without_an_env_or_a_task_says_what_it_needs(env):
+    """A hostile review: ``build("default", None)`` and a plain gymnasium env raised a bare
+    AttributeError."""
+    with pytest.raises(ValueError, match=r"build needs a TorchRL env .* or a TaskSpec, got"):
+        build("default", env)
+
+
+def test_build_refuses_a_plain_gymnasium_env():
+    import gymnasium
+
+    with pytest.raises(ValueError, match=r"got TimeLimit"):
+        build("default", gymnasium.make("CartPole-v1"))

@@ -213,6 +213,10 @@ class DAggerConfig:
     """which visited states the expert labels: ``all`` (DAgger) or ``interventions``
     (HG-DAgger, with a gate: the frames it took over, each streak an episode,
     :func:`~imitrl.data.interventions.intervention_segments`)"""
+    shared: dict = field(default_factory=dict)
+    """what else a resumed run must share with the saved one: the caller's own settings,
+    JSON data (``imitrl dagger``: the env and its evaluation protocol, so that one run's
+    rounds are scored alike); ``{}``: nothing more"""
 
     def __post_init__(self) -> None:
         checks.integer(self.rounds, "DAggerConfig.rounds", minimum=1)

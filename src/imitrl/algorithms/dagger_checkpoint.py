@@ -66,6 +66,8 @@ def config_summary(config) -> dict[str, Any]:
     }
     if config.gate is not None:  # a gated run's (absent from the runs saved before gates)
         summary.update(gate=repr(config.gate), label=config.label)
+    if getattr(config, "shared", None):  # the caller's (absent from runs saved before it)
+        summary["shared"] = config.shared
     return summary
 
 
@@ -177,6 +179,31 @@ def save_run(
     buffer.save(path, learner=learner, state=state, overwrite=True)  # this run's own, locked
 
 
+def _check_state(path: Path, state: Any, config) -> None:
+    """ValueError unless ``state`` is a DAgger checkpoint's, saved with ``config``'s
+    settings (:func:`config_summary`; a run saved before ``shared`` compares without)."""
+    if not isinstance(state, dict) or state.get("format") != FORMAT:
+        found = state.get("format") if isinstance(state, dict) else state
+        raise ValueError(f"{path} is not a DAgger checkpoint (state format {found!r})")
+    for name, kind in _STATE_TYPES.items():
+        if type(state.get(name)) is not kind:
+            raise ValueError(
+                f"{path}: state entry {name!r} must be a {kind.__name__}, got "
+                f"{type(state.get(name)).__name__}"
+            )
+    mine = config_summary(config)
+    if "shared" not in state["config"]:
+        mine.pop("shared", None)
+    if state["config"] != mine:
+        _refuse_batch(path, state["config"], mine)
+        diff = sorted(k for k in {*mine, *state["config"]} if mine.get(k) != state["config"].get(k))
+        if diff == ["shared"]:  # name the caller's settings that differ
+            theirs, ours = state["config"]["shared"], mine["shared"]
+            if isinstance(theirs, dict):
+                diff = sorted(k for k in {*ours, *theirs} if ours.get(k) != theirs.get(k))
+        raise ValueError(f"{path} was saved by a run with another config (differs in {diff})")
+
+
 def load_run(
     path: Path, buffer: DemonstrationBuffer, make_learner, *, config, record_cls,
     mixer_generator: torch.Generator, source,
@@ -190,21 +217,12 @@ def load_run(
     differs or what is malformed.
     """
     learner = make_learner()
-    saved, state = DemonstrationBuffer.load(path, learner=learner)
-    if not isinstance(state, dict) or state.get("format") != FORMAT:
-        found = state.get("format") if isinstance(state, dict) else state
-        raise ValueError(f"{path} is not a DAgger checkpoint (state format {found!r})")
-    for name, kind in _STATE_TYPES.items():
-        if type(state.get(name)) is not kind:
-            raise ValueError(
-                f"{path}: state entry {name!r} must be a {kind.__name__}, got "
-                f"{type(state.get(name)).__name__}"
-            )
-    mine = config_summary(config)
-    if state["config"] != mine:
-        _refuse_batch(path, state["config"], mine)
-        diff = sorted(k for k in mine if mine[k] != state["config"].get(k))
-        raise ValueError(f"{path} was saved by a run with another config (differs in {diff})")
+    try:
+        saved, state = DemonstrationBuffer.load(path, learner=learner)
+    except (ValueError, RuntimeError):  # a learner of another shape: the configs first
+        _check_state(path, DemonstrationBuffer.load(path)[1], config)
+        raise
+    _check_state(path, state, config)
     if not 0 <= state["next_round"] <= config.rounds:
         raise ValueError(
             f"{path} has {state['next_round']} rounds done; the config asks {config.rounds}"

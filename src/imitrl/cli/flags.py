@@ -120,11 +120,20 @@ def _parser_for(tp) -> typing.Callable[[str], object]:
     return tp
 
 
+_WORDS = {"true": True, "false": False, "none": None, "null": None}
+"""the values shells, JSON and YAML spell in lower case (``is_slippery=false`` was the
+string ``'false'``, which is true, and the lake stayed slippery)"""
+
+
 def _name_value(text: str) -> tuple[str, object]:
-    """``"name=value"`` -> ``(name, value)``, the value a Python literal where it is one."""
+    """``"name=value"`` -> ``(name, value)``, the value a Python literal where it is one
+    (``true``, ``false``, ``none``, ``null`` too); a string otherwise (quote a string that
+    reads as one of those: ``name='false'``)."""
     name, sep, value = text.partition("=")
     if not sep or not name.isidentifier():
         raise argparse.ArgumentTypeError(f"expected name=value with a keyword name, got {text!r}")
+    if value in _WORDS:
+        return name, _WORDS[value]
     try:
         return name, ast.literal_eval(value)
     except (ValueError, SyntaxError):

@@ -71,12 +71,17 @@ def _spec(env_id: str) -> gymnasium.envs.registration.EnvSpec:
     try:
         return gymnasium.spec(env_id)
     except gymnasium.error.Error as err:
-        close = difflib.get_close_matches(env_id, list(gymnasium.registry), n=3)
+        ids = [i for i in gymnasium.registry if i.split("/")[0] not in _JAX_NAMESPACES]
+        close = difflib.get_close_matches(env_id, ids, n=3)
         hint = f" (did you mean {', '.join(close)}?)" if close else ""
         raise ValueError(
             f"unknown gymnasium env id {env_id!r}{hint}; register your own env with "
             "gymnasium.register(id=..., entry_point=...) first"
         ) from err
+
+
+_JAX_NAMESPACES = ("tabular", "phys2d")
+"""gymnasium's functional envs, which need jax: never suggested for a mistyped id"""
 
 
 def _gym(

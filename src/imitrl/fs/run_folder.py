@@ -22,8 +22,10 @@ checkpoint writer of this library does. So:
 The staging folder of a run that did not finish is removed by the next run of the same
 ``--out`` (with a warning), except when it holds a DAgger checkpoint (``run/``): that is
 saved work, so the next run is refused unless ``--resume`` (it continues there) or
-``--overwrite`` (it is discarded). Logs of a run in progress are in its staging folder
-(the command says where on stderr).
+``--overwrite`` (it is discarded). A ``--resume`` of a finished run continues in a copy
+of it; refused or failed before it saved a round, it leaves no copy (``--out`` holds the
+same checkpoint). Logs of a run in progress are in its staging folder (the command says
+where on stderr).
 
 The run holds ``--out``'s lock (:func:`imitrl.fs.exclusive`) from the check to the
 exchange, so a second run given the same ``--out`` is refused at once. The staging
@@ -129,8 +131,9 @@ def _resumable(stage: Path) -> bool:
     return (stage / "run").is_dir()
 
 
-def _stage(out: Path, overwrite: bool, resume: bool, held: str | None) -> Path:
-    """The folder the run writes into (module docstring)."""
+def _stage(out: Path, overwrite: bool, resume: bool, held: str | None) -> tuple[Path, bool]:
+    """The folder the run writes into (module docstring), and whether it is a copy of
+    ``--out``'s finished run made now (``--resume`` of a finished run)."""
     stage = staging_folder(out)
     left = _entries(stage, "the staging folder")
     if FINISHED in left:  # a replaced run a kill caught before its removal: never resumed
@@ -140,7 +143,7 @@ def _stage(out: Path, overwrite: bool, resume: bool, held: str | None) -> Path:
         if resume:
             check_plain_tree(stage, what="the unfinished run")  # no write through a link
             print(f"imitrl: continuing the unfinished run in {stage}", file=sys.stderr)
-            return stage
+            return stage, False
         if _resumable(stage) and not overwrite:
             raise ValueError(
                 f"--out {out}: a run was stopped before it finished and its DAgger checkpoint "
@@ -157,9 +160,9 @@ def _stage(out: Path, overwrite: bool, resume: bool, held: str | None) -> Path:
     if resume and held is not None and (out / "run").is_dir():
         check_plain_tree(out, what=f"--out {out}")  # links and FIFOs are never copied
         shutil.copytree(out, stage)  # the run continues in a copy; --out stays as it is
-    else:
-        os.mkdir(stage, 0o777)  # the user's umask, as the published run keeps
-    return stage
+        return stage, True
+    os.mkdir(stage, 0o777)  # the user's umask, as the published run keeps
+    return stage, False
 
 
 def _publish(stage: Path, out: Path) -> None:
@@ -195,6 +198,7 @@ def claimed(out: Path, *, overwrite: bool, resume: bool = False) -> Iterator[Pat
     _check_parents(out)
     made = [p for p in (out, *out.parents) if not p.exists()]  # deepest first
     stage: Path | None = None
+    copied = None
     try:
         with (
             exclusive(out, what="written by another imitrl run"),
@@ -202,18 +206,48 @@ def claimed(out: Path, *, overwrite: bool, resume: bool = False) -> Iterator[Pat
         ):
             recover(out)  # a killed exchange of an earlier run (imitrl.fs.publish)
             held = _check(out, overwrite, resume)
-            stage = _stage(out, overwrite, resume, held)
+            stage, copy = _stage(out, overwrite, resume, held)
+            copied = _files_of(stage / "run") if copy else None  # --out's run, copied
             yield stage
             _publish(stage, out)
     except BaseException as err:
-        _clean_up(stage, made, err)
+        _clean_up(stage, made, err, copied, out)
         raise
 
 
-def _clean_up(stage: Path | None, made: list[Path], err: BaseException) -> None:
+def _files_of(folder: Path) -> dict[str, tuple[int, int]] | None:
+    """``{path: (size, mtime_ns)}`` of every file under ``folder`` (None: no folder)."""
+    if not folder.is_dir():
+        return None
+    return {
+        str(p.relative_to(folder)): (p.stat().st_size, p.stat().st_mtime_ns)
+        for p in sorted(folder.rglob("*"))
+        if p.is_file()
+    }
+
+
+def _clean_up(
+    stage: Path | None,
+    made: list[Path],
+    err: BaseException,
+    copied: dict[str, tuple[int, int]] | None,
+    out: Path,
+) -> None:
     """After a failed or refused run: its staging folder goes, unless it holds a DAgger
-    checkpoint (saved work, continued by ``--resume``); folders made for it go if empty."""
-    if stage is not None and stage.is_dir() and not stage.is_symlink() and not _resumable(stage):
+    checkpoint (saved work, continued by ``--resume``) that is not the unchanged copy of
+    ``--out``'s it started from (``copied``: a resumed finished run refused before it saved
+    a round; ``--out`` holds that checkpoint still); folders made for it go if empty."""
+    unchanged = (  # and --out still holds it: nothing was exchanged
+        copied is not None
+        and stage is not None
+        and _files_of(stage / "run") == copied == _files_of(out / "run")
+    )
+    if (
+        stage is not None
+        and stage.is_dir()
+        and not stage.is_symlink()
+        and (unchanged or not _resumable(stage))
+    ):
         remove_tree(stage)
     elif stage is not None and stage.is_dir() and not isinstance(err, DiskFullError):
         print(f"imitrl: the unfinished run is kept in {stage} (--resume continues it)",

@@ -382,6 +382,25 @@ def migrated(state: dict[str, Any], learner: Learner) -> dict[str, Any]:
     return learner.migrated_state({"learner": state})["learner"]
 
 
+def _check_shapes(saved: SavedRun, state: dict, learner: Learner, env: EnvBase) -> None:
+    """One line naming the first weight whose shape the learner rebuilt for ``env`` does not
+    share (a learner evaluated in another env), rather than torch's list of every one."""
+    want = learner.state_dict()
+    bad = [
+        k
+        for k, v in state.items()
+        if isinstance(v, torch.Tensor) and k in want and tuple(v.shape) != tuple(want[k].shape)
+    ]
+    if bad:
+        trained = saved.config.get("env") or "a dataset"
+        raise ValueError(
+            f"{saved.path / WEIGHTS_FILE}: {bad[0]!r} is {list(state[bad[0]].shape)} but "
+            f"{list(want[bad[0]].shape)} in a learner for this env ({len(bad)} weight(s) "
+            f"differ): the checkpoint was trained on {trained}; evaluate it in an env with "
+            "its observations and actions"
+        )
+
+
 def load_learner(checkpoint: Path, env: EnvBase, *, device: str | None = None) -> Learner:
     """The learner saved in ``checkpoint``, rebuilt for ``env`` on ``device`` (None: the
     CPU; the checkpoint may have been saved on another device) and loaded with its weights
@@ -416,8 +435,10 @@ def build_learner(saved: SavedRun, env: EnvBase, *, device: str | None = None) -
                     "diverged, or the file was altered): nothing it does can be scored"
                 )
     learner = make()
+    state = migrated(saved.state, learner)
+    _check_shapes(saved, state, learner, env)
     try:
-        learner.load_state_dict(migrated(saved.state, learner))
+        learner.load_state_dict(state)
     except RuntimeError as err:  # shapes or names that do not match the rebuilt learner
         raise ValueError(
             f"{saved.path}: the weights do not fit the rebuilt learner on {learner.device} ({err})"

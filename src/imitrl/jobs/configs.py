@@ -105,7 +105,9 @@ class RunFlags:
         default=(), metadata={"repeat": "--env-kwarg"}
     )
     """a keyword argument of the env's constructor, name=value (gymnasium.make(env,
-    name=value)), e.g. --env-kwarg obs_type=pixels_agent_pos for metaworld/<task>-v3"""
+    name=value)), the value a Python literal where it is one (true, false and none too),
+    else a string, e.g. --env-kwarg is_slippery=false for FrozenLake-v1, --env-kwarg
+    obs_type=pixels_agent_pos for metaworld/<task>-v3"""
     max_episode_steps: int | None = bounded(None, 1, MAX_EPISODE_STEPS, none_ok=True)
     """override the env's time limit; none = its registered limit"""
     expert: str | None = "auto"

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import json
 import time
 from pathlib import Path
 
@@ -105,16 +106,7 @@ def _run_dagger(config: DAggerJob, folder: Path) -> dict:
                 setup.expert,
                 setup.make_learner,
                 buffer,
-                DAggerConfig(
-                    rounds=config.rounds,
-                    episodes_per_round=config.episodes_per_round,
-                    beta=beta_schedule(config),
-                    warm_start=config.warm_start,
-                    bc=bc_config(config, setup),
-                    seed=config.seed,
-                    gate=None if config.gate is None else ExpertGate(config.gate),
-                    label=config.label,
-                ),
+                _dagger_config(config, setup),
                 on_fit=on_fit,
                 progress=config.progress,
                 logger=setup.logger,
@@ -157,6 +149,34 @@ def _run_dagger(config: DAggerJob, folder: Path) -> dict:
         return results
     finally:
         setup.close()  # the env and the logger, whatever happened
+
+
+def _dagger_config(config: DAggerJob, setup: Setup) -> DAggerConfig:
+    """The algorithm's settings the flags give (its fits on the loss's own schedule)."""
+    return DAggerConfig(
+        rounds=config.rounds,
+        episodes_per_round=config.episodes_per_round,
+        beta=beta_schedule(config),
+        warm_start=config.warm_start,
+        bc=bc_config(config, setup),
+        seed=config.seed,
+        gate=None if config.gate is None else ExpertGate(config.gate),
+        label=config.label,
+        shared=_shared(config),
+    )
+
+
+def _shared(config: DAggerJob) -> dict:
+    """What ``--resume`` must share with the saved run beyond the algorithm's settings: the
+    env and how every round is evaluated (one run's rounds are scored alike)."""
+    shared = {
+        "env": config.env,
+        "env_kwargs": config.env_kwargs,
+        "max_episode_steps": config.max_episode_steps,
+        "eval_episodes": config.eval_episodes,
+        "eval_seed": config.eval_seed,
+    }
+    return json.loads(json.dumps(shared))  # as the checkpoint's JSON holds it
 
 
 def beta_schedule(config: DAggerJob) -> BetaSchedule:

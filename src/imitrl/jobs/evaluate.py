@@ -226,7 +226,9 @@ def run_eval(config: EvalJob) -> dict:
         seed = saved.config.get("eval_seed") if seed is None else seed
         env_id = config.env or checkpoint_env(config.checkpoint, saved.config)
         steps = config.max_episode_steps or saved.config.get("max_episode_steps")
-        kwargs = dict(config.env_kwargs) or checkpoint_env_kwargs(saved.config, saved.path)
+        kwargs = dict(config.env_kwargs)  # or the run's own, for the run's own env
+        if not kwargs and env_id == saved.config.get("env"):
+            kwargs = checkpoint_env_kwargs(saved.config, saved.path)
         # the learner's shapes
         specs = make_env(env_id, seed=0, max_episode_steps=steps, env_kwargs=kwargs)
         try:
@@ -239,7 +241,14 @@ def run_eval(config: EvalJob) -> dict:
         # EvalJob.__post_init__: --expert when no --checkpoint, with --env
         assert config.expert is not None and config.env is not None
         env_id, steps, kwargs = config.env, config.max_episode_steps, dict(config.env_kwargs)
-        expert = make_expert(config.expert, config.expert_kind, env_id=env_id)
+        specs = None  # a callable expert learns the shape of one observation from the env
+        if config.expert_kind == "callable":
+            specs = make_env(env_id, seed=0, max_episode_steps=steps, env_kwargs=kwargs)
+        try:
+            expert = make_expert(config.expert, config.expert_kind, env_id=env_id, env=specs)
+        finally:
+            if specs is not None:
+                specs.close()
         policy, exploration = as_actor(expert), ExplorationType.DETERMINISTIC
         name = f"expert {config.expert}"
     ev = evaluate_returns(

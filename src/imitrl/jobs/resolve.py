@@ -30,6 +30,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import gymnasium
+import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase
@@ -134,12 +135,12 @@ def check_expert_fits(expert: TensorDictModuleBase, spec: str, env_id: str, env:
     built-in expert of ``env_id``, if any) otherwise."""
     try:
         expert(env.fake_tensordict().select(*expert.in_keys))
-    except (ValueError, RuntimeError, KeyError, TypeError, IndexError) as err:
+    except Exception as err:  # a user's function may raise anything: one line naming it
         mine = expert_for_env(AUTO, env_id)
-        hint = f"--expert {mine}" if mine else no_expert_message(env_id).split("; ", 1)[1]
+        hint = f"use --expert {mine}" if mine else no_expert_message(env_id).split("; ", 1)[1]
         raise ValueError(
             f"--expert {spec} cannot label {env_id}'s observations ({type(err).__name__}: "
-            f"{err}); use {hint}"
+            f"{err}); {hint}"
         ) from err
 
 
@@ -170,6 +171,9 @@ def make_expert(
     if not callable(fn):
         raise ValueError(f"--expert {spec!r} is a {type(fn).__name__}, not a function")
     if kind == "callable":
+        if env is not None and keys.OBSERVATION in env.observation_spec_unbatched.keys():
+            event = len(env.observation_spec_unbatched[keys.OBSERVATION].shape)
+            return Expert.from_callable(_BatchedCall(fn, event))
         return Expert.from_callable(fn)
     needs = _required_arguments(fn)
     if needs:
@@ -192,6 +196,21 @@ def make_expert(
             "obs -> action, pass --expert-kind callable)"
         )
     return expert
+
+
+class _BatchedCall:
+    """An ``--expert-kind callable`` function called as its flag promises, on a batch
+    ``obs [N, *event]``: one env's observation ``[*event]`` (one lane, where TorchRL
+    steps it unbatched) goes in as a batch of one and its label comes back out."""
+
+    def __init__(self, fn: Callable, event_dims: int) -> None:
+        self.fn, self.event_dims = fn, event_dims
+
+    def __call__(self, obs: torch.Tensor) -> object:
+        if obs.dim() > self.event_dims:
+            return self.fn(obs)
+        out = torch.as_tensor(self.fn(obs.unsqueeze(0)))
+        return out[0] if out.dim() > 0 and out.shape[0] == 1 else out
 
 
 def _metaworld_expert(env_id: str | None, env: EnvBase | None) -> Expert:

@@ -76,10 +76,16 @@ def build(
     ``settings`` must all apply.
 
     Raises:
-        ValueError: an unknown name; an entry that does not apply to the env; a setting
-            the entry does not have, or one it refuses (a rate besides its recipe's,
-            hidden layers of a table, a value head it cannot build).
+        ValueError: ``env`` neither a TorchRL env nor a TaskSpec; an unknown name; an
+            entry that does not apply to the env; a setting the entry does not have, or
+            one it refuses (a rate besides its recipe's, hidden layers of a table, a value
+            head it cannot build).
     """
+    if not isinstance(env, TaskSpec | EnvBase):
+        raise ValueError(
+            f"build needs a TorchRL env (imitrl.envs.make_env(id, seed=...), or a gymnasium "
+            f"env wrapped in torchrl.envs.GymWrapper) or a TaskSpec, got {type(env).__name__}"
+        )
     task = env if isinstance(env, TaskSpec) else TaskSpec.from_env(env)
     name = resolve(name, task, value=bool(settings.get("value", False)))
     entry = get(name)

@@ -1,0 +1,72 @@
+"""``imitrl dagger --resume`` of a finished run with other flags: refused before any work,
+naming what differs, leaving nothing beside ``--out`` (a hostile review: other
+``--eval-episodes``/``--eval-seed`` were taken silently, one run's rounds scored two ways;
+another env printed 16 lines of weight shapes; a refused resume left a copy of ``--out``
+beside it, called an unfinished run)."""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+
+import pytest
+
+from imitrl.cli import main
+from imitrl.fs.run_folder import staging_folder
+
+FLAGS = ["dagger", "--expert", "auto", "--demos", "1", "--rounds", "2",
+         "--episodes-per-round", "1", "--steps", "10", "--hidden", "8,8",
+         "--eval-episodes", "1", "--max-episode-steps", "30", "--no-progress"]  # fmt: skip
+
+
+def _main(*argv: str) -> tuple[int, str]:
+    err = io.StringIO()
+    with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(err):
+        status = main(list(argv))
+    return status, err.getvalue()
+
+
+@pytest.fixture(scope="module")
+def finished(tmp_path_factory):
+    out = tmp_path_factory.mktemp("resume") / "run"
+    status, err = _main(*FLAGS, "--env", "CartPole-v1", "--out", str(out))
+    assert status == 0, err
+    return out
+
+
+def _files(folder):
+    return {str(p.relative_to(folder)): p.read_bytes() for p in folder.rglob("*") if p.is_file()}
+
+
+@pytest.mark.parametrize(
+    ("flags", "differs"),
+    [
+        (["--env", "CartPole-v1", "--eval-episodes", "2", "--eval-seed", "5"],
+         "differs in ['eval_episodes', 'eval_seed']"),
+        (["--env", "CartPole-v1", "--max-episode-steps", "40"], "differs in ['max_episode_steps']"),
+        (["--env", "Acrobot-v1"], "differs in ['env']"),
+        (["--env", "CartPole-v1", "--steps", "20"], "differs in ['bc']"),
+    ],
+)  # fmt: skip
+def test_a_resume_with_other_flags_is_refused_and_leaves_nothing(finished, flags, differs):
+    before = _files(finished)
+    status, err = _main(*FLAGS, "--rounds", "3", *flags, "--resume", "--out", str(finished))
+    assert status == 2 and "saved by a run with another config" in err and differs in err, err
+    assert "size mismatch" not in err and "is kept in" not in err
+    assert len([line for line in err.splitlines() if line.startswith("imitrl")]) == 1, err
+    assert not staging_folder(finished).exists()  # no copy of --out left beside it
+    assert _files(finished) == before
+
+
+def test_a_resume_with_the_same_flags_continues_the_finished_run(finished, tmp_path):
+    import shutil
+
+    out = tmp_path / "run"
+    shutil.copytree(finished, out)
+    status, err = _main(*FLAGS, "--env", "CartPole-v1", "--rounds", "3", "--resume",
+                        "--out", str(out))  # fmt: skip
+    assert status == 0, err
+    rounds = json.loads((out / "results.json").read_text())["rounds"]
+    assert [r["round"] for r in rounds] == [0, 1, 2]
+    assert {(r["evaluation"]["episodes"], r["evaluation"]["seed"]) for r in rounds} == {(1, 10_000)}

@@ -1,0 +1,73 @@
+"""``--expert module:function --expert-kind callable``: the function is called on a batch
+``obs [N, *event]`` as its flag promises, whatever the number of lanes (a hostile review:
+one lane, the default ``--num-envs 1`` or ``--eval-episodes 1``, handed it one unbatched
+observation; the run failed after its fit, and nothing of it was kept)."""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import sys
+import textwrap
+
+import pytest
+
+from imitrl.cli import main
+
+STRICT = textwrap.dedent(
+    """
+    import torch
+    SEEN = []
+
+    def down(obs):  # FrozenLake: integer states [N]
+        SEEN.append(tuple(obs.shape))
+        assert obs.dim() == 1, obs.shape
+        return torch.ones(obs.shape[0], dtype=torch.int64)
+
+    def half(obs):  # MountainCarContinuous: [N, 2] -> [N, 1]
+        SEEN.append(tuple(obs.shape))
+        assert obs.dim() == 2, obs.shape
+        return torch.full((obs.shape[0], 1), 0.5)
+    """
+)
+
+
+@pytest.fixture
+def strict(tmp_path, monkeypatch):
+    (tmp_path / "strict_expert.py").write_text(STRICT)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    yield __import__("strict_expert")
+    sys.modules.pop("strict_expert", None)
+
+
+def _main(*argv: str) -> tuple[int, str]:
+    err = io.StringIO()
+    with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(err):
+        status = main(list(argv))
+    return status, err.getvalue()
+
+
+@pytest.mark.parametrize(
+    ("env", "fn", "extra"),
+    [("FrozenLake-v1", "down", []), ("MountainCarContinuous-v0", "half", ["--max-episode-steps", "10"])],
+)  # fmt: skip
+@pytest.mark.parametrize("lanes", ["1", "2"])
+def test_a_callable_expert_is_always_called_on_a_batch(strict, tmp_path, env, fn, extra, lanes):
+    status, err = _main("bc", "--env", env, "--expert", f"strict_expert:{fn}", "--expert-kind",
+                        "callable", "--num-envs", lanes, "--demos", "2", "--steps", "5",
+                        "--eval-episodes", "1", "--no-progress", "--out", str(tmp_path / "o"),
+                        *extra)  # fmt: skip
+    assert status == 0, err
+    assert strict.SEEN and all(len(s) == (1 if fn == "down" else 2) for s in strict.SEEN)
+    assert {s[0] for s in strict.SEEN} >= {1}  # one lane's observation, as a batch of one
+    status, err = _main("eval", "--expert", f"strict_expert:{fn}", "--expert-kind", "callable",
+                        "--env", env, "--eval-episodes", "1", "--no-progress", *extra)  # fmt: skip
+    assert status == 0, err
+
+
+def test_an_expert_that_cannot_label_the_env_says_what_to_pass(strict, tmp_path):
+    status, err = _main("bc", "--env", "Taxi-v4", "--expert", "strict_expert:half",
+                        "--expert-kind", "callable", "--demos", "1", "--no-progress",
+                        "--out", str(tmp_path / "o"))  # fmt: skip
+    assert status == 2 and "cannot label Taxi-v4's observations" in err, err
+    assert "; pass --expert module:function" in err and "use pass" not in err
