@@ -6,8 +6,6 @@ weights were scored as if they were a policy)."""
 
 from __future__ import annotations
 
-import contextlib
-import io
 import json
 import shutil
 from pathlib import Path
@@ -15,17 +13,10 @@ from pathlib import Path
 import pytest
 import torch
 
-from imitrl.cli import main
 from tests import _watch
+from tests._cli import run_main
 
 ENV = "CartPole-v1"
-
-
-def _main(*argv: str) -> tuple[int, str]:
-    err = io.StringIO()
-    with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(err):
-        status = main(list(argv))
-    return status, err.getvalue()
 
 
 @pytest.fixture(scope="module")
@@ -118,3 +109,8 @@ def test_a_checkpoint_evaluated_in_another_env_is_one_line_naming_its_env(run):
                         "--eval-episodes", "1")  # fmt: skip
     assert status == 2 and "the checkpoint was trained on CartPole-v1" in err, err
     assert "size mismatch" not in err and len(err.strip().splitlines()) == 1
+
+
+def _main(*argv: str) -> tuple[int, str]:
+    status, _, err = run_main(*argv)
+    return status, err

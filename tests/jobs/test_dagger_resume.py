@@ -6,25 +6,16 @@ beside it, called an unfinished run)."""
 
 from __future__ import annotations
 
-import contextlib
-import io
 import json
 
 import pytest
 
-from imitrl.cli import main
 from imitrl.fs.run_folder import staging_folder
+from tests._cli import run_main
 
 FLAGS = ["dagger", "--expert", "auto", "--demos", "1", "--rounds", "2",
          "--episodes-per-round", "1", "--steps", "10", "--hidden", "8,8",
          "--eval-episodes", "1", "--max-episode-steps", "30", "--no-progress"]  # fmt: skip
-
-
-def _main(*argv: str) -> tuple[int, str]:
-    err = io.StringIO()
-    with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(err):
-        status = main(list(argv))
-    return status, err.getvalue()
 
 
 @pytest.fixture(scope="module")
@@ -70,3 +61,8 @@ def test_a_resume_with_the_same_flags_continues_the_finished_run(finished, tmp_p
     rounds = json.loads((out / "results.json").read_text())["rounds"]
     assert [r["round"] for r in rounds] == [0, 1, 2]
     assert {(r["evaluation"]["episodes"], r["evaluation"]["seed"]) for r in rounds} == {(1, 10_000)}
+
+
+def _main(*argv: str) -> tuple[int, str]:
+    status, _, err = run_main(*argv)
+    return status, err

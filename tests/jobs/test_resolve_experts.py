@@ -5,14 +5,12 @@ observation; the run failed after its fit, and nothing of it was kept)."""
 
 from __future__ import annotations
 
-import contextlib
-import io
 import sys
 import textwrap
 
 import pytest
 
-from imitrl.cli import main
+from tests._cli import run_main
 
 STRICT = textwrap.dedent(
     """
@@ -40,13 +38,6 @@ def strict(tmp_path, monkeypatch):
     sys.modules.pop("strict_expert", None)
 
 
-def _main(*argv: str) -> tuple[int, str]:
-    err = io.StringIO()
-    with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(err):
-        status = main(list(argv))
-    return status, err.getvalue()
-
-
 @pytest.mark.parametrize(
     ("env", "fn", "extra"),
     [("FrozenLake-v1", "down", []), ("MountainCarContinuous-v0", "half", ["--max-episode-steps", "10"])],
@@ -71,3 +62,8 @@ def test_an_expert_that_cannot_label_the_env_says_what_to_pass(strict, tmp_path)
                         "--out", str(tmp_path / "o"))  # fmt: skip
     assert status == 2 and "cannot label Taxi-v4's observations" in err, err
     assert "; pass --expert module:function" in err and "use pass" not in err
+
+
+def _main(*argv: str) -> tuple[int, str]:
+    status, _, err = run_main(*argv)
+    return status, err
