@@ -4,6 +4,7 @@ run's buffer, learner weights and evaluation, identical to the bit."""
 from __future__ import annotations
 
 import functools
+import re
 import signal
 import subprocess
 import sys
@@ -151,3 +152,24 @@ def test_a_finished_run_resumed_with_more_rounds_equals_the_longer_run(tmp_path,
     source, expert, make_learner, buffer, config = _resume_run.build(kind)
     grown = dagger(source, expert, make_learner, buffer, config, checkpoint_dir=ckpt, resume=True)
     _assert_identical(_fingerprint(kind, grown), _reference(kind))
+
+
+def test_a_resume_with_other_shared_settings_names_them(tmp_path):
+    """``DAggerConfig.shared``: the caller's settings (``imitrl dagger``'s env and
+    evaluation protocol) are held like the algorithm's; the message names each one."""
+    import dataclasses
+
+    ckpt = tmp_path / "run"
+    source, expert, make_learner, buffer, config = _resume_run.build("lake")
+    shared = {"env": "FrozenLake-v1", "eval_seed": 1}
+    dagger(source, expert, make_learner, buffer, dataclasses.replace(config, shared=shared),
+           checkpoint_dir=ckpt)  # fmt: skip
+    for other, differs in (({**shared, "eval_seed": 2}, "['eval_seed']"),
+                           ({}, "['env', 'eval_seed']")):  # fmt: skip
+        source, expert, make_learner, buffer, config = _resume_run.build("lake")
+        with pytest.raises(
+            ValueError, match=rf"another config \(differs in {re.escape(differs)}\)"
+        ):
+            dagger(source, expert, make_learner, buffer,
+                   dataclasses.replace(config, shared=other), checkpoint_dir=ckpt,
+                   resume=True)  # fmt: skip

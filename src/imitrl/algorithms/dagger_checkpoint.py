@@ -198,7 +198,7 @@ def _check_state(path: Path, state: Any, config) -> None:
         _refuse_batch(path, state["config"], mine)
         diff = sorted(k for k in {*mine, *state["config"]} if mine.get(k) != state["config"].get(k))
         if diff == ["shared"]:  # name the caller's settings that differ
-            theirs, ours = state["config"]["shared"], mine["shared"]
+            theirs, ours = state["config"]["shared"], mine.get("shared", {})
             if isinstance(theirs, dict):
                 diff = sorted(k for k in {*ours, *theirs} if ours.get(k) != theirs.get(k))
         raise ValueError(f"{path} was saved by a run with another config (differs in {diff})")
