@@ -40,6 +40,7 @@ BAD_FLAGS = [
     (["--desc", "SFFF,FXFH,FFFH,HFFG"], "letters must be S (start), F (frozen)"),
     (["--desc", "sfff,fhfh,fffh,hffg"], "letters must be"),
     (["--desc", ","], "--desc needs non-empty rows"),
+    (["--desc", "S,F,G"], "--desc needs at least 2 columns"),
     (["--gamma", "0"], "--gamma must be in (0, 1], got 0.0"),
     (["--gamma", "1.5"], "--gamma must be in (0, 1]"),
     (["--gamma", "nan"], "--gamma must be in (0, 1]"),

@@ -20,13 +20,16 @@ def compounding_error(ctx: StudyContext) -> None:
         rng = np.random.default_rng(cfg.chain_seed)
         gap_bc, gap_rec = chain_monte_carlo(eps, T, cfg.chain_samples, rng)
         ex_bc, ex_rec = chain_exact(eps, T)
+        # no recovering loss among the samples (a small eps, few --chain-samples): no ratio
+        ratio = float(gap_bc[-1] / gap_rec[-1]) if gap_rec[-1] > 0 else None
+        shown = "undefined (no recovering loss sampled)" if ratio is None else f"{ratio:.1f}x"
         rep.line(
             f"lost return at T={T}: cloned {gap_bc[-1]:.2f} (eps T^2/2 = {eps * T**2 / 2:.2f}), "
             f"recovering {gap_rec[-1]:.2f} (eps T = {eps * T:.2f})"
         )
         rep.line(
             f"  eps={eps}: exact expectations cloned {ex_bc[-1]:.3f}, recovering {ex_rec[-1]:.3f}; "
-            f"ratio measured {gap_bc[-1] / gap_rec[-1]:.1f}x, exact {ex_bc[-1] / ex_rec[-1]:.1f}x"
+            f"ratio measured {shown}, exact {ex_bc[-1] / ex_rec[-1]:.1f}x"
         )
         panels.append(
             {
@@ -36,7 +39,7 @@ def compounding_error(ctx: StudyContext) -> None:
                 "recovering": gap_rec,
                 "cloned_exact": ex_bc,
                 "recovering_exact": ex_rec,
-                "ratio": float(gap_bc[-1] / gap_rec[-1]),
+                "ratio": ratio,
                 "ratio_exact": float(ex_bc[-1] / ex_rec[-1]),
             }
         )

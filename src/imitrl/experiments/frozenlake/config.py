@@ -73,6 +73,12 @@ def check_desc(desc: tuple[str, ...]) -> None:
             f"--desc rows must all have the same length, got lengths "
             f"{[len(r) for r in rows]} in {shown}"
         )
+    if len(rows[0]) < 2:  # gymnasium's FrozenLake reads the map as a 2-d grid of columns
+        raise ValueError(
+            f"--desc needs at least 2 columns (gymnasium's FrozenLake cannot build a map of "
+            f"one column); got {shown!r}: write the corridor as one row, e.g. "
+            f"{''.join(rows)!r}"
+        )
     bad = sorted(set("".join(rows)) - set(MAP_LETTERS))
     if bad:
         letters = ", ".join(f"{k} ({v})" for k, v in MAP_LETTERS.items())

@@ -8,7 +8,10 @@ from imitrl.experiments.frozenlake import figures
 from imitrl.experiments.frozenlake.context import StudyContext
 from imitrl.tabular.finite_horizon import state_distributions, total_variation
 
-__all__ = ["divergence"]
+__all__ = ["CLAIM_STEP", "divergence"]
+
+CLAIM_STEP = 20
+"""the step of the section's claim on the clone's mass in a hole ("22 percent by step 20")"""
 
 
 def divergence(ctx: StudyContext) -> None:
@@ -34,6 +37,12 @@ def divergence(ctx: StudyContext) -> None:
             f"mass in the hole at s={h} after {H} steps: expert {float(d_exp[H, h]):.3f}, clone {float(d_clo[H, h]):.3f}"
         )
         rep.set("divergence.worst_hole", h)
+    if holes.numel() and H >= CLAIM_STEP:  # the section's claim is about step 20
+        at = {h: {"expert": float(d_exp[CLAIM_STEP, h]), "clone": float(d_clo[CLAIM_STEP, h])}
+              for h in holes.tolist()}  # fmt: skip
+        rep.set(f"divergence.hole_mass_at_{CLAIM_STEP}", at)
+        worst = int(holes[torch.argmax(d_clo[CLAIM_STEP, holes])])
+        rep.set(f"divergence.worst_hole_at_{CLAIM_STEP}", worst)
     occ_exp, occ_clo = d_exp[1:].mean(0), d_clo[1:].mean(0)
     rep.set("divergence.occupancy", {"expert": occ_exp, "clone": occ_clo, "steps": H})
     figures.plot_occupancy(

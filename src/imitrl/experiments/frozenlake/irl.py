@@ -166,13 +166,17 @@ def _main_fit(ctx: StudyContext) -> IRLResult:
 
 
 def _argmax_fraction(ctx: StudyContext, res: IRLResult) -> float:
-    """Fraction of demonstrated decisions that are the soft-optimal policy's most likely action."""
+    """Fraction of demonstrated decisions that are a most likely action of the soft-optimal
+    policy (ties included)."""
     assert ctx.demos is not None  # section 1 set them
     t = ctx.demos.get(keys.STEP).long()
     s = ctx.demos.get(keys.OBSERVATION).long()
     a = ctx.demos.get(keys.EXPERT_ACTION).long()
-    best = res.policy[0][t, s].argmax(dim=-1)
-    return float((best == a).double().mean())
+    probs = res.policy[0][t, s]  # [N, A]
+    chosen = probs.gather(-1, a.unsqueeze(-1)).squeeze(-1)
+    # a tie is a most likely action too (argmax would pick the lowest index among them)
+    best = torch.isclose(chosen, probs.max(dim=-1).values, rtol=1e-9, atol=1e-12)
+    return float(best.double().mean())
 
 
 def _sweep(ctx: StudyContext) -> dict[int, dict[str, np.ndarray]]:

@@ -60,8 +60,11 @@ def _check_runnable(config: StudyConfig, mdp: TabularMDP) -> None:
         )
     bad = [s for s in config.probe_states if not 0 <= s < mdp.num_states]
     if bad:
+        default = config.probe_states == StudyConfig.probe_states
         raise ValueError(
             f"--probe-states {bad} outside the {mdp.num_states} states of {mdp.name!r}"
+            + (" (the default: the section's states of the 4x4 map)" if default else "")
+            + "; pass states of this map, e.g. --probe-states 0"
         )
     starts = int((mdp.initial > 0).sum())
     if config.protocol == "batched" and starts != 1:
