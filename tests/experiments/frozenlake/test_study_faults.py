@@ -41,6 +41,7 @@ BAD_FLAGS = [
     (["--desc", "sfff,fhfh,fffh,hffg"], "letters must be"),
     (["--desc", ","], "--desc needs non-empty rows"),
     (["--desc", "S,F,G"], "--desc needs at least 2 columns"),
+    (["--max-steps", "10"], "--tv-steps [20] past the time limit of 10 steps"),
     (["--gamma", "0"], "--gamma must be in (0, 1], got 0.0"),
     (["--gamma", "1.5"], "--gamma must be in (0, 1]"),
     (["--gamma", "nan"], "--gamma must be in (0, 1]"),

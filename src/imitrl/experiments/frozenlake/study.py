@@ -58,6 +58,12 @@ def _check_runnable(config: StudyConfig, mdp: TabularMDP) -> None:
             f"{mdp.name!r} is registered without a time limit: give one with --max-steps "
             "(StudyConfig.max_steps); every success rate here is within a horizon"
         )
+    late = [t for t in config.tv_steps if t > mdp.max_steps]
+    if late:
+        raise ValueError(
+            f"--tv-steps {late} past the time limit of {mdp.max_steps} steps: no episode "
+            "reaches them (give smaller steps, or a larger --max-steps)"
+        )
     bad = [s for s in config.probe_states if not 0 <= s < mdp.num_states]
     if bad:
         default = config.probe_states == StudyConfig.probe_states
