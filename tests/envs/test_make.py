@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import pytest
 
 from imitrl.envs import make_env
@@ -14,3 +16,31 @@ def test_a_mistyped_id_suggests_only_envs_that_need_no_jax():
         make_env("CliffWalking-v0", seed=0)
     said = str(err.value)
     assert "CliffWalking-v1" in said and "tabular/" not in said and "phys2d/" not in said
+
+
+@pytest.mark.parametrize(
+    ("env_id", "kwargs", "said"),
+    [
+        ("Pendulum-v1", {"g": "abc"}, "g='abc': Pendulum-v1's g defaults to 10.0 (float)"),
+        ("Pendulum-v1", {"g": True}, "g=True: Pendulum-v1's g defaults to 10.0 (float)"),
+        ("FrozenLake-v1", {"is_slippery": "false"}, "defaults to True (bool); give a bool"),
+        ("FrozenLake-v1", {"map_name": 8}, "map_name defaults to '4x4' (str)"),
+    ],
+)
+def test_an_argument_of_another_kind_than_its_default_is_refused(env_id, kwargs, said):
+    """A review: ``--env-kwarg g=abc`` failed inside Pendulum's first step, a traceback."""
+    with pytest.raises(ValueError, match=re.escape(said)):
+        make_env(env_id, seed=0, env_kwargs=kwargs)
+
+
+@pytest.mark.parametrize(
+    ("env_id", "kwargs"),
+    [
+        ("Pendulum-v1", {"g": 9}),
+        ("Pendulum-v1", {"g": 9.81}),
+        ("FrozenLake-v1", {"is_slippery": False, "map_name": "8x8"}),
+        ("FrozenLake-v1", {"desc": ["SF", "HG"]}),  # default None: taken as given
+    ],
+)
+def test_arguments_of_their_defaults_kind_are_taken(env_id, kwargs):
+    make_env(env_id, seed=0, env_kwargs=kwargs).close()

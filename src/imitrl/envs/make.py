@@ -35,12 +35,14 @@ from __future__ import annotations
 
 import difflib
 import importlib
+import inspect
 import weakref
 from functools import partial
 
 import gymnasium
 import numpy as np
 import torch
+from gymnasium.envs.registration import load_env_creator
 from torchrl.envs import DoubleToFloat, EnvBase, GymWrapper, ParallelEnv, TransformedEnv
 from torchrl.record.recorder import PixelRenderTransform
 
@@ -84,6 +86,35 @@ _JAX_NAMESPACES = ("tabular", "phys2d")
 """gymnasium's functional envs, which need jax: never suggested for a mistyped id"""
 
 
+def _check_kwarg_kinds(env_id: str, env_kwargs: dict) -> None:
+    """ValueError for an env argument of another kind than its constructor's default (a
+    number given as text: ``--env-kwarg g=abc`` failed inside Pendulum's first step).
+    Arguments whose default is None, or constructors that cannot be read, pass as given."""
+    try:
+        entry = gymnasium.spec(env_id).entry_point
+        creator = load_env_creator(entry) if isinstance(entry, str) else entry
+        params = inspect.signature(creator).parameters  # type: ignore[arg-type]
+    except Exception:
+        return
+    for name, value in env_kwargs.items():
+        default = params[name].default if name in params else None
+        kinds = _KINDS.get(type(default))
+        if kinds is not None and type(value) not in kinds:
+            raise ValueError(
+                f"--env-kwarg {name}={value!r}: {env_id}'s {name} defaults to {default!r} "
+                f"({type(default).__name__}); give a {type(default).__name__}"
+            )
+
+
+_KINDS: dict[type, tuple[type, ...]] = {
+    bool: (bool,),
+    int: (int,),
+    float: (int, float),
+    str: (str,),
+}
+"""a default's type -> the types a value given for it may have"""
+
+
 def _gym(
     env_id: str,
     max_episode_steps: int | None,
@@ -95,6 +126,7 @@ def _gym(
     ``render``), a ``Dict`` observation renamed onto imitrl's keys
     (:class:`DictObservation`), ``info["success"]`` read as a flag when ``success``."""
     extra = {"render_mode": "rgb_array"} if render else {}
+    _check_kwarg_kinds(env_id, env_kwargs or {})
     try:
         env = gymnasium.make(
             env_id, max_episode_steps=max_episode_steps, **{**(env_kwargs or {}), **extra}
