@@ -255,8 +255,9 @@ def column_to_tensor(
     if target not in TORCH_DTYPES:
         raise ValueError(f"{where}: unsupported dtype {dtype!r}")
     values = exact_cast(np.asarray(arr.to_numpy(zero_copy_only=False)), target, where=where)
-    check_finite(values, where=where)
-    return torch.from_numpy(values.reshape(n, *dims).copy())
+    values = values.reshape(n, *dims)
+    check_finite(values, where=where)  # per row: "frame i" names the row, not an element
+    return torch.from_numpy(values.copy())
 
 
 MAX_IMAGE_PIXELS = 1 << 25

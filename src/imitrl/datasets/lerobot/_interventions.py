@@ -92,7 +92,12 @@ def feature_values(
         episode = table.column("episode_index")[row].as_py()
         frame = table.column("frame_index")[row].as_py()
         hint = ""
-        if INTERVENTION in table.column_names and bool(table.column(INTERVENTION)[row].as_py()):
+        acted = "action" in name  # the hint is about the corrected action alone
+        if (
+            acted
+            and INTERVENTION in table.column_names
+            and bool(table.column(INTERVENTION)[row].as_py())
+        ):
             hint = ": an intervention frame, which must carry the corrected action"
         raise ValueError(f"{err} (episode {episode}, frame {frame}{hint})") from err
 

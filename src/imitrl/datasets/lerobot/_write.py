@@ -38,7 +38,13 @@ from imitrl.datasets.lerobot._layout import (
 from imitrl.datasets.lerobot._v3_files import write_v3
 from imitrl.datasets.lerobot._video_write import MIN_SIDE, import_av
 from imitrl.datasets.lerobot._write_frames import pixels_of
-from imitrl.datasets.lerobot._write_plan import Column, Episodes, Plan
+from imitrl.datasets.lerobot._write_plan import (
+    Column,
+    Episodes,
+    Plan,
+    check_finite_rows,
+    check_timestamps,
+)
 from imitrl.fs.publish import publishing
 
 
@@ -403,6 +409,8 @@ def save_lerobot(
     if isinstance(size, bool) or not isinstance(size, int | float) or not size > 0:
         raise ValueError(f"video_files_size_in_mb must be > 0, got {video_files_size_in_mb!r}")
     episodes = _episodes(rows, tasks)
+    check_timestamps(int(episodes.lengths.max()), int(fps))
+    check_finite_rows(rows)
     plan = _plan(rows, dict(names or {}), video, features)
     if plan.videos:
         import_av()  # before anything is written: a missing PyAV says how to install it

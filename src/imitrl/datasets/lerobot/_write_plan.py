@@ -9,8 +9,12 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
+import torch
+from tensordict import TensorDictBase
 
-from imitrl.datasets._common import NestedKey
+from imitrl import keys
+from imitrl.datasets._common import NestedKey, key_name
+from imitrl.datasets.lerobot._checks import TOLERANCE_S
 
 
 @dataclass(frozen=True)
@@ -61,3 +65,39 @@ class Plan:
     """feature -> its ``meta/imitrl.json`` entry (buffer key, exact per-frame shape)"""
     videos: dict[str, np.ndarray]
     """video feature -> uint8 ``[N, H, W, 3]`` frames to encode (a view of the rows)"""
+
+
+def check_timestamps(longest: int, fps: int) -> None:
+    """ValueError unless the float32 timestamps of an episode of ``longest`` frames pass
+    LeRobot's check (consecutive frames ``1/fps`` apart within its ``tolerance_s``): past
+    about 2**10 s float32 is too coarse for it, and lerobot, as ``load_lerobot``, would
+    refuse the file."""
+    ts = (np.arange(longest) / fps).astype(np.float32).astype(np.float64)
+    off = np.flatnonzero(np.abs(np.diff(ts) - 1 / fps) > TOLERANCE_S)
+    if off.size:
+        most = int(off[0]) + 1
+        raise ValueError(
+            f"an episode of {longest} frames at fps {fps}: LeRobot stores timestamps as "
+            f"float32, too coarse past frame {most} ({most / fps:.0f} s) for its "
+            f"{TOLERANCE_S} s check (lerobot and load_lerobot would refuse the file); "
+            f"split the episodes into parts of at most {most} frames"
+        )
+
+
+def check_finite_rows(rows: TensorDictBase, chunk: int = 1 << 18) -> None:
+    """ValueError naming the key, episode and step of the first NaN or inf among the
+    rows' floating values (``load_lerobot`` refuses them: they would poison training),
+    read ``chunk`` rows at a time."""
+    for key in rows.keys(include_nested=True, leaves_only=True):
+        if not rows.get(key).is_floating_point():
+            continue
+        for start in range(0, rows.shape[0], chunk):
+            part = rows.get(key)[start : start + chunk]
+            bad = ~torch.isfinite(part.reshape(part.shape[0], -1)).all(-1)
+            if bool(bad.any()):
+                i = start + int(torch.nonzero(bad)[0, 0])
+                episode, step = int(rows.get(keys.EPISODE)[i]), int(rows.get(keys.STEP)[i])
+                raise ValueError(
+                    f"rows' {key_name(key)!r} at episode {episode}, step {step} holds NaN or "
+                    "inf: a LeRobot dataset of it could not be loaded (NaN and inf are refused)"
+                )
