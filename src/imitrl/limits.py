@@ -154,6 +154,8 @@ class Bound:
     """an integer count (True) or a finite real (False)"""
     low_open: bool = False
     """``low`` itself is refused (a learning rate: ``> 0``)"""
+    high_open: bool = False
+    """``high`` itself is refused (an error rate: ``< 1``)"""
     none_ok: bool = False
     """None is allowed (``none`` on the command line)"""
 
@@ -169,8 +171,8 @@ class Bound:
             return f"an integer in [{_number(self.low)}, {_number(self.high)}]"
         if math.isinf(self.high):
             return f"{'>' if self.low_open else '>='} {_number(self.low)} and finite"
-        left = "(" if self.low_open else "["
-        return f"in {left}{_number(self.low)}, {_number(self.high)}]"
+        left, right = "(" if self.low_open else "[", ")" if self.high_open else "]"
+        return f"in {left}{_number(self.low)}, {_number(self.high)}{right}"
 
     def _kind(self, none: str) -> str:
         """What a value that is no finite number of the right kind (a string, a nan, a
@@ -197,7 +199,9 @@ class Bound:
         """Whether ``value`` is one of the values this bound allows."""
         if value is None:
             return self.none_ok
-        return self._typed(value) and self._above(value) and value <= self.high
+        if not (self._typed(value) and self._above(value)):
+            return False
+        return value < self.high if self.high_open else value <= self.high
 
     def check(self, value: Any, name: str, *, among: Any = None, none: str = "none") -> None:
         """Raise ValueError, one line naming ``name``, unless ``value`` is in range.
@@ -238,13 +242,16 @@ def bounded(
     *,
     integer: bool = True,
     low_open: bool = False,
+    high_open: bool = False,
     none_ok: bool = False,
     **metadata: Any,
 ) -> Any:
     """A dataclass field of ``default`` whose values :func:`check_bounds` holds to
     ``Bound(low, high, ...)`` (``metadata``: the field's other switches, e.g.
     ``aliases`` for :mod:`imitrl.cli.flags`)."""
-    bound = Bound(low, high, integer=integer, low_open=low_open, none_ok=none_ok)
+    bound = Bound(
+        low, high, integer=integer, low_open=low_open, high_open=high_open, none_ok=none_ok
+    )
     return field(default=default, metadata={**metadata, "bound": bound})
 
 

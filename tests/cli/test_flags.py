@@ -44,3 +44,14 @@ def test_a_lake_made_with_is_slippery_false_is_not_slippery():
     lake = gymnasium.make("FrozenLake-v1", **dict([_name_value("is_slippery=false")]))
     assert len(lake.unwrapped.P[0][0]) == 1  # one outcome per action: not slippery
     assert len(gymnasium.make("FrozenLake-v1").unwrapped.P[0][0]) == 3
+
+
+@pytest.mark.parametrize("text", ["64,,64", "64,", ",64"])
+def test_a_value_left_out_between_commas_is_refused(text, capsys):
+    """A review: ``--discriminator-hidden 64,,64`` was read as (64, 64), silently."""
+    from imitrl.cli import main
+
+    with pytest.raises(SystemExit) as stop:
+        main(["gail", "--discriminator-hidden", text, "--out", "never"])
+    assert stop.value.code == 2
+    assert "an empty value between commas" in capsys.readouterr().err

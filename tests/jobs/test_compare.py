@@ -82,3 +82,14 @@ def test_checkpoints_trained_with_different_env_arguments_are_refused(runs, tmp_
     status, _, err = _main("compare", "--a", str(runs / "short"), "--b", str(other),
                            "--episodes", "4", "--env-kwarg", "sutton_barto_reward=false")  # fmt: skip
     assert status == 0, err
+
+
+def test_a_checkpoint_against_the_expert_plays_the_checkpoints_env(runs):
+    """A review: ``--a CHECKPOINT --b expert`` without ``--env`` was refused, though the
+    checkpoint names its env (the help says none means the checkpoint's)."""
+    status, out, err = _main("compare", "--a", str(runs / "short"), "--b", "expert",
+                             "--episodes", "4")  # fmt: skip
+    assert status == 0, err
+    assert "4 paired episodes" in out
+    status, _, err = _main("compare", "--a", "expert", "--b", "random", "--episodes", "4")
+    assert status == 2 and "--env names the env for expert or random" in err

@@ -125,7 +125,8 @@ def _names_epilog() -> str:
     return (
         f"built-in experts (--expert; auto = the one for --env): {experts}\n\n"
         f"losses (--loss): default (resolved for the env: cross_entropy for discrete "
-        f"actions, mse for continuous ones, for_env for images), for_env "
+        f"actions, mse for continuous ones (gaussian_nll under imitrl gail and airl, whose "
+        f"PPO needs log pi), for_env for images), for_env "
         f"(ActorCritic.for_env's network), or one of\n{losses}"
     )
 

@@ -111,7 +111,10 @@ def _parser_for(tp) -> typing.Callable[[str], object]:
             return pairs
 
         def items(text: str) -> tuple:
-            return tuple(item(x) for x in text.split(",") if x)
+            parts = text.split(",") if text else []
+            if "" in parts:  # "64,,64" or "64,": a value left out, never read as (64, 64)
+                raise argparse.ArgumentTypeError(f"an empty value between commas in {text!r}")
+            return tuple(item(x) for x in parts)
 
         items.__name__ = f"comma-separated {item.__name__}"  # argparse's "invalid ... value"
         return items
@@ -176,9 +179,11 @@ def add_config_flags(parser: argparse.ArgumentParser, cls: type) -> None:
             continue
         flags = [flag_of(f), *f.metadata.get("aliases", ())]
         default = f.default
+        required = default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING
         bound = f.metadata.get("bound")  # imitrl.limits.bounded: the range it checks
         ranged = "" if bound is None else f"; must be {bound.help(default)}"
-        help_text = f"{doc} (default: {shown(default)}){ranged}".replace("%", "%%")  # argparse
+        given = "required" if required else f"default: {shown(default)}"
+        help_text = f"{doc} ({given}){ranged}".replace("%", "%%")  # argparse
         if hints[f.name] in (bool, bool | None):
             parser.add_argument(
                 *flags,
@@ -192,7 +197,8 @@ def add_config_flags(parser: argparse.ArgumentParser, cls: type) -> None:
                 *flags,
                 dest=f.name,
                 type=_parser_for(hints[f.name]),
-                default=default,
+                required=required,  # a field without a default: argparse says it is missing
+                default=None if required else default,
                 help=help_text,
                 metavar=f.name.upper(),
             )

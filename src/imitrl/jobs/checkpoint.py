@@ -109,7 +109,7 @@ def _expect_checkpoint(checkpoint: Path) -> Path:
     if not (root / CONFIG_FILE).is_file() or not (root / WEIGHTS_FILE).is_file():
         raise ValueError(
             f"--checkpoint {checkpoint}: expected {CONFIG_FILE} and {WEIGHTS_FILE} "
-            "(the --out directory of imitrl bc or imitrl dagger)"
+            "(the --out directory of imitrl bc, dagger, gail or airl)"
         )
     return root
 

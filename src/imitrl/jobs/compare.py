@@ -43,7 +43,7 @@ class CompareJob:
     sequential: bool = False
     """stop as soon as the anytime-valid confidence sequence of the difference excludes 0
     (Waudby-Smith & Ramdas 2024); its error rate is at most --alpha whenever it stops"""
-    alpha: float = bounded(0.05, 0, 1, integer=False, low_open=True)
+    alpha: float = bounded(0.05, 0, 1, integer=False, low_open=True, high_open=True)
     """error rate of the decision (the intervals are at 1 - alpha)"""
     metric: str = "auto"
     """success, return, or auto (success where the env reports it, return elsewhere)"""
@@ -64,8 +64,6 @@ class CompareJob:
     def __post_init__(self) -> None:
         from imitrl.limits import check_bounds
 
-        if isinstance(self.alpha, float | int) and not 0 < self.alpha < 1:
-            raise ValueError(f"--alpha must be in (0, 1), got {self.alpha}")
         check_bounds(self)
         if self.metric not in ("auto", "success", "return"):
             raise ValueError(f"--metric must be auto, success or return, got {self.metric!r}")
@@ -80,7 +78,7 @@ class CompareJob:
                 raise ValueError(
                     f"{flag} {side}: not a checkpoint folder (no config.json), expert or random"
                 )
-        if self.env is None and (self.a in SIDES or self.b in SIDES):
+        if self.env is None and self.a in SIDES and self.b in SIDES:  # no checkpoint names one
             raise ValueError("--env names the env for expert or random")
         if self.out is not None and (Path(self.out) / "compare.json").exists():
             raise ValueError(f"--out {self.out} holds a compare.json: give another --out")
@@ -135,7 +133,8 @@ def _env_of(config: CompareJob) -> tuple[str, int | None, dict]:
     )
     if config.env_kwargs:
         return env_id, steps, dict(config.env_kwargs)
-    each = {s: checkpoint_env_kwargs(c, s) for s, c in saved.items()}
+    # each checkpoint's env arguments, where it is played in its own env
+    each = {s: checkpoint_env_kwargs(c, s) for s, c in saved.items() if envs[s] == env_id}
     if len({json.dumps(k, sort_keys=True) for k in each.values()}) > 1:
         raise ValueError(
             "the checkpoints were trained with different env arguments ("

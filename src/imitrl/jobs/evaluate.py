@@ -114,7 +114,7 @@ class EvalJob:
     """Evaluate a saved learner (``--checkpoint``) or an expert (``--expert``)."""
 
     checkpoint: Path | None = None
-    """the --out directory of imitrl bc / imitrl dagger (config.json + learner.pt)"""
+    """the --out directory of imitrl bc, dagger, gail or airl (config.json + learner.pt)"""
     expert: str | None = None
     """evaluate this expert instead: a built-in name (cartpole, mountaincar, acrobot,
     pendulum, inverted_pendulum, inverted_double_pendulum) or module:function"""
