@@ -6,10 +6,12 @@ wait raised for slow-starting workers (:func:`patient_weight_sync`).
 from __future__ import annotations
 
 import os
+import socket
 import sys
 import tempfile
 
-__all__ = ["RAY_INSTALL_HINT", "WEIGHT_SYNC_TIMEOUT_S", "WORKER_THREADS", "import_ray", "init_ray",
+__all__ = ["RAY_INSTALL_HINT", "WEIGHT_SYNC_TIMEOUT_S", "WORKER_THREADS", "check_address",
+           "import_ray", "init_ray",
            "patient_weight_sync"]  # fmt: skip
 
 WORKER_THREADS = 1
@@ -71,5 +73,32 @@ def init_ray(
             "/tmp"
         ):
             options["_temp_dir"] = "/tmp/ray"
-    ray.init(address=address, **options)
+    else:
+        check_address(address)
+    try:
+        ray.init(address=address, **options)
+    except (ConnectionError, TimeoutError) as err:  # one line, not Ray's traceback
+        raise ValueError(f"--address {address}: Ray could not connect ({err})") from err
     return True
+
+
+_CONNECT_S = 5.0
+"""seconds a cluster's address has to accept a connection before Ray is asked to join"""
+
+
+def check_address(address: str) -> None:
+    """ValueError unless something accepts a TCP connection at ``address`` (``host:port``
+    or ``ray://host:port``; ``auto`` and other forms are Ray's to resolve): Ray itself
+    retries an address nobody listens at for minutes."""
+    plain = address.removeprefix("ray://")
+    host, sep, port = plain.rpartition(":")
+    if not sep or not port.isdigit() or not host:
+        return
+    try:
+        socket.create_connection((host, int(port)), timeout=_CONNECT_S).close()
+    except OSError as err:
+        raise ValueError(
+            f"--address {address}: nothing accepts a connection at {host}:{port} "
+            f"({err.strerror or err}); start the cluster first (ray start --head) or "
+            "leave --address out for a local Ray"
+        ) from None

@@ -85,6 +85,10 @@ def _run_dagger(config: DAggerJob, folder: Path) -> dict:
         config = dataclasses.replace(config, loss=setup.loss)  # recorded as resolved
         if setup.expert is None:  # --expert auto with a --dataset, on an env without one
             raise ValueError(no_expert_message(config.played_env()))
+        if config.workers is not None and config.address is not None and evaluating():
+            from imitrl.algorithms.ray_setup import check_address
+
+            check_address(config.address)  # before the demonstrations and the first fit
         buffer = demonstrations(config, setup, plan_horizon=_plan_horizon(config, setup))
         demo_rows, demo_episodes = len(buffer), buffer.num_episodes
         demo_last = max(buffer.rounds())  # a dataset of earlier rounds: this run's come after
