@@ -84,7 +84,8 @@ def test_a_non_number_is_a_usage_error(capsys):
 
 @pytest.mark.parametrize("name", sorted(COMMANDS))
 def test_every_command_takes_the_flag_with_the_default(name):
-    positional = ["some_benchmark"] if name == "bench" else []
+    positional = {"bench": ["some_benchmark"], "compare": ["--a", "expert", "--b", "random"]}
+    positional = positional.get(name, [])  # what the command requires
     args = build_parser([name]).parse_args([name, *positional])
     assert args.threads == threads.DEFAULT_THREADS
     args = build_parser([name]).parse_args([name, "--threads", "3", *positional])

@@ -112,6 +112,8 @@ def _parser_for(tp) -> typing.Callable[[str], object]:
 
         def items(text: str) -> tuple:
             parts = text.split(",") if text else []
+            if item is str:  # an empty string is a value (its field says if it may be one)
+                return tuple(parts)
             if "" in parts:  # "64,,64" or "64,": a value left out, never read as (64, 64)
                 raise argparse.ArgumentTypeError(f"an empty value between commas in {text!r}")
             return tuple(item(x) for x in parts)

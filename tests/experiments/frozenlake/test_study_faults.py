@@ -40,6 +40,7 @@ BAD_FLAGS = [
     (["--desc", "SFFF,FXFH,FFFH,HFFG"], "letters must be S (start), F (frozen)"),
     (["--desc", "sfff,fhfh,fffh,hffg"], "letters must be"),
     (["--desc", ","], "--desc needs non-empty rows"),
+    (["--desc", "SFFF,,HFFG"], "--desc needs non-empty rows"),
     (["--desc", "S,F,G"], "--desc needs at least 2 columns"),
     (["--max-steps", "10"], "--tv-steps [20] past the time limit of 10 steps"),
     (["--gamma", "0"], "--gamma must be in (0, 1], got 0.0"),
