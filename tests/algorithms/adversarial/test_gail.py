@@ -465,3 +465,32 @@ def test_default_budget_is_whole_rounds():
         assert job.total_steps % job.rollout_steps == 0
     with pytest.raises(ValueError, match="eval-every"):
         GAILJob(eval_every=-1)
+
+
+def test_a_cut_episode_end_with_a_recorded_next_observation_is_kept():
+    """A review: a dataset of one-step truncated episodes (Minari records s') was refused,
+    "no demonstration row has a known next observation"."""
+    obs = torch.arange(10.0).reshape(5, 2)
+    stored = torch.cat([obs[1:], torch.tensor([[99.0, 99.0]])])  # s' of each row
+    stored[2] = torch.tensor([7.0, 7.0])  # episode 0 terminated there: s' never read
+    rows = TensorDict(
+        {
+            keys.OBSERVATION: obs,
+            (keys.NEXT, keys.OBSERVATION): stored,
+            keys.ACTION: torch.zeros(5, dtype=torch.long),
+            keys.EPISODE: torch.tensor([0, 0, 0, 1, 1]),
+            keys.STEP: torch.tensor([0, 1, 2, 0, 1]),
+            keys.EXPERT_EXECUTED: torch.ones(5, dtype=torch.bool),
+            NEXT_TERM: torch.tensor([[False], [False], [True], [False], [False]]),
+        },
+        batch_size=[5],
+    )
+    tr = expert_transitions(rows)  # episode 1's cut end kept, with its recorded s'
+    assert tr.shape == (5,)
+    torch.testing.assert_close(tr[NEXT_OBS][4], torch.tensor([99.0, 99.0]))
+    torch.testing.assert_close(tr[NEXT_OBS][:2], obs[1:3])
+    one_step = rows[[4]].clone()  # a dataset of one-step truncated episodes alone
+    assert expert_transitions(one_step).shape == (1,)
+    rows[(keys.NEXT, keys.OBSERVATION)][0] = torch.tensor([5.0, 5.0])  # disagrees with row 1
+    with pytest.raises(ValueError, match=r"row 0 \(episode 0, step 0\): its recorded next"):
+        expert_transitions(rows)

@@ -1,12 +1,13 @@
 """Transitions ``(s, a, s', terminated)``: what both discriminators read, from either side.
 
 * :func:`expert_transitions`: the demonstrations' rows (a ``DemonstrationBuffer``, a
-  LeRobot or Minari dataset loaded into one). Rows hold no ``("next", OBSERVATION)``
-  (see :mod:`imitrl.runtime.rollout`): ``s'`` of a row is the observation of the next row
-  of its episode (``STEP + 1``). An episode's last row has no successor: kept when it
-  terminated (its ``s'`` is the end: the absorbing state, or zeroed in AIRL's
-  ``h(s')``; never read, it is set to ``s``), dropped when the episode was cut by a
-  time limit or the data says nothing.
+  LeRobot or Minari dataset loaded into one). ``s'`` of a row is the observation of the
+  next row of its episode (``STEP + 1``). An episode's last row has no successor: kept
+  when it terminated (its ``s'`` is the end: the absorbing state, or zeroed in AIRL's
+  ``h(s')``; never read, it is set to ``s``); when the episode was cut by a time limit,
+  kept where the data recorded its ``s'`` (``("next", OBSERVATION)``, as a Minari
+  dataset does; it must agree with the next rows elsewhere), dropped otherwise (rollouts
+  and LeRobot datasets record none: :mod:`imitrl.runtime.rollout`).
   Every row must have executed the expert's action (``EXPERT_EXECUTED``): adversarial
   imitation matches the expert's state-action occupancy, which only its own
   trajectories sample.
@@ -78,11 +79,37 @@ def expert_transitions(rows: TensorDictBase) -> TensorDict:
     next_obs = obs.clone()  # terminal rows keep s' = s, never read (module docstring)
     next_obs[:-1][has_next[:-1]] = obs[1:][has_next[:-1]]
     keep = has_next | terminated
+    if (keys.NEXT, keys.OBSERVATION) in rows.keys(include_nested=True):
+        keep = keep | _stored_successors(rows, next_obs, has_next, terminated)
     if not bool(keep.any()):
         raise ValueError("no demonstration row has a known next observation")
     return _transitions(
         obs[keep], rows.get(keys.ACTION)[keep], next_obs[keep], terminated[keep].unsqueeze(-1)
     )
+
+
+def _stored_successors(rows, next_obs, has_next, terminated) -> torch.Tensor:
+    """Rows whose ``s'`` the data recorded (``("next", OBSERVATION)``: a Minari dataset)
+    where no next row gives it, an episode cut by a time limit: their ``s'`` is written
+    into ``next_obs``. Where the next row gives it too, the two must agree (ValueError
+    naming the row otherwise)."""
+    stored = rows.get((keys.NEXT, keys.OBSERVATION))
+    if stored.shape != next_obs.shape:
+        raise ValueError(
+            f"rows' ('next', 'observation') is {list(stored.shape)}, their observation "
+            f"{list(next_obs.shape)}"
+        )
+    both = has_next & ~torch.isclose(stored, next_obs).reshape(len(stored), -1).all(-1)
+    if bool(both.any()):
+        i = int(torch.nonzero(both)[0, 0])
+        raise ValueError(
+            f"row {i} (episode {int(rows.get(keys.EPISODE)[i])}, step "
+            f"{int(rows.get(keys.STEP)[i])}): its recorded next observation differs from "
+            "the next row's observation"
+        )
+    cut = ~has_next & ~terminated
+    next_obs[cut] = stored[cut]
+    return cut
 
 
 def policy_transitions(batch: TensorDictBase) -> TensorDict:
