@@ -90,10 +90,11 @@ def check_rows(
         _check_episodes(rows.get(keys.EPISODE), next_episode)
     if (rows.get(keys.ROUND) < 0).any() or (rows.get(keys.STEP) < 0).any():
         raise ValueError(f"{keys.ROUND!r} and {keys.STEP!r} must be non-negative")
-    if rows.numel() and int(rows.get(keys.ROUND).max()) > MAX_ROUNDS:  # DAgger counts on
+    last = int(rows.get(keys.ROUND).max()) if rows.numel() else 0
+    if last > MAX_ROUNDS:  # DAgger counts rounds on from the last
         raise ValueError(
             f"{keys.ROUND!r} must be at most {MAX_ROUNDS} (imitrl.limits.MAX_ROUNDS: the "
-            f"most DAgger rounds), got {int(rows.get(keys.ROUND).max())}"
+            f"most DAgger rounds), got {last}"
         )
     if action_spec is not None:
         for k in (keys.EXPERT_ACTION, keys.ACTION):

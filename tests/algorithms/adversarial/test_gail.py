@@ -243,9 +243,10 @@ def test_airl_loss_gradients_spare_the_policy_and_penalty_adds():
     )
 
 
-def test_expert_transitions_link_rows_and_drop_cut_episode_ends():
-    obs = torch.arange(10.0).reshape(5, 2)
-    rows = TensorDict(
+def _two_episodes(obs: torch.Tensor, extra: dict | None = None) -> TensorDict:
+    """Five expert rows of ``obs``: episode 0 (3 steps) terminates, episode 1 (2 steps)
+    is cut by a time limit."""
+    return TensorDict(
         {
             keys.OBSERVATION: obs,
             keys.ACTION: torch.zeros(5, dtype=torch.long),
@@ -253,9 +254,15 @@ def test_expert_transitions_link_rows_and_drop_cut_episode_ends():
             keys.STEP: torch.tensor([0, 1, 2, 0, 1]),
             keys.EXPERT_EXECUTED: torch.ones(5, dtype=torch.bool),
             NEXT_TERM: torch.tensor([[False], [False], [True], [False], [False]]),
+            **(extra or {}),
         },
         batch_size=[5],
     )
+
+
+def test_expert_transitions_link_rows_and_drop_cut_episode_ends():
+    obs = torch.arange(10.0).reshape(5, 2)
+    rows = _two_episodes(obs)
     tr = expert_transitions(rows)  # episode 1 ends by truncation: its last row is dropped
     assert tr.shape == (4,)
     torch.testing.assert_close(tr[NEXT_OBS][:2], obs[1:3])
@@ -473,18 +480,7 @@ def test_a_cut_episode_end_with_a_recorded_next_observation_is_kept():
     obs = torch.arange(10.0).reshape(5, 2)
     stored = torch.cat([obs[1:], torch.tensor([[99.0, 99.0]])])  # s' of each row
     stored[2] = torch.tensor([7.0, 7.0])  # episode 0 terminated there: s' never read
-    rows = TensorDict(
-        {
-            keys.OBSERVATION: obs,
-            (keys.NEXT, keys.OBSERVATION): stored,
-            keys.ACTION: torch.zeros(5, dtype=torch.long),
-            keys.EPISODE: torch.tensor([0, 0, 0, 1, 1]),
-            keys.STEP: torch.tensor([0, 1, 2, 0, 1]),
-            keys.EXPERT_EXECUTED: torch.ones(5, dtype=torch.bool),
-            NEXT_TERM: torch.tensor([[False], [False], [True], [False], [False]]),
-        },
-        batch_size=[5],
-    )
+    rows = _two_episodes(obs, {(keys.NEXT, keys.OBSERVATION): stored})
     tr = expert_transitions(rows)  # episode 1's cut end kept, with its recorded s'
     assert tr.shape == (5,)
     torch.testing.assert_close(tr[NEXT_OBS][4], torch.tensor([99.0, 99.0]))

@@ -410,7 +410,8 @@ def save_lerobot(
         raise ValueError(f"video_files_size_in_mb must be > 0, got {video_files_size_in_mb!r}")
     episodes = _episodes(rows, tasks)
     check_timestamps(int(episodes.lengths.max()), int(fps))
-    check_finite_rows(rows)
+    if not isinstance(data, DemonstrationBuffer):  # a buffer's rows were checked on extend
+        check_finite_rows(rows)
     plan = _plan(rows, dict(names or {}), video, features)
     if plan.videos:
         import_av()  # before anything is written: a missing PyAV says how to install it

@@ -89,10 +89,11 @@ def check_finite_rows(rows: TensorDictBase, chunk: int = 1 << 18) -> None:
     rows' floating values (``load_lerobot`` refuses them: they would poison training),
     read ``chunk`` rows at a time."""
     for key in rows.keys(include_nested=True, leaves_only=True):
-        if not rows.get(key).is_floating_point():
+        values = rows.get(key)
+        if not values.is_floating_point():
             continue
         for start in range(0, rows.shape[0], chunk):
-            part = rows.get(key)[start : start + chunk]
+            part = values[start : start + chunk]
             bad = ~torch.isfinite(part.reshape(part.shape[0], -1)).all(-1)
             if bool(bad.any()):
                 i = start + int(torch.nonzero(bad)[0, 0])
