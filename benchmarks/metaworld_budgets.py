@@ -23,7 +23,7 @@ its own budget ... with the loss's training curve showing it has converged").
     python benchmarks/metaworld_budgets.py --merge results/metaworld_budgets.json \\
         /tmp/r4/metaworld_budgets.json    # one report of runs of disjoint rungs
 
-Runnable in parts (``--losses``, ``--steps``) and merged (``--merge``): a cell's digits
+Runnable in parts (``--losses``, ``--steps``, ``--tasks``) and merged (``--merge``): a cell's digits
 depend on its task, loss, rung and seed alone.
 """
 
@@ -210,7 +210,10 @@ def merge(runs: list[dict]) -> dict:
                 raise ValueError(f"run {k} fits {loss} at batch {b['batch']}, not {have['batch']}")
             have["steps"] = sorted({*have["steps"], *b["steps"]})
     rows, refs = join_cells(runs)
-    tasks = [t for t in MT10 if any(t in r["config"]["tasks"] for r in runs)]
+    named = {t for r in runs for t in r["config"]["tasks"]}
+    if named - set(MT10):
+        raise ValueError(f"tasks outside MT10: {sorted(named - set(MT10))}")
+    tasks = [t for t in MT10 if t in named]
     _check_complete(rows, tasks, first["seeds"], budgets)
     losses = [loss for loss in BUDGETS if loss in budgets]
     return {

@@ -147,6 +147,38 @@ def test_runs_of_disjoint_rungs_merge_into_the_report_of_one_run():
         merge([a, {**b, "config": {**b["config"], "seeds": 3}}])
 
 
+def _one_task(part: dict, task: str) -> dict:
+    """``part`` run with ``--tasks task`` alone."""
+    return {**part, "config": {**part["config"], "tasks": [task]},
+            "rows": [r for r in part["rows"] if r["task"].startswith(f"{task}/")],
+            "references": [r for r in part["references"] if r["task"] == task]}  # fmt: skip
+
+
+def test_parts_that_split_the_tasks_merge_and_a_rung_missing_a_task_is_refused():
+    whole = _payload()
+    a = _part({("mse", 320): 0, ("mse", 2000): 0, ("diffusion_unet", 500): 0}, 60.0)
+    b = _part({("diffusion_unet", 2000): 0}, 30.0)
+    reach, push = _one_task(b, "reach-v3"), _one_task(b, "push-v3")
+    merged = merge([a, push, reach])  # in any order: the tasks keep MT10's
+    assert merged["config"]["tasks"] == ["reach-v3", "push-v3"]
+    tables = markdown(whole, "f.png").split("\n\n", 1)[1]
+    assert markdown(merged, "f.png").split("\n\n", 1)[1] == tables
+    with pytest.raises(ValueError, match=r"no run holds push-v3/diffusion_unet/2000 at seed"):
+        merge([a, reach])
+    with pytest.raises(ValueError, match="tasks outside MT10"):
+        merge([a, {**reach, "config": {**reach["config"], "tasks": ["not-a-task-v3"]}}])
+
+
+def test_a_merge_merged_again_names_the_runs_it_came_from():
+    a = _part({("mse", 320): 0, ("mse", 2000): 0}, 60.0)
+    b = _part({("diffusion_unet", 500): 0}, 30.0)
+    c = _part({("diffusion_unet", 2000): 0}, 12.0)
+    again = merge([{**merge([a, b]), "source": "first.json"}, c])
+    assert len(again["merged_from"]) == 3 and "first.json" not in str(again["merged_from"])
+    assert again["merged_from"][2].startswith("metaworld_budgets.py part 12.0: 0.2 min")
+    assert again["wall_seconds"] == 102.0
+
+
 def test_files_that_do_not_join_are_one_line_and_nothing_is_written(tmp_path, capsys):
     import json
 
