@@ -20,9 +20,12 @@ checkpoint writer of this library does. So:
   ``--resume``.)
 
 The staging folder of a run that did not finish is removed by the next run of the same
-``--out`` (with a warning), except when it holds a DAgger checkpoint (``run/``): that is
-saved work, so the next run is refused unless ``--resume`` (it continues there) or
-``--overwrite`` (it is discarded). A ``--resume`` of a finished run continues in a copy
+``--out`` (with a warning), except when it holds saved work: a DAgger checkpoint
+(``run/``), so the next run is refused unless ``--resume`` (it continues there) or
+``--overwrite`` (it is discarded); or a fitted learner (``config.json`` and
+``learner.pt``, which ``imitrl bc``, ``gail`` and ``airl`` save before they evaluate it),
+so a failed or interrupted evaluation never loses the fit: ``imitrl eval --checkpoint``
+reads it there, and the next run is refused unless ``--overwrite``. A ``--resume`` of a finished run continues in a copy
 of it; refused or failed before it saved a round, it leaves no copy (``--out`` holds the
 same checkpoint). Logs of a run in progress are in its staging folder (the command says
 where on stderr).
@@ -127,8 +130,12 @@ def _check(out: Path, overwrite: bool, resume: bool) -> str | None:
     return "finished" if finished else "unfinished"
 
 
-def _resumable(stage: Path) -> bool:
-    return (stage / "run").is_dir()
+def _kept(stage: Path) -> str | None:
+    """The saved work a stopped run left in ``stage`` (module docstring): ``"checkpoint"``
+    (DAgger's ``run/``), ``"learner"`` (a fitted ``learner.pt``), or None."""
+    if (stage / "run").is_dir():
+        return "checkpoint"
+    return "learner" if (stage / "learner.pt").is_file() else None
 
 
 def _stage(out: Path, overwrite: bool, resume: bool, held: str | None) -> tuple[Path, bool]:
@@ -140,14 +147,22 @@ def _stage(out: Path, overwrite: bool, resume: bool, held: str | None) -> tuple[
         remove_tree(stage)
         left = []
     elif os.path.lexists(stage):
-        if resume:
+        kept = _kept(stage)
+        if resume and kept != "learner":
             check_plain_tree(stage, what="the unfinished run")  # no write through a link
             print(f"imitrl: continuing the unfinished run in {stage}", file=sys.stderr)
             return stage, False
-        if _resumable(stage) and not overwrite:
+        if kept == "checkpoint" and not overwrite:
             raise ValueError(
                 f"--out {out}: a run was stopped before it finished and its DAgger checkpoint "
                 f"lies in {stage}: pass --resume to continue it, --overwrite to discard it, or "
+                "give another --out"
+            )
+        if kept == "learner" and not overwrite:
+            raise ValueError(
+                f"--out {out}: a run was stopped after its fit, before it finished, and its "
+                f"fitted learner lies in {stage} (imitrl eval --checkpoint reads it there): "
+                "move that folder elsewhere to keep it, pass --overwrite to discard it, or "
                 "give another --out"
             )
         remove_tree(stage)
@@ -233,10 +248,11 @@ def _clean_up(
     copied: dict[str, tuple[int, int]] | None,
     out: Path,
 ) -> None:
-    """After a failed or refused run: its staging folder goes, unless it holds a DAgger
-    checkpoint (saved work, continued by ``--resume``) that is not the unchanged copy of
-    ``--out``'s it started from (``copied``: a resumed finished run refused before it saved
-    a round; ``--out`` holds that checkpoint still); folders made for it go if empty."""
+    """After a failed or refused run: its staging folder goes, unless it holds saved work
+    (:func:`_kept`: a DAgger checkpoint, continued by ``--resume``, or a fitted learner)
+    that is not the unchanged copy of ``--out``'s it started from (``copied``: a resumed
+    finished run refused before it saved a round; ``--out`` holds that checkpoint still);
+    folders made for it go if empty."""
     unchanged = (  # and --out still holds it: nothing was exchanged
         copied is not None
         and stage is not None
@@ -246,12 +262,17 @@ def _clean_up(
         stage is not None
         and stage.is_dir()
         and not stage.is_symlink()
-        and (unchanged or not _resumable(stage))
+        and (unchanged or _kept(stage) is None)
     ):
         remove_tree(stage)
     elif stage is not None and stage.is_dir() and not isinstance(err, DiskFullError):
-        print(f"imitrl: the unfinished run is kept in {stage} (--resume continues it)",
-              file=sys.stderr)  # fmt: skip
+        said = (
+            f"the unfinished run is kept in {stage} (--resume continues it)"
+            if _kept(stage) == "checkpoint"
+            else f"the fitted learner is kept in {stage} (imitrl eval --checkpoint {stage} "
+            "evaluates it; the next run of --out refuses to discard it without --overwrite)"
+        )
+        print(f"imitrl: {said}", file=sys.stderr)
     for folder in made:  # a run refused or failed before writing leaves no folders
         if not folder.is_dir():
             continue

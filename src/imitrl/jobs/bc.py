@@ -8,9 +8,10 @@ directly):
    or the rows of ``--dataset``, into a ``DemonstrationBuffer``;
 3. ``fit_bc`` the learner (``--steps`` Adam steps, minibatches of ``--batch-size``),
    its loss logged per step;
-4. evaluate the expert and the learner on the same ``--eval-episodes`` initial states;
-5. write ``results.json``, the checkpoint (``config.json`` + ``learner.pt``) and
-   ``curves.png`` into ``--out``.
+4. save the checkpoint (``config.json`` + ``learner.pt``), then evaluate the expert and
+   the learner on the same ``--eval-episodes`` initial states (an evaluation that fails
+   or is interrupted keeps the fitted learner: :mod:`imitrl.fs.run_folder`);
+5. write ``results.json`` and ``curves.png``, and publish the run as ``--out``.
 
 :func:`prepare`, :func:`demonstrations`, :func:`evaluate_learner` and :func:`finish`
 are shared with ``imitrl dagger``.
@@ -39,7 +40,7 @@ from imitrl.algorithms.expert_plan import with_plans
 from imitrl.data import DemonstrationBuffer
 from imitrl.envs import make_env
 from imitrl.fs.run_folder import claimed
-from imitrl.jobs.checkpoint import save_run
+from imitrl.jobs.checkpoint import save_checkpoint, save_run
 from imitrl.jobs.configs import BCJob, GAILJob
 from imitrl.jobs.curves import make_logger, plot_curves, scalars_dir
 from imitrl.jobs.evaluate import evaluate_returns, format_return
@@ -358,6 +359,7 @@ def _run_bc(config: BCJob, folder: Path) -> dict:
         fit = fit_bc(
             learner, buffer, bc_config(config, setup), progress=config.progress, logger=setup.logger
         )
+        save_checkpoint(folder, "bc", config, learner)  # kept if the evaluation fails
         expert_ev = learner_ev = random_ev = None
         if setup.env is not None and evaluating():  # --env none: the dataset alone
             expert_ev = evaluate_expert(config, setup)

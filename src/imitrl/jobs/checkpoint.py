@@ -17,6 +17,7 @@ is built (:func:`build_learner`, :func:`check_holds`).
 from __future__ import annotations
 
 import dataclasses
+import io
 import json
 import os
 import zipfile
@@ -27,6 +28,7 @@ from typing import Any, BinaryIO
 import torch
 from torchrl.envs import EnvBase
 
+from imitrl.fs.files import replace_file
 from imitrl.fs.reading import OpenedFolder, ReplacedWhileReading, parse_json, read_whole
 from imitrl.jobs.configs import BCJob
 from imitrl.jobs.resolve import FOR_ENV, LEGACY_DEFAULT, learner_factory
@@ -48,6 +50,7 @@ __all__ = [
     "load_learner",
     "read_checkpoint",
     "read_config",
+    "save_checkpoint",
     "save_run",
     "saved_loss",
     "to_json",
@@ -69,13 +72,24 @@ def to_json(value: Any) -> Any:
     return value
 
 
-def save_run(out: Path, command: str, config: Any, learner: Learner, results: dict) -> None:
-    """Write ``config.json``, ``learner.pt`` and ``results.json`` into ``out``."""
+def save_checkpoint(out: Path, command: str, config: Any, learner: Learner) -> None:
+    """Write ``config.json``, then ``learner.pt``, into ``out``, each whole
+    (:func:`~imitrl.fs.files.replace_file`): the checkpoint. A job saves it as soon as the
+    learner is fitted, before it evaluates it, so an evaluation that fails or is
+    interrupted leaves the fit where :mod:`imitrl.fs.run_folder` keeps it."""
     out.mkdir(parents=True, exist_ok=True)
     meta = {"command": command, "config": to_json(config)}
-    (out / CONFIG_FILE).write_text(json.dumps(meta, indent=2) + "\n")
-    torch.save(learner.state_dict(), out / WEIGHTS_FILE)
-    (out / RESULTS_FILE).write_text(json.dumps(to_json(results), indent=2) + "\n")
+    replace_file(out / CONFIG_FILE, json.dumps(meta, indent=2) + "\n")
+    weights = io.BytesIO()
+    torch.save(learner.state_dict(), weights)
+    replace_file(out / WEIGHTS_FILE, weights.getvalue())
+
+
+def save_run(out: Path, command: str, config: Any, learner: Learner, results: dict) -> None:
+    """Write the checkpoint (:func:`save_checkpoint`), then ``results.json``: a run's
+    last file, its mark of a finished run."""
+    save_checkpoint(out, command, config, learner)
+    replace_file(out / RESULTS_FILE, json.dumps(to_json(results), indent=2) + "\n")
 
 
 MAX_CONFIG_BYTES = 1 << 20

@@ -14,7 +14,8 @@
 3. evaluate the expert and the untrained learner on the ``--eval-seed`` initial states;
 4. :func:`~imitrl.algorithms.adversarial.gail` / ``airl`` for ``--total-steps`` env steps,
    evaluating the learner after every ``--eval-every`` rounds and after the last one
-   (``eval/return`` at each point's env steps, the untrained learner's at step 0);
+   (``eval/return`` at each point's env steps, the untrained learner's at step 0); the
+   checkpoint is saved before the last evaluation, which keeps it if that fails;
 5. write ``results.json`` (env steps, expert queries = the demonstration rows, the
    evaluations, one line per round), the checkpoint and ``curves.png`` (discriminator
    and PPO losses, return per env step) into ``--out``.
@@ -55,6 +56,7 @@ from imitrl.jobs.bc import (
     prepare,
     run_folder,
 )
+from imitrl.jobs.checkpoint import save_checkpoint
 from imitrl.jobs.configs import AIRLJob, GAILJob
 from imitrl.jobs.evaluate import format_return
 from imitrl.learners import ActorCritic
@@ -123,6 +125,7 @@ def _train(config: GAILJob, name: str, folder: Path) -> dict:
             assert isinstance(training, AIRLConfig)  # an AIRLJob's (run_airl)
             result, _ = airl(setup.playing(), learner, buffer, training, progress=progress,
                              logger=logger, on_round=on_round)  # fmt: skip
+        save_checkpoint(folder, name, dataclasses.replace(config, loss=loss), learner)
         if evaluating() and (not evaluations or evaluations[-1][0] != result.env_steps):
             ev = evaluate_learner(bc_view, learner)  # the last round's
             log_evaluation(setup.logger, result.env_steps, ev, None)
