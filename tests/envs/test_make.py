@@ -44,3 +44,25 @@ def test_an_argument_of_another_kind_than_its_default_is_refused(env_id, kwargs,
 )
 def test_arguments_of_their_defaults_kind_are_taken(env_id, kwargs):
     make_env(env_id, seed=0, env_kwargs=kwargs).close()
+
+
+def test_plain_gym_is_what_make_env_built_unchanged_and_nothing_else():
+    import gymnasium
+    from torchrl.envs import GymEnv, StepCounter
+
+    from imitrl.envs.make import plain_gym
+
+    one = make_env("Pendulum-v1", seed=0)
+    plain = plain_gym(one)
+    assert plain is not None and plain.base is one
+    assert isinstance(plain.inner, gymnasium.Env) and plain.inner.spec.id == "Pendulum-v1"
+    lanes = plain_gym(make_env("CartPole-v1", seed=0, num_envs=3))
+    assert lanes is not None and isinstance(lanes.inner, gymnasium.vector.SyncVectorEnv)
+    assert plain_gym(make_env("CartPole-v1", seed=0).append_transform(StepCounter())) is None
+    assert plain_gym(make_env("CartPole-v1", seed=0, frame_skip=2)) is None
+    assert plain_gym(GymEnv("CartPole-v1")) is None  # not built by make_env
+    pytest.importorskip("mujoco")
+    doubled = make_env("InvertedPendulum-v5", seed=0)  # float64 observations: DoubleToFloat
+    inside = plain_gym(doubled)
+    assert inside is not None and inside.base is doubled.base_env
+    assert plain_gym(doubled.append_transform(StepCounter())) is None

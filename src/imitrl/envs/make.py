@@ -38,12 +38,20 @@ import importlib
 import inspect
 import weakref
 from functools import partial
+from typing import NamedTuple
 
 import gymnasium
 import numpy as np
 import torch
 from gymnasium.envs.registration import load_env_creator
-from torchrl.envs import DoubleToFloat, EnvBase, GymWrapper, ParallelEnv, TransformedEnv
+from torchrl.envs import (
+    Compose,
+    DoubleToFloat,
+    EnvBase,
+    GymWrapper,
+    ParallelEnv,
+    TransformedEnv,
+)
 from torchrl.record.recorder import PixelRenderTransform
 
 from imitrl import checks, keys
@@ -51,7 +59,7 @@ from imitrl.compat import wrapped_gym_env
 from imitrl.envs.dict_obs import DictObservation
 from imitrl.envs.success import SuccessInfo, reads_success, success_reader
 
-__all__ = ["ResizeFrame", "make_env"]
+__all__ = ["PlainGym", "ResizeFrame", "make_env", "plain_gym"]
 
 METAWORLD_PREFIX = "metaworld/"
 """the ids :mod:`imitrl.envs.metaworld` registers (imported on first use)"""
@@ -386,12 +394,43 @@ def _mark_plain(env: EnvBase) -> EnvBase:
     return env
 
 
-def built_plain(env: EnvBase) -> bool:
-    """Whether :func:`make_env` built ``env`` in this process as a plain in-process
-    gymnasium wrapper (no pixels, no Dict observation, no success reader, no frame skip;
-    maybe in ``DoubleToFloat``): an env a rollout may step through gymnasium directly
-    (:func:`imitrl.runtime.paths.stepper`), with the same episodes."""
-    return env in _PLAIN_GYM
+class PlainGym(NamedTuple):
+    """What a plain env of :func:`plain_gym` wraps."""
+
+    base: GymWrapper
+    """the TorchRL wrapper (``env`` itself, or inside its ``DoubleToFloat``)"""
+    inner: gymnasium.Env | gymnasium.vector.VectorEnv
+    """the gymnasium env it steps: one env, or a ``SyncVectorEnv`` whose autoreset is
+    DISABLED"""
+
+
+def plain_gym(env: EnvBase) -> PlainGym | None:
+    """What ``env`` wraps, where :func:`make_env` built it in this process as a plain
+    in-process gymnasium wrapper and it is unchanged since (no pixels, no Dict
+    observation, no success reader, no frame skip, no transform but its own
+    ``DoubleToFloat``): an env a rollout may step through gymnasium directly
+    (:func:`imitrl.runtime.paths.stepper`), with the same episodes; None otherwise."""
+    if env not in _PLAIN_GYM:
+        return None
+    base = env
+    if isinstance(env, TransformedEnv):
+        parts = list(env.transform) if isinstance(env.transform, Compose) else [env.transform]
+        if len(parts) != 1 or type(parts[0]) is not DoubleToFloat:
+            return None  # a transform appended since make_env built it
+        base = env.base_env
+    if not isinstance(base, GymWrapper) or base.wrapper_frame_skip != 1 or base.info_dict_reader:
+        return None
+    if set(env.observation_spec.keys(True, True)) != {keys.OBSERVATION}:
+        return None  # pixels (or another observation) beside the state
+    inner = wrapped_gym_env(base)
+    if isinstance(inner, gymnasium.vector.VectorEnv):
+        if not isinstance(inner, gymnasium.vector.SyncVectorEnv) or (
+            inner.autoreset_mode != gymnasium.vector.AutoresetMode.DISABLED
+        ):
+            return None
+    elif not isinstance(inner, gymnasium.Env):
+        return None
+    return PlainGym(base, inner)
 
 
 def _check_kwargs(env_kwargs) -> dict:

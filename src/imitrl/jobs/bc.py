@@ -311,8 +311,9 @@ def run_bc(config: BCJob) -> dict:
 
     ``--out`` follows :mod:`imitrl.fs.run_folder`'s rule: a previous run there is refused
     unless ``--overwrite``, and a second run writing it meanwhile is refused at once."""
+    config = lead(config)  # as this rank runs it
     with run_folder(config) as folder:
-        return _run_bc(lead(config), folder)
+        return _run_bc(config, folder)
 
 
 JobT = TypeVar("JobT", bound=BCJob | GAILJob)

@@ -73,8 +73,9 @@ def run_dagger(config: DAggerJob) -> dict:
     ``--out`` follows :mod:`imitrl.fs.run_folder`'s rule: a previous run there is refused
     unless ``--overwrite`` or ``--resume``, and a second run writing it meanwhile is
     refused at once."""
+    config = lead(config)  # as this rank runs it
     with run_folder(config, resume=config.resume) as folder:
-        return _run_dagger(lead(config), folder)
+        return _run_dagger(config, folder)
 
 
 def _run_dagger(config: DAggerJob, folder: Path) -> dict:

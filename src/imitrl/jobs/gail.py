@@ -93,8 +93,9 @@ def _evaluator(config: GAILJob, bc_view: BCJob, setup: Setup, evaluations: list)
 
 
 def _run(config: GAILJob, name: str) -> dict:
+    config = lead(config)  # as this rank runs it
     with run_folder(config) as folder:  # fs.run_folder's rule; a scratch on ranks > 0
-        return _train(lead(config), name, folder)
+        return _train(config, name, folder)
 
 
 def _train(config: GAILJob, name: str, folder: Path) -> dict:

@@ -8,10 +8,11 @@ step (issue 16's profile of CartPole: 5.2 s over 6,494 steps, of which ``CartPol
 TensorDicts. For the envs whose TorchRL layer only converts values, :func:`direct_steps`
 returns a stepper that steps the simulator underneath and converts the values itself:
 
-* an env built by :func:`~imitrl.envs.make_env` in this process, unchanged since: a
-  ``GymWrapper`` around a gymnasium env or a ``SyncVectorEnv(autoreset_mode=DISABLED)``,
-  without action repeat, pixels or an info reader, optionally inside the
-  ``TransformedEnv`` whose only transform is ``DoubleToFloat``;
+* an env :func:`~imitrl.envs.make.plain_gym` accepts, built by
+  :func:`~imitrl.envs.make_env` in this process and unchanged since: a ``GymWrapper``
+  around a gymnasium env or a ``SyncVectorEnv(autoreset_mode=DISABLED)``, without action
+  repeat, pixels or an info reader, optionally inside the ``TransformedEnv`` whose only
+  transform is ``DoubleToFloat``;
 * a :class:`~imitrl.envs.TabularEnv` (its own :meth:`~TabularEnv.step_lanes` and
   :meth:`~TabularEnv.reset_lanes`, the code its ``_step``/``_reset`` run).
 
@@ -40,11 +41,10 @@ import gymnasium
 import numpy as np
 import torch
 from torchrl.data import Categorical
-from torchrl.envs import Compose, DoubleToFloat, EnvBase, GymWrapper, TransformedEnv
+from torchrl.envs import EnvBase, GymWrapper
 
 from imitrl import keys
-from imitrl.compat import wrapped_gym_env
-from imitrl.envs.make import built_plain
+from imitrl.envs.make import plain_gym
 from imitrl.envs.tabular_env import TabularEnv
 
 __all__ = [
@@ -220,33 +220,13 @@ class GymSteps(DirectSteps):
         return self._observation(obs)
 
 
-def _only_double_to_float(env: TransformedEnv) -> bool:
-    transform = env.transform
-    parts = list(transform) if isinstance(transform, Compose) else [transform]
-    return len(parts) == 1 and type(parts[0]) is DoubleToFloat
-
-
 def direct_steps(env: EnvBase) -> DirectSteps | None:
     """A stepper of ``env``'s simulator (see the module docstring), or None where the
     env must be stepped through TorchRL."""
     if type(env) is TabularEnv:
         return _TabularSteps(env)
-    if not built_plain(env):
+    plain = plain_gym(env)  # what make_env built, unchanged
+    if plain is None:
         return None
-    base = env
-    if isinstance(env, TransformedEnv):
-        if not _only_double_to_float(env):
-            return None  # a transform appended since make_env built it
-        base = env.base_env
-    if not isinstance(base, GymWrapper) or base.wrapper_frame_skip != 1 or base.info_dict_reader:
-        return None
-    if set(env.observation_spec.keys(True, True)) != {keys.OBSERVATION}:
-        return None  # pixels (or another observation) beside the state
-    inner = wrapped_gym_env(base)
-    if isinstance(inner, gymnasium.vector.VectorEnv):
-        if not isinstance(inner, gymnasium.vector.SyncVectorEnv) or (
-            inner.autoreset_mode != gymnasium.vector.AutoresetMode.DISABLED
-        ):
-            return None
-        return GymSteps(env, base, inner, vector=True)
-    return GymSteps(env, base, inner, vector=False)
+    vector = isinstance(plain.inner, gymnasium.vector.VectorEnv)
+    return GymSteps(env, plain.base, plain.inner, vector=vector)
