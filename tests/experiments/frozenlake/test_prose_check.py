@@ -60,3 +60,13 @@ def test_a_chain_panel_without_a_recovering_loss_has_no_ratio(tmp_path):
     report = (tmp_path / "out" / "report.txt").read_text()
     assert "ratio measured undefined (no recovering loss sampled)" in report
     assert "nan" not in report
+
+
+def test_the_batched_protocol_checks_no_claim_about_its_own_draw(tmp_path):
+    """IRL fits section 1's demonstrations, which the batched protocol draws otherwise."""
+    results = _run(tmp_path / "out", "--protocol", "batched", "--eval-scale", "1")
+    assert _claim(results, "maximum-entropy IRL infers a reward") is None
+    assert _claim(results, "planning against the inferred reward") is None
+    assert results["irl"]["fit"]["demonstrations_argmax"] is not None  # fitted, not judged
+    faithful = _run(tmp_path / "faithful")
+    assert _claim(faithful, "maximum-entropy IRL infers a reward") is not None

@@ -159,5 +159,6 @@ def prose_checks(ctx: StudyContext) -> None:
     _chain_claims(checks, r.get("chain", {}).get("panels", []))
     _divergence_claim(checks, r.get("divergence", {}) if faithful else {})
     _dagger_claim(checks, r.get("dagger", {}).get("rounds", []) if faithful else [], r)
-    _irl_claims(checks, r.get("irl", {}).get("fit", {}), r["expert"]["exact_success"])
+    irl_fit = r.get("irl", {}).get("fit", {}) if faithful else {}  # from section 1's draw
+    _irl_claims(checks, irl_fit, r["expert"]["exact_success"])
     rep.set("prose_checks", checks.rows)
