@@ -62,7 +62,7 @@ class Command:
 _GAIL = ("stepper", "optimizer_step", "zero_grad", "clip_grad_norm", "ppo_loss", "gail_loss")
 _FIT = ("stepper", "loss_chain", "optimizer_step", "zero_grad")
 COMMANDS = (
-    Command("frozenlake", ("frozenlake",), ("frozenlake", "--eval-scale", "1", "--no-exercises", "--no-irl"), (*_FIT, "table_returns")),
+    Command("frozenlake", ("frozenlake",), ("frozenlake", "--no-exercises", "--no-irl"), (*_FIT, "table_returns")),
     Command(
         "dagger_cartpole", ("dagger", "--env", "CartPole-v1"),
         ("dagger", "--env", "CartPole-v1", "--rounds", "1", "--steps", "20"), _FIT,

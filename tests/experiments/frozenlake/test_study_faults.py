@@ -60,6 +60,7 @@ BAD_FLAGS = [
     (["--max-steps", "0"], "--max-steps must be an integer >= 1"),
     (["--demo-seed", "-1"], "--demo-seed must be an integer >= 0"),
     (["--ex-seed", "-5"], "--ex-seed must be an integer >= 0"),
+    (["--eval-scale", "5"], "--eval-scale 5 applies to --protocol batched only"),
     *(
         ([flag, value], f"{flag} must be an integer >= 1")
         for flag, value in [

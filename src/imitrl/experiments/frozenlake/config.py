@@ -9,7 +9,7 @@ rounds, time limits) and the study's own below.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 
 from gymnasium.envs.toy_text.frozen_lake import MAPS
@@ -212,6 +212,12 @@ class StudyConfig:
         if self.protocol not in PROTOCOLS:
             raise ValueError(f"protocol must be one of {PROTOCOLS}, got {self.protocol!r}")
         check_bounds(self)  # every number, and each of a tuple's
+        scale = next(f.default for f in fields(self) if f.name == "eval_scale")
+        if self.protocol == "faithful" and self.eval_scale != scale:
+            raise ValueError(
+                f"--eval-scale {self.eval_scale} applies to --protocol batched only: the "
+                "faithful protocol plays the section's own episode counts"
+            )
         for name in ("sweep_sizes", "tv_steps", "ex_demo_counts", "irl_sizes", "airl_sizes"):
             values = getattr(self, name)  # results are keyed by them
             if len(set(values)) != len(values):
