@@ -54,6 +54,7 @@ __all__ = [
     "MAX_UPDATES",
     "MAX_WIDTH",
     "MAX_WORKERS",
+    "MIN_ALPHA",
     "Bound",
     "Widths",
     "bounded",
@@ -72,6 +73,9 @@ block ``k`` seeds ``ex_seed + k``), which must stay below it"""
 MAX_EPISODES = 10_000
 """most episodes collected for training at once (``--demos``, ``--episodes-per-round``):
 their rows are held in memory, up to 10^7 at 1,000 steps an episode"""
+MIN_ALPHA = 1e-12
+"""smallest error rate of a comparison (``--alpha``): below it ``1 - alpha`` rounds to 1 in
+floating point, and no count of episodes could show a difference at it"""
 MAX_EVAL_EPISODES = 100_000
 """most evaluation episodes (``--eval-episodes``): only their returns are kept, but
 100,000 episodes of 1,000 steps are 10^8 env steps, hours of stepping"""

@@ -122,3 +122,20 @@ def test_gail_keeps_its_trained_learner_when_its_last_evaluation_fails(tmp_path,
     stage = staging_folder(out)
     assert json.loads((stage / "config.json").read_text())["command"] == "gail"
     assert (stage / "learner.pt").is_file() and not (stage / "results.json").exists()
+
+
+def test_a_refusal_of_a_finished_out_names_the_learner_kept_beside_it(tmp_path, monkeypatch):
+    """A hostile review: with a finished run in --out, the refusal named only that run, and
+    the --overwrite it advised discarded the kept learner without a word."""
+    out = tmp_path / "run"
+    assert run_main("bc", *TINY, "--out", str(out))[0] == 0
+    _failing_evaluation(monkeypatch, bc_job, KeyboardInterrupt())
+    status, _, err = run_main("bc", *TINY, "--out", str(out), "--overwrite")  # Ctrl-C
+    assert status == 130 and "the fitted learner is kept in" in err, (status, err)
+    monkeypatch.undo()
+    stage = staging_folder(out)
+    assert (stage / "learner.pt").is_file() and (out / "results.json").is_file()
+    status, _, err = run_main("bc", *TINY, "--out", str(out))
+    assert status == 2 and "holds a previous run, finished" in err, err
+    assert f"beside it, {stage} holds a fitted learner" in err
+    assert "--overwrite discards when the new run starts" in err

@@ -29,7 +29,7 @@ def test_two_checkpoints_on_paired_episodes(runs, tmp_path):
                              "--episodes", "20", "--out", str(tmp_path / "c"))  # fmt: skip
     assert status == 0, err
     lines = out.splitlines()
-    assert "20 paired episodes (seeds 10000..10019)" in lines[0]
+    assert "20 paired episodes of at most 500 steps (seeds 10000..10019)" in lines[0]
     assert "difference a - b" in lines[1] and "95% interval" in lines[1]
     saved = json.loads((tmp_path / "c" / "compare.json").read_text())["comparison"]
     assert lines[2] == f"decision: {saved['decision']} ({saved['rule']})"
@@ -52,8 +52,9 @@ def test_a_sequential_comparison_on_a_metaworld_task_stops_early():
     [
         (["--b", "{pend}", "--env", "CartPole-v1"], "(trained on Pendulum-v1) does not fit"),
         (["--b", "{pend}"], "trained on different envs"),
-        (["--b", "{long}", "--alpha", "1"], "--alpha must be in (0, 1), got 1"),
-        (["--b", "{long}", "--alpha", "0"], "--alpha must be in (0, 1), got 0"),
+        (["--b", "{long}", "--alpha", "1"], "--alpha must be in [1e-12, 1), got 1"),
+        (["--b", "{long}", "--alpha", "0"], "--alpha must be in [1e-12, 1), got 0"),
+        (["--b", "{long}", "--alpha", "1e-17"], "--alpha must be in [1e-12, 1), got 1e-17"),
         (["--b", "{long}", "--episodes", "0"], "--episodes must be an integer >= 2"),
         (["--b", "{long}", "--sequential", "--metric", "return"], "needs their bounds"),
     ],
@@ -93,3 +94,27 @@ def test_a_checkpoint_against_the_expert_plays_the_checkpoints_env(runs):
     assert "4 paired episodes" in out
     status, _, err = _main("compare", "--a", "expert", "--b", "random", "--episodes", "4")
     assert status == 2 and "--env names the env for expert or random" in err
+
+
+def test_checkpoints_trained_with_different_time_limits_are_refused_and_swap_alike(runs, tmp_path):
+    """A hostile review: the first checkpoint's time limit was played by both sides, so
+    swapping --a and --b changed the decision."""
+    import shutil
+
+    other = tmp_path / "other"
+    shutil.copytree(runs / "long", other)
+    saved = json.loads((other / "config.json").read_text())
+    saved["config"]["max_episode_steps"] = 20
+    (other / "config.json").write_text(json.dumps(saved))
+    for a, b in ((runs / "short", other), (other, runs / "short")):
+        status, _, err = _main("compare", "--a", str(a), "--b", str(b), "--episodes", "4")
+        assert status == 2 and "trained with different time limits" in err, err
+        assert "--max-episode-steps N" in err
+    said = {}
+    for a, b in ((runs / "short", other), (other, runs / "short")):
+        status, out, err = _main("compare", "--a", str(a), "--b", str(b), "--episodes", "4",
+                                 "--max-episode-steps", "30", "--alpha", "0.005")  # fmt: skip
+        assert status == 0, err
+        assert "of at most 30 steps" in out and "99.5% interval" in out
+        said[a == other] = float(out.split("difference a - b ")[1].split(",")[0])
+    assert said[True] == -said[False]  # the sides swapped: the difference negated

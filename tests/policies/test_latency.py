@@ -159,6 +159,10 @@ def test_rtc_weights_freeze_the_delay_and_decay_to_the_overlaps_end():
     c = (8 - 4 - 2) / (8 - 4 - 2 + 1)
     assert w[0, 2].item() == pytest.approx(c * (math.exp(c) - 1) / (math.e - 1), rel=1e-6)
     assert (w[0, 2:4].diff() < 0).all() and w[1, 6:].eq(0).all() and (w[1, 2:6] > 0).all()
+    # without a delay nothing is frozen, but the overlap is still pulled (so rtc at d = 0
+    # is not the receding horizon, as the module says)
+    w0 = rtc_weights(6, 0, torch.tensor([3]))[0]
+    assert (w0[:3] > 0).all() and (w0[:3] < 1).all() and w0[3:].eq(0).all()
 
 
 def test_lanes_reset_at_different_steps_each_keep_their_own_schedule():

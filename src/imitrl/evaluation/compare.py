@@ -16,6 +16,15 @@ reset from one seed does not replay the same observation is refused (:func:`chec
 
 **Fixed size** (``sequential=False``): ``episodes`` pairs, the mean difference with its
 Student-t interval, and the two-sided paired t-test at ``alpha`` (the interval excludes 0).
+Where every difference is the same (no spread: a t-interval would have no width), the
+exact sign-flip test decides instead: ``n`` equal differences reject every other mean at
+level ``2^(1 - n)``, so the interval is that value where ``2^(1 - n) <= alpha``, and
+every mean the outcomes allow (``[-span, span]``, unbounded for returns without
+``return_range``) where it is not: two pairs never decide at ``alpha < 0.5``.
+
+Every outcome must be finite, and a return within ``return_range`` where one is given
+(either mode): an episode outside it is refused, naming the side and the episode, never
+clipped (a sequential comparison's bets read outcomes mapped into the range).
 
 **Sequential** (``sequential=True``): after each wave, an anytime-valid confidence
 sequence for the mean difference (the hedged betting confidence sequence of
@@ -41,6 +50,7 @@ from imitrl.envs.success import SUCCESS, reported_success
 from imitrl.envs.tabular_env import TabularEnv
 from imitrl.evaluation.evaluate import tabular_success
 from imitrl.evaluation.statistics import t_interval
+from imitrl.limits import MIN_ALPHA
 from imitrl.runtime.loop import lane_count
 from imitrl.runtime.returns import episode_returns
 from imitrl.runtime.rollout import rollout_policy
@@ -84,7 +94,8 @@ class Comparison:
     difference: float
     """mean of ``a - b``"""
     interval: tuple[float, float]
-    """of the mean difference: Student-t (fixed) or the confidence sequence (sequential)"""
+    """of the mean difference: Student-t (fixed), the sign-flip test's (fixed, every
+    difference equal: maybe infinite), or the confidence sequence (sequential)"""
     decision: str
     """``"a better"``, ``"b better"`` or ``"no difference shown"``"""
     rule: str
@@ -92,7 +103,10 @@ class Comparison:
     stopped_early: bool
 
     def as_dict(self) -> dict:
-        return asdict(self)
+        """The fields as JSON values (an infinite bound of the interval as None)."""
+        out = asdict(self)
+        out["interval"] = [v if math.isfinite(v) else None for v in self.interval]
+        return out
 
 
 def check_replays(env: EnvBase, seed: int) -> None:
@@ -133,8 +147,8 @@ def compare(
         return_range: ``(low, high)`` bounds of an episode's return, needed for a
             sequential comparison of returns (its bets need bounded outcomes).
     """
-    if not 0.0 < alpha < 1.0:
-        raise ValueError(f"alpha must be in (0, 1), got {alpha}")
+    if not MIN_ALPHA <= alpha < 1.0:
+        raise ValueError(f"alpha must be in [{MIN_ALPHA:g}, 1), got {alpha}")
     if int(episodes) != episodes or episodes < 2:
         raise ValueError(f"episodes must be an integer >= 2 (pairs), got {episodes!r}")
     success_fn = _success_fn(env)
@@ -158,7 +172,9 @@ def compare(
     while len(xa) < episodes:
         n = min(lanes, episodes - len(xa))
         for spec, out in ((a, xa), (b, xb)):
-            out.extend(_wave(env, spec, n, seed + wave * lanes, success_fn, metric, max_steps))
+            got = _wave(env, spec, n, seed + wave * lanes, success_fn, metric, max_steps)
+            _check_outcomes(got, spec.name, len(out), seed, metric, return_range)
+            out.extend(got)
         wave += 1
         if sequential:
             assert bounds is not None
@@ -167,16 +183,12 @@ def compare(
                 stopped = True
                 break
     d = _differences(xa, xb)
-    if not sequential:
-        mean, lo, hi = t_interval(d.tolist(), 1 - alpha)
-        interval = (lo, hi) if not math.isnan(lo) else (mean, mean)
+    if sequential:
+        rule = "sequential: hedged betting confidence sequence (Waudby-Smith & Ramdas, JRSS-B 2024)"
+    else:
+        interval, rule = _fixed_interval(d, alpha, bounds)
     decision = (
         "a better" if interval[0] > 0 else "b better" if interval[1] < 0 else "no difference shown"
-    )
-    rule = (
-        "sequential: hedged betting confidence sequence (Waudby-Smith & Ramdas, JRSS-B 2024)"
-        if sequential
-        else "fixed: paired Student-t"
     )
     return Comparison(
         a=a.name, b=b.name, metric=metric, episodes=len(xa),
@@ -184,6 +196,45 @@ def compare(
         interval=(float(interval[0]), float(interval[1])), decision=decision, rule=rule,
         alpha=alpha, stopped_early=stopped,
     )  # fmt: skip
+
+
+def _fixed_interval(
+    d: torch.Tensor, alpha: float, bounds: tuple[float, float] | None
+) -> tuple[tuple[float, float], str]:
+    """A fixed comparison's interval of the mean difference, and its rule (module
+    docstring): paired Student-t, or the exact sign-flip test where every difference is
+    the same."""
+    if bool((d == d[0]).all()):
+        if 2.0 ** (1 - d.numel()) <= alpha:  # every other mean rejected
+            value = float(d[0])
+            return (value, value), "fixed: exact sign-flip test (every difference equal)"
+        span = math.inf if bounds is None else bounds[1] - bounds[0]
+        rule = f"fixed: exact sign-flip test (every difference equal; {d.numel()} pairs cannot"
+        return (-span, span), rule + f" reject any mean at alpha {alpha:g})"
+    _, lo, hi = t_interval(d.tolist(), 1 - alpha)
+    return (lo, hi), "fixed: paired Student-t"
+
+
+def _check_outcomes(
+    values: list[float], side: str, first: int, seed: int, metric: str,
+    return_range: tuple[float, float] | None,
+) -> None:  # fmt: skip
+    """ValueError naming the first of ``side``'s episodes ``first, first + 1, ...`` whose
+    outcome is not finite, or (returns) outside ``return_range``."""
+    for j, v in enumerate(values, start=first):
+        if not math.isfinite(v):
+            raise ValueError(
+                f"{side}'s episode {j} (seed {seed + j}) has a {metric} of {v}: a comparison "
+                "needs finite outcomes (does the policy act NaN?)"
+            )
+        if metric == "return" and return_range is not None:
+            lo, hi = return_range
+            if not lo <= v <= hi:
+                raise ValueError(
+                    f"{side}'s episode {j} (seed {seed + j}) returned {v:.6g}, outside the "
+                    f"return range [{lo:g}, {hi:g}] (--return-range): give bounds that hold "
+                    "every episode's return"
+                )
 
 
 def _differences(xa: list[float], xb: list[float]) -> torch.Tensor:
@@ -244,7 +295,8 @@ def log_capital(y: torch.Tensor, m: torch.Tensor, alpha: float) -> torch.Tensor:
 
 
 def _unit(d: torch.Tensor, span: float) -> torch.Tensor:
-    """Paired differences within ``[-span, span]`` mapped to [0, 1] (0 -> 1/2)."""
+    """Paired differences within ``[-span, span]`` (:func:`compare` refuses outcomes
+    outside their range) mapped to [0, 1] (0 -> 1/2); the clamp only absorbs rounding."""
     return ((d + span) / (2 * span)).clamp(0, 1)
 
 

@@ -125,9 +125,27 @@ def _check(out: Path, overwrite: bool, resume: bool) -> str | None:
         raise ValueError(
             f"--out {out} holds a previous run, finished ({', '.join(entries)}): pass "
             f"--overwrite to replace it (it stays whole until the new run finishes){more}, "
-            "or give another --out"
+            f"or give another --out{_kept_beside(out)}"
         )
     return "finished" if finished else "unfinished"
+
+
+def _kept_beside(out: Path) -> str:
+    """What a refusal of ``out`` adds about the saved work a stopped run left beside it
+    (``--overwrite`` discards it at once, not when the new run finishes)."""
+    stage = staging_folder(out)
+    kept = _kept(stage) if stage.is_dir() and not stage.is_symlink() else None
+    if kept == "learner":
+        return (
+            f"; beside it, {stage} holds a fitted learner a stopped run kept (imitrl eval "
+            "--checkpoint reads it there), which --overwrite discards when the new run starts"
+        )
+    if kept == "checkpoint":
+        return (
+            f"; beside it, {stage} holds an unfinished DAgger run's checkpoint, which "
+            "--resume continues and --overwrite discards when the new run starts"
+        )
+    return ""
 
 
 def _kept(stage: Path) -> str | None:

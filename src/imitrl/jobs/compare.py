@@ -14,10 +14,11 @@ written.
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from imitrl.limits import MAX_EPISODE_STEPS, MAX_EVAL_EPISODES, MAX_SEED, bounded
+from imitrl.limits import MAX_EPISODE_STEPS, MAX_EVAL_EPISODES, MAX_SEED, MIN_ALPHA, bounded
 
 __all__ = ["CompareJob", "report", "run_compare"]
 
@@ -43,7 +44,7 @@ class CompareJob:
     sequential: bool = False
     """stop as soon as the anytime-valid confidence sequence of the difference excludes 0
     (Waudby-Smith & Ramdas 2024); its error rate is at most --alpha whenever it stops"""
-    alpha: float = bounded(0.05, 0, 1, integer=False, low_open=True, high_open=True)
+    alpha: float = bounded(0.05, MIN_ALPHA, 1, integer=False, high_open=True)
     """error rate of the decision (the intervals are at 1 - alpha)"""
     metric: str = "auto"
     """success, return, or auto (success where the env reports it, return elsewhere)"""
@@ -53,7 +54,8 @@ class CompareJob:
     seed: int = bounded(10_000, 0, MAX_SEED)
     """episode j of both sides starts from the env seeded seed + j"""
     max_episode_steps: int | None = bounded(None, 1, MAX_EPISODE_STEPS, none_ok=True)
-    """override the env's time limit; none = the checkpoints' (or the env's own)"""
+    """override the env's time limit; none = the checkpoints' (which must agree), or the
+    env's own"""
     env_kwargs: tuple[tuple[str, object], ...] = field(
         default=(), metadata={"repeat": "--env-kwarg"}
     )
@@ -104,7 +106,12 @@ def run_compare(config: CompareJob) -> dict:
         )  # fmt: skip
     finally:
         env.close()
-    results = {"env": env_id, "seed": config.seed, "comparison": result.as_dict()}
+    results = {
+        "env": env_id,
+        "seed": config.seed,
+        "max_episode_steps": _limit(env_id, steps),
+        "comparison": result.as_dict(),
+    }
     if config.out is not None:  # written whole, never through a link (imitrl.fs.files)
         from imitrl.fs.files import make_folder, replace_file
         from imitrl.fs.write_errors import reporting_disk_full
@@ -128,9 +135,17 @@ def _env_of(config: CompareJob) -> tuple[str, int | None, dict]:
             + "): name the one to compare them on with --env"
         )
     env_id = config.env or next(iter(envs.values()))
-    steps = config.max_episode_steps or next(
-        (c.get("max_episode_steps") for c in saved.values() if c.get("max_episode_steps")), None
-    )
+    steps = config.max_episode_steps
+    if steps is None:  # the checkpoints' own, which must agree: --a and --b play alike
+        limits = {s: c.get("max_episode_steps") for s, c in saved.items()}
+        if len(set(limits.values())) > 1:
+            raise ValueError(
+                "the checkpoints were trained with different time limits ("
+                + ", ".join(f"{s}: {'the env' + chr(39) + 's own' if v is None else v}"
+                            for s, v in limits.items())
+                + "): name the one to compare them with, --max-episode-steps N"
+            )  # fmt: skip
+        steps = next(iter(limits.values()), None)
     if config.env_kwargs:
         return env_id, steps, dict(config.env_kwargs)
     # each checkpoint's env arguments, where it is played in its own env
@@ -142,6 +157,16 @@ def _env_of(config: CompareJob) -> tuple[str, int | None, dict]:
             + "): name the ones to compare them with, --env-kwarg NAME=VALUE"
         )
     return env_id, steps, next(iter(each.values()), {})
+
+
+def _limit(env_id: str, steps: int | None) -> int | None:
+    """The time limit both sides played under (None: the env has none)."""
+    from imitrl.jobs.resolve import time_limit
+
+    try:
+        return time_limit(env_id, steps)
+    except ValueError:  # registered without one
+        return None
 
 
 def _side(side: str, flag: str, env, env_id: str):
@@ -170,6 +195,8 @@ def _side(side: str, flag: str, env, env_id: str):
         learner.check_env(env)
     except ValueError as err:
         trained = saved.config.get("env")
+        if trained == env_id:  # its own env: the checkpoint itself is at fault (NaN weights)
+            raise ValueError(f"{flag} {side}: {err}") from None
         raise ValueError(
             f"{flag} {side} (trained on {trained}) does not fit {env_id}'s observations and "
             f"actions: {err}"
@@ -180,10 +207,13 @@ def _side(side: str, flag: str, env, env_id: str):
 def report(results: dict) -> list[str]:
     """What ``imitrl compare`` prints."""
     c = results["comparison"]
-    lo, hi = c["interval"]
-    level = round(100 * (1 - c["alpha"]))
+    lo, hi = (-math.inf if c["interval"][0] is None else c["interval"][0],
+              math.inf if c["interval"][1] is None else c["interval"][1])  # fmt: skip
+    level = f"{100 * (1 - c['alpha']):.10g}"
+    limit = results.get("max_episode_steps")
+    steps = "" if limit is None else f" of at most {limit} steps"
     return [
-        f"{c['a']} vs {c['b']} on {results['env']}: {c['episodes']} paired episodes "
+        f"{c['a']} vs {c['b']} on {results['env']}: {c['episodes']} paired episodes{steps} "
         f"(seeds {results['seed']}..{results['seed'] + c['episodes'] - 1})",
         f"{c['metric']}: a {c['mean_a']:.4g}, b {c['mean_b']:.4g}; difference a - b "
         f"{c['difference']:+.4g}, {level}% interval [{lo:+.4g}, {hi:+.4g}]",

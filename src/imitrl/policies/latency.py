@@ -29,10 +29,13 @@ executed per chunk (the execution horizon):
 
 The first chunk of an episode is ready at once (a robot starts moving once its first chunk
 is there). ``naive`` and ``rtc`` need ``d <= s <= H - d`` (the new chunk arrives before the
-current one runs out); ``ensemble`` needs ``d < H``. With ``d = 0``, ``naive``, ``rtc`` and
-``sync`` execute exactly what the receding horizon of a
+current one runs out); ``ensemble`` needs ``d < H``. With ``d = 0``, ``naive`` and ``sync``
+execute exactly what the receding horizon of a
 :class:`~imitrl.policies.chunking.ChunkedPolicy` with ``execute = s`` executes, and
-``ensemble`` what its temporal ensembling does (``tests/policies/test_latency.py``).
+``ensemble`` what its temporal ensembling does (``tests/policies/test_latency.py``);
+``rtc`` keeps the receding horizon's schedule but still pulls each new chunk towards the
+current one's actions it has not executed (no action is frozen, the soft weights remain),
+so its actions differ: a smoother hand-over, not the same policy.
 
 Writes ``ACTION`` and :data:`CHUNK_SWITCH` (a new chunk took over at this step; every step of
 ``ensemble`` after the first ``d``): where the action may jump, which a jerk measured at
