@@ -213,3 +213,28 @@ def _running(pid: int) -> bool:
         return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
     except (OSError, IndexError):
         return False
+
+
+def test_a_rank_other_than_0_names_what_it_refused(monkeypatch):
+    """A hostile review: a rank of another machine that refused its input said nothing."""
+    import contextlib
+    import io
+
+    from imitrl.cli import main
+
+    monkeypatch.setenv("RANK", "1")
+    monkeypatch.setenv("WORLD_SIZE", "2")
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+        status = main(["bc", "--steps", "-1"])
+    assert status == 2 and err.getvalue().startswith("imitrl bc: rank 1: --steps must be")
+
+
+def test_only_a_collectives_failure_is_called_a_lost_peer():
+    import torch.distributed as dist
+
+    from imitrl.cli.launch import peer_lost
+
+    assert peer_lost(dist.DistError("anything"))
+    assert peer_lost(RuntimeError("[gloo] Connection closed by peer [127.0.0.1]:29500"))
+    assert not peer_lost(RuntimeError("The expanded size of the tensor (59) must match"))

@@ -74,5 +74,10 @@ def test_an_old_dagger_run_resumes_and_equals_the_longer_run(tmp_path):
     assert status == 0, err
     resumed = json.loads((out / "results.json").read_text())
     whole = json.loads((tmp_path / "whole" / "results.json").read_text())
+    # the rounds d6e5639 played keep its evaluations, whose intervals used its Student-t
+    # quantile (Simpson's rule: t_0.975,1 = 12.706204736174719, today 12.706204736174698)
+    for a, b in zip(resumed["rounds"], whole["rounds"], strict=True):
+        ci_a, ci_b = a["evaluation"].pop("return_ci"), b["evaluation"].pop("return_ci")
+        assert ci_a == pytest.approx(ci_b, rel=1e-13)
     for key in ("rounds", "learner", "final_loss"):
         assert resumed[key] == whole[key], key

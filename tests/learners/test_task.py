@@ -245,6 +245,16 @@ def test_rows_alone_describe_their_task():
     assert (task.num_states, task.action) == (6, 3)
     assert TaskSpec.from_rows(states, action=4).action == 4  # a recorded space wins
 
+    # a DAgger dataset: the learner executed actions beyond the expert's labels (a hostile
+    # review: its own executed actions were then refused as outside the task's bounds)
+    acted = rows.clone()
+    acted["action"] = labels.clone()
+    acted["action"][0, 0] = 3.5
+    wide = TaskSpec.from_rows(acted).action
+    assert wide.space.low[0].item() == -1.0 and wide.space.high[0].item() == 3.5
+    states["action"] = torch.tensor([1, 4, 2])
+    assert TaskSpec.from_rows(states).action == 5
+
     with pytest.raises(ValueError, match="rows need 'expert_action'"):
         TaskSpec.from_rows(TensorDict({"observation": torch.zeros(2, 3)}, [2]))
     odd = TensorDict({"observation": torch.zeros(2, 3, 4), "expert_action": labels[:2]}, [2])

@@ -54,6 +54,7 @@ from imitrl.policies.mixture import BetaMixer, behaviour_policy
 from imitrl.runtime import paths
 from imitrl.runtime.rollout import rollout_episodes
 from imitrl.system.device import acting
+from imitrl.system.ranks import from_lead, rank_and_world
 
 __all__ = [
     "Constant",
@@ -351,6 +352,8 @@ def _run(
             checkpoint_dir, buffer, make_learner, config=config,
             record_cls=RoundRecord, mixer_generator=coins, source=source,
         )  # fmt: skip
+    if resume:
+        _same_round_on_every_rank(run.next_round)
     learner = run.learner
     last = run.records[-1] if run.records else None
     if last is not None and last.beta_next is None and run.next_round < config.rounds:
@@ -376,6 +379,17 @@ def _run(
             )  # fmt: skip
     assert learner is not None
     return DAggerResult(learner=learner, rounds=run.records, buffer=buffer)
+
+
+def _same_round_on_every_rank(next_round: int) -> None:
+    """ValueError on a data-parallel rank that resumed another round than rank 0 (its
+    fits would all-reduce gradients of other rounds: a wrong learner, silently)."""
+    lead = from_lead(next_round)
+    if lead != next_round:
+        raise ValueError(
+            f"rank {rank_and_world()[0]} resumed at round {next_round}, rank 0 at round {lead}: "
+            "every rank must continue the same checkpoint"
+        )
 
 
 def _check_inputs(buffer, expert, checkpoint_dir, resume: bool) -> None:

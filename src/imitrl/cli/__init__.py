@@ -61,7 +61,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from imitrl.cli.flags import OneLineParser, add_config_flags, config_from_args
-from imitrl.cli.launch import RankLostError, in_rank, launch, process_group, quiet
+from imitrl.cli.launch import RankLostError, in_rank, launch, peer_lost, process_group, quiet
 from imitrl.limits import MAX_THREADS, Bound
 from imitrl.system.heap import collector_paused, freeze_imported
 from imitrl.system.threads import DEFAULT_THREADS, set_threads
@@ -356,8 +356,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             with process_group(_backend(config.device)) if in_rank() else contextlib.nullcontext():
                 results = run(config)
     except (ValueError, ImportError) as err:  # bad flags, unknown names, missing extras
-        if not quiet():  # --nproc: rank 0 names it, once
-            print(f"imitrl {args.command}: {err}{missing_extra(err)}", file=sys.stderr)
+        # --nproc: every rank names what it refused (a rank of another machine may hold
+        # other files than rank 0), the others with their rank
+        who = f"rank {os.environ.get('RANK')}: " if quiet() else ""
+        print(f"imitrl {args.command}: {who}{err}{missing_extra(err)}", file=sys.stderr)
         return 2
     except OSError as err:  # a full disk, a read-only folder: named, outputs as they were
         from imitrl.fs.write_errors import DiskFullError, NotWritableError
@@ -370,8 +372,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"imitrl {args.command}: {err}", file=sys.stderr)
         return 1
     except RuntimeError as err:  # a rank whose peer died: the collective fails here
-        if not in_rank():
-            raise
+        if not in_rank() or not peer_lost(err):
+            raise  # a rank's own error: its traceback
         line = str(err).strip().splitlines()[0][:200]
         rank = os.environ.get("RANK")
         print(f"imitrl {args.command}: rank {rank} lost a peer ({line})", file=sys.stderr)

@@ -25,7 +25,7 @@ import time
 import uuid
 from collections.abc import Iterator, Sequence
 
-__all__ = ["RankLostError", "in_rank", "launch", "process_group", "quiet"]
+__all__ = ["PEER_LOST", "RankLostError", "in_rank", "launch", "peer_lost", "process_group", "quiet"]
 
 
 def in_rank() -> bool:
@@ -135,6 +135,19 @@ def _end_with_launcher() -> None:
         os.kill(os.getpid(), signal.SIGTERM)  # the whole process, whatever thread it is in
 
     threading.Thread(target=watch, name="imitrl-launcher-watch", daemon=True).start()
+
+
+PEER_LOST = ("Connection closed by peer", "Connection reset by peer", "Broken pipe",
+             "Socket Timeout", "timed out", "Connection refused")  # fmt: skip
+"""what a collective's error says when another rank is gone (gloo, NCCL, the store)"""
+
+
+def peer_lost(err: RuntimeError) -> bool:
+    """Whether ``err`` is a collective's failure for want of another rank (not a bug of
+    this rank's own, which keeps its traceback)."""
+    import torch.distributed as dist
+
+    return isinstance(err, dist.DistError) or any(s in str(err) for s in PEER_LOST)
 
 
 def quiet() -> bool:

@@ -20,6 +20,7 @@ are shared with ``imitrl dagger``.
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import math
 import shutil
 import tempfile
@@ -29,6 +30,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TypeVar
 
+import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase
@@ -58,7 +60,7 @@ from imitrl.learners import Learner, TaskSpec, registry
 from imitrl.policies import as_actor
 from imitrl.policies.random_actions import RandomActions
 from imitrl.runtime import rollout_episodes
-from imitrl.system.ranks import rank_and_world
+from imitrl.system.ranks import barrier, check_same, from_lead, rank_and_world
 
 __all__ = [
     "BCJob",
@@ -218,9 +220,26 @@ def demonstrations(
         rows = rollout_episodes(
             setup.playing(), setup.expert, config.demos
         )  # greedy, whole episodes
+    check_same(_digest(rows), "demonstrations (rows, sha256)")  # --nproc: each rank reads its own
     buffer = DemonstrationBuffer(action_spec=setup.task.env_specs()[1])
     buffer.extend(rows if plan_horizon is None else with_plans(rows, plan_horizon))
     return buffer
+
+
+def _digest(rows: TensorDictBase) -> tuple[int, str]:
+    """``(rows, sha256 of every entry's name, dtype, shape and bytes)``: what tells two
+    ranks' demonstrations apart (a dataset another machine holds otherwise)."""
+    if rank_and_world()[1] == 1:
+        return len(rows), ""  # nothing to compare with
+    digest = hashlib.sha256()
+    for key, value in sorted(rows.items(include_nested=True, leaves_only=True), key=str):
+        if not isinstance(value, torch.Tensor):  # a string entry (a task's text)
+            digest.update(f"{key}{value!r}".encode())
+            continue
+        tensor = value.detach().cpu().contiguous()
+        digest.update(f"{key}{tensor.dtype}{tuple(tensor.shape)}".encode())
+        digest.update(tensor.reshape(-1).view(torch.uint8).numpy().tobytes())
+    return len(rows), digest.hexdigest()[:16]
 
 
 def bc_config(config: BCJob, setup: Setup) -> BCConfig:
@@ -326,15 +345,28 @@ def run_folder(config: BCJob | GAILJob, *, resume: bool = False) -> Iterator[Pat
     """Where the run writes: ``--out`` claimed (:func:`imitrl.fs.run_folder.claimed`'s
     rule); on a data-parallel rank other than 0 (``--nproc``) a scratch folder that
     nothing keeps: rank 0 alone writes ``--out`` (``resume``: the scratch starts with a
-    copy of its DAgger checkpoint, :data:`RUN_CHECKPOINT`, which every rank resumes)."""
+    copy of the DAgger checkpoint rank 0 continues, :data:`RUN_CHECKPOINT` of its staging
+    folder, which rank 0 names to the others: every rank resumes the same round)."""
     if rank_and_world()[0] == 0:
         with claimed(config.out, overwrite=config.overwrite, resume=resume) as folder:
+            if resume:  # the checkpoint rank 0 continues: its staged copy, or the unfinished run's
+                own = folder / RUN_CHECKPOINT
+                from_lead(str(own) if own.is_dir() else None)
+                barrier()  # the other ranks have copied it before anything writes it
             yield folder
     else:
         with tempfile.TemporaryDirectory(prefix="imitrl-rank-") as scratch:
-            saved = Path(config.out) / RUN_CHECKPOINT
-            if resume and saved.is_dir():  # rank 0's checkpoint, read as every rank's
-                shutil.copytree(saved, Path(scratch) / RUN_CHECKPOINT, symlinks=True)
+            if resume:
+                saved = from_lead(None)  # where rank 0 resumes (a file system they share)
+                if saved is not None and not Path(saved).is_dir():
+                    raise ValueError(
+                        f"rank {rank_and_world()[0]} cannot read rank 0's checkpoint {saved}: "
+                        "--resume on ranks of several machines needs --out on a file system "
+                        "they share"
+                    )
+                if saved is not None:
+                    shutil.copytree(saved, Path(scratch) / RUN_CHECKPOINT, symlinks=True)
+                barrier()
             yield Path(scratch)
 
 

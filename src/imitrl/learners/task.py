@@ -149,9 +149,10 @@ class TaskSpec:
         (:data:`OBSERVED_ENTRIES`: a float state ``Unbounded [d]``, integer states
         ``Categorical(max + 1)``, a camera or a Dict of cameras ``uint8 [H, W, C]``), and
         ``action`` (a number of actions or a spec, e.g. a Minari dataset's recorded space)
-        or else the range of the expert's actions: integers ``Categorical(max + 1)``,
-        floats ``Bounded(min, max)`` per dimension (the min and max LeRobot's
-        ``stats.json`` records). ValueError naming what is missing or of the wrong kind."""
+        or else the range of the actions the rows hold, the expert's labels and the
+        executed actions (a DAgger dataset's learner acted on some frames): integers
+        ``Categorical(max + 1)``, floats ``Bounded(min, max)`` per dimension (the min and
+        max LeRobot's ``stats.json`` records). ValueError naming what is missing or of the wrong kind."""
         present = set(rows.keys())
         if keys.EXPERT_ACTION not in present or not present & set(OBSERVED_ENTRIES):
             raise ValueError(
@@ -163,6 +164,11 @@ class TaskSpec:
             if key in present:
                 spec[key] = _observed_spec(rows.get(key), key)
         labels = rows.get(keys.EXPERT_ACTION)
+        executed = rows.get(keys.ACTION) if keys.ACTION in present else None
+        if executed is not None and (
+            executed.dtype == labels.dtype and executed.shape == labels.shape
+        ):  # a DAgger dataset's learner acted too: the task holds what was executed
+            labels = torch.cat([labels, executed])
         if action is None:
             action = _action_range(labels)
         return cls.from_specs(spec, action)

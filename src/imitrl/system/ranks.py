@@ -36,6 +36,8 @@ import torch
 
 __all__ = [
     "DataParallel",
+    "barrier",
+    "check_same",
     "from_lead",
     "gathered",
     "masked_mean",
@@ -132,6 +134,28 @@ def from_lead(value: T) -> T:
     box = [value]
     dist.broadcast_object_list(box, src=0)
     return box[0]
+
+
+def barrier() -> None:
+    """Wait until every rank reaches here (nothing in a single process)."""
+    if rank_and_world()[1] == 1:
+        return
+    import torch.distributed as dist
+
+    dist.barrier()
+
+
+def check_same(value: object, what: str) -> None:
+    """ValueError on a rank whose ``value`` (picklable, comparable) differs from rank 0's:
+    what every rank must hold alike (nothing in a single process)."""
+    if rank_and_world()[1] == 1:
+        return
+    lead = from_lead(value)
+    if lead != value:
+        raise ValueError(
+            f"rank {rank_and_world()[0]}'s {what} differ from rank 0's ({value} against "
+            f"{lead}): every rank must hold the same"
+        )
 
 
 def summed(values: torch.Tensor) -> torch.Tensor:

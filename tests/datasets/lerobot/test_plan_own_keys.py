@@ -62,5 +62,7 @@ def test_an_image_under_another_name_loads_beside_the_state(tmp_path):
 
 def test_two_features_on_one_key_are_refused_with_the_images_planned(tmp_path):
     root = _dataset(tmp_path / "ds", "cam_image")
-    with pytest.raises(ValueError, match=r"several features map to the same buffer key"):
+    with pytest.raises(
+        ValueError, match=r"features \[.cam_image., .next\.reward.\] all map to the buffer key"
+    ):
         _load(root, key_map={"next.reward": "cam_image"})

@@ -26,6 +26,7 @@ before it adds one), so a dataset refused at its fifth round leaves nothing of i
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -36,11 +37,11 @@ import torch
 
 from imitrl import keys
 from imitrl.datasets._arrow import column_to_tensor, decode_images
-from imitrl.datasets._common import NestedKey
+from imitrl.datasets._common import NestedKey, key_name
 from imitrl.datasets.lerobot._layout import INTERVENTION
 from imitrl.limits import MAX_ROUNDS
 
-__all__ = ["RoundOrder", "check_dagger_columns", "feature_values"]
+__all__ = ["RoundOrder", "check_dagger_columns", "feature_values", "own_episodes"]
 
 _PER_EPISODE = {keys.ROUND: "round", keys.BETA: "beta", keys.POLICY_VERSION: "policy version"}
 
@@ -130,6 +131,32 @@ def _booleans(
     return value != 0
 
 
+def own_episodes(out: dict, episode: torch.Tensor, file_of: Callable[[int], Path]) -> None:
+    """Frames ``[N]`` of a whole dataset in episode order (``episode``: LeRobot's
+    ``episode_index``): imitrl's own episode ids (``imitrl.episode``) are kept only where
+    they follow LeRobot's episodes one to one; otherwise (LeRobot's ``aggregate_datasets``
+    renumbers ``episode_index`` alone, so two merged datasets repeat ids) they are dropped,
+    with a warning, and the rows take LeRobot's ``episode_index``."""
+    if keys.EPISODE not in out:
+        return
+    starts = torch.ones_like(episode, dtype=torch.bool)
+    starts[1:] = episode[1:] != episode[:-1]
+    first = torch.cumsum(starts.long(), 0) - 1  # each frame's episode, counted from 0
+    heads = torch.nonzero(starts).flatten()
+    own = out[keys.EPISODE].reshape(-1)
+    constant = bool((own == own[heads][first]).all())
+    if constant and len(torch.unique(own[heads])) == len(heads):
+        return
+    del out[keys.EPISODE]
+    warnings.warn(
+        f"{file_of(0)}: imitrl's episode ids ({key_name(keys.EPISODE)!r}) do not follow "
+        "LeRobot's episodes one to one (a merge renumbers episode_index alone): the rows "
+        "take LeRobot's episode_index",
+        UserWarning,
+        stacklevel=3,
+    )
+
+
 def check_dagger_columns(
     out: dict[NestedKey, torch.Tensor],
     episode: torch.Tensor,
@@ -142,7 +169,13 @@ def check_dagger_columns(
     ``frame``: LeRobot's ``episode_index`` and ``frame_index``) against the module
     docstring's rules; ``EXPERT_EXECUTED`` becomes boolean in ``out``."""
     if keys.EXPERT_EXECUTED in out:
-        executed = _booleans(out[keys.EXPERT_EXECUTED], episode, frame, file_of, intervention_name)
+        column = out[keys.EXPERT_EXECUTED]
+        if column.numel() != column.shape[0]:  # one flag a frame
+            raise ValueError(
+                f"{file_of(0)}: {intervention_name!r} holds {tuple(column.shape[1:])} values a "
+                "frame; an intervention flag is one boolean a frame"
+            )
+        executed = _booleans(column, episode, frame, file_of, intervention_name)
         out[keys.EXPERT_EXECUTED] = executed
         flags = executed.reshape(executed.shape[0], -1).any(-1)
         if flags.any() and keys.EXPERT_ACTION not in out and keys.ACTION not in out:

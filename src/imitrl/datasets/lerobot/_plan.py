@@ -166,7 +166,12 @@ def _check_targets(root: Path, plan: dict[str, NestedKey], features: dict[str, d
     targets = [key_name(v) for v in plan.values()]
     dup = sorted({t for t in targets if targets.count(t) > 1})
     if dup:
-        raise ValueError(f"several features map to the same buffer key(s) {dup}: fix key_map")
+        named = sorted(k for k, v in plan.items() if key_name(v) in dup)
+        raise ValueError(
+            f"{root / 'meta' / 'info.json'}: features {named} all map to the buffer key(s) "
+            f"{dup} (the dataset holds both of imitrl's names for one column?): drop one "
+            "feature from the dataset, or choose one with key_map (load_lerobot)"
+        )
     paths = {(v,) if isinstance(v, str) else tuple(v): k for k, v in plan.items()}
     for path, name in paths.items():
         for i in range(1, len(path)):

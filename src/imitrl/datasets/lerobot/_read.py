@@ -37,7 +37,7 @@ from imitrl.datasets.lerobot._files import holds, read_json
 from imitrl.datasets.lerobot._frames import checked_frames, columns_in_order, data_files, timestamps
 from imitrl.datasets.lerobot._hub import dataset_root
 from imitrl.datasets.lerobot._hub_limits import HubLimits
-from imitrl.datasets.lerobot._interventions import RoundOrder, check_dagger_columns
+from imitrl.datasets.lerobot._interventions import RoundOrder, check_dagger_columns, own_episodes
 from imitrl.datasets.lerobot._layout import SIDECAR, read_info
 from imitrl.datasets.lerobot._plan import plan_features, settle_features
 from imitrl.datasets.lerobot._stream import (
@@ -145,6 +145,7 @@ def _load(folder: OpenedFolder, req: _Request) -> tuple[LoadedDemonstrations, _M
             decode_videos(folder, info, meta.major, episodes, meta.cameras, times, req.decode_dir)
         )
         loaded.update({name: key_name(key) for name, key in meta.cameras.items()})
+    own_episodes(out, frames.episode_index[index], lambda i: frames.file_at(int(index[i])))
     episode = out.pop(keys.EPISODE) if keys.EPISODE in out else frames.episode_index[index]
     step = frames.frame_index[index]
     rows = required_rows(out, episode=episode + int(req.first_episode), step=step)
