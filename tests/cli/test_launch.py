@@ -238,3 +238,41 @@ def test_only_a_collectives_failure_is_called_a_lost_peer():
     assert peer_lost(dist.DistError("anything"))
     assert peer_lost(RuntimeError("[gloo] Connection closed by peer [127.0.0.1]:29500"))
     assert not peer_lost(RuntimeError("The expanded size of the tensor (59) must match"))
+
+
+@pytest.mark.slow  # three launches of 3 processes on 2 cores: run with -m slow
+def test_a_killed_two_rank_dagger_run_resumes_as_if_never_stopped(tmp_path):
+    """A hostile review: the resumed rank 1 started afresh while rank 0 continued its
+    checkpoint, and a wrong learner was published before the run failed."""
+    flags = ["dagger", "--env", "CartPole-v1", "--demos", "1", "--rounds", "3",
+             "--episodes-per-round", "1", "--steps", "2000", "--max-episode-steps", "20",
+             "--eval-episodes", "1", "--no-progress", "--batch-size", "16", "--nproc", "2"]  # fmt: skip
+    whole = imitrl(*flags, "--out", str(tmp_path / "whole"))
+    assert whole.returncode == 0, whole.stderr
+    out = tmp_path / "killed"
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    proc = _child.Popen([sys.executable, "-m", "imitrl", *flags, "--out", str(out)],
+                        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)  # fmt: skip
+    state = out.parent / f".{out.name}.imitrl-run" / "run" / "state.json"
+    try:
+        rank = _wait_for_rank(proc.pid, 1, deadline=300, settle=0)
+        end = time.monotonic() + 300
+        while time.monotonic() < end:
+            try:
+                if json.loads(state.read_text())["next_round"] >= 1:
+                    break
+            except (OSError, ValueError, KeyError):
+                pass
+            time.sleep(0.05)
+        os.kill(rank, signal.SIGKILL)
+        proc.wait(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert not out.exists() and state.exists()
+    more = imitrl(*flags, "--out", str(out), "--resume")
+    assert more.returncode == 0, more.stderr
+    got, want = _results(out), _results(tmp_path / "whole")
+    assert [r["final_loss"] for r in got["rounds"]] == pytest.approx(
+        [r["final_loss"] for r in want["rounds"]], rel=1e-5
+    )
