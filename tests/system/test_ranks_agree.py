@@ -19,8 +19,8 @@ def _rank(rank: int, world: int, init: str, folder: str) -> None:
     import torch.distributed as dist
 
     from imitrl.algorithms.dagger import _same_round_on_every_rank
-    from imitrl.jobs.bc import _digest, run_folder
     from imitrl.jobs.configs import DAggerJob
+    from imitrl.jobs.ranks import rows_digest, run_folder
     from imitrl.system.ranks import check_same
 
     torch.set_num_threads(1)
@@ -40,9 +40,9 @@ def _rank(rank: int, world: int, init: str, folder: str) -> None:
         from tensordict import TensorDict
 
         rows = TensorDict({"observation": torch.arange(6.0).reshape(3, 2)}, [3])
-        said["digest_same"] = _digest(rows) == _digest(rows.clone())
+        said["digest_same"] = rows_digest(rows) == rows_digest(rows.clone())
         rows["observation"][2, 1] = 7.0
-        said["digest_moves"] = _digest(rows) != _digest(rows.clone().zero_())
+        said["digest_moves"] = rows_digest(rows) != rows_digest(rows.clone().zero_())
         # --resume: every rank starts from the checkpoint rank 0 continues (its staging
         # folder's, as a killed run left it), not from --out's
         config = replace(DAggerJob(), out=Path(folder) / "out", resume=True)

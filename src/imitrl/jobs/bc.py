@@ -19,18 +19,12 @@ are shared with ``imitrl dagger``.
 
 from __future__ import annotations
 
-import contextlib
-import hashlib
 import math
-import shutil
-import tempfile
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import TypeVar
 
-import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase
@@ -41,11 +35,11 @@ from imitrl.algorithms import BCConfig, fit_bc
 from imitrl.algorithms.expert_plan import with_plans
 from imitrl.data import DemonstrationBuffer
 from imitrl.envs import make_env
-from imitrl.fs.run_folder import claimed
 from imitrl.jobs.checkpoint import save_checkpoint, save_run
 from imitrl.jobs.configs import BCJob, GAILJob
 from imitrl.jobs.curves import make_logger, plot_curves, scalars_dir
 from imitrl.jobs.evaluate import evaluate_returns, format_return
+from imitrl.jobs.ranks import evaluating, lead, rows_digest, run_folder
 from imitrl.jobs.resolve import (
     check_expert_fits,
     choose_learner,
@@ -60,7 +54,7 @@ from imitrl.learners import Learner, TaskSpec, registry
 from imitrl.policies import as_actor
 from imitrl.policies.random_actions import RandomActions
 from imitrl.runtime import rollout_episodes
-from imitrl.system.ranks import barrier, check_same, from_lead, rank_and_world
+from imitrl.system.ranks import check_same
 
 __all__ = [
     "BCJob",
@@ -74,14 +68,11 @@ __all__ = [
     "evaluate_learner",
     "evaluate_policy",
     "evaluate_random",
-    "evaluating",
     "finish",
-    "lead",
     "log_evaluation",
     "prepare",
     "report",
     "run_bc",
-    "run_folder",
 ]
 
 DETERMINISTIC = ExplorationType.DETERMINISTIC
@@ -220,26 +211,12 @@ def demonstrations(
         rows = rollout_episodes(
             setup.playing(), setup.expert, config.demos
         )  # greedy, whole episodes
-    check_same(_digest(rows), "demonstrations (rows, sha256)")  # --nproc: each rank reads its own
+    check_same(
+        rows_digest(rows), "demonstrations (rows, sha256)"
+    )  # --nproc: each rank reads its own
     buffer = DemonstrationBuffer(action_spec=setup.task.env_specs()[1])
     buffer.extend(rows if plan_horizon is None else with_plans(rows, plan_horizon))
     return buffer
-
-
-def _digest(rows: TensorDictBase) -> tuple[int, str]:
-    """``(rows, sha256 of every entry's name, dtype, shape and bytes)``: what tells two
-    ranks' demonstrations apart (a dataset another machine holds otherwise)."""
-    if rank_and_world()[1] == 1:
-        return len(rows), ""  # nothing to compare with
-    digest = hashlib.sha256()
-    for key, value in sorted(rows.items(include_nested=True, leaves_only=True), key=str):
-        if not isinstance(value, torch.Tensor):  # a string entry (a task's text)
-            digest.update(f"{key}{value!r}".encode())
-            continue
-        tensor = value.detach().cpu().contiguous()
-        digest.update(f"{key}{tensor.dtype}{tuple(tensor.shape)}".encode())
-        digest.update(tensor.reshape(-1).view(torch.uint8).numpy().tobytes())
-    return len(rows), digest.hexdigest()[:16]
 
 
 def bc_config(config: BCJob, setup: Setup) -> BCConfig:
@@ -333,53 +310,6 @@ def run_bc(config: BCJob) -> dict:
     config = lead(config)  # as this rank runs it
     with run_folder(config) as folder:
         return _run_bc(config, folder)
-
-
-JobT = TypeVar("JobT", bound=BCJob | GAILJob)
-RUN_CHECKPOINT = "run"
-"""the folder of ``--out`` where ``imitrl dagger`` keeps its resumable checkpoint"""
-
-
-@contextlib.contextmanager
-def run_folder(config: BCJob | GAILJob, *, resume: bool = False) -> Iterator[Path]:
-    """Where the run writes: ``--out`` claimed (:func:`imitrl.fs.run_folder.claimed`'s
-    rule); on a data-parallel rank other than 0 (``--nproc``) a scratch folder that
-    nothing keeps: rank 0 alone writes ``--out`` (``resume``: the scratch starts with a
-    copy of the DAgger checkpoint rank 0 continues, :data:`RUN_CHECKPOINT` of its staging
-    folder, which rank 0 names to the others: every rank resumes the same round)."""
-    if rank_and_world()[0] == 0:
-        with claimed(config.out, overwrite=config.overwrite, resume=resume) as folder:
-            if resume:  # the checkpoint rank 0 continues: its staged copy, or the unfinished run's
-                own = folder / RUN_CHECKPOINT
-                from_lead(str(own) if own.is_dir() else None)
-                barrier()  # the other ranks have copied it before anything writes it
-            yield folder
-    else:
-        with tempfile.TemporaryDirectory(prefix="imitrl-rank-") as scratch:
-            if resume:
-                saved = from_lead(None)  # where rank 0 resumes (a file system they share)
-                if saved is not None and not Path(saved).is_dir():
-                    raise ValueError(
-                        f"rank {rank_and_world()[0]} cannot read rank 0's checkpoint {saved}: "
-                        "--resume on ranks of several machines needs --out on a file system "
-                        "they share"
-                    )
-                if saved is not None:
-                    shutil.copytree(saved, Path(scratch) / RUN_CHECKPOINT, symlinks=True)
-                barrier()
-            yield Path(scratch)
-
-
-def lead(config: JobT) -> JobT:
-    """``config`` as this rank runs it: rank 0 as given; another rank (``--nproc``)
-    without progress bars (one per run) and without evaluations (:func:`evaluating`)."""
-    return config if rank_and_world()[0] == 0 else replace(config, progress=False)
-
-
-def evaluating() -> bool:
-    """Whether this process evaluates and reports: rank 0 (every rank plays the same
-    episodes and fits its share; the evaluations are rank 0's alone)."""
-    return rank_and_world()[0] == 0
 
 
 def _run_bc(config: BCJob, folder: Path) -> dict:

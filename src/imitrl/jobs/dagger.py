@@ -41,21 +41,18 @@ from imitrl.algorithms.ray_source import RaySource
 from imitrl.data.provenance import NO_BETA
 from imitrl.envs import make_env
 from imitrl.jobs.bc import (
-    RUN_CHECKPOINT,
     Setup,
     bc_config,
     demonstrations,
     evaluate_expert,
     evaluate_learner,
-    evaluating,
     finish,
-    lead,
     log_evaluation,
     prepare,
-    run_folder,
 )
 from imitrl.jobs.configs import DAggerJob
 from imitrl.jobs.evaluate import format_return
+from imitrl.jobs.ranks import RUN_CHECKPOINT, evaluating, lead, run_folder
 from imitrl.jobs.resolve import no_expert_message
 from imitrl.learners import Learner
 from imitrl.policies.gate import ExpertGate

@@ -49,16 +49,14 @@ from imitrl.jobs.bc import (
     demonstrations,
     evaluate_expert,
     evaluate_learner,
-    evaluating,
     finish,
-    lead,
     log_evaluation,
     prepare,
-    run_folder,
 )
 from imitrl.jobs.checkpoint import save_checkpoint
 from imitrl.jobs.configs import AIRLJob, GAILJob
 from imitrl.jobs.evaluate import format_return
+from imitrl.jobs.ranks import evaluating, lead, run_folder
 from imitrl.learners import ActorCritic
 from imitrl.system.ranks import rank_and_world
 
