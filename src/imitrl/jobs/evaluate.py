@@ -287,8 +287,8 @@ def delayed(policy: TensorDictModuleBase, config: EvalJob, spec) -> TensorDictMo
     if not isinstance(policy, ChunkedPolicy):
         raise ValueError(
             f"--inference-delay and --chunk-mode execute action chunks; {config.checkpoint}'s "
-            f"learner acts one action per query ({type(policy).__name__}): train a chunked "
-            "loss (flow_chunk, mse_chunk, act, ...)"
+            "learner acts one action per query (its loss predicts no chunk): train a "
+            "chunked loss (flow_chunk, mse_chunk, act, ...)"
         )
     mode = config.chunk_mode or ("ensemble" if policy.execution.ensemble is not None else "naive")
     latency = Latency(config.inference_delay, mode)
