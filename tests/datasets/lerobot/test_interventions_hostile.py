@@ -39,7 +39,8 @@ def test_an_intervention_flag_of_two_values_a_frame_is_one_line(tmp_path):
             load_lerobot(root)
 
 
-def test_imitrl_episode_ids_that_do_not_follow_lerobots_episodes_give_way(tmp_path):
+@pytest.mark.parametrize("stream", [False, True])
+def test_imitrl_episode_ids_that_do_not_follow_lerobots_episodes_give_way(tmp_path, stream):
     rows = dagger_rows(rounds=(0, 1, 2), length=LENGTH)
     root = _foreign(rows, tmp_path)
     table = pq.read_table(root / DATA)
@@ -47,7 +48,14 @@ def test_imitrl_episode_ids_that_do_not_follow_lerobots_episodes_give_way(tmp_pa
     merged = [0] * (2 * LENGTH) + [1] * LENGTH  # two datasets' ids, as a merge leaves them
     _replace_column(root, "imitrl.episode", pa.array(merged, pa.int64()))
     with pytest.warns(UserWarning, match="do not follow LeRobot's episodes one to one"):
-        got = load_lerobot(root).rows
+        if stream:
+            from imitrl.data import DemonstrationBuffer
+
+            buffer = DemonstrationBuffer()
+            load_lerobot(root, into=buffer)
+            got = buffer.data
+        else:
+            got = load_lerobot(root).rows
     assert torch.equal(got[keys.EPISODE].unique(), torch.arange(3))  # LeRobot's three
     assert torch.equal(got[keys.STEP], torch.arange(LENGTH).repeat(3))
 

@@ -43,7 +43,12 @@ from imitrl.datasets._common import NestedKey, conform_to_env, key_name, require
 from imitrl.datasets._streaming import check_pieces, extend_pieces
 from imitrl.datasets.lerobot._checks import check_frames
 from imitrl.datasets.lerobot._episodes import episode_dicts
-from imitrl.datasets.lerobot._interventions import RoundOrder, check_dagger_columns, feature_values
+from imitrl.datasets.lerobot._interventions import (
+    RoundOrder,
+    check_dagger_columns,
+    feature_values,
+    own_episodes,
+)
 from imitrl.datasets.lerobot._layout import data_file
 from imitrl.datasets.lerobot._video import decode_videos
 from imitrl.fs.reading import OpenedFolder
@@ -337,6 +342,7 @@ def piece_rows(
         times = frame_index.double() / src.info["fps"] if times is None else times.double()
         episodes = episode_dicts(src.episodes.slice(first, end - first))
         out.update(decode_videos(src.folder, src.info, src.major, episodes, s.cameras, times, None))
+    own_episodes(out, piece.book["episode_index"], piece.file_of)  # within the piece
     episode = out.pop(keys.EPISODE) if keys.EPISODE in out else piece.book["episode_index"]
     rows = required_rows(out, episode=episode + int(s.first_episode), step=frame_index)
     if s.env is not None:
