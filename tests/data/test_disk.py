@@ -5,6 +5,7 @@ from __future__ import annotations
 import subprocess
 import sys
 import textwrap
+from dataclasses import replace
 
 import pytest
 import torch
@@ -138,11 +139,19 @@ def test_camera_only_rows_extend_a_buffer(tmp_path):
 def test_full_batch_is_refused_on_disk_and_past_the_row_limit(tmp_path):
     disk, mem = fill_both(tmp_path, [100])
     learner = build("for_env", TaskSpec.from_specs(4, 2), hidden=(8,))
+    whole = BCConfig(num_steps=1, batch_size=None)  # a full batch: every row each step
     with pytest.raises(ValueError, match=r"pass BCConfig\(batch_size=...\)"):
-        fit_bc(learner, disk, BCConfig(num_steps=1))
+        fit_bc(learner, disk, whole)
     with pytest.raises(ValueError, match="more than full_batch_max_rows = 50"):
-        fit_bc(learner, mem, BCConfig(num_steps=1, full_batch_max_rows=50))
-    fit_bc(learner, mem, BCConfig(num_steps=1, full_batch_max_rows=100))  # at the limit
+        fit_bc(learner, mem, replace(whole, full_batch_max_rows=50))
+    fit_bc(learner, mem, replace(whole, full_batch_max_rows=100))  # at the limit
+    # a batch_size at or above the rows bounds a step already: every row, as in memory (a
+    # hostile review: refused, asking for the batch_size it was given)
+    big = BCConfig(num_steps=3, batch_size=1000, seed=0)
+    fits = [build("for_env", TaskSpec.from_specs(4, 2), hidden=(8,), seed=0) for _ in "ab"]
+    on_disk, in_memory = fit_bc(fits[0], disk, big), fit_bc(fits[1], mem, big)
+    assert torch.equal(on_disk.losses, in_memory.losses)
+    fit_bc(learner, mem, BCConfig(num_steps=1, batch_size=100, full_batch_max_rows=50))
 
 
 def test_disk_fit_matches_in_memory_checks_and_normaliser(tmp_path):

@@ -23,3 +23,21 @@ def test_a_round_past_the_most_rounds_is_refused_and_nothing_is_added(tmp_path, 
     rows.set(keys.ROUND, torch.full_like(rows.get(keys.ROUND), MAX_ROUNDS))
     buffer.extend(rows)
     assert max(buffer.rounds()) == MAX_ROUNDS
+
+
+@pytest.mark.parametrize("disk", [False, True])
+def test_an_episode_id_leaving_no_id_after_it_is_refused_and_sample_0_is_one_line(tmp_path, disk):
+    """A hostile review: id 2**63 - 1 was taken, and a disk buffer holding it never resumed
+    (its next id past what the layout records); ``sample(0)`` divided by zero in memory."""
+    from tests.data.test_disk import cartpole_rows
+
+    buf = DemonstrationBuffer(path=tmp_path / "b" if disk else None)
+    with pytest.raises(ValueError, match="leaves no id after it"):
+        buf.extend(cartpole_rows(3, first_episode=2**63 - 1))
+    assert len(buf) == 0
+    buf.extend(cartpole_rows(3, first_episode=2**63 - 2))  # the largest id there is
+    with pytest.raises(ValueError, match="sample needs a positive batch_size, got 0"):
+        buf.sample(0)
+    if disk:
+        del buf
+        assert len(DemonstrationBuffer(path=tmp_path / "b", resume=True)) == 3

@@ -430,8 +430,8 @@ def _feed(
             rows = _rows(data, list(learner.loss.in_keys))  # distinct pairs may be few
         if dp is None:
             rows, weights = _dedup(learner, rows, config)
-        if weights is None:
-            _check_full_batch(n, on_disk, config)
+        if weights is None and config.batch_size is None:  # a batch_size at or above n
+            _check_full_batch(n, on_disk, config)  # already bounds what a step holds
         total = rows.shape[0]
     first, count = (0, total) if dp is None else share(total, dp.rank, dp.world)
     if batches is not None:

@@ -74,9 +74,15 @@ from imitrl.data.checkpoint import (
     state_json,
     write_checkpoint,
 )
-from imitrl.data.disk import DiskLayout, GrowingMemmapStorage, release_pages
+from imitrl.data.disk import DiskLayout, GrowingMemmapStorage, drop_uncommitted, release_pages
 from imitrl.data.permutation import LazyPermutation
-from imitrl.data.validation import OBSERVATION_KEYS, REQUIRED_KEYS, check_rows, episode_runs
+from imitrl.data.validation import (
+    OBSERVATION_KEYS,
+    REQUIRED_KEYS,
+    check_rows,
+    check_stored_episodes,
+    episode_runs,
+)
 from imitrl.fs.reading import parse_json
 
 __all__ = ["OBSERVATION_KEYS", "REQUIRED_KEYS", "DemonstrationBuffer", "GrowingTensorStorage"]
@@ -175,9 +181,13 @@ class DemonstrationBuffer:
         self.num_states = stored["num_states"]
         if stored["columns"]:
             self._storage.map(stored["capacity"], stored["columns"], stored["rows"])
+        else:  # a first write killed before its commit left files that hold no row
+            drop_uncommitted(self._layout.scratch_dir)
         set_writer_cursor(self._rb, stored["rows"])
         self.schema = stored["schema"]
         self.next_episode, self._num_episodes = stored["next_episode"], stored["num_episodes"]
+        if stored["rows"]:  # resume trusts no count the directory holds
+            check_stored_episodes(self.data.get(keys.EPISODE), stored, where=self._layout.path)
 
     def _commit(self) -> None:
         """Record a disk buffer's rows and state (after the rows are written)."""
@@ -313,11 +323,11 @@ class DemonstrationBuffer:
         batch of an epoch may be smaller)."""
         if len(self) == 0:
             raise ValueError("cannot sample from an empty demonstration buffer")
+        batch_size = self._batch_size if batch_size is None else batch_size
+        if batch_size is None or batch_size < 1:  # both kinds of buffer alike
+            raise ValueError(f"sample needs a positive batch_size, got {batch_size}")
         if self._layout is None:
             return self._rb.sample(batch_size)
-        batch_size = self._batch_size if batch_size is None else batch_size
-        if batch_size is None or batch_size < 1:
-            raise ValueError(f"sample needs a positive batch_size, got {batch_size}")
         perm = self._permutation
         if perm is None or perm.n != len(self) or perm.remaining == 0:
             perm = self._permutation = LazyPermutation(len(self), self._generator)

@@ -53,7 +53,14 @@ from torchrl.data.replay_buffers import LazyMemmapStorage
 
 from imitrl.compat import replace_storage_contents
 from imitrl.fs.contained import plain_name
-from imitrl.fs.files import PlantedLinkError, check_regular, make_folder, open_own, replace_file
+from imitrl.fs.files import (
+    PlantedLinkError,
+    check_regular,
+    make_folder,
+    open_own,
+    remove_tree,
+    replace_file,
+)
 from imitrl.fs.reading import OpenedFolder, fd_path, parse_json
 from imitrl.fs.write_errors import DiskFullError, is_disk_full, reporting_disk_full
 
@@ -63,6 +70,7 @@ __all__ = [
     "DiskLayout",
     "GrowingMemmapStorage",
     "check_columns",
+    "drop_uncommitted",
     "open_column",
 ]
 
@@ -358,6 +366,14 @@ def check_columns(columns: Any, *, where: str) -> list[dict[str, Any]]:
         keys.add(tuple(key))
         files.add(file)
     return columns
+
+
+def drop_uncommitted(scratch_dir: Path) -> None:
+    """Remove the column files of a buffer whose layout records none: a first write
+    killed before its commit created them (TorchRL creates them at the first write, and
+    refuses existing ones), so they hold no committed row."""
+    if os.path.lexists(scratch_dir):
+        remove_tree(scratch_dir)
 
 
 class DiskLayout:

@@ -14,8 +14,18 @@ from torchrl.data import Bounded, Categorical, TensorSpec
 from imitrl import keys
 from imitrl.limits import MAX_ROUNDS
 
-__all__ = ["OBSERVATION_KEYS", "REQUIRED_KEYS", "Schema", "check_rows", "episode_runs"]
+__all__ = [
+    "OBSERVATION_KEYS",
+    "REQUIRED_KEYS",
+    "Schema",
+    "check_rows",
+    "check_stored_episodes",
+    "episode_runs",
+]
 
+MAX_EPISODE_ID = 2**63 - 1
+"""ids stay below it: the next id after the largest is a count a disk buffer's layout
+records (``imitrl.data.disk.MAX_COUNT``)"""
 REQUIRED_KEYS = (
     keys.EXPERT_ACTION,
     keys.ACTION,
@@ -138,6 +148,16 @@ def _check_episodes(episodes: torch.Tensor, next_episode: int) -> None:
             f"episode id {int(episodes.min())} is already used in this buffer; "
             f"new episodes must start at buffer.next_episode = {next_episode}"
         )
+    _check_largest(int(episodes.max()))
+
+
+def _check_largest(largest: int) -> None:
+    """The buffer's next id (``largest + 1``) must stay a count its layout can record."""
+    if largest >= MAX_EPISODE_ID:
+        raise ValueError(
+            f"episode id {largest} leaves no id after it (ids must be below {MAX_EPISODE_ID}): "
+            "number episodes from 0"
+        )
 
 
 def episode_runs(episodes: torch.Tensor, chunk: int, next_episode: int) -> tuple[int, int]:
@@ -165,7 +185,24 @@ def episode_runs(episodes: torch.Tensor, chunk: int, next_episode: int) -> tuple
         raise ValueError(
             f"each episode's rows must be contiguous: {keys.EPISODE!r} ids reappear after another episode"
         )
+    _check_largest(int(ids.max()))
     return ids.numel(), int(ids.max())
+
+
+def check_stored_episodes(episodes: torch.Tensor, stored: dict, *, where: object) -> None:
+    """ValueError unless a disk buffer's stored episode column ``[N]`` is what its layout
+    ``stored`` records: one run of rows per episode, ``num_episodes`` of them, every id
+    below ``next_episode`` (a layout edited to claim more rows reads zeros past them)."""
+    try:
+        count, largest = episode_runs(episodes, 1 << 20, 0)
+    except ValueError as err:
+        raise ValueError(f"{where}: the stored rows are not a buffer's ({err})") from None
+    if count != stored["num_episodes"] or largest >= stored["next_episode"]:
+        raise ValueError(
+            f"{where}: its layout records {stored['num_episodes']} episodes with ids below "
+            f"{stored['next_episode']}, its {episodes.shape[0]} stored rows hold {count} up "
+            f"to id {largest}: the layout or the rows were changed"
+        )
 
 
 def _finite(value: torch.Tensor) -> bool:

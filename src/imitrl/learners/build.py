@@ -23,6 +23,8 @@ U-Net); a setting the entry does not have is refused, naming the ones it has.
 
 from __future__ import annotations
 
+import math
+import numbers
 import warnings
 from collections.abc import Mapping
 from dataclasses import fields, is_dataclass, replace
@@ -32,13 +34,12 @@ from torchrl.envs import EnvBase
 
 from imitrl.learners.defaults import default_loss
 from imitrl.learners.learner import Learner
-from imitrl.learners.registry import LearnerConfig, get, make
+from imitrl.learners.registry import DEFAULT, LearnerConfig, get, make
 from imitrl.learners.task import IgnoredObservationWarning, TaskSpec
+from imitrl.limits import MAX_SEED, check_hidden
 
 __all__ = ["DEFAULT", "FOR_ENV", "build", "resolve"]
 
-DEFAULT = "default"
-"""the name that resolves to an entry for the task (:func:`resolve`)"""
 FOR_ENV = "for_env"
 """the entry that builds for any env: what ``default`` names where no other entry can"""
 
@@ -108,11 +109,30 @@ def build(
             )
         options = replace(base, **own)
     shared = {k: v for k, v in settings.items() if k in _SETTINGS}
+    _check_settings(shared)
     if "hidden" in shared and shared["hidden"] is not None:
         shared["hidden"] = tuple(int(h) for h in shared["hidden"])
     learner = make(name, task, LearnerConfig(**shared, options=options))
     warn_unread(task, learner, name)
     return learner
+
+
+def _check_settings(shared: dict) -> None:
+    """ValueError naming a shared setting of the wrong kind (a hostile review: ``"64"``
+    became widths 6 and 4, ``2.7`` a width of 2, ``lr=inf`` NaN losses, ``seed=1.5`` seed 1)."""
+    check_hidden(shared.get("hidden"), "hidden")
+    lr = shared.get("lr")
+    if lr is not None and (
+        isinstance(lr, bool) or not isinstance(lr, numbers.Real) or not math.isfinite(lr)
+    ):
+        raise ValueError(f"lr must be a positive finite number or None, got {lr!r}")
+    seed = shared.get("seed", 0)
+    if (
+        isinstance(seed, bool)
+        or not isinstance(seed, numbers.Integral)
+        or not 0 <= int(seed) <= MAX_SEED
+    ):
+        raise ValueError(f"seed must be an integer in [0, {MAX_SEED:_}], got {seed!r}")
 
 
 def warn_unread(task: TaskSpec, learner: Learner, name: str) -> None:

@@ -60,7 +60,12 @@ from imitrl.learners.defaults import HIDDEN, learning_rate
 from imitrl.learners.learner import Learner
 from imitrl.learners.task import ACTION_KINDS, TaskSpec
 
+DEFAULT = "default"
+"""the name that resolves to an entry for the task (:func:`imitrl.learners.build.resolve`),
+which no entry may take"""
+
 __all__ = [
+    "DEFAULT",
     "LearnerConfig",
     "LossEntry",
     "entries",
@@ -200,8 +205,10 @@ def register(
     unknown = set(requires) - _TASK_FIELDS
     if unknown:
         raise ValueError(f"requires names unknown TaskSpec fields {sorted(unknown)}")
-    if not name or not isinstance(name, str):
-        raise ValueError(f"a loss needs a non-empty string name, got {name!r}")
+    if not isinstance(name, str) or not name or any(c.isspace() for c in name):
+        raise ValueError(f"a loss needs a name without spaces, got {name!r}")
+    if name == DEFAULT:
+        raise ValueError(f"{DEFAULT!r} names the entry build chooses for a task: pick another")
     if horizon is not None and (int(horizon) != horizon or horizon < 1):
         raise ValueError(f"horizon must be a positive integer or None, got {horizon!r}")
     if batch_size is not None and (int(batch_size) != batch_size or batch_size < 1):

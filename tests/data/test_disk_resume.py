@@ -1,0 +1,48 @@
+"""A disk buffer resumes only what it committed (a hostile review: a kill between the first
+write and its commit left the folder unusable for good; a layout edited to claim more
+rows resumed zeros the buffer never wrote as rows)."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+
+from imitrl import keys
+from imitrl.data import DemonstrationBuffer
+from tests.data.test_disk import cartpole_rows
+
+
+def test_a_first_write_killed_before_its_commit_leaves_a_folder_that_resumes(tmp_path, monkeypatch):
+    path = tmp_path / "buf"
+    buf = DemonstrationBuffer(path=path, capacity=16)
+    monkeypatch.setattr(DemonstrationBuffer, "_commit", lambda self: (_ for _ in ()).throw(
+        KeyboardInterrupt()))  # fmt: skip
+    with pytest.raises(KeyboardInterrupt):  # the rows written, the layout not: a kill there
+        buf.extend(cartpole_rows(12))
+    monkeypatch.undo()
+    del buf
+    assert any((path / "storage").iterdir())  # the uncommitted column files
+    assert json.loads((path / "imitrl_buffer.json").read_text())["columns"] == []
+    again = DemonstrationBuffer(path=path, resume=True)
+    assert len(again) == 0
+    again.extend(cartpole_rows(5))  # was: "the file ... .memmap already exists", for good
+    assert len(again) == 5 and torch.equal(again.data[keys.EPISODE], cartpole_rows(5)[keys.EPISODE])
+
+
+@pytest.mark.parametrize(
+    "rows, said", [(16, "stored rows are not a buffer's"), (10, "records 1 episodes")]
+)
+def test_a_layout_claiming_other_rows_than_its_episodes_is_refused(tmp_path, rows, said):
+    path = tmp_path / "buf"
+    buf = DemonstrationBuffer(path=path, capacity=16)
+    buf.extend(cartpole_rows(10))  # episodes 0 (7 rows) and 1 (3 rows)
+    del buf
+    layout = json.loads((path / "imitrl_buffer.json").read_text())
+    layout["rows"] = rows  # 16: six rows of zeros (episode 0 again)
+    if rows == 10:  # the rows as written, one episode fewer recorded
+        layout["num_episodes"] = 1
+    (path / "imitrl_buffer.json").write_text(json.dumps(layout))
+    with pytest.raises(ValueError, match=said):
+        DemonstrationBuffer(path=path, resume=True)
