@@ -286,11 +286,18 @@ def test_bench_never_writes_the_committed_results_unless_told(tmp_path, monkeypa
     chosen = str(tmp_path / "results" / "bench" / "echo_args")
     assert f"['--seeds', '1', '--out', '{chosen}']" in captured.out
     assert "committed benchmarks/results/ are left alone" in captured.err
-    for given in (["--out", "mine"], ["--out=mine"], ["--quick"], ["--render", "r.json"]):
+    for given in (["--out", "mine"], ["--out=mine"], ["--quick"]):
         assert main(["bench", "echo_args", *given]) == 0
         assert f"{given}" in capfd.readouterr().out  # passed on untouched
+    # a render writes the README block too (a hostile review: it refreshed the committed one)
+    assert main(["bench", "echo_args", "--render", "r.json"]) == 0
+    assert f"['--render', 'r.json', '--out', '{chosen}']" in capfd.readouterr().out
     assert main(["bench", "echo_args", "--seeds", "1", bench.WRITE_COMMITTED]) == 0
     assert "['--seeds', '1']" in capfd.readouterr().out  # the maintainer's refresh
+    # a script killed by a signal: the shell's 128 + N, said (was 241 and nothing)
+    (scripts / "killed.py").write_text("import os, signal\nos.kill(os.getpid(), signal.SIGTERM)\n")
+    assert main(["bench", "killed", "--quick"]) == 143
+    assert "the script was killed by SIGTERM" in capfd.readouterr().err
 
 
 # -------------------------------------------------------------------- bad flags

@@ -66,3 +66,12 @@ def test_plain_gym_is_what_make_env_built_unchanged_and_nothing_else():
     inside = plain_gym(doubled)
     assert inside is not None and inside.base is doubled.base_env
     assert plain_gym(doubled.append_transform(StepCounter())) is None
+
+
+def test_a_metaworld_ids_task_cannot_be_swapped_by_an_argument():
+    """A hostile review: task=push-v3 on metaworld/reach-v3 built the push env, and reach's
+    expert labelled it."""
+    pytest.importorskip("metaworld")
+    with pytest.raises(ValueError, match=r"metaworld/reach-v3 names its task; give --env "
+                                         r"metaworld/push-v3"):  # fmt: skip
+        make_env("metaworld/reach-v3", seed=0, env_kwargs={"task": "push-v3"})

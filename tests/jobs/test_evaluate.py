@@ -46,3 +46,34 @@ def test_eval_of_a_diffusion_policy_run_reproduces_its_evaluation(tmp_path):
     assert saved["exploration"] == "random" and saved["return_ci"][0] < saved["return_ci"][1]
     assert run_eval(EvalJob(checkpoint=out, progress=False))["evaluation"] == saved
     assert run_eval(EvalJob(checkpoint=out, progress=False))["evaluation"] == saved  # again
+
+
+def test_eval_json_records_what_was_evaluated(tmp_path):
+    """A hostile review: eval.json named neither the checkpoint, nor the time limit, nor the
+    env's arguments, so two evaluations of other settings could not be told apart."""
+    import json
+
+    from imitrl.jobs.bc import run_bc
+    from imitrl.jobs.configs import BCJob
+
+    out = tmp_path / "run"
+    run_bc(BCJob(env="CartPole-v1", demos=1, num_steps=2, batch_size=8, eval_episodes=1,
+                 max_episode_steps=30, progress=False, out=out))  # fmt: skip
+    run_eval(EvalJob(checkpoint=out, max_episode_steps=7, eval_episodes=1, progress=False,
+                     env_kwargs=(("sutton_barto_reward", True),), out=tmp_path / "e"))  # fmt: skip
+    said = json.loads((tmp_path / "e" / "eval.json").read_text())
+    assert said["checkpoint"] == str(out) and said["max_episode_steps"] == 7
+    assert said["env_kwargs"] == {"sutton_barto_reward": True}
+    expert = run_eval(EvalJob(expert="cartpole", env="CartPole-v1", eval_episodes=1,
+                              progress=False))  # fmt: skip
+    assert expert["checkpoint"] is None and expert["max_episode_steps"] == 500
+
+
+def test_the_metaworld_expert_evaluates_under_lerobots_observation_types():
+    """A hostile review: its state was looked up under 'observation', which LeRobot's
+    obs types give the 4-d hand alone (bc and dagger passed the env; eval did not)."""
+    pytest.importorskip("metaworld")
+    got = run_eval(EvalJob(expert="metaworld", env="metaworld/reach-v3", eval_episodes=1,
+                           max_episode_steps=60, progress=False,
+                           env_kwargs=(("obs_type", "environment_state_agent_pos"),)))  # fmt: skip
+    assert got["evaluation"]["success_rate"] == 1.0

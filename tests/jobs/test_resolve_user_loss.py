@@ -41,11 +41,20 @@ def test_a_registered_loss_trains_from_the_cli_and_eval_needs_its_module_named(m
     cmd = [sys.executable, "-m", "imitrl", "eval", "--checkpoint", str(out), "--no-progress"]
     refused = _child.run(cmd, capture_output=True, text=True, env=env, timeout=300)
     assert refused.returncode == 2, refused.stderr
-    assert f"name it yourself: imitrl eval --loss {LOSS}" in refused.stderr
+    assert f"name it yourself: --loss {LOSS} (imitrl eval, imitrl compare)" in refused.stderr
     named = _child.run([*cmd, "--loss", LOSS], capture_output=True, text=True, env=env,
                            timeout=300)  # fmt: skip
     assert named.returncode == 0, named.stderr
     assert f"return {learner['mean_return']:.2f}" in named.stdout
+    # compare takes the module as eval does (a hostile review: it had no way to name it)
+    cmp = [sys.executable, "-m", "imitrl", "compare", "--a", str(out), "--b", "random",
+           "--episodes", "2"]  # fmt: skip
+    refused = _child.run(cmp, capture_output=True, text=True, env=env, timeout=300)
+    assert refused.returncode == 2 and "imitrl never imports code" in refused.stderr
+    compared = _child.run([*cmp, "--loss", LOSS], capture_output=True, text=True, env=env,
+                          timeout=300)  # fmt: skip
+    assert compared.returncode == 0, compared.stderr
+    assert "paired episodes" in compared.stdout
 
 
 @pytest.mark.parametrize(
@@ -53,6 +62,8 @@ def test_a_registered_loss_trains_from_the_cli_and_eval_needs_its_module_named(m
     [
         ("no_such_module_x:l1_l2", "cannot import 'no_such_module_x'"),
         ("mypkg.losses:nope", "importing 'mypkg.losses' registered no loss 'nope'"),
+        # a hostile review: the built-in mse trained, recorded as the module's
+        ("mypkg.losses:mse", "registered no loss 'mse' ('mse' is imitrl's own loss: --loss mse)"),
         (":l1_l2", "expected a registered name or module:name"),
     ],
 )

@@ -54,6 +54,7 @@ import contextlib
 import importlib
 import logging
 import os
+import signal
 import sys
 import textwrap
 from collections.abc import Callable, Collection, Iterator, Sequence
@@ -385,7 +386,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         for line in command.report(results):
             print(line)
     if args.command == "bench":
-        return int(results["returncode"])
+        code = int(results["returncode"])
+        if code < 0:  # the script was killed: the shell's convention, said
+            name = signal.Signals(-code).name if -code in signal.valid_signals() else -code
+            print(f"imitrl bench: the script was killed by {name}", file=sys.stderr)
+            return 128 - code
+        return code
     return 0
 
 

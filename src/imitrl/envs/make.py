@@ -97,7 +97,14 @@ _JAX_NAMESPACES = ("tabular", "phys2d")
 def _check_kwarg_kinds(env_id: str, env_kwargs: dict) -> None:
     """ValueError for an env argument of another kind than its constructor's default (a
     number given as text: ``--env-kwarg g=abc`` failed inside Pendulum's first step).
-    Arguments whose default is None, or constructors that cannot be read, pass as given."""
+    Arguments whose default is None, or constructors that cannot be read, pass as given.
+    A Meta-World id's task is its own (``task=`` would swap the env behind the id, and
+    the expert the id names would label another task's episodes)."""
+    if env_id.startswith(METAWORLD_PREFIX) and "task" in env_kwargs:
+        raise ValueError(
+            f"--env-kwarg task={env_kwargs['task']!r}: {env_id} names its task; give "
+            f"--env {METAWORLD_PREFIX}{env_kwargs['task']} instead"
+        )
     try:
         entry = gymnasium.spec(env_id).entry_point
         creator = load_env_creator(entry) if isinstance(entry, str) else entry

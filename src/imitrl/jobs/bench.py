@@ -7,8 +7,8 @@ A few scripts have a short name (:data:`ALIASES`): ``imitrl bench losses --task
 name=...,env=...,expert=module:function`` runs ``loss_functions.py`` on a task from
 outside.
 
-``imitrl bench`` never writes inside the project unless told to: run in full without
-``--out`` (or ``--quick``, ``--render``, ``--help``), a script would refresh the committed
+``imitrl bench`` never writes inside the project unless told to: run in full, or with
+``--render``, without ``--out`` (or ``--quick``, ``--help``), a script would refresh the committed
 ``benchmarks/results/`` and ``benchmarks/README.md``; the command gives it ``--out
 results/bench/NAME`` under the current folder instead, and says so on stderr.
 ``--write-committed`` (taken out before the script sees its arguments) is the
@@ -44,8 +44,9 @@ ALIASES: dict[str, str] = {"losses": "loss_functions"}
 
 WRITE_COMMITTED = "--write-committed"
 """the flag that lets a full run refresh the committed results (module docstring)"""
-_CHOSEN = ("--out", "--quick", "--render", "-h", "--help")
-"""flags that already say where a run writes (or that it writes nothing)"""
+_CHOSEN = ("--out", "--quick", "-h", "--help")
+"""flags that already say where a run writes (or that it writes nothing); ``--render``
+is not one: a script renders into the committed README unless given ``--out``"""
 
 
 def script_args(name: str, args: tuple[str, ...], cwd: Path) -> tuple[list[str], Path | None]:

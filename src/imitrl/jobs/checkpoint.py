@@ -374,8 +374,8 @@ def saved_loss(checkpoint: Path, loss: str) -> str:
         raise ValueError(
             f"{Path(checkpoint) / CONFIG_FILE} was trained with loss {loss!r}, which "
             f"importing the module {module!r} registers; imitrl never imports code a "
-            f"checkpoint names. If you trust that module, name it yourself: imitrl eval "
-            f"--loss {loss} (or import {module} before load_learner)"
+            f"checkpoint names. If you trust that module, name it yourself: --loss {loss} "
+            f"(imitrl eval, imitrl compare), or import {module} before load_learner"
         )
     return name
 

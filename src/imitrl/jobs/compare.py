@@ -60,6 +60,10 @@ class CompareJob:
         default=(), metadata={"repeat": "--env-kwarg"}
     )
     """a keyword argument of the env's constructor, name=value"""
+    loss: str | None = None
+    """a checkpoint side's loss when it is your own, module:name (importing module
+    registers it), as imitrl eval --loss: imitrl imports only the modules you name here;
+    none = registry losses"""
     out: Path | None = None
     """also write compare.json into this directory; none = print only"""
 
@@ -82,6 +86,8 @@ class CompareJob:
                 )
         if self.env is None and self.a in SIDES and self.b in SIDES:  # no checkpoint names one
             raise ValueError("--env names the env for expert or random")
+        if self.loss is not None and ":" not in self.loss:
+            raise ValueError(f"--loss {self.loss}: name your own loss, module:name")
         if self.out is not None and (Path(self.out) / "compare.json").exists():
             raise ValueError(f"--out {self.out} holds a compare.json: give another --out")
 
@@ -94,8 +100,9 @@ def run_compare(config: CompareJob) -> dict:
     env_id, steps, kwargs = _env_of(config)
     env = make_env(env_id, seed=config.seed, max_episode_steps=steps, env_kwargs=kwargs)
     try:
-        a = _side(config.a, "--a", env, env_id)
-        b = _side(config.b, "--b", env, env_id)
+        a = _side(config.a, "--a", env, env_id, config.loss)
+        b = _side(config.b, "--b", env, env_id, config.loss)
+        _check_loss_named(config)
         metric = None if config.metric == "auto" else config.metric
         bounds = config.return_range  # low, high (CompareJob's check)
         result = compare(
@@ -106,10 +113,12 @@ def run_compare(config: CompareJob) -> dict:
         )  # fmt: skip
     finally:
         env.close()
+    from imitrl.jobs.resolve import played_limit
+
     results = {
         "env": env_id,
         "seed": config.seed,
-        "max_episode_steps": _limit(env_id, steps),
+        "max_episode_steps": played_limit(env_id, steps),
         "comparison": result.as_dict(),
     }
     if config.out is not None:  # written whole, never through a link (imitrl.fs.files)
@@ -159,17 +168,18 @@ def _env_of(config: CompareJob) -> tuple[str, int | None, dict]:
     return env_id, steps, next(iter(each.values()), {})
 
 
-def _limit(env_id: str, steps: int | None) -> int | None:
-    """The time limit both sides played under (None: the env has none)."""
-    from imitrl.jobs.resolve import time_limit
+def _check_loss_named(config: CompareJob) -> None:
+    """``--loss`` must be the loss of a checkpoint side (it was imported for it)."""
+    from imitrl.jobs.checkpoint import read_config
 
-    try:
-        return time_limit(env_id, steps)
-    except ValueError:  # registered without one
-        return None
+    if config.loss is None:
+        return
+    saved = {read_config(Path(s))["loss"] for s in (config.a, config.b) if s not in SIDES}
+    if config.loss not in saved:
+        raise ValueError(f"--loss {config.loss}: neither checkpoint was trained with it")
 
 
-def _side(side: str, flag: str, env, env_id: str):
+def _side(side: str, flag: str, env, env_id: str, loss: str | None = None):
     """A :class:`~imitrl.evaluation.compare.PolicySpec` of ``side`` on ``env``."""
     from torchrl.envs.utils import ExplorationType
 
@@ -190,6 +200,10 @@ def _side(side: str, flag: str, env, env_id: str):
             RandomActions(env.action_spec_unbatched), ExplorationType.RANDOM, "random"
         )
     saved = read_checkpoint(Path(side))
+    if loss is not None and saved.config["loss"] == loss:  # a module the user named
+        from imitrl.jobs.resolve import registered_loss
+
+        registered_loss(loss)
     try:
         learner = build_learner(saved, env)
         learner.check_env(env)

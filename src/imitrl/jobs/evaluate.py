@@ -212,7 +212,7 @@ def run_eval(config: EvalJob) -> dict:
         read_checkpoint,
     )
     from imitrl.jobs.configs import RunFlags
-    from imitrl.jobs.resolve import make_expert
+    from imitrl.jobs.resolve import make_expert, played_limit
     from imitrl.policies import as_actor
 
     episodes, seed = config.eval_episodes, config.eval_seed
@@ -241,14 +241,13 @@ def run_eval(config: EvalJob) -> dict:
         # EvalJob.__post_init__: --expert when no --checkpoint, with --env
         assert config.expert is not None and config.env is not None
         env_id, steps, kwargs = config.env, config.max_episode_steps, dict(config.env_kwargs)
-        specs = None  # a callable expert learns the shape of one observation from the env
-        if config.expert_kind == "callable":
-            specs = make_env(env_id, seed=0, max_episode_steps=steps, env_kwargs=kwargs)
+        # the expert reads the env's specs, as bc's and dagger's do: a callable learns the
+        # shape of one observation, Meta-World's finds its state under LeRobot's obs types
+        specs = make_env(env_id, seed=0, max_episode_steps=steps, env_kwargs=kwargs)
         try:
             expert = make_expert(config.expert, config.expert_kind, env_id=env_id, env=specs)
         finally:
-            if specs is not None:
-                specs.close()
+            specs.close()
         policy, exploration = as_actor(expert), ExplorationType.DETERMINISTIC
         name = f"expert {config.expert}"
     ev = evaluate_returns(
@@ -262,7 +261,14 @@ def run_eval(config: EvalJob) -> dict:
         env_kwargs=kwargs,
         progress=config.progress,
     )
-    results = {"policy": name, "env": env_id, "evaluation": ev}
+    results = {
+        "policy": name,
+        "checkpoint": None if config.checkpoint is None else str(config.checkpoint),
+        "env": env_id,
+        "env_kwargs": kwargs,
+        "max_episode_steps": played_limit(env_id, steps),
+        "evaluation": ev,
+    }
     if config.inference_delay or config.chunk_mode:
         results["latency"] = {"inference_delay": config.inference_delay, "mode": policy.mode}
     if config.out is not None:  # written whole, never through a link (imitrl.fs.files)

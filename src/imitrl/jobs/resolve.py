@@ -59,6 +59,7 @@ __all__ = [
     "learner_factory",
     "load_dataset",
     "make_expert",
+    "played_limit",
     "registered_loss",
     "resolve_loss",
     "time_limit",
@@ -235,6 +236,15 @@ def _required_arguments(fn: Callable) -> list[str]:
     return [p.name for p in params if p.kind in kinds and p.default is inspect.Parameter.empty]
 
 
+def played_limit(env_id: str, override: int | None) -> int | None:
+    """:func:`time_limit`, or None for an env registered without one: what a report
+    records of the episodes it played."""
+    try:
+        return time_limit(env_id, override)
+    except ValueError:
+        return None
+
+
 def time_limit(env_id: str, override: int | None) -> int:
     """Steps per episode: ``override``, else the gymnasium spec's ``max_episode_steps``."""
     if override is not None:
@@ -268,10 +278,12 @@ def registered_loss(spec: str) -> str:
         importlib.import_module(module)
     except ImportError as err:
         raise ValueError(f"--loss {spec!r}: cannot import {module!r} ({err})") from err
-    if name not in registry.names():
+    builder = registry.get(name).build if name in registry.names() else None
+    if builder is None or getattr(builder, "__module__", "").startswith("imitrl."):
+        own = f" ({name!r} is imitrl's own loss: --loss {name})" if builder is not None else ""
         raise ValueError(
-            f"--loss {spec!r}: importing {module!r} registered no loss {name!r} (register it "
-            f"with @imitrl.learners.registry.register({name!r}, ...)); registered: "
+            f"--loss {spec!r}: importing {module!r} registered no loss {name!r}{own} (register "
+            f"it with @imitrl.learners.registry.register({name!r}, ...)); registered: "
             f"{', '.join(registry.names())}"
         )
     return name
