@@ -41,3 +41,14 @@ def test_an_episode_id_leaving_no_id_after_it_is_refused_and_sample_0_is_one_lin
     if disk:
         del buf
         assert len(DemonstrationBuffer(path=tmp_path / "b", resume=True)) == 3
+
+
+def test_text_entries_are_refused_not_stored_half():
+    """A hostile review: a 'task' string was filled into later rows that had none and lost
+    on save and resume."""
+    from tests.data.test_disk import cartpole_rows
+
+    rows = cartpole_rows(3)
+    rows.set_non_tensor("task", "pick")
+    with pytest.raises(ValueError, match=r"rows hold non-tensor entries \['task'\]"):
+        DemonstrationBuffer().extend(rows)

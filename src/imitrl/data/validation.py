@@ -8,7 +8,7 @@ buffer, ``extend`` and ``load``, all call it.
 from __future__ import annotations
 
 import torch
-from tensordict import TensorDictBase
+from tensordict import TensorDictBase, is_non_tensor
 from torchrl.data import Bounded, Categorical, TensorSpec
 
 from imitrl import keys
@@ -75,6 +75,12 @@ def check_rows(
         )
     if rows.shape[0] == 0:
         raise ValueError("cannot extend the demonstration buffer with zero rows")
+    text = [k for k, v in rows.items(include_nested=True) if is_non_tensor(v)]
+    if text:  # not stored: a later batch without it would read the first batch's value
+        raise ValueError(
+            f"rows hold non-tensor entries {text} (text or objects): a buffer stores "
+            "tensors; encode them (a task's index) or drop them"
+        )
     present = rows.keys()
     missing = [k for k in REQUIRED_KEYS if k not in present]
     if missing:
