@@ -260,3 +260,23 @@ def test_the_readme_example_runs_as_written(tmp_path):
     namespace, printed = run_readme("metaworld-example", tmp_path)  # output as documented
     assert printed[:5] == ["4", "successes", "in", "226", "rows"]
     assert namespace["rows"].get(("next", "success")).sum() == 4  # each episode ends at success
+
+
+@pytest.mark.parametrize(
+    "kwargs, said",
+    [
+        (
+            {"camera_name": "nope"},
+            r"camera_name 'nope' is not one of reach-v3's cameras \['topview'",
+        ),
+        ({"width": 100_000}, r"width must be an integer in \[1, 4096\] pixels, got 100000"),
+        ({"height": -5}, r"height must be an integer in \[1, 4096\] pixels, got -5"),
+    ],
+)
+def test_a_camera_or_frame_size_the_renderer_lacks_is_one_line(kwargs, said):
+    """A hostile review: an unknown camera rendered MuJoCo's free camera, 100000 pixels a
+    125-line EGL traceback, -5 numpy's 'negative dimensions'."""
+    from imitrl.envs.metaworld import make_task
+
+    with pytest.raises(ValueError, match=said):
+        make_task("reach-v3", obs_type="pixels_agent_pos", **{"width": 16, "height": 16, **kwargs})

@@ -201,6 +201,10 @@ def _shadows_off(raw) -> None:
     viewer.scn.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0
 
 
+MAX_FRAME = 4096
+"""largest rendered frame side: MuJoCo's offscreen buffer (a larger one fails inside EGL)"""
+
+
 def make_task(
     task: str,
     *,
@@ -238,8 +242,15 @@ def make_task(
     from metaworld.env_dict import ALL_V3_ENVIRONMENTS
     from metaworld.types import Task
 
+    for name, size in (("width", width), ("height", height)):
+        if isinstance(size, bool) or not isinstance(size, int) or not 1 <= size <= MAX_FRAME:
+            raise ValueError(f"{name} must be an integer in [1, {MAX_FRAME}] pixels, got {size!r}")
     cls = ALL_V3_ENVIRONMENTS[task]
     raw = cls(render_mode=render_mode, camera_name=camera_name, width=width, height=height)
+    cameras = [raw.model.camera(i).name for i in range(raw.model.ncam)]
+    if camera_name not in cameras:  # MuJoCo renders its free camera for an unknown name
+        raw.close()
+        raise ValueError(f"camera_name {camera_name!r} is not one of {task}'s cameras {cameras}")
     # set_task needs a first placement; every reset draws its own below (seeded_rand_vec),
     # so the middle of the task's range serves (metaworld.MT1 would simulate 50 resets to
     # pick one: 0.7 s an env). The task data is what MT1 builds (its _make_tasks).
