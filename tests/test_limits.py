@@ -37,4 +37,4 @@ def test_a_required_flag_is_named_when_missing_and_in_its_help(capsys):
     with pytest.raises(SystemExit):
         main(["compare", "--help"])
     shown = capsys.readouterr().out
-    assert "(required)" in shown and "MISSING" not in shown and "must be in (0, 1)" in shown
+    assert "(required)" in shown and "MISSING" not in shown and "must be in [1e-12, 1)" in shown
