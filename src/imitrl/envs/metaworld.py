@@ -178,27 +178,30 @@ class _MetaWorldTask(gymnasium.Wrapper):
         return self._observe(obs), reward, terminated, truncated, info
 
     def render(self):
+        if self._fast_render and not _shadows_off(self.env.unwrapped):
+            self.env.render()  # the first frame builds the renderer, shadows on: drawn again
+            _shadows_off(self.env.unwrapped)
         frame = self.env.render()
         if frame is None:
             return None
-        if self._fast_render:
-            _shadows_off(self.env.unwrapped)
         if _sawyer(self.env).camera_name == CAMERA:
             assert isinstance(frame, np.ndarray)  # an rgb_array (or depth_array) frame
             frame = np.ascontiguousarray(np.flip(frame, (0, 1)))  # as LeRobot's env
         return frame
 
 
-def _shadows_off(raw) -> None:
-    """Shadows and reflections off in the renderer's scene (once built): a 480x480 frame
-    on Mesa's llvmpipe from about 160 ms to about 25 ms; the geometry is unchanged."""
+def _shadows_off(raw) -> bool:
+    """Shadows and reflections off in the renderer's scene, once built (False before: it
+    is built at the first frame): a 480x480 frame on Mesa's llvmpipe from about 160 ms to
+    about 25 ms; the geometry is unchanged."""
     import mujoco
 
     viewer = getattr(raw.mujoco_renderer, "viewer", None)
     if viewer is None or not hasattr(viewer, "scn"):
-        return
+        return False
     viewer.scn.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = 0
     viewer.scn.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0
+    return True
 
 
 MAX_FRAME = 4096
