@@ -73,8 +73,8 @@ widths (32-64-128, 1.2M parameters, lr 1e-3) at batch 64 (the paper's image conf
 LeRobot's Diffusion Policy recipe; its state configs take 256, 2.5 times the step time on
 one CPU thread: ``diffusion_policy.py``), 2000 steps (about 70 ms a step, 2.5 min a fit),
 a quarter of it, twice it (its 2000-step training loss still fell 27% over its last
-fifth) and four times it (its 4000-step loss still fell 38%). The training curves and the success at each rung say whether the last rung has
-converged."""
+fifth) and four times it (its 4000-step loss still fell 38%). The training curves and
+the success at each rung say whether the last rung has converged."""
 
 PROTOCOL = replace(
     MT50_PROTOCOL,

@@ -25,9 +25,9 @@ The staging folder of a run that did not finish is removed by the next run of th
 ``--overwrite`` (it is discarded); or a fitted learner (``config.json`` and
 ``learner.pt``, which ``imitrl bc``, ``gail`` and ``airl`` save before they evaluate it),
 so a failed or interrupted evaluation never loses the fit: ``imitrl eval --checkpoint``
-reads it there, and the next run is refused unless ``--overwrite``. A ``--resume`` of a finished run continues in a copy
-of it; refused or failed before it saved a round, it leaves no copy (``--out`` holds the
-same checkpoint). Logs of a run in progress are in its staging folder (the command says
+reads it there, and the next run is refused unless ``--overwrite``. A ``--resume`` of a
+finished run continues in a copy of it; refused or failed before it saved a round, it
+leaves no copy (``--out`` holds the same checkpoint). Logs of a run in progress are in its staging folder (the command says
 where on stderr).
 
 The run holds ``--out``'s lock (:func:`imitrl.fs.exclusive`) from the check to the

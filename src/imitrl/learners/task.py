@@ -152,7 +152,8 @@ class TaskSpec:
         or else the range of the actions the rows hold, the expert's labels and the
         executed actions (a DAgger dataset's learner acted on some frames): integers
         ``Categorical(max + 1)``, floats ``Bounded(min, max)`` per dimension (the min and
-        max LeRobot's ``stats.json`` records). ValueError naming what is missing or of the wrong kind."""
+        max LeRobot's ``stats.json`` records). ValueError naming what is missing or of the
+        wrong kind."""
         present = set(rows.keys())
         if keys.EXPERT_ACTION not in present or not present & set(OBSERVED_ENTRIES):
             raise ValueError(
