@@ -131,6 +131,14 @@ def _booleans(
     return value != 0
 
 
+def _episode_heads(episode: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(heads, first)`` of frames in episode order: each episode's first frame, and each
+    frame's episode counted from 0."""
+    starts = torch.ones_like(episode, dtype=torch.bool)
+    starts[1:] = episode[1:] != episode[:-1]
+    return torch.nonzero(starts).flatten(), torch.cumsum(starts.long(), 0) - 1
+
+
 def own_episodes(out: dict, episode: torch.Tensor, file_of: Callable[[int], Path]) -> None:
     """Frames ``[N]`` of a whole dataset in episode order (``episode``: LeRobot's
     ``episode_index``): imitrl's own episode ids (``imitrl.episode``) are kept only where
@@ -139,10 +147,7 @@ def own_episodes(out: dict, episode: torch.Tensor, file_of: Callable[[int], Path
     with a warning, and the rows take LeRobot's ``episode_index``."""
     if keys.EPISODE not in out:
         return
-    starts = torch.ones_like(episode, dtype=torch.bool)
-    starts[1:] = episode[1:] != episode[:-1]
-    first = torch.cumsum(starts.long(), 0) - 1  # each frame's episode, counted from 0
-    heads = torch.nonzero(starts).flatten()
+    heads, first = _episode_heads(episode)
     own = out[keys.EPISODE].reshape(-1)
     constant = bool((own == own[heads][first]).all())
     if constant and len(torch.unique(own[heads])) == len(heads):
@@ -184,10 +189,7 @@ def check_dagger_columns(
                 f"{_where(file_of, episode, frame, i)}: an intervention frame without its "
                 "corrected action (the dataset has no action feature; map one with key_map)"
             )
-    starts = torch.ones_like(episode, dtype=torch.bool)
-    starts[1:] = episode[1:] != episode[:-1]
-    first = torch.cumsum(starts.long(), 0) - 1  # each frame's episode, counted from 0
-    heads = torch.nonzero(starts).flatten()
+    heads, first = _episode_heads(episode)
     for key, what in _PER_EPISODE.items():
         if key not in out:
             continue
