@@ -20,7 +20,7 @@ from collections.abc import Iterator
 
 import torch
 
-__all__ = ["rng_from"]
+__all__ = ["SavedGenerator", "rng_from"]
 
 _CUDA_STREAMS: dict[tuple[int, int], tuple[torch.Generator, torch.Generator]] = {}
 """(id of a CPU generator, CUDA device index) -> (that generator, its CUDA stream)"""
@@ -52,3 +52,28 @@ def rng_from(generator: torch.Generator | None) -> Iterator[None]:
         generator.set_state(torch.get_rng_state())
         if index is not None:
             stream.set_state(torch.cuda.get_rng_state(index))
+
+
+class SavedGenerator:
+    """For an ``nn.Module`` that draws from its own seeded ``self.generator`` (a loss's
+    noise, time steps and latents): the generator's state is part of the module's
+    ``state_dict`` (its ``_extra_state``), so a fit resumed from a checkpoint draws what
+    the uninterrupted fit would have. A state saved before the generator was
+    (imitrl up to e0ceebc) lacks the key: :meth:`imitrl.learners.Learner.migrated_state`
+    then keeps the freshly seeded generator, which is what those versions resumed with."""
+
+    generator: torch.Generator
+
+    def get_extra_state(self) -> torch.Tensor:
+        """The generator's state (a ``uint8`` tensor)."""
+        return self.generator.get_state()
+
+    def set_extra_state(self, state: torch.Tensor) -> None:
+        """Continue from a saved ``state`` (moved back to the CPU, where the generator
+        draws, if a ``map_location`` moved it)."""
+        if not isinstance(state, torch.Tensor) or state.dtype != torch.uint8:
+            raise ValueError(
+                "a saved generator state must be a uint8 tensor (torch.Generator.get_state), "
+                f"got {type(state).__name__}"
+            )
+        self.generator.set_state(state.cpu())

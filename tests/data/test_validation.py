@@ -52,3 +52,33 @@ def test_text_entries_are_refused_not_stored_half():
     rows.set_non_tensor("task", "pick")
     with pytest.raises(ValueError, match=r"rows hold non-tensor entries \['task'\]"):
         DemonstrationBuffer().extend(rows)
+
+
+@pytest.mark.parametrize("disk", [False, True])
+def test_a_dotted_key_part_is_refused_as_it_would_share_a_nested_keys_column(tmp_path, disk):
+    """A hostile review: ``"x.y"`` and ``("x", "y")`` had one schema name, one column file."""
+    rows = _rows(0)
+    rows.set(("extra", "y"), torch.zeros(rows.shape[0]))
+    rows.set("extra.y", torch.ones(rows.shape[0]))
+    buffer = DemonstrationBuffer(path=tmp_path / "b" if disk else None)
+    with pytest.raises(
+        ValueError, match=r"'extra.y': a key part may not contain '.'.*\('extra', 'y'\)"
+    ):
+        buffer.extend(rows)
+    assert len(buffer) == 0
+    del rows["extra.y"]
+    buffer.extend(rows)
+    assert (buffer.data.get(("extra", "y")) == 0).all()
+
+
+@pytest.mark.parametrize("disk", [False, True])
+def test_complex_values_are_refused_naming_the_key(tmp_path, disk):
+    """A hostile review: a complex NaN passed the finiteness check (real dtypes only)."""
+    rows = _rows(0)
+    obs = rows.get(keys.OBSERVATION).to(torch.complex64)
+    obs[0, 0] = complex(float("nan"), 0.0)
+    rows.set(keys.OBSERVATION, obs)
+    buffer = DemonstrationBuffer(path=tmp_path / "b" if disk else None)
+    with pytest.raises(ValueError, match="rows hold complex values under 'observation'"):
+        buffer.extend(rows)
+    assert len(buffer) == 0

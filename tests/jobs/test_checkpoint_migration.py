@@ -19,6 +19,8 @@ from imitrl.envs import make_env
 from imitrl.jobs.checkpoint import load_learner
 
 OLD = Path(__file__).resolve().parents[1] / "fixtures" / "d6e5639"
+E0CEEBC = OLD.parent / "e0ceebc"
+"""runs saved before a loss's generator was (``tests/fixtures/e0ceebc/README.md``)"""
 COMMON = ["--demos", "1", "--max-episode-steps", "50", "--eval-episodes", "2", "--no-progress"]
 
 
@@ -81,3 +83,34 @@ def test_an_old_dagger_run_resumes_and_equals_the_longer_run(tmp_path):
         assert ci_a == pytest.approx(ci_b, rel=1e-13)
     for key in ("rounds", "learner", "final_loss"):
         assert resumed[key] == whole[key], key
+
+
+def test_a_run_saved_before_loss_generators_were_loads_and_reproduces_its_evaluation(tmp_path):
+    saved = torch.load(E0CEEBC / "pend_flow" / "learner.pt", weights_only=True)
+    assert not any(k.endswith("_extra_state") for k in saved)  # what e0ceebc saved
+    learner = load_learner(E0CEEBC / "pend_flow", make_env("Pendulum-v1", seed=0))
+    for key, tensor in saved.items():
+        assert torch.equal(learner.state_dict()[key], tensor), key
+    status, _, err = run(["eval", "--checkpoint", str(E0CEEBC / "pend_flow"),
+                            "--eval-episodes", "2", "--max-episode-steps", "50",
+                            "--no-progress", "--out", str(tmp_path / "ev")])  # fmt: skip
+    assert status == 0, err
+    evaluated = json.loads((tmp_path / "ev" / "eval.json").read_text())["evaluation"]
+    recorded = json.loads((E0CEEBC / "pend_flow" / "results.json").read_text())["learner"]
+    assert evaluated["mean_return"] == pytest.approx(recorded["mean_return"], rel=1e-7)
+
+
+def test_a_dagger_run_saved_before_loss_generators_were_resumes_and_saves_them(tmp_path):
+    out = tmp_path / "old"
+    shutil.copytree(E0CEEBC / "pend_flow_dagger", out)
+    status, _, err = run(["dagger", "--env", "Pendulum-v1", "--loss", "flow", "--hidden",
+                            "16,16", *COMMON, "--episodes-per-round", "1", "--steps", "20",
+                            "--rounds", "3", "--out", str(out), "--resume"])  # fmt: skip
+    assert status == 0, err
+    rounds = json.loads((out / "results.json").read_text())["rounds"]
+    old = json.loads((E0CEEBC / "pend_flow_dagger" / "results.json").read_text())["rounds"]
+    assert len(rounds) == 3 and rounds[0] == old[0]  # the rounds it played are kept
+    for key in ("evaluation", "final_loss", "rows_trained"):  # (the last one now has a next)
+        assert rounds[1][key] == old[1][key], key
+    saved = torch.load(out / "learner.pt", weights_only=True)
+    assert saved["loss._extra_state"].dtype == torch.uint8  # saved from now on

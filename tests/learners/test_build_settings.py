@@ -33,11 +33,26 @@ def pendulum():
         ({"seed": "3"}, "seed must be an integer"),
         ({"seed": True}, "seed must be an integer"),
         ({"seed": -1}, "seed must be an integer"),
+        ({"normalize": "no"}, r"normalize must be True or False, got 'no'"),
+        ({"normalize": 0}, "normalize must be True or False"),
+        ({"value": "yes"}, "value must be True or False"),
+        ({"device": 0}, "device must be a string"),
+        ({"options": 3}, "loss mse's options must be none .it has no options., got int"),
     ],
 )
 def test_a_setting_of_the_wrong_kind_is_refused_naming_it(pendulum, setting, said):
     with pytest.raises(ValueError, match=said):
         build("mse", pendulum, **setting)
+
+
+def test_options_of_another_entry_are_refused_naming_the_type(pendulum):
+    """A fourth hostile review: ``options=3`` was an AttributeError inside the builder."""
+    from imitrl.learners.catalogue import ForEnvOptions
+
+    with pytest.raises(ValueError, match="options must be UnetDiffusionConfig, got ForEnvOptions"):
+        build("diffusion_unet", pendulum, options=ForEnvOptions())
+    with pytest.raises(ValueError, match="options must be ForEnvOptions, got int"):
+        build("for_env", pendulum, options=3)
 
 
 def test_settings_of_their_kind_build_the_same_network_as_before(pendulum):

@@ -44,11 +44,24 @@ Schema = dict[str, tuple[str, tuple[int, ...]]]
 
 
 def schema_of(rows: TensorDictBase) -> Schema:
-    """``{"a.b": (dtype name, trailing shape)}`` of every leaf of ``rows``."""
+    """``{"a.b": (dtype name, trailing shape)}`` of every leaf of ``rows``.
+
+    A key's parts are joined by ``"."`` (the names a disk buffer gives its column files),
+    so a part that holds a ``"."`` itself is refused: ``"x.y"`` and ``("x", "y")`` would
+    share one column and one would overwrite the other.
+    """
     out = {}
     for key in rows.keys(include_nested=True, leaves_only=True):
         value = rows.get(key)
-        name = key if isinstance(key, str) else ".".join(key)
+        parts = (key,) if isinstance(key, str) else key
+        dotted = [p for p in parts if "." in p]
+        if dotted:
+            raise ValueError(
+                f"row key {key!r}: a key part may not contain '.' ({dotted[0]!r}), which "
+                "joins nested keys in the buffer's schema and column files; nest it "
+                f"instead: {tuple(q for p in parts for q in p.split('.'))!r}"
+            )
+        name = ".".join(parts)
         out[name] = (str(value.dtype).replace("torch.", ""), tuple(value.shape[1:]))
     return out
 
@@ -100,6 +113,11 @@ def check_rows(
         raise ValueError("rows do not match the buffer's schema: " + _schema_diff(schema, new))
     for key in rows.keys(include_nested=True, leaves_only=True):
         value = rows.get(key)
+        if value.dtype.is_complex:  # isfinite's NaN check above is for real dtypes only
+            raise ValueError(
+                f"rows hold complex values under {key!r} ({value.dtype}): the buffer stores "
+                "real numbers, integers and bools"
+            )
         if value.dtype.is_floating_point and value.numel() and not _finite(value):
             raise ValueError(f"rows contain NaN or inf under {key!r}")
     if next_episode is not None:

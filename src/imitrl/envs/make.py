@@ -34,7 +34,6 @@ policies and experts use), whatever the id:
 from __future__ import annotations
 
 import difflib
-import importlib
 import inspect
 import weakref
 from functools import partial
@@ -58,6 +57,7 @@ from imitrl import checks, keys
 from imitrl.compat import wrapped_gym_env
 from imitrl.envs.dict_obs import DictObservation
 from imitrl.envs.success import SuccessInfo, reads_success, success_reader
+from imitrl.system.imports import import_user_module
 
 __all__ = ["PlainGym", "ResizeFrame", "make_env", "plain_gym"]
 
@@ -74,10 +74,7 @@ def _spec(env_id: str) -> gymnasium.envs.registration.EnvSpec:
         metaworld.task_of(env_id)  # an unknown task named with the list of tasks
     if ":" in env_id:  # "module:Env-v0": importing the module registers the env (gymnasium.make)
         module, env_id = env_id.split(":", 1)
-        try:
-            importlib.import_module(module)
-        except ImportError as err:
-            raise ValueError(f"cannot import {module!r}, which should register {env_id!r}") from err
+        import_user_module(module, f"env {module}:{env_id} (the module registers {env_id!r})")
     try:
         return gymnasium.spec(env_id)
     except gymnasium.error.Error as err:

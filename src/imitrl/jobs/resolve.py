@@ -22,7 +22,6 @@ exit status 2.
 
 from __future__ import annotations
 
-import importlib
 import inspect
 import re
 from collections.abc import Callable
@@ -43,6 +42,7 @@ from imitrl.envs.make import METAWORLD_PREFIX
 from imitrl.jobs.names import EXPERT_ENVS, EXPERT_KINDS
 from imitrl.learners import FOR_ENV, Learner, TaskSpec, build, registry, resolve
 from imitrl.policies import Expert
+from imitrl.system.imports import import_user_module
 
 __all__ = [
     "AUTO",
@@ -97,10 +97,7 @@ def _import(spec: str) -> object:
     module_name, _, attr = spec.partition(":")
     if not module_name or not attr:
         raise ValueError(f"--expert {spec!r}: expected module:function")
-    try:
-        module = importlib.import_module(module_name)
-    except ImportError as err:
-        raise ValueError(f"--expert {spec!r}: cannot import {module_name!r} ({err})") from err
+    module = import_user_module(module_name, f"--expert {spec!r}")
     if not hasattr(module, attr):
         raise ValueError(f"--expert {spec!r}: module {module_name!r} has no {attr!r}")
     return getattr(module, attr)
@@ -274,10 +271,7 @@ def registered_loss(spec: str) -> str:
     module, _, name = spec.partition(":")
     if not module or not name:
         raise ValueError(f"--loss {spec!r}: expected a registered name or module:name")
-    try:
-        importlib.import_module(module)
-    except ImportError as err:
-        raise ValueError(f"--loss {spec!r}: cannot import {module!r} ({err})") from err
+    import_user_module(module, f"--loss {spec!r}")
     builder = registry.get(name).build if name in registry.names() else None
     if builder is None or getattr(builder, "__module__", "").startswith("imitrl."):
         own = f" ({name!r} is imitrl's own loss: --loss {name})" if builder is not None else ""

@@ -21,12 +21,13 @@ from tensordict.utils import NestedKey
 
 from imitrl import keys
 from imitrl.objectives.base import ImitationLoss
+from imitrl.rng import SavedGenerator
 from imitrl.system.ranks import masked_mean
 
 __all__ = ["NormalizedActionLoss"]
 
 
-class NormalizedActionLoss(ImitationLoss):
+class NormalizedActionLoss(SavedGenerator, ImitationLoss):
     """Base of a loss over a policy's normalised actions or chunks (module docstring).
 
     Args:

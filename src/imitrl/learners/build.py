@@ -32,6 +32,7 @@ from typing import Any
 
 from torchrl.envs import EnvBase
 
+from imitrl import checks
 from imitrl.learners.defaults import default_loss
 from imitrl.learners.learner import Learner
 from imitrl.learners.registry import DEFAULT, LearnerConfig, get, make
@@ -88,6 +89,7 @@ def build(
             f"env wrapped in torchrl.envs.GymWrapper) or a TaskSpec, got {type(env).__name__}"
         )
     task = env if isinstance(env, TaskSpec) else TaskSpec.from_env(env)
+    _check_settings({k: v for k, v in {**(shared or {}), **settings}.items() if k in _SETTINGS})
     name = resolve(name, task, value=bool(settings.get("value", False)))
     entry = get(name)
     if shared:
@@ -97,6 +99,7 @@ def build(
         if not entry.hidden or (entry.tables and task.num_states is not None):
             taken.pop("hidden", None)
         settings = {**taken, **settings}
+    _check_options(name, options, entry.options)
     own = {k: v for k, v in settings.items() if k not in _SETTINGS}
     if own:
         base = options if options is not None else entry.options
@@ -109,7 +112,6 @@ def build(
             )
         options = replace(base, **own)
     shared = {k: v for k, v in settings.items() if k in _SETTINGS}
-    _check_settings(shared)
     if "hidden" in shared and shared["hidden"] is not None:
         shared["hidden"] = tuple(int(h) for h in shared["hidden"])
     learner = make(name, task, LearnerConfig(**shared, options=options))
@@ -117,10 +119,27 @@ def build(
     return learner
 
 
+def _check_options(name: str, options: Any, default: Any) -> None:
+    """ValueError unless ``options`` is None or of the entry's options type (a hostile
+    review: ``options=3`` surfaced as an AttributeError deep in the builder)."""
+    if options is None:
+        return
+    if default is None or not isinstance(options, type(default)):
+        wanted = "none (it has no options)" if default is None else type(default).__name__
+        raise ValueError(f"loss {name}'s options must be {wanted}, got {type(options).__name__}")
+
+
 def _check_settings(shared: dict) -> None:
     """ValueError naming a shared setting of the wrong kind (a hostile review: ``"64"``
-    became widths 6 and 4, ``2.7`` a width of 2, ``lr=inf`` NaN losses, ``seed=1.5`` seed 1)."""
+    became widths 6 and 4, ``2.7`` a width of 2, ``lr=inf`` NaN losses, ``seed=1.5`` seed 1,
+    ``normalize="no"`` true)."""
     check_hidden(shared.get("hidden"), "hidden")
+    for flag in ("normalize", "value"):
+        if flag in shared:
+            checks.boolean(shared[flag], flag)
+    device = shared.get("device")
+    if device is not None and not isinstance(device, str):
+        raise ValueError(f"device must be a string such as 'cpu' or 'cuda:0', got {device!r}")
     lr = shared.get("lr")
     if lr is not None and (
         isinstance(lr, bool) or not isinstance(lr, numbers.Real) or not math.isfinite(lr)

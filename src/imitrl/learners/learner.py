@@ -135,8 +135,15 @@ class Learner(nn.Module):
     def migrated_state(self, states: dict[str, dict]) -> dict[str, dict]:
         """Saved states (``"learner"``: the weights, and each optimizer's by name) as this
         learner holds them: where a checkpoint of an older imitrl holds what this learner
-        no longer carries, it is dropped here (the base learner changes nothing)."""
-        return states
+        no longer carries, it is dropped here; where it lacks a loss's generator state
+        (:class:`~imitrl.rng.SavedGenerator`: imitrl up to e0ceebc did not save it), the
+        freshly seeded generator is kept, as those versions resumed."""
+        saved = states.get("learner")
+        if saved is None:
+            return states
+        own = self.state_dict()
+        fresh = {k: own[k] for k in own if k.endswith("_extra_state") and k not in saved}
+        return {**states, "learner": {**saved, **fresh}} if fresh else states
 
     @property
     def device(self) -> torch.device:

@@ -23,12 +23,12 @@ from tensordict.nn import TensorDictModule
 from imitrl import keys
 from imitrl.objectives.base import InnerBCLoss
 from imitrl.objectives.bc import BehaviorCloningLoss
-from imitrl.rng import rng_from
+from imitrl.rng import SavedGenerator, rng_from
 
 __all__ = ["RegularizedBCLoss"]
 
 
-class RegularizedBCLoss(InnerBCLoss):
+class RegularizedBCLoss(SavedGenerator, InnerBCLoss):
     """Behaviour cloning with an entropy bonus and an L2 penalty (see the module docstring).
 
     Args:

@@ -15,13 +15,13 @@ from imitrl.compat import act_latent_noise
 from imitrl.data.chunks import EXPERT_CHUNK
 from imitrl.learners.act.policy import ACTPolicy
 from imitrl.objectives.base import ImitationLoss
-from imitrl.rng import rng_from
+from imitrl.rng import SavedGenerator, rng_from
 from imitrl.system.ranks import rows_drawn
 
 __all__ = ["ACTChunkLoss"]
 
 
-class ACTChunkLoss(ImitationLoss):
+class ACTChunkLoss(SavedGenerator, ImitationLoss):
     """TorchRL's ``ACTLoss`` on the chunk labels of an :class:`ACTPolicy` (module docstring).
 
     Args:

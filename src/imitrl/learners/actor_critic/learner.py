@@ -387,6 +387,7 @@ class ActorCritic(Learner):
         """A checkpoint of imitrl up to d6e5639, when every ``ActorCritic`` carried a value
         head, holds ``value.*`` weights and ``opt_v``: a learner built without a value head
         (no job of it needs one) drops them; everything else loads as saved."""
+        states = super().migrated_state(states)
         if self.value is not None:
             return states
         out = {k: v for k, v in states.items() if k != "opt_v"}

@@ -12,12 +12,12 @@ from torchrl.objectives import DiffusionBCLoss
 from imitrl import keys
 from imitrl.learners.diffusion.policy import NORMALIZED, DiffusionPolicy
 from imitrl.objectives.base import ImitationLoss
-from imitrl.rng import rng_from
+from imitrl.rng import SavedGenerator, rng_from
 
 __all__ = ["DiffusionBehaviorCloningLoss"]
 
 
-class DiffusionBehaviorCloningLoss(ImitationLoss):
+class DiffusionBehaviorCloningLoss(SavedGenerator, ImitationLoss):
     """TorchRL's ``DiffusionBCLoss`` on the expert's label, mapped to ``[-1, 1]``.
 
     Args:

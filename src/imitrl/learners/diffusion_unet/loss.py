@@ -13,12 +13,13 @@ from imitrl.data.chunks import CHUNK_PAD, EXPERT_CHUNK
 from imitrl.data.history import OBS_HISTORY, history_key
 from imitrl.learners.diffusion_unet.policy import UnetDiffusionPolicy
 from imitrl.objectives.base import ImitationLoss
+from imitrl.rng import SavedGenerator
 from imitrl.system.ranks import masked_mean, rows_drawn
 
 __all__ = ["UnetDiffusionLoss"]
 
 
-class UnetDiffusionLoss(ImitationLoss):
+class UnetDiffusionLoss(SavedGenerator, ImitationLoss):
     """Epsilon prediction on the expert's label chunks: ``E ||eps - eps_theta(x_k, k, obs)||^2``.
 
     Args:
@@ -47,14 +48,6 @@ class UnetDiffusionLoss(ImitationLoss):
         super().__init__()
         self.policy = policy
         self.generator = torch.Generator().manual_seed(int(seed))
-
-    def get_extra_state(self) -> torch.Tensor:
-        """The generator of the steps and noise: saved with the learner (a resumed fit
-        draws what the uninterrupted one would have)."""
-        return self.generator.get_state()
-
-    def set_extra_state(self, state: torch.Tensor) -> None:
-        self.generator.set_state(state.cpu())  # (a map_location may have moved it)
 
     def read_keys(self) -> list[NestedKey]:
         t = self.tensor_keys

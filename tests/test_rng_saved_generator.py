@@ -1,0 +1,88 @@
+"""A loss that draws from its own generator saves it with the learner
+(:class:`imitrl.rng.SavedGenerator`): a fit resumed from a checkpoint draws the noise,
+time steps and latents the uninterrupted fit would have (a hostile review: ``diffusion``,
+``flow``, ``mip``, ``act`` and the chunked entries resumed from the fresh seed)."""
+
+from __future__ import annotations
+
+import warnings
+
+import pytest
+import torch
+from torchrl.objectives import LossModule
+
+from imitrl.learners import build, registry
+from imitrl.rng import SavedGenerator
+from tests.learners.test_registry import TASKS, _rows
+
+CONFIG = dict(hidden=(16, 16), lr=1e-2, seed=0)
+TASK = TASKS["continuous"]
+
+
+def _draws(name: str) -> bool:
+    """Whether entry ``name``'s loss draws anything of its own."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        loss = build(name, TASK, shared=CONFIG).loss
+    return bool(_generators(loss))
+
+
+def _generators(loss) -> list:
+    """The loss modules in ``loss`` holding a generator (not a policy's own sampler)."""
+    return [m for m in loss.modules() if isinstance(m, LossModule) and hasattr(m, "generator")]
+
+
+# mse_l2 holds a generator for its entropy bonus, which draws only at entropy_coef > 0
+# with a probabilistic actor (not its registry settings)
+STOCHASTIC = [
+    e.name
+    for e in registry.entries()
+    if e.applies_to(TASK) and e.name != "mse_l2" and _draws(e.name)
+]
+
+
+def test_the_stochastic_entries_are_the_ones_a_resume_must_continue():
+    # the entries whose losses draw: each must save its generator (the next test)
+    assert {"diffusion", "flow", "mip", "act", "diffusion_chunk", "diffusion_unet"} <= set(
+        STOCHASTIC
+    )
+
+
+def _loss(learner, rows) -> torch.Tensor:
+    out = learner.loss(rows)
+    return sum(v for k, v in out.items() if k.startswith("loss_"))
+
+
+@pytest.mark.parametrize("name", STOCHASTIC)
+def test_a_learner_loaded_from_a_state_continues_its_draws(name):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        a = build(name, TASK, shared=CONFIG)
+        b = build(name, TASK, shared=CONFIG)
+    rows = a.training_rows(_rows(TASK))
+    first = _loss(a, rows)
+    state = a.state_dict()
+    second = _loss(a, rows)
+    assert not torch.equal(first, second)  # each step draws afresh
+    b.load_state_dict(state)
+    assert torch.equal(_loss(b, rows), second)  # was ``first``: b drew from its seed again
+    assert all(isinstance(m, SavedGenerator) for m in _generators(b.loss))
+
+
+def test_a_generator_state_of_the_wrong_kind_is_refused():
+    learner = build("flow", TASK, shared=CONFIG)
+    state = learner.state_dict()
+    state["loss._extra_state"] = torch.zeros(3)
+    with pytest.raises(ValueError, match="a saved generator state must be a uint8 tensor"):
+        learner.load_state_dict(state)
+
+
+def test_a_state_without_generators_keeps_the_fresh_seed():
+    """What imitrl up to e0ceebc saved: the migration keeps the freshly seeded generator."""
+    learner = build("flow", TASK, shared=CONFIG)
+    old = {k: v for k, v in learner.state_dict().items() if not k.endswith("_extra_state")}
+    migrated = learner.migrated_state({"learner": old})["learner"]
+    fresh = build("flow", TASK, shared=CONFIG)
+    fresh.load_state_dict(migrated)
+    rows = fresh.training_rows(_rows(TASK))
+    assert torch.equal(_loss(fresh, rows), _loss(learner, rows))
