@@ -86,8 +86,10 @@ def test_the_report_gives_each_rung_its_success_time_and_late_fall():
         "| diffusion_unet | 2000 x 64 | 20.0 | 20.0% | 1.00 [0.84, 1.00] | 1.00 [1.00, 1.00] |"
         in text
     )
-    # the top rungs paired: diffusion_unet 2000 - mse 2000 = 0 on every pair
-    assert "| diffusion_unet 2000 | 4 | 0.00 [0.00, 0.00] | 0 / 0 of 2 |" in text
+    # the top rung paired with each of mse's: diffusion_unet 2000 - mse 2000 = 0 on every
+    # pair, and - mse 320 = 1.0 - 0.6 = 0.4 on every pair
+    assert "| diffusion_unet 2000 | mse 2000 | 4 | 0.00 [0.00, 0.00] | 0 / 0 of 2 |" in text
+    assert "| diffusion_unet 2000 | mse 320 | 4 | 0.40 [0.40, 0.40] | 2 / 0 of 2 |" in text
     assert "| reach-v3 | 0.60 [0.31, 0.83] | 1.00 [0.72, 1.00] | 0.20" in text
 
 
