@@ -37,6 +37,7 @@ def pendulum():
         ({"normalize": 0}, "normalize must be True or False"),
         ({"value": "yes"}, "value must be True or False"),
         ({"device": 0}, "device must be a string"),
+        ({"device": ["cpu"]}, "device must be a string"),
         ({"options": 3}, "loss mse's options must be none .it has no options., got int"),
     ],
 )

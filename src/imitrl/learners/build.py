@@ -30,6 +30,7 @@ from collections.abc import Mapping
 from dataclasses import fields, is_dataclass, replace
 from typing import Any
 
+import torch
 from torchrl.envs import EnvBase
 
 from imitrl import checks
@@ -138,8 +139,10 @@ def _check_settings(shared: dict) -> None:
         if flag in shared:
             checks.boolean(shared[flag], flag)
     device = shared.get("device")
-    if device is not None and not isinstance(device, str):
-        raise ValueError(f"device must be a string such as 'cpu' or 'cuda:0', got {device!r}")
+    if device is not None and not isinstance(device, str | torch.device):
+        raise ValueError(
+            f"device must be a string such as 'cpu' or 'cuda:0' (or a torch.device), got {device!r}"
+        )
     lr = shared.get("lr")
     if lr is not None and (
         isinstance(lr, bool) or not isinstance(lr, numbers.Real) or not math.isfinite(lr)
