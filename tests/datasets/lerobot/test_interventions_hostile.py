@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import warnings
 
+import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
@@ -58,6 +59,32 @@ def test_imitrl_episode_ids_that_do_not_follow_lerobots_episodes_give_way(tmp_pa
             got = load_lerobot(root).rows
     assert torch.equal(got[keys.EPISODE].unique(), torch.arange(3))  # LeRobot's three
     assert torch.equal(got[keys.STEP], torch.arange(LENGTH).repeat(3))
+
+
+@pytest.mark.parametrize(
+    "ids", [(7, 8, 7), (0, 1, 1), (10, 11, 12)], ids=["repeat-across", "repeat-next", "own"]
+)
+def test_a_stream_decides_on_imitrl_episode_ids_for_the_whole_dataset(tmp_path, monkeypatch, ids):
+    """A hostile review: a stream read in pieces checked imitrl's ids piece by piece, so ids
+    unique in each piece but repeated across pieces (a merge) were refused ("episode id 7 is
+    already used") where the whole-dataset load takes LeRobot's ids with a warning."""
+    import imitrl.datasets.lerobot._stream as stream
+    from imitrl.data import DemonstrationBuffer
+
+    monkeypatch.setattr(stream, "PIECE_ROWS", 2 * LENGTH)  # pieces of episodes {0, 1}, {2}
+    root = _foreign(dagger_rows(rounds=(0, 1, 2), length=LENGTH), tmp_path)
+    _replace_column(root, "imitrl.episode", pa.array(np.repeat(ids, LENGTH), pa.int64()))
+    kept = len(set(ids)) == 3
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        whole = load_lerobot(root).rows[keys.EPISODE]
+        buffer = DemonstrationBuffer()
+        load_lerobot(root, into=buffer)
+    said = [w for w in caught if "do not follow LeRobot's episodes one to one" in str(w.message)]
+    assert len(said) == (0 if kept else 2)  # once for each load
+    assert torch.equal(buffer.data[keys.EPISODE], whole)
+    want = torch.tensor(ids) if kept else torch.arange(3)
+    assert torch.equal(whole.unique_consecutive(), want)
 
 
 def test_both_names_of_the_intervention_column_are_named_with_the_file(tmp_path):

@@ -27,7 +27,7 @@ before it adds one), so a dataset refused at its fifth round leaves nothing of i
 from __future__ import annotations
 
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
 
@@ -41,7 +41,13 @@ from imitrl.datasets._common import NestedKey, key_name
 from imitrl.datasets.lerobot._layout import INTERVENTION
 from imitrl.limits import MAX_ROUNDS
 
-__all__ = ["RoundOrder", "check_dagger_columns", "feature_values", "own_episodes"]
+__all__ = [
+    "RoundOrder",
+    "check_dagger_columns",
+    "feature_values",
+    "own_episodes",
+    "own_ids_follow",
+]
 
 _PER_EPISODE = {keys.ROUND: "round", keys.BETA: "beta", keys.POLICY_VERSION: "policy version"}
 
@@ -139,26 +145,63 @@ def _episode_heads(episode: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return torch.nonzero(starts).flatten(), torch.cumsum(starts.long(), 0) - 1
 
 
-def own_episodes(out: dict, episode: torch.Tensor, file_of: Callable[[int], Path]) -> None:
+def own_ids(own: torch.Tensor, episode: torch.Tensor) -> torch.Tensor | None:
+    """imitrl's episode ids (``own``, one a frame) of frames in episode order (``episode``:
+    LeRobot's ``episode_index``), one per LeRobot episode, where each is constant over its
+    episode; None where one is not."""
+    heads, first = _episode_heads(episode)
+    own = own.reshape(-1)
+    return own[heads] if bool((own == own[heads][first]).all()) else None
+
+
+def own_episodes(
+    out: dict, episode: torch.Tensor, file_of: Callable[[int], Path], *, keep: bool | None = None
+) -> None:
     """Frames ``[N]`` of a whole dataset in episode order (``episode``: LeRobot's
     ``episode_index``): imitrl's own episode ids (``imitrl.episode``) are kept only where
     they follow LeRobot's episodes one to one; otherwise (LeRobot's ``aggregate_datasets``
     renumbers ``episode_index`` alone, so two merged datasets repeat ids) they are dropped,
-    with a warning, and the rows take LeRobot's ``episode_index``."""
+    with a warning, and the rows take LeRobot's ``episode_index``.
+
+    ``keep``: decided already for the whole dataset (a stream's pieces, by
+    :func:`own_ids_follow`, which warned): True keeps the ids, False drops them silently."""
     if keys.EPISODE not in out:
         return
-    heads, first = _episode_heads(episode)
-    own = out[keys.EPISODE].reshape(-1)
-    constant = bool((own == own[heads][first]).all())
-    if constant and len(torch.unique(own[heads])) == len(heads):
-        return
-    del out[keys.EPISODE]
+    if keep is None:
+        ids = own_ids(out[keys.EPISODE], episode)
+        keep = ids is not None and len(torch.unique(ids)) == len(ids)
+        if not keep:
+            _warn_own_ids(file_of(0))
+    if not keep:
+        del out[keys.EPISODE]
+
+
+def own_ids_follow(parts: Iterable[tuple[torch.Tensor, torch.Tensor]], where: Path) -> bool:
+    """Whether imitrl's episode ids follow LeRobot's episodes one to one across every part
+    ``(own, episode)`` of a dataset read in pieces (each part's frames in episode order):
+    constant over each episode and never repeated, in any piece. Warns when they do not
+    (:func:`own_episodes` then drops them from every piece alike)."""
+    seen: list[torch.Tensor] = []
+    for own, episode in parts:
+        ids = own_ids(own, episode)
+        if ids is None:
+            _warn_own_ids(where)
+            return False
+        seen.append(ids)
+    every = torch.cat(seen) if seen else torch.zeros(0, dtype=torch.int64)
+    if len(torch.unique(every)) != len(every):
+        _warn_own_ids(where)
+        return False
+    return True
+
+
+def _warn_own_ids(where: Path) -> None:
     warnings.warn(
-        f"{file_of(0)}: imitrl's episode ids ({key_name(keys.EPISODE)!r}) do not follow "
+        f"{where}: imitrl's episode ids ({key_name(keys.EPISODE)!r}) do not follow "
         "LeRobot's episodes one to one (a merge renumbers episode_index alone): the rows "
         "take LeRobot's episode_index",
         UserWarning,
-        stacklevel=3,
+        stacklevel=4,
     )
 
 

@@ -48,6 +48,7 @@ from imitrl.datasets.lerobot._interventions import (
     check_dagger_columns,
     feature_values,
     own_episodes,
+    own_ids_follow,
 )
 from imitrl.datasets.lerobot._layout import data_file
 from imitrl.datasets.lerobot._video import decode_videos
@@ -318,6 +319,10 @@ class Settings:
     env: EnvBase | None
     names: dict[str, str]
     """buffer key name -> feature, for messages"""
+    own_ids: bool | None = None
+    """imitrl's own episode ids kept in every piece (True), dropped from every piece
+    (False), or decided piece by piece (None: the dataset has none, or no pass 1 ran):
+    :func:`check_stream` decides it for the whole dataset"""
 
 
 def piece_rows(
@@ -342,7 +347,7 @@ def piece_rows(
         times = frame_index.double() / src.info["fps"] if times is None else times.double()
         episodes = episode_dicts(src.episodes.slice(first, end - first))
         out.update(decode_videos(src.folder, src.info, src.major, episodes, s.cameras, times, None))
-    own_episodes(out, piece.book["episode_index"], piece.file_of)  # within the piece
+    own_episodes(out, piece.book["episode_index"], piece.file_of, keep=s.own_ids)
     episode = out.pop(keys.EPISODE) if keys.EPISODE in out else piece.book["episode_index"]
     rows = required_rows(out, episode=episode + int(s.first_episode), step=frame_index)
     if s.env is not None:
@@ -358,8 +363,25 @@ def check_stream(buffer: DemonstrationBuffer, src: Source, s: Settings) -> list[
     returns the notes of :func:`conform_to_env`."""
     notes: list[str] = []
     order = RoundOrder()
+    s.own_ids = _own_ids_follow(src, s)
     check_pieces(buffer, (piece_rows(src, f, e, s, notes, order) for f, e in pieces(src)), src.root)
     return notes
+
+
+def _own_ids_follow(src: Source, s: Settings) -> bool | None:
+    """Whether imitrl's own episode ids follow LeRobot's episodes across the whole dataset
+    (None: it has none), read piece by piece from their two columns alone: a piece decides
+    nothing alone, as ids unique in each piece may repeat across pieces (a merge), which
+    the whole-dataset load answers by taking LeRobot's ``episode_index``."""
+    own = [name for name, key in s.plan.items() if key == keys.EPISODE]
+    if not own:
+        return None
+    plan = {own[0]: keys.EPISODE}
+    parts = (
+        (piece.columns[own[0]], piece.book["episode_index"])
+        for piece in (read_piece(src, f, e, plan, s.n_tasks) for f, e in pieces(src))
+    )
+    return own_ids_follow(parts, src.root)
 
 
 def extend_stream(buffer: DemonstrationBuffer, src: Source, s: Settings) -> TensorDictBase:
