@@ -190,27 +190,31 @@ def _prepare_offline(config: BCJob, name: str, folder: Path, *, keep_logs: bool)
 
 
 def demonstrations(
-    config: BCJob, setup: Setup, plan_horizon: int | None = None
+    config: BCJob, setup: Setup, plan_horizon: int | None = None, *, successors: bool = False
 ) -> DemonstrationBuffer:
     """The rows of ``--dataset``, or ``--demos`` greedy expert episodes, in a buffer
     (``plan_horizon``: with the expert's plans, :func:`~imitrl.algorithms.expert_plan.with_plans`,
-    for ``imitrl dagger --chunk-labels plan``)."""
+    for ``imitrl dagger --chunk-labels plan``; ``successors``: each row's next observation
+    kept, a dataset's as recorded (:func:`~imitrl.jobs.resolve.load_dataset`), an expert
+    episode's as played, so an episode a time limit cut keeps its last transition)."""
     if setup.rows is not None:
         rows = setup.rows
     elif config.dataset is not None:
         from imitrl.datasets import EnvMismatchError  # needs the datasets extra
 
         try:
-            rows = load_dataset(config.dataset, setup.env, config.dataset_frames)
+            rows = load_dataset(
+                config.dataset, setup.env, config.dataset_frames, successors=successors
+            )
         except EnvMismatchError as err:  # most often the wrong env: name the flag
             default = " (the default)" if config.env == type(config).env else ""
             raise ValueError(
                 f"{err}; --env is {config.env}{default}: pass the env the dataset was recorded on"
             ) from None
     else:
-        rows = rollout_episodes(
-            setup.playing(), setup.expert, config.demos
-        )  # greedy, whole episodes
+        rows = rollout_episodes(  # greedy, whole episodes
+            setup.playing(), setup.expert, config.demos, next_observation=successors
+        )
     check_same(
         rows_digest(rows), "demonstrations (rows, sha256)"
     )  # --nproc: each rank reads its own

@@ -103,7 +103,8 @@ def _train(config: GAILJob, name: str, folder: Path) -> dict:
         loss = setup.loss  # --loss default: a head with log pi (imitrl.learners.defaults)
         bc_view = config.bc_view(loss)
         learner = _learner(setup)
-        buffer = demonstrations(bc_view, setup)  # the same rows on every rank
+        # the same rows on every rank, with each row's s' (a time limit's cut keeps its last)
+        buffer = demonstrations(bc_view, setup, successors=True)
         _own_lanes(config, setup)
         expert_ev = initial_ev = None
         if evaluating():  # rank 0 evaluates and reports (--nproc)

@@ -392,7 +392,9 @@ def dataset_format(path: Path) -> str:
     )
 
 
-def load_dataset(path: Path, env: EnvBase | None, frames: str = "all") -> TensorDictBase:
+def load_dataset(
+    path: Path, env: EnvBase | None, frames: str = "all", *, successors: bool = False
+) -> TensorDictBase:
     """Demonstration rows ``[N]`` of the dataset at ``path``, conformed to ``env``'s specs
     (None: as recorded, for a run on the dataset alone).
 
@@ -402,6 +404,10 @@ def load_dataset(path: Path, env: EnvBase | None, frames: str = "all") -> Tensor
     ``POLICY_VERSION``, which DAgger's rounds then carry too). ``frames="interventions"``
     keeps the frames whose ``intervention`` is True, each streak an episode
     (:func:`~imitrl.data.interventions.intervention_segments`; ``--dataset-frames``).
+    ``successors``: keep each row's recorded next observation too (``("next",
+    OBSERVATION)``, as Minari records it), which adversarial imitation reads for the last
+    row of an episode a time limit cut
+    (:func:`~imitrl.algorithms.adversarial.transitions.expert_transitions`).
     """
     from imitrl.datasets import load_lerobot, load_minari  # needs the datasets extra
 
@@ -409,9 +415,11 @@ def load_dataset(path: Path, env: EnvBase | None, frames: str = "all") -> Tensor
     if fmt == "lerobot":  # a repo_id goes as a str: resolved locally or downloaded
         loaded = load_lerobot(path if path.is_dir() else str(path), env=env)
     else:
-        loaded = load_minari(path, env=env)
+        loaded = load_minari(path, env=env, next_observation=successors)
     present = set(loaded.rows.keys(include_nested=True))
     kept = [*ROW_KEYS, *(PROVENANCE_KEYS if set(PROVENANCE_KEYS) <= present else ())]
+    if successors:
+        kept.append((keys.NEXT, keys.OBSERVATION))
     rows = loaded.rows.select(*[k for k in kept if k in present])
     if frames == "interventions":
         if keys.EXPERT_EXECUTED not in loaded.loaded.values():

@@ -406,7 +406,8 @@ def _retrained(config) -> ActorCritic:
     """The job's learner, trained again by the same flags (reproducibility of the job)."""
     env = make_env("CartPole-v1", seed=config.seed, max_episode_steps=50)
     buffer = DemonstrationBuffer(action_spec=env.action_spec_unbatched)
-    buffer.extend(rollout_episodes(env, cartpole_expert(), 1))
+    # with each row's s', as the job keeps it: the cut episode's last row is a transition
+    buffer.extend(rollout_episodes(env, cartpole_expert(), 1, next_observation=True))
     learner = build("for_env", env, lr=config.lr, seed=config.seed, value=True)
     train = gail if isinstance(config, GAILJob) and not isinstance(config, AIRLJob) else airl
     train(env, learner, buffer, config.algorithm_config())

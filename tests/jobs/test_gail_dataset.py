@@ -1,0 +1,73 @@
+"""``imitrl gail --dataset`` reads a dataset's recorded next observations: the last row of
+an episode a time limit cut is a transition the discriminator sees (a hostile review: the
+CLI kept only the rollout keys, so each cut episode lost its last transition, though
+``expert_transitions`` reads ``("next", OBSERVATION)`` where the data records it)."""
+
+from __future__ import annotations
+
+import warnings
+
+import pytest
+
+from imitrl import keys
+from imitrl.algorithms.adversarial import loop
+from imitrl.envs import make_env
+from imitrl.experts import cartpole_expert
+from imitrl.runtime import rollout_episodes
+from tests._cli import run_main
+
+LIMIT, EPISODES = 10, 2
+
+
+@pytest.fixture
+def minari_demos(tmp_path):
+    pytest.importorskip("h5py")
+    from imitrl.datasets import save_minari
+
+    env = make_env("CartPole-v1", seed=0, max_episode_steps=LIMIT)
+    rows = rollout_episodes(env, cartpole_expert(), EPISODES, next_observation=True)
+    assert bool(rows.get((keys.NEXT, keys.TRUNCATED)).any())  # the expert outlives the limit
+    return save_minari(rows, tmp_path / "demos", env_id="CartPole-v1")
+
+
+def _counted(monkeypatch) -> list[int]:
+    """The number of expert transitions each call of ``expert_transitions`` returns."""
+    seen: list[int] = []
+    original = loop.expert_transitions
+
+    def counted(rows):
+        out = original(rows)
+        seen.append(out.shape[0])
+        return out
+
+    monkeypatch.setattr(loop, "expert_transitions", counted)
+    return seen
+
+
+@pytest.mark.parametrize("command", ["gail", "airl"])
+def test_a_cut_episodes_last_row_is_a_transition(minari_demos, tmp_path, monkeypatch, command):
+    seen = _counted(monkeypatch)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        status, _, err = run_main(
+            command, "--env", "CartPole-v1", "--dataset", str(minari_demos),
+            "--total-steps", "64", "--rollout-steps", "64", "--eval-episodes", "1",
+            "--eval-every", "0", "--max-episode-steps", str(LIMIT), "--no-progress",
+            "--out", str(tmp_path / command),
+        )  # fmt: skip
+    assert status == 0, err
+    assert seen == [LIMIT * EPISODES]  # was LIMIT * EPISODES - EPISODES: each cut end dropped
+
+
+def test_expert_episodes_keep_their_cut_last_transition(tmp_path, monkeypatch):
+    """The same for ``--demos`` episodes the expert plays: each is cut by the time limit."""
+    seen = _counted(monkeypatch)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        status, _, err = run_main(
+            "gail", "--env", "CartPole-v1", "--demos", str(EPISODES), "--total-steps", "64",
+            "--rollout-steps", "64", "--eval-episodes", "1", "--eval-every", "0",
+            "--max-episode-steps", str(LIMIT), "--no-progress", "--out", str(tmp_path / "g"),
+        )  # fmt: skip
+    assert status == 0, err
+    assert seen == [LIMIT * EPISODES]
