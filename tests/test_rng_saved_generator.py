@@ -86,3 +86,28 @@ def test_a_state_without_generators_keeps_the_fresh_seed():
     fresh.load_state_dict(migrated)
     rows = fresh.training_rows(_rows(TASK))
     assert torch.equal(_loss(fresh, rows), _loss(learner, rows))
+
+
+def test_a_sampling_learners_dagger_resumes_to_the_uninterrupted_run(tmp_path):
+    """A flow learner acts by drawing from its policy's own generator (``RANDOM``): saved
+    with the learner too, a resumed DAgger's rollouts and evaluations draw what the
+    uninterrupted run's did (was: round 2 after a resume from round 1 differed)."""
+    import json
+
+    from tests._cli import run_main
+
+    flags = ["dagger", "--env", "Pendulum-v1", "--loss", "flow", "--hidden", "16,16",
+             "--demos", "1", "--max-episode-steps", "50", "--eval-episodes", "2",
+             "--steps", "20", "--episodes-per-round", "1", "--no-progress"]  # fmt: skip
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        assert run_main(*flags, "--rounds", "3", "--out", str(tmp_path / "whole"))[0] == 0
+        assert run_main(*flags, "--rounds", "2", "--out", str(tmp_path / "part"))[0] == 0
+        status, _, err = run_main(*flags, "--rounds", "3", "--out", str(tmp_path / "part"),
+                                  "--resume")  # fmt: skip
+    assert status == 0, err
+    whole, part = (
+        json.loads((tmp_path / p / "results.json").read_text()) for p in ("whole", "part")
+    )
+    assert [r["evaluation"] for r in part["rounds"]] == [r["evaluation"] for r in whole["rounds"]]
+    assert part["learner"] == whole["learner"] and part["final_loss"] == whole["final_loss"]

@@ -56,9 +56,10 @@ def rng_from(generator: torch.Generator | None) -> Iterator[None]:
 
 class SavedGenerator:
     """For an ``nn.Module`` that draws from its own seeded ``self.generator`` (a loss's
-    noise, time steps and latents): the generator's state is part of the module's
-    ``state_dict`` (its ``_extra_state``), so a fit resumed from a checkpoint draws what
-    the uninterrupted fit would have. A state saved before the generator was
+    noise, time steps and latents; a flow or diffusion policy's sampling noise): the
+    generator's state is part of the module's ``state_dict`` (its ``_extra_state``), so a
+    fit, or a DAgger run, resumed from a checkpoint draws what the uninterrupted one would
+    have. A state saved before the generator was
     (imitrl up to e0ceebc) lacks the key: :meth:`imitrl.learners.Learner.migrated_state`
     then keeps the freshly seeded generator, which is what those versions resumed with."""
 

@@ -52,7 +52,7 @@ from torchrl.modules import DiffusionActor
 
 from imitrl import keys
 from imitrl.learners.defaults import HIDDEN
-from imitrl.rng import rng_from
+from imitrl.rng import SavedGenerator, rng_from
 
 __all__ = ["SAMPLERS", "DiffusionPolicy", "ScoreNetwork", "ddim_sample", "ddim_sample_guided"]
 
@@ -152,7 +152,7 @@ def ddim_sample_guided(
     return x
 
 
-class DiffusionPolicy(TensorDictModuleBase):
+class DiffusionPolicy(SavedGenerator, TensorDictModuleBase):
     """``OBSERVATION -> ACTION`` by a DDPM reverse chain, inside the bounds of ``action_spec``.
 
     Args:

@@ -35,6 +35,7 @@ from torchrl.data import Bounded
 from imitrl import keys
 from imitrl.learners.defaults import HIDDEN
 from imitrl.policies.normalization import ObservationNormalizer
+from imitrl.rng import SavedGenerator
 
 __all__ = ["FlowPolicy", "VelocityNetwork"]
 
@@ -63,7 +64,7 @@ class VelocityNetwork(nn.Module):
         return self.net(torch.cat([x, obs, t], dim=-1))
 
 
-class FlowPolicy(TensorDictModuleBase):
+class FlowPolicy(SavedGenerator, TensorDictModuleBase):
     """``OBSERVATION -> ACTION`` by ``num_steps`` Euler steps of a learned flow, in the bounds.
 
     Args:
