@@ -288,11 +288,18 @@ def log_evaluation(logger: Logger, round_index: int, ev: dict, expert: dict | No
 
 
 def finish(
-    config: BCJob | GAILJob, name: str, learner: Learner, results: dict, setup: Setup
+    config: BCJob | GAILJob,
+    name: str,
+    learner: Learner,
+    results: dict,
+    setup: Setup,
+    *,
+    saved: bool = False,
 ) -> None:
-    """Write results.json, the checkpoint and curves.png into the run's folder (they
-    name their place in ``--out``, where the run is published); close the env and the
-    logger."""
+    """Write results.json, the checkpoint (unless the job ``saved`` it when the fit
+    ended: :func:`~imitrl.jobs.checkpoint.save_run`) and curves.png into the run's folder
+    (they name their place in ``--out``, where the run is published); close the env and
+    the logger."""
     setup.close()  # the logger's files complete before they are plotted
     curves = plot_curves(
         scalars_dir(setup.folder, name),
@@ -303,7 +310,7 @@ def finish(
         "curves": str(config.out / curves.name),
         "logs": str(config.out / "logs"),
     }
-    save_run(setup.folder, name, config, learner, results)
+    save_run(setup.folder, name, config, learner, results, saved=saved)
 
 
 def run_bc(config: BCJob) -> dict:
@@ -349,7 +356,7 @@ def _run_bc(config: BCJob, folder: Path) -> dict:
             "random": random_ev,
             "seconds": time.perf_counter() - start,
         }
-        finish(config, "bc", learner, results, setup)
+        finish(config, "bc", learner, results, setup, saved=True)
         return results
     finally:
         setup.close()  # the env and the logger, whatever happened

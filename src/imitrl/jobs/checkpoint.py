@@ -85,10 +85,17 @@ def save_checkpoint(out: Path, command: str, config: Any, learner: Learner) -> N
     replace_file(out / WEIGHTS_FILE, weights.getvalue())
 
 
-def save_run(out: Path, command: str, config: Any, learner: Learner, results: dict) -> None:
+def save_run(
+    out: Path, command: str, config: Any, learner: Learner, results: dict, *, saved: bool = False
+) -> None:
     """Write the checkpoint (:func:`save_checkpoint`), then ``results.json``: a run's
-    last file, its mark of a finished run."""
-    save_checkpoint(out, command, config, learner)
+    last file, its mark of a finished run.
+
+    ``saved``: the job saved the checkpoint when its fit ended, which stays as it is: the
+    learner as fitted, before its evaluation drew from a sampling policy's own generator
+    (:class:`~imitrl.rng.SavedGenerator`), so ``imitrl eval`` replays the run's evaluation."""
+    if not saved:
+        save_checkpoint(out, command, config, learner)
     replace_file(out / RESULTS_FILE, json.dumps(to_json(results), indent=2) + "\n")
 
 

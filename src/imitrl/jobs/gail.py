@@ -149,7 +149,7 @@ def _train(config: GAILJob, name: str, folder: Path) -> dict:
             "rounds": [dataclasses.asdict(r) for r in result.rounds],
             "seconds": time.perf_counter() - start,
         }
-        finish(dataclasses.replace(config, loss=loss), name, learner, results, setup)
+        finish(dataclasses.replace(config, loss=loss), name, learner, results, setup, saved=True)
         return results
     finally:
         setup.close()  # the env and the logger, whatever happened
