@@ -69,12 +69,35 @@ def test_a_learner_loaded_from_a_state_continues_its_draws(name):
     assert all(isinstance(m, SavedGenerator) for m in _generators(b.loss))
 
 
-def test_a_generator_state_of_the_wrong_kind_is_refused():
+@pytest.mark.parametrize(
+    "bad",
+    [torch.zeros(3), torch.zeros(10, dtype=torch.uint8), torch.zeros(5056, 1, dtype=torch.uint8),
+     torch.zeros(5056, dtype=torch.uint8).to_sparse(), "state"],
+    ids=["float", "short", "2-d", "sparse", "text"],
+)  # fmt: skip
+def test_a_generator_state_of_the_wrong_kind_is_refused_in_one_line(bad, tmp_path):
+    """Two hostile reviews: a float state, a sparse one (a ``TypeError`` traceback) or one
+    of the wrong size (blamed on the env) in ``learner.pt``."""
+    from tests._cli import run_main
+
     learner = build("flow", TASK, shared=CONFIG)
     state = learner.state_dict()
-    state["loss._extra_state"] = torch.zeros(3)
-    with pytest.raises(ValueError, match="a saved generator state must be a uint8 tensor"):
+    state["loss._extra_state"] = bad
+    with pytest.raises(
+        ValueError, match=r"FlowMatchingLoss's _extra_state\) must be a dense uint8"
+    ):
         learner.load_state_dict(state)
+    run = tmp_path / "run"
+    flags = ["--env", "Pendulum-v1", "--loss", "flow", "--hidden", "16,16", "--demos", "1",
+             "--steps", "5", "--max-episode-steps", "20", "--eval-episodes", "1", "--no-progress"]  # fmt: skip
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        assert run_main("bc", *flags, "--out", str(run))[0] == 0
+    saved = torch.load(run / "learner.pt", weights_only=True)
+    saved["loss._extra_state"] = bad
+    torch.save(saved, run / "learner.pt")
+    status, _, err = run_main("eval", "--checkpoint", str(run), "--no-progress")
+    assert status == 2 and "must be a dense uint8 tensor" in err and "Traceback" not in err, err
 
 
 def test_a_state_without_generators_keeps_the_fresh_seed():
@@ -111,3 +134,11 @@ def test_a_sampling_learners_dagger_resumes_to_the_uninterrupted_run(tmp_path):
     )
     assert [r["evaluation"] for r in part["rounds"]] == [r["evaluation"] for r in whole["rounds"]]
     assert part["learner"] == whole["learner"] and part["final_loss"] == whole["final_loss"]
+    # imitrl eval replays the last round's evaluation: learner.pt holds the learner as
+    # fitted, before that evaluation drew from its generator (a hostile review: it differed)
+    for run in ("whole", "part"):
+        status, _, err = run_main("eval", "--checkpoint", str(tmp_path / run), "--no-progress",
+                                  "--out", str(tmp_path / f"{run}-eval"))  # fmt: skip
+        assert status == 0, err
+        ev = json.loads((tmp_path / f"{run}-eval" / "eval.json").read_text())["evaluation"]
+        assert ev == whole["learner"], run

@@ -72,9 +72,21 @@ class SavedGenerator:
     def set_extra_state(self, state: torch.Tensor) -> None:
         """Continue from a saved ``state`` (moved back to the CPU, where the generator
         draws, if a ``map_location`` moved it)."""
-        if not isinstance(state, torch.Tensor) or state.dtype != torch.uint8:
-            raise ValueError(
-                "a saved generator state must be a uint8 tensor (torch.Generator.get_state), "
-                f"got {type(state).__name__}"
+        want = self.generator.get_state()
+        if (
+            not isinstance(state, torch.Tensor)
+            or state.dtype != torch.uint8
+            or state.layout != torch.strided
+            or tuple(state.shape) != tuple(want.shape)
+        ):
+            got = (
+                f"{state.dtype} {state.layout} {list(state.shape)}"
+                if isinstance(state, torch.Tensor)
+                else type(state).__name__
             )
-        self.generator.set_state(state.cpu())
+            raise ValueError(
+                f"a saved generator state ({type(self).__name__}'s _extra_state) must be a "
+                f"dense uint8 tensor of {want.numel()} bytes (torch.Generator.get_state), "
+                f"got {got}"
+            )
+        self.generator.set_state(state.cpu().contiguous())

@@ -114,3 +114,21 @@ def test_a_checkpoint_evaluated_in_another_env_is_one_line_naming_its_env(run):
 def _main(*argv: str) -> tuple[int, str]:
     status, _, err = run_main(*argv)
     return status, err
+
+
+@pytest.mark.parametrize("value", [0.0, -1.0])
+def test_a_normaliser_scale_fit_never_writes_is_refused(run, tmp_path, value):
+    """A hostile review: a scale edited to 0 was scored on inf inputs (NaN weights were
+    refused); a fitted scale is a standard deviation >= min_scale, or 1."""
+    bad = tmp_path / "scale"
+    shutil.copytree(run, bad)
+    state = torch.load(bad / "learner.pt", weights_only=True)
+    names = [k for k in state if k.endswith("normalizer.scale")]
+    assert names, sorted(state)
+    for name in names:
+        state[name] = torch.full_like(state[name], value)
+    torch.save(state, bad / "learner.pt")
+    status, err = _main("eval", "--checkpoint", str(bad), "--eval-episodes", "1")
+    assert status == 2 and "a normaliser's scale is a standard deviation" in err, err
+    status, err = _main("eval", "--checkpoint", str(run), "--eval-episodes", "1")
+    assert status == 0, err  # the checkpoint as saved

@@ -71,3 +71,30 @@ def test_expert_episodes_keep_their_cut_last_transition(tmp_path, monkeypatch):
         )  # fmt: skip
     assert status == 0, err
     assert seen == [LIMIT * EPISODES]
+
+
+def test_a_float64_minari_dataset_trains_with_its_recorded_successors(tmp_path, monkeypatch):
+    """A hostile review: a MuJoCo env's Minari dataset stores float64 observations; the
+    observation was cast to the env's float32 and its recorded next one was not, and
+    comparing the two raised ``Double did not match Float`` through imitrl."""
+    pytest.importorskip("h5py")
+    pytest.importorskip("mujoco")
+    from imitrl.datasets import load_minari, save_minari
+    from imitrl.experts import inverted_pendulum_expert
+
+    env = make_env("InvertedPendulum-v5", seed=0, max_episode_steps=LIMIT)
+    rows = rollout_episodes(env, inverted_pendulum_expert(), EPISODES, next_observation=True)
+    path = save_minari(rows, tmp_path / "demos", env_id="InvertedPendulum-v5")
+    loaded = load_minari(path, env=env, next_observation=True).rows
+    assert loaded[keys.NEXT, keys.OBSERVATION].dtype == loaded[keys.OBSERVATION].dtype
+    seen = _counted(monkeypatch)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        status, _, err = run_main(
+            "gail", "--env", "InvertedPendulum-v5", "--dataset", str(path), "--hidden", "16,16",
+            "--total-steps", "64", "--rollout-steps", "64", "--eval-episodes", "1",
+            "--eval-every", "0", "--max-episode-steps", str(LIMIT), "--no-progress",
+            "--out", str(tmp_path / "g"),
+        )  # fmt: skip
+    assert status == 0, err
+    assert seen == [rows.shape[0]]  # every row a transition: each episode ends cut or fallen

@@ -16,6 +16,7 @@ def broken(tmp_path, monkeypatch):
     (tmp_path / "raises_at_import.py").write_text("raise RuntimeError('no licence file')\n")
     (tmp_path / "bad_syntax.py").write_text("def f(:\n")
     (tmp_path / "needs_missing.py").write_text("import no_such_dependency_q\n")
+    (tmp_path / "exits_at_import.py").write_text("import sys\nsys.exit(0)\n")
     monkeypatch.syspath_prepend(str(tmp_path))
     return tmp_path
 
@@ -27,6 +28,8 @@ def broken(tmp_path, monkeypatch):
         ("bad_syntax", "importing it raised SyntaxError"),
         ("needs_missing", "No module named 'no_such_dependency_q'"),
         ("no_such_module_q", "No module named 'no_such_module_q'"),
+        # a hostile review: the run exited 0, printing and writing nothing
+        ("exits_at_import", "importing it called sys.exit(0)"),
     ],
 )
 def test_every_import_failure_is_a_value_error_naming_the_flag(broken, module, said):

@@ -8,7 +8,7 @@ buffer, ``extend`` and ``load``, all call it.
 from __future__ import annotations
 
 import torch
-from tensordict import TensorDictBase, is_non_tensor
+from tensordict import NestedKey, TensorDictBase, is_non_tensor
 from torchrl.data import Bounded, Categorical, TensorSpec
 
 from imitrl import keys
@@ -46,22 +46,21 @@ Schema = dict[str, tuple[str, tuple[int, ...]]]
 def schema_of(rows: TensorDictBase) -> Schema:
     """``{"a.b": (dtype name, trailing shape)}`` of every leaf of ``rows``.
 
-    A key's parts are joined by ``"."`` (the names a disk buffer gives its column files),
-    so a part that holds a ``"."`` itself is refused: ``"x.y"`` and ``("x", "y")`` would
-    share one column and one would overwrite the other.
+    A key's parts are joined by ``"."``, so a key named ``"x.y"`` (a gymnasium Dict's
+    ``"pos.x"`` in a Minari dataset) and the nested ``("x", "y")`` would share one schema
+    entry, and the checks of one would be the other's: rows holding both are refused.
     """
-    out = {}
+    out: Schema = {}
+    named: dict[str, NestedKey] = {}
     for key in rows.keys(include_nested=True, leaves_only=True):
         value = rows.get(key)
-        parts = (key,) if isinstance(key, str) else key
-        dotted = [p for p in parts if "." in p]
-        if dotted:
+        name = key if isinstance(key, str) else ".".join(key)
+        if name in named:
             raise ValueError(
-                f"row key {key!r}: a key part may not contain '.' ({dotted[0]!r}), which "
-                "joins nested keys in the buffer's schema and column files; nest it "
-                f"instead: {tuple(q for p in parts for q in p.split('.'))!r}"
+                f"row keys {named[name]!r} and {key!r} both read {name!r} in the buffer's "
+                "schema, which joins nested keys with '.': rename one of them"
             )
-        name = ".".join(parts)
+        named[name] = key
         out[name] = (str(value.dtype).replace("torch.", ""), tuple(value.shape[1:]))
     return out
 
@@ -106,6 +105,7 @@ def check_rows(
             f"rows carry no observation: at least one of {list(OBSERVATION_KEYS)} is required "
             f"(a camera under {keys.PIXELS!r} or ({keys.PIXELS!r}, name))"
         )
+    _check_dtypes(rows)
     new = schema_of(rows)
     if schema is None:
         _check_first_rows(rows, new)
@@ -113,11 +113,6 @@ def check_rows(
         raise ValueError("rows do not match the buffer's schema: " + _schema_diff(schema, new))
     for key in rows.keys(include_nested=True, leaves_only=True):
         value = rows.get(key)
-        if value.dtype.is_complex:  # isfinite's NaN check above is for real dtypes only
-            raise ValueError(
-                f"rows hold complex values under {key!r} ({value.dtype}): the buffer stores "
-                "real numbers, integers and bools"
-            )
         if value.dtype.is_floating_point and value.numel() and not _finite(value):
             raise ValueError(f"rows contain NaN or inf under {key!r}")
     if next_episode is not None:
@@ -140,6 +135,34 @@ def check_rows(
         if int(obs.max()) >= num_states:
             raise ValueError(f"observations must be integer states in [0, {num_states})")
     return new
+
+
+STORED_DTYPES = (
+    torch.float16, torch.bfloat16, torch.float32, torch.float64,
+    torch.uint8, torch.int8, torch.int16, torch.int32, torch.int64, torch.bool,
+)  # fmt: skip
+"""the dtypes a buffer stores: what torch indexes, sorts and checks on the CPU (uint16,
+uint32 and uint64 lack ``index_put``, float8 ``aminmax``; complex values would pass a
+real finiteness check; quantized ones cannot be mapped from a file)"""
+
+
+def _check_dtypes(rows: TensorDictBase) -> None:
+    """ValueError naming the first entry of a dtype the buffer does not store, and the cast
+    that keeps its values."""
+    for key in rows.keys(include_nested=True, leaves_only=True):
+        dtype = rows.get(key).dtype
+        if dtype in STORED_DTYPES:
+            continue
+        if dtype in (torch.uint16, torch.uint32):
+            hint = "cast it to int32 or int64 (every value kept)"
+        elif dtype == torch.uint64:
+            hint = "cast it to int64 if its values stay below 2**63"
+        else:
+            hint = "cast it to a float or integer dtype first"
+        raise ValueError(
+            f"rows hold {dtype} values under {key!r}: the buffer stores "
+            f"{', '.join(str(d).removeprefix('torch.') for d in STORED_DTYPES)}; {hint}"
+        )
 
 
 def _check_first_rows(rows: TensorDictBase, schema: Schema) -> None:
@@ -167,6 +190,8 @@ def _check_episodes(episodes: torch.Tensor, next_episode: int) -> None:
         raise ValueError(
             f"each episode's rows must be contiguous: {keys.EPISODE!r} ids reappear after another episode"
         )
+    if int(episodes.min()) < 0:
+        raise ValueError(f"episode ids must be >= 0, got {int(episodes.min())}")
     if int(episodes.min()) < next_episode:
         raise ValueError(
             f"episode id {int(episodes.min())} is already used in this buffer; "

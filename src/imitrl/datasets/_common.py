@@ -22,6 +22,7 @@ from tensordict import TensorDict
 from torchrl.envs import EnvBase
 
 from imitrl import keys
+from imitrl.data.validation import MAX_EPISODE_ID
 from imitrl.fs.reading import OpenedFolder, ReplacedWhileReading
 
 __all__ = [
@@ -200,16 +201,25 @@ def required_rows(
     *,
     episode: torch.Tensor,
     step: torch.Tensor,
+    first_episode: int = 0,
 ) -> TensorDict:
-    """Complete the buffer's required keys: a label-only dataset was executed by the expert."""
+    """Complete the buffer's required keys: a label-only dataset was executed by the expert.
+    ``episode + first_episode`` are the rows' ids, added as int64 and refused (ValueError)
+    past the largest id a buffer holds, rather than wrapped around."""
     n = episode.shape[0]
+    ids = episode.to(torch.int64)
+    if n and int(ids.max()) + int(first_episode) >= MAX_EPISODE_ID:
+        raise ValueError(
+            f"episode id {int(ids.max())} + first_episode {int(first_episode)} passes the "
+            f"largest episode id a buffer holds ({MAX_EPISODE_ID - 1}): number episodes from 0"
+        )
     if keys.EXPERT_ACTION not in columns and keys.ACTION in columns:
         columns[keys.EXPERT_ACTION] = columns[keys.ACTION]
     if keys.ACTION not in columns and keys.EXPERT_ACTION in columns:
         columns[keys.ACTION] = columns[keys.EXPERT_ACTION].clone()
     columns.setdefault(keys.EXPERT_EXECUTED, torch.ones(n, dtype=torch.bool))
     columns.setdefault(keys.ROUND, torch.zeros(n, dtype=torch.int64))
-    columns[keys.EPISODE] = episode.to(torch.int64)
+    columns[keys.EPISODE] = ids + int(first_episode)
     columns[keys.STEP] = step.to(torch.int64)
     td = TensorDict({}, batch_size=[n])
     for key, value in columns.items():
@@ -350,7 +360,8 @@ def conform_to_env(
 ) -> TensorDict:
     """Check (and where harmless, fit) loaded rows against ``env``'s specs.
 
-    Observation (``OBSERVATION``, and the camera ``PIXELS`` where the rows have it) and
+    Observation (``OBSERVATION``, and the camera ``PIXELS`` where the rows have it; a
+    recorded next observation, ``("next", OBSERVATION)``, as the observation) and
     action shapes must match the env's per-frame shapes (size-1 dims
     may be added or removed: LeRobot stores a per-frame scalar as shape ``[1]``);
     dtypes are cast within a kind (float64 -> float32, int32 -> int64; ints must not
@@ -385,6 +396,10 @@ def conform_to_env(
             f"the env has no {keys.OBSERVATION!r} (or {keys.PIXELS!r}) observation to check "
             "the dataset against"
         )
+    present = rows.keys(include_nested=True)  # a recorded next observation: as its own
+    for k, spec in list(checks):
+        if isinstance(k, str) and (keys.NEXT, k) in present:
+            checks.append(((keys.NEXT, k), spec))
     action_spec = env.full_action_spec[keys.ACTION]
     checks += [(keys.EXPERT_ACTION, action_spec), (keys.ACTION, action_spec)]
     for key, spec in checks:

@@ -92,9 +92,15 @@ def _run_dagger(config: DAggerJob, folder: Path) -> dict:
         demo_last = max(buffer.rounds())  # a dataset of earlier rounds: this run's come after
         expert_ev = evaluate_expert(config, setup) if evaluating() else None
 
+        fitted: dict[int, dict] = {}  # the last round's learner as fitted, for learner.pt
+
         def on_fit(round_index: int, learner: Learner) -> dict:
             if not evaluating():  # rank 0 evaluates (--nproc) and writes
                 return {}
+            # before its evaluation draws from a sampling policy's own generator, so that
+            # imitrl eval of the checkpoint replays the evaluation (imitrl.rng.SavedGenerator)
+            fitted.clear()
+            fitted[round_index] = {k: v.clone() for k, v in learner.state_dict().items()}
             if config.save_lerobot is not None:  # every round so far, before anything else
                 save_rounds(config, buffer, folder / LEROBOT_DIR, demo_last)
             ev = evaluate_learner(config, learner)
@@ -147,7 +153,8 @@ def _run_dagger(config: DAggerJob, folder: Path) -> dict:
             "rounds": rounds,
             "seconds": time.perf_counter() - start,
         }
-        finish(config, "dagger", result.learner, results, setup)
+        state = fitted.get(result.rounds[-1].round)  # None: no round fitted in this process
+        finish(config, "dagger", result.learner, results, setup, state=state)
         return results
     finally:
         setup.close()  # the env and the logger, whatever happened

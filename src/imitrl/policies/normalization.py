@@ -67,5 +67,20 @@ class ObservationNormalizer(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return (x - self.loc) / self.scale
 
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs) -> None:
+        """Refuse a saved ``scale`` that :meth:`fit` never writes (a hostile review: a
+        checkpoint edited to a zero scale was scored on inf inputs): every entry must be
+        a finite number >= ``min_scale``, or 1; the error joins torch's list of mismatches."""
+        scale = state_dict.get(prefix + "scale")
+        error_msgs = args[-1] if args else kwargs["error_msgs"]
+        if isinstance(scale, torch.Tensor) and scale.is_floating_point():
+            bad = ~torch.isfinite(scale) | (scale < self.min_scale)
+            if bool(bad.any()):
+                error_msgs.append(
+                    f"{prefix}scale holds {float(scale[bad].flatten()[0])!r}: a normaliser's "
+                    f"scale is a standard deviation >= {self.min_scale:g}, never written so"
+                )
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
     def extra_repr(self) -> str:
         return f"shape={self.shape}, fitted={self.is_fitted}"

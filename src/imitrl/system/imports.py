@@ -20,13 +20,17 @@ def import_user_module(module: str, what: str) -> ModuleType:
 
     Raises:
         ValueError: the module is missing, or its own code raised while importing (a
-            ``SyntaxError``, a ``RuntimeError`` of its own): the message names the error
-            and keeps it as ``__cause__`` for a debugger.
+            ``SyntaxError``, a ``RuntimeError`` of its own, ``sys.exit()``): the message
+            names the error and keeps it as ``__cause__`` for a debugger.
     """
     try:
         return importlib.import_module(module)
     except ImportError as err:
         raise ValueError(f"{what}: cannot import {module!r} ({err})") from err
+    except SystemExit as err:  # a script's sys.exit() or argparse at import: not a run's end
+        raise ValueError(
+            f"{what}: cannot import {module!r}: importing it called sys.exit({err.code!r})"
+        ) from err
     except Exception as err:
         raise ValueError(
             f"{what}: cannot import {module!r}: importing it raised {type(err).__name__}: {err}"

@@ -99,7 +99,8 @@ def _stored_successors(rows, next_obs, has_next, terminated) -> torch.Tensor:
             f"rows' ('next', 'observation') is {list(stored.shape)}, their observation "
             f"{list(next_obs.shape)}"
         )
-    both = has_next & ~torch.isclose(stored, next_obs).reshape(len(stored), -1).all(-1)
+    close = torch.isclose(stored.double(), next_obs.double())  # (a dataset's dtype, as read)
+    both = has_next & ~close.reshape(len(stored), -1).all(-1)
     if bool(both.any()):
         i = int(torch.nonzero(both)[0, 0])
         raise ValueError(
@@ -108,7 +109,7 @@ def _stored_successors(rows, next_obs, has_next, terminated) -> torch.Tensor:
             "the next row's observation"
         )
     cut = ~has_next & ~terminated
-    next_obs[cut] = stored[cut]
+    next_obs[cut] = stored[cut].to(next_obs.dtype)
     return cut
 
 

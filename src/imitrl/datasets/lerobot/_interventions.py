@@ -147,11 +147,23 @@ def _episode_heads(episode: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
 
 def own_ids(own: torch.Tensor, episode: torch.Tensor) -> torch.Tensor | None:
     """imitrl's episode ids (``own``, one a frame) of frames in episode order (``episode``:
-    LeRobot's ``episode_index``), one per LeRobot episode, where each is constant over its
-    episode; None where one is not."""
+    LeRobot's ``episode_index``), one per LeRobot episode, where each is a whole number
+    >= 0 constant over its episode; None where one is not (an edited column: a float id
+    cast to an integer would join two episodes, a negative one no buffer accepts)."""
     heads, first = _episode_heads(episode)
     own = own.reshape(-1)
-    return own[heads] if bool((own == own[heads][first]).all()) else None
+    if own.is_floating_point() and not bool((own == own.floor()).all()):
+        return None
+    if own.numel() and int(own.min()) < 0:
+        return None
+    return own[heads].long() if bool((own == own[heads][first]).all()) else None
+
+
+def _ascending(ids: torch.Tensor) -> bool:
+    """Each id above the one before: episodes in the order imitrl wrote them, none twice
+    (ids out of order, as a merge of two datasets leaves them, would be refused by a
+    buffer read in pieces and accepted whole)."""
+    return bool((ids[1:] > ids[:-1]).all())
 
 
 def own_episodes(
@@ -159,7 +171,7 @@ def own_episodes(
 ) -> None:
     """Frames ``[N]`` of a whole dataset in episode order (``episode``: LeRobot's
     ``episode_index``): imitrl's own episode ids (``imitrl.episode``) are kept only where
-    they follow LeRobot's episodes one to one; otherwise (LeRobot's ``aggregate_datasets``
+    they follow LeRobot's episodes one to one, ascending (:func:`own_ids`); otherwise (LeRobot's ``aggregate_datasets``
     renumbers ``episode_index`` alone, so two merged datasets repeat ids) they are dropped,
     with a warning, and the rows take LeRobot's ``episode_index``.
 
@@ -169,7 +181,7 @@ def own_episodes(
         return
     if keep is None:
         ids = own_ids(out[keys.EPISODE], episode)
-        keep = ids is not None and len(torch.unique(ids)) == len(ids)
+        keep = ids is not None and _ascending(ids)
         if not keep:
             _warn_own_ids(file_of(0))
     if not keep:
@@ -179,7 +191,8 @@ def own_episodes(
 def own_ids_follow(parts: Iterable[tuple[torch.Tensor, torch.Tensor]], where: Path) -> bool:
     """Whether imitrl's episode ids follow LeRobot's episodes one to one across every part
     ``(own, episode)`` of a dataset read in pieces (each part's frames in episode order):
-    constant over each episode and never repeated, in any piece. Warns when they do not
+    whole numbers >= 0, constant over each episode and ascending across the pieces. Warns
+    when they do not
     (:func:`own_episodes` then drops them from every piece alike)."""
     seen: list[torch.Tensor] = []
     for own, episode in parts:
@@ -189,7 +202,7 @@ def own_ids_follow(parts: Iterable[tuple[torch.Tensor, torch.Tensor]], where: Pa
             return False
         seen.append(ids)
     every = torch.cat(seen) if seen else torch.zeros(0, dtype=torch.int64)
-    if len(torch.unique(every)) != len(every):
+    if not _ascending(every):
         _warn_own_ids(where)
         return False
     return True

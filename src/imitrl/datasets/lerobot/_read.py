@@ -148,7 +148,7 @@ def _load(folder: OpenedFolder, req: _Request) -> tuple[LoadedDemonstrations, _M
     own_episodes(out, frames.episode_index[index], lambda i: frames.file_at(int(index[i])))
     episode = out.pop(keys.EPISODE) if keys.EPISODE in out else frames.episode_index[index]
     step = frames.frame_index[index]
-    rows = required_rows(out, episode=episode + int(req.first_episode), step=step)
+    rows = required_rows(out, episode=episode, step=step, first_episode=req.first_episode)
     notes: list[str] = []
     if req.env is not None:
         names = {v: k for k, v in loaded.items()}

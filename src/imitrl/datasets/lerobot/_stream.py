@@ -349,7 +349,7 @@ def piece_rows(
         out.update(decode_videos(src.folder, src.info, src.major, episodes, s.cameras, times, None))
     own_episodes(out, piece.book["episode_index"], piece.file_of, keep=s.own_ids)
     episode = out.pop(keys.EPISODE) if keys.EPISODE in out else piece.book["episode_index"]
-    rows = required_rows(out, episode=episode + int(s.first_episode), step=frame_index)
+    rows = required_rows(out, episode=episode, step=frame_index, first_episode=s.first_episode)
     if s.env is not None:
         where = str(src.root / "meta" / "info.json")
         found: list[str] = []
