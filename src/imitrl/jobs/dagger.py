@@ -75,6 +75,15 @@ def run_dagger(config: DAggerJob) -> dict:
         return _run_dagger(config, folder)
 
 
+def _keep_fitted(fitted: dict[int, dict], round_index: int, learner: Learner) -> None:
+    """Keep ``learner``'s state as round ``round_index`` fitted it (only the last round's):
+    taken before the round's evaluation draws from a sampling policy's own generator, it
+    is the ``learner.pt`` that ``imitrl eval`` replays the evaluation from
+    (:class:`~imitrl.rng.SavedGenerator`)."""
+    fitted.clear()
+    fitted[round_index] = {k: v.clone() for k, v in learner.state_dict().items()}
+
+
 def _run_dagger(config: DAggerJob, folder: Path) -> dict:
     start = time.perf_counter()
     checkpoint = folder / RUN_CHECKPOINT
@@ -97,10 +106,7 @@ def _run_dagger(config: DAggerJob, folder: Path) -> dict:
         def on_fit(round_index: int, learner: Learner) -> dict:
             if not evaluating():  # rank 0 evaluates (--nproc) and writes
                 return {}
-            # before its evaluation draws from a sampling policy's own generator, so that
-            # imitrl eval of the checkpoint replays the evaluation (imitrl.rng.SavedGenerator)
-            fitted.clear()
-            fitted[round_index] = {k: v.clone() for k, v in learner.state_dict().items()}
+            _keep_fitted(fitted, round_index, learner)  # before its evaluation draws
             if config.save_lerobot is not None:  # every round so far, before anything else
                 save_rounds(config, buffer, folder / LEROBOT_DIR, demo_last)
             ev = evaluate_learner(config, learner)
