@@ -116,6 +116,7 @@ def test_a_sampling_learners_dagger_resumes_to_the_uninterrupted_run(tmp_path):
     with the learner too, a resumed DAgger's rollouts and evaluations draw what the
     uninterrupted run's did (was: round 2 after a resume from round 1 differed)."""
     import json
+    import shutil
 
     from tests._cli import run_main
 
@@ -128,6 +129,10 @@ def test_a_sampling_learners_dagger_resumes_to_the_uninterrupted_run(tmp_path):
         assert run_main(*flags, "--rounds", "2", "--out", str(tmp_path / "part"))[0] == 0
         status, _, err = run_main(*flags, "--rounds", "3", "--out", str(tmp_path / "part"),
                                   "--resume")  # fmt: skip
+        assert status == 0, err
+        shutil.copytree(tmp_path / "whole", tmp_path / "again")  # a finished run resumed
+        status, _, err = run_main(*flags, "--rounds", "3", "--out", str(tmp_path / "again"),
+                                  "--resume")  # fmt: skip
     assert status == 0, err
     whole, part = (
         json.loads((tmp_path / p / "results.json").read_text()) for p in ("whole", "part")
@@ -136,7 +141,7 @@ def test_a_sampling_learners_dagger_resumes_to_the_uninterrupted_run(tmp_path):
     assert part["learner"] == whole["learner"] and part["final_loss"] == whole["final_loss"]
     # imitrl eval replays the last round's evaluation: learner.pt holds the learner as
     # fitted, before that evaluation drew from its generator (a hostile review: it differed)
-    for run in ("whole", "part"):
+    for run in ("whole", "part", "again"):
         status, _, err = run_main("eval", "--checkpoint", str(tmp_path / run), "--no-progress",
                                   "--out", str(tmp_path / f"{run}-eval"))  # fmt: skip
         assert status == 0, err

@@ -295,12 +295,11 @@ def finish(
     setup: Setup,
     *,
     saved: bool = False,
-    state: dict | None = None,
 ) -> None:
     """Write results.json, the checkpoint (unless the job ``saved`` it when the fit
-    ended; ``state``: the learner's as fitted, :func:`~imitrl.jobs.checkpoint.save_run`)
-    and curves.png into the run's folder (they name their place in ``--out``, where the
-    run is published); close the env and the logger."""
+    ended: :func:`~imitrl.jobs.checkpoint.save_run`) and curves.png into the run's
+    folder (they name their place in ``--out``, where the run is published); close the
+    env and the logger."""
     setup.close()  # the logger's files complete before they are plotted
     curves = plot_curves(
         scalars_dir(setup.folder, name),
@@ -311,7 +310,7 @@ def finish(
         "curves": str(config.out / curves.name),
         "logs": str(config.out / "logs"),
     }
-    save_run(setup.folder, name, config, learner, results, saved=saved, state=state)
+    save_run(setup.folder, name, config, learner, results, saved=saved)
 
 
 def run_bc(config: BCJob) -> dict:

@@ -72,22 +72,16 @@ def to_json(value: Any) -> Any:
     return value
 
 
-def save_checkpoint(
-    out: Path, command: str, config: Any, learner: Learner, *, state: dict | None = None
-) -> None:
+def save_checkpoint(out: Path, command: str, config: Any, learner: Learner) -> None:
     """Write ``config.json``, then ``learner.pt``, into ``out``, each whole
     (:func:`~imitrl.fs.files.replace_file`): the checkpoint. A job saves it as soon as the
     learner is fitted, before it evaluates it, so an evaluation that fails or is
-    interrupted leaves the fit where :mod:`imitrl.fs.run_folder` keeps it.
-
-    ``state``: the learner's ``state_dict()`` as it was when fitted (DAgger's last round,
-    taken before that round's evaluation drew from a sampling policy's generator); None:
-    as it is now."""
+    interrupted leaves the fit where :mod:`imitrl.fs.run_folder` keeps it."""
     out.mkdir(parents=True, exist_ok=True)
     meta = {"command": command, "config": to_json(config)}
     replace_file(out / CONFIG_FILE, json.dumps(meta, indent=2) + "\n")
     weights = io.BytesIO()
-    torch.save(learner.state_dict() if state is None else state, weights)
+    torch.save(learner.state_dict(), weights)
     replace_file(out / WEIGHTS_FILE, weights.getvalue())
 
 
@@ -99,17 +93,15 @@ def save_run(
     results: dict,
     *,
     saved: bool = False,
-    state: dict | None = None,
 ) -> None:
     """Write the checkpoint (:func:`save_checkpoint`), then ``results.json``: a run's
     last file, its mark of a finished run.
 
     ``saved``: the job saved the checkpoint when its fit ended, which stays as it is: the
     learner as fitted, before its evaluation drew from a sampling policy's own generator
-    (:class:`~imitrl.rng.SavedGenerator`), so ``imitrl eval`` replays the run's evaluation.
-    ``state``: the learner's state as fitted (:func:`save_checkpoint`)."""
+    (:class:`~imitrl.rng.SavedGenerator`), so ``imitrl eval`` replays the run's evaluation."""
     if not saved:
-        save_checkpoint(out, command, config, learner, state=state)
+        save_checkpoint(out, command, config, learner)
     replace_file(out / RESULTS_FILE, json.dumps(to_json(results), indent=2) + "\n")
 
 

@@ -50,6 +50,7 @@ from imitrl.jobs.bc import (
     log_evaluation,
     prepare,
 )
+from imitrl.jobs.checkpoint import WEIGHTS_FILE, save_checkpoint
 from imitrl.jobs.configs import DAggerJob
 from imitrl.jobs.evaluate import format_return
 from imitrl.jobs.ranks import RUN_CHECKPOINT, evaluating, lead, run_folder
@@ -75,15 +76,6 @@ def run_dagger(config: DAggerJob) -> dict:
         return _run_dagger(config, folder)
 
 
-def _keep_fitted(fitted: dict[int, dict], round_index: int, learner: Learner) -> None:
-    """Keep ``learner``'s state as round ``round_index`` fitted it (only the last round's):
-    taken before the round's evaluation draws from a sampling policy's own generator, it
-    is the ``learner.pt`` that ``imitrl eval`` replays the evaluation from
-    (:class:`~imitrl.rng.SavedGenerator`)."""
-    fitted.clear()
-    fitted[round_index] = {k: v.clone() for k, v in learner.state_dict().items()}
-
-
 def _run_dagger(config: DAggerJob, folder: Path) -> dict:
     start = time.perf_counter()
     checkpoint = folder / RUN_CHECKPOINT
@@ -101,12 +93,12 @@ def _run_dagger(config: DAggerJob, folder: Path) -> dict:
         demo_last = max(buffer.rounds())  # a dataset of earlier rounds: this run's come after
         expert_ev = evaluate_expert(config, setup) if evaluating() else None
 
-        fitted: dict[int, dict] = {}  # the last round's learner as fitted, for learner.pt
-
         def on_fit(round_index: int, learner: Learner) -> dict:
             if not evaluating():  # rank 0 evaluates (--nproc) and writes
                 return {}
-            _keep_fitted(fitted, round_index, learner)  # before its evaluation draws
+            # the round's learner as fitted, before its evaluation draws from a sampling
+            # policy's generator: the learner.pt imitrl eval replays it from, kept by a kill
+            save_checkpoint(folder, "dagger", config, learner)
             if config.save_lerobot is not None:  # every round so far, before anything else
                 save_rounds(config, buffer, folder / LEROBOT_DIR, demo_last)
             ev = evaluate_learner(config, learner)
@@ -159,8 +151,9 @@ def _run_dagger(config: DAggerJob, folder: Path) -> dict:
             "rounds": rounds,
             "seconds": time.perf_counter() - start,
         }
-        state = fitted.get(result.rounds[-1].round)  # None: no round fitted in this process
-        finish(config, "dagger", result.learner, results, setup, state=state)
+        # the last round's learner.pt, as on_fit saved it (here or before a kill and --resume)
+        saved = evaluating() and (folder / WEIGHTS_FILE).is_file()
+        finish(config, "dagger", result.learner, results, setup, saved=saved)
         return results
     finally:
         setup.close()  # the env and the logger, whatever happened
