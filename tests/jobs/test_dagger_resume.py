@@ -38,6 +38,12 @@ def _files(folder):
         (["--env", "CartPole-v1", "--max-episode-steps", "40"], "differs in ['max_episode_steps']"),
         (["--env", "Acrobot-v1"], "differs in ['env']"),
         (["--env", "CartPole-v1", "--steps", "20"], "differs in ['bc']"),
+        # a hostile review: these resumed, and the run recorded settings its first rounds
+        # never had (--lr), or demonstrations it did not train on (--demos); --hidden
+        # printed torch's lines of weight shapes
+        (["--env", "CartPole-v1", "--lr", "0.01"], "differs in ['lr']"),
+        (["--env", "CartPole-v1", "--demos", "2"], "differs in ['demos']"),
+        (["--env", "CartPole-v1", "--hidden", "4"], "differs in ['hidden']"),
     ],
 )  # fmt: skip
 def test_a_resume_with_other_flags_is_refused_and_leaves_nothing(finished, flags, differs):

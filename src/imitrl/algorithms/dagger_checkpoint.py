@@ -192,8 +192,12 @@ def _check_state(path: Path, state: Any, config) -> None:
                 f"{type(state.get(name)).__name__}"
             )
     mine = config_summary(config)
+    theirs = state["config"].get("shared")
     if "shared" not in state["config"]:
         mine.pop("shared", None)
+    elif isinstance(theirs, dict) and isinstance(mine.get("shared"), dict):
+        # a key the caller shares now that the saved run did not: compared from then on
+        mine["shared"] = {k: v for k, v in mine["shared"].items() if k in theirs}
     if state["config"] != mine:
         _refuse_batch(path, state["config"], mine)
         diff = sorted(k for k in {*mine, *state["config"]} if mine.get(k) != state["config"].get(k))

@@ -176,13 +176,25 @@ def _dagger_config(config: DAggerJob, setup: Setup) -> DAggerConfig:
 
 def _shared(config: DAggerJob) -> dict:
     """What ``--resume`` must share with the saved run beyond the algorithm's settings: the
-    env and how every round is evaluated (one run's rounds are scored alike)."""
+    env, how every round is evaluated (one run's rounds are scored alike), the learner
+    and the demonstrations (a hostile review: a changed ``--lr`` or ``--demos`` resumed,
+    and the run recorded settings its first rounds never had). A run saved before a key
+    was shared resumes without comparing it
+    (:func:`~imitrl.algorithms.dagger_checkpoint.config_summary`)."""
     shared = {
         "env": config.env,
         "env_kwargs": config.env_kwargs,
         "max_episode_steps": config.max_episode_steps,
         "eval_episodes": config.eval_episodes,
         "eval_seed": config.eval_seed,
+        "loss": config.loss,
+        "hidden": config.hidden,
+        "lr": config.lr,
+        "expert": config.expert,
+        "dataset": None if config.dataset is None else str(config.dataset),
+        "dataset_frames": config.dataset_frames,
+        "demos": config.demos if config.dataset is None else None,
+        "chunk_labels": config.chunk_labels,
     }
     return json.loads(json.dumps(shared))  # as the checkpoint's JSON holds it
 
