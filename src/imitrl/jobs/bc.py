@@ -417,7 +417,9 @@ def compounding_hint(
     InvertedDoublePendulum's clone reached 1.3% of the expert, ACT and Diffusion Policy
     scored at random level on Pendulum, and nothing said why). ``random``: random
     actions' evaluation on the same states (:func:`evaluate_random`): a learner at their
-    level has not learned to act, which DAgger does not mend; ``chunked``: the learner
+    level has either not fitted (more steps) or left the expert's states at once, which
+    DAgger mends (a newcomer's review: "DAgger does not mend" turned them from the fix
+    that took InvertedPendulum from 6 to 1000 in one round); ``chunked``: the learner
     plays predicted chunks (its registry entry's ``horizon``), which can fail a task that
     needs feedback at every step however well it fits (ACT on Pendulum reproduces the
     expert's actions on its demonstration states, R^2 0.996 at 10,000 steps, and still
@@ -428,8 +430,11 @@ def compounding_hint(
         assert random is not None  # at_random_level
         head = (
             f"hint: the learner scores at the level of random actions (return "
-            f"{random['mean_return']:.2f} on the same initial states): it has not learned "
-            "to act, which DAgger does not mend. "
+            f"{random['mean_return']:.2f} on the same initial states). If its training "
+            "loss (curves.png) is still high, it has not fitted the demonstrations: more "
+            "--steps first. If the loss is low, it leaves the expert's states at once, "
+            "which `imitrl dagger` with the same flags mends by labelling the states it "
+            "visits. "
         )
         if chunked:
             return head + (
@@ -438,7 +443,7 @@ def compounding_hint(
                 "plays 8 of 16 actions before it replans), which a task that needs feedback "
                 "at every step can defeat however well it fits; compare an unchunked --loss"
             )
-        return head + "Fit it first: more --steps, then more --demos or another --loss"
+        return head + "More --demos or another --loss help either way"
     return (
         "hint: the learner scores below the expert. Cloning is trained on the expert's "
         "states only, and its errors take it to states the expert never showed (the "

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, fields
 from pathlib import Path
+from typing import Any
 
 from imitrl.configs.adversarial import ADVERSARIAL_LR, AIRLConfig, GAILConfig
 from imitrl.configs.bc import BCConfig
@@ -172,6 +173,7 @@ class RunFlags:
         return self.env
 
     def _check_run(self) -> None:
+        _paths(self, "out", "dataset")
         if self.env is None:
             if self.dataset is None:
                 raise ValueError("--env none trains on --dataset alone: give --dataset")
@@ -199,6 +201,18 @@ class RunFlags:
             raise ValueError(f"--logger must be one of {', '.join(LOGGERS)}, got {self.logger!r}")
         _check_device(self.device)
         check_nproc(self.nproc, self.device)
+
+
+def _paths(config: Any, *names: str) -> None:
+    """``config``'s path fields as ``Path`` (a string from Python, as the command line's
+    are; a hostile review: ``BCJob(out="results/x")`` ran the whole job, then failed on
+    ``str / str`` before writing it); ValueError naming a field of another type."""
+    for name in names:
+        value = getattr(config, name)
+        if isinstance(value, str):
+            object.__setattr__(config, name, Path(value))
+        elif value is not None and not isinstance(value, Path):
+            raise ValueError(f"{name} must be a path (str or pathlib.Path), got {value!r}")
 
 
 @dataclass(frozen=True)
