@@ -19,6 +19,7 @@ from __future__ import annotations
 import dataclasses
 import io
 import json
+import math
 import os
 import zipfile
 from dataclasses import dataclass
@@ -60,7 +61,11 @@ CONFIG_FILE, WEIGHTS_FILE, RESULTS_FILE = "config.json", "learner.pt", "results.
 
 
 def to_json(value: Any) -> Any:
-    """Dataclasses, paths and tuples as plain JSON values."""
+    """Dataclasses, paths and tuples as plain JSON values; a NaN or infinite float as
+    null, which JSON has for it (``--steps 0``'s final loss: a strict reader refused the
+    ``NaN`` Python writes)."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
     if dataclasses.is_dataclass(value) and not isinstance(value, type):
         return {f.name: to_json(getattr(value, f.name)) for f in dataclasses.fields(value)}
     if isinstance(value, dict):

@@ -287,6 +287,8 @@ class DAggerJob(BCJob):
             raise ValueError("dagger plays the learner in an env: --env none is for imitrl bc")
         if self.expert is None:
             raise ValueError("dagger needs --expert to label the learner's states")
+        if self.num_steps < 1:  # (bc takes 0: an untrained clone's evaluation)
+            raise ValueError("dagger fits the learner every round: --steps must be >= 1")
         if self.address is not None and self.workers is None:
             raise ValueError("--address names the Ray cluster for --workers: give --workers too")
         if self.label not in ("all", "interventions"):
