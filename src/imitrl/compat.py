@@ -15,7 +15,8 @@ tensordict`` (overridden)
 ``LazyTensorStorage._storage``      :func:`grow_tensor_storage`
                                     (``imitrl.data.buffer.GrowingTensorStorage.reserve``)
 ``LazyTensorStorage._storage``,     :func:`replace_storage_contents`
-``LazyTensorStorage._len``          (``imitrl.data.disk.GrowingMemmapStorage``)
+``LazyTensorStorage._len``          (``imitrl.data.disk.GrowingMemmapStorage``);
+                                    :func:`forget_rows_after` (a failed extend)
 ``TensorDictSequential._select_     :func:`plain_sequence`, :func:`plain_module`,
 before_return``, ``TensorDictModule :func:`plain_sampler` (``imitrl.runtime.fast.
 ._kwargs``/``_get_kwargs``,          policy_call.TensorPolicy``, a rollout's policy call)
@@ -233,6 +234,22 @@ def replace_storage_contents(
     storage.max_size = int(contents.shape[0])
     storage.initialized = True
     storage._len = int(rows)
+
+
+def forget_rows_after(rb: ReplayBuffer, rows: int) -> None:
+    """Count only the first ``rows`` of ``rb``'s storage as written, and write next at
+    ``rows``: what a failed ``extend`` must leave (the demonstration buffer rolls back).
+
+    Why: torchrl's storage counts a write's rows before every column is set, so a write
+    that fails part-way (a column of another dtype) leaves ``len`` past the rows that
+    exist; the count is the private ``_len`` and the cursor ``_cursor``
+    (:func:`set_writer_cursor`), with no public setter.
+    ``tests/data/test_disk_resume.py`` checks that a failed extend leaves the count as it was.
+    """
+    if int(rows) > len(rb.storage):
+        raise ValueError(f"cannot keep {rows} rows of a storage holding {len(rb.storage)}")
+    rb.storage._len = int(rows)
+    set_writer_cursor(rb, rows)
 
 
 def plain_sequence(seq) -> bool:

@@ -46,3 +46,42 @@ def test_a_layout_claiming_other_rows_than_its_episodes_is_refused(tmp_path, row
     (path / "imitrl_buffer.json").write_text(json.dumps(layout))
     with pytest.raises(ValueError, match=said):
         DemonstrationBuffer(path=path, resume=True)
+
+
+@pytest.mark.parametrize("edit", [("observation", 0, "float64"), ("observation", 1, [5])])
+def test_a_layout_whose_schema_is_not_its_columns_is_refused_on_resume(tmp_path, edit):
+    """A hostile review: a schema edited to float64 (or shape [5]) resumed; float64 rows
+    then passed its checks and failed in the write, counted all the same."""
+    path = tmp_path / "buf"
+    buf = DemonstrationBuffer(path=path)
+    buf.extend(cartpole_rows(6))
+    del buf
+    layout = json.loads((path / "imitrl_buffer.json").read_text())
+    name, field, value = edit
+    layout["schema"][name][field] = value
+    (path / "imitrl_buffer.json").write_text(json.dumps(layout))
+    with pytest.raises(ValueError, match="its layout's schema is not what its column files hold"):
+        DemonstrationBuffer(path=path, resume=True)
+
+
+@pytest.mark.parametrize("disk", [False, True])
+def test_a_write_that_fails_part_way_counts_nothing(tmp_path, monkeypatch, disk):
+    """A hostile review: a failed write left ``len`` past the rows that exist, and every
+    later extend was refused. Fault injected: the storage's write raises after it ran."""
+    buf = DemonstrationBuffer(path=tmp_path / "buf" if disk else None)
+    buf.extend(cartpole_rows(6))
+    before = buf.data.clone()
+    original = type(buf._rb).extend
+
+    def failing(self, rows, *args, **kwargs):
+        original(self, rows, *args, **kwargs)
+        raise RuntimeError("disk full")
+
+    monkeypatch.setattr(type(buf._rb), "extend", failing)
+    with pytest.raises(RuntimeError, match="disk full"):
+        buf.extend(cartpole_rows(4, first_episode=buf.next_episode))
+    monkeypatch.undo()
+    assert len(buf) == before.shape[0] and (buf.data == before).all()
+    buf.extend(cartpole_rows(4, first_episode=buf.next_episode))  # the buffer goes on
+    assert len(buf) == before.shape[0] + cartpole_rows(4).shape[0]
+    assert (buf.data[: before.shape[0]] == before).all()

@@ -59,6 +59,7 @@ from torchrl.data.replay_buffers import LazyTensorStorage, SamplerWithoutReplace
 
 from imitrl import keys
 from imitrl.compat import (
+    forget_rows_after,
     grow_tensor_storage,
     quiet_torchrl_info,
     set_writer_cursor,
@@ -81,6 +82,7 @@ from imitrl.data.validation import (
     REQUIRED_KEYS,
     check_rows,
     check_stored_episodes,
+    check_stored_schema,
     episode_runs,
 )
 from imitrl.fs.reading import parse_json
@@ -184,6 +186,7 @@ class DemonstrationBuffer:
         else:  # a first write killed before its commit left files that hold no row
             drop_uncommitted(self._layout.scratch_dir)
         set_writer_cursor(self._rb, stored["rows"])
+        check_stored_schema(stored["schema"], stored["columns"], where=self._layout.path)
         self.schema = stored["schema"]
         self.next_episode, self._num_episodes = stored["next_episode"], stored["num_episodes"]
         if stored["rows"]:  # resume trusts no count the directory holds
@@ -277,6 +280,22 @@ class DemonstrationBuffer:
             action_spec=self.action_spec,
             num_states=self.num_states,
         )
+        start = len(self)
+        try:
+            index = self._write_all(rows)
+        except BaseException:  # a write that failed part-way (or a Ctrl-C) counts nothing
+            forget_rows_after(self._rb, start)
+            raise
+        episodes = rows.get(keys.EPISODE)
+        self.schema = schema
+        self.next_episode = max(self.next_episode, int(episodes.max()) + 1)
+        self._num_episodes += int((episodes[1:] != episodes[:-1]).sum()) + 1
+        if self._layout is not None:
+            self._commit()
+        return index
+
+    def _write_all(self, rows: TensorDictBase) -> torch.Tensor:
+        """Write checked rows, on disk a chunk at a time; their indices."""
         n = rows.shape[0]
         if self._layout is None:
             index = self._write(rows)
@@ -292,12 +311,6 @@ class DemonstrationBuffer:
                 parts.append(self._write(part))
                 release_pages(part)  # a memory-mapped source's pages, once copied
             index = torch.cat(parts)
-        episodes = rows.get(keys.EPISODE)
-        self.schema = schema
-        self.next_episode = max(self.next_episode, int(episodes.max()) + 1)
-        self._num_episodes += int((episodes[1:] != episodes[:-1]).sum()) + 1
-        if self._layout is not None:
-            self._commit()
         return index
 
     def _write(self, rows: TensorDictBase) -> torch.Tensor:

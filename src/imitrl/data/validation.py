@@ -20,6 +20,7 @@ __all__ = [
     "Schema",
     "check_rows",
     "check_stored_episodes",
+    "check_stored_schema",
     "episode_runs",
 ]
 
@@ -251,6 +252,18 @@ def check_stored_episodes(episodes: torch.Tensor, stored: dict, *, where: object
             f"{where}: its layout records {stored['num_episodes']} episodes with ids below "
             f"{stored['next_episode']}, its {episodes.shape[0]} stored rows hold {count} up "
             f"to id {largest}: the layout or the rows were changed"
+        )
+
+
+def check_stored_schema(schema: Schema | None, columns: list[dict], *, where: object) -> None:
+    """ValueError unless a disk buffer's recorded ``schema`` is what its ``columns`` hold
+    (key, dtype, trailing shape): rows checked against an edited schema (float64 where the
+    file holds float32) would pass, then fail in the write (a hostile review)."""
+    held: Schema = {".".join(c["key"]): (str(c["dtype"]), tuple(c["shape"])) for c in columns}
+    if columns and schema != held:
+        raise ValueError(
+            f"{where}: its layout's schema is not what its column files hold "
+            f"({_schema_diff(held, schema or {})}): the layout was changed"
         )
 
 
