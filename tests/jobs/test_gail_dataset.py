@@ -44,32 +44,29 @@ def _counted(monkeypatch) -> list[int]:
     return seen
 
 
-@pytest.mark.parametrize("command", ["gail", "airl"])
-def test_a_cut_episodes_last_row_is_a_transition(minari_demos, tmp_path, monkeypatch, command):
-    seen = _counted(monkeypatch)
+def _train(command: str, env: str, *source: str, out) -> None:
+    """``imitrl COMMAND --env ENV SOURCE...`` on a tiny budget, which must succeed."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         status, _, err = run_main(
-            command, "--env", "CartPole-v1", "--dataset", str(minari_demos),
-            "--total-steps", "64", "--rollout-steps", "64", "--eval-episodes", "1",
-            "--eval-every", "0", "--max-episode-steps", str(LIMIT), "--no-progress",
-            "--out", str(tmp_path / command),
+            command, "--env", env, *source, "--total-steps", "64", "--rollout-steps", "64",
+            "--eval-episodes", "1", "--eval-every", "0", "--max-episode-steps", str(LIMIT),
+            "--no-progress", "--out", str(out),
         )  # fmt: skip
     assert status == 0, err
+
+
+@pytest.mark.parametrize("command", ["gail", "airl"])
+def test_a_cut_episodes_last_row_is_a_transition(minari_demos, tmp_path, monkeypatch, command):
+    seen = _counted(monkeypatch)
+    _train(command, "CartPole-v1", "--dataset", str(minari_demos), out=tmp_path / command)
     assert seen == [LIMIT * EPISODES]  # was LIMIT * EPISODES - EPISODES: each cut end dropped
 
 
 def test_expert_episodes_keep_their_cut_last_transition(tmp_path, monkeypatch):
     """The same for ``--demos`` episodes the expert plays: each is cut by the time limit."""
     seen = _counted(monkeypatch)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        status, _, err = run_main(
-            "gail", "--env", "CartPole-v1", "--demos", str(EPISODES), "--total-steps", "64",
-            "--rollout-steps", "64", "--eval-episodes", "1", "--eval-every", "0",
-            "--max-episode-steps", str(LIMIT), "--no-progress", "--out", str(tmp_path / "g"),
-        )  # fmt: skip
-    assert status == 0, err
+    _train("gail", "CartPole-v1", "--demos", str(EPISODES), out=tmp_path / "g")
     assert seen == [LIMIT * EPISODES]
 
 
@@ -88,13 +85,6 @@ def test_a_float64_minari_dataset_trains_with_its_recorded_successors(tmp_path, 
     loaded = load_minari(path, env=env, next_observation=True).rows
     assert loaded[keys.NEXT, keys.OBSERVATION].dtype == loaded[keys.OBSERVATION].dtype
     seen = _counted(monkeypatch)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        status, _, err = run_main(
-            "gail", "--env", "InvertedPendulum-v5", "--dataset", str(path), "--hidden", "16,16",
-            "--total-steps", "64", "--rollout-steps", "64", "--eval-episodes", "1",
-            "--eval-every", "0", "--max-episode-steps", str(LIMIT), "--no-progress",
-            "--out", str(tmp_path / "g"),
-        )  # fmt: skip
-    assert status == 0, err
+    _train("gail", "InvertedPendulum-v5", "--dataset", str(path), "--hidden", "16,16",
+           out=tmp_path / "g")  # fmt: skip
     assert seen == [rows.shape[0]]  # every row a transition: each episode ends cut or fallen
