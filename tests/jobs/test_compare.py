@@ -56,7 +56,7 @@ def test_a_sequential_comparison_on_a_metaworld_task_stops_early():
         (["--b", "{long}", "--alpha", "0"], "--alpha must be in [1e-12, 1), got 0"),
         (["--b", "{long}", "--alpha", "1e-17"], "--alpha must be in [1e-12, 1), got 1e-17"),
         (["--b", "{long}", "--episodes", "0"], "--episodes must be an integer >= 2"),
-        (["--b", "{long}", "--sequential", "--metric", "return"], "needs their bounds"),
+        (["--b", "{long}", "--sequential", "--metric", "return"], "--return-range LOW,HIGH"),
     ],
 )
 def test_bad_input_is_one_line_and_writes_nothing(runs, tmp_path, argv, said):

@@ -160,8 +160,9 @@ def compare(
     bounds = (0.0, 1.0) if metric == "success" else return_range
     if sequential and bounds is None:
         raise ValueError(
-            "a sequential comparison of returns needs their bounds (return_range=(low, high)): "
-            "its bets are on bounded outcomes"
+            "a sequential comparison of returns needs their bounds (return_range=(low, "
+            "high); imitrl compare --return-range LOW,HIGH, the least and most return an "
+            "episode can have): its bets are on bounded outcomes"
         )
     check_replays(env, seed)
     lanes = lane_count(env)
