@@ -27,8 +27,8 @@ The staging folder of a run that did not finish is removed by the next run of th
 so a failed or interrupted evaluation never loses the fit: ``imitrl eval --checkpoint``
 reads it there, and the next run is refused unless ``--overwrite``. A ``--resume`` of a
 finished run continues in a copy of it; refused or failed before it saved a round, it
-leaves no copy (``--out`` holds the same checkpoint). Logs of a run in progress are in its staging folder (the command says
-where on stderr).
+leaves no copy (``--out`` holds the same checkpoint). Logs of a run in progress are in
+its staging folder (the command says where on stderr).
 
 The run holds ``--out``'s lock (:func:`imitrl.fs.exclusive`) from the check to the
 exchange, so a second run given the same ``--out`` is refused at once. The staging

@@ -179,8 +179,7 @@ def _shared(config: DAggerJob) -> dict:
     env, how every round is evaluated (one run's rounds are scored alike), the learner
     and the demonstrations (a hostile review: a changed ``--lr`` or ``--demos`` resumed,
     and the run recorded settings its first rounds never had). A run saved before a key
-    was shared resumes without comparing it
-    (:func:`~imitrl.algorithms.dagger_checkpoint.config_summary`)."""
+    was shared resumes without comparing it (``dagger_checkpoint._check_state``)."""
     shared = {
         "env": config.env,
         "env_kwargs": config.env_kwargs,

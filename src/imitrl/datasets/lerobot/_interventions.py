@@ -171,19 +171,17 @@ def own_episodes(
 ) -> None:
     """Frames ``[N]`` of a whole dataset in episode order (``episode``: LeRobot's
     ``episode_index``): imitrl's own episode ids (``imitrl.episode``) are kept only where
-    they follow LeRobot's episodes one to one, ascending (:func:`own_ids`); otherwise (LeRobot's ``aggregate_datasets``
-    renumbers ``episode_index`` alone, so two merged datasets repeat ids) they are dropped,
-    with a warning, and the rows take LeRobot's ``episode_index``.
+    they follow LeRobot's episodes one to one, ascending (:func:`own_ids_follow`);
+    otherwise (LeRobot's ``aggregate_datasets`` renumbers ``episode_index`` alone, so two
+    merged datasets repeat ids) they are dropped, with a warning, and the rows take
+    LeRobot's ``episode_index``.
 
     ``keep``: decided already for the whole dataset (a stream's pieces, by
     :func:`own_ids_follow`, which warned): True keeps the ids, False drops them silently."""
     if keys.EPISODE not in out:
         return
     if keep is None:
-        ids = own_ids(out[keys.EPISODE], episode)
-        keep = ids is not None and _ascending(ids)
-        if not keep:
-            _warn_own_ids(file_of(0))
+        keep = own_ids_follow([(out[keys.EPISODE], episode)], file_of(0))
     if not keep:
         del out[keys.EPISODE]
 
@@ -192,8 +190,7 @@ def own_ids_follow(parts: Iterable[tuple[torch.Tensor, torch.Tensor]], where: Pa
     """Whether imitrl's episode ids follow LeRobot's episodes one to one across every part
     ``(own, episode)`` of a dataset read in pieces (each part's frames in episode order):
     whole numbers >= 0, constant over each episode and ascending across the pieces. Warns
-    when they do not
-    (:func:`own_episodes` then drops them from every piece alike)."""
+    when they do not (:func:`own_episodes` then drops them from every piece alike)."""
     seen: list[torch.Tensor] = []
     for own, episode in parts:
         ids = own_ids(own, episode)
