@@ -222,6 +222,8 @@ def figure(payload: dict, path: Path) -> Path:
             bx.plot(steps, med, color=color, label=f"{loss} ({done} steps)")
             bx.fill_between(steps, q1, q3, color=color, alpha=0.2)
     ax.set_xscale("log")
+    lo, hi = ax.get_xlim()
+    ax.set_xlim(lo, hi * 3)  # room for the last rung's "N steps" label inside the axes
     ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
     ax.set_xlabel("median fit time per task and seed (s, one thread)")
     ax.set_ylabel("IQM of success / expert's (95% CI)")
