@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from imitrl.jobs import curves as curves_module
 from imitrl.jobs.bc import log_evaluation
-from imitrl.jobs.curves import make_logger, plot_curves, read_scalars, scalars_dir
+from imitrl.jobs.curves import make_logger, plot_curves, read_scalars, scalars_dir, trim_scalars
 
 
 def _ev(ret: float, success: float | None) -> dict:
@@ -45,3 +45,25 @@ def test_a_env_without_success_is_plotted_by_return(tmp_path, monkeypatch):
     label, lines = _panel_labels(tmp_path, monkeypatch, [_ev(200.0, None)], _ev(500.0, None))
     assert label == "mean return" and "expert (500.0)" in lines
     assert curves_module.read_scalars(scalars_dir(tmp_path, "dagger")).get("eval/success") is None
+
+
+def test_trim_scalars_keeps_what_keep_accepts_and_drops_cut_lines(tmp_path):
+    root = scalars_dir(tmp_path, "dagger")
+    (root / "bc").mkdir(parents=True)
+    (root / "bc" / "loss.csv").write_text("0,1.5\n1,1.25\n2,1.0\n3,0.5\n4,0.")
+    (root / "eval").mkdir()
+    (root / "eval" / "return.csv").write_text("0,10.0\n1,20.0\n")
+    (root / "eval" / "success.csv").write_text("0,0.5\n")
+    seen = []
+
+    def keep(scalar, step):
+        seen.append(scalar)
+        return step < (2 if scalar == "bc/loss" else 1)
+
+    assert trim_scalars(tmp_path, "dagger", keep) == 4  # 2 losses, 1 cut line, 1 return
+    assert (root / "bc" / "loss.csv").read_text() == "0,1.5\n1,1.25\n"
+    assert (root / "eval" / "return.csv").read_text() == "0,10.0\n"
+    assert (root / "eval" / "success.csv").read_text() == "0,0.5\n"
+    assert set(seen) == {"bc/loss", "eval/return", "eval/success"}
+    assert read_scalars(root)["bc/loss"] == ([0, 1], [1.5, 1.25])
+    assert trim_scalars(tmp_path / "none", "dagger", keep) == 0  # no logs yet: nothing to cut

@@ -72,3 +72,37 @@ def test_a_resume_with_the_same_flags_continues_the_finished_run(finished, tmp_p
 def _main(*argv: str) -> tuple[int, str]:
     status, _, err = run_main(*argv)
     return status, err
+
+
+def test_a_resumed_run_logs_the_interrupted_round_once(finished, tmp_path):
+    """A kill during round 2 leaves that round's fit losses, rows and evaluation in the
+    CSV logs (a line maybe cut short); the resumed run logs them again. A hostile review:
+    they appeared twice, in the CSV files and in curves.png. Now the logs of the resumed
+    run equal those of the uninterrupted run, byte for byte."""
+    import shutil
+
+    whole = tmp_path / "whole"
+    status, err = _main(*FLAGS, "--env", "CartPole-v1", "--rounds", "3", "--out", str(whole))
+    assert status == 0, err
+    out = tmp_path / "killed"
+    shutil.copytree(finished, out)
+    logs, whole_logs = _logs(out), _logs(whole)
+    assert logs.keys() == whole_logs.keys() and len(logs) >= 5
+    for name, text in logs.items():  # what the killed round 2 had logged before the kill
+        later = whole_logs[name][len(text) :]
+        assert whole_logs[name].startswith(text) and (later or name.startswith("eval/expert")), name
+        cut = "" if name != "bc/loss.csv" else later.splitlines()[-1][:3]  # a line cut short
+        (_scalars(out) / name).write_text(text + later + cut)
+    status, err = _main(*FLAGS, "--env", "CartPole-v1", "--rounds", "3", "--resume",
+                        "--out", str(out))  # fmt: skip
+    assert status == 0, err
+    assert _logs(out) == whole_logs
+
+
+def _scalars(out):
+    return out / "logs" / "csv" / "dagger" / "scalars"
+
+
+def _logs(out):
+    root = _scalars(out)
+    return {p.relative_to(root).as_posix(): p.read_text() for p in sorted(root.rglob("*.csv"))}

@@ -16,7 +16,9 @@ Every run logs through a ``torchrl.record.loggers`` logger:
 The CSV files (``--out/logs/csv/<command>/scalars/<name>.csv``, one ``step,value`` line
 each) are always written, and ``curves.png`` is drawn from them; ``--logger
 tensorboard`` / ``wandb`` sends the same scalars there too. A rerun into the same
-``--out`` replaces the CSV files (TorchRL's CSV logger appends).
+``--out`` replaces the CSV files (TorchRL's CSV logger appends); a resumed run first cuts
+them back to what its checkpoint holds (:func:`trim_scalars`), so a round a kill
+interrupted is logged once, as resumed.
 """
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ from __future__ import annotations
 import importlib.util
 import math
 import shutil
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -42,6 +44,7 @@ __all__ = [
     "plot_curves",
     "read_scalars",
     "scalars_dir",
+    "trim_scalars",
 ]
 
 
@@ -114,6 +117,38 @@ def make_logger(kind: str, out: Path, name: str, *, fresh: bool = True) -> Logge
 
         other = WandbLogger(exp_name=name, save_dir=str(Path(out) / "logs"), project="imitrl")
     return FanOut(csv, other)
+
+
+def trim_scalars(out: Path, name: str, keep: Callable[[str, int], bool]) -> int:
+    """Cut run ``name``'s CSV files in ``out`` back to the lines ``keep(scalar, step)``
+    accepts, and drop any line a kill cut short; returns how many lines went.
+
+    A resumed run calls it before it logs anything: the steps the interrupted run logged
+    after its last checkpoint are logged again as the resumed run replays them (TorchRL's
+    CSV logger appends, so they used to appear twice). Each file is replaced whole
+    (:func:`imitrl.fs.replace_file`): a kill meanwhile leaves it as it was."""
+    from imitrl.fs import replace_file
+
+    directory = scalars_dir(out, name)
+    dropped = 0
+    for path in sorted(directory.rglob("*.csv")) if directory.is_dir() else ():
+        scalar = path.relative_to(directory).with_suffix("").as_posix()
+        lines = path.read_text().splitlines()
+        kept = [line for line in lines if _kept(line, scalar, keep)]
+        if len(kept) < len(lines):
+            dropped += len(lines) - len(kept)
+            replace_file(path, "".join(f"{line}\n" for line in kept).encode())
+    return dropped
+
+
+def _kept(line: str, scalar: str, keep: Callable[[str, int], bool]) -> bool:
+    """Whether one line is a whole ``step,value`` line that ``keep`` accepts."""
+    step, _, value = line.partition(",")
+    try:
+        at, _ = int(step), float(value)
+    except ValueError:  # cut short by a kill
+        return False
+    return keep(scalar, at)
 
 
 def read_scalars(directory: Path) -> dict[str, tuple[list[int], list[float]]]:

@@ -52,6 +52,7 @@ from imitrl.jobs.bc import (
 )
 from imitrl.jobs.checkpoint import WEIGHTS_FILE, save_checkpoint
 from imitrl.jobs.configs import DAggerJob
+from imitrl.jobs.curves import trim_scalars
 from imitrl.jobs.evaluate import format_return
 from imitrl.jobs.ranks import RUN_CHECKPOINT, evaluating, lead, run_folder
 from imitrl.jobs.resolve import no_expert_message
@@ -118,6 +119,7 @@ def _run_dagger(config: DAggerJob, folder: Path) -> dict:
                 logger=setup.logger,
                 checkpoint_dir=checkpoint,
                 resume=config.resume,
+                on_resume=functools.partial(_trim_logs, folder) if evaluating() else None,
             )
         finally:
             if isinstance(source, RaySource | LeadSource):
@@ -157,6 +159,18 @@ def _run_dagger(config: DAggerJob, folder: Path) -> dict:
         return results
     finally:
         setup.close()  # the env and the logger, whatever happened
+
+
+def _trim_logs(folder: Path, next_round: int, bc_step: int) -> None:
+    """A resumed run's CSV logs, cut back to the checkpoint it continues: the fit losses
+    (``bc/*``, step = fit step) before ``bc_step``, the rest (step = round) before
+    ``next_round``; the resumed rounds log the rest again (the round a kill interrupted
+    used to appear twice in the CSV files and ``curves.png``)."""
+    trim_scalars(
+        folder,
+        "dagger",
+        lambda scalar, step: step < (bc_step if scalar.startswith("bc/") else next_round),
+    )
 
 
 def _dagger_config(config: DAggerJob, setup: Setup) -> DAggerConfig:
