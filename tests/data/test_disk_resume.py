@@ -85,3 +85,22 @@ def test_a_write_that_fails_part_way_counts_nothing(tmp_path, monkeypatch, disk)
     buf.extend(cartpole_rows(4, first_episode=buf.next_episode))  # the buffer goes on
     assert len(buf) == before.shape[0] + cartpole_rows(4).shape[0]
     assert (buf.data[: before.shape[0]] == before).all()
+
+
+def test_a_folder_holding_only_a_buffers_lock_starts_afresh(tmp_path):
+    """A kill between the lock's creation and the first layout leaves the lock alone. A
+    hostile review: resume said "holds no disk buffer" and a fresh start "already holds
+    other files (['imitrl_buffer.lock']) ... pass resume=True": each sent to the other."""
+    path = tmp_path / "buf"
+    path.mkdir()
+    (path / "imitrl_buffer.lock").touch()
+    with pytest.raises(ValueError, match="only the lock of one that stopped before it stored"):
+        DemonstrationBuffer(path=path, resume=True)
+    buf = DemonstrationBuffer(path=path, capacity=16)
+    buf.extend(cartpole_rows(5))
+    with pytest.raises(ValueError, match="in use by another disk buffer"):  # held: refused
+        DemonstrationBuffer(path=path, resume=True)
+    (tmp_path / "other").mkdir()
+    (tmp_path / "other" / "notes.txt").touch()
+    with pytest.raises(ValueError, match=r"other files \(\['notes.txt'\]\)"):
+        DemonstrationBuffer(path=tmp_path / "other", capacity=16)

@@ -392,3 +392,16 @@ def test_a_dagger_state_that_does_not_hold_what_it_should_is_named(tmp_path, sta
     load = _dagger_checkpoint(tmp_path / "run", **state)
     with pytest.raises(ValueError, match=message):
         load()
+
+
+def test_a_learner_pt_whose_copies_of_one_weight_disagree_is_refused(tmp_path):
+    """A hostile review: ``policy.*`` and ``loss.actor.*`` are one weight saved twice; an
+    edited file where they differ loaded, and the later copy won. Now: one line naming both."""
+    ckpt, state = _real_run(tmp_path / "run", (8,), seed=0)
+    state = dict(state)
+    state["loss.actor.module.0.module.3.bias"] = state["loss.actor.module.0.module.3.bias"] + 5.0
+    torch.save(state, ckpt / "learner.pt")
+    status, err = run(["eval", "--checkpoint", str(ckpt), "--eval-episodes", "1"])
+    assert status == 2 and err.count("\n") == 1, err
+    assert "'policy.module.0.module.3.bias' and 'loss.actor.module.0.module.3.bias'" in err
+    assert "learner.pt" in err

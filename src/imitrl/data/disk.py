@@ -392,9 +392,18 @@ class DiskLayout:
             raise ValueError(f"{self.path} is not a directory: a disk buffer needs a directory")
         entries = sorted(os.listdir(self.path)) if self.path.is_dir() else []
         if resume and LAYOUT not in entries:
-            raise ValueError(f"cannot resume: {self.path} holds no disk buffer (no {LAYOUT})")
-        if not resume and entries:
-            what = "a disk buffer" if LAYOUT in entries else f"other files ({entries[:3]})"
+            only_lock = (
+                " (only the lock of one that stopped before it stored anything: "
+                "start it afresh, without resume)"
+                if entries == [LOCK]
+                else ""
+            )
+            raise ValueError(
+                f"cannot resume: {self.path} holds no disk buffer (no {LAYOUT}){only_lock}"
+            )
+        others = [e for e in entries if e != LOCK]  # a lock alone: a buffer that never wrote
+        if not resume and others:
+            what = "a disk buffer" if LAYOUT in entries else f"other files ({others[:3]})"
             raise ValueError(
                 f"{self.path} already holds {what}: refusing to overwrite it; pass "
                 "resume=True to continue a disk buffer there, or choose an empty directory"

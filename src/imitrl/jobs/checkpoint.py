@@ -474,6 +474,8 @@ def build_learner(saved: SavedRun, env: EnvBase, *, device: str | None = None) -
     _check_shapes(saved, state, learner, env)
     try:
         learner.load_state_dict(state)
+    except ValueError as err:  # two copies of one weight that disagree (Learner's check)
+        raise ValueError(f"{saved.path / WEIGHTS_FILE}: {err}") from None
     except RuntimeError as err:  # shapes or names that do not match the rebuilt learner
         raise ValueError(
             f"{saved.path}: the weights do not fit the rebuilt learner on {learner.device} ({err})"
