@@ -65,8 +65,8 @@ def test_an_expert_for_another_env_is_named_with_the_right_one(tmp_path):
 
 def test_an_env_without_a_built_in_expert_says_what_to_pass(tmp_path):
     refused(
-        ["bc", "--env", "FrozenLake-v1", *TINY, "--out", str(tmp_path)],
-        "--env FrozenLake-v1 has no built-in expert",
+        ["bc", "--env", "MountainCarContinuous-v0", *TINY, "--out", str(tmp_path)],
+        "--env MountainCarContinuous-v0 has no built-in expert",
         "--expert module:function",
     )
 

@@ -118,3 +118,23 @@ def test_checkpoints_trained_with_different_time_limits_are_refused_and_swap_ali
         assert "of at most 30 steps" in out and "99.5% interval" in out
         said[a == other] = float(out.split("difference a - b ")[1].split(",")[0])
     assert said[True] == -said[False]  # the sides swapped: the difference negated
+
+
+def test_the_expert_side_is_the_expert_named_by_expert(tmp_path, monkeypatch):
+    """A hostile review: compare's expert was the env's built-in one only. On the
+    deterministic lake, an expert always moving down falls in the hole at (3, 0) and the
+    built-in (value iteration) one reaches the goal; --expert without an expert side is
+    refused."""
+    (tmp_path / "down_expert.py").write_text(
+        "import torch\n\ndef down(obs):\n    return torch.ones(obs.shape[0], dtype=torch.int64)\n"
+    )
+    monkeypatch.syspath_prepend(str(tmp_path))
+    lake = ["--env", "FrozenLake-v1", "--env-kwarg", "is_slippery=False", "--episodes", "4"]
+    status, out, err = _main("compare", "--a", "expert", "--b", "random", *lake)
+    assert status == 0 and "return: a 1, b 0" in out, err
+    status, out, err = _main("compare", "--a", "expert", "--b", "random", *lake, "--expert",
+                             "down_expert:down", "--expert-kind", "callable")  # fmt: skip
+    assert status == 0 and "return: a 0, b 0" in out, err
+    status, _, err = _main("compare", "--a", "random", "--b", "random", *lake, "--expert",
+                           "down_expert:down")  # fmt: skip
+    assert status == 2 and "names the side expert: pass --a or --b expert" in err, err

@@ -5,11 +5,13 @@ observation; the run failed after its fit, and nothing of it was kept)."""
 
 from __future__ import annotations
 
+import json
 import sys
 import textwrap
 
 import pytest
 
+from imitrl.jobs.resolve import expert_for_env
 from tests._cli import run_main
 
 STRICT = textwrap.dedent(
@@ -57,11 +59,39 @@ def test_a_callable_expert_is_always_called_on_a_batch(strict, tmp_path, env, fn
 
 
 def test_an_expert_that_cannot_label_the_env_says_what_to_pass(strict, tmp_path):
+    status, err = _main("bc", "--env", "MountainCarContinuous-v0", "--expert",
+                        "strict_expert:down", "--expert-kind", "callable", "--demos", "1",
+                        "--no-progress", "--out", str(tmp_path / "o"))  # fmt: skip
+    assert status == 2 and "cannot label MountainCarContinuous-v0's observations" in err, err
+    assert "; pass --expert module:function" in err and "use pass" not in err
     status, err = _main("bc", "--env", "Taxi-v4", "--expert", "strict_expert:half",
                         "--expert-kind", "callable", "--demos", "1", "--no-progress",
-                        "--out", str(tmp_path / "o"))  # fmt: skip
+                        "--out", str(tmp_path / "t"))  # fmt: skip
     assert status == 2 and "cannot label Taxi-v4's observations" in err, err
-    assert "; pass --expert module:function" in err and "use pass" not in err
+    assert err.rstrip().endswith("use --expert value_iteration"), err
+
+
+@pytest.mark.parametrize("env", ["FrozenLake-v1", "FrozenLake8x8-v1", "CliffWalking-v1", "Taxi-v4"])
+def test_auto_gives_a_toy_text_env_its_value_iteration_expert(env):
+    assert expert_for_env("auto", env) == "value_iteration"
+
+
+def test_frozenlake_bc_runs_with_its_expert_by_default_and_eval_resolves_auto(tmp_path):
+    """A hostile review: FrozenLake, the study's env, had no expert for imitrl bc; and
+    imitrl eval --expert auto said auto is resolved against --env first."""
+    out = tmp_path / "lake"
+    status, err = _main("bc", "--env", "FrozenLake-v1", "--env-kwarg", "is_slippery=False",
+                        "--demos", "2", "--steps", "50", "--eval-episodes", "2",
+                        "--no-progress", "--out", str(out))  # fmt: skip
+    assert status == 0, err
+    results = json.loads((out / "results.json").read_text())
+    assert results["expert"]["mean_return"] == 1.0 and results["expert"]["mean_length"] == 6.0
+    status, err = _main("eval", "--expert", "auto", "--env", "FrozenLake-v1", "--env-kwarg",
+                        "is_slippery=False", "--eval-episodes", "2", "--no-progress")  # fmt: skip
+    assert status == 0, err
+    status, err = _main("eval", "--expert", "auto", "--env", "Acrobot-v1", "--eval-episodes", "1",
+                        "--no-progress")  # fmt: skip
+    assert status == 0, err
 
 
 def _main(*argv: str) -> tuple[int, str]:

@@ -119,10 +119,14 @@ class Command:
 def _names_epilog() -> str:
     """The built-in experts and the registered losses, for ``bc`` / ``dagger`` --help,
     from :mod:`imitrl.jobs.names` (no torch; a test holds it equal to the registry)."""
-    from imitrl.jobs.names import EXPERT_ENVS, LOSSES
+    from imitrl.jobs.names import EXPERT_ENVS, LOSSES, TABULAR_ENVS, VALUE_ITERATION
 
     losses = "\n".join(f"  {name:<22} {actions:<10} {summary}" for name, actions, summary in LOSSES)
     experts = ", ".join(f"{name} ({env})" for name, env in EXPERT_ENVS.items())
+    experts += (
+        f", {VALUE_ITERATION} ({', '.join(TABULAR_ENVS)}, or any toy-text env: the optimal "
+        "policy of the env's own model, --env-kwarg map_name=8x8 and the like included)"
+    )
     return (
         f"built-in experts (--expert; auto = the one for --env): {experts}\n\n"
         f"losses (--loss): default (resolved for the env: cross_entropy for discrete "

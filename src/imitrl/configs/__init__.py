@@ -8,4 +8,6 @@ is declared once.
 * :mod:`~imitrl.configs.bc`: :class:`~imitrl.configs.bc.BCConfig`, a behaviour-cloning fit.
 * :mod:`~imitrl.configs.adversarial`: :class:`~imitrl.configs.adversarial.AdversarialConfig`
   and GAIL's and AIRL's, with :data:`~imitrl.configs.adversarial.ADVERSARIAL_LR`.
+* :mod:`~imitrl.configs.value_iteration`: the value-iteration expert's discount and sweeps
+  (the FrozenLake study's defaults too).
 """

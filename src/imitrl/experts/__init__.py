@@ -1,6 +1,7 @@
 """Built-in queryable experts: every builder returns an :class:`imitrl.policies.Expert`.
 
-Classic control needs only gymnasium; building a MuJoCo expert
+Classic control and the toy-text envs (:func:`value_iteration_expert`: the optimal
+policy of the env's own model) need only gymnasium; building a MuJoCo expert
 (``imitrl.experts.mujoco``) needs the ``mujoco`` extra, a Meta-World one
 (:func:`metaworld_expert`) the ``metaworld`` extra.
 """
@@ -23,6 +24,7 @@ from imitrl.experts.mujoco import (
     inverted_pendulum_expert,
     linearize_mujoco,
 )
+from imitrl.experts.tabular import value_iteration_expert
 
 __all__ = [
     "CARTPOLE_GAINS",
@@ -40,4 +42,5 @@ __all__ = [
     "mountaincar_expert",
     "pendulum_expert",
     "pendulum_linearization",
+    "value_iteration_expert",
 ]

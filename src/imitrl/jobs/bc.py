@@ -155,7 +155,10 @@ def prepare(
     if expert_name is None and config.expert is not None and config.dataset is None:
         raise ValueError(no_expert_message(config.env))
     if expert_name is not None:
-        expert = make_expert(expert_name, config.expert_kind, env_id=config.env, env=env)
+        expert = make_expert(
+            expert_name, config.expert_kind, env_id=config.env, env=env,
+            env_kwargs=dict(config.env_kwargs),
+        )  # fmt: skip
         check_expert_fits(expert, expert_name, config.env, env)  # observations it can read
     if config.dataset is not None:
         dataset_format(config.dataset)

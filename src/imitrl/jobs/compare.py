@@ -1,8 +1,8 @@
 """``imitrl compare``: two policies on paired episodes of one env, in one function.
 
 ``run_compare(CompareJob(...)) -> dict``: each side (``--a``, ``--b``) is a checkpoint
-(the ``--out`` of imitrl bc, dagger, gail or airl), ``expert`` (the env's built-in
-expert) or ``random`` (uniform random actions); both play episode ``j`` from the env
+(the ``--out`` of imitrl bc, dagger, gail or airl), ``expert`` (``--expert``: the env's
+built-in expert, or one of yours) or ``random`` (uniform random actions); both play episode ``j`` from the env
 seeded ``--seed + j`` (:mod:`imitrl.evaluation.compare`), and the paired differences of
 their success (or return) give the mean difference, its interval and the decision, after
 ``--episodes`` pairs or, with ``--sequential``, as soon as the anytime-valid interval
@@ -64,6 +64,14 @@ class CompareJob:
     """a checkpoint side's loss when it is your own, module:name (importing module
     registers it), as imitrl eval --loss: imitrl imports only the modules you name here;
     none = registry losses"""
+    expert: str = "auto"
+    """the policy of the side named expert: auto = the built-in expert of --env (as imitrl
+    bc --expert auto); a built-in name; or module:function (imitrl imports the module
+    you name here)"""
+    expert_kind: str = "builder"
+    """what the function of --expert module:function is: builder (function() returns an
+    expert module writing expert_action) or callable (function(obs [N, d]) -> action,
+    batched)"""
     out: Path | None = None
     """also write compare.json into this directory; none = print only"""
 
@@ -86,6 +94,10 @@ class CompareJob:
                 )
         if self.env is None and self.a in SIDES and self.b in SIDES:  # no checkpoint names one
             raise ValueError("--env names the env for expert or random")
+        if self.expert != "auto" and "expert" not in (self.a, self.b):
+            raise ValueError(
+                f"--expert {self.expert} names the side expert: pass --a or --b expert"
+            )
         if self.loss is not None and ":" not in self.loss:
             raise ValueError(f"--loss {self.loss}: name your own loss, module:name")
         if self.out is not None and (Path(self.out) / "compare.json").exists():
@@ -100,8 +112,8 @@ def run_compare(config: CompareJob) -> dict:
     env_id, steps, kwargs = _env_of(config)
     env = make_env(env_id, seed=config.seed, max_episode_steps=steps, env_kwargs=kwargs)
     try:
-        a = _side(config.a, "--a", env, env_id, config.loss)
-        b = _side(config.b, "--b", env, env_id, config.loss)
+        a = _side(config.a, "--a", env, env_id, config, kwargs)
+        b = _side(config.b, "--b", env, env_id, config, kwargs)
         _check_loss_named(config)
         metric = None if config.metric == "auto" else config.metric
         bounds = config.return_range  # low, high (CompareJob's check)
@@ -179,8 +191,9 @@ def _check_loss_named(config: CompareJob) -> None:
         raise ValueError(f"--loss {config.loss}: neither checkpoint was trained with it")
 
 
-def _side(side: str, flag: str, env, env_id: str, loss: str | None = None):
-    """A :class:`~imitrl.evaluation.compare.PolicySpec` of ``side`` on ``env``."""
+def _side(side: str, flag: str, env, env_id: str, config: CompareJob, kwargs: dict):
+    """A :class:`~imitrl.evaluation.compare.PolicySpec` of ``side`` on ``env`` (made as
+    ``env_id`` with ``kwargs``)."""
     from torchrl.envs.utils import ExplorationType
 
     from imitrl.evaluation.compare import PolicySpec
@@ -190,16 +203,17 @@ def _side(side: str, flag: str, env, env_id: str, loss: str | None = None):
     from imitrl.policies.random_actions import RandomActions
 
     if side == "expert":
-        name = expert_for_env("auto", env_id)
+        name = expert_for_env(config.expert, env_id)
         if name is None:
             raise ValueError(f"{flag} expert: {no_expert_message(env_id)}")
-        expert = make_expert(name, "builder", env_id=env_id, env=env)
+        expert = make_expert(name, config.expert_kind, env_id=env_id, env=env, env_kwargs=kwargs)
         return PolicySpec(as_actor(expert), ExplorationType.DETERMINISTIC, "expert")
     if side == "random":
         return PolicySpec(
             RandomActions(env.action_spec_unbatched), ExplorationType.RANDOM, "random"
         )
     saved = read_checkpoint(Path(side))
+    loss = config.loss
     if loss is not None and saved.config["loss"] == loss:  # a module the user named
         from imitrl.jobs.resolve import registered_loss
 

@@ -124,41 +124,47 @@ def _run_dagger(config: DAggerJob, folder: Path) -> dict:
         finally:
             if isinstance(source, RaySource | LeadSource):
                 source.close()  # the Ray workers, and Ray where the source started it
-        evaluations = [r.info for r in result.rounds]
-        rounds = [
-            {
-                "round": r.round,
-                "rows_trained": r.rows_trained,
-                "final_loss": r.bc.final_loss,
-                "beta_next": r.beta_next,
-                "rows_collected": r.rows_collected,
-                "expert_executed_fraction": r.expert_executed_fraction,
-                "interventions": r.interventions,
-                "evaluation": ev,
-            }
-            for r, ev in zip(result.rounds, evaluations)
-        ]
-        results = {
-            "command": "dagger",
-            "env": config.env,
-            "learner_loss": setup.loss,
-            "demonstrations": {
-                "source": str(config.dataset) if config.dataset else f"expert {config.expert}",
-                "episodes": demo_episodes,
-                "rows": demo_rows,
-            },
-            "final_loss": result.rounds[-1].bc.final_loss,
-            "expert": expert_ev,
-            "learner": evaluations[-1],
-            "rounds": rounds,
-            "seconds": time.perf_counter() - start,
-        }
+        results = _results(config, setup, result, (demo_episodes, demo_rows), expert_ev)
+        results["seconds"] = time.perf_counter() - start
         # the last round's learner.pt, as on_fit saved it (here or before a kill and --resume)
         saved = evaluating() and (folder / WEIGHTS_FILE).is_file()
         finish(config, "dagger", result.learner, results, setup, saved=saved)
         return results
     finally:
         setup.close()  # the env and the logger, whatever happened
+
+
+def _results(config: DAggerJob, setup: Setup, result, demos: tuple[int, int], expert_ev) -> dict:
+    """What results.json holds (its ``seconds`` aside): the demonstrations, each round's
+    record and evaluation, the expert's, the last learner's."""
+    evaluations = [r.info for r in result.rounds]
+    rounds = [
+        {
+            "round": r.round,
+            "rows_trained": r.rows_trained,
+            "final_loss": r.bc.final_loss,
+            "beta_next": r.beta_next,
+            "rows_collected": r.rows_collected,
+            "expert_executed_fraction": r.expert_executed_fraction,
+            "interventions": r.interventions,
+            "evaluation": ev,
+        }
+        for r, ev in zip(result.rounds, evaluations)
+    ]
+    return {
+        "command": "dagger",
+        "env": config.env,
+        "learner_loss": setup.loss,
+        "demonstrations": {
+            "source": str(config.dataset) if config.dataset else f"expert {config.expert}",
+            "episodes": demos[0],
+            "rows": demos[1],
+        },
+        "final_loss": result.rounds[-1].bc.final_loss,
+        "expert": expert_ev,
+        "learner": evaluations[-1],
+        "rounds": rounds,
+    }
 
 
 def _trim_logs(folder: Path, next_round: int, bc_step: int) -> None:

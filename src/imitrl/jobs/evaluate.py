@@ -116,8 +116,9 @@ class EvalJob:
     checkpoint: Path | None = None
     """the --out directory of imitrl bc, dagger, gail or airl (config.json + learner.pt)"""
     expert: str | None = None
-    """evaluate this expert instead: a built-in name (cartpole, mountaincar, acrobot,
-    pendulum, inverted_pendulum, inverted_double_pendulum) or module:function"""
+    """evaluate this expert instead: auto (the built-in expert of --env), a built-in name
+    (cartpole, mountaincar, acrobot, pendulum, inverted_pendulum, inverted_double_pendulum,
+    metaworld, value_iteration) or module:function"""
     expert_kind: str = "builder"
     """what the function of --expert module:function is: builder (returns an expert
     module writing expert_action) or callable (a batched obs -> action function)"""
@@ -212,7 +213,7 @@ def run_eval(config: EvalJob) -> dict:
         read_checkpoint,
     )
     from imitrl.jobs.configs import RunFlags
-    from imitrl.jobs.resolve import make_expert, played_limit
+    from imitrl.jobs.resolve import played_limit
     from imitrl.policies import as_actor
 
     episodes, seed = config.eval_episodes, config.eval_seed
@@ -243,11 +244,7 @@ def run_eval(config: EvalJob) -> dict:
         env_id, steps, kwargs = config.env, config.max_episode_steps, dict(config.env_kwargs)
         # the expert reads the env's specs, as bc's and dagger's do: a callable learns the
         # shape of one observation, Meta-World's finds its state under LeRobot's obs types
-        specs = make_env(env_id, seed=0, max_episode_steps=steps, env_kwargs=kwargs)
-        try:
-            expert = make_expert(config.expert, config.expert_kind, env_id=env_id, env=specs)
-        finally:
-            specs.close()
+        expert = _expert(config, env_id, steps, kwargs)
         policy, exploration = as_actor(expert), ExplorationType.DETERMINISTIC
         name = f"expert {config.expert}"
     ev = evaluate_returns(
@@ -279,6 +276,23 @@ def run_eval(config: EvalJob) -> dict:
             make_folder(config.out)
             replace_file(config.out / "eval.json", json.dumps(results, indent=2) + "\n")
     return results
+
+
+def _expert(config: EvalJob, env_id: str, steps: int | None, kwargs: dict) -> TensorDictModuleBase:
+    """``--expert`` for the env (``auto``: the built-in expert of ``--env``, as imitrl bc
+    and compare resolve it), built reading the env's specs as bc's and dagger's is."""
+    from imitrl.envs import make_env
+    from imitrl.jobs.resolve import expert_for_env, make_expert, no_expert_message
+
+    assert config.expert is not None  # EvalJob.__post_init__
+    name = expert_for_env(config.expert, env_id)
+    if name is None:
+        raise ValueError(no_expert_message(env_id))
+    specs = make_env(env_id, seed=0, max_episode_steps=steps, env_kwargs=kwargs)
+    try:
+        return make_expert(name, config.expert_kind, env_id=env_id, env=specs, env_kwargs=kwargs)
+    finally:
+        specs.close()
 
 
 def delayed(policy: TensorDictModuleBase, config: EvalJob, spec) -> TensorDictModuleBase:

@@ -8,7 +8,7 @@ build, so a loss or expert added there and not here fails a test.
 
 from __future__ import annotations
 
-__all__ = ["EXPERT_ENVS", "EXPERT_KINDS", "LOGGERS", "LOSSES"]
+__all__ = ["EXPERT_ENVS", "EXPERT_KINDS", "LOGGERS", "LOSSES", "TABULAR_ENVS", "VALUE_ITERATION"]
 
 EXPERT_KINDS = ("builder", "callable")
 """what the ``function`` of ``--expert module:function`` is (:mod:`imitrl.jobs.resolve`)"""
@@ -25,6 +25,20 @@ EXPERT_ENVS: dict[str, str] = {
     "inverted_double_pendulum": "InvertedDoublePendulum-v5",
 }
 """built-in expert name -> the gymnasium id it acts in (``--expert auto`` picks by it)"""
+
+VALUE_ITERATION = "value_iteration"
+"""``--expert value_iteration``: the optimal policy of a toy-text env's own model
+(:func:`imitrl.experts.value_iteration_expert`), for any env publishing one"""
+
+TABULAR_ENVS = (
+    "FrozenLake-v1",
+    "FrozenLake8x8-v1",
+    "CliffWalking-v1",
+    "CliffWalkingSlippery-v1",
+    "Taxi-v4",
+)
+"""the gymnasium ids ``--expert auto`` gives :data:`VALUE_ITERATION` (each publishes its
+model as ``unwrapped.P``)"""
 
 LOSSES: tuple[tuple[str, str, str], ...] = (
     ("cross_entropy", "discrete", "cross-entropy (categorical NLL)"),

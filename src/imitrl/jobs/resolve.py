@@ -24,9 +24,10 @@ from __future__ import annotations
 
 import inspect
 import re
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import gymnasium
 import torch
@@ -39,7 +40,7 @@ from imitrl.configs.bc import BCConfig
 from imitrl.data.buffer import OBSERVATION_KEYS, REQUIRED_KEYS
 from imitrl.data.interventions import intervention_segments
 from imitrl.envs.make import METAWORLD_PREFIX
-from imitrl.jobs.names import EXPERT_ENVS, EXPERT_KINDS
+from imitrl.jobs.names import EXPERT_ENVS, EXPERT_KINDS, TABULAR_ENVS, VALUE_ITERATION
 from imitrl.learners import FOR_ENV, Learner, TaskSpec, build, registry, resolve
 from imitrl.policies import Expert
 from imitrl.system.imports import import_user_module
@@ -115,6 +116,8 @@ def expert_for_env(spec: str | None, env_id: str) -> str | None:
     plain = env_id.split(":", 1)[-1]
     if plain.startswith(METAWORLD_PREFIX):
         return METAWORLD
+    if plain in TABULAR_ENVS:
+        return VALUE_ITERATION
     return next((name for name, env in EXPERT_ENVS.items() if env == plain), None)
 
 
@@ -123,7 +126,8 @@ def no_expert_message(env_id: str) -> str:
     return (
         f"--env {env_id} has no built-in expert (built-in: "
         + ", ".join(f"{n} for {e}" for n, e in EXPERT_ENVS.items())
-        + f", {METAWORLD} for {METAWORLD_PREFIX}<task>-v3); pass --expert module:function (with --expert-kind callable for a batched "
+        + f", {METAWORLD} for {METAWORLD_PREFIX}<task>-v3, {VALUE_ITERATION} for a toy-text "
+        "env such as FrozenLake-v1); pass --expert module:function (with --expert-kind callable for a batched "
         "obs -> action function) or --dataset DIR"
     )
 
@@ -143,12 +147,18 @@ def check_expert_fits(expert: TensorDictModuleBase, spec: str, env_id: str, env:
 
 
 def make_expert(
-    spec: str, kind: str = "builder", *, env_id: str | None = None, env: EnvBase | None = None
+    spec: str,
+    kind: str = "builder",
+    *,
+    env_id: str | None = None,
+    env: EnvBase | None = None,
+    env_kwargs: Mapping[str, Any] | None = None,
 ) -> TensorDictModuleBase:
     """The expert named by ``spec`` (a built-in name or ``module:function``), built.
 
-    ``env_id`` and ``env``: the env it acts in (``metaworld`` needs them: the task's
-    scripted policy, reading the 39-d state where the env gives it).
+    ``env_id``, ``env`` and ``env_kwargs``: the env it acts in (``metaworld`` needs the id
+    and the env: the task's scripted policy, reading the 39-d state where the env gives
+    it; ``value_iteration`` the id and the keyword arguments: the model of that map).
 
     Returns a TensorDictModule reading ``observation`` and writing ``expert_action``.
     """
@@ -158,10 +168,15 @@ def make_expert(
         raise ValueError("--expert auto is resolved against --env first (expert_for_env)")
     if spec == METAWORLD:
         return _metaworld_expert(env_id, env)
+    if spec == VALUE_ITERATION:
+        if env_id is None:
+            raise ValueError(f"--expert {VALUE_ITERATION} solves the model of --env: pass one")
+        return experts.value_iteration_expert(env_id.split(":", 1)[-1], env_kwargs)
     if ":" not in spec:
         if spec not in EXPERTS:
             raise ValueError(
-                f"unknown expert {spec!r}; built-in: {', '.join([*EXPERTS, METAWORLD])}, "
+                f"unknown expert {spec!r}; built-in: "
+                f"{', '.join([*EXPERTS, METAWORLD, VALUE_ITERATION])}, "
                 "or module:function (see --expert-kind)"
             )
         return EXPERTS[spec]()

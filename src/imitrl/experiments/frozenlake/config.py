@@ -14,6 +14,7 @@ from pathlib import Path
 
 from gymnasium.envs.toy_text.frozen_lake import MAPS
 
+from imitrl.configs.value_iteration import VALUE_ITERATION_GAMMA, VALUE_ITERATION_SWEEPS
 from imitrl.limits import (
     MAX_EPISODE_STEPS,
     MAX_EPISODES,
@@ -115,9 +116,9 @@ class StudyConfig:
     """episode time limit (--max-episode-steps, as in every other command, or
     --max-steps); None = the env's registered limit (100 for FrozenLake 4x4); needed for
     envs registered without one, such as CliffWalking-v1"""
-    gamma: float = bounded(0.95, 0, 1, integer=False, low_open=True)
+    gamma: float = bounded(VALUE_ITERATION_GAMMA, 0, 1, integer=False, low_open=True)
     """discount of the expert's value iteration"""
-    vi_iters: int = bounded(1000, 1, MAX_SWEEPS)
+    vi_iters: int = bounded(VALUE_ITERATION_SWEEPS, 1, MAX_SWEEPS)
     """value-iteration sweeps"""
     lr: float = bounded(0.1, 0, integer=False, low_open=True)
     """Adam learning rate of the tabular clone"""
