@@ -42,6 +42,7 @@ __all__ = [
     "MAX_EPISODE_STEPS",
     "MAX_EVAL_EPISODES",
     "MAX_FPS",
+    "MAX_KERNEL_ENTRIES",
     "MAX_LAYERS",
     "MAX_NPROC",
     "MAX_NUM_ENVS",
@@ -121,6 +122,11 @@ MAX_CATEGORIES = 1 << 16
 (:meth:`imitrl.learners.TaskSpec.from_rows`, ``imitrl bc --env none``): each is a one-hot
 input or an output of the network, as wide as the widest hidden layer
 (:data:`MAX_WIDTH`); a dataset's largest label must not size a network by itself"""
+MAX_KERNEL_ENTRIES = 1 << 26
+"""most entries ``S x A x S`` a tabular model read from an env may have
+(:meth:`imitrl.tabular.TabularMDP.from_gym`: its kernel is dense, float64): 2^26 are 512
+MiB, a 64x64 FrozenLake map; value iteration's 1000 sweeps over it take about half a
+minute on one core, and a map twice as wide would ask 8 GiB and minutes"""
 MAX_LAYERS = 64
 """most hidden layers (``--hidden``)"""
 MAX_PARAMETERS = 100_000_000

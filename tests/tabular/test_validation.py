@@ -122,3 +122,15 @@ def test_policy_validation(lake):
     rows = torch.full((16, 4), 0.3)
     with pytest.raises(ValueError, match="sum to"):
         policy_probs(rows, 16, 4)
+
+
+def test_a_model_too_large_for_a_dense_kernel_is_refused_before_it_is_read():
+    """A hostile review: a 66x66 lake (``--env-kwarg desc=...``, the study's ``--desc``)
+    asked for a dense 4356 x 4 x 4356 kernel; twice as wide, more memory than the machine."""
+    from gymnasium.envs.toy_text.frozen_lake import generate_random_map
+
+    desc = generate_random_map(66, seed=0)
+    with pytest.raises(ValueError, match=r"4356 states and 4 actions.*MAX_KERNEL_ENTRIES"):
+        TabularMDP.from_gym("FrozenLake-v1", 0.95, make_kwargs={"desc": desc})
+    small = TabularMDP.from_gym("FrozenLake-v1", 0.95, make_kwargs={"desc": desc[:8]})
+    assert small.num_states == 8 * 66

@@ -29,6 +29,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
+from imitrl.limits import MAX_KERNEL_ENTRIES
 from imitrl.tabular.bellman import backup_dense
 from imitrl.tabular.gym_model import make_env, read_gym_model, terminal_states
 from imitrl.tabular.validation import as_float64, check_gamma, check_probabilities
@@ -214,6 +215,12 @@ class TabularMDP:
                 f"{obs_space} and {act_space}"
             )
         S, A = int(obs_space.n), int(act_space.n)
+        if S * A * S > MAX_KERNEL_ENTRIES:
+            raise ValueError(
+                f"env {name!r} has {S} states and {A} actions: its dense model would hold "
+                f"S x A x S = {S * A * S:.3g} entries, past imitrl.limits.MAX_KERNEL_ENTRIES "
+                f"({MAX_KERNEL_ENTRIES:.3g}, {MAX_KERNEL_ENTRIES * 8 >> 20} MiB of float64)"
+            )
         initial = getattr(unwrapped, "initial_state_distrib", None)
         if initial is None:
             raise ValueError(
