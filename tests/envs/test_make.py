@@ -75,3 +75,22 @@ def test_a_metaworld_ids_task_cannot_be_swapped_by_an_argument():
     with pytest.raises(ValueError, match=r"metaworld/reach-v3 names its task; give --env "
                                          r"metaworld/push-v3"):  # fmt: skip
         make_env("metaworld/reach-v3", seed=0, env_kwargs={"task": "push-v3"})
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "said"),
+    [
+        ({"map_name": "16x16"}, "refused --env-kwarg map_name='16x16': KeyError: '16x16'"),
+        ({"desc": "SFFG"}, "refused --env-kwarg desc='SFFG': ValueError: not enough values"),
+        ({"reward_schedule": (1, 0)}, "refused --env-kwarg reward_schedule=(1, 0): IndexError"),
+    ],
+)
+def test_a_value_the_constructor_cannot_use_is_one_bounded_line(kwargs, said):
+    """A hostile review: these were tracebacks, or a line naming neither the flag nor the
+    value; an argument 100,000 items long gave a 1.4 MB line."""
+    with pytest.raises(ValueError) as err:
+        make_env("FrozenLake-v1", seed=0, env_kwargs=kwargs)
+    assert said in str(err.value) and "\n" not in str(err.value)
+    with pytest.raises(ValueError) as err:
+        make_env("FrozenLake-v1", seed=0, env_kwargs={"map_name": "8x8" * 50_000})
+    assert len(str(err.value)) < 700

@@ -167,7 +167,7 @@ def test_env_kwargs_choose_lerobots_observation_types():
         env, metaworld_expert("reach-v3", observation_key="environment_state"), 1
     )
     assert rows.get(keys.ENVIRONMENT_STATE).shape[1:] == (39,)
-    with pytest.raises(ValueError, match="refused env_kwargs"):
+    with pytest.raises(ValueError, match="refused --env-kwarg no_such_argument=1: TypeError"):
         make_env("metaworld/reach-v3", seed=0, env_kwargs={"no_such_argument": 1})
     with pytest.raises(ValueError, match="unknown Meta-World task 'reech-v3'"):
         make_env("metaworld/reech-v3", seed=0)

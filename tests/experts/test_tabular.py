@@ -57,3 +57,23 @@ def test_the_cliffwalking_expert_walks_the_shortest_path_beside_the_cliff():
 def test_an_env_without_a_model_is_refused():
     with pytest.raises(ValueError, match="CartPole-v1"):
         value_iteration_expert("CartPole-v1")
+
+
+def test_a_goal_farther_than_a_fixed_number_of_sweeps_is_still_found():
+    """A hostile review: 1000 fixed sweeps left every state more than 1000 steps from the
+    goal at value 0, its actions tied, and the expert walked left forever (return 0 on a
+    snake-shaped 47x47 map). Here 40 sweeps on a 60-cell corridor show the same: fixed
+    sweeps tie the far end; the expert sweeps until its values converge."""
+    from imitrl.tabular import TabularMDP, greedy, value_iteration
+
+    kwargs = {"desc": ["S" + "F" * 58 + "G"], "is_slippery": False}
+    mdp = TabularMDP.from_gym("FrozenLake-v1", 0.95, make_kwargs=kwargs)
+    fixed = greedy(mdp.backup(value_iteration(mdp, 40)[-1]))
+    assert fixed[0].item() == 0  # LEFT: the start's actions all tied at 0
+    table = _table(value_iteration_expert("FrozenLake-v1", kwargs), 60)
+    assert table[:59] == [2] * 59  # RIGHT, all the way
+    assert success_probability(mdp, torch.tensor(table), 59) == 1.0
+    with pytest.raises(ValueError, match="did not converge in 40 sweeps"):
+        from imitrl.tabular.dp import converged_values
+
+        converged_values(mdp, 40)

@@ -405,3 +405,28 @@ def test_a_learner_pt_whose_copies_of_one_weight_disagree_is_refused(tmp_path):
     assert status == 2 and err.count("\n") == 1, err
     assert "'policy.module.0.module.3.bias' and 'loss.actor.module.0.module.3.bias'" in err
     assert "learner.pt" in err
+
+
+def test_a_compressed_learner_in_a_buffer_checkpoint_is_refused_before_it_is_unpacked(tmp_path):
+    """A hostile review: DAgger's checkpoint (a buffer checkpoint with the learner) unpacked
+    a 1 MB deflated learner.pt into 1 GiB; its manifest's checksums were simply redone."""
+    import zipfile
+
+    learner = build("cross_entropy", TaskSpec(action=4, num_states=16))
+    buf = DemonstrationBuffer()
+    buf.extend(demo_rows(10))
+    path = buf.save(tmp_path / "ck", learner=learner)
+    raw = (path / "learner.pt").read_bytes()
+    with (
+        zipfile.ZipFile(io.BytesIO(raw)) as source,
+        zipfile.ZipFile(path / "learner.pt", "w", compression=zipfile.ZIP_DEFLATED) as packed,
+    ):
+        for record in source.infolist():
+            packed.writestr(record.filename, source.read(record))
+    data = (path / "learner.pt").read_bytes()
+    _manifest(path, lambda c: c["files"].update(
+        {"learner.pt": {"bytes": len(data), "sha256": hashlib.sha256(data).hexdigest()}}))  # fmt: skip
+    with pytest.raises(ValueError, match=r"torch\.save stores them as they are, so refused before"):
+        DemonstrationBuffer.load(
+            path, learner=build("cross_entropy", TaskSpec(action=4, num_states=16))
+        )

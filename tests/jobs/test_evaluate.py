@@ -77,3 +77,26 @@ def test_the_metaworld_expert_evaluates_under_lerobots_observation_types():
                            max_episode_steps=60, progress=False,
                            env_kwargs=(("obs_type", "environment_state_agent_pos"),)))  # fmt: skip
     assert got["evaluation"]["success_rate"] == 1.0
+
+
+def test_an_env_kwarg_given_to_eval_or_compare_goes_over_the_runs_own(tmp_path):
+    """A hostile review: one --env-kwarg (even one of the run's own) dropped all of the
+    run's others, and the default lake was played without a word (return 0 for 1); a
+    lake given as rows of letters (lists) trained, then its checkpoint was refused."""
+    from tests._cli import run_main
+
+    out = tmp_path / "lake"
+    status, _, err = run_main("bc", "--env", "FrozenLake-v1", "--env-kwarg",
+                              "desc=[['S','F','F','F'],['F','F','F','F'],['F','H','H','H'],"
+                              "['F','F','F','G']]", "--env-kwarg", "is_slippery=false",
+                              "--demos", "1", "--steps", "200", "--eval-episodes", "2",
+                              "--no-progress", "--out", str(out))  # fmt: skip
+    assert status == 0, err
+    status, printed, err = run_main("eval", "--checkpoint", str(out), "--env-kwarg",
+                                    "is_slippery=false", "--no-progress")  # fmt: skip
+    assert status == 0, err
+    assert "(desc=[['S', 'F', 'F', 'F'], " in printed and "is_slippery=False)" in printed
+    assert "return 1.00 [1.00, 1.00] over 2 episodes" in printed and "length 6.0" in printed
+    status, printed, err = run_main("compare", "--a", "expert", "--b", str(out), "--env-kwarg",
+                                    "is_slippery=false", "--episodes", "2")  # fmt: skip
+    assert status == 0 and "return: a 1, b 1" in printed and "(desc=" in printed, err

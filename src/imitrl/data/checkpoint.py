@@ -53,7 +53,14 @@ from tensordict import TensorDict, TensorDictBase
 
 from imitrl.fs.lock import absolute
 from imitrl.fs.publish import OLD, publishing
-from imitrl.fs.reading import OpenedFolder, ReplacedWhileReading, fd_path, parse_json, read_whole
+from imitrl.fs.reading import (
+    OpenedFolder,
+    ReplacedWhileReading,
+    check_stored_zip,
+    fd_path,
+    parse_json,
+    read_whole,
+)
 
 __all__ = [
     "MANIFEST",
@@ -194,12 +201,13 @@ def restore_learner(
         raise ValueError(f"{path}: cannot load the learner: the checkpoint was saved without one")
     states = {}
     for component, name in saved.items():
+        raw = io.BytesIO(bytes(files[name].numpy()))
+        check_stored_zip(raw, path / name, len(raw.getbuffer()), what=f"the {component}'s state")
+        raw.seek(0)
         try:
             # read onto the CPU whatever device saved it; load_state_dict then copies each
             # tensor to where the learner lives (a GPU checkpoint loads on a CPU machine)
-            states[component] = torch.load(
-                io.BytesIO(bytes(files[name].numpy())), weights_only=True, map_location="cpu"
-            )
+            states[component] = torch.load(raw, weights_only=True, map_location="cpu")
         except Exception as err:  # torch.load raises assorted errors on a bad archive
             raise ValueError(f"{path / name}: cannot load {component} ({err})") from None
     if isinstance(learner, DeclaresOptimizers):

@@ -127,6 +127,15 @@ _KINDS: dict[type, tuple[type, ...]] = {
 """a default's type -> the types a value given for it may have"""
 
 
+def _refused(env_id: str, env_kwargs: dict | None, err: Exception) -> str:
+    """One line: the env refused its ``--env-kwarg`` values (bounded: a value may be long)."""
+    shown = ", ".join(f"{k}={v!r}" for k, v in (env_kwargs or {}).items())
+    return (
+        f"{env_id} refused --env-kwarg {shown[:200]}: {type(err).__name__}: "
+        f"{str(err).splitlines()[0][:300] if str(err) else ''}"
+    )
+
+
 def _gym(
     env_id: str,
     max_episode_steps: int | None,
@@ -144,7 +153,13 @@ def _gym(
             env_id, max_episode_steps=max_episode_steps, **{**(env_kwargs or {}), **extra}
         )
     except TypeError as err:  # a keyword the env's constructor does not take
-        raise ValueError(f"{env_id} refused env_kwargs {env_kwargs}: {err}") from err
+        raise ValueError(_refused(env_id, env_kwargs, err)) from err
+    except (KeyError, IndexError, ValueError, AssertionError, RuntimeError) as err:
+        if not env_kwargs:  # the env's own failure, not about its arguments
+            raise
+        # a value the constructor cannot use (a hostile review: map_name=16x16 was a
+        # KeyError traceback, desc=SFFG "not enough values to unpack")
+        raise ValueError(_refused(env_id, env_kwargs, err)) from err
     except gymnasium.error.DependencyNotInstalled as err:
         raise ValueError(
             f"{env_id} needs an optional dependency ({err}); for MuJoCo envs install "

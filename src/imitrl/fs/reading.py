@@ -30,10 +30,11 @@ import errno
 import json
 import os
 import stat
+import zipfile
 from collections import deque
 from collections.abc import Callable
 from pathlib import Path, PurePosixPath
-from typing import Any, TypeVar
+from typing import IO, Any, TypeVar
 
 from imitrl.fs.contained import check_relative, trusted_bases
 
@@ -41,6 +42,7 @@ __all__ = [
     "MAX_LINKS",
     "OpenedFolder",
     "ReplacedWhileReading",
+    "check_stored_zip",
     "fd_path",
     "parse_json",
     "read_whole",
@@ -361,3 +363,25 @@ def read_whole(
         f"{root}: the {what} was replaced while it was read, {tries} times in a row; "
         "try again when its writer has finished"
     )
+
+
+def check_stored_zip(f: IO[bytes], where: Path | str, size: int, *, what: str) -> None:
+    """Refuse a zip archive (``torch.save``'s format) that would unpack to more than its
+    ``size`` bytes: one whose records are compressed (``torch.save`` stores them as they
+    are) or say they hold more; checked before anything is unpacked (a zip bomb of a few
+    MB would otherwise inflate to GBs). ``what``: what the archive should be, for the
+    message."""
+    try:
+        with zipfile.ZipFile(f) as archive:
+            records = archive.infolist()
+    except (zipfile.BadZipFile, zipfile.LargeZipFile, ValueError, OSError, EOFError) as err:
+        raise ValueError(
+            f"{where}: not {what} (not the zip archive torch.save writes: {err})"
+        ) from None
+    packed = [r.filename for r in records if r.compress_type != zipfile.ZIP_STORED]
+    unpacked = sum(r.file_size for r in records)
+    if packed or unpacked > size:
+        raise ValueError(
+            f"{where}: records that unpack to {unpacked:_} bytes from {size:_} (compressed: "
+            f"{packed[:3]}); torch.save stores them as they are, so refused before unpacking"
+        )

@@ -21,16 +21,21 @@ import io
 import json
 import math
 import os
-import zipfile
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, BinaryIO
+from typing import Any
 
 import torch
 from torchrl.envs import EnvBase
 
 from imitrl.fs.files import replace_file
-from imitrl.fs.reading import OpenedFolder, ReplacedWhileReading, parse_json, read_whole
+from imitrl.fs.reading import (
+    OpenedFolder,
+    ReplacedWhileReading,
+    check_stored_zip,
+    parse_json,
+    read_whole,
+)
 from imitrl.jobs.configs import BCJob
 from imitrl.jobs.resolve import FOR_ENV, LEGACY_DEFAULT, learner_factory
 from imitrl.learners import Learner, TaskSpec, registry, resolve
@@ -209,7 +214,7 @@ def _weights(folder: OpenedFolder) -> tuple[dict, int]:
                 "weights may take (imitrl.jobs.checkpoint.MAX_WEIGHTS_BYTES); refused "
                 "before reading it"
             )
-        _check_stored(f, where, size)
+        check_stored_zip(f, where, size, what="a learner's weights")
         f.seek(0)
         try:
             state = torch.load(f, weights_only=True, map_location="cpu")
@@ -220,25 +225,6 @@ def _weights(folder: OpenedFolder) -> tuple[dict, int]:
     if not isinstance(state, dict):
         raise ValueError(f"{where}: not a learner's weights (a {type(state).__name__})")
     return state, size
-
-
-def _check_stored(f: BinaryIO, where: Path, size: int) -> None:
-    """Refuse a weights archive that would unpack to more than its ``size``: one whose
-    records are compressed (``torch.save`` stores them as they are) or say so."""
-    try:
-        with zipfile.ZipFile(f) as archive:
-            records = archive.infolist()
-    except (zipfile.BadZipFile, zipfile.LargeZipFile, ValueError, OSError, EOFError) as err:
-        raise ValueError(
-            f"{where}: not a learner's weights (not the zip archive torch.save writes: {err})"
-        ) from None
-    packed = [r.filename for r in records if r.compress_type != zipfile.ZIP_STORED]
-    unpacked = sum(r.file_size for r in records)
-    if packed or unpacked > size:
-        raise ValueError(
-            f"{where}: records that unpack to {unpacked:_} bytes from {size:_} (compressed: "
-            f"{packed[:3]}); torch.save stores them as they are, so refused before unpacking"
-        )
 
 
 def check_holds(where: Path, hidden: tuple[int, ...], size: int, env: EnvBase) -> None:
@@ -304,7 +290,7 @@ def _check_fields(path: Path, config: Any) -> None:
     if not isinstance(pairs, list) or not all(_plain_pair(p) for p in pairs):
         raise ValueError(
             f"{path}: env_kwargs must be a list of [name, value] pairs of JSON scalars (or "
-            f"lists of them), got {pairs!r}"[:300]
+            f"lists of them, or lists of such lists), got {pairs!r}"[:300]
         )
 
 
@@ -323,18 +309,27 @@ def _names_a_path(text: str) -> bool:
 
 
 def _plain_pair(pair: Any) -> bool:
-    """``[name, value]``: a keyword name and a JSON scalar (data, never an object to build)."""
+    """``[name, value]``: a keyword name and plain JSON data (never an object to build)."""
     return (
         isinstance(pair, list)
         and len(pair) == 2
         and isinstance(pair[0], str)
         and pair[0].isidentifier()
-        and (_scalar(pair[1]) or (isinstance(pair[1], list) and all(map(_scalar, pair[1]))))
+        and _plain(pair[1], depth=2)
     )
 
 
-def _scalar(value: Any) -> bool:
+def _plain(value: Any, depth: int) -> bool:
+    """A JSON scalar, or a list of ``_plain`` values ``depth`` lists deep at most (a
+    lake's ``desc``, rows of letters, is two: what ``--env-kwarg`` takes, a run saves)."""
+    if isinstance(value, list):
+        return depth > 0 and all(_plain(v, depth - 1) for v in value)
     return value is None or isinstance(value, str | int | float | bool)
+
+
+def _leaves(value: Any) -> list:
+    """The scalars of a ``_plain`` value."""
+    return [x for v in value for x in _leaves(v)] if isinstance(value, list) else [value]
 
 
 def checkpoint_env_kwargs(config: dict, checkpoint: str | Path) -> dict:
@@ -343,7 +338,7 @@ def checkpoint_env_kwargs(config: dict, checkpoint: str | Path) -> dict:
     checkpoint never makes imitrl read outside its folder; ``--env-kwarg`` names it)."""
     pairs = {name: value for name, value in config.get("env_kwargs", [])}
     for name, value in pairs.items():
-        for item in value if isinstance(value, list) else [value]:
+        for item in _leaves(value):
             if isinstance(item, str) and _names_a_path(item):
                 raise ValueError(
                     f"{Path(checkpoint) / CONFIG_FILE}: env_kwargs {name}={item!r} names a "
@@ -462,19 +457,12 @@ def build_learner(saved: SavedRun, env: EnvBase, *, device: str | None = None) -
         seed=config["seed"],
         device=device,
     )
-    for name, tensor in saved.state.items():
-        if isinstance(tensor, torch.Tensor) and tensor.is_floating_point():
-            if not bool(torch.isfinite(tensor).all()):
-                raise ValueError(
-                    f"{saved.path / WEIGHTS_FILE}: {name!r} holds NaN or inf (the saved fit "
-                    "diverged, or the file was altered): nothing it does can be scored"
-                )
     learner = make()
     state = migrated(saved.state, learner)
     _check_shapes(saved, state, learner, env)
     try:
         learner.load_state_dict(state)
-    except ValueError as err:  # two copies of one weight that disagree (Learner's check)
+    except ValueError as err:  # NaN weights, casts, copies that differ (check_saved_state)
         raise ValueError(f"{saved.path / WEIGHTS_FILE}: {err}") from None
     except RuntimeError as err:  # shapes or names that do not match the rebuilt learner
         raise ValueError(

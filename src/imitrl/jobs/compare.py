@@ -129,6 +129,7 @@ def run_compare(config: CompareJob) -> dict:
 
     results = {
         "env": env_id,
+        "env_kwargs": kwargs,
         "seed": config.seed,
         "max_episode_steps": played_limit(env_id, steps),
         "comparison": result.as_dict(),
@@ -167,17 +168,19 @@ def _env_of(config: CompareJob) -> tuple[str, int | None, dict]:
                 + "): name the one to compare them with, --max-episode-steps N"
             )  # fmt: skip
         steps = next(iter(limits.values()), None)
-    if config.env_kwargs:
-        return env_id, steps, dict(config.env_kwargs)
-    # each checkpoint's env arguments, where it is played in its own env
-    each = {s: checkpoint_env_kwargs(c, s) for s, c in saved.items() if envs[s] == env_id}
+    given = dict(config.env_kwargs)
+    # each checkpoint's env arguments, where it is played in its own env, under --env-kwarg's
+    each = {
+        s: {**checkpoint_env_kwargs(c, s), **given} for s, c in saved.items() if envs[s] == env_id
+    }
     if len({json.dumps(k, sort_keys=True) for k in each.values()}) > 1:
         raise ValueError(
             "the checkpoints were trained with different env arguments ("
             + ", ".join(f"{s}: {k}" for s, k in each.items())
-            + "): name the ones to compare them with, --env-kwarg NAME=VALUE"
+            + "): name the ones to compare them with, --env-kwarg NAME=VALUE (each "
+            "overrides the checkpoints' own)"
         )
-    return env_id, steps, next(iter(each.values()), {})
+    return env_id, steps, next(iter(each.values()), given)
 
 
 def _check_loss_named(config: CompareJob) -> None:
@@ -234,6 +237,8 @@ def _side(side: str, flag: str, env, env_id: str, config: CompareJob, kwargs: di
 
 def report(results: dict) -> list[str]:
     """What ``imitrl compare`` prints."""
+    from imitrl.jobs.evaluate import env_arguments
+
     c = results["comparison"]
     lo, hi = (-math.inf if c["interval"][0] is None else c["interval"][0],
               math.inf if c["interval"][1] is None else c["interval"][1])  # fmt: skip
@@ -241,7 +246,8 @@ def report(results: dict) -> list[str]:
     limit = results.get("max_episode_steps")
     steps = "" if limit is None else f" of at most {limit} steps"
     return [
-        f"{c['a']} vs {c['b']} on {results['env']}: {c['episodes']} paired episodes{steps} "
+        f"{c['a']} vs {c['b']} on {results['env']}{env_arguments(results.get('env_kwargs'))}: "
+        f"{c['episodes']} paired episodes{steps} "
         f"(seeds {results['seed']}..{results['seed'] + c['episodes'] - 1})",
         f"{c['metric']}: a {c['mean_a']:.4g}, b {c['mean_b']:.4g}; difference a - b "
         f"{c['difference']:+.4g}, {level}% interval [{lo:+.4g}, {hi:+.4g}]",

@@ -95,6 +95,11 @@ def evaluate_returns(
     }
 
 
+def env_arguments(kwargs: dict | None) -> str:
+    """`` (name=value, ...)``: the env's arguments as a report names them ('' for none)."""
+    return f" ({', '.join(f'{k}={v}' for k, v in kwargs.items())})" if kwargs else ""
+
+
 def format_return(name: str, ev: dict) -> str:
     """One report line: ``name: return m [lo, hi] over n episodes (exploration)``."""
     lo, hi = ev["return_ci"]
@@ -227,9 +232,10 @@ def run_eval(config: EvalJob) -> dict:
         seed = saved.config.get("eval_seed") if seed is None else seed
         env_id = config.env or checkpoint_env(config.checkpoint, saved.config)
         steps = config.max_episode_steps or saved.config.get("max_episode_steps")
-        kwargs = dict(config.env_kwargs)  # or the run's own, for the run's own env
-        if not kwargs and env_id == saved.config.get("env"):
-            kwargs = checkpoint_env_kwargs(saved.config, saved.path)
+        kwargs = dict(config.env_kwargs)  # over the run's own, for the run's own env
+        if env_id == saved.config.get("env"):  # (a hostile review: one --env-kwarg
+            # dropped the run's map_name, and another lake was played without a word)
+            kwargs = {**checkpoint_env_kwargs(saved.config, saved.path), **kwargs}
         # the learner's shapes
         specs = make_env(env_id, seed=0, max_episode_steps=steps, env_kwargs=kwargs)
         try:
@@ -285,11 +291,11 @@ def _expert(config: EvalJob, env_id: str, steps: int | None, kwargs: dict) -> Te
     from imitrl.jobs.resolve import expert_for_env, make_expert, no_expert_message
 
     assert config.expert is not None  # EvalJob.__post_init__
-    name = expert_for_env(config.expert, env_id)
-    if name is None:
-        raise ValueError(no_expert_message(env_id))
-    specs = make_env(env_id, seed=0, max_episode_steps=steps, env_kwargs=kwargs)
+    specs = make_env(env_id, seed=0, max_episode_steps=steps, env_kwargs=kwargs)  # the id first
     try:
+        name = expert_for_env(config.expert, env_id)
+        if name is None:
+            raise ValueError(no_expert_message(env_id))
         return make_expert(name, config.expert_kind, env_id=env_id, env=specs, env_kwargs=kwargs)
     finally:
         specs.close()
@@ -317,7 +323,10 @@ def delayed(policy: TensorDictModuleBase, config: EvalJob, spec) -> TensorDictMo
 
 def report(results: dict) -> list[str]:
     """What ``imitrl eval`` prints."""
-    line = format_return(f"{results['policy']} on {results['env']}", results["evaluation"])
+    line = format_return(
+        f"{results['policy']} on {results['env']}{env_arguments(results.get('env_kwargs'))}",
+        results["evaluation"],
+    )
     if "latency" in results:
         lat = results["latency"]
         line += f"; inference delay {lat['inference_delay']} steps, {lat['mode']} execution"

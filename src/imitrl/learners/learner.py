@@ -38,6 +38,7 @@ from torchrl.envs.utils import ExplorationType
 from imitrl import keys
 from imitrl.data.chunks import CHUNK_PAD, EXPERT_CHUNK, add_chunk_labels
 from imitrl.data.history import add_observation_history, history_key
+from imitrl.learners.saved_state import check_saved_state
 from imitrl.objectives.base import ImitationLoss
 from imitrl.policies.ema import EMA
 from imitrl.policies.normalization import ObservationNormalizer
@@ -146,11 +147,12 @@ class Learner(nn.Module):
         return {**states, "learner": {**saved, **fresh}} if fresh else states
 
     def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
-        """:meth:`torch.nn.Module.load_state_dict`, after checking that the keys naming one
-        shared weight (the policy's, and its loss's ``actor``) hold one value: an edited
-        checkpoint whose copies disagree is refused (``ValueError`` naming both keys) where
-        torch would keep whichever it loads last."""
-        _check_shared_weights(self, state_dict)
+        """:meth:`torch.nn.Module.load_state_dict`, after
+        :func:`~imitrl.learners.saved_state.check_saved_state`: a value of another kind than
+        its weight, NaN or inf once cast, or copies of one shared weight (the policy's and
+        its loss's ``actor``) that differ are refused (``ValueError`` naming the key) where
+        torch would cast it, or keep whichever copy it loads last."""
+        check_saved_state(self, state_dict)
         return super().load_state_dict(state_dict, strict=strict, assign=assign)
 
     @property
@@ -208,26 +210,3 @@ class Learner(nn.Module):
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         """Run the policy on a tensordict (writes ``ACTION``)."""
         return self.policy(tensordict)
-
-
-def _check_shared_weights(module: nn.Module, state: dict) -> None:
-    """ValueError unless every group of ``module``'s state keys that alias one tensor
-    holds equal values in ``state`` (keys missing or of another shape are left to torch's
-    own checks)."""
-    groups: dict[tuple, list[str]] = {}
-    for key, value in module.state_dict(keep_vars=True).items():
-        if isinstance(value, torch.Tensor) and value.numel() > 0:
-            where = (value.untyped_storage().data_ptr(), value.storage_offset(), value.dtype)
-            groups.setdefault((*where, tuple(value.shape), value.stride()), []).append(key)
-    for names in groups.values():
-        saved = [(n, state[n]) for n in names if isinstance(state.get(n), torch.Tensor)]
-        if len(saved) < 2:
-            continue
-        (first, value), rest = saved[0], saved[1:]
-        for name, other in rest:
-            same = torch.equal(other.detach().cpu().to(value.dtype), value.detach().cpu())
-            if other.shape == value.shape and not same:
-                raise ValueError(
-                    f"the saved weights {first!r} and {name!r} are one weight of the learner "
-                    "but hold different values (an edited checkpoint): refusing to pick one"
-                )

@@ -11,7 +11,7 @@ from imitrl.tabular.bellman import backup_arrays, backup_dense
 from imitrl.tabular.mdp import TabularMDP
 from imitrl.tabular.policy import kernel_under, reward_under
 
-__all__ = ["backup", "greedy", "policy_evaluation", "value_iteration"]
+__all__ = ["backup", "converged_values", "greedy", "policy_evaluation", "value_iteration"]
 
 
 def backup(mdp: TabularMDP, V: torch.Tensor) -> torch.Tensor:
@@ -43,6 +43,30 @@ def value_iteration(mdp: TabularMDP, num_iters: int = 1000) -> torch.Tensor:
         V = backup_arrays(r, gamma_P, V).max(axis=1)
         history[k] = V
     return torch.from_numpy(history)
+
+
+def converged_values(mdp: TabularMDP, max_sweeps: int) -> tuple[torch.Tensor, int]:
+    """``(V*, sweeps)``: value iteration from ``V_0 = 0`` until a sweep changes no state's
+    value by more than float64's rounding (each state relative to itself, so a state far
+    from any reward, whose value is still 0 or tiny, keeps the sweeps going until its
+    value arrives: a fixed number of sweeps leaves a state farther than that from the
+    reward at 0, all its actions tied).
+
+    Raises:
+        ValueError: not converged within ``max_sweeps``.
+    """
+    r, gamma_P = mdp.r.numpy(), mdp.gamma * mdp.P.numpy()
+    V = np.zeros(mdp.num_states)
+    tol = 4 * np.finfo(np.float64).eps
+    for sweep in range(1, int(max_sweeps) + 1):
+        new = backup_arrays(r, gamma_P, V).max(axis=1)
+        if np.all(np.abs(new - V) <= tol * np.abs(new)):
+            return torch.from_numpy(new), sweep
+        V = new
+    raise ValueError(
+        f"value iteration on {mdp.name!r} did not converge in {int(max_sweeps)} sweeps "
+        f"(gamma {mdp.gamma})"
+    )
 
 
 def greedy(Q: torch.Tensor) -> torch.Tensor:
