@@ -384,3 +384,38 @@ def test_kill_9_between_the_fallback_renames_names_the_previous_checkpoint(tmp_p
     aside = Path(str(err).split(" at ")[1].split(" (rename")[0])
     os.rename(aside, path)  # what the message says to do
     assert same_buffer(DemonstrationBuffer.load(path)[0], old)
+
+
+@pytest.mark.parametrize(
+    ("edit", "said"),
+    [
+        (lambda st: st["state"][0].update(exp_avg=torch.zeros(1).expand(2**40)), "[1099511627776]"),
+        (lambda st: st["state"][0].update(step=torch.tensor(-5.0)), "or a negative step"),
+        (lambda st: st["state"][0].update(exp_avg_sq=st["state"][0]["exp_avg_sq"] * float("nan")),
+         "or not finite"),
+        (lambda st: st["param_groups"][0].update(lr=float("nan")), "hyperparameters must be finite"),
+        (lambda st: st["param_groups"][0].update(lr=-1.0), "lr >= 0"),
+        (lambda st: st["state"].update({99: {}}), "a state of parameter 99"),
+    ],
+)  # fmt: skip
+def test_an_edited_optimizer_state_is_refused_before_it_is_copied(tmp_path, edit, said):
+    """A hostile review (the checksums redone): an exp_avg viewing one stored value as
+    2^29 values was materialised (2.5 GB) and failed in a traceback, as did a negative
+    step; a NaN learning rate was blamed on the state's JSON."""
+    from tests.jobs.test_dagger_resume import _resigned
+
+    buf = DemonstrationBuffer()
+    buf.extend(demo_rows(20))
+    learner = build("cross_entropy", TaskSpec(action=4, num_states=16))
+    fit_bc(learner, buf, BCConfig(num_steps=2))
+    path = buf.save(tmp_path / "ck", learner=learner)
+    state = torch.load(path / "opt_pi.pt", weights_only=True)
+    edit(state)
+    torch.save(state, path / "opt_pi.pt")
+    _resigned(path)
+    target = build("cross_entropy", TaskSpec(action=4, num_states=16))
+    opt = copy.deepcopy(target.opt_pi.state_dict())
+    with pytest.raises(ValueError, match=r"opt_pi\.pt") as err:
+        DemonstrationBuffer.load(path, learner=target)
+    assert said in str(err.value), err.value
+    assert same_state(target.opt_pi.state_dict(), opt)

@@ -104,3 +104,11 @@ def test_a_folder_holding_only_a_buffers_lock_starts_afresh(tmp_path):
     (tmp_path / "other" / "notes.txt").touch()
     with pytest.raises(ValueError, match=r"other files \(\['notes.txt'\]\)"):
         DemonstrationBuffer(path=tmp_path / "other", capacity=16)
+
+
+def test_a_folder_planted_at_the_locks_name_is_one_line(tmp_path):
+    """A hostile review: a raw IsADirectoryError from the lock's open."""
+    path = tmp_path / "buf"
+    (path / "imitrl_buffer.lock").mkdir(parents=True)
+    with pytest.raises(ValueError, match="is a folder where a disk buffer's lock should be a file"):
+        DemonstrationBuffer(path=path, capacity=4)

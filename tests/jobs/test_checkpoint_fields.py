@@ -55,10 +55,11 @@ def test_env_arguments_naming_a_file_are_refused_before_the_env_is_made(run, tmp
     assert status == 2 and "env_kwargs xml_file=" in err and "names a file" in err, err
     assert "--env-kwarg xml_file=" in err and len(err.strip().splitlines()) == 1
     assert touched == []
-    # the command's own arguments replace the checkpoint's: what the user names is played
+    # the command's own arguments go over the checkpoint's: the saved file would still
+    # be opened, so it is still refused (only --env-kwarg xml_file=... replaces it)
     status, err = _main("eval", "--checkpoint", str(bad), "--eval-episodes", "1",
                         "--env-kwarg", "sutton_barto_reward=false")  # fmt: skip
-    assert status == 0, err
+    assert status == 2 and "names a file" in err, err
 
 
 def test_env_arguments_that_name_no_file_are_played(run, tmp_path):

@@ -138,3 +138,9 @@ def test_the_expert_side_is_the_expert_named_by_expert(tmp_path, monkeypatch):
     status, _, err = _main("compare", "--a", "random", "--b", "random", *lake, "--expert",
                            "down_expert:down")  # fmt: skip
     assert status == 2 and "names the side expert: pass --a or --b expert" in err, err
+    status, _, err = _main("compare", "--a", "random", "--b", "random", *lake, "--expert-kind",
+                           "junk")  # fmt: skip
+    assert status == 2 and "--expert-kind must be one of ('builder', 'callable')" in err, err
+    status, _, err = _main("compare", "--a", "expert", "--b", "random", "--env",
+                           "CliffWalking-v1", "--episodes", "2")  # fmt: skip
+    assert status == 2 and "registered without a time limit: pass --max-episode-steps" in err

@@ -106,3 +106,48 @@ def _scalars(out):
 def _logs(out):
     root = _scalars(out)
     return {p.relative_to(root).as_posix(): p.read_text() for p in sorted(root.rglob("*.csv"))}
+
+
+def _resigned(run):
+    """Redo a buffer checkpoint's checksums after an edit, as anyone may."""
+    import hashlib
+
+    manifest = json.loads((run / "manifest.json").read_text())
+    for name, entry in manifest["content"]["files"].items():
+        data = (run / name).read_bytes()
+        entry.update(bytes=len(data), sha256=hashlib.sha256(data).hexdigest())
+    canonical = json.dumps(manifest["content"], sort_keys=True, separators=(",", ":"))
+    manifest["content_sha256"] = hashlib.sha256(canonical.encode()).hexdigest()
+    (run / "manifest.json").write_text(json.dumps(manifest))
+
+
+@pytest.mark.parametrize(
+    ("edit", "said"),
+    [
+        (lambda s: s.update(records=s["records"] * 2), "4 round records for 2 rounds done"),
+        (lambda s: s.update(records=[]), "0 round records for 2 rounds done"),
+        (lambda s: s.update(next_round=0, records=[]), "bc_step 20 and"),
+        (lambda s: s.update(bc_step=10**30), "the round records make 20 fit steps"),
+        (lambda s: s["records"][1].update(rows_trained=5), "trained on 5 rows; its rounds make"),
+        (lambda s: s["records"][0].update(beta_next=7.0), "beta_next and expert_executed_fraction"),
+        (lambda s: s["records"][0]["info"].update(mean_return="abc"), "the saved evaluation is not"),
+        (lambda s: s["records"][1].update(info=None), "round 1: the saved evaluation is not"),
+        (lambda s: s["records"][1]["info"].update(return_ci=[1]), "the saved evaluation is not"),
+    ],
+)  # fmt: skip
+def test_a_dagger_state_whose_records_are_not_its_run_is_refused(finished, tmp_path, edit, said):
+    """A hostile review (the checksums redone after each edit): 50 copies of the records
+    resumed into 151 rounds, none into one, next_round 0 re-ran round 0 on the relabelled
+    rows; an edited evaluation ended the finished run in a traceback."""
+    import shutil
+
+    out = tmp_path / "run"
+    shutil.copytree(finished, out)
+    state = json.loads((out / "run" / "state.json").read_text())
+    edit(state)
+    (out / "run" / "state.json").write_text(json.dumps(state))
+    _resigned(out / "run")
+    status, err = _main(*FLAGS, "--env", "CartPole-v1", "--rounds", "3", "--resume",
+                        "--out", str(out))  # fmt: skip
+    assert status == 2 and said in err and "Traceback" not in err, err
+    assert len(err.strip().splitlines()) == 1, err

@@ -97,3 +97,47 @@ def test_frozenlake_bc_runs_with_its_expert_by_default_and_eval_resolves_auto(tm
 def _main(*argv: str) -> tuple[int, str]:
     status, _, err = run_main(*argv)
     return status, err
+
+
+HOSTILE = textwrap.dedent(
+    """
+    import torch
+
+    def five(obs):  # CartPole has actions 0 and 1
+        return torch.full((obs.shape[0],), 5, dtype=torch.int64)
+
+    def boom():
+        raise RuntimeError("boom")
+
+    def leave(obs):
+        raise SystemExit(0)
+    """
+)
+
+
+@pytest.mark.parametrize(
+    ("fn", "kind", "said"),
+    [
+        ("five", "callable", "the expert's label holds action 5, outside [0, 2)"),
+        ("boom", "builder", "--expert hostile_expert:boom: building it raised RuntimeError: boom"),
+        ("leave", "callable", "cannot label CartPole-v1's observations (SystemExit: 0)"),
+    ],
+)
+@pytest.mark.parametrize("command", ["bc", "eval", "compare"])
+def test_a_users_expert_that_fails_is_one_line_in_every_command(tmp_path, monkeypatch, fn, kind,
+                                                                 said, command):  # fmt: skip
+    """A hostile review: a label out of range was gymnasium's AssertionError traceback (bc,
+    eval, compare), a builder raising was a traceback, an expert calling sys.exit(0) ended
+    the command silently with status 0; eval and compare never checked the expert."""
+    (tmp_path / "hostile_expert.py").write_text(HOSTILE)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    argv = {
+        "bc": ["bc", "--demos", "1", "--steps", "5", "--no-progress", "--out", str(tmp_path / "o")],
+        "eval": ["eval", "--eval-episodes", "1", "--no-progress"],
+        "compare": ["compare", "--a", "expert", "--b", "random", "--episodes", "2"],
+    }[command]
+    status, err = _main(*argv, "--env", "CartPole-v1", "--expert", f"hostile_expert:{fn}",
+                        "--expert-kind", kind)  # fmt: skip
+    sys.modules.pop("hostile_expert", None)
+    assert status == 2 and said in err and "Traceback" not in err, err
+    assert len(err.strip().splitlines()) == 1, err

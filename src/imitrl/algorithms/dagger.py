@@ -286,7 +286,7 @@ def dagger(
     logger: Logger | None = None,
     checkpoint_dir: str | Path | None = None,
     resume: bool = False,
-    on_resume: Callable[[int, int], None] | None = None,
+    on_resume: Callable[[int, int, list[RoundRecord]], None] | None = None,
 ) -> DAggerResult:
     """Run DAgger on top of the demonstrations already in ``buffer`` (extended in place).
 
@@ -314,11 +314,12 @@ def dagger(
         resume: continue the run saved in ``checkpoint_dir`` (a fresh start when it holds
             none): ``buffer`` must hold the run's demonstrations; the result is identical
             to the bit to an uninterrupted run.
-        on_resume: with ``resume``, called as ``on_resume(next_round, bc_step)`` once the
-            saved run is restored (``(0, 0)`` when there was none), before anything is
-            logged: the rounds and fit steps the checkpoint holds. A logger that appends
-            cuts back what the interrupted round logged
-            (:func:`imitrl.jobs.curves.trim_scalars`).
+        on_resume: with ``resume``, called as ``on_resume(next_round, bc_step, records)``
+            once the saved run is restored (``(0, 0, [])`` when there was none), before
+            anything is logged: the rounds, fit steps and round records the checkpoint
+            holds. A logger that appends cuts back what the interrupted round logged
+            (:func:`imitrl.jobs.curves.trim_scalars`); a caller checks what its ``on_fit``
+            returned into the records (``info``), which the checkpoint carried.
     """
     _check_inputs(buffer, expert, checkpoint_dir, resume)
     if getattr(source, "plans", False) and keys.EXPERT_PLAN not in buffer.data.keys():
@@ -361,7 +362,7 @@ def _run(
     if resume:
         _same_round_on_every_rank(run.next_round)
         if on_resume is not None:
-            on_resume(run.next_round, run.bc_step)
+            on_resume(run.next_round, run.bc_step, run.records)
     learner = run.learner
     last = run.records[-1] if run.records else None
     if last is not None and last.beta_next is None and run.next_round < config.rounds:

@@ -20,6 +20,7 @@ subprocess with SIGKILL after each round).
 from __future__ import annotations
 
 import dataclasses
+import math
 from pathlib import Path
 from typing import Any
 
@@ -27,6 +28,7 @@ import torch
 
 from imitrl.algorithms.bc import BCResult
 from imitrl.data.buffer import DemonstrationBuffer
+from imitrl.data.provenance import NO_BETA
 from imitrl.learners.learner import Learner
 from imitrl.system.ranks import rank_and_world
 
@@ -119,6 +121,46 @@ def _record_from_json(cls, data: Any, path: Path, k: int):
         raise ValueError(
             f"{path}: round record {k} is malformed ({type(err).__name__}: {err})"
         ) from None
+
+
+def _check_records(path: Path, records: list, next_round: int, bc_step: int, demos: int,
+                   rows: int) -> None:  # fmt: skip
+    """ValueError unless the saved round records are the run the state says: one per
+    round done, in order, each of plain values in range, whose fit steps sum to
+    ``bc_step`` and whose rows add up from the ``demos`` to the ``rows`` saved (a hostile
+    review: 50 copies of the records resumed into 151 rounds, none into one, and a
+    ``next_round`` of 0 re-ran round 0 on the relabelled rows)."""
+    if len(records) != next_round:
+        raise ValueError(f"{path}: {len(records)} round records for {next_round} rounds done")
+    trained = demos
+    for k, r in enumerate(records):
+        where = f"{path}: round record {k}"
+        counts = (r.round, r.rows_trained, r.expert_queries, r.rows_collected, r.bc.num_rows)
+        if any(type(c) is not int or c < 0 for c in counts) or r.round != k:
+            raise ValueError(f"{where}: round, rows and queries must be counts, round {k}")
+        if r.rows_trained != trained:
+            raise ValueError(f"{where} trained on {r.rows_trained} rows; its rounds make {trained}")
+        trained += r.rows_collected
+        fractions = [r.beta_next, r.expert_executed_fraction]
+        if not all(f is None or (_number(f) and (0 <= f <= 1 or f == NO_BETA)) for f in fractions):
+            raise ValueError(f"{where}: beta_next and expert_executed_fraction must be in [0, 1]")
+        if not (r.interventions is None or (type(r.interventions) is int and r.interventions >= 0)):
+            raise ValueError(f"{where}: interventions must be a count")
+        if not (r.info is None or isinstance(r.info, dict)):
+            raise ValueError(f"{where}: info must be a JSON object")
+        finite = bool(torch.isfinite(r.bc.losses).all()) and _number(r.bc.final_loss)
+        if not finite or not math.isfinite(r.bc.final_loss):
+            raise ValueError(f"{where}: its fit's losses must be finite numbers")
+    steps = sum(int(r.bc.losses.numel()) for r in records)
+    if bc_step != steps or trained != rows:
+        raise ValueError(
+            f"{path}: bc_step {bc_step} and {rows} rows saved; the round records make "
+            f"{steps} fit steps and {trained} rows"
+        )
+
+
+def _number(value: Any) -> bool:
+    return type(value) in (int, float)
 
 
 def _uint8_state(value: Any, what: str, path: Path) -> torch.Tensor:
@@ -241,6 +283,7 @@ def load_run(
         raise ValueError(
             f"the buffer does not hold the demonstrations the run in {path} started from"
         )
+    _check_records(path, records, state["next_round"], state["bc_step"], n, len(saved))
     _restore_generators(path, state["source"], mixer, torch_state, mixer_generator, source)
     if len(saved) > n:
         buffer.extend(saved.data[n:])

@@ -220,6 +220,8 @@ def restore_learner(
     backup = {c: copy.deepcopy(obj.state_dict()) for c, obj in components.items()}
     for component, obj in components.items():
         try:
+            if isinstance(obj, torch.optim.Optimizer):  # torch checks none of it
+                check_optimizer_state(obj, states[component])
             obj.load_state_dict(states[component])
         except (RuntimeError, ValueError, KeyError, TypeError) as err:
             for c, o in components.items():  # leave the caller's learner as it was
@@ -227,6 +229,52 @@ def restore_learner(
             raise ValueError(
                 f"{path / saved[component]}: cannot load {component} into the given learner ({err})"
             ) from None
+
+
+def check_optimizer_state(opt: torch.optim.Optimizer, saved: Any) -> None:
+    """ValueError unless ``saved`` can be ``opt``'s state: per parameter,
+    tensors of the parameter's shape (or scalars) of real numbers, finite, a ``step`` not
+    below 0; hyperparameters finite, a learning rate not below 0 (a hostile review: an
+    ``exp_avg`` viewing one stored value as 2^29 was materialised, 2.5 GB, then a
+    traceback; a negative ``step`` was a traceback). Checked before anything is copied."""
+    if not (
+        isinstance(saved, dict)
+        and isinstance(saved.get("state"), dict)
+        and isinstance(saved.get("param_groups"), list)
+    ):
+        raise ValueError("not an optimizer's state (state and param_groups)")
+    params = [p for group in opt.param_groups for p in group["params"]]
+    for index, entries in saved["state"].items():
+        if not (type(index) is int and 0 <= index < len(params) and isinstance(entries, dict)):
+            raise ValueError(f"a state of parameter {index!r}, of {len(params)}")
+        for name, value in entries.items():
+            if isinstance(value, torch.Tensor) and not _plain_state(name, value, params[index]):
+                raise ValueError(
+                    f"parameter {index}'s {name!r} is {value.dtype} "
+                    f"{list(value.shape)} for a parameter of shape {list(params[index].shape)}, "
+                    "or not finite, or a negative step"
+                )
+    for group in saved["param_groups"]:
+        if not isinstance(group, dict):
+            raise ValueError(f"a parameter group must be a dict, got {group!r}"[:300])
+        settings = [v for k, v in group.items() if k != "params"]
+        numbers = [x for v in settings for x in (v if isinstance(v, list | tuple) else [v])]
+        lr = group.get("lr", 0)
+        not_finite = any(isinstance(x, float) and not math.isfinite(x) for x in numbers)
+        if not_finite or not (isinstance(lr, int | float) and lr >= 0):
+            raise ValueError(f"hyperparameters must be finite, lr >= 0: {group!r}"[:300])
+
+
+def _plain_state(name: str, value: torch.Tensor, param: torch.Tensor) -> bool:
+    """One per-parameter tensor of an optimizer's state, checked without materialising it
+    (its shape first)."""
+    if value.dim() and value.shape != param.shape:
+        return False
+    if value.is_complex() or value.dtype == torch.bool:
+        return False
+    if value.is_floating_point() and not bool(torch.isfinite(value).all()):
+        return False
+    return not (name == "step" and bool((value < 0).any()))
 
 
 def _canonical(content: dict[str, Any]) -> bytes:

@@ -1,7 +1,7 @@
 """The optimal expert of a toy-text env, by value iteration on the env's own model.
 
-``value_iteration_expert("FrozenLake-v1")``. gymnasium's toy-text envs (FrozenLake, CliffWalking, Taxi) publish their dynamics as
-``env.unwrapped.P``; :meth:`~imitrl.tabular.TabularMDP.from_gym` reads it, value
+``value_iteration_expert("FrozenLake-v1")``. gymnasium's toy-text envs (FrozenLake,
+CliffWalking, Taxi) publish their dynamics as ``env.unwrapped.P``; :meth:`~imitrl.tabular.TabularMDP.from_gym` reads it, value
 iteration solves it, and the expert acts greedily on the result (ties to the lowest
 action). It is the expert of the FrozenLake study (:mod:`imitrl.experiments.frozenlake`),
 at the study's discount (declared once, in :mod:`imitrl.configs.value_iteration`), swept

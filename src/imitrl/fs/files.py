@@ -138,6 +138,8 @@ def open_own(path: str | Path, *, what: str = "a file") -> int:
     except OSError as err:
         if err.errno == errno.ELOOP:
             raise _planted(path, what) from None
+        if err.errno == errno.EISDIR:  # a folder planted at the name (was a raw OSError)
+            raise ValueError(f"{path} is a folder where {what} should be a file") from None
         raise
     check_regular(fd, path, what)
     return fd

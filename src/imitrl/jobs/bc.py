@@ -41,7 +41,6 @@ from imitrl.jobs.curves import make_logger, plot_curves, scalars_dir
 from imitrl.jobs.evaluate import evaluate_returns, format_return
 from imitrl.jobs.ranks import evaluating, lead, rows_digest, run_folder
 from imitrl.jobs.resolve import (
-    check_expert_fits,
     choose_learner,
     dataset_format,
     expert_for_env,
@@ -159,7 +158,6 @@ def prepare(
             expert_name, config.expert_kind, env_id=config.env, env=env,
             env_kwargs=dict(config.env_kwargs),
         )  # fmt: skip
-        check_expert_fits(expert, expert_name, config.env, env)  # observations it can read
     if config.dataset is not None:
         dataset_format(config.dataset)
     task = TaskSpec.from_env(env)

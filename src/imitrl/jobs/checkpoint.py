@@ -332,11 +332,13 @@ def _leaves(value: Any) -> list:
     return [x for v in value for x in _leaves(v)] if isinstance(value, list) else [value]
 
 
-def checkpoint_env_kwargs(config: dict, checkpoint: str | Path) -> dict:
-    """The env's constructor arguments a checkpoint was trained with (checked data), for
-    a command given none; ValueError for one that names a file (the env would open it: a
-    checkpoint never makes imitrl read outside its folder; ``--env-kwarg`` names it)."""
-    pairs = {name: value for name, value in config.get("env_kwargs", [])}
+def checkpoint_env_kwargs(config: dict, checkpoint: str | Path, given: dict | None = None) -> dict:
+    """The env's constructor arguments a checkpoint was trained with (checked data), with
+    ``given`` (the command's ``--env-kwarg``) over them; ValueError for a saved one that
+    names a file and that ``given`` does not replace (the env would open it: a checkpoint
+    never makes imitrl read outside its folder; ``--env-kwarg`` names it)."""
+    given = given or {}
+    pairs = {name: value for name, value in config.get("env_kwargs", []) if name not in given}
     for name, value in pairs.items():
         for item in _leaves(value):
             if isinstance(item, str) and _names_a_path(item):
@@ -346,7 +348,7 @@ def checkpoint_env_kwargs(config: dict, checkpoint: str | Path) -> dict:
                     f"outside its folder. If you trust that file, name it yourself: "
                     f"--env-kwarg {name}={item}"[:400]
                 )
-    return pairs
+    return {**pairs, **given}
 
 
 def checkpoint_env(checkpoint: Path, config: dict) -> str:

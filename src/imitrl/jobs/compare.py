@@ -2,9 +2,9 @@
 
 ``run_compare(CompareJob(...)) -> dict``: each side (``--a``, ``--b``) is a checkpoint
 (the ``--out`` of imitrl bc, dagger, gail or airl), ``expert`` (``--expert``: the env's
-built-in expert, or one of yours) or ``random`` (uniform random actions); both play episode ``j`` from the env
-seeded ``--seed + j`` (:mod:`imitrl.evaluation.compare`), and the paired differences of
-their success (or return) give the mean difference, its interval and the decision, after
+built-in expert, or one of yours) or ``random`` (uniform random actions); both play
+episode ``j`` from the env seeded ``--seed + j`` (:mod:`imitrl.evaluation.compare`), and
+the paired differences of their success (or return) give the mean difference, its interval and the decision, after
 ``--episodes`` pairs or, with ``--sequential``, as soon as the anytime-valid interval
 excludes 0. Bad input (a side that does not fit the env, an env that does not replay
 its seeds, ``--alpha`` outside (0, 1), fewer than 2 episodes) is one line, and nothing is
@@ -94,6 +94,12 @@ class CompareJob:
                 )
         if self.env is None and self.a in SIDES and self.b in SIDES:  # no checkpoint names one
             raise ValueError("--env names the env for expert or random")
+        from imitrl.jobs.names import EXPERT_KINDS
+
+        if self.expert_kind not in EXPERT_KINDS:
+            raise ValueError(
+                f"--expert-kind must be one of {EXPERT_KINDS}, got {self.expert_kind!r}"
+            )
         if self.expert != "auto" and "expert" not in (self.a, self.b):
             raise ValueError(
                 f"--expert {self.expert} names the side expert: pass --a or --b expert"
@@ -110,6 +116,9 @@ def run_compare(config: CompareJob) -> dict:
     from imitrl.evaluation.compare import compare
 
     env_id, steps, kwargs = _env_of(config)
+    from imitrl.jobs.resolve import time_limit
+
+    time_limit(env_id, steps)  # an env registered without one: --max-episode-steps, named
     env = make_env(env_id, seed=config.seed, max_episode_steps=steps, env_kwargs=kwargs)
     try:
         a = _side(config.a, "--a", env, env_id, config, kwargs)
@@ -170,9 +179,7 @@ def _env_of(config: CompareJob) -> tuple[str, int | None, dict]:
         steps = next(iter(limits.values()), None)
     given = dict(config.env_kwargs)
     # each checkpoint's env arguments, where it is played in its own env, under --env-kwarg's
-    each = {
-        s: {**checkpoint_env_kwargs(c, s), **given} for s, c in saved.items() if envs[s] == env_id
-    }
+    each = {s: checkpoint_env_kwargs(c, s, given) for s, c in saved.items() if envs[s] == env_id}
     if len({json.dumps(k, sort_keys=True) for k in each.values()}) > 1:
         raise ValueError(
             "the checkpoints were trained with different env arguments ("

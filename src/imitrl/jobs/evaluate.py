@@ -24,6 +24,7 @@ if TYPE_CHECKING:  # torch, TorchRL and the rest are imported where used: see im
 __all__ = [
     "EVAL_LANES",
     "EvalJob",
+    "check_evaluation",
     "delayed",
     "evaluate_returns",
     "format_return",
@@ -98,6 +99,35 @@ def evaluate_returns(
 def env_arguments(kwargs: dict | None) -> str:
     """`` (name=value, ...)``: the env's arguments as a report names them ('' for none)."""
     return f" ({', '.join(f'{k}={v}' for k, v in kwargs.items())})" if kwargs else ""
+
+
+def check_evaluation(ev: object, where: str) -> None:
+    """ValueError (naming ``where``) unless ``ev`` is an evaluation as
+    :func:`evaluate_returns` returns it, as far as a report reads it (a saved one may
+    have been edited)."""
+    ok = isinstance(ev, dict) and all(
+        (
+            _real(ev.get("mean_return")) and _real(ev.get("mean_length")),
+            type(ev.get("episodes")) is int and ev["episodes"] >= 1,
+            isinstance(ev.get("exploration"), str),
+            _interval(ev.get("return_ci"), none=True),
+            ev.get("success_rate") is None
+            or (_real(ev["success_rate"]) and _interval(ev.get("success_ci"), none=False)),
+        )
+    )
+    if not ok:
+        raise ValueError(f"{where}: the saved evaluation is not one imitrl wrote: {ev!r}"[:400])
+
+
+def _real(value: object) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def _interval(value: object, *, none: bool) -> bool:
+    """``[lo, hi]`` of finite numbers (or, with ``none``, ``[None, None]``)."""
+    if not (isinstance(value, list) and len(value) == 2):
+        return False
+    return all(map(_real, value)) or (none and value == [None, None])
 
 
 def format_return(name: str, ev: dict) -> str:
@@ -235,7 +265,7 @@ def run_eval(config: EvalJob) -> dict:
         kwargs = dict(config.env_kwargs)  # over the run's own, for the run's own env
         if env_id == saved.config.get("env"):  # (a hostile review: one --env-kwarg
             # dropped the run's map_name, and another lake was played without a word)
-            kwargs = {**checkpoint_env_kwargs(saved.config, saved.path), **kwargs}
+            kwargs = checkpoint_env_kwargs(saved.config, saved.path, given=kwargs)
         # the learner's shapes
         specs = make_env(env_id, seed=0, max_episode_steps=steps, env_kwargs=kwargs)
         try:

@@ -127,8 +127,8 @@ def no_expert_message(env_id: str) -> str:
         f"--env {env_id} has no built-in expert (built-in: "
         + ", ".join(f"{n} for {e}" for n, e in EXPERT_ENVS.items())
         + f", {METAWORLD} for {METAWORLD_PREFIX}<task>-v3, {VALUE_ITERATION} for a toy-text "
-        "env such as FrozenLake-v1); pass --expert module:function (with --expert-kind callable for a batched "
-        "obs -> action function) or --dataset DIR"
+        "env such as FrozenLake-v1); pass --expert module:function (with --expert-kind "
+        "callable for a batched obs -> action function) or --dataset DIR"
     )
 
 
@@ -137,7 +137,7 @@ def check_expert_fits(expert: TensorDictModuleBase, spec: str, env_id: str, env:
     built-in expert of ``env_id``, if any) otherwise."""
     try:
         expert(env.fake_tensordict().select(*expert.in_keys))
-    except Exception as err:  # a user's function may raise anything: one line naming it
+    except (Exception, SystemExit) as err:  # a user's function may raise anything: one line
         mine = expert_for_env(AUTO, env_id)
         hint = f"use --expert {mine}" if mine else no_expert_message(env_id).split("; ", 1)[1]
         raise ValueError(
@@ -160,8 +160,30 @@ def make_expert(
     and the env: the task's scripted policy, reading the 39-d state where the env gives
     it; ``value_iteration`` the id and the keyword arguments: the model of that map).
 
+    With ``env_id`` and ``env``, the expert is bound to the env's action spec
+    (:meth:`~imitrl.policies.Expert.bind`) and labels one of the env's observations first
+    (:func:`check_expert_fits`: a failure is one line naming ``--expert``), as every
+    command that builds one (bc, dagger, gail, airl, eval, compare) needs.
+
     Returns a TensorDictModule reading ``observation`` and writing ``expert_action``.
     """
+    expert = _build_expert(spec, kind, env_id=env_id, env=env, env_kwargs=env_kwargs)
+    if env_id is not None and env is not None:
+        if isinstance(expert, Expert):  # its labels cast and checked as a rollout's are
+            expert.bind(env.action_spec_unbatched)
+        check_expert_fits(expert, spec, env_id, env)
+    return expert
+
+
+def _build_expert(
+    spec: str,
+    kind: str,
+    *,
+    env_id: str | None,
+    env: EnvBase | None,
+    env_kwargs: Mapping[str, Any] | None,
+) -> TensorDictModuleBase:
+    """:func:`make_expert`'s expert, unchecked."""
     if kind not in EXPERT_KINDS:
         raise ValueError(f"--expert-kind must be one of {EXPERT_KINDS}, got {kind!r}")
     if spec == AUTO:
@@ -202,6 +224,10 @@ def make_expert(
             f"--expert {spec}: calling it with no arguments failed ({err}); for a batched "
             "function obs -> action pass --expert-kind callable"
         ) from err
+    except (Exception, SystemExit) as err:  # the user's code may raise anything: one line
+        raise ValueError(
+            f"--expert {spec}: building it raised {type(err).__name__}: {err}"[:500]
+        ) from None
     if not isinstance(expert, TensorDictModuleBase) or keys.EXPERT_ACTION not in expert.out_keys:
         raise ValueError(
             f"--expert {spec!r}: the builder returned a {type(expert).__name__}, expected a "

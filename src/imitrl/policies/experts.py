@@ -30,11 +30,11 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase, TensorDictSequential
 from tensordict.utils import NestedKey
 from torch import nn
-from torchrl.data import Bounded, TensorSpec
+from torchrl.data import Bounded, Categorical, TensorSpec
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from imitrl import keys
-from imitrl.policies.action_check import cast_action
+from imitrl.policies.action_check import cast_action, check_action
 
 __all__ = ["Expert", "TableLookup", "as_actor"]
 
@@ -238,6 +238,12 @@ class Expert(TensorDictModuleBase):
         ``action_spec`` when bound (see the module docstring), else only made a tensor."""
         if self.action_spec is not None:
             label = cast_action(raw, self.action_spec, batch_shape=batch_shape)
+            if isinstance(self.action_spec, Categorical):  # no env takes another action
+                # (a hostile review: label 5 of 2 actions was gymnasium's AssertionError)
+                check_action(
+                    label, self.action_spec, batch_shape=batch_shape, in_range=True,
+                    name="the expert's label",
+                )  # fmt: skip
             if self.clip and isinstance(self.action_spec, Bounded):
                 low, high = self.action_spec.space.low, self.action_spec.space.high
                 label = torch.minimum(torch.maximum(label, low.to(label)), high.to(label))
