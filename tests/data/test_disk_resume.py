@@ -112,3 +112,28 @@ def test_a_folder_planted_at_the_locks_name_is_one_line(tmp_path):
     (path / "imitrl_buffer.lock").mkdir(parents=True)
     with pytest.raises(ValueError, match="is a folder where a disk buffer's lock should be a file"):
         DemonstrationBuffer(path=path, capacity=4)
+
+
+@pytest.mark.parametrize(
+    ("edit", "said"),
+    [
+        (lambda lay: lay["columns"][0].update(dtype="qint8"), "'qint8' is not a dtype a buffer"),
+        (lambda lay: lay["columns"][0].update(dtype="uint16"), "'uint16' is not a dtype a buffer"),
+        (lambda lay: lay.update(num_states="x"), "num_states must be null or an integer >= 1"),
+        (lambda lay: lay.update(num_states=-3), "num_states must be null or an integer >= 1"),
+        (lambda lay: lay.update(rows=0), "2 episodes in 0 rows"),
+    ],
+)  # fmt: skip
+def test_a_layout_whose_fields_are_not_a_buffers_is_one_line(tmp_path, edit, said):
+    """A hostile review: qint8 was torch's 4 KB dispatcher dump; num_states "x" or -3
+    resumed, refused only at the next extend; rows 0 resumed with an episode in it."""
+    path = tmp_path / "buf"
+    buf = DemonstrationBuffer(path=path, capacity=16)
+    buf.extend(cartpole_rows(10))
+    del buf
+    layout = json.loads((path / "imitrl_buffer.json").read_text())
+    edit(layout)
+    (path / "imitrl_buffer.json").write_text(json.dumps(layout))
+    with pytest.raises(ValueError, match="not a readable disk buffer layout") as err:
+        DemonstrationBuffer(path=path, resume=True)
+    assert said in str(err.value) and "\n" not in str(err.value)

@@ -52,6 +52,7 @@ from tensordict import MemoryMappedTensor, TensorDict
 from torchrl.data.replay_buffers import LazyMemmapStorage
 
 from imitrl.compat import replace_storage_contents
+from imitrl.data.validation import STORED_DTYPES
 from imitrl.fs.contained import plain_name
 from imitrl.fs.files import (
     PlantedLinkError,
@@ -352,8 +353,8 @@ def check_columns(columns: Any, *, where: str) -> list[dict[str, Any]]:
         if not isinstance(key, list) or not key or not all(isinstance(k, str) for k in key):
             raise ValueError(f"a column's key must be a list of strings, got {key!r}")
         dtype = column["dtype"]
-        if not isinstance(dtype, str) or not isinstance(getattr(torch, dtype, None), torch.dtype):
-            raise ValueError(f"{dtype!r} is not a torch dtype")
+        if not isinstance(dtype, str) or getattr(torch, dtype, None) not in STORED_DTYPES:
+            raise ValueError(f"{dtype!r} is not a dtype a buffer stores")
         if not isinstance(shape, list) or not all(type(d) is int and d >= 0 for d in shape):
             raise ValueError(f"a column's shape must be a list of integers >= 0, got {shape!r}")
         parts = file.split("/") if isinstance(file, str) else []
@@ -441,6 +442,11 @@ class DiskLayout:
                     raise ValueError(f"{name} must be an integer in [0, {MAX_COUNT}]")
             if stored["rows"] > stored["capacity"]:
                 raise ValueError("more rows than capacity")
+            if stored["num_episodes"] > stored["rows"]:  # an episode has a row at least
+                raise ValueError(f"{stored['num_episodes']} episodes in {stored['rows']} rows")
+            states = stored["num_states"]
+            if not (states is None or (type(states) is int and 1 <= states <= MAX_COUNT)):
+                raise ValueError(f"num_states must be null or an integer >= 1, got {states!r}")
             stored["columns"] = check_columns(stored["columns"], where=str(where))
             if (stored["rows"] or stored["columns"]) and not any(
                 _row_bytes(c) for c in stored["columns"]
