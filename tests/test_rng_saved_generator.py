@@ -147,3 +147,29 @@ def test_a_sampling_learners_dagger_resumes_to_the_uninterrupted_run(tmp_path):
         assert status == 0, err
         ev = json.loads((tmp_path / f"{run}-eval" / "eval.json").read_text())["evaluation"]
         assert ev == whole["learner"], run
+
+
+def test_generators_kept_replays_a_sampling_policys_evaluation():
+    """A hostile review: a flow learner evaluated twice with one seed (or one fresh
+    generator) scored -3280.7 then -4145.7: it samples from its own generator, which
+    advances. In generators_kept the draws replay, and the learner's stream is as before."""
+    from torchrl.envs.utils import ExplorationType
+
+    from imitrl.envs import make_env
+    from imitrl.evaluation import evaluate
+    from imitrl.rng import generators_kept
+
+    learner = build("flow", make_env("Pendulum-v1", seed=0), hidden=(8,), seed=0)
+
+    def score():
+        env = make_env("Pendulum-v1", seed=5, max_episode_steps=10)
+        return evaluate(env, learner, 2, seed=5, exploration=ExplorationType.RANDOM).mean_return
+
+    before = [m.generator.get_state() for m in learner.modules() if isinstance(m, SavedGenerator)]
+    with generators_kept(learner):
+        first = score()
+    with generators_kept(learner):
+        assert score() == first
+    after = [m.generator.get_state() for m in learner.modules() if isinstance(m, SavedGenerator)]
+    assert before and all(torch.equal(a, b) for a, b in zip(before, after))
+    assert score() == first and score() != first  # outside it, the stream advances

@@ -20,7 +20,7 @@ from collections.abc import Iterator
 
 import torch
 
-__all__ = ["SavedGenerator", "rng_from"]
+__all__ = ["SavedGenerator", "generators_kept", "rng_from"]
 
 _CUDA_STREAMS: dict[tuple[int, int], tuple[torch.Generator, torch.Generator]] = {}
 """(id of a CPU generator, CUDA device index) -> (that generator, its CUDA stream)"""
@@ -90,3 +90,19 @@ class SavedGenerator:
                 f"got {got}"
             )
         self.generator.set_state(state.cpu().contiguous())
+
+
+@contextlib.contextmanager
+def generators_kept(module: torch.nn.Module) -> Iterator[None]:
+    """Run the block, then put back the state of every :class:`SavedGenerator` in
+    ``module``: a policy that samples from its own generator (a flow or diffusion policy)
+    draws from it, not from an evaluation's ``seed`` or ``generator``, so two sampled
+    evaluations of one learner differ unless each runs in this block (which also leaves
+    the learner's stream, and what it draws next, as before)."""
+    owners = [m for m in module.modules() if isinstance(m, SavedGenerator)]
+    states = [m.generator.get_state() for m in owners]
+    try:
+        yield
+    finally:
+        for owner, state in zip(owners, states):
+            owner.generator.set_state(state)

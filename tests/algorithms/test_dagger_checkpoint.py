@@ -173,3 +173,21 @@ def test_a_resume_with_other_shared_settings_names_them(tmp_path):
             dagger(source, expert, make_learner, buffer,
                    dataclasses.replace(config, shared=other), checkpoint_dir=ckpt,
                    resume=True)  # fmt: skip
+
+
+def test_a_learner_for_make_learner_and_a_buffer_holding_its_rounds_are_named(tmp_path):
+    """A hostile review: a Learner given for make_learner failed inside torch (a module is
+    callable); resuming with the buffer the run had extended said "round record 0 trained
+    on 60 rows; its rounds make 300"."""
+    ckpt = tmp_path / "run"
+    result = _resume_run.run("lake", ckpt)
+    source, expert, make_learner, buffer, config = _resume_run.build("lake")
+    with pytest.raises(ValueError, match="make_learner must be a function of no arguments"):
+        dagger(source, expert, make_learner(), buffer, config)
+    demos = len(buffer)
+    with pytest.raises(
+        ValueError, match=f"the buffer holds {len(result.buffer)} rows; the run"
+    ) as err:
+        dagger(source, expert, make_learner, result.buffer, config, checkpoint_dir=ckpt,
+               resume=True)  # fmt: skip
+    assert f"started from {demos} rows of demonstrations" in str(err.value)

@@ -137,3 +137,16 @@ def test_a_layout_whose_fields_are_not_a_buffers_is_one_line(tmp_path, edit, sai
     with pytest.raises(ValueError, match="not a readable disk buffer layout") as err:
         DemonstrationBuffer(path=path, resume=True)
     assert said in str(err.value) and "\n" not in str(err.value)
+
+
+def test_a_resume_with_an_action_spec_checks_the_stored_rows_as_load_does(tmp_path):
+    """A hostile review: resuming with a tighter spec kept rows outside it (load refused)."""
+    from torchrl.data import Categorical
+
+    path = tmp_path / "buf"
+    buf = DemonstrationBuffer(path=path, capacity=16)
+    buf.extend(cartpole_rows(10))  # actions 0 and 1
+    del buf
+    assert len(DemonstrationBuffer(path=path, resume=True, action_spec=Categorical(2))) == 10
+    with pytest.raises(ValueError, match=r"stored rows: .* holds action 1, outside \[0, 1\)"):
+        DemonstrationBuffer(path=path, resume=True, action_spec=Categorical(1))

@@ -299,3 +299,18 @@ def test_a_pixel_learner_given_another_loss_keeps_its_pixel_inputs_and_action_sp
     swapped.check_env(PixelTwoWayEnv(pixels=(16, 16), seed=0))  # reads the images: no error
     images = torch.zeros(4, 16, 16, 3, dtype=torch.uint8)
     assert swapped.act_greedy({keys.PIXELS: images}).shape == (4, 1)
+
+
+def test_an_entry_whose_learner_has_another_horizon_is_refused_when_built():
+    """A hostile review: an entry registered with horizon 4 that built a one-step learner
+    was taken; the CLI chunks labels by the entry's horizon, the learner by its own."""
+
+    @registry.register("test_horizon_4", actions="continuous", summary="not chunked", horizon=4)
+    def _(task, config):
+        return build("mse", task)
+
+    try:
+        with pytest.raises(ValueError, match="registered with horizon 4 but built a learner of"):
+            build("test_horizon_4", TASKS["continuous"])
+    finally:
+        registry.unregister("test_horizon_4")

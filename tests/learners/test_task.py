@@ -285,3 +285,12 @@ def test_rows_whose_largest_integer_would_size_the_network_are_refused(key, valu
     rows[key] = torch.tensor([0, MAX_CATEGORIES - 1])  # the largest allowed builds
     task = TaskSpec.from_rows(TensorDict(rows, [2]))
     assert MAX_CATEGORIES in (task.num_states, task.action)
+
+
+def test_float64_observations_are_refused_naming_the_cast():
+    """A hostile review: a GymWrapper of a float64 env built a learner that failed in its
+    first matmul ("Double and Float")."""
+    action = Bounded(-1.0, 1.0, (1,))
+    with pytest.raises(ValueError, match=r"torch\.float64; imitrl's learners compute in float32"):
+        TaskSpec.from_specs(Unbounded((3,), dtype=torch.float64), action)
+    assert TaskSpec.from_specs(Unbounded((3,)), action).observation_dim == 3

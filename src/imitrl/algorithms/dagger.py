@@ -321,7 +321,7 @@ def dagger(
             (:func:`imitrl.jobs.curves.trim_scalars`); a caller checks what its ``on_fit``
             returned into the records (``info``), which the checkpoint carried.
     """
-    _check_inputs(buffer, expert, checkpoint_dir, resume)
+    _check_inputs(buffer, expert, make_learner, checkpoint_dir, resume)
     if getattr(source, "plans", False) and keys.EXPERT_PLAN not in buffer.data.keys():
         raise ValueError(
             "the source records the expert's plans (plans=True) and the demonstrations carry "
@@ -401,7 +401,13 @@ def _same_round_on_every_rank(next_round: int) -> None:
         )
 
 
-def _check_inputs(buffer, expert, checkpoint_dir, resume: bool) -> None:
+def _check_inputs(buffer, expert, make_learner, checkpoint_dir, resume: bool) -> None:
+    if isinstance(make_learner, torch.nn.Module) or not callable(make_learner):
+        raise ValueError(  # a Learner is callable (a module): it failed inside torch
+            f"make_learner must be a function of no arguments returning a fresh Learner, got "
+            f"a {type(make_learner).__name__} (for one learner kept across rounds: "
+            "lambda: learner, with DAggerConfig(warm_start=True))"
+        )
     if len(buffer) == 0:
         raise ValueError("DAgger starts from demonstrations: the buffer is empty")
     if not isinstance(expert, Expert):

@@ -132,6 +132,11 @@ def _check_records(path: Path, records: list, next_round: int, bc_step: int, dem
     ``next_round`` of 0 re-ran round 0 on the relabelled rows)."""
     if len(records) != next_round:
         raise ValueError(f"{path}: {len(records)} round records for {next_round} rounds done")
+    if records and records[0].rows_trained != demos:  # a buffer the run extended, given again
+        raise ValueError(
+            f"the buffer holds {demos} rows; the run in {path} started from "
+            f"{records[0].rows_trained} rows of demonstrations: give it those alone"
+        )
     trained = demos
     for k, r in enumerate(records):
         where = f"{path}: round record {k}"

@@ -80,6 +80,7 @@ from imitrl.data.permutation import LazyPermutation
 from imitrl.data.validation import (
     OBSERVATION_KEYS,
     REQUIRED_KEYS,
+    check_actions,
     check_rows,
     check_stored_episodes,
     check_stored_schema,
@@ -191,6 +192,13 @@ class DemonstrationBuffer:
         self.next_episode, self._num_episodes = stored["next_episode"], stored["num_episodes"]
         if stored["rows"]:  # resume trusts no count the directory holds
             check_stored_episodes(self.data.get(keys.EPISODE), stored, where=self._layout.path)
+        if stored["rows"] and self.action_spec is not None:  # as load checks them (a
+            # hostile review: a resume with a tighter spec kept rows outside it)
+            for chunk in self.chunks(keys.EXPERT_ACTION, keys.ACTION):
+                try:
+                    check_actions(chunk, self.action_spec)
+                except ValueError as err:
+                    raise ValueError(f"{self._layout.path}: stored rows: {err}") from None
 
     def _commit(self) -> None:
         """Record a disk buffer's rows and state (after the rows are written)."""

@@ -18,6 +18,7 @@ __all__ = [
     "OBSERVATION_KEYS",
     "REQUIRED_KEYS",
     "Schema",
+    "check_actions",
     "check_rows",
     "check_stored_episodes",
     "check_stored_schema",
@@ -64,6 +65,13 @@ def schema_of(rows: TensorDictBase) -> Schema:
         named[name] = key
         out[name] = (str(value.dtype).replace("torch.", ""), tuple(value.shape[1:]))
     return out
+
+
+def check_actions(rows: TensorDictBase, action_spec: TensorSpec) -> None:
+    """Raise ``ValueError`` unless every ``EXPERT_ACTION`` and ``ACTION`` of ``rows`` fits
+    ``action_spec`` (rows a buffer takes, or holds when it resumes with a spec)."""
+    for k in (keys.EXPERT_ACTION, keys.ACTION):
+        _check_action(rows.get(k), action_spec, k)
 
 
 def check_rows(
@@ -127,8 +135,7 @@ def check_rows(
             f"most DAgger rounds), got {last}"
         )
     if action_spec is not None:
-        for k in (keys.EXPERT_ACTION, keys.ACTION):
-            _check_action(rows.get(k), action_spec, k)
+        check_actions(rows, action_spec)
     if num_states is not None:
         obs = rows.get(keys.OBSERVATION, None)
         if obs is None or obs.dtype.is_floating_point or int(obs.min()) < 0:

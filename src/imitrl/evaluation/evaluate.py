@@ -137,13 +137,18 @@ def evaluate(
             refused when the env has none.
         seed: seeds the env (``env.set_seed(seed)``) and, unless ``generator`` is
             given, the policy's sampling: two policies evaluated with one seed start
-            from the same initial states.
+            from the same initial states, on envs of the same number of lanes (each lane
+            is seeded on from ``seed``, so another number of lanes plays other episodes;
+            ``imitrl.evaluation.compare`` seeds each episode itself).
         success_fn: end-of-episode success criterion; defaults to "entered a goal
             state" on a TabularEnv, the env's own ``("next", "success")`` where it
             reports one (``make_env``'s ``success``, on for Meta-World), none elsewhere.
         confidence: level of the intervals.
         generator: source of the policy's sampling in ``RANDOM`` mode (seed it for
             reproducible sampled evaluations); None: torch's global RNG (or ``seed``'s).
+            A policy with its own generator (:class:`~imitrl.rng.SavedGenerator`: the
+            flow and diffusion policies) draws from that one instead, which advances:
+            evaluate it in :func:`~imitrl.rng.generators_kept` to replay its draws.
         progress: a progress bar over the episodes on stderr.
     """
     if num_episodes < 1:

@@ -285,6 +285,11 @@ def make(name: str, task: TaskSpec, config: LearnerConfig) -> Learner:
     learner = entry.build(task, config)
     if not isinstance(learner, Learner):
         raise ValueError(f"loss {name!r} built a {type(learner).__name__}, expected a Learner")
+    if learner.horizon != entry.horizon:  # the CLI chunks labels by the entry's (a review)
+        raise ValueError(
+            f"loss {name!r} is registered with horizon {entry.horizon} but built a learner "
+            f"of horizon {learner.horizon}: register it with the horizon its learner predicts"
+        )
     return learner.placed(config.device)
 
 

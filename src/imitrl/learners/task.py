@@ -211,6 +211,14 @@ class TaskSpec:
         if isinstance(action, int):
             action = Categorical(action, dtype=torch.int64)
         obs = spec.get(keys.OBSERVATION, None)
+        if obs is not None and obs.dtype.is_floating_point and obs.dtype != torch.float32:
+            # a hostile review: a GymWrapper of a float64 env built a learner that failed
+            # in its first matmul ("Double and Float"), then blamed another env
+            raise ValueError(
+                f"the observations are {obs.dtype}; imitrl's learners compute in float32: make "
+                "the env with imitrl.envs.make_env (which casts them), or append TorchRL's "
+                "DoubleToFloat() transform"
+            )
         dim = states = None
         if isinstance(obs, Categorical) and not isinstance(obs, MultiCategorical):
             states = int(obs.space.n)
