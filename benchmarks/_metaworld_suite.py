@@ -19,6 +19,7 @@ from _loss_functions.run import run
 from _loss_functions.tasks import Protocol, TaskDef
 from _metaworld_report import figure, markdown
 from imitrl.envs.metaworld import MAX_STEPS
+from imitrl.learners import registry
 
 
 @dataclass(frozen=True)
@@ -91,9 +92,9 @@ def merge(runs: list[dict], demos: tuple[int, ...]) -> dict:
         have = sorted({r["seed"] for r in rows if r["loss"] == loss})
         if have != seeds:
             raise ValueError(f"{loss} has seeds {have}, the merge {seeds}")
-        done = {r["task"].split("/")[0] for r in rows if r["loss"] == loss}
-        if missing := [t for t in tasks if t not in done]:
-            raise ValueError(f"{loss} has no cells on {missing}")
+        done = {r["task"] for r in rows if r["loss"] == loss}  # task/Ndemo: each demo count
+        if missing := [t for t in sorted(keep) if t not in done]:
+            raise ValueError(f"{loss} has no cells on {missing[:3]}")
     config = {
         **runs[0]["config"],
         "tasks": tasks,
@@ -110,7 +111,10 @@ def merge(runs: list[dict], demos: tuple[int, ...]) -> dict:
         "wall_seconds": sum(r["wall_seconds"] for r in runs),
         "load_average_start": runs[0]["load_average_start"],
         "load_average_end": runs[-1]["load_average_end"],
-        "merged_from": [r.get("source", f"run {k}") for k, r in enumerate(runs)],
+        "merged_from": [
+            _report.portable(r["source"]) if "source" in r else f"run {k}"
+            for k, r in enumerate(runs)
+        ],
     }
 
 
@@ -120,6 +124,20 @@ def _report_of(payload: dict, name: str, out: Path | None) -> None:
     text = markdown(payload, fig.name if out else f"results/{fig.name}")  # README's link
     print(text)
     print(f"results: {_report.write(name, payload, text, out_dir=out)}")
+
+
+def _of_suite(payload: dict, suite: Suite, path: Path, p: argparse.ArgumentParser) -> dict:
+    """``payload`` when it is a results file of ``suite`` (a hostile review: MT50's script
+    rendered an MT10 file under MT50's name); one line otherwise. A file that names no
+    suite (a part run before it was recorded) must hold tasks of the suite's."""
+    config = payload.get("config")
+    found = config.get("suite") if isinstance(config, dict) else "no config"
+    tasks = config.get("tasks") if isinstance(config, dict) else None
+    if found is None and isinstance(tasks, list) and set(map(str, tasks)) <= set(suite.tasks):
+        return payload
+    if found != suite.label:
+        p.error(f"{path}: a results file of {found or 'another script'}, not {suite.label}")
+    return payload
 
 
 def _parser(suite: Suite, doc: str | None) -> argparse.ArgumentParser:
@@ -165,15 +183,32 @@ def main(suite: Suite, doc: str | None, argv: list[str] | None = None) -> None:
         p.error(f"--first-seed must be >= 0, got {args.first_seed}")
     if min(args.demos) < 1:
         p.error(f"--demos must be >= 1, got {min(args.demos)}")
-    out_dir = None if args.out is None else Path(args.out)
+    if len(set(args.demos)) < len(args.demos):  # each count's cells would run twice
+        p.error(f"--demos repeats a count: {args.demos}")
+    if args.first_seed + args.seeds > 2**31:
+        p.error(f"--first-seed {args.first_seed} + --seeds {args.seeds} passes 2^31")
+    if unknown := [loss for loss in args.losses if loss not in registry.names()]:
+        p.error(f"--losses: {unknown} are not registered losses ({', '.join(registry.names())})")
+    out_dir = _report.destination(suite.name, quick=args.quick, out=args.out)  # --quick: scratch
     if args.render is not None:
-        payload = json.loads(args.render.read_text())
-        merged = payload["config"]["jobs"] == "merged"
-        _report_of(payload, suite.merged if merged else suite.name, out_dir)
+        payload = _of_suite(_report.read_results(args.render, p.error), suite, args.render, p)
+        name = suite.merged if payload["config"].get("jobs") == "merged" else suite.name
+        _report.render_safely(
+            lambda o: _report_of(payload, name, o), out_dir, p.error, str(args.render)
+        )
         return
     if args.merge is not None:
-        runs = [{**json.loads(f.read_text()), "source": str(f)} for f in args.merge]
-        _report_of(merge(runs, tuple(args.demos)), suite.merged, out_dir)
+        runs = [
+            {**_of_suite(_report.read_results(f, p.error), suite, f, p), "source": str(f)}
+            for f in args.merge
+        ]
+        try:
+            merged = merge(runs, tuple(args.demos))
+        except (ValueError, KeyError, TypeError) as err:  # parts that do not join: one line
+            p.error(_report.merge_refused(err))
+        _report.render_safely(
+            lambda o: _report_of(merged, suite.merged, o), out_dir, p.error, "--merge"
+        )
         return
     out_dir = _report.destination(suite.name, quick=args.quick, out=args.out)
     seeds = 1 if args.quick else args.seeds

@@ -12,12 +12,15 @@ the committed ``README.md`` or ``results/``.
 from __future__ import annotations
 
 import argparse
+import contextlib
+import io
 import json
 import math
 import os
 import platform
 import re
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -44,6 +47,16 @@ def parser(doc: str | None) -> argparse.ArgumentParser:
     return p
 
 
+def check_least(p: argparse.ArgumentParser, args: argparse.Namespace, **least: float) -> None:
+    """``p.error`` (one line, before anything runs) for a numeric flag given below its least
+    value, or not a number (a hostile review: ``--seeds 0`` was a traceback blaming the
+    tasks, ``--reps 0`` failed after every cell had trained, ``--timeout nan`` at the end)."""
+    for name, low in least.items():
+        value = getattr(args, name, None)
+        if value is not None and not value >= low:  # NaN is not >= anything
+            p.error(f"--{name.replace('_', '-')} must be >= {low:g}, got {value}")
+
+
 def destination(name: str, *, quick: bool, out: Path | None) -> Path | None:
     """Where a run writes: ``out`` if given; for a ``quick`` run a new temporary
     directory (printed); otherwise None, meaning ``results/`` and the README block."""
@@ -54,6 +67,50 @@ def destination(name: str, *, quick: bool, out: Path | None) -> Path | None:
         print(f"--quick without --out: writing to {path} (README.md and results/ untouched)")
         return path
     return None
+
+
+def read_results(path: Path, error: Callable[[str], Any]) -> dict[str, Any]:
+    """A results file given to ``--render`` or ``--merge``, read; ``error`` (argparse's
+    ``p.error``: one line, exit 2) for one that is not: missing, a folder, not JSON,
+    nested too deep, not an object, or holding NaN or Infinity (a results file the
+    scripts write holds finite numbers: a hostile review rendered NaN cells as met)."""
+
+    def refuse(name: str) -> None:
+        raise ValueError(f"{name} is not a finite number")
+
+    try:
+        payload = json.loads(Path(path).read_text(), parse_constant=refuse)
+    except (OSError, UnicodeDecodeError, ValueError, RecursionError) as err:
+        error(f"{path}: not a results file ({type(err).__name__}: {err})"[:400])
+    if not isinstance(payload, dict):
+        error(f"{path}: not a results file (a JSON {type(payload).__name__}, not an object)")
+    return payload
+
+
+def merge_refused(err: Exception) -> str:
+    """The one line of a ``--merge`` whose parts do not join (a ``ValueError`` naming what
+    differs; a part missing a field its script writes names the field)."""
+    said = str(err) if isinstance(err, ValueError) else f"{type(err).__name__}: {err}"
+    return f"--merge: {said}"[:400]
+
+
+def render_safely(
+    render: Callable[[Path | None], Any], out: Path | None, error: Callable[[str], Any], what: str
+) -> Any:
+    """``render(out)`` (``out`` None: ``results/`` and the README block), after a rehearsal
+    into a scratch folder: a file the report cannot read is one line (``error``) and
+    nothing is written (a hostile review: a failing render had already replaced the
+    committed figure, then gave a traceback)."""
+    with tempfile.TemporaryDirectory() as scratch:
+        try:
+            with contextlib.redirect_stdout(io.StringIO()):
+                render(Path(scratch))
+        except (KeyError, TypeError, ValueError, IndexError, AttributeError, OverflowError,
+                RecursionError) as err:  # fmt: skip
+            error(
+                f"{what}: not a results file this report reads ({type(err).__name__}: {err})"[:400]
+            )
+    return render(out)
 
 
 def results_dir(out_dir: Path | None) -> Path:

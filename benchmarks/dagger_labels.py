@@ -31,7 +31,6 @@ DAgger's queries paired by task and seed (mean, 95% t interval).
 
 from __future__ import annotations
 
-import json
 import os
 import sys
 import time
@@ -156,12 +155,17 @@ def main(argv: list[str] | None = None) -> dict:
     args = parser.parse_args(argv)
     if args.jobs < 1:
         parser.error(f"--jobs must be >= 1, got {args.jobs}")
-    if args.render is not None:
-        payload = json.loads(args.render.read_text())
-        md = markdown(payload["runs"], payload["wall_seconds"], tuple(payload["load_average"]))
-        print(md)
-        if args.out is None:
-            _report.update_readme(NAME, md)
+    if args.render is not None:  # --quick or --out: printed only, the README untouched
+        payload = _report.read_results(args.render, parser.error)
+
+        def render(out: Path | None) -> str:
+            md = markdown(payload["runs"], payload["wall_seconds"], tuple(payload["load_average"]))
+            if out is None:
+                _report.update_readme(NAME, md)
+            return md
+
+        out = _report.destination(NAME, quick=args.quick, out=args.out)
+        print(_report.render_safely(render, out, parser.error, str(args.render)))
         return payload
     out_dir = _report.destination(NAME, quick=args.quick, out=args.out)
     os.environ.setdefault("OMP_NUM_THREADS", "1")

@@ -65,7 +65,7 @@ from _loss_functions.merge import merge
 from _loss_functions.parse import parse_task
 from _loss_functions.report import NAME, report
 from _loss_functions.run import run
-from _loss_functions.tasks import TASKS
+from _loss_functions.tasks import TASKS, build
 from imitrl.learners import FOR_ENV, registry
 
 QUICK_LOSSES = ("cross_entropy", "gaussian_nll", "mse", "flow", "mse_chunk")
@@ -148,19 +148,29 @@ def _tasks(args: argparse.Namespace) -> list:
 
 
 def main(argv: list[str] | None = None) -> None:
-    args = _parser().parse_args(argv)
+    p = _parser()
+    args = p.parse_args(argv)
+    _report.check_least(p, args, seeds=1, jobs=1, reps=2)
     for module in args.modules:
         importlib.import_module(module)
     tasks = _tasks(args)
     out_dir = _report.destination(NAME, quick=args.quick, out=args.out)
     if args.render is not None:
-        report(json.loads(args.render.read_text()), out_dir)
+        raw = _report.read_results(args.render, p.error)
+        _report.render_safely(lambda o: report(raw, o), out_dir, p.error, str(args.render))
         return
     if args.merge is not None:
-        report(merge([json.loads(path.read_text()) for path in args.merge]), out_dir)
+        try:
+            raw = merge([_report.read_results(path, p.error) for path in args.merge])
+        except (ValueError, KeyError, TypeError) as err:  # parts that do not join: one line
+            p.error(_report.merge_refused(err))
+        _report.render_safely(lambda o: report(raw, o), out_dir, p.error, "--merge")
         return
-    if args.quick and args.losses is None:
-        args.losses = list(QUICK_LOSSES)
+    if args.quick and args.losses is None:  # one of each family that applies to a task
+        # (a hostile review: --quick --tasks frozenlake cartpole was refused over
+        # gaussian_nll, a loss nobody asked for)
+        specs = [build(defn, True).spec() for defn in tasks]
+        args.losses = [n for n in QUICK_LOSSES if any(n in registry.names(s) for s in specs)]
     for loss in args.losses or []:
         try:
             registry.get(loss)

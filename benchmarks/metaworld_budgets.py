@@ -141,16 +141,18 @@ def main(argv: list[str] | None = None) -> None:
     for flag in ("seeds", "jobs"):
         if getattr(args, flag) < 1:
             p.error(f"--{flag} must be >= 1, got {getattr(args, flag)}")
+    out = _report.destination(NAME, quick=args.quick, out=args.out)  # --quick: never results/
     if args.render is not None:
-        _report_of(json.loads(args.render.read_text()), args.out)
+        payload = _report.read_results(args.render, p.error)
+        _report.render_safely(lambda o: _report_of(payload, o), out, p.error, str(args.render))
         return
     if args.merge is not None:
-        runs = [{**json.loads(f.read_text()), "source": f.name} for f in args.merge]
+        runs = [{**_report.read_results(f, p.error), "source": f.name} for f in args.merge]
         try:
             merged = merge(runs)
-        except ValueError as err:  # files that do not join: one line, nothing written
-            p.error(f"--merge: {err}")
-        _report_of(merged, _report.destination(NAME, quick=False, out=args.out))
+        except (ValueError, KeyError, TypeError) as err:  # files that do not join: one line
+            p.error(_report.merge_refused(err))
+        _report.render_safely(lambda o: _report_of(merged, o), out, p.error, "--merge")
         return
     try:
         budgets = chosen(tuple(args.losses), None if args.steps is None else tuple(args.steps))

@@ -24,7 +24,6 @@ every row, and DAgger's expert reads the simulator's state and drives its first 
 
 from __future__ import annotations
 
-import json
 import multiprocessing
 import os
 import sys
@@ -233,8 +232,10 @@ def main(argv: list[str] | None = None) -> None:
     args = p.parse_args(argv)
     if args.jobs < 1:
         p.error(f"--jobs must be >= 1, got {args.jobs}")
-    if args.render is not None:
-        _report_of(json.loads(args.render.read_text()), args.out)
+    if args.render is not None:  # --quick: into a scratch folder, never results/
+        payload = _report.read_results(args.render, p.error)
+        out = _report.destination(NAME, quick=args.quick, out=args.out)
+        _report.render_safely(lambda o: _report_of(payload, o), out, p.error, str(args.render))
         return
     out_dir = _report.destination(NAME, quick=args.quick, out=args.out)
     os.environ.setdefault("OMP_NUM_THREADS", "1")

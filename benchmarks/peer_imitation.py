@@ -81,7 +81,6 @@ block; ``--gail`` runs it from here, with the arguments that follow::
 
 from __future__ import annotations
 
-import json
 import sys
 import time
 from dataclasses import asdict
@@ -148,12 +147,21 @@ def main(argv: list[str] | None = None) -> None:
         argv.remove("--gail")
         peer_gail.main(argv)
         return
-    args = build_parser().parse_args(argv)
+    p = build_parser()
+    args = p.parse_args(argv)
+    _report.check_least(p, args, seeds=1, timeout=1)
     if args.render is not None:
-        text = markdown(json.loads(args.render.read_text()))
-        if args.out is None and not args.quick:
-            _report.update_readme(NAME, text)
-        print(text)
+        payload = _report.read_results(args.render, p.error)
+
+        def render(out: Path | None) -> str:
+            text = markdown(payload)
+            if out is None:
+                _report.update_readme(NAME, text)
+            return text
+
+        # only a full render rewrites the README block (it writes no file: printed)
+        out = None if args.out is None and not args.quick else Path(args.out or ".")
+        print(_report.render_safely(render, out, p.error, str(args.render)))
         return
     # the peer's python first: a full run without one stops before anything is written
     peer_python = None if args.quick else runs.peer_python(args.peer_python)

@@ -60,6 +60,18 @@ def _cell(row: dict) -> tuple:
     return (row["task"], row["loss"], row["seed"], row["algorithm"])
 
 
+def _check_seeds(rows: list[dict], seeds: int) -> None:
+    """ValueError naming the first (task, loss, algorithm) whose rows do not hold the
+    ``seeds`` seeds the runs' configs say (a hostile review: a part whose rows held 3
+    seeds merged under a header of 5, its intervals silently on 3)."""
+    held: dict[tuple, set] = {}
+    for row in rows:
+        held.setdefault((row["task"], row["loss"], row["algorithm"]), set()).add(row["seed"])
+    for cell, have in held.items():
+        if len(have) != seeds:
+            raise ValueError(f"{cell} has seeds {sorted(have)}; the runs' configs say {seeds}")
+
+
 def merge(runs: list[dict[str, Any]]) -> dict[str, Any]:
     """One raw result (``run.py``'s, with ``config``) from ``runs`` (ValueError naming
     the first disagreement)."""
@@ -108,6 +120,7 @@ def merge(runs: list[dict[str, Any]]) -> dict[str, Any]:
             out["rows"].append(row)
         out["losses"].update(run.get("losses", {}))
         out["wall_seconds"] += run["wall_seconds"]
+    _check_seeds(out["rows"], next(iter(seeds)))
     config = dict(first["config"])
     config["tasks"] = list(dict.fromkeys(t for r in runs for t in r["config"]["tasks"]))
     config["losses"] = None

@@ -283,6 +283,11 @@ def test_runs_of_disjoint_cells_merge_into_the_run_of_all_of_them():
     changed["references"][0]["score"] += 1
     with pytest.raises(ValueError, match="reference"):
         merge([raw(["mse"]), changed])
+    # a hostile review: a part whose config said 2 seeds and whose rows held 1 merged
+    claims = raw(["l1"])
+    claims["config"]["seeds"] = 2
+    with pytest.raises(ValueError, match=r"'l1', 'bc'\) has seeds \[0\]; the runs' configs say 2"):
+        merge([raw(["mse"], seeds=2), claims])
 
 
 def test_a_requested_loss_that_does_not_apply_is_named_never_dropped(capsys):
