@@ -152,17 +152,24 @@ def _saved(state: dict) -> bytes:
     return buffer.getvalue()
 
 
-def test_a_compressed_weights_archive_is_refused_before_it_is_unpacked(tmp_path):
+def _deflate(path: Path) -> bytes:
+    """Rewrite the torch.save archive at ``path`` with its records compressed (a zip bomb's
+    form); returns the new bytes."""
     import zipfile
 
-    ckpt = _write_run(tmp_path / "zip", _config([8]), _padding())
-    raw = (ckpt / "learner.pt").read_bytes()
+    raw = path.read_bytes()
     with (
         zipfile.ZipFile(io.BytesIO(raw)) as source,
-        zipfile.ZipFile(ckpt / "learner.pt", "w", compression=zipfile.ZIP_DEFLATED) as packed,
+        zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED) as packed,
     ):
         for record in source.infolist():
             packed.writestr(record.filename, source.read(record))
+    return path.read_bytes()
+
+
+def test_a_compressed_weights_archive_is_refused_before_it_is_unpacked(tmp_path):
+    ckpt = _write_run(tmp_path / "zip", _config([8]), _padding())
+    _deflate(ckpt / "learner.pt")
     status, err = run(["eval", "--checkpoint", str(ckpt), "--eval-episodes", "1"])
     assert status == 2 and err.count("\n") == 1, err
     assert "torch.save stores them as they are, so refused before unpacking" in err
@@ -410,20 +417,11 @@ def test_a_learner_pt_whose_copies_of_one_weight_disagree_is_refused(tmp_path):
 def test_a_compressed_learner_in_a_buffer_checkpoint_is_refused_before_it_is_unpacked(tmp_path):
     """A hostile review: DAgger's checkpoint (a buffer checkpoint with the learner) unpacked
     a 1 MB deflated learner.pt into 1 GiB; its manifest's checksums were simply redone."""
-    import zipfile
-
     learner = build("cross_entropy", TaskSpec(action=4, num_states=16))
     buf = DemonstrationBuffer()
     buf.extend(demo_rows(10))
     path = buf.save(tmp_path / "ck", learner=learner)
-    raw = (path / "learner.pt").read_bytes()
-    with (
-        zipfile.ZipFile(io.BytesIO(raw)) as source,
-        zipfile.ZipFile(path / "learner.pt", "w", compression=zipfile.ZIP_DEFLATED) as packed,
-    ):
-        for record in source.infolist():
-            packed.writestr(record.filename, source.read(record))
-    data = (path / "learner.pt").read_bytes()
+    data = _deflate(path / "learner.pt")
     _manifest(path, lambda c: c["files"].update(
         {"learner.pt": {"bytes": len(data), "sha256": hashlib.sha256(data).hexdigest()}}))  # fmt: skip
     with pytest.raises(ValueError, match=r"torch\.save stores them as they are, so refused before"):
