@@ -253,3 +253,21 @@ def test_action_dtype_must_be_the_specs_and_batched_bounds_are_per_lane():
     uneven = Bounded(-torch.rand(8, 2) - 1, torch.ones(8, 2), shape=(8, 2))
     with pytest.raises(ValueError, match="action_spec_unbatched"):
         DemonstrationBuffer(action_spec=uneven).extend(cont(torch.zeros(4, 2)))
+
+
+def test_sampling_another_batch_size_than_the_constructors_is_silent():
+    """A review: the in-memory buffer leaked TorchRL's "conflicting batch_sizes" warning for
+    sample(batch_size), its documented API (the disk buffer was silent)."""
+    import warnings
+
+    buf = DemonstrationBuffer(batch_size=4)
+    buf.extend(_rows_for_sampling())
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert buf.sample(8).shape == (8,) and buf.sample().shape == (4,)
+
+
+def _rows_for_sampling():
+    from tests.data.test_disk import cartpole_rows
+
+    return cartpole_rows(20)

@@ -163,9 +163,8 @@ class DemonstrationBuffer:
         self._rb = ReplayBuffer(
             storage=self._storage,
             sampler=SamplerWithoutReplacement(drop_last=False, shuffle=True),
-            batch_size=batch_size,
-            generator=generator,
-        )
+            generator=generator,  # no batch_size: sample passes one (TorchRL warned when a
+        )  # call's differed from the constructor's, which sample's own argument allows)
         self._generator, self._batch_size = generator, batch_size
         self._permutation: LazyPermutation | None = None  # a disk buffer's sampling order
         if self._layout is not None:
