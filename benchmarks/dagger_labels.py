@@ -112,8 +112,19 @@ def _aggregate(label: str, payload: dict) -> list[list]:
     return out
 
 
-def markdown(runs: dict[str, dict], wall: float, load: tuple[float, float]) -> str:
-    head = (
+def markdown(
+    runs: dict[str, dict], wall: float, load: tuple[float, float], *, quick: bool = False
+) -> str:
+    """The README block of ``runs``; a ``quick`` one says first that it is a smoke run (a
+    review: its header named the full protocol's command, tasks and seeds)."""
+    tasks = next(iter(runs.values()))["config"]["tasks"]
+    smoke = (
+        f"Smoke run (`--quick`: {len(tasks)} task(s), 1 seed, {len(runs)} schedules, the quick "
+        "budget): it shows the script runs, nothing more; the committed protocol reads:\n\n"
+        if quick
+        else ""
+    )
+    head = smoke + (
         f"`python benchmarks/dagger_labels.py --jobs 2` ({wall / 60:.1f} min, 1 torch thread a "
         f"process, 1-min load {load[0]:.2f} to {load[1]:.2f}): MT10 at `metaworld_mt10.py`'s "
         f"protocol ({DEMOS} demonstrations, 2 relabel rounds x 3 learner episodes, warm start, "
@@ -159,7 +170,10 @@ def main(argv: list[str] | None = None) -> dict:
         payload = _report.read_results(args.render, parser.error)
 
         def render(out: Path | None) -> str:
-            md = markdown(payload["runs"], payload["wall_seconds"], tuple(payload["load_average"]))
+            md = markdown(
+                payload["runs"], payload["wall_seconds"], tuple(payload["load_average"]),
+                quick=bool(payload.get("config", {}).get("quick")),
+            )  # fmt: skip
             if out is None:
                 _report.update_readme(NAME, md)
             return md
@@ -187,9 +201,9 @@ def main(argv: list[str] | None = None) -> dict:
         }  # fmt: skip
     wall = time.perf_counter() - t0
     load = (load0, os.getloadavg()[0])
-    md = markdown(runs, wall, load)
+    md = markdown(runs, wall, load, quick=args.quick)
     print(md)
-    payload = {"config": {"seeds": SEEDS, "demos": DEMOS, "quick": args.quick,
+    payload = {"config": {"seeds": 1 if args.quick else SEEDS, "demos": DEMOS, "quick": args.quick,
                           "protocol": str(PROTOCOL)},
                "runs": runs, "wall_seconds": wall, "load_average": list(load)}  # fmt: skip
     print("results:", _report.write(NAME, payload, md, out_dir=out_dir))

@@ -46,3 +46,19 @@ def test_rows_near_the_object_and_retreats_are_counted_per_round():
         "1": {"rows": 4, "near": 3, "retreats": 1},
         "2": {"rows": 2, "near": 1, "retreats": 1},
     }
+
+
+def test_a_quick_runs_block_says_it_is_a_smoke_run_and_a_full_ones_is_as_committed():
+    """A review: a --quick block's header named the full run's command, MT10 and 5 seeds."""
+    import json
+
+    from dagger_labels import markdown
+
+    payload = json.loads((ROOT / "benchmarks" / "results" / "dagger_labels.json").read_text())
+    args = (payload["runs"], payload["wall_seconds"], tuple(payload["load_average"]))
+    full = markdown(*args)
+    assert full.startswith("`python benchmarks/dagger_labels.py --jobs 2`")
+    assert full in (ROOT / "benchmarks" / "README.md").read_text()
+    smoke = markdown(*args, quick=True)
+    assert smoke.startswith("Smoke run (`--quick`: 10 task(s), 1 seed, 4 schedules")
+    assert smoke.endswith(full.split("\n\n", 1)[1])
