@@ -1,14 +1,15 @@
 """The optimal expert of a toy-text env, by value iteration on the env's own model.
 
 ``value_iteration_expert("FrozenLake-v1")``. gymnasium's toy-text envs (FrozenLake,
-CliffWalking, Taxi) publish their dynamics as ``env.unwrapped.P``; :meth:`~imitrl.tabular.TabularMDP.from_gym` reads it, value
-iteration solves it, and the expert acts greedily on the result (ties to the lowest
-action). It is the expert of the FrozenLake study (:mod:`imitrl.experiments.frozenlake`),
-at the study's discount (declared once, in :mod:`imitrl.configs.value_iteration`), swept
-until its values converge, and it answers for any state: a queryable expert for DAgger.
-It is optimal for the discounted return; on a lake with a time limit, a policy
-maximising the chance of reaching the goal within it may do better (on the 8x8 map
-within 200 steps, 0.886 exactly against this expert's 0.739).
+CliffWalking, Taxi) publish their dynamics as ``env.unwrapped.P``;
+:meth:`~imitrl.tabular.TabularMDP.from_gym` reads it, value iteration solves it, and the
+expert acts greedily on the result (ties to the lowest action). It is the expert of the
+FrozenLake study (:mod:`imitrl.experiments.frozenlake`), at the study's discount
+(declared once, in :mod:`imitrl.configs.value_iteration`), swept until its values
+converge, and it answers for any state: a queryable expert for DAgger. It is optimal for
+the discounted return; on a lake with a time limit, a policy maximising the chance of
+reaching the goal within it may do better (on the 8x8 map within 200 steps, 0.886
+exactly against this expert's 0.739).
 """
 
 from __future__ import annotations

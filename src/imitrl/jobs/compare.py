@@ -4,11 +4,11 @@
 (the ``--out`` of imitrl bc, dagger, gail or airl), ``expert`` (``--expert``: the env's
 built-in expert, or one of yours) or ``random`` (uniform random actions); both play
 episode ``j`` from the env seeded ``--seed + j`` (:mod:`imitrl.evaluation.compare`), and
-the paired differences of their success (or return) give the mean difference, its interval and the decision, after
-``--episodes`` pairs or, with ``--sequential``, as soon as the anytime-valid interval
-excludes 0. Bad input (a side that does not fit the env, an env that does not replay
-its seeds, ``--alpha`` outside (0, 1), fewer than 2 episodes) is one line, and nothing is
-written.
+the paired differences of their success (or return) give the mean difference, its
+interval and the decision, after ``--episodes`` pairs or, with ``--sequential``, as soon
+as the anytime-valid interval excludes 0. Bad input (a side that does not fit the env,
+an env that does not replay its seeds, ``--alpha`` outside (0, 1), fewer than 2
+episodes) is one line, and nothing is written.
 """
 
 from __future__ import annotations
@@ -114,10 +114,9 @@ def run_compare(config: CompareJob) -> dict:
     """Compare as ``config`` says (module docstring); returns what compare.json holds."""
     from imitrl.envs import make_env
     from imitrl.evaluation.compare import compare
+    from imitrl.jobs.resolve import played_limit, time_limit
 
     env_id, steps, kwargs = _env_of(config)
-    from imitrl.jobs.resolve import time_limit
-
     time_limit(env_id, steps)  # an env registered without one: --max-episode-steps, named
     env = make_env(env_id, seed=config.seed, max_episode_steps=steps, env_kwargs=kwargs)
     try:
@@ -134,8 +133,6 @@ def run_compare(config: CompareJob) -> dict:
         )  # fmt: skip
     finally:
         env.close()
-    from imitrl.jobs.resolve import played_limit
-
     results = {
         "env": env_id,
         "env_kwargs": kwargs,
@@ -208,15 +205,15 @@ def _side(side: str, flag: str, env, env_id: str, config: CompareJob, kwargs: di
 
     from imitrl.evaluation.compare import PolicySpec
     from imitrl.jobs.checkpoint import build_learner, read_checkpoint
-    from imitrl.jobs.resolve import expert_for_env, make_expert, no_expert_message
+    from imitrl.jobs.resolve import resolved_expert
     from imitrl.policies import as_actor
     from imitrl.policies.random_actions import RandomActions
 
     if side == "expert":
-        name = expert_for_env(config.expert, env_id)
-        if name is None:
-            raise ValueError(f"{flag} expert: {no_expert_message(env_id)}")
-        expert = make_expert(name, config.expert_kind, env_id=env_id, env=env, env_kwargs=kwargs)
+        expert = resolved_expert(
+            config.expert, config.expert_kind, env_id=env_id, env=env, env_kwargs=kwargs,
+            where=f"{flag} expert: ",
+        )  # fmt: skip
         return PolicySpec(as_actor(expert), ExplorationType.DETERMINISTIC, "expert")
     if side == "random":
         return PolicySpec(

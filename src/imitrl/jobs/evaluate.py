@@ -318,15 +318,14 @@ def _expert(config: EvalJob, env_id: str, steps: int | None, kwargs: dict) -> Te
     """``--expert`` for the env (``auto``: the built-in expert of ``--env``, as imitrl bc
     and compare resolve it), built reading the env's specs as bc's and dagger's is."""
     from imitrl.envs import make_env
-    from imitrl.jobs.resolve import expert_for_env, make_expert, no_expert_message
+    from imitrl.jobs.resolve import resolved_expert
 
     assert config.expert is not None  # EvalJob.__post_init__
     specs = make_env(env_id, seed=0, max_episode_steps=steps, env_kwargs=kwargs)  # the id first
     try:
-        name = expert_for_env(config.expert, env_id)
-        if name is None:
-            raise ValueError(no_expert_message(env_id))
-        return make_expert(name, config.expert_kind, env_id=env_id, env=specs, env_kwargs=kwargs)
+        return resolved_expert(
+            config.expert, config.expert_kind, env_id=env_id, env=specs, env_kwargs=kwargs
+        )
     finally:
         specs.close()
 

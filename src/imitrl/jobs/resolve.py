@@ -63,6 +63,7 @@ __all__ = [
     "played_limit",
     "registered_loss",
     "resolve_loss",
+    "resolved_expert",
     "time_limit",
 ]
 
@@ -173,6 +174,24 @@ def make_expert(
             expert.bind(env.action_spec_unbatched)
         check_expert_fits(expert, spec, env_id, env)
     return expert
+
+
+def resolved_expert(
+    spec: str,
+    kind: str,
+    *,
+    env_id: str,
+    env: EnvBase,
+    env_kwargs: Mapping[str, Any] | None,
+    where: str = "",
+) -> TensorDictModuleBase:
+    """``--expert`` as eval and compare take it, which need one: ``auto`` resolved against
+    ``env_id`` (:func:`expert_for_env`; an env without a built-in expert is refused, the
+    message after ``where``), then :func:`make_expert`."""
+    name = expert_for_env(spec, env_id)
+    if name is None:
+        raise ValueError(f"{where}{no_expert_message(env_id)}")
+    return make_expert(name, kind, env_id=env_id, env=env, env_kwargs=env_kwargs)
 
 
 def _build_expert(

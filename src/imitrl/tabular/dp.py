@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -26,6 +27,15 @@ def backup(mdp: TabularMDP, V: torch.Tensor) -> torch.Tensor:
     return backup_dense(mdp.P, mdp.r, mdp.gamma, V)
 
 
+def _sweeps(mdp: TabularMDP) -> Iterator[np.ndarray]:
+    """``V_1, V_2, ...``: the sweeps ``V_{k+1}[s] = max_a Q_k[s, a]`` from ``V_0 = 0``."""
+    r, gamma_P = mdp.r.numpy(), mdp.gamma * mdp.P.numpy()
+    V = np.zeros(mdp.num_states)
+    while True:
+        V = backup_arrays(r, gamma_P, V).max(axis=1)
+        yield V
+
+
 def value_iteration(mdp: TabularMDP, num_iters: int = 1000) -> torch.Tensor:
     """Sweep ``V_{k+1}[s] = max_a Q_k[s, a]`` from ``V_0 = 0``.
 
@@ -36,11 +46,8 @@ def value_iteration(mdp: TabularMDP, num_iters: int = 1000) -> torch.Tensor:
     """
     if int(num_iters) != num_iters or num_iters < 1:
         raise ValueError(f"num_iters must be a positive integer, got {num_iters!r}")
-    r, gamma_P = mdp.r.numpy(), mdp.gamma * mdp.P.numpy()
     history = np.empty((int(num_iters), mdp.num_states))
-    V = np.zeros(mdp.num_states)
-    for k in range(int(num_iters)):
-        V = backup_arrays(r, gamma_P, V).max(axis=1)
+    for k, V in zip(range(int(num_iters)), _sweeps(mdp)):
         history[k] = V
     return torch.from_numpy(history)
 
@@ -55,11 +62,9 @@ def converged_values(mdp: TabularMDP, max_sweeps: int) -> tuple[torch.Tensor, in
     Raises:
         ValueError: not converged within ``max_sweeps``.
     """
-    r, gamma_P = mdp.r.numpy(), mdp.gamma * mdp.P.numpy()
     V = np.zeros(mdp.num_states)
     tol = 4 * np.finfo(np.float64).eps
-    for sweep in range(1, int(max_sweeps) + 1):
-        new = backup_arrays(r, gamma_P, V).max(axis=1)
+    for sweep, new in zip(range(1, int(max_sweeps) + 1), _sweeps(mdp)):
         if np.all(np.abs(new - V) <= tol * np.abs(new)):
             return torch.from_numpy(new), sweep
         V = new
