@@ -39,6 +39,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+import _metaworld_recipes  # registers diffusion_unet_mw (DP3's Meta-World horizons)
 import _report
 from _loss_functions.merge import join_cells
 from _loss_functions.run import execute
@@ -66,6 +67,7 @@ class Budget:
 BUDGETS = {
     "mse": Budget(steps=(320, 2000), batch=256),
     "diffusion_unet": Budget(steps=(500, 2000, 4000, 8000), batch=64),
+    _metaworld_recipes.NAME: Budget(steps=(2000, 4000), batch=64),
 }
 """Per loss. ``mse``: ``metaworld_mt10.py``'s 320 steps and ``metaworld_mt50.py``'s 2000
 (its network, 256-256 at lr 1e-3, chosen there). ``diffusion_unet``: the registry's CPU
@@ -74,7 +76,10 @@ LeRobot's Diffusion Policy recipe; its state configs take 256, 2.5 times the ste
 one CPU thread: ``diffusion_policy.py``), 2000 steps (about 70 ms a step, 2.5 min a fit),
 a quarter of it, twice it (its 2000-step training loss still fell 27% over its last
 fifth) and four times it (its 4000-step loss still fell 38%). The training curves and
-the success at each rung say whether the last rung has converged."""
+the success at each rung say whether the last rung has converged. ``diffusion_unet_mw``:
+the same network, recipe and batch at the horizons of the published Meta-World
+Diffusion Policy (``T_p = 4``, executing ``T_a = 3``: :mod:`_metaworld_recipes`), at
+``diffusion_unet``'s two rungs that did best."""
 
 PROTOCOL = replace(
     MT50_PROTOCOL,
@@ -165,7 +170,7 @@ def main(argv: list[str] | None = None) -> None:
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     load, t0 = os.getloadavg(), time.perf_counter()
     cells, refs = plan(budgets, tasks, seeds, args.quick)
-    rows, references = execute(cells, refs, jobs=args.jobs)
+    rows, references = execute(cells, refs, jobs=args.jobs, modules=(_metaworld_recipes.__name__,))
     payload = {
         "config": {
             "tasks": list(tasks),

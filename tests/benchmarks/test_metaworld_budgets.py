@@ -4,6 +4,7 @@ with one reference a task and seed, the curve of a fit, and the report's numbers
 from __future__ import annotations
 
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -191,3 +192,26 @@ def test_files_that_do_not_join_are_one_line_and_nothing_is_written(tmp_path, ca
     err = capsys.readouterr().err
     assert exit_.value.code == 2 and "--merge: run 1 repeats the cell" in err
     assert "Traceback" not in err and not (tmp_path / "out").exists()
+
+
+def test_the_meta_world_recipe_is_diffusion_unet_at_dp3s_horizons():
+    """``diffusion_unet_mw``: the registry's Diffusion Policy predicting 4 actions from 2
+    observations and executing 3 (DP3's Meta-World config), every other setting its own;
+    a worker importing the module again registers nothing twice."""
+    import importlib
+
+    from torchrl.data import Bounded
+
+    import _metaworld_recipes as recipes
+    from imitrl.learners import TaskSpec, build
+    from imitrl.learners.diffusion_unet.entries import DIFFUSION_UNET
+
+    importlib.reload(recipes)
+    assert recipes.NAME in BUDGETS
+    want = replace(DIFFUSION_UNET, horizon=4, action_steps=3)
+    assert recipes.DIFFUSION_UNET_MW == want
+    task = TaskSpec(action=Bounded(-1.0, 1.0, shape=(4,)), observation_dim=39)
+    mw, plain = build(recipes.NAME, task, seed=0), build("diffusion_unet", task, seed=0)
+    assert (mw.horizon, mw.history) == (4, 2) and (plain.horizon, plain.history) == (16, 2)
+    assert mw.policy.execution.execute == 3
+    assert sum(p.numel() for p in mw.parameters()) == sum(p.numel() for p in plain.parameters())

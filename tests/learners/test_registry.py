@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import pytest
 import torch
 import torch.nn.functional as F
@@ -314,3 +316,41 @@ def test_an_entry_whose_learner_has_another_horizon_is_refused_when_built():
             build("test_horizon_4", TASKS["continuous"])
     finally:
         registry.unregister("test_horizon_4")
+
+
+def test_an_entrys_options_may_set_another_chunk_length():
+    """``build("diffusion_unet", env, horizon=4, action_steps=3)`` (the Meta-World
+    horizons of the published Diffusion Policy numbers) was refused as a horizon other
+    than the entry's 16; a chunk length is one of the entry's options, and the fit forms
+    chunk labels of the learner's own length."""
+    learner = build("diffusion_unet", TASKS["continuous"], horizon=4, action_steps=3)
+    assert learner.horizon == 4 and registry.get("diffusion_unet").horizon == 16
+    rows = learner.training_rows(_rows(TASKS["continuous"]))
+    assert rows.get(EXPERT_CHUNK).shape == (64, 4, 1)  # chunks of the learner's length
+    losses = fit_bc(learner, rows, BCConfig(num_steps=3, batch_size=16, seed=0)).losses
+    assert losses.shape == (3,) and bool(torch.isfinite(losses).all())
+    inputs = rows.select(keys.OBSERVATION)[:2].clone()
+    inputs.set(IS_INIT, torch.ones(2, 1, dtype=torch.bool))
+    with torch.no_grad(), set_exploration_type(learner.exploration):
+        assert learner.policy(inputs).get(keys.ACTION).shape == (2, 1)
+
+
+def test_options_never_make_a_chunked_entry_build_a_one_step_learner():
+    """Options may change a chunk's length, not whether the learner predicts chunks."""
+
+    @registry.register(
+        "test_opts_h4", actions="continuous", summary="x", horizon=4, options=UnetDefaults()
+    )
+    def _(task, config):
+        return build("mse", task)
+
+    try:
+        with pytest.raises(ValueError, match="registered with horizon 4 but built a learner of"):
+            build("test_opts_h4", TASKS["continuous"], width=3)
+    finally:
+        registry.unregister("test_opts_h4")
+
+
+@dataclass(frozen=True)
+class UnetDefaults:
+    width: int = 2

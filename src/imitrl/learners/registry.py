@@ -285,12 +285,22 @@ def make(name: str, task: TaskSpec, config: LearnerConfig) -> Learner:
     learner = entry.build(task, config)
     if not isinstance(learner, Learner):
         raise ValueError(f"loss {name!r} built a {type(learner).__name__}, expected a Learner")
-    if learner.horizon != entry.horizon:  # the CLI chunks labels by the entry's (a review)
+    if not _horizon_kept(entry.horizon, learner.horizon, config.options is not None):
         raise ValueError(
             f"loss {name!r} is registered with horizon {entry.horizon} but built a learner "
             f"of horizon {learner.horizon}: register it with the horizon its learner predicts"
         )
     return learner.placed(config.device)
+
+
+def _horizon_kept(declared: int | None, built: int | None, options: bool) -> bool:
+    """Whether a learner of chunk horizon ``built`` is what an entry declaring
+    ``declared`` may build: the same horizon, or (``options`` given: a chunk length is one
+    of Diffusion Policy's settings) another chunk length, never a one-step learner for a
+    chunked entry or the reverse (the CLI says whether a loss plays chunks by its entry)."""
+    if options:
+        return (declared is None) == (built is None)
+    return declared == built
 
 
 def fit_config(name: str, bc):
