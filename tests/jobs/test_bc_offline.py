@@ -17,7 +17,7 @@ from imitrl import keys
 from imitrl.cli import main
 from imitrl.envs import make_env
 from imitrl.experts import pendulum_expert
-from imitrl.jobs.checkpoint import load_learner
+from imitrl.jobs import load_learner, read_checkpoint
 from imitrl.runtime import rollout_episodes
 
 pytest.importorskip("pyarrow")
@@ -56,7 +56,8 @@ def test_a_dataset_alone_trains_a_checkpoint_that_eval_plays_in_an_env(recorded,
 
     # the action bounds are the recorded actions' range, kept in the weights
     env = make_env("Pendulum-v1", seed=0)
-    learner = load_learner(out, env)
+    learner = load_learner(out, env)  # imitrl.jobs' own name for it, as the tutorial says
+    assert read_checkpoint(out).config["env"] is None
     from imitrl.policies.heads import Squash
 
     (squash,) = [m for m in learner.policy.modules() if isinstance(m, Squash)]

@@ -4,6 +4,9 @@
 ``run_bench(BenchJob(...))`` return a dict (what ``results.json`` holds) and raise
 ``ValueError`` on bad input; the CLI (:mod:`imitrl.cli`) builds the config from the
 flags, one flag per field. Tests and benchmarks call the functions directly.
+``load_learner(run_folder, env)`` rebuilds a run's saved learner for ``env`` and loads its
+weights (what ``imitrl eval --checkpoint`` evaluates); ``read_checkpoint(run_folder)``
+reads its config and weights, checked, without building anything.
 
 Each name is imported from its module on first use (PEP 562), so that ``imitrl bench``
 and ``imitrl eval --help`` do not import what ``imitrl bc`` needs.
@@ -16,6 +19,8 @@ __all__ = [
     "BenchJob",
     "DAggerJob",
     "EvalJob",
+    "load_learner",
+    "read_checkpoint",
     "run_bc",
     "run_bench",
     "run_dagger",
@@ -33,5 +38,7 @@ __getattr__, __dir__ = _lazy_exports(
         "run_dagger": "imitrl.jobs.dagger",
         "EvalJob": "imitrl.jobs.evaluate",
         "run_eval": "imitrl.jobs.evaluate",
+        "load_learner": "imitrl.jobs.checkpoint",
+        "read_checkpoint": "imitrl.jobs.checkpoint",
     },
 )
