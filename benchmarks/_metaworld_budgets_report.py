@@ -141,6 +141,18 @@ def _wall(payload: dict) -> str:
     )
 
 
+def _horizons(config: dict) -> str:
+    """Where a run holds ``diffusion_unet_mw``: how its chunks differ from
+    ``diffusion_unet``'s (empty otherwise, so earlier runs render as they did)."""
+    if "diffusion_unet_mw" not in config["losses"]:
+        return ""
+    return (
+        " (predicting 16 actions, executing 8), diffusion_unet_mw the same network and recipe "
+        "at the published Meta-World Diffusion Policy's horizons (predicting 4 actions from 2 "
+        "observations, executing 3: DP3's `dp3.yaml`, arXiv 2403.03954)"
+    )
+
+
 def markdown(payload: dict, figure_name: str) -> str:
     config, proto = payload["config"], payload["config"]["protocol"]
     head = (
@@ -148,7 +160,8 @@ def markdown(payload: dict, figure_name: str) -> str:
         f"of the scripted expert, {config['seeds']} seed(s); each loss at the fit steps of "
         f"its own (`BUDGETS`), its recipe's schedule at every rung; mse's MLP "
         f"{proto['learner']['hidden']} at lr {proto['learner']['lr']}, diffusion_unet at the "
-        f"registry's CPU widths; evaluation {proto['eval_episodes']} held-out episodes of at "
+        f"registry's CPU widths{_horizons(config)}; evaluation {proto['eval_episodes']} "
+        "held-out episodes of at "
         f"most 500 steps (Meta-World's own limit), success = `info['success']` at any step. "
         + _wall(payload)
     )

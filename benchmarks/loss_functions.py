@@ -50,7 +50,6 @@ continuous loss applies to.
 from __future__ import annotations
 
 import argparse
-import importlib
 import json
 import os
 import sys
@@ -67,6 +66,7 @@ from _loss_functions.report import NAME, report
 from _loss_functions.run import run
 from _loss_functions.tasks import TASKS, build
 from imitrl.learners import FOR_ENV, registry
+from imitrl.system.imports import import_user_module
 
 QUICK_LOSSES = ("cross_entropy", "gaussian_nll", "mse", "flow", "mse_chunk")
 """``--quick``'s default: a loss of each cheap family, one-step and chunked (the smoke run
@@ -151,8 +151,11 @@ def main(argv: list[str] | None = None) -> None:
     p = _parser()
     args = p.parse_args(argv)
     _report.check_least(p, args, seeds=1, jobs=1, reps=2)
-    for module in args.modules:
-        importlib.import_module(module)
+    for module in args.modules:  # the user's code, by name: a failure is one line
+        try:
+            import_user_module(module, f"--import {module}")
+        except ValueError as err:
+            p.error(str(err))
     tasks = _tasks(args)
     out_dir = _report.destination(NAME, quick=args.quick, out=args.out)
     if args.render is not None:

@@ -112,9 +112,20 @@ def _link_names(markdown: str, page) -> str:
     return "".join(out)
 
 
+SNIPPET = re.compile(r'^--8<-- "([^"]+)"$', re.MULTILINE)
+
+
+def _expanded(markdown: str, config) -> str:
+    """``markdown`` with each whole-file snippet line (``--8<-- "CONTRIBUTING.md"``) replaced
+    by the file, as pymdownx.snippets would: so that the names of an included file are
+    checked and linked too (they were not: snippets expand after this hook runs)."""
+    root = Path(config.config_file_path).parent
+    return SNIPPET.sub(lambda m: (root / m.group(1)).read_text(), markdown)
+
+
 def on_page_markdown(markdown, page, config, files, **kwargs):
     if (Path(config.docs_dir) / page.file.src_uri).is_file():  # written, not generated
-        markdown = _link_names(markdown, page)
+        markdown = _link_names(_expanded(markdown, config), page)
     if 'exec="on"' in markdown or "exec='on'" in markdown:
         import torch
 

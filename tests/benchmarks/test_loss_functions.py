@@ -234,6 +234,18 @@ def test_aggregate_takes_the_tasks_mse_ran_on_and_seeds_as_runs():
     assert "p_improve" not in next(e for e in agg["entries"] if e["loss"] == "mse")
 
 
+def test_an_import_that_fails_is_one_line_naming_the_flag(capsys):
+    """``--import mypkg.losses`` without ``examples`` on the path was a traceback."""
+    import loss_functions
+
+    with pytest.raises(SystemExit) as exit_:
+        loss_functions.main(["--import", "no_such_pkg.losses", "--quick"])
+    assert exit_.value.code == 2
+    said = capsys.readouterr().err
+    assert "--import no_such_pkg.losses: cannot import 'no_such_pkg.losses'" in said
+    assert "Traceback" not in said
+
+
 def test_no_applicable_loss_is_a_clear_error():
     """A discrete task with only continuous losses chosen has no cell: the run says so
     before any work (it used to fail later, drawing an empty figure)."""

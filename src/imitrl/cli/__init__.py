@@ -1,4 +1,4 @@
-"""Command line: ``imitrl {bc,dagger,gail,airl,eval,bench,frozenlake} [--<field> VALUE ...]``.
+"""Command line: ``imitrl {bc,dagger,gail,airl,eval,compare,bench,frozenlake} [--<field> VALUE ...]``.
 
 Every command is a function of one frozen config dataclass, and every field of that
 dataclass is a flag (dashes for underscores) whose help text is the field's
