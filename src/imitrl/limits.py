@@ -35,6 +35,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 __all__ = [
+    "FLOAT32_MAX",
     "MAX_BATCH",
     "MAX_CATEGORIES",
     "MAX_ENV_STEPS",
@@ -150,6 +151,11 @@ def _number(x: float) -> str:
     return f"{int(x):_}" if float(x).is_integer() else f"{x:g}"
 
 
+FLOAT32_MAX = 3.4028234663852886e38
+"""the largest finite float32: a real setting past it is inf once it meets a tensor"""
+_PAST_FLOAT32 = f" (past float32's largest finite value, {FLOAT32_MAX:.4g})"
+
+
 @dataclass(frozen=True)
 class Bound:
     """The values a numeric field may take: ``low <= x <= high`` (``low < x`` when
@@ -227,7 +233,8 @@ class Bound:
                 f"{name} must be {self._kind(none)}, got {got} ({type(value).__name__})"
             )
         if not self._typed(value):  # a float for an integer, a nan, an inf
-            raise ValueError(f"{name} must be {self._kind(none)}, got {got}")
+            past = "" if self.integer or not math.isfinite(value) else _PAST_FLOAT32
+            raise ValueError(f"{name} must be {self._kind(none)}, got {got}{past}")
         if self.integer and not self._above(value):  # the side it missed: its smallest
             raise ValueError(f"{name} must be an integer >= {_number(self.low)}, got {got}")
         raise ValueError(f"{name} must be {self.describe(none)}, got {got}")
@@ -237,7 +244,9 @@ class Bound:
             return False
         if self.integer:
             return isinstance(value, numbers.Integral)
-        return isinstance(value, numbers.Real) and math.isfinite(value)
+        # finite where it is computed: every real setting meets float32 tensors (an lr of
+        # 1e39 passed a float64 check, then overflowed inside Adam)
+        return isinstance(value, numbers.Real) and abs(float(value)) <= FLOAT32_MAX
 
     def _above(self, value: Any) -> bool:
         # ``value``: any real number (an int, a float, a numpy scalar); typeshed's

@@ -254,6 +254,12 @@ def policy_errors_named(env: EnvBase, policy) -> Iterator[None]:
     try:
         yield
     except (RuntimeError, KeyError) as err:
+        if _not_finite(policy):  # a diverged learner, not one of another env (a review)
+            raise ValueError(
+                f"the policy ({type(policy).__name__}) holds weights that are not finite "
+                f"(NaN or inf: its training diverged) and cannot act: {type(err).__name__}: "
+                f"{err}"
+            ) from err
         obs = env.observation_spec_unbatched
         shapes = {
             str(k): (tuple(v.shape), str(v.dtype).removeprefix("torch."))
@@ -265,6 +271,12 @@ def policy_errors_named(env: EnvBase, policy) -> Iterator[None]:
             f"env's observations {shapes}: {type(err).__name__}: {err}; was it built for "
             "another env?"
         ) from err
+
+
+def _not_finite(policy) -> bool:
+    """Whether ``policy`` (a module) holds a parameter that is NaN or inf."""
+    params = policy.parameters() if isinstance(policy, torch.nn.Module) else ()
+    return any(not bool(torch.isfinite(p).all()) for p in params)
 
 
 def play(

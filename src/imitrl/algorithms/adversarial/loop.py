@@ -48,6 +48,7 @@ a single process), the minibatch draws ``seed`` on every rank.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Protocol
@@ -294,12 +295,34 @@ def _round(k, steps, batch, expert, discriminator, generator, config, draws) -> 
     batch.set((keys.NEXT, LEARNED_REWARD), reward.reshape(*batch.shape, 1))
     ppo = generator.update(batch, draws)
     world = rank_and_world()[1]  # the record's numbers are every rank's rows
-    return RoundRecord(
+    record = RoundRecord(
         round=k, env_steps=steps, discriminator=metrics, generator=ppo,
         learned_reward=float(summed(learned.mean())) / world,  # as many rows on each
         absorbing_reward=None if r_abs is None else float(r_abs),
         terminated=int(summed(batch.get((keys.NEXT, keys.TERMINATED)).sum())),
     )  # fmt: skip
+    check_finite_round(record, generator.params)
+    return record
+
+
+def check_finite_round(record: RoundRecord, params) -> None:
+    """ValueError naming the round and what went non-finite, when a loss, the learned
+    reward or a weight of the learner did (a review: a run whose every weight was NaN was
+    scored, saved and reported with exit 0; the next round's rollout then blamed the env)."""
+    numbers = {
+        **{f"the discriminator's {k}": v for k, v in record.discriminator.items()},
+        **{f"PPO's {k}": v for k, v in record.generator.items()},
+        "the learned reward": record.learned_reward,
+    }
+    bad = [name for name, v in numbers.items() if not math.isfinite(v)]
+    if not bad and not all(bool(torch.isfinite(p).all()) for p in params):
+        bad = ["the learner's weights"]
+    if bad:
+        raise ValueError(
+            f"round {record.round}: {bad[0]} is not finite: training diverged (a smaller "
+            "learning rate, gradient penalty or entropy coefficient, or larger minibatches, "
+            "keep it finite)"
+        )
 
 
 def _expert_rows(expert: TensorDictBase, batch: int, draws: torch.Generator) -> TensorDictBase:

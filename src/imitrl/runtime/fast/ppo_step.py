@@ -117,8 +117,11 @@ class TensorPPO:
         value_target: torch.Tensor,
     ) -> dict[str, torch.Tensor]:
         """``{"loss_objective", "loss_critic"}`` of one minibatch, as ``ClipPPOLoss`` returns them."""
-        # _maybe_normalize_advantage -> torchrl._utils._standardize (no excluded dims)
-        advantage = (advantage - advantage.mean()) / advantage.std().clamp_min(_RESOLUTION)
+        # _maybe_normalize_advantage -> torchrl._utils._standardize (no excluded dims); as
+        # there, a minibatch of one row is left as it is (its std is NaN: a review found
+        # every weight NaN after a round whose rollout left one row over)
+        if advantage.numel() > 1:
+            advantage = (advantage - advantage.mean()) / advantage.std().clamp_min(_RESOLUTION)
         net_out = self.net(obs)
         out: tuple[torch.Tensor, ...] = net_out if isinstance(net_out, tuple) else (net_out,)
         if self.tanh_normal is not None:  # its log-probability without the distribution
