@@ -12,7 +12,7 @@ import math
 import numbers
 from typing import Any
 
-__all__ = ["boolean", "integer", "number"]
+__all__ = ["boolean", "finite_at_least", "integer", "number", "whole"]
 
 
 def integer(value: Any, name: str, *, minimum: int | None = None, none_ok: bool = False) -> None:
@@ -44,3 +44,15 @@ def boolean(value: Any, name: str, *, none_ok: bool = False) -> None:
         return
     expected = "True or False" + (" or None" if none_ok else "")
     raise ValueError(f"{name} must be {expected}, got {value!r} ({type(value).__name__})")
+
+
+def whole(value: Any, low: int) -> bool:
+    """Whether ``value`` is an integer (Python or numpy, not a bool, not a float such as
+    ``2.5`` or ``inf``) of at least ``low``: for checks that word their own message."""
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool) and int(value) >= low
+
+
+def finite_at_least(value: Any, low: float) -> bool:
+    """Whether ``value`` is a finite real number (not a bool) of at least ``low``."""
+    ok = isinstance(value, numbers.Real) and not isinstance(value, bool)
+    return ok and math.isfinite(value) and value >= low

@@ -26,6 +26,15 @@ def test_the_expert_takes_over_where_the_learner_is_farther_than_the_threshold()
     assert torch.equal(out.get(keys.LEARNER_ACTION), learner)
 
 
+def test_a_nan_or_inf_proposal_is_taken_over():
+    """NaN > threshold is False: a NaN learner action was executed, no intervention kept."""
+    expert = torch.tensor([[0.1], [0.1], [0.1]])
+    learner = torch.tensor([[float("nan")], [float("inf")], [0.15]])
+    out = ExpertGate(0.5)(_td(expert, learner))
+    assert out.get(keys.EXPERT_EXECUTED).tolist() == [True, True, False]
+    assert out.get(keys.ACTION).flatten().tolist() == pytest.approx([0.1, 0.1, 0.15])
+
+
 def test_discrete_actions_intervene_where_they_differ_and_a_rule_is_a_parameter():
     out = ExpertGate(0.0)(_td(torch.tensor([0, 1, 2]), torch.tensor([0, 2, 2])))
     assert out.get(keys.EXPERT_EXECUTED).tolist() == [False, True, False]

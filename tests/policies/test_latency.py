@@ -142,6 +142,40 @@ def test_ensembling_averages_only_the_chunks_that_have_arrived():
         assert a == pytest.approx(float((w * pred).sum() / w.sum()), rel=1e-6), t
 
 
+@pytest.mark.parametrize("m", [7.0, 10.0, 40.0])
+def test_ensembling_with_a_steep_m_keeps_finite_weights(m):
+    """``m (H - 1)`` past about 103 underflowed every arrived weight against the oldest
+    slot (0 / 0: NaN actions from the first step); the weights are the same, relative to
+    the largest arrived one, and the plain policy's ensembling agrees."""
+    H = 16
+    delayed = DelayedChunkPolicy(_Clock(H, scale=10.0), 1, H, Latency(0, "ensemble", ensemble=m))
+    plain = ChunkedPolicy(_Clock(H, scale=10.0), 1, ChunkExecution(H, ensemble=m))
+    got, want = _run(delayed, 20)[0], _run_plain(plain, 20, (0,))
+    assert all(math.isfinite(a) for (a,) in got)
+    assert torch.allclose(torch.tensor(got), torch.tensor(want), atol=1e-4)
+
+
+@pytest.mark.parametrize(
+    "make",
+    [
+        lambda: ChunkExecution(4, ensemble=math.inf),
+        lambda: ChunkExecution(4, ensemble=math.nan),
+        lambda: ChunkExecution(4, execute=2.5),
+        lambda: ChunkExecution(True),
+        lambda: ChunkExecution(math.inf),
+        lambda: Latency(math.inf, "naive"),
+        lambda: Latency(1.5, "naive"),
+        lambda: Latency(1, "naive", execute=True),
+        lambda: Latency(1, "naive", execute=math.inf),
+        lambda: Latency(0, "ensemble", ensemble=math.inf),
+    ],
+)
+def test_chunk_settings_that_are_not_whole_or_finite_are_refused(make):
+    """Each was taken (NaN actions, a replan every 3 steps for 2.5) or an OverflowError."""
+    with pytest.raises(ValueError, match="must be"):
+        make()
+
+
 def test_rtc_inpaints_towards_what_the_current_chunk_still_holds():
     network = _Clock(8, scale=10.0)
     policy = DelayedChunkPolicy(network, 1, 8, Latency(2, "rtc", execute=4, guidance=3.0))

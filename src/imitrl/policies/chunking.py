@@ -54,6 +54,7 @@ from torchrl.data import Bounded
 from torchrl.envs import EnvBase, InitTracker, TransformedEnv
 
 from imitrl import keys
+from imitrl.checks import finite_at_least, whole
 from imitrl.data.chunks import ACTION_CHUNK, IS_INIT
 from imitrl.data.history import history_key
 
@@ -88,14 +89,18 @@ class ChunkExecution:
     pass it to every query as ``POLICY_NOISE``; the network needs ``draw_noise(n)``"""
 
     def __post_init__(self) -> None:
-        if int(self.horizon) != self.horizon or self.horizon < 1:
+        if not whole(self.horizon, 1):
             raise ValueError(f"horizon must be a positive integer, got {self.horizon!r}")
         if self.ensemble is not None and self.execute is not None:
             raise ValueError("give execute (receding horizon) or ensemble (ACT), not both")
-        if self.execute is not None and not 1 <= self.execute <= self.horizon:
-            raise ValueError(f"execute must be in [1, {self.horizon}], got {self.execute}")
-        if self.ensemble is not None and not self.ensemble >= 0:
-            raise ValueError(f"ensemble (m) must be >= 0, got {self.ensemble}")
+        if self.execute is not None and not (
+            whole(self.execute, 1) and self.execute <= self.horizon
+        ):
+            raise ValueError(
+                f"execute must be in [1, {self.horizon}], an integer, got {self.execute!r}"
+            )
+        if self.ensemble is not None and not finite_at_least(self.ensemble, 0):
+            raise ValueError(f"ensemble (m) must be finite and >= 0, got {self.ensemble!r}")
 
     @property
     def replan_every(self) -> int:

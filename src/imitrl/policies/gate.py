@@ -36,7 +36,7 @@ class ActionDistance:
     threshold: float
 
     def __post_init__(self) -> None:
-        if not self.threshold >= 0:
+        if not self.threshold >= 0:  # nan too; inf: never intervene
             raise ValueError(f"threshold must be >= 0, got {self.threshold}")
 
     def __call__(
@@ -46,7 +46,9 @@ class ActionDistance:
             differ = expert != learner
             return differ.reshape(*batch, -1).any(-1) if differ.dim() > len(batch) else differ
         gap = (learner - expert).double().reshape(*batch, -1).norm(dim=-1)
-        return gap > self.threshold
+        # a NaN or inf proposal is as far as can be: the expert takes over (NaN > t is
+        # False, and a review saw the NaN executed, with no intervention recorded)
+        return (gap > self.threshold) | ~torch.isfinite(gap)
 
 
 class ExpertGate(TensorDictModuleBase):

@@ -53,6 +53,7 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.data import Bounded
 
 from imitrl import keys
+from imitrl.checks import finite_at_least, whole
 from imitrl.data.chunks import IS_INIT
 from imitrl.policies.chunking import ACT_ENSEMBLE_M, ChunkedPolicy, reset_lanes
 
@@ -92,14 +93,14 @@ class Latency:
     def __post_init__(self) -> None:
         if self.mode not in MODES:
             raise ValueError(f"Latency.mode must be one of {', '.join(MODES)}, got {self.mode!r}")
-        if isinstance(self.delay, bool) or int(self.delay) != self.delay or self.delay < 0:
+        if not whole(self.delay, 0):
             raise ValueError(
                 f"Latency.delay must be a whole number of steps >= 0, got {self.delay!r}"
             )
-        if self.execute is not None and (int(self.execute) != self.execute or self.execute < 1):
+        if self.execute is not None and not whole(self.execute, 1):
             raise ValueError(f"Latency.execute must be a positive integer, got {self.execute!r}")
-        if self.ensemble is not None and not self.ensemble >= 0:
-            raise ValueError(f"Latency.ensemble (m) must be >= 0, got {self.ensemble!r}")
+        if self.ensemble is not None and not finite_at_least(self.ensemble, 0):
+            raise ValueError(f"Latency.ensemble (m) must be finite and >= 0, got {self.ensemble!r}")
         if not self.guidance >= 0 or not math.isfinite(self.guidance):
             raise ValueError(f"Latency.guidance must be finite and >= 0, got {self.guidance!r}")
 
@@ -329,11 +330,28 @@ class DelayedChunkPolicy(TensorDictModuleBase):
         first = j[None, :] == count - 1  # the episode's first chunk, ready at once
         valid = (j[None, :] < count) & ((j[None, :] >= d) | first)
         logw = self.ensemble * j.to(chunk.dtype)  # ACT: exp(-m i), i = 0 the oldest
-        w = torch.where(valid, torch.exp(logw - logw.max()), 0.0)
+        w = torch.where(
+            valid, torch.exp(logw - _stabiliser(logw, valid, self.ensemble * (H - 1))), 0.0
+        )
         w = w / w.sum(-1, keepdim=True)
         action = (w[..., None] * history[:, j, j]).sum(1)
         switch = init | (count[:, 0] > d)
         return action, switch
+
+
+_EXP_SAFE = 80.0
+"""``exp(-x)`` for ``x`` up to this is a normal float32 (``exp(-80)`` is 1.8e-35)"""
+
+
+def _stabiliser(logw: torch.Tensor, valid: torch.Tensor, span: float) -> torch.Tensor:
+    """What ensembling's log-weights are taken relative to: the oldest slot's, as the
+    committed runs took them, while no arrived weight can underflow against it (``m (H -
+    1)`` up to :data:`_EXP_SAFE`; ACT's ``m`` of 0.01 is far below); else each lane's
+    largest arrived one (past about 100 every arrived weight underflowed: a review saw NaN
+    actions, 0 / 0, and the newest chunk's weight was lost before that)."""
+    if span <= _EXP_SAFE:  # span: the log-weights' range, m (H - 1)
+        return logw.max()
+    return logw.expand_as(valid).masked_fill(~valid, -math.inf).amax(-1, keepdim=True)
 
 
 def _check(network, H: int, d: int, s: int, latency: Latency, hold, hold_noise: bool) -> None:
