@@ -256,6 +256,24 @@ def _script_threads(threads: int) -> Iterator[None]:
             os.environ["OMP_NUM_THREADS"] = before
 
 
+def _bench_threads(args: list[str], threads: int) -> tuple[list[str], int]:
+    """``bench``'s script arguments without ``--threads N`` (or ``--threads=N``), and the
+    thread count they give (``threads``, the one before NAME, where they give none): the
+    remainder took it to the script, which refused it (a review)."""
+    kept: list[str] = []
+    rest = iter(args)
+    for a in rest:
+        if a == "--threads" or a.startswith("--threads="):
+            value = a.partition("=")[2] if "=" in a else next(rest, "")
+            try:
+                threads = int(value)
+            except ValueError:
+                raise ValueError(f"--threads must be {THREADS.describe()}, got {value!r}") from None
+        else:
+            kept.append(a)
+    return kept, threads
+
+
 def build_parser(flags_for: Collection[str] | None = None) -> argparse.ArgumentParser:
     """The ``imitrl`` argument parser: one subcommand per entry of :data:`COMMANDS`.
 
@@ -342,6 +360,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser(flags_for=[first] if first in COMMANDS else []).parse_args(argv)
     command = COMMANDS[args.command]
     try:
+        if args.command == "bench":  # --threads after NAME is bench's too (no script has one)
+            args.args, args.threads = _bench_threads(list(args.args), args.threads)
         THREADS.check(args.threads, "--threads")
         if args.command == "bench":  # bench starts a script: its threads, and no torch here
             with _script_threads(args.threads):

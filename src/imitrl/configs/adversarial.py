@@ -98,7 +98,7 @@ class AdversarialConfig:
         if self.absorbing and self.gamma >= 1.0:
             raise ValueError(
                 "absorbing states need gamma < 1 (the absorbing state's value is "
-                "r_abs / (1 - gamma)); set absorbing=False for gamma = 1"
+                "r_abs / (1 - gamma)); set absorbing=False (--no-absorbing) for gamma = 1"
             )
 
 

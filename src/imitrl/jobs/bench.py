@@ -53,6 +53,14 @@ def script_args(name: str, args: tuple[str, ...], cwd: Path) -> tuple[list[str],
     """The script's arguments and the folder the command chose for it (None: the
     arguments already say where, or ``--write-committed`` was given)."""
     given = list(args)
+    for a in given:  # argparse reads "--ou X" as --out X: an abbreviation is not a choice
+        word = a.partition("=")[0]
+        for flag in ("--out", "--quick"):
+            if len(word) > 3 and word != flag and flag.startswith(word):
+                raise ValueError(
+                    f"{word}: spell {flag} in full (imitrl bench adds --out "
+                    f"results/bench/{name} unless the arguments say --out or --quick)"
+                )
     if WRITE_COMMITTED in given:
         return [a for a in given if a != WRITE_COMMITTED], None
     if any(a == flag or a.startswith(flag + "=") for a in given for flag in _CHOSEN):

@@ -105,6 +105,7 @@ def _train(config: GAILJob, name: str, folder: Path) -> dict:
         learner = _learner(setup)
         # the same rows on every rank, with each row's s' (a time limit's cut keeps its last)
         buffer = demonstrations(bc_view, setup, successors=True)
+        training = _training(config, buffer)  # refused before anything is evaluated
         _own_lanes(config, setup)
         expert_ev = initial_ev = None
         if evaluating():  # rank 0 evaluates and reports (--nproc)
@@ -113,10 +114,6 @@ def _train(config: GAILJob, name: str, folder: Path) -> dict:
             log_evaluation(setup.logger, 0, initial_ev, expert_ev)  # env step 0
         evaluations: list[tuple[int, dict]] = []  # (env steps, evaluation)
         on_round = _evaluator(config, bc_view, setup, evaluations)
-        absorbing = (
-            demonstrations_terminate(buffer.data) if config.absorbing is None else config.absorbing
-        )
-        training = dataclasses.replace(config.algorithm_config(), absorbing=absorbing)
         progress, logger = config.progress, setup.logger
         if name == "gail":
             result = gail(setup.playing(), learner, buffer, training, progress=progress, logger=logger,
@@ -140,7 +137,10 @@ def _train(config: GAILJob, name: str, folder: Path) -> dict:
                 "episodes": buffer.num_episodes,
                 "rows": len(buffer),
             },
-            "absorbing": {"on": absorbing, "why": _absorbing_why(config, buffer, absorbing)},
+            "absorbing": {
+                "on": training.absorbing,
+                "why": _absorbing_why(config, buffer, training.absorbing),
+            },
             "env_steps": result.env_steps,
             "expert_queries": result.expert_queries,
             "expert": expert_ev,
@@ -153,6 +153,22 @@ def _train(config: GAILJob, name: str, folder: Path) -> dict:
         return results
     finally:
         setup.close()  # the env and the logger, whatever happened
+
+
+def _training(config: GAILJob, buffer):
+    """The algorithm's config, its absorbing states decided (``--absorbing``, else whether
+    a demonstration terminates); ValueError naming the flags where ``--gamma 1`` meets
+    absorbing states (a review: refused after every evaluation, naming ``absorbing=``)."""
+    absorbing = (
+        demonstrations_terminate(buffer.data) if config.absorbing is None else config.absorbing
+    )
+    if absorbing and config.gamma >= 1.0:
+        why = "--absorbing" if config.absorbing else "the demonstrations terminate"
+        raise ValueError(
+            f"--gamma {config.gamma:g} with absorbing states (on: {why}): their value is "
+            "r_abs / (1 - gamma); give --gamma below 1, or --no-absorbing"
+        )
+    return dataclasses.replace(config.algorithm_config(), absorbing=absorbing)
 
 
 def _own_lanes(config: GAILJob, setup: Setup) -> None:

@@ -268,6 +268,11 @@ def make(name: str, task: TaskSpec, config: LearnerConfig) -> Learner:
         else:
             why = f"it is for {entry.actions} actions"
         raise ValueError(f"loss {name!r} does not apply to this task: {why}")
+    if config.value and not entry.value:
+        raise ValueError(
+            f"loss {name} builds no value head: GAIL and AIRL need one (take default, "
+            "cross_entropy, gaussian_nll or for_env)"
+        )
     if config.lr is not None and entry.own_lr is not None and config.lr != entry.own_lr:
         raise ValueError(
             f"loss {name} trains at its recipe's learning rate {entry.own_lr:g}, not lr "
@@ -275,11 +280,6 @@ def make(name: str, task: TaskSpec, config: LearnerConfig) -> Learner:
         )
     if config.hidden is not None and not entry.hidden:
         raise ValueError(f"loss {name} has no hidden layers to set: leave hidden out")
-    if config.value and not entry.value:
-        raise ValueError(
-            f"loss {name} builds no value head: GAIL and AIRL need one (take default, "
-            "cross_entropy, gaussian_nll or for_env)"
-        )
     states = task.num_states if entry.tables else None
     config = replace(config, lr=learning_rate(entry.own_lr, states, config.lr))
     learner = entry.build(task, config)
