@@ -211,7 +211,7 @@ def figure(payload: dict, path: Path) -> Path:
     agg = aggregate_rows(payload)
     cells, _ = groups(payload)
     fig, (ax, bx) = plt.subplots(1, 2, figsize=(11, 4.2))
-    for loss in payload["config"]["losses"]:
+    for k, loss in enumerate(payload["config"]["losses"]):
         mine = [a for a in agg if a["loss"] == loss]
         if not mine:
             continue
@@ -220,9 +220,12 @@ def figure(payload: dict, path: Path) -> Path:
         err = np.array([[a["iqm"].point - a["iqm"].low for a in mine],
                         [a["iqm"].high - a["iqm"].point for a in mine]])  # fmt: skip
         line = ax.errorbar(x, y, yerr=err, marker="o", capsize=3, label=loss)
-        for a in mine:  # under its interval, centred: rungs close in time never collide
-            ax.annotate(str(a["fit_steps"]), (a["fit_seconds"], a["iqm"].low), ha="center",
-                        va="top", textcoords="offset points", xytext=(0, -4), fontsize=8)  # fmt: skip
+        for a in mine:  # centred under its interval, every other loss's over it, in its
+            # colour: rungs close in time, or two losses' rungs at one time, never collide
+            up = k % 2 == 1
+            ax.annotate(str(a["fit_steps"]), (a["fit_seconds"], a["iqm"].high if up else a["iqm"].low),
+                        ha="center", va="bottom" if up else "top", textcoords="offset points",
+                        xytext=(0, 4 if up else -4), fontsize=8, color=line[0].get_color())  # fmt: skip
         top = payload["config"]["budgets"][loss]["steps"][-1]
         curves = [np.asarray(r["loss_curve"]) for t in payload["config"]["tasks"]
                   for r in cells[(t, loss, top)] if len(r.get("loss_curve") or []) >= 2]  # fmt: skip
