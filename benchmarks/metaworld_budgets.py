@@ -29,6 +29,7 @@ depend on its task, loss, rung and seed alone.
 
 from __future__ import annotations
 
+import importlib
 import json
 import os
 import re
@@ -39,7 +40,6 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-import _metaworld_recipes  # registers diffusion_unet_mw (DP3's Meta-World horizons)
 import _report
 from _loss_functions.merge import join_cells
 from _loss_functions.run import execute
@@ -50,6 +50,9 @@ from imitrl.envs.metaworld import MT10
 from metaworld_mt50 import PROTOCOL as MT50_PROTOCOL
 
 NAME = "metaworld_budgets"
+RECIPES = "_metaworld_recipes"
+"""the module whose import registers ``diffusion_unet_mw``: imported by a run alone, so
+that importing this script (a test, a merge) leaves the loss registry as it was"""
 CURVE_POINTS = 40
 """window means a fit's training loss is kept as (``Protocol.curve_points``)"""
 
@@ -67,7 +70,7 @@ class Budget:
 BUDGETS = {
     "mse": Budget(steps=(320, 2000), batch=256),
     "diffusion_unet": Budget(steps=(500, 2000, 4000, 8000), batch=64),
-    _metaworld_recipes.NAME: Budget(steps=(2000, 4000), batch=64),
+    "diffusion_unet_mw": Budget(steps=(2000, 4000), batch=64),
 }
 """Per loss. ``mse``: ``metaworld_mt10.py``'s 320 steps and ``metaworld_mt50.py``'s 2000
 (its network, 256-256 at lr 1e-3, chosen there). ``diffusion_unet``: the registry's CPU
@@ -170,7 +173,8 @@ def main(argv: list[str] | None = None) -> None:
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     load, t0 = os.getloadavg(), time.perf_counter()
     cells, refs = plan(budgets, tasks, seeds, args.quick)
-    rows, references = execute(cells, refs, jobs=args.jobs, modules=(_metaworld_recipes.__name__,))
+    importlib.import_module(RECIPES)  # here, and in every worker: its entry registered
+    rows, references = execute(cells, refs, jobs=args.jobs, modules=(RECIPES,))
     payload = {
         "config": {
             "tasks": list(tasks),

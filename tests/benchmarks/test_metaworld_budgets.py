@@ -16,7 +16,8 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 pytest.importorskip("metaworld")
 from _loss_functions.run import window_means  # noqa: E402
 from _metaworld_budgets_report import late_drop, markdown  # noqa: E402
-from metaworld_budgets import BUDGETS, PROTOCOL, chosen, main, merge, plan  # noqa: E402
+from imitrl.learners import registry  # noqa: E402
+from metaworld_budgets import BUDGETS, PROTOCOL, RECIPES, chosen, main, merge, plan  # noqa: E402
 
 
 def test_every_rung_is_a_cell_and_every_task_and_seed_one_reference():
@@ -203,15 +204,26 @@ def test_the_meta_world_recipe_is_diffusion_unet_at_dp3s_horizons():
     from torchrl.data import Bounded
 
     import _metaworld_recipes as recipes
-    from imitrl.learners import TaskSpec, build
+    from imitrl.learners import TaskSpec, build, registry
     from imitrl.learners.diffusion_unet.entries import DIFFUSION_UNET
 
-    importlib.reload(recipes)
-    assert recipes.NAME in BUDGETS
-    want = replace(DIFFUSION_UNET, horizon=4, action_steps=3)
-    assert recipes.DIFFUSION_UNET_MW == want
-    task = TaskSpec(action=Bounded(-1.0, 1.0, shape=(4,)), observation_dim=39)
-    mw, plain = build(recipes.NAME, task, seed=0), build("diffusion_unet", task, seed=0)
-    assert (mw.horizon, mw.history) == (4, 2) and (plain.horizon, plain.history) == (16, 2)
-    assert mw.policy.execution.execute == 3
-    assert sum(p.numel() for p in mw.parameters()) == sum(p.numel() for p in plain.parameters())
+    try:
+        importlib.reload(recipes)  # a second import registers nothing twice
+        assert recipes.NAME in BUDGETS and RECIPES == recipes.__name__
+        want = replace(DIFFUSION_UNET, horizon=4, action_steps=3)
+        assert recipes.DIFFUSION_UNET_MW == want
+        task = TaskSpec(action=Bounded(-1.0, 1.0, shape=(4,)), observation_dim=39)
+        mw, plain = build(recipes.NAME, task, seed=0), build("diffusion_unet", task, seed=0)
+        assert (mw.horizon, mw.history) == (4, 2) and (plain.horizon, plain.history) == (16, 2)
+        assert mw.policy.execution.execute == 3
+        count = sum(p.numel() for p in plain.parameters())
+        assert sum(p.numel() for p in mw.parameters()) == count
+    finally:  # the rest of the suite sees the library's registry
+        registry.unregister(recipes.NAME)
+
+
+def test_importing_the_script_registers_nothing():
+    """Importing ``metaworld_budgets`` (as these tests and a merge do) registered the
+    benchmark's entry for the whole process: the registry's name lists and every test
+    parametrised over its entries saw it."""
+    assert "diffusion_unet_mw" not in registry.names()
