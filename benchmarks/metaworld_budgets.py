@@ -50,6 +50,8 @@ from imitrl.envs.metaworld import MT10
 from metaworld_mt50 import PROTOCOL as MT50_PROTOCOL
 
 NAME = "metaworld_budgets"
+QUICK_LOSSES = ("mse", "diffusion_unet")
+"""``--quick``'s losses without ``--losses``: one of each kind of network is the smoke run"""
 RECIPES = "_metaworld_recipes"
 """the module whose import registers ``diffusion_unet_mw``: imported by a run alone, so
 that importing this script (a test, a merge) leaves the loss registry as it was"""
@@ -136,7 +138,9 @@ def plan(budgets: dict[str, Budget], tasks: tuple[str, ...], seeds: range, quick
 def main(argv: list[str] | None = None) -> None:
     p = _report.parser(__doc__)
     p.add_argument("--tasks", nargs="+", default=list(MT10), choices=list(MT10))
-    p.add_argument("--losses", nargs="+", default=list(BUDGETS), choices=list(BUDGETS))
+    p.add_argument("--losses", nargs="+", default=None, choices=list(BUDGETS),
+                   help="default: every loss (--quick: mse and diffusion_unet, a smoke run "
+                   "of the machinery)")  # fmt: skip
     p.add_argument("--steps", nargs="+", type=int, default=None,
                    help="run these rungs of each loss's ladder alone (default: every rung)")  # fmt: skip
     p.add_argument("--seeds", type=int, default=SEEDS)
@@ -162,6 +166,8 @@ def main(argv: list[str] | None = None) -> None:
             p.error(_report.merge_refused(err))
         _report.render_safely(lambda o: _report_of(merged, o), out, p.error, "--merge")
         return
+    if args.losses is None:
+        args.losses = [*QUICK_LOSSES] if args.quick else list(BUDGETS)
     try:
         budgets = chosen(tuple(args.losses), None if args.steps is None else tuple(args.steps))
     except ValueError as err:
