@@ -21,11 +21,11 @@ def test_a_run_writes_where_it_says_or_under_results_bench():
     )
 
 
-@pytest.mark.parametrize("word", ["--ou", "--qui", "--ou=/mine"])
+@pytest.mark.parametrize("word", ["--o", "--ou", "--q", "--qui", "--ou=/mine"])
 def test_an_abbreviated_out_or_quick_is_refused(word):
     """The script's argparse reads ``--ou X`` as ``--out X``; the command did not, added
-    its own ``--out`` after it, and that one won: the run went to results/bench. (``--o``
-    is too short to say: a script may have other flags starting so.)"""
+    its own ``--out`` after it, and that one won: the run went to results/bench. (Where
+    ``--o`` is ambiguous the script's argparse refuses it anyway.)"""
     with pytest.raises(ValueError, match=r"spell --(out|quick) in full"):
         script_args("x", (word, "/mine") if "=" not in word else (word,), Path("/c"))
 

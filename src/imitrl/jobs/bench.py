@@ -56,7 +56,7 @@ def script_args(name: str, args: tuple[str, ...], cwd: Path) -> tuple[list[str],
     for a in given:  # argparse reads "--ou X" as --out X: an abbreviation is not a choice
         word = a.partition("=")[0]
         for flag in ("--out", "--quick"):
-            if len(word) > 3 and word != flag and flag.startswith(word):
+            if len(word) > 2 and word != flag and flag.startswith(word):
                 raise ValueError(
                     f"{word}: spell {flag} in full (imitrl bench adds --out "
                     f"results/bench/{name} unless the arguments say --out or --quick)"
