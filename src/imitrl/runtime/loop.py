@@ -34,7 +34,7 @@ the last call left every lane, resetting the lanes that end.
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 
 import numpy as np
@@ -56,6 +56,7 @@ __all__ = [
     "Lanes",
     "Stepper",
     "episode_bound",
+    "holds_non_finite",
     "lane_count",
     "play",
     "play_steps",
@@ -254,7 +255,8 @@ def policy_errors_named(env: EnvBase, policy) -> Iterator[None]:
     try:
         yield
     except (RuntimeError, KeyError) as err:
-        if _not_finite(policy):  # a diverged learner, not one of another env (a review)
+        params = policy.parameters() if isinstance(policy, torch.nn.Module) else ()
+        if holds_non_finite(params):  # a diverged learner, not one of another env (a review)
             raise ValueError(
                 f"the policy ({type(policy).__name__}) holds weights that are not finite "
                 f"(NaN or inf: its training diverged) and cannot act: {type(err).__name__}: "
@@ -273,9 +275,8 @@ def policy_errors_named(env: EnvBase, policy) -> Iterator[None]:
         ) from err
 
 
-def _not_finite(policy) -> bool:
-    """Whether ``policy`` (a module) holds a parameter that is NaN or inf."""
-    params = policy.parameters() if isinstance(policy, torch.nn.Module) else ()
+def holds_non_finite(params: Iterable[torch.Tensor]) -> bool:
+    """Whether any of ``params`` (a module's parameters) holds a NaN or an inf."""
     return any(not bool(torch.isfinite(p).all()) for p in params)
 
 

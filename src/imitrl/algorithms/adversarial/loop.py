@@ -79,7 +79,13 @@ from imitrl.configs.adversarial import AdversarialConfig
 from imitrl.data.buffer import DemonstrationBuffer
 from imitrl.learners.actor_critic import ActorCritic
 from imitrl.runtime import paths
-from imitrl.runtime.loop import STEP_ROW_KEYS, Stepper, lane_count, play_steps
+from imitrl.runtime.loop import (
+    STEP_ROW_KEYS,
+    Stepper,
+    holds_non_finite,
+    lane_count,
+    play_steps,
+)
 from imitrl.system.device import acting
 from imitrl.system.ranks import gathered, rank_and_world, rows_drawn, sharded, summed
 
@@ -315,7 +321,7 @@ def check_finite_round(record: RoundRecord, params) -> None:
         "the learned reward": record.learned_reward,
     }
     bad = [name for name, v in numbers.items() if not math.isfinite(v)]
-    if not bad and not all(bool(torch.isfinite(p).all()) for p in params):
+    if not bad and holds_non_finite(params):
         bad = ["the learner's weights"]
     if bad:
         raise ValueError(
