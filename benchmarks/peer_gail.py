@@ -41,8 +41,9 @@ imitation's, judged on the headline rows.
 The peer's venv is ``peer_imitation.py``'s, and so is imitrl's (``--peer-python`` or
 ``$IMITRL_PEER_PYTHON``, ``--imitrl-python``: its docstring says how to build both;
 ``$PEER_VENV`` and ``$IMITRL_VENV`` stand for folders of your choice). ``--quick`` runs
-imitrl's four processes per (task, seed) alone, the command's on the same tiny budgets,
-``runs.QUICK_WORKERS`` at once (timings moot).
+imitrl's four processes alone, the command's on the same tiny budgets, each process kind
+on one task and each task at least once (``runs.order``), ``runs.QUICK_WORKERS`` at once
+(timings moot).
 """
 
 from __future__ import annotations
@@ -125,8 +126,9 @@ def run_command(
 
 def run_jobs(tasks, seeds: int, jobs, args, peer_python: str | None) -> list[dict]:
     """Every (task, seed) and, for each, ``jobs`` in turn, one process at a time;
-    ``--quick``: :data:`runs.QUICK_WORKERS` at once (the smoke run, timings moot)."""
-    order = [(t, s, *job) for t in tasks for s in range(seeds) for job in jobs]
+    ``--quick`` (the smoke run, timings moot): :func:`runs.order`'s quick pairs,
+    :data:`runs.QUICK_WORKERS` at once."""
+    order = runs.order(tasks, seeds, jobs, quick=args.quick)
     with tempfile.TemporaryDirectory(prefix="peer-gail-") as tmp:
 
         def one(job) -> dict:

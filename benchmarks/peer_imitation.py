@@ -38,8 +38,9 @@ phases (imports, setup, BC, DAgger collection + fits without evaluation, evaluat
 per-pair ratios imitrl / imitation and their medians, the BC and final returns of both
 (FrozenLake also the exact success of each greedy policy), the peer venv's ``pip list``.
 Not run in CI: it needs the peer's venv. ``--quick`` runs imitrl's side only (its plain
-and collector-trick processes), on tiny budgets, ``runs.QUICK_WORKERS`` processes at
-once (the smoke test; its timings mean nothing).
+and collector-trick processes), on tiny budgets, each process kind on one task and each
+task at least once (``runs.order``), ``runs.QUICK_WORKERS`` processes at once (the smoke
+test; its timings mean nothing).
 
 The peer's venv, outside the repository (``$PEER_VENV`` stands for a folder of your
 choice)::

@@ -72,11 +72,17 @@ class Config:
     """minibatch of the CNN fits"""
     timeout_s: float = 90.0
     """a repeat (one process: both networks, both loops) is stopped after this long"""
+    conditions: tuple[str, ...] = CONDITIONS
+    """the blocks run, in this order (of :data:`CONDITIONS`)"""
 
 
 QUICK = Config(
-    steps=3, repeats=1, mlp_rows=64, mlp_batch=16, pixels=(16, 16), cnn_rows=32, cnn_batch=8
-)
+    steps=3, repeats=1, mlp_rows=64, mlp_batch=16, pixels=(16, 16), cnn_rows=32, cnn_batch=8,
+    conditions=("quiet",),
+)  # fmt: skip
+"""the smoke run: the quiet block alone (the busy block's spinner would hold a core of the
+test run's two for the whole block; ``tests/benchmarks/test_threads.py`` starts and stops
+it)"""
 
 
 # ------------------------------------------------ one measurement (a fresh process)
@@ -265,7 +271,7 @@ def repeat(cfg: Config, threads: int, condition: str) -> dict:
 def run(cfg: Config, log) -> list[dict]:
     """Every repeat: the quiet block, then the busy block (1 and 2 threads alternating)."""
     rows = []
-    for condition in CONDITIONS:
+    for condition in cfg.conditions:
         with busy_core(condition == "busy"):
             for r in range(cfg.repeats):
                 for threads in cfg.threads:
@@ -282,7 +288,7 @@ def summary(cfg: Config, rows: list[dict]) -> dict:
     """Median seconds per (network/loop, condition, threads) (None: a repeat timed out
     before it; then the median is over the finished ones, flagged), and median load."""
     out: dict = {"seconds": {}, "timeouts": {}, "load_1min": {}}
-    for condition in CONDITIONS:
+    for condition in cfg.conditions:
         for threads in cfg.threads:
             these = [r for r in rows if r["condition"] == condition and r["threads"] == threads]
             cell = f"{condition}/{threads}"
@@ -315,14 +321,14 @@ def markdown(cfg: Config, summ: dict, wall: float) -> str:
     names = {"mlp": "MLP 4-64-64-2", "cnn": f"CNN {cfg.pixels[0]}x{cfg.pixels[1]}x3 16-32"}
     loops = {"plain": "plain torch loop", "fit_bc": "imitrl fit_bc"}
     header = ["what"]
-    for condition in CONDITIONS:
+    for condition in cfg.conditions:
         header += [f"{condition}, {t} thread{'s' if t > 1 else ''}" for t in cfg.threads]
         header.append(f"{condition}: 2 / 1 threads")
     rows, worst, best = [], 0.0, float("inf")
     for key, cells in summ["seconds"].items():
         network, loop = key.split("/")
         row = [f"{names[network]}, {loops[loop]}"]
-        for condition in CONDITIONS:
+        for condition in cfg.conditions:
             row += [
                 _cell(cfg, cells[f"{condition}/{t}"], summ["timeouts"][key][f"{condition}/{t}"])
                 for t in cfg.threads
@@ -333,7 +339,7 @@ def markdown(cfg: Config, summ: dict, wall: float) -> str:
                 worst, best = max(worst, two / one), min(best, two / one)
         rows.append(row)
     load = ["machine load (1-min, median before each)"]
-    for condition in CONDITIONS:
+    for condition in cfg.conditions:
         load += [f"{summ['load_1min'][f'{condition}/{t}']:.2f}" for t in cfg.threads] + [""]
     rows.append(load)
     return (

@@ -199,6 +199,18 @@ def plan(quick: bool) -> tuple[tuple[str, str, str], ...]:
     return tuple(job for job in PLAN if job[0] == "imitrl") if quick else PLAN
 
 
+def order(tasks: list, seeds: int, jobs: tuple, *, quick: bool = False) -> list[tuple]:
+    """The runs ``(task, seed, *job)``: every task with every job at every seed, in turn;
+    ``quick`` (the smoke run): every task and every job at least once, paired in turn
+    (task ``i`` with job ``i``, each list cycling), ``max(tasks, jobs)`` runs per seed."""
+    if not quick:
+        return [(t, s, *job) for t in tasks for s in range(seeds) for job in jobs]
+    n = max(len(tasks), len(jobs))
+    return [
+        (tasks[i % len(tasks)], s, *jobs[i % len(jobs)]) for i in range(n) for s in range(seeds)
+    ]
+
+
 def run_all(
     tasks: list[Task],
     seeds: int,
@@ -212,9 +224,9 @@ def run_all(
     log=print,
 ) -> list[dict]:
     """Every (task, seed), and for each the (library, protocol, process) ``jobs`` in
-    turn (:data:`PLAN`), one process at a time; ``concurrent``: :data:`QUICK_WORKERS`
-    at once (the smoke run, timings moot)."""
-    order = [(t, s, *job) for t in tasks for s in range(seeds) for job in jobs]
+    turn (:data:`PLAN`), one process at a time; ``concurrent`` (the smoke run, timings
+    moot): :func:`order`'s quick pairs, :data:`QUICK_WORKERS` at once."""
+    runs = order(tasks, seeds, jobs, quick=concurrent)
     with tempfile.TemporaryDirectory(prefix="peer-imitation-") as tmp:
 
         def one(job: tuple[Task, int, str, str, str]) -> dict:
@@ -232,9 +244,9 @@ def run_all(
             return r
 
         if concurrent:
-            with ThreadPoolExecutor(min(len(order), QUICK_WORKERS)) as pool:
-                return list(pool.map(one, order))
-        return [one(job) for job in order]
+            with ThreadPoolExecutor(min(len(runs), QUICK_WORKERS)) as pool:
+                return list(pool.map(one, runs))
+        return [one(job) for job in runs]
 
 
 # --------------------------------------------------------------- the expert check

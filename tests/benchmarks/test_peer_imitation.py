@@ -196,6 +196,24 @@ def test_the_plan_runs_plain_scripts_beside_imitation_and_the_trick_as_its_own_r
         TASKS["cartpole"].spec(1, "own", "default", "gc_off")
 
 
+@pytest.mark.parametrize(("tasks", "jobs"), [(3, 3), (2, 4), (3, 1), (1, 5)])
+def test_a_full_run_is_every_pair_and_the_smoke_run_covers_every_task_and_job(tasks, jobs):
+    """A full run: every (task, seed, job); ``--quick``: each task and each job at least
+    once, in ``max`` runs a seed, every seed alike."""
+    names, plan = (
+        [f"t{i}" for i in range(tasks)],
+        [(f"lib{j}", "own", "plain") for j in range(jobs)],
+    )
+    full = runs.order(names, 2, plan)
+    assert full == [(t, s, *job) for t in names for s in range(2) for job in plan]
+    smoke = runs.order(names, 2, plan, quick=True)
+    assert len(smoke) == 2 * max(tasks, jobs)
+    for seed in range(2):
+        these = [r for r in smoke if r[1] == seed]
+        assert {r[0] for r in these} == set(names)
+        assert {r[2:] for r in these} == set(plan)
+
+
 def _planned_runs(walls: dict, seeds=(0, 1)) -> list[dict]:
     """Fake reports of :data:`runs.PLAN` in its order; ``walls[(library, protocol,
     process)]`` the wall seconds of each seed."""
