@@ -16,11 +16,6 @@ import pytest
 import torch
 
 from imitrl.tabular import TabularMDP, greedy, value_iteration
-from tests._durations import (  # noqa: F401  # hooks: longest test files first
-    pytest_addoption,
-    pytest_collection_modifyitems,
-    pytest_configure,
-)
 
 torch.set_num_threads(1)
 

@@ -9,8 +9,10 @@ from __future__ import annotations
 import json
 
 import pytest
+import torch
 
 from imitrl.fs.run_folder import staging_folder
+from imitrl.jobs.curves import read_scalars
 from tests._cli import run_main
 
 FLAGS = ["dagger", "--expert", "auto", "--demos", "1", "--rounds", "2",
@@ -74,16 +76,22 @@ def _main(*argv: str) -> tuple[int, str]:
     return status, err
 
 
-def test_a_resumed_run_logs_the_interrupted_round_once(finished, tmp_path):
+@pytest.fixture(scope="module")
+def whole(tmp_path_factory):
+    """The uninterrupted run of three rounds."""
+    out = tmp_path_factory.mktemp("whole") / "run"
+    status, err = _main(*FLAGS, "--env", "CartPole-v1", "--rounds", "3", "--out", str(out))
+    assert status == 0, err
+    return out
+
+
+def test_a_resumed_run_logs_the_interrupted_round_once(finished, whole, tmp_path):
     """A kill during round 2 leaves that round's fit losses, rows and evaluation in the
     CSV logs (a line maybe cut short); the resumed run logs them again. A hostile review:
     they appeared twice, in the CSV files and in curves.png. Now the logs of the resumed
     run equal those of the uninterrupted run, byte for byte."""
     import shutil
 
-    whole = tmp_path / "whole"
-    status, err = _main(*FLAGS, "--env", "CartPole-v1", "--rounds", "3", "--out", str(whole))
-    assert status == 0, err
     out = tmp_path / "killed"
     shutil.copytree(finished, out)
     logs, whole_logs = _logs(out), _logs(whole)
@@ -97,6 +105,51 @@ def test_a_resumed_run_logs_the_interrupted_round_once(finished, tmp_path):
                         "--out", str(out))  # fmt: skip
     assert status == 0, err
     assert _logs(out) == whole_logs
+
+
+def test_a_resumed_run_writes_its_tensorboard_log_as_the_uninterrupted_run(
+    finished, whole, tmp_path
+):
+    """TensorBoard's event files only grow: the steps a killed round had logged stayed in
+    them and the resumed run logged them again (a hostile review). A resume writes the
+    log again from the CSV files, cut back to the checkpoint: every scalar at every step
+    once, as the uninterrupted run's CSV files hold it, in one event file. A run logged
+    to CSV alone and resumed with ``--logger tensorboard`` gets its whole history."""
+    pytest.importorskip("tensorboard")
+    import shutil
+
+    from torch.utils.tensorboard import SummaryWriter
+
+    out = tmp_path / "killed"
+    shutil.copytree(finished, out)
+    board = out / "logs" / "tensorboard" / "dagger"
+    stale = SummaryWriter(log_dir=str(board))  # what the killed round had sent
+    for step in range(15, 30):
+        stale.add_scalar("bc/loss", 99.0, global_step=step)
+    stale.add_scalar("eval/return", -5.0, global_step=2)
+    stale.close()
+    status, err = _main(*FLAGS, "--env", "CartPole-v1", "--rounds", "3", "--resume",
+                        "--logger", "tensorboard", "--out", str(out))  # fmt: skip
+    assert status == 0, err
+    assert len(list(board.glob("events.out.tfevents.*"))) == 1
+    want = {
+        name: [(s, repr(v)) for s, v in zip(steps, torch.tensor(values).float().tolist())]
+        for name, (steps, values) in read_scalars(_scalars(whole)).items()
+    }
+    assert len(want) >= 5 and len(want["bc/loss"]) == 30
+    assert _events(board) == want
+
+
+def _events(folder) -> dict:
+    """Every scalar of a TensorBoard folder as ``name -> [(step, value), ...]``, by step."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    acc = EventAccumulator(str(folder), size_guidance={"scalars": 0})
+    acc.Reload()
+    return {  # values as text: an interval of one episode is nan, equal to itself here
+        tag: sorted((e.step, repr(e.value)) for e in acc.Scalars(tag))
+        for tag in acc.Tags()["scalars"]
+    }
 
 
 def _scalars(out):

@@ -17,8 +17,9 @@ The CSV files (``--out/logs/csv/<command>/scalars/<name>.csv``, one ``step,value
 each) are always written, and ``curves.png`` is drawn from them; ``--logger
 tensorboard`` / ``wandb`` sends the same scalars there too. A rerun into the same
 ``--out`` replaces the CSV files (TorchRL's CSV logger appends); a resumed run first cuts
-them back to what its checkpoint holds (:func:`trim_scalars`), so a round a kill
-interrupted is logged once, as resumed.
+them back to what its checkpoint holds (:func:`trim_scalars`) and writes its TensorBoard
+log again from them (:func:`rebuild_tensorboard`), so a round a kill interrupted is logged
+once, as resumed (wandb's server-side history keeps it twice).
 """
 
 from __future__ import annotations
@@ -43,6 +44,7 @@ __all__ = [
     "make_logger",
     "plot_curves",
     "read_scalars",
+    "rebuild_tensorboard",
     "scalars_dir",
     "trim_scalars",
 ]
@@ -139,6 +141,41 @@ def trim_scalars(out: Path, name: str, keep: Callable[[str, int], bool]) -> int:
             dropped += len(lines) - len(kept)
             replace_file(path, "".join(f"{line}\n" for line in kept).encode())
     return dropped
+
+
+def rebuild_tensorboard(logger: Logger, out: Path, name: str) -> int:
+    """Write a resumed run's TensorBoard log again from its CSV files, which
+    :func:`trim_scalars` cut back to its checkpoint; returns the scalars written.
+
+    TensorBoard's event files only grow, so the steps an interrupted run logged after its
+    last checkpoint stayed in them, and the resumed run logged them again (a hostile
+    review: each appeared twice). The CSV files hold every scalar the run logged, so
+    ``logger``'s TensorBoard writer (inside a :class:`FanOut`, or alone) is closed, a
+    new one writes each CSV line at its step, and then the older event files of its folder
+    go: a kill before that leaves them beside the new one, and the next resume rebuilds
+    the log again. wandb's history lives on its server: a wandb run keeps the steps twice.
+    Any other logger is left as it is."""
+    from torchrl.record.loggers import TensorboardLogger
+
+    written = 0
+    for inner in getattr(logger, "loggers", (logger,)):
+        if not isinstance(inner, TensorboardLogger):
+            continue
+        from torch.utils.tensorboard import SummaryWriter
+
+        folder = Path(inner.experiment.log_dir)
+        inner.experiment.close()
+        older = set(folder.glob("events.out.tfevents.*"))
+        writer = SummaryWriter(log_dir=str(folder))
+        for scalar, (steps, values) in read_scalars(scalars_dir(out, name)).items():
+            for step, value in zip(steps, values):
+                writer.add_scalar(scalar, value, global_step=step)
+                written += 1
+        writer.flush()
+        for path in older:
+            path.unlink(missing_ok=True)
+        inner.experiment = writer
+    return written
 
 
 def _kept(line: str, scalar: str, keep: Callable[[str, int], bool]) -> bool:

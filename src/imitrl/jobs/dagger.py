@@ -52,7 +52,7 @@ from imitrl.jobs.bc import (
 )
 from imitrl.jobs.checkpoint import WEIGHTS_FILE, save_checkpoint
 from imitrl.jobs.configs import DAggerJob
-from imitrl.jobs.curves import trim_scalars
+from imitrl.jobs.curves import rebuild_tensorboard, trim_scalars
 from imitrl.jobs.evaluate import check_evaluation, format_return
 from imitrl.jobs.ranks import RUN_CHECKPOINT, evaluating, lead, run_folder
 from imitrl.jobs.resolve import no_expert_message
@@ -119,7 +119,7 @@ def _run_dagger(config: DAggerJob, folder: Path) -> dict:
                 logger=setup.logger,
                 checkpoint_dir=checkpoint,
                 resume=config.resume,
-                on_resume=functools.partial(_resumed, folder) if evaluating() else None,
+                on_resume=functools.partial(_resumed, folder, setup.logger) if evaluating() else None,
             )
         finally:
             if isinstance(source, RaySource | LeadSource):
@@ -167,14 +167,15 @@ def _results(config: DAggerJob, setup: Setup, result, demos: tuple[int, int], ex
     }
 
 
-def _resumed(folder: Path, next_round: int, bc_step: int, records: list) -> None:
+def _resumed(folder: Path, logger, next_round: int, bc_step: int, records: list) -> None:
     """A resumed run, before it logs anything: each saved round's evaluation checked (the
     checkpoint carried it; a hostile review: an edited one ended the finished run in a
     traceback), and the CSV logs cut back to the checkpoint: the fit losses (``bc/*``,
     step = fit step) before ``bc_step``, the rest (step = round) before ``next_round``;
     the resumed rounds log the rest again (the round a kill interrupted used to appear
-    twice in the CSV files and ``curves.png``; TensorBoard's and wandb's logs, which
-    imitrl cannot cut, still show its steps twice)."""
+    twice in the CSV files and ``curves.png``). A TensorBoard log is written again from
+    the cut CSV files (:func:`~imitrl.jobs.curves.rebuild_tensorboard`); wandb's, on its
+    server, still shows those steps twice."""
     for record in records:
         check_evaluation(record.info, f"{folder / RUN_CHECKPOINT}: round {record.round}")
     trim_scalars(
@@ -182,6 +183,7 @@ def _resumed(folder: Path, next_round: int, bc_step: int, records: list) -> None
         "dagger",
         lambda scalar, step: step < (bc_step if scalar.startswith("bc/") else next_round),
     )
+    rebuild_tensorboard(logger, folder, "dagger")
 
 
 def _dagger_config(config: DAggerJob, setup: Setup) -> DAggerConfig:
