@@ -61,9 +61,13 @@ class Config:
     """measurements of each (network, ranks), alternating"""
     image: int = 84
     """the camera's height and width"""
+    networks: tuple[str, ...] = NETWORKS
+    """the learners measured (of :data:`NETWORKS`)"""
 
 
-QUICK = Config(steps=4, warmup=1, rows=256, reduces=3, repeats=1, image=36)
+QUICK = Config(steps=4, warmup=1, rows=256, reduces=3, repeats=1, image=36, networks=("cnn",))
+"""the smoke run: the CNN alone (the MLP runs the same ranks and all-reduce; each
+measurement is a fresh process tree of three interpreters)"""
 
 
 def _learner_and_rows(network: str, cfg: Config):
@@ -161,7 +165,7 @@ def _one(network: str, ranks: int, cfg: Config) -> dict:
 
 def run(cfg: Config, say) -> tuple[list[dict], dict]:
     rows, drift = [], {}
-    for network in NETWORKS:
+    for network in cfg.networks:
         last: dict = {}
         for repeat in range(cfg.repeats):
             for ranks in (1, 2) if repeat % 2 == 0 else (2, 1):
@@ -183,7 +187,7 @@ def run(cfg: Config, say) -> tuple[list[dict], dict]:
 
 def summary(cfg: Config, rows: list[dict], drift: dict) -> dict:
     out = {}
-    for network in NETWORKS:
+    for network in cfg.networks:
         mine = [r for r in rows if r["network"] == network]
         sps = {k: statistics.median(r["samples_per_s"] for r in mine if r["ranks"] == k)
                for k in (1, 2)}  # fmt: skip

@@ -107,6 +107,7 @@ def _run_dagger(config: DAggerJob, folder: Path) -> dict:
             return ev  # kept in the round's record, and so in the checkpoint
 
         source = episode_source(config, setup)
+        resumed = functools.partial(_resumed, folder, setup.logger) if evaluating() else None
         try:
             result = dagger(
                 source,
@@ -119,7 +120,7 @@ def _run_dagger(config: DAggerJob, folder: Path) -> dict:
                 logger=setup.logger,
                 checkpoint_dir=checkpoint,
                 resume=config.resume,
-                on_resume=functools.partial(_resumed, folder, setup.logger) if evaluating() else None,
+                on_resume=resumed,
             )
         finally:
             if isinstance(source, RaySource | LeadSource):
