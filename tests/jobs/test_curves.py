@@ -1,6 +1,9 @@
-"""curves.png: the evaluation panel plots success where the env reports it (issue 44)."""
+"""curves.png: the evaluation panel plots success where the env reports it (issue 44); a
+resumed run's logs cut back to its checkpoint, its TensorBoard log written again."""
 
 from __future__ import annotations
+
+import pytest
 
 from imitrl.jobs import curves as curves_module
 from imitrl.jobs.bc import log_evaluation
@@ -67,3 +70,34 @@ def test_trim_scalars_keeps_what_keep_accepts_and_drops_cut_lines(tmp_path):
     assert set(seen) == {"bc/loss", "eval/return", "eval/success"}
     assert read_scalars(root)["bc/loss"] == ([0, 1], [1.5, 1.25])
     assert trim_scalars(tmp_path / "none", "dagger", keep) == 0  # no logs yet: nothing to cut
+
+
+def test_rebuild_tensorboard_writes_the_csv_files_once_and_drops_older_event_files(tmp_path):
+    """The TensorBoard writer inside the run's logger is replaced by one holding every CSV
+    line at its step, once; the event files written before are gone; a CSV-only logger
+    is left alone."""
+    pytest.importorskip("tensorboard")
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    from imitrl.jobs.curves import rebuild_tensorboard
+
+    logger = make_logger("tensorboard", tmp_path, "dagger")
+    for step in range(4):
+        logger.log_scalar("bc/loss", 1.0 / (step + 1), step=step)
+    logger.log_scalar("eval/return", 7.0, step=0)
+    before = logger.loggers[1].experiment
+    before.flush()
+    assert trim_scalars(tmp_path, "dagger", lambda scalar, step: step < 2) == 2
+    assert rebuild_tensorboard(logger, tmp_path, "dagger") == 3
+    board = tmp_path / "logs" / "tensorboard" / "dagger"
+    assert len(list(board.glob("events.out.tfevents.*"))) == 1
+    assert logger.loggers[1].experiment is not before  # the run logs on through the new one
+    logger.log_scalar("bc/loss", 0.125, step=2)
+    logger.shutdown()
+    acc = EventAccumulator(str(board))
+    acc.Reload()
+    assert [(e.step, e.value) for e in acc.Scalars("bc/loss")] == [(0, 1.0), (1, 0.5), (2, 0.125)]
+    assert [(e.step, e.value) for e in acc.Scalars("eval/return")] == [(0, 7.0)]
+    csv_only = make_logger("csv", tmp_path / "other", "dagger")
+    csv_only.log_scalar("bc/loss", 1.0, step=0)
+    assert rebuild_tensorboard(csv_only, tmp_path / "other", "dagger") == 0
