@@ -127,3 +127,28 @@ def test_bad_requests_are_one_line(kwargs, said):
     args = {"episodes": 10, **kwargs}
     with pytest.raises(ValueError, match=said):
         compare(env, a, b, args.pop("episodes"), **args)
+
+
+def test_a_betting_interval_reaches_the_bound_its_outcomes_sit_on():
+    """Differences all at +span (a always succeeds, b always fails): the truth, +span, is
+    in the interval (a hostile review: the grid leaves out its ends, and the interval
+    stopped at 0.999); an interval away from the bounds keeps its grid points."""
+    ones = torch.ones(100, dtype=torch.float64)
+    low, high = betting_interval(ones, 0.05, (0.0, 1.0))
+    assert high == 1.0 and 0.5 < low < 1.0
+    assert betting_interval(-ones, 0.05, (0.0, 1.0))[0] == -1.0
+    mixed = torch.tensor([1.0, 0.0, -1.0, 0.0] * 25, dtype=torch.float64)
+    low, high = betting_interval(mixed, 0.05, (0.0, 1.0))
+    assert -1.0 < low < 0.0 < high < 1.0
+
+
+@pytest.mark.parametrize(
+    ("bounds", "said"),
+    [((0.0, 1e308), "too wide for float64"), ((0.0, float("inf")), "must be finite"),
+     ((float("nan"), 1.0), "must be finite"), ((1.0, 1.0), "low < high")],
+)  # fmt: skip
+def test_a_return_range_the_bets_cannot_use_is_refused(bounds, said):
+    env = make_env("CartPole-v1", seed=0, max_episode_steps=20)
+    expert = PolicySpec(cartpole_expert().as_actor(), ExplorationType.DETERMINISTIC, "expert")
+    with pytest.raises(ValueError, match=said):
+        compare(env, expert, expert, 4, metric="return", return_range=bounds, sequential=True)

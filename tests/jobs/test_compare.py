@@ -57,6 +57,11 @@ def test_a_sequential_comparison_on_a_metaworld_task_stops_early():
         (["--b", "{long}", "--alpha", "1e-17"], "--alpha must be in [1e-12, 1), got 1e-17"),
         (["--b", "{long}", "--episodes", "0"], "--episodes must be an integer >= 2"),
         (["--b", "{long}", "--sequential", "--metric", "return"], "--return-range LOW,HIGH"),
+        # a hostile review: 0,1e308 overflowed the bets' mapping and the sequential
+        # comparison decided for the wrong side; 0,inf played every episode for [-inf, inf]
+        (["--b", "random", "--sequential", "--return-range=0,1e308"], "too wide for float64"),
+        (["--b", "random", "--sequential", "--return-range=0,inf"], "must be finite"),
+        (["--b", "random", "--return-range=-inf,0"], "must be finite"),
     ],
 )
 def test_bad_input_is_one_line_and_writes_nothing(runs, tmp_path, argv, said):
@@ -65,6 +70,25 @@ def test_bad_input_is_one_line_and_writes_nothing(runs, tmp_path, argv, said):
     status, _, err = _main("compare", "--a", str(runs / "short"), *argv, "--out", str(out))
     assert status == 2 and said in err and "Traceback" not in err, err
     assert len(err.strip().splitlines()) == 1 and not out.exists()
+
+
+def test_a_checkpoint_of_a_dataset_alone_is_compared_in_the_env_named(runs, tmp_path):
+    """A checkpoint of ``bc --env none`` (its config names no env) is played in ``--env``,
+    as ``imitrl eval --env`` plays it (a hostile review: compare asked for ``--env`` while
+    it was given); without ``--env`` it is refused naming the flag."""
+    import shutil
+
+    offline = tmp_path / "offline"
+    shutil.copytree(runs / "short", offline)
+    saved = json.loads((offline / "config.json").read_text())
+    saved["config"]["env"] = None  # what bc --env none writes
+    (offline / "config.json").write_text(json.dumps(saved))
+    status, out, err = _main("compare", "--a", str(offline), "--b", str(runs / "short"),
+                             "--env", "CartPole-v1", "--episodes", "4")  # fmt: skip
+    assert status == 0, err
+    assert "difference a - b +0" in out  # the same weights on the same seeds
+    status, _, err = _main("compare", "--a", str(offline), "--b", "random", "--episodes", "4")
+    assert status == 2 and "name the env to evaluate it in, --env ENV" in err, err
 
 
 def test_checkpoints_trained_with_different_env_arguments_are_refused(runs, tmp_path):

@@ -50,7 +50,7 @@ class CompareJob:
     """success, return, or auto (success where the env reports it, return elsewhere)"""
     return_range: tuple[float, ...] | None = None
     """low,high bounds of an episode's return (a --sequential comparison of returns needs
-    them)"""
+    them); a negative low is written with an equals sign, --return-range=-1700,0"""
     seed: int = bounded(10_000, 0, MAX_SEED)
     """episode j of both sides starts from the env seeded seed + j"""
     max_episode_steps: int | None = bounded(None, 1, MAX_EPISODE_STEPS, none_ok=True)
@@ -81,12 +81,16 @@ class CompareJob:
         check_bounds(self)
         if self.metric not in ("auto", "success", "return"):
             raise ValueError(f"--metric must be auto, success or return, got {self.metric!r}")
-        if self.return_range is not None and (
-            len(self.return_range) != 2 or not self.return_range[0] < self.return_range[1]
-        ):
-            raise ValueError(
-                f"--return-range must be low,high with low < high, got {self.return_range}"
-            )
+        if self.return_range is not None:
+            from imitrl.evaluation.compare import check_return_range
+
+            if len(self.return_range) != 2:
+                raise ValueError(f"--return-range must be low,high, got {self.return_range}")
+            low, high = self.return_range
+            try:
+                check_return_range((low, high))
+            except ValueError as err:
+                raise ValueError(f"--return-range {low:g},{high:g}: {err}") from None
         for flag, side in (("--a", self.a), ("--b", self.b)):
             if side not in SIDES and not (Path(side) / "config.json").is_file():
                 raise ValueError(
@@ -155,7 +159,9 @@ def _env_of(config: CompareJob) -> tuple[str, int | None, dict]:
     from imitrl.jobs.checkpoint import checkpoint_env, checkpoint_env_kwargs, read_config
 
     saved = {s: read_config(Path(s)) for s in (config.a, config.b) if s not in SIDES}
-    envs = {s: checkpoint_env(Path(s), c) for s, c in saved.items()}
+    # --env names the env: a checkpoint of a dataset alone (env None) or of an env whose
+    # id would import code is played there (as imitrl eval --env does)
+    envs = {s: config.env if config.env else checkpoint_env(Path(s), c) for s, c in saved.items()}
     if config.env is None and len(set(envs.values())) > 1:
         raise ValueError(
             "the checkpoints were trained on different envs ("
