@@ -269,7 +269,8 @@ def repeat(cfg: Config, threads: int, condition: str) -> dict:
 
 
 def run(cfg: Config, log) -> list[dict]:
-    """Every repeat: the quiet block, then the busy block (1 and 2 threads alternating)."""
+    """Every repeat of each block of ``cfg.conditions`` in turn (the quiet block, then the
+    busy block), 1 and 2 threads alternating."""
     rows = []
     for condition in cfg.conditions:
         with busy_core(condition == "busy"):

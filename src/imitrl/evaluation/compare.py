@@ -245,9 +245,11 @@ def _check_outcomes(
 
 
 def check_return_range(return_range: tuple[float, float]) -> None:
-    """ValueError unless ``(low, high)`` are finite, ``low < high``, and the differences'
-    span ``2 (high - low)`` is a finite float (a hostile review: ``0,1e308`` overflowed the
-    bets' mapping to infinity and a sequential comparison decided for the wrong side)."""
+    """ValueError unless ``(low, high)`` are finite, ``low < high``, and twice the
+    differences' span, ``4 (high - low)``, is a finite float (the bets map a difference
+    ``d`` in ``[-span, span]`` through ``(d + span) / (2 span)``; a hostile review:
+    ``0,1e308`` overflowed it to infinity and a sequential comparison decided for the wrong
+    side)."""
     low, high = return_range
     if not (math.isfinite(low) and math.isfinite(high) and low < high):
         raise ValueError(f"the return range must be finite with low < high, got {low}, {high}")

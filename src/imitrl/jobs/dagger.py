@@ -33,6 +33,7 @@ import time
 from pathlib import Path
 
 import torch
+from torchrl.record.loggers import Logger
 
 from imitrl.algorithms import Constant, DAggerConfig, EnvSource, Exponential, dagger
 from imitrl.algorithms.beta_schedules import BetaSchedule
@@ -168,7 +169,7 @@ def _results(config: DAggerJob, setup: Setup, result, demos: tuple[int, int], ex
     }
 
 
-def _resumed(folder: Path, logger, next_round: int, bc_step: int, records: list) -> None:
+def _resumed(folder: Path, logger: Logger, next_round: int, bc_step: int, records: list) -> None:
     """A resumed run, before it logs anything: each saved round's evaluation checked (the
     checkpoint carried it; a hostile review: an edited one ended the finished run in a
     traceback), and the CSV logs cut back to the checkpoint: the fit losses (``bc/*``,
